@@ -1,0 +1,258 @@
+"""Quadrotor parameters: the `DroneParams` pytree and the host-side URDF loader.
+
+Every constant comes from a URDF (`assets/*.urdf`): the `<properties>` element, the `base_link` inertial block and
+the `prop{i}_link` inertial origins. The derived quantities (hover and maximum RPM, maximum thrust and torques,
+ground-effect height clip) follow gym-pybullet-drones' `BaseAviary.__init__` (facts sheet §1.1).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import xml.etree.ElementTree as ET
+from importlib import resources
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+#: Standard gravity used by the paper's code (never 9.81), m/s².
+GRAVITY = 9.8
+
+#: Model names that ship with the package (`assets/<name>.urdf`).
+MODELS = ("cf2x", "cf2p", "racer")
+
+_PROPERTY_KEYS = (
+    "arm", "kf", "km", "thrust2weight", "max_speed_kmh", "gnd_eff_coeff", "prop_radius",
+    "drag_coeff_xy", "drag_coeff_z", "dw_coeff_1", "dw_coeff_2", "dw_coeff_3", "frame", "prop_spin",
+)
+
+
+@struct.dataclass
+class DroneParams:
+    """Physical parameters of one quadrotor model, as a pytree of float arrays.
+
+    All leaves have JAX's default float dtype (float32, or float64 under ``jax_enable_x64``). Leaves may carry
+    leading batch axes (e.g. ``[W]`` or ``[W, D]``) for heterogeneous teams or domain randomisation; the shapes
+    below are those of one drone. Motor speed is in RPM (rev/min), as in the paper and its URDFs.
+
+    Attributes:
+        mass: f[] kg (URDF ``base_link`` inertial mass).
+        arm: f[] m, the paper's arm length L (URDF ``properties/@arm``).
+        inertia: f[3, 3] kg·m², body frame, J = diag(ixx, iyy, izz) plus products (URDF ``base_link`` inertia).
+        inertia_inv: f[3, 3] 1/(kg·m²), J⁻¹.
+        kf: f[] N/rpm², thrust per squared RPM.
+        km: f[] N·m/rpm², reaction torque per squared RPM.
+        thrust2weight: f[] maximum thrust over weight (-).
+        max_speed_kmh: f[] km/h, the airframe's nominal maximum speed.
+        prop_radius: f[] m.
+        gnd_eff_coeff: f[] ground-effect coefficient C_gnd (-), paper eq. (ground).
+        drag_coeff: f[3] N·s/m per rad/s, (c_xy, c_xy, c_z), paper eq. (drag).
+        dw_coeff: f[3] downwash coefficients (c1 N, c2 -, c3 m), paper eq. (down).
+        prop_pos: f[4, 3] m, body-frame motor positions (URDF ``prop{i}_link`` inertial origins).
+        prop_spin: f[4] +1 for a counter-clockwise motor seen from above (yaw reaction -km·rpm²), -1 for clockwise.
+        torque_arm: f[2, 4] m, the explicit-dynamics lever arms: body (τx, τy) = torque_arm @ thrusts.
+            x frame: L/√2 along each motor's diagonal; + frame: L along its axis (facts §3.1).
+        gravity: f[] m/s², 9.8 as in the paper's code.
+        collision_radius: f[] m, radius of the collision cylinder.
+        collision_height: f[] m, length of the collision cylinder (centred on the base origin).
+        hover_rpm: f[] RPM, √(m g / (4 kf)).
+        max_rpm: f[] RPM, √(t2w · m g / (4 kf)).
+        max_thrust: f[] N, 4 kf max_rpm².
+        max_xy_torque: f[] N·m, 2 L kf max_rpm²/√2 (x frame) or L kf max_rpm² (+ frame).
+        max_z_torque: f[] N·m, 2 km max_rpm².
+        gnd_eff_h_clip: f[] m, (R/4)·√(15 C_gnd / 4): below it the ground-effect height is clipped.
+    """
+
+    mass: jax.Array
+    arm: jax.Array
+    inertia: jax.Array
+    inertia_inv: jax.Array
+    kf: jax.Array
+    km: jax.Array
+    thrust2weight: jax.Array
+    max_speed_kmh: jax.Array
+    prop_radius: jax.Array
+    gnd_eff_coeff: jax.Array
+    drag_coeff: jax.Array
+    dw_coeff: jax.Array
+    prop_pos: jax.Array
+    prop_spin: jax.Array
+    torque_arm: jax.Array
+    gravity: jax.Array
+    collision_radius: jax.Array
+    collision_height: jax.Array
+    hover_rpm: jax.Array
+    max_rpm: jax.Array
+    max_thrust: jax.Array
+    max_xy_torque: jax.Array
+    max_z_torque: jax.Array
+    gnd_eff_h_clip: jax.Array
+
+    @property
+    def weight(self) -> jax.Array:
+        """f[] N, m·g."""
+        return self.mass * self.gravity
+
+
+def model_path(name: str) -> str:
+    """Path of a shipped model's URDF.
+
+    Raises:
+        ValueError: if ``name`` is not one of `MODELS`.
+    """
+    if name not in MODELS:
+        raise ValueError(f"unknown drone model {name!r}: expected one of {MODELS} or a path to a .urdf file")
+    return str(resources.files("jaxdrones.assets").joinpath(f"{name}.urdf"))
+
+
+def load_params(name_or_path: str | os.PathLike = "cf2x") -> DroneParams:
+    """Load a quadrotor model from a shipped name or a URDF path (host side, not jittable).
+
+    Args:
+        name_or_path: ``"cf2x"``, ``"cf2p"``, ``"racer"``, or the path of a URDF written like those in ``assets/``.
+
+    Returns:
+        DroneParams with unbatched leaves in JAX's default float dtype.
+
+    Raises:
+        ValueError: unknown model name, missing or unreadable file, malformed XML, a missing or non-numeric
+            property, or a physically invalid model (mass ≤ 0, inertia not symmetric positive definite,
+            kf/km/arm/prop_radius/thrust2weight ≤ 0, thrust-to-weight ≤ 1, not 4 motors, spins not ±1).
+    """
+    path = os.fspath(name_or_path)
+    if not path.endswith(".urdf") and os.sep not in path:
+        path = model_path(path)
+    if not os.path.isfile(path):
+        raise ValueError(f"drone model file not found: {path!r}")
+    raw = _parse_urdf(path)
+    return _derive(raw, path)
+
+
+def _parse_urdf(path: str) -> dict:
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as err:
+        raise ValueError(f"{path}: malformed URDF XML ({err})") from None
+    props = root.find("properties")
+    if props is None:
+        raise ValueError(f"{path}: missing <properties> element with the drone constants")
+    raw: dict = {}
+    for key in _PROPERTY_KEYS:
+        if key not in props.attrib:
+            raise ValueError(f"{path}: <properties> lacks attribute {key!r}")
+    for key in _PROPERTY_KEYS[:-2]:
+        raw[key] = _number(path, f"properties/@{key}", props.attrib[key])
+    raw["frame"] = props.attrib["frame"].strip()
+    if raw["frame"] not in ("x", "+"):
+        raise ValueError(f"{path}: properties/@frame must be 'x' or '+', got {raw['frame']!r}")
+    raw["prop_spin"] = [_number(path, "properties/@prop_spin", s) for s in props.attrib["prop_spin"].split()]
+
+    links = {link.get("name"): link for link in root.findall("link")}
+    base = links.get("base_link")
+    if base is None:
+        raise ValueError(f"{path}: missing link 'base_link'")
+    raw["mass"] = _number(path, "base_link mass", _attr(path, base, "inertial/mass", "value"))
+    inertia = base.find("inertial/inertia")
+    if inertia is None:
+        raise ValueError(f"{path}: base_link lacks <inertial><inertia>")
+    i = {k: _number(path, f"base_link inertia/@{k}", inertia.get(k, "0" if k[1] != k[2] else None))
+         for k in ("ixx", "iyy", "izz", "ixy", "ixz", "iyz")}
+    raw["inertia"] = [[i["ixx"], i["ixy"], i["ixz"]], [i["ixy"], i["iyy"], i["iyz"]], [i["ixz"], i["iyz"], i["izz"]]]
+    cyl = base.find("collision/geometry/cylinder")
+    if cyl is None:
+        raise ValueError(f"{path}: base_link lacks a <collision><geometry><cylinder>")
+    raw["collision_radius"] = _number(path, "collision cylinder radius", cyl.get("radius"))
+    raw["collision_height"] = _number(path, "collision cylinder length", cyl.get("length"))
+
+    prop_pos = []
+    for k in range(4):
+        link = links.get(f"prop{k}_link")
+        if link is None:
+            raise ValueError(f"{path}: missing link 'prop{k}_link' (a quadrotor needs motors 0-3)")
+        xyz = _attr(path, link, "inertial/origin", "xyz").split()
+        if len(xyz) != 3:
+            raise ValueError(f"{path}: prop{k}_link inertial origin xyz must have 3 numbers, got {xyz}")
+        prop_pos.append([_number(path, f"prop{k}_link origin", v) for v in xyz])
+    raw["prop_pos"] = prop_pos
+    return raw
+
+
+def _attr(path: str, elem: ET.Element, sub: str, attr: str) -> str:
+    node = elem.find(sub)
+    if node is None or node.get(attr) is None:
+        raise ValueError(f"{path}: link {elem.get('name')!r} lacks <{sub} {attr}=...>")
+    return node.get(attr)
+
+
+def _number(path: str, what: str, text: str | None) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: {what} must be a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{path}: {what} must be finite, got {text!r}")
+    return value
+
+
+def _check_physical(raw: dict, path: str) -> None:
+    if raw["mass"] <= 0:
+        raise ValueError(f"{path}: mass must be > 0 kg, got {raw['mass']}")
+    inertia = np.asarray(raw["inertia"])
+    if np.any(np.linalg.eigvalsh(inertia) <= 0):
+        raise ValueError(f"{path}: inertia must be symmetric positive definite, got eigenvalues "
+                         f"{np.linalg.eigvalsh(inertia)} kg·m²")
+    for key in ("arm", "kf", "km", "prop_radius", "collision_radius", "collision_height"):
+        if raw[key] <= 0:
+            raise ValueError(f"{path}: {key} must be > 0, got {raw[key]}")
+    if raw["thrust2weight"] <= 1:
+        raise ValueError(f"{path}: thrust2weight must be > 1 (the drone must be able to hover), "
+                         f"got {raw['thrust2weight']}")
+    for key in ("max_speed_kmh", "gnd_eff_coeff", "drag_coeff_xy", "drag_coeff_z", "dw_coeff_1"):
+        if raw[key] < 0:
+            raise ValueError(f"{path}: {key} must be >= 0, got {raw[key]}")
+    spin = raw["prop_spin"]
+    if len(spin) != 4 or any(s not in (-1.0, 1.0) for s in spin):
+        raise ValueError(f"{path}: prop_spin must be 4 values of +1 or -1, got {spin}")
+
+
+def _torque_arm(frame: str, arm: float, prop_pos: np.ndarray) -> np.ndarray:
+    """Explicit-dynamics lever arms (facts §3.1): (τx, τy) = torque_arm @ thrusts.
+
+    A motor at body (x, y) produces τx = y·f and τy = -x·f. The paper's explicit update places each motor at
+    distance L along its diagonal (x frame, |x| = |y| = L/√2) or its axis (+ frame).
+    """
+    if frame == "x":
+        xy = arm / math.sqrt(2.0) * np.sign(prop_pos[:, :2])
+    else:
+        xy = arm * np.round(prop_pos[:, :2] / np.linalg.norm(prop_pos[:, :2], axis=1, keepdims=True))
+    return np.stack([xy[:, 1], -xy[:, 0]])
+
+
+def _derive(raw: dict, path: str) -> DroneParams:
+    _check_physical(raw, path)
+    prop_pos = np.asarray(raw["prop_pos"])
+    if np.any(np.linalg.norm(prop_pos[:, :2], axis=1) == 0):
+        raise ValueError(f"{path}: every motor must sit off the body z axis, got positions {prop_pos.tolist()}")
+    weight = GRAVITY * raw["mass"]
+    kf, km, arm = raw["kf"], raw["km"], raw["arm"]
+    hover_rpm = math.sqrt(weight / (4 * kf))
+    max_rpm = math.sqrt(raw["thrust2weight"] * weight / (4 * kf))
+    max_thrust = 4 * kf * max_rpm**2
+    max_xy_torque = (2 * arm * kf * max_rpm**2 / math.sqrt(2)) if raw["frame"] == "x" else arm * kf * max_rpm**2
+    inertia = np.asarray(raw["inertia"])
+    values = dict(
+        mass=raw["mass"], arm=arm, inertia=inertia, inertia_inv=np.linalg.inv(inertia), kf=kf, km=km,
+        thrust2weight=raw["thrust2weight"], max_speed_kmh=raw["max_speed_kmh"], prop_radius=raw["prop_radius"],
+        gnd_eff_coeff=raw["gnd_eff_coeff"],
+        drag_coeff=[raw["drag_coeff_xy"], raw["drag_coeff_xy"], raw["drag_coeff_z"]],
+        dw_coeff=[raw["dw_coeff_1"], raw["dw_coeff_2"], raw["dw_coeff_3"]],
+        prop_pos=prop_pos, prop_spin=raw["prop_spin"], torque_arm=_torque_arm(raw["frame"], arm, prop_pos),
+        gravity=GRAVITY, collision_radius=raw["collision_radius"], collision_height=raw["collision_height"],
+        hover_rpm=hover_rpm, max_rpm=max_rpm, max_thrust=max_thrust, max_xy_torque=max_xy_torque,
+        max_z_torque=2 * km * max_rpm**2,
+        gnd_eff_h_clip=raw["prop_radius"] / 4 * math.sqrt(15 * max_rpm**2 * kf * raw["gnd_eff_coeff"] / max_thrust),
+    )
+    dtype = jnp.result_type(float)
+    return DroneParams(**{k: jnp.asarray(np.asarray(v, dtype=np.float64), dtype=dtype) for k, v in values.items()})

@@ -1,0 +1,184 @@
+"""Static simulation config, the functional step, and rollouts."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrones import dynamics
+from jaxdrones.params import DroneParams
+from jaxdrones.state import DroneState
+
+StepFn = Callable[[DroneParams, DroneState, jax.Array], DroneState]
+
+
+@dataclasses.dataclass(frozen=True)
+class SimConfig:
+    """Static simulation settings (hashable; changing one recompiles).
+
+    Attributes:
+        n_drones: drones per world, D ≥ 1.
+        sim_freq: physics rate, Hz (the paper's ``pyb_freq``, default 240).
+        ctrl_freq: control rate, Hz; one `step` call runs ``sim_freq // ctrl_freq`` physics substeps with the
+            same RPM command. ``sim_freq`` must be a multiple of ``ctrl_freq`` (as in the paper's code).
+        drag: rotor drag, paper eq. (drag).
+        ground_effect: per-propeller ground effect, paper eq. (ground).
+        downwash: downwash between the drones of a world, paper eq. (down).
+        integrator: ``"euler"`` (the paper code's semi-implicit Euler with exact quaternion exponential map) or
+            ``"rk4"``.
+
+    Raises:
+        ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, or an unknown
+            integrator.
+    """
+
+    n_drones: int = 1
+    sim_freq: int = 240
+    ctrl_freq: int = 240
+    drag: bool = False
+    ground_effect: bool = False
+    downwash: bool = False
+    integrator: str = "euler"
+
+    def __post_init__(self):
+        for name in ("n_drones", "sim_freq", "ctrl_freq"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"SimConfig.{name} must be a positive integer, got {value!r}")
+        if self.sim_freq % self.ctrl_freq:
+            raise ValueError(f"SimConfig: sim_freq ({self.sim_freq} Hz) must be a multiple of ctrl_freq "
+                             f"({self.ctrl_freq} Hz), e.g. sim_freq=240 with ctrl_freq in 240, 120, 80, 48, 30, ...")
+        if self.integrator not in dynamics.INTEGRATORS:
+            raise ValueError(f"SimConfig.integrator must be one of {tuple(dynamics.INTEGRATORS)}, "
+                             f"got {self.integrator!r}")
+
+    @property
+    def n_substeps(self) -> int:
+        """Physics substeps per control step."""
+        return self.sim_freq // self.ctrl_freq
+
+    @property
+    def dt(self) -> float:
+        """Physics timestep, s."""
+        return 1.0 / self.sim_freq
+
+    @property
+    def ctrl_dt(self) -> float:
+        """Control period, s."""
+        return 1.0 / self.ctrl_freq
+
+    @property
+    def effects(self) -> dynamics.Effects:
+        return dynamics.Effects(self.drag, self.ground_effect, self.downwash)
+
+
+def physics_substep(config: SimConfig, params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
+    """One physics step of ``config.dt`` with already-clipped RPM f[..., D, 4]; pure and differentiable."""
+    integrate = dynamics.INTEGRATORS[config.integrator]
+    kin = dynamics.Kinematics(state.pos, state.quat, state.vel, state.ang_vel)
+    kin = integrate(params, config.effects, kin, rpm, state.rpm, config.dt)
+    kin, touching = dynamics.ground_contact(params, kin)
+    return DroneState(*kin, rpm=rpm, ground_contact=state.ground_contact | touching)
+
+
+def make_step(config: SimConfig, backend: str = "jax") -> StepFn:
+    """Build the control step ``step(params, state, rpm) -> state`` for a config.
+
+    One call holds ``rpm`` over ``config.n_substeps`` physics substeps (run under ``lax.scan``). RPMs are clipped
+    to [0, max_rpm] as the paper's code does. The step is pure (no hidden state, no key), jitted, and works under
+    ``jit``, ``vmap`` and ``grad``; arrays may carry leading world axes ``[W, D, ...]``.
+
+    Args:
+        config: SimConfig.
+        backend: ``"jax"`` (this pure-JAX core).
+
+    Returns:
+        ``step(params, state, rpm)`` where ``rpm`` is f[..., D, 4] in RPM (ints are cast to the state's float
+        dtype) with the leading shape of ``state``. ``state.ground_contact`` reports contact during this step.
+
+    Raises:
+        ValueError: unknown backend; and, when ``step`` is called, an ``rpm`` or ``state`` of the wrong shape or a
+            non-numeric dtype. Called on concrete arrays (outside ``jit``), a non-finite ``rpm`` raises too; inside
+            ``jit`` NaN propagates into the state (the envs detect and report it).
+    """
+    if not isinstance(config, SimConfig):
+        raise ValueError(f"make_step expects a SimConfig, got {type(config).__name__}")
+    if backend != "jax":
+        raise ValueError(f"unknown backend {backend!r}: expected 'jax'")
+
+    @jax.jit
+    def core(params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
+        rpm = jnp.clip(rpm, 0.0, params.max_rpm[..., None])
+        state = state.replace(ground_contact=jnp.zeros_like(state.ground_contact))
+
+        def substep(s, _):
+            return physics_substep(config, params, s, rpm), None
+
+        state, _ = jax.lax.scan(substep, state, None, length=config.n_substeps)
+        return state
+
+    def step(params: DroneParams, state: DroneState, rpm) -> DroneState:
+        rpm = check_rpm(config, state, rpm)
+        return core(params, state, rpm)
+
+    step.config = config
+    return step
+
+
+def check_rpm(config: SimConfig, state: DroneState, rpm) -> jax.Array:
+    """Validate an RPM command against the config and state; returns it as a float array of the state's dtype.
+
+    Raises:
+        ValueError: see `make_step`.
+    """
+    n = config.n_drones
+    if state.pos.shape[-2:] != (n, 3) or state.quat.shape[-2:] != (n, 4):
+        raise ValueError(f"state has pos {state.pos.shape} and quat {state.quat.shape}; expected [..., {n}, 3] and "
+                         f"[..., {n}, 4] for n_drones={n} (build it with jd.init_state(config, ...))")
+    dtype = rpm.dtype if hasattr(rpm, "dtype") else np.asarray(rpm).dtype
+    if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)) or dtype == bool:
+        raise ValueError(f"rpm must be a real (float or int) array in RPM, got dtype {dtype}")
+    rpm = jnp.asarray(rpm, dtype=state.pos.dtype)
+    expected = state.rpm.shape
+    if rpm.shape != expected:
+        raise ValueError(f"rpm must have shape {expected} ([..., n_drones={n}, 4] motor speeds in RPM, with the "
+                         f"state's leading shape {expected[:-2]}), got {rpm.shape}")
+    if not isinstance(rpm, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(rpm))):
+        raise ValueError("rpm contains NaN or inf")
+    return rpm
+
+
+def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Array) -> DroneState:
+    """Apply ``step`` to a sequence of RPM commands under ``lax.scan``.
+
+    Args:
+        step: a step function from `make_step`.
+        params: DroneParams.
+        state: initial DroneState with leading shape ``L`` (e.g. ``[W]`` or none).
+        rpms: f[T, *L, D, 4] RPM, one command per control step.
+
+    Returns:
+        DroneState whose leaves have a leading time axis ``[T, *L, ...]``: the state after each step.
+
+    Raises:
+        ValueError: if ``rpms`` is not f[T, *L, D, 4].
+    """
+    rpms = jnp.asarray(rpms)
+    if rpms.ndim != state.rpm.ndim + 1 or rpms.shape[1:] != state.rpm.shape:
+        raise ValueError(f"rpms must have shape [T, {', '.join(map(str, state.rpm.shape))}] (one RPM command per "
+                         f"control step), got {rpms.shape}")
+    return _rollout(step, params, state, rpms)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Array) -> DroneState:
+    def body(s, rpm):
+        s = step(params, s, rpm)
+        return s, s
+
+    return jax.lax.scan(body, state, rpms)[1]
