@@ -1,0 +1,26 @@
+"""Command line: ``jaxdrones train hover``, ``jaxdrones fly``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from jaxdrones.examples import circle
+    from jaxdrones.training import hover
+
+    parser = argparse.ArgumentParser(prog="jaxdrones", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    hover.register(sub)
+    circle.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
