@@ -1,0 +1,32 @@
+"""Shared fixtures: seeded keys and generators, and a scoped float64 switch."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+# Make `tests/reference_dyn.py` importable as `reference_dyn` however pytest is invoked.
+sys.path.insert(0, os.path.dirname(__file__))
+
+
+@pytest.fixture
+def key():
+    """A fixed typed PRNG key."""
+    return jax.random.key(0)
+
+
+@pytest.fixture
+def rng():
+    """A fixed NumPy generator, for host-side test data."""
+    return np.random.default_rng(0)
+
+
+@pytest.fixture
+def x64():
+    """Run the test with ``jax_enable_x64`` on (float64 default dtype), restoring the previous setting after."""
+    with jax.enable_x64(True):
+        yield
