@@ -1,10 +1,11 @@
 """jaxdrones: a JAX-vectorised, differentiable quadrotor simulator with the physics of gym-pybullet-drones."""
 
+from jaxdrones.envs import make
 from jaxdrones.params import MODELS, DroneParams, load_params
 from jaxdrones.sim import SimConfig, make_step, rollout
 from jaxdrones.state import DroneState, init_state
 
 __all__ = [
-    "MODELS", "DroneParams", "DroneState", "SimConfig", "init_state", "load_params", "make_step", "rollout",
+    "MODELS", "make", "DroneParams", "DroneState", "SimConfig", "init_state", "load_params", "make_step", "rollout",
 ]
 __version__ = "0.1.0"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -18,7 +19,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    t_start = time.perf_counter()
     args = build_parser().parse_args(argv)
+    args.t_start = t_start
     return int(args.func(args) or 0)
 
 

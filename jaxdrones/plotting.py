@@ -106,3 +106,83 @@ def _check(flight: Mapping) -> dict:
             raise ValueError(f"plot_flight: {key} must have shape [T={t.shape[0]}, N, {len(labels)}] with the same N "
                              f"as pos, got {data[key].shape}")
     return data
+
+
+def plot_learning_curve(history: list[Mapping], path: str | os.PathLike, *, title: str | None = None) -> str:
+    """Plot evaluation return and mean distance to the target against env steps.
+
+    Args:
+        history: rows with ``env_steps``, ``episode_reward`` and ``mean_distance_m`` (as `ProgressLog` records).
+        path: output image file.
+        title: figure title.
+
+    Returns:
+        ``path`` as a string.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = np.array([row["env_steps"] for row in history], dtype=float)
+    fig, (ax_r, ax_d) = plt.subplots(1, 2, figsize=(10, 3.8))
+    ax_r.plot(steps, [row["episode_reward"] for row in history], marker="o")
+    ax_r.set_ylabel("evaluation episode return")
+    ax_d.plot(steps, [row["mean_distance_m"] for row in history], marker="o", color="tab:red")
+    ax_d.set_ylabel("mean distance to target over episode (m)")
+    ax_d.set_yscale("log")
+    for ax in (ax_r, ax_d):
+        ax.set_xlabel("env steps")
+        ax.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = os.fspath(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_hover_flight(times, pos, vel, rpm, target_z: float, path: str | os.PathLike, *,
+                      title: str | None = None) -> str:
+    """The paper's hover figure: altitude, vertical velocity and the four motor speeds against time.
+
+    Args:
+        times: f[T] s.
+        pos: f[T, 3] m, world frame.
+        vel: f[T, 3] m/s, world frame.
+        rpm: f[T, 4] RPM.
+        target_z: target altitude, m (drawn dashed).
+        path: output image file.
+        title: figure title.
+
+    Returns:
+        ``path`` as a string.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    times, pos, vel, rpm = (np.asarray(x) for x in (times, pos, vel, rpm))
+    fig, axes = plt.subplots(3, 1, figsize=(7, 7), sharex=True)
+    axes[0].plot(times, pos[:, 2], label="z")
+    axes[0].axhline(target_z, color="k", ls="--", lw=0.8, label="target")
+    axes[0].set_ylabel("z (m)")
+    axes[0].legend(fontsize=8)
+    axes[1].plot(times, vel[:, 2])
+    axes[1].set_ylabel("vz (m/s)")
+    for k in range(rpm.shape[-1]):
+        axes[2].plot(times, rpm[:, k], lw=1.0, label=f"motor {k}")
+    axes[2].set_ylabel("motor speed (RPM)")
+    axes[2].set_xlabel("time (s)")
+    axes[2].legend(fontsize=8, ncol=4)
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = os.fspath(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
