@@ -33,7 +33,7 @@ class HoverConfig:
         action_type: ``"one_d_rpm"`` (one value for all four motors, the paper's hover default) or ``"rpm"``
             (one per motor). Both map a in [-1, 1] to hover_rpm·(1 + 0.05 a) (facts §10.1); actions are clipped to
             [-1, 1] (the original does not clip).
-        reward: ``"shaped"`` (default): r = max(0, exp(-d / 0.3) + exp(-(d / 0.05)²) - 0.1 ‖v‖²) with
+        reward: ``"shaped"`` (default): r = max(0, exp(-d / 0.3) + 2 exp(-(d / 0.03)²) - 0.1 ‖v‖²) with
             d = ‖target - pos‖ in m and v in m/s: non-negative, so that ending an episode early never pays, and
             sharp near the target, so that PPO settles on it rather than near it; ``"paper"``: the paper's eq.
             (single), r = -d².
@@ -170,7 +170,8 @@ class HoverEnv(Env):
         if self.config.reward == "paper":
             return -d2
         speed2 = jnp.sum(sim.vel[0] ** 2)
-        return jnp.maximum(0.0, jnp.exp(-jnp.sqrt(d2 + 1e-12) / 0.3) + jnp.exp(-d2 / 0.05**2) - 0.1 * speed2)
+        shaped = jnp.exp(-jnp.sqrt(d2 + 1e-12) / 0.3) + 2.0 * jnp.exp(-d2 / 0.03**2) - 0.1 * speed2
+        return jnp.maximum(0.0, shaped)
 
     def _crashed(self, sim: DroneState) -> jax.Array:
         cfg = self.config
