@@ -1,0 +1,139 @@
+"""The command line: ``jaxdrones train hover`` (a short PPO run, its outputs, run folders, reloading the policy)
+and ``jaxdrones fly``."""
+
+from __future__ import annotations
+
+import json
+import math
+import pickle
+
+import jax
+import numpy as np
+import pytest
+from jax.experimental.compilation_cache import compilation_cache
+
+from jaxdrones.cli import main
+from jaxdrones.training import evaluate, load_policy
+
+TRAIN_OUTPUTS = ("policy.pkl", "learning_curve.png", "flight.png", "progress.json", "summary.json")
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture
+def compile_cache(tmp_path_factory):
+    """A persistent compilation cache for this test only, so repeated identical runs skip XLA compilation."""
+    saved = {name: getattr(jax.config, name) for name in
+             ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")}
+    compilation_cache.reset_cache()
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path_factory.mktemp("xla_cache")))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    yield
+    for name, value in saved.items():
+        jax.config.update(name, value)
+    compilation_cache.reset_cache()
+
+
+def snapshot(folder):
+    """{file name: (mtime_ns, bytes)} of a folder."""
+    return {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in sorted(folder.iterdir())}
+
+
+def train_args(out, *extra):
+    return ["train", "hover", "--steps", "100000", "--num-envs", "64", "--out", str(out), "--no-progress",
+            "--eval-episodes", "64", *extra]
+
+
+@pytest.mark.slow
+def test_train_cli_outputs_run_folders_and_reload(tmp_path, capsys, compile_cache):
+    run = tmp_path / "run"
+    assert main(train_args(run)) == 0
+    assert f"in {run}" in capsys.readouterr().out
+
+    # Outputs.
+    assert sorted(p.name for p in run.iterdir()) == sorted(TRAIN_OUTPUTS)
+    for name in ("learning_curve.png", "flight.png"):
+        data = (run / name).read_bytes()
+        assert data.startswith(PNG_MAGIC) and len(data) > 10_000
+    summary = json.loads((run / "summary.json").read_text())
+    assert {"wall_time_s", "env_steps", "eval_final_pos_error_m", "success"} <= set(summary)
+    assert summary["out_dir"] == str(run)
+    assert 0 < summary["wall_time_s"] < 600 and summary["env_steps"] >= 100_000
+    assert math.isfinite(summary["eval_final_pos_error_m"]) and summary["eval_final_pos_error_m"] >= 0
+    assert summary["eval"]["n_episodes"] == 64
+    assert summary["success"] == (summary["eval_final_pos_error_m"] < 0.05 and summary["eval"]["terminated_rate"] == 0)
+    progress = json.loads((run / "progress.json").read_text())
+    steps = [row["env_steps"] for row in progress]
+    assert steps[0] == 0 and steps == sorted(steps) and steps[-1] == summary["env_steps"]
+    assert all(math.isfinite(row["episode_reward"]) for row in progress)
+
+    # The saved policy reproduces the run's evaluation (same key as `train_hover`: split(key(seed + 1))[0]).
+    env, policy = load_policy(run)
+    assert env.config.action_type == "one_d_rpm" and env.config.model == "cf2x"
+    key_eval = jax.random.split(jax.random.key(0 + 1))[0]
+    stats = evaluate(env, policy, key_eval, 64)
+    assert stats["final_pos_error_m"] == pytest.approx(summary["eval_final_pos_error_m"], abs=1e-5)
+    assert stats["terminated_rate"] == summary["eval"]["terminated_rate"]
+    assert stats["episode_reward"] == pytest.approx(summary["eval"]["episode_reward"], rel=1e-5)
+    obs = jax.vmap(env.reset)(jax.random.split(jax.random.key(5), 16)).obs
+    actions, _ = jax.vmap(policy, in_axes=(0, None))(obs, jax.random.key(6))
+    assert actions.shape == (16, 1) and np.all(np.abs(actions) <= 1.0)
+    _, policy_from_file = load_policy(run / "policy.pkl")
+    np.testing.assert_array_equal(jax.vmap(policy_from_file, in_axes=(0, None))(obs, jax.random.key(7))[0], actions)
+
+    # A second identical call goes to a new folder and leaves the first untouched.
+    before = snapshot(run)
+    assert main(train_args(run)) == 0
+    run1 = tmp_path / "run-1"
+    assert f"in {run1}" in capsys.readouterr().out
+    assert snapshot(run) == before
+    assert sorted(p.name for p in run1.iterdir()) == sorted(TRAIN_OUTPUTS)
+    summary1 = json.loads((run1 / "summary.json").read_text())
+    assert summary1["out_dir"] == str(run1)
+    # Same seed, same result.
+    assert summary1["eval_final_pos_error_m"] == pytest.approx(summary["eval_final_pos_error_m"], abs=1e-6)
+
+    # --overwrite replaces the folder's contents (and nothing else).
+    (run / "stale.txt").write_text("from an earlier run")
+    before1 = snapshot(run1)
+    assert main(train_args(run, "--overwrite")) == 0
+    assert sorted(p.name for p in run.iterdir()) == sorted(TRAIN_OUTPUTS)
+    after = snapshot(run)
+    assert all(after[name][0] > before[name][0] for name in TRAIN_OUTPUTS)
+    assert snapshot(run1) == before1
+    assert not (tmp_path / "run-2").exists()
+
+
+def test_train_cli_bad_input(tmp_path, capsys):
+    args = train_args(tmp_path / "run")
+    args[args.index("--eval-episodes") + 1] = "10"
+    assert main(args) == 2
+    assert "n_eval_episodes must be >= 64" in capsys.readouterr().out
+    assert not (tmp_path / "run").exists()
+
+
+def test_load_policy_rejects_missing_and_foreign_files(tmp_path):
+    with pytest.raises(ValueError, match="no saved policy"):
+        load_policy(tmp_path)
+    (tmp_path / "policy.pkl").write_bytes(pickle.dumps({"weights": 1}))
+    with pytest.raises(ValueError, match="is not a jaxdrones policy file"):
+        load_policy(tmp_path)
+
+
+def test_fly_cli(tmp_path, capsys):
+    out = tmp_path / "fly"
+    assert main(["fly", "--num-drones", "2", "--duration", "3", "--out", str(out)]) == 0
+    assert "overall" in capsys.readouterr().out
+    assert (out / "flight.png").read_bytes().startswith(PNG_MAGIC)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["settings"]["num_drones"] == 2 and metrics["settings"]["duration_s"] == 3.0
+    m = metrics["metrics"]
+    assert len(m["waypoint_rms_per_drone_m"]) == 2 and len(m["cross_track_rms_per_drone_m"]) == 2
+    # The PID with feed-forward tracks the circle within a few centimetres after the first second.
+    assert 0 < m["cross_track_rms_m"] < 0.05 and 0 < m["waypoint_rms_m"] < 0.1
+    with np.load(out / "flight.npz") as flight:
+        assert flight["pos"].shape == (3 * 48, 2, 3)
+        assert np.all(np.isfinite(flight["pos"]))
+
+    assert main(["fly", "--num-drones", "0", "--out", str(tmp_path / "bad")]) == 2
+    assert "num_drones must be a positive integer" in capsys.readouterr().out
+    assert not (tmp_path / "bad").exists()
