@@ -108,7 +108,7 @@ def test_shaped_reward_matches_documented_formula(hover):
     s = hover.step(hover.reset(keys()), random_actions(N_WORLDS, 1))
     d = np.linalg.norm(TARGET - np.asarray(s.sim.pos[:, 0]), axis=-1)
     v2 = np.sum(np.asarray(s.sim.vel[:, 0]) ** 2, axis=-1)
-    expected = np.maximum(0.0, np.exp(-d / 0.3) + np.exp(-((d / 0.05) ** 2)) - 0.1 * v2)
+    expected = np.maximum(0.0, np.exp(-d / 0.3) + 2.0 * np.exp(-((d / 0.03) ** 2)) - 0.1 * v2)
     np.testing.assert_allclose(s.reward, expected, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(s.metrics["distance"], d, rtol=1e-6)
 
