@@ -280,8 +280,8 @@ def test_make_unknown_option():
 @pytest.mark.parametrize("overrides, message", [
     (dict(action_type="x"), r"action_type must be one of \('rpm', 'one_d_rpm'\), got 'x'"),
     (dict(reward="dense"), r"reward must be one of \('shaped', 'paper'\), got 'dense'"),
-    (dict(target=(0.0, 1.0)), r"target must be \(x, y, z\)"),
-    (dict(init_z=(1.0, 0.5)), r"init_z a \(low, high\) range"),
+    (dict(target=(0.0, 1.0)), r"target must be three finite numbers \(x, y, z\)"),
+    (dict(init_z=(1.0, 0.5)), r"init_z must be a finite \(low, high\) range"),
     (dict(episode_len_s=0.0), r"at least one step"),
     (dict(ctrl_freq=7), r"sim_freq \(240 Hz\) must be a multiple of ctrl_freq \(7 Hz\)"),
     (dict(model="nope"), r"unknown drone model 'nope'"),
@@ -291,13 +291,14 @@ def test_make_invalid_option_value(overrides, message):
         jd.make("hover", **overrides)
 
 
-@pytest.mark.xfail(strict=True, reason="HoverConfig.__post_init__ checks neither the sign of the init ranges nor "
-                                       "that episode_len_s and target are finite")
 @pytest.mark.parametrize("overrides", [
-    dict(init_vz=-0.2),  # accepted; reset then always starts with vz = +0.2 (uniform over [0.2, -0.2])
-    dict(init_xy=-0.5),  # accepted; reset then always starts at x = y = 0.5
-    dict(episode_len_s=float("nan")),  # accepted; env.episode_length later fails with "cannot convert float NaN"
-    dict(target=(0.0, 0.0, float("nan"))),  # accepted; every reward is NaN
+    dict(init_vz=-0.2),
+    dict(init_xy=-0.5),
+    dict(init_rpy=float("inf")),
+    dict(episode_len_s=float("nan")),
+    dict(target=(0.0, 0.0, float("nan"))),
+    dict(init_z=(-0.1, 1.0)),
+    dict(arena_z=0.0),
 ])
 def test_make_rejects_negative_ranges_and_non_finite_values(overrides):
     with pytest.raises(ValueError, match="hover"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -73,10 +74,21 @@ class HoverConfig:
             raise ValueError(f"hover: action_type must be one of {tuple(ACTION_TYPES)}, got {self.action_type!r}")
         if self.reward not in REWARDS:
             raise ValueError(f"hover: reward must be one of {REWARDS}, got {self.reward!r}")
-        if len(self.target) != 3 or len(self.init_z) != 2 or not self.init_z[0] <= self.init_z[1]:
-            raise ValueError(f"hover: target must be (x, y, z) and init_z a (low, high) range, got {self.target}, "
-                             f"{self.init_z}")
-        if self.episode_len_s * self.ctrl_freq < 1:
+        if len(self.target) != 3 or not all(math.isfinite(v) for v in self.target):
+            raise ValueError(f"hover: target must be three finite numbers (x, y, z) in m, got {self.target}")
+        if (len(self.init_z) != 2 or not all(math.isfinite(v) for v in self.init_z)
+                or not 0 <= self.init_z[0] <= self.init_z[1]):
+            raise ValueError(f"hover: init_z must be a finite (low, high) range with 0 <= low <= high, m, "
+                             f"got {self.init_z}")
+        for name in ("init_vz", "init_xy", "init_rpy"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"hover: {name} must be a finite half-width >= 0, got {value}")
+        for name in ("arena_xy", "arena_z", "max_tilt"):
+            value = getattr(self, name)
+            if not value > 0:
+                raise ValueError(f"hover: {name} must be > 0, got {value}")
+        if not (math.isfinite(self.episode_len_s) and self.episode_len_s * self.ctrl_freq >= 1):
             raise ValueError(f"hover: episode_len_s·ctrl_freq must give at least one step, got {self.episode_len_s} s "
                              f"at {self.ctrl_freq} Hz")
 

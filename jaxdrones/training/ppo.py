@@ -128,7 +128,7 @@ def evaluate(env: Env, policy, key: jax.Array, n_episodes: int = 256) -> dict:
         returns = jnp.sum(jnp.where(states.steps[:, 1:] > states.steps[:, :-1], states.reward[:, 1:], 0.0), axis=1)
         return final.metrics["distance"], final.terminated, returns
 
-    dist, terminated, returns = (np.asarray(x) for x in run(jax.random.split(key, n_episodes)))
+    dist, terminated, returns = (np.asarray(x, dtype=np.float64) for x in run(jax.random.split(key, n_episodes)))
     return {
         "final_pos_error_m": float(dist.mean()), "final_pos_error_max_m": float(dist.max()),
         "final_pos_error_p90_m": float(np.percentile(dist, 90)), "terminated_rate": float(terminated.mean()),
