@@ -9,3 +9,14 @@ __all__ = [
     "MODELS", "make", "DroneParams", "DroneState", "SimConfig", "init_state", "load_params", "make_step", "rollout",
 ]
 __version__ = "0.1.0"
+
+
+def _register_gymnasium() -> None:
+    try:
+        from jaxdrones.wrappers import gymnasium as _gym
+    except ImportError:  # gymnasium is a dependency, but keep the core importable without it
+        return
+    _gym.register()
+
+
+_register_gymnasium()
