@@ -203,6 +203,8 @@ class ProgressLog:
         rate = step / elapsed if elapsed > 0 else 0.0
         self.bar.set_postfix_str(f"{rate:,.0f} steps/s  reward {row['episode_reward']:.1f}  "
                                  f"mean dist {row['mean_distance_m']:.3f} m")
+        if step > self.bar.total:  # brax rounds the budget up to whole training epochs
+            self.bar.total = step
         self.bar.update(step - self.bar.n)
 
     def close(self) -> None:
