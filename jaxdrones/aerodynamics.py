@@ -2,7 +2,8 @@
 
 Each function is pure, differentiable and broadcasts over leading (world) axes; downwash couples the ``D`` drones
 of one world along the drone axis. Equations are those of the paper (eqs. drag, ground, down) as the paper's code
-applies them in its PyBullet modes (facts sheet §6).
+applies them in its PyBullet modes (facts sheet §6). Each is written once, in component form (``*_c``, see
+`jaxdrones.rotations`), which the simulation core runs on; the array-form functions wrap it.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxdrones.params import DroneParams
+from jaxdrones.rotations import Components, dot, join, split
 
 #: Downwash acts only between drones closer than this horizontally, m (facts §6.3).
 DOWNWASH_MAX_DIST = 10.0
@@ -32,8 +34,13 @@ def drag_force(params: DroneParams, vel: jax.Array, rpm_prev: jax.Array) -> jax.
     Returns:
         f[..., D, 3] N, world frame.
     """
-    omega_sum = jnp.sum(rpm_prev, axis=-1, keepdims=True) * (2 * jnp.pi / 60)
-    return -omega_sum * params.drag_coeff * vel
+    return join(drag_force_c(params, split(vel), split(rpm_prev)))
+
+
+def drag_force_c(params: DroneParams, vel: Components, rpm_prev: Components) -> Components:
+    """`drag_force` in component form: vel (vx, vy, vz) and rpm_prev (4 motors), each f[..., D]."""
+    omega_sum = sum(rpm_prev[1:], rpm_prev[0]) * (2 * jnp.pi / 60)
+    return tuple(-omega_sum * params.drag_coeff[..., k] * vel[k] for k in range(3))
 
 
 def ground_effect_thrust(params: DroneParams, pos: jax.Array, rotmat: jax.Array, thrust: jax.Array) -> jax.Array:
@@ -52,11 +59,27 @@ def ground_effect_thrust(params: DroneParams, pos: jax.Array, rotmat: jax.Array,
     Returns:
         f[..., D, 4] N, extra thrust of each motor.
     """
-    prop_height = pos[..., None, 2] + jnp.einsum("...j,...ij->...i", rotmat[..., 2, :], params.prop_pos)
-    height = jnp.maximum(prop_height, params.gnd_eff_h_clip[..., None])
-    gain = params.gnd_eff_coeff[..., None] * (params.prop_radius[..., None] / (4 * height)) ** 2
-    upright = rotmat[..., 2, 2] > 0
-    return jnp.where(upright[..., None], thrust * gain, 0.0)
+    rotmat_z = split(rotmat[..., 2, :])
+    return join(ground_effect_thrust_c(params, pos[..., 2], rotmat_z, split(thrust)))
+
+
+def ground_effect_thrust_c(params: DroneParams, pos_z: jax.Array, rotmat_z: Components,
+                           thrust: Components) -> Components:
+    """`ground_effect_thrust` in component form.
+
+    Args:
+        params: DroneParams.
+        pos_z: f[..., D] m, world height of the base.
+        rotmat_z: (R20, R21, R22), the last row of R, each f[..., D].
+        thrust: 4-tuple of f[..., D] N.
+    """
+    upright = rotmat_z[2] > 0
+    extra = []
+    for i, thrust_i in enumerate(thrust):
+        height = jnp.maximum(pos_z + dot(rotmat_z, split(params.prop_pos[..., i, :])), params.gnd_eff_h_clip)
+        gain = params.gnd_eff_coeff * (params.prop_radius / (4 * height)) ** 2
+        extra.append(jnp.where(upright, thrust_i * gain, 0.0))
+    return tuple(extra)
 
 
 def downwash_force(params: DroneParams, pos: jax.Array) -> jax.Array:
@@ -74,9 +97,13 @@ def downwash_force(params: DroneParams, pos: jax.Array) -> jax.Array:
     Returns:
         f[..., D] N, force along each drone's body z (negative: pushes down).
     """
-    diff = pos[..., None, :, :] - pos[..., :, None, :]  # [..., j (lower), i (other), 3]
-    dz = diff[..., 2]
-    dist2 = diff[..., 0] ** 2 + diff[..., 1] ** 2
+    return downwash_force_c(params, split(pos))
+
+
+def downwash_force_c(params: DroneParams, pos: Components) -> jax.Array:
+    """`downwash_force` in component form: pos (x, y, z), each f[..., D]; returns f[..., D] N."""
+    dx, dy, dz = (p[..., None, :] - p[..., :, None] for p in pos)  # [..., j (lower), i (other)]
+    dist2 = dx**2 + dy**2
     active = (dz > 0) & (dist2 < DOWNWASH_MAX_DIST**2)
     dz_safe = jnp.where(active, dz, 1.0)
     c1, c2, c3 = (params.dw_coeff[..., k, None] for k in range(3))

@@ -4,6 +4,10 @@ The update is the paper's explicit model (IROS 2021, eqs. 1-2; gym-pybullet-dron
 thrust f_i = kf·rpm_i² along body +z, torques from the x/+ lever arms and the yaw reaction -spin_i·km·rpm_i²,
 Euler's equation J ω̇ = τ - ω × Jω in the body frame, and m a = R (0, 0, Σf) - (0, 0, m g) in the world frame.
 All functions broadcast over leading axes; the drone axis is ``-2`` for f[..., D, k] arrays.
+
+Each equation is written once, in component form (``*_c``: vectors as tuples of f[..., D] arrays, see
+`jaxdrones.rotations`), which the simulation core steps on; the array-form functions split their inputs, call it
+and join the results.
 """
 
 from __future__ import annotations
@@ -15,7 +19,8 @@ import jax.numpy as jnp
 
 from jaxdrones import aerodynamics
 from jaxdrones.params import DroneParams
-from jaxdrones.rotations import quat_derivative, quat_integrate, quat_to_rotmat
+from jaxdrones.rotations import (Components, cross, dot, join, matvec, normalize_c, quat_derivative_c,
+                                 quat_integrate_c, quat_to_rotmat_c, split)
 
 
 class Effects(NamedTuple):
@@ -27,7 +32,11 @@ class Effects(NamedTuple):
 
 
 class Kinematics(NamedTuple):
-    """The integrated quantities of ``D`` drones (see `DroneState` for units and frames)."""
+    """The integrated quantities of ``D`` drones (see `DroneState` for units and frames).
+
+    In array form each field is f[..., D, k]; in component form (the ``*_c`` functions) each is a k-tuple of
+    f[..., D] arrays.
+    """
 
     pos: jax.Array
     quat: jax.Array
@@ -35,9 +44,35 @@ class Kinematics(NamedTuple):
     ang_vel: jax.Array
 
 
+class Motors(NamedTuple):
+    """What the motors produce for an RPM command, in component form (see `motors_c`).
+
+    It depends on the command only, which a control step holds over all its substeps, so the step computes it once.
+    """
+
+    thrust: Components  #: 4-tuple of f[..., D] N, kf·rpm_i² along body +z.
+    yaw_torque: jax.Array  #: f[..., D] N·m about body z, -Σ spin_i km rpm_i² (the rotors' reaction torque).
+
+
+def motors_c(params: DroneParams, rpm: Components) -> Motors:
+    """`Motors` of an RPM command given as a 4-tuple of f[..., D] RPM."""
+    return Motors(motor_thrust_c(params, rpm), yaw_torque_c(params, rpm))
+
+
 def motor_thrust(params: DroneParams, rpm: jax.Array) -> jax.Array:
     """Per-motor thrust kf·rpm², f[..., D, 4] RPM -> f[..., D, 4] N."""
-    return params.kf[..., None] * rpm**2
+    return join(motor_thrust_c(params, split(rpm)))
+
+
+def motor_thrust_c(params: DroneParams, rpm: Components) -> Components:
+    """`motor_thrust` in component form: 4-tuple of f[..., D] RPM -> 4-tuple of f[..., D] N."""
+    return tuple(params.kf * r**2 for r in rpm)
+
+
+def yaw_torque_c(params: DroneParams, rpm: Components) -> jax.Array:
+    """Yaw reaction torque of the rotors -Σ spin_i km rpm_i², N·m: 4-tuple of f[..., D] RPM -> f[..., D]."""
+    spin = split(params.prop_spin)
+    return -dot(tuple(s * params.km for s in spin), tuple(r**2 for r in rpm))
 
 
 def body_torque(params: DroneParams, lift: jax.Array, rpm: jax.Array) -> jax.Array:
@@ -48,9 +83,13 @@ def body_torque(params: DroneParams, lift: jax.Array, rpm: jax.Array) -> jax.Arr
         lift: f[..., D, 4] N, per-motor force along body z (thrust, plus ground effect when on).
         rpm: f[..., D, 4] RPM, for the yaw reaction torque -Σ spin_i km rpm_i².
     """
-    tau_xy = jnp.einsum("...ij,...j->...i", params.torque_arm, lift)
-    tau_z = -jnp.sum(params.prop_spin * params.km[..., None] * rpm**2, axis=-1, keepdims=True)
-    return jnp.concatenate([tau_xy, tau_z], axis=-1)
+    return join(body_torque_c(params, split(lift), yaw_torque_c(params, split(rpm))))
+
+
+def body_torque_c(params: DroneParams, lift: Components, yaw_torque: jax.Array) -> Components:
+    """`body_torque` in component form: lift 4-tuple of f[..., D] N, yaw torque f[..., D] -> (τx, τy, τz)."""
+    tau_x, tau_y = matvec(params.torque_arm, lift)
+    return tau_x, tau_y, yaw_torque
 
 
 def accelerations(params: DroneParams, effects: Effects, kin: Kinematics, rpm: jax.Array, rpm_prev: jax.Array):
@@ -63,23 +102,39 @@ def accelerations(params: DroneParams, effects: Effects, kin: Kinematics, rpm: j
         rpm: f[..., D, 4] RPM applied now (already clipped).
         rpm_prev: f[..., D, 4] RPM of the previous substep (drag only).
     """
-    rotmat = quat_to_rotmat(kin.quat)
-    thrust = motor_thrust(params, rpm)
+    motors = motors_c(params, split(rpm))
+    acc, ang_acc = accelerations_c(params, effects, _split_kin(kin), motors, split(rpm_prev))
+    return join(acc), join(ang_acc)
+
+
+def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors, rpm_prev: Components,
+                    unit_quat: bool = False):
+    """`accelerations` in component form, with the motors' output for the applied RPM (`motors_c`).
+
+    ``unit_quat=True`` tells that ``kin.quat`` is of unit norm (as every step leaves it), which skips normalising it
+    again for the rotation matrix.
+
+    Returns:
+        (ax, ay, az) m/s², world frame, and (ω̇x, ω̇y, ω̇z) rad/s², body frame, each f[..., D].
+    """
+    rotmat = quat_to_rotmat_c(kin.quat, unit=unit_quat)
+    thrust = motors.thrust
     lift = thrust
     if effects.ground_effect:
-        lift = lift + aerodynamics.ground_effect_thrust(params, kin.pos, rotmat, thrust)
-    body_z_force = jnp.sum(lift, axis=-1)
-    if effects.downwash:
-        body_z_force = body_z_force + aerodynamics.downwash_force(params, kin.pos)
-    force = rotmat[..., :, 2] * body_z_force[..., None]
-    force = force.at[..., 2].add(-params.mass * params.gravity)
+        extra = aerodynamics.ground_effect_thrust_c(params, kin.pos[2], rotmat[2], thrust)
+        lift = tuple(t + e for t, e in zip(thrust, extra))
+    body_z_force = sum(lift[1:], lift[0])
+    if effects.downwash and kin.pos[2].shape[-1] > 1:  # a lone drone feels no downwash
+        body_z_force = body_z_force + aerodynamics.downwash_force_c(params, kin.pos)
+    fx, fy, fz = (row[2] * body_z_force for row in rotmat)
+    force = (fx, fy, fz + -params.mass * params.gravity)
     if effects.drag:
-        force = force + aerodynamics.drag_force(params, kin.vel, rpm_prev)
-    torque = body_torque(params, lift, rpm)
-    ang_mom = jnp.einsum("...ij,...j->...i", params.inertia, kin.ang_vel)
-    torque = torque - jnp.cross(kin.ang_vel, ang_mom)
-    ang_acc = jnp.einsum("...ij,...j->...i", params.inertia_inv, torque)
-    return force / params.mass[..., None], ang_acc
+        force = tuple(f + d for f, d in zip(force, aerodynamics.drag_force_c(params, kin.vel, rpm_prev)))
+    torque = body_torque_c(params, lift, motors.yaw_torque)
+    gyro = cross(kin.ang_vel, matvec(params.inertia, kin.ang_vel))
+    torque = tuple(t - g for t, g in zip(torque, gyro))
+    ang_acc = matvec(params.inertia_inv, torque)
+    return tuple(f / params.mass for f in force), ang_acc
 
 
 def euler_step(params, effects, kin: Kinematics, rpm, rpm_prev, dt: float) -> Kinematics:
@@ -88,32 +143,56 @@ def euler_step(params, effects, kin: Kinematics, rpm, rpm_prev, dt: float) -> Ki
     v ← v + dt·a; ω ← ω + dt·ω̇; p ← p + dt·v_new; q ← exp-map(q, ω_new, dt), then q is normalised as PyBullet
     does when the state is written back.
     """
-    acc, ang_acc = accelerations(params, effects, kin, rpm, rpm_prev)
-    vel = kin.vel + dt * acc
-    ang_vel = kin.ang_vel + dt * ang_acc
-    quat = quat_integrate(kin.quat, ang_vel, dt)
-    return Kinematics(kin.pos + dt * vel, _normalize(quat), vel, ang_vel)
+    motors = motors_c(params, split(rpm))
+    return _join_kin(euler_step_c(params, effects, _split_kin(kin), motors, split(rpm_prev), dt))
+
+
+def euler_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
+                 unit_quat: bool = False) -> Kinematics:
+    """`euler_step` in component form, with the motors' output for the applied RPM (`motors_c`); ``unit_quat`` as
+    in `accelerations_c`."""
+    acc, ang_acc = accelerations_c(params, effects, kin, motors, rpm_prev, unit_quat)
+    vel = tuple(v + dt * a for v, a in zip(kin.vel, acc))
+    ang_vel = tuple(w + dt * a for w, a in zip(kin.ang_vel, ang_acc))
+    quat = quat_integrate_c(kin.quat, ang_vel, dt)
+    pos = tuple(p + dt * v for p, v in zip(kin.pos, vel))
+    return Kinematics(pos, normalize_c(quat), vel, ang_vel)
 
 
 def rk4_step(params, effects, kin: Kinematics, rpm, rpm_prev, dt: float) -> Kinematics:
     """Classical 4th-order Runge-Kutta on (p, q, v, ω) with the motor inputs held over the step; q renormalised."""
+    motors = motors_c(params, split(rpm))
+    return _join_kin(rk4_step_c(params, effects, _split_kin(kin), motors, split(rpm_prev), dt))
 
-    def deriv(k: Kinematics) -> Kinematics:
-        acc, ang_acc = accelerations(params, effects, k, rpm, rpm_prev)
-        return Kinematics(k.vel, quat_derivative(k.quat, k.ang_vel), acc, ang_acc)
 
-    def shift(k: Kinematics, d: Kinematics, h: float) -> Kinematics:
-        return Kinematics(*(a + h * b for a, b in zip(k, d)))
+def rk4_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
+               unit_quat: bool = False) -> Kinematics:
+    """`rk4_step` in component form, with the motors' output for the applied RPM (`motors_c`); ``unit_quat`` as in
+    `accelerations_c` (it concerns the first stage only: the others are normalised for their rotation matrix)."""
 
-    k1 = deriv(kin)
-    k2 = deriv(shift(kin, k1, dt / 2))
-    k3 = deriv(shift(kin, k2, dt / 2))
-    k4 = deriv(shift(kin, k3, dt))
-    out = Kinematics(*(x + dt / 6 * (a + 2 * b + 2 * c + d) for x, a, b, c, d in zip(kin, k1, k2, k3, k4)))
-    return out._replace(quat=_normalize(out.quat))
+    def deriv(k: Kinematics, unit: bool = False) -> Kinematics:
+        acc, ang_acc = accelerations_c(params, effects, k, motors, rpm_prev, unit)
+        return Kinematics(k.vel, quat_derivative_c(k.quat, k.ang_vel), acc, ang_acc)
+
+    def stage(carry, coeffs):
+        # Stages 2-4: k_i = f(x + h_i k_{i-1}), accumulated as k1 + 2 k2 + 2 k3 + k4. A loop rather than three
+        # copies keeps the compiled step (and its gradient) small.
+        weighted_sum, k_prev = carry
+        h, weight = coeffs
+        k = deriv(jax.tree.map(lambda x, d: x + h * d, kin, k_prev))
+        return (jax.tree.map(lambda total, d: total + weight * d, weighted_sum, k), k), None
+
+    k1 = deriv(kin, unit_quat)
+    dtype = kin.pos[0].dtype
+    coeffs = (jnp.asarray([dt / 2, dt / 2, dt], dtype), jnp.asarray([2.0, 2.0, 1.0], dtype))
+    (weighted_sum, _), _ = jax.lax.scan(stage, (k1, k1), coeffs)
+    out = jax.tree.map(lambda x, total: x + dt / 6 * total, kin, weighted_sum)
+    return out._replace(quat=normalize_c(out.quat))
 
 
 INTEGRATORS = {"euler": euler_step, "rk4": rk4_step}
+#: The integrators in component form, by the same names.
+INTEGRATORS_C = {"euler": euler_step_c, "rk4": rk4_step_c}
 
 
 def ground_contact(params: DroneParams, kin: Kinematics) -> tuple[Kinematics, jax.Array]:
@@ -127,14 +206,24 @@ def ground_contact(params: DroneParams, kin: Kinematics) -> tuple[Kinematics, ja
     Returns:
         The corrected kinematics and bool[..., D], True where the drone touched the ground.
     """
+    kin, touching = ground_contact_c(params, _split_kin(kin))
+    return _join_kin(kin), touching
+
+
+def ground_contact_c(params: DroneParams, kin: Kinematics) -> tuple[Kinematics, jax.Array]:
+    """`ground_contact` in component form."""
     rest = 0.5 * params.collision_height
-    touching = kin.pos[..., 2] < rest
-    pos = kin.pos.at[..., 2].set(jnp.maximum(kin.pos[..., 2], rest))
-    lifted = jnp.zeros_like(kin.vel).at[..., 2].set(jnp.maximum(kin.vel[..., 2], 0.0))
-    vel = jnp.where(touching[..., None], lifted, kin.vel)
-    ang_vel = jnp.where(touching[..., None], 0.0, kin.ang_vel)
+    (x, y, z), (vx, vy, vz) = kin.pos, kin.vel
+    touching = z < rest
+    pos = (x, y, jnp.maximum(z, rest))
+    vel = (jnp.where(touching, 0.0, vx), jnp.where(touching, 0.0, vy), jnp.where(touching, jnp.maximum(vz, 0.0), vz))
+    ang_vel = tuple(jnp.where(touching, 0.0, w) for w in kin.ang_vel)
     return Kinematics(pos, kin.quat, vel, ang_vel), touching
 
 
-def _normalize(quat: jax.Array) -> jax.Array:
-    return quat / jnp.linalg.norm(quat, axis=-1, keepdims=True)
+def _split_kin(kin: Kinematics) -> Kinematics:
+    return Kinematics(*(split(x) for x in kin))
+
+
+def _join_kin(kin: Kinematics) -> Kinematics:
+    return Kinematics(*(join(x) for x in kin))

@@ -1,8 +1,14 @@
-"""Quaternion and Euler-angle helpers, PyBullet conventions.
+"""Quaternion and Euler-angle helpers, PyBullet conventions, and the component form of small vectors.
 
 Quaternions are (x, y, z, w) and rotate body to world. Euler angles are (roll, pitch, yaw) with
 R = Rz(yaw)·Ry(pitch)·Rx(roll), PyBullet's ``getQuaternionFromEuler``/``getEulerFromQuaternion`` (facts §0).
 All functions broadcast over leading axes.
+
+Component form. The physics is written on tuples of per-component arrays (a position is ``(x, y, z)``, each
+f[..., D]) rather than on f[..., D, 3] arrays; `split` and `join` convert. Every operation then runs over the
+contiguous world and drone axes, which XLA vectorises on CPU, where a trailing axis of 3 or 4 gives strided loops,
+stacks and small dot products. Matrices stay arrays (f[..., 3, 3]) and `matvec` reads their entries. The
+array-form functions (``quat_mul``, ``quat_integrate``, ...) wrap the component form (``*_c``).
 """
 
 from __future__ import annotations
@@ -15,6 +21,49 @@ OMEGA_EPS = 1e-8
 #: |sin(pitch)| at which PyBullet's Euler conversion snaps to gimbal lock (facts §0).
 GIMBAL_SNAP = 0.99999
 
+#: A small vector in component form: a tuple of same-shaped arrays, e.g. (x, y, z) or (x, y, z, w).
+Components = tuple
+
+
+def split(x: jax.Array) -> Components:
+    """Array f[..., k] -> component form, a k-tuple of f[...]."""
+    return tuple(x[..., i] for i in range(x.shape[-1]))
+
+
+def join(c: Components) -> jax.Array:
+    """Component form (k-tuple of f[...]) -> array f[..., k]."""
+    return jnp.stack(c, axis=-1)
+
+
+def dot(a: Components, b: Components) -> jax.Array:
+    """Σ_i a_i b_i, summed pairwise: (a0 b0 + a1 b1) + (a2 b2 + a3 b3).
+
+    XLA on CPU contracts a product and a sum into one fused multiply-add, which rounds one product but not the
+    other; summing in pairs keeps sums of equal and opposite products exactly zero (e.g. the roll torque of a
+    hovering drone, or of a + frame raising a motor on its x axis), as a dot product does.
+    """
+    terms = [ai * bi for ai, bi in zip(a, b)]
+    while len(terms) > 1:
+        pairs = [terms[i:i + 2] for i in range(0, len(terms), 2)]
+        terms = [pair[0] + pair[1] if len(pair) == 2 else pair[0] for pair in pairs]
+    return terms[0]
+
+
+def matvec(m: jax.Array, v: Components) -> Components:
+    """M v with M an array f[..., n, k] (e.g. a params matrix) and v a k-tuple; returns an n-tuple."""
+    return tuple(dot(split(m[..., i, :]), v) for i in range(m.shape[-2]))
+
+
+def cross(a: Components, b: Components) -> Components:
+    """a × b of 3-vectors, as ``jnp.cross``."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def normalize_c(v: Components) -> Components:
+    """v / |v| in component form."""
+    norm = jnp.sqrt(dot(v, v))
+    return tuple(vi / norm for vi in v)
+
 
 def quat_to_rotmat(quat: jax.Array) -> jax.Array:
     """Rotation matrix of a quaternion, normalising it first as ``getMatrixFromQuaternion`` does.
@@ -25,26 +74,37 @@ def quat_to_rotmat(quat: jax.Array) -> jax.Array:
     Returns:
         f[..., 3, 3] R with world = R @ body.
     """
-    q = quat / jnp.linalg.norm(quat, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ]
-    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+    return jnp.stack([join(row) for row in quat_to_rotmat_c(split(quat))], axis=-2)
+
+
+def quat_to_rotmat_c(quat: Components, unit: bool = False) -> tuple[Components, Components, Components]:
+    """`quat_to_rotmat` in component form: (x, y, z, w) -> rows ((R00, R01, R02), (R10, ...), (R20, ...)).
+
+    ``unit=True`` skips the normalisation, for a quaternion already known to be of unit norm.
+    """
+    x, y, z, w = quat if unit else normalize_c(quat)
+    return (
+        (1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)),
+        (2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)),
+        (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)),
+    )
 
 
 def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
     """Hamilton product a ⊗ b of (x, y, z, w) quaternions, f[..., 4]."""
-    ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
-    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return jnp.stack([
+    return join(quat_mul_c(split(a), split(b)))
+
+
+def quat_mul_c(a: Components, b: Components) -> Components:
+    """`quat_mul` in component form."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (
         aw * bx + ax * bw + ay * bz - az * by,
         aw * by - ax * bz + ay * bw + az * bx,
         aw * bz + ax * by - ay * bx + az * bw,
         aw * bw - ax * bx - ay * by - az * bz,
-    ], axis=-1)
+    )
 
 
 def quat_from_euler(rpy: jax.Array) -> jax.Array:
@@ -99,18 +159,28 @@ def quat_integrate(quat: jax.Array, ang_vel: jax.Array, dt: float) -> jax.Array:
     Returns:
         f[..., 4] the rotated quaternion (not renormalised).
     """
-    sq = jnp.sum(ang_vel * ang_vel, axis=-1, keepdims=True)
+    return join(quat_integrate_c(split(quat), split(ang_vel), dt))
+
+
+def quat_integrate_c(quat: Components, ang_vel: Components, dt: float) -> Components:
+    """`quat_integrate` in component form."""
+    sq = dot(ang_vel, ang_vel)
     moving = sq > OMEGA_EPS**2
     norm = jnp.sqrt(jnp.where(moving, sq, 1.0))
     theta = 0.5 * dt * norm
-    axis_sin = jnp.where(moving, jnp.sin(theta) / norm, 0.5 * dt) * ang_vel
-    delta = jnp.concatenate([axis_sin, jnp.where(moving, jnp.cos(theta), 1.0)], axis=-1)
-    return jnp.where(moving, quat_mul(quat, delta), quat)
+    sin_over_norm = jnp.where(moving, jnp.sin(theta) / norm, 0.5 * dt)
+    delta = (*(sin_over_norm * w for w in ang_vel), jnp.where(moving, jnp.cos(theta), 1.0))
+    return tuple(jnp.where(moving, r, q) for r, q in zip(quat_mul_c(quat, delta), quat))
 
 
 def quat_derivative(quat: jax.Array, ang_vel: jax.Array) -> jax.Array:
     """q̇ = ½ q ⊗ (ω, 0) for a body-frame rate ω in rad/s; f[..., 4], f[..., 3] -> f[..., 4] per second."""
-    return 0.5 * quat_mul(quat, jnp.concatenate([ang_vel, jnp.zeros_like(ang_vel[..., :1])], axis=-1))
+    return join(quat_derivative_c(split(quat), split(ang_vel)))
+
+
+def quat_derivative_c(quat: Components, ang_vel: Components) -> Components:
+    """`quat_derivative` in component form."""
+    return tuple(0.5 * c for c in quat_mul_c(quat, (*ang_vel, jnp.zeros_like(ang_vel[0]))))
 
 
 def rotate(rotmat: jax.Array, vec: jax.Array) -> jax.Array:

@@ -1,4 +1,9 @@
-"""Static simulation config, the functional step, and rollouts."""
+"""Static simulation config, the functional step, rollouts, and spreading worlds over devices.
+
+The step runs on the component form of the state (each vector a tuple of f[..., D] arrays, see
+`jaxdrones.rotations`): the state is split once per control step, the physics substeps are scanned on the
+components, and the result is joined back, so that XLA fuses each substep into a few vectorised loops.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +17,7 @@ import numpy as np
 
 from jaxdrones import dynamics
 from jaxdrones.params import DroneParams
+from jaxdrones.rotations import join, normalize_c, split
 from jaxdrones.state import DroneState
 
 StepFn = Callable[[DroneParams, DroneState, jax.Array], DroneState]
@@ -79,11 +85,31 @@ class SimConfig:
 
 def physics_substep(config: SimConfig, params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
     """One physics step of ``config.dt`` with already-clipped RPM f[..., D, 4]; pure and differentiable."""
-    integrate = dynamics.INTEGRATORS[config.integrator]
+    return _join_state(physics_substep_c(config, params, _split_state(state), split(rpm)))
+
+
+def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState, rpm: tuple,
+                      motors: dynamics.Motors | None = None, unit_quat: bool = False) -> DroneState:
+    """`physics_substep` in component form: ``state``'s vector fields and ``rpm`` are tuples of f[..., D] arrays
+    (``ground_contact`` stays bool[..., D]); ``motors`` is ``dynamics.motors_c(params, rpm)`` when already known;
+    ``unit_quat=True`` if ``state.quat`` is known to be of unit norm (see `dynamics.accelerations_c`)."""
+    if motors is None:
+        motors = dynamics.motors_c(params, rpm)
+    integrate = dynamics.INTEGRATORS_C[config.integrator]
     kin = dynamics.Kinematics(state.pos, state.quat, state.vel, state.ang_vel)
-    kin = integrate(params, config.effects, kin, rpm, state.rpm, config.dt)
-    kin, touching = dynamics.ground_contact(params, kin)
+    kin = integrate(params, config.effects, kin, motors, state.rpm, config.dt, unit_quat)
+    kin, touching = dynamics.ground_contact_c(params, kin)
     return DroneState(*kin, rpm=rpm, ground_contact=state.ground_contact | touching)
+
+
+def _split_state(state: DroneState) -> DroneState:
+    vectors = {name: split(getattr(state, name)) for name in ("pos", "quat", "vel", "ang_vel", "rpm")}
+    return DroneState(**vectors, ground_contact=state.ground_contact)
+
+
+def _join_state(state: DroneState) -> DroneState:
+    vectors = {name: join(getattr(state, name)) for name in ("pos", "quat", "vel", "ang_vel", "rpm")}
+    return DroneState(**vectors, ground_contact=state.ground_contact)
 
 
 def make_step(config: SimConfig, backend: str = "jax") -> StepFn:
@@ -91,7 +117,8 @@ def make_step(config: SimConfig, backend: str = "jax") -> StepFn:
 
     One call holds ``rpm`` over ``config.n_substeps`` physics substeps (run under ``lax.scan``). RPMs are clipped
     to [0, max_rpm] as the paper's code does. The step is pure (no hidden state, no key), jitted, and works under
-    ``jit``, ``vmap`` and ``grad``; arrays may carry leading world axes ``[W, D, ...]``.
+    ``jit``, ``vmap`` and ``grad``; arrays may carry leading world axes ``[W, D, ...]``. Worlds spread over several
+    devices with `shard_worlds` are stepped on each device in parallel, in the same jitted call.
 
     Args:
         config: SimConfig.
@@ -113,14 +140,18 @@ def make_step(config: SimConfig, backend: str = "jax") -> StepFn:
 
     @jax.jit
     def core(params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
-        rpm = jnp.clip(rpm, 0.0, params.max_rpm[..., None])
-        state = state.replace(ground_contact=jnp.zeros_like(state.ground_contact))
+        rpm = split(jnp.clip(rpm, 0.0, params.max_rpm[..., None]))
+        state = _split_state(state.replace(ground_contact=jnp.zeros_like(state.ground_contact)))
+        # The quaternion is normalised here once; every substep then leaves it of unit norm, so the substeps need
+        # not normalise it again for their rotation matrices. The motors' output is held over the substeps too.
+        state = state.replace(quat=normalize_c(state.quat))
+        motors = dynamics.motors_c(params, rpm)
 
         def substep(s, _):
-            return physics_substep(config, params, s, rpm), None
+            return physics_substep_c(config, params, s, rpm, motors, unit_quat=True), None
 
         state, _ = jax.lax.scan(substep, state, None, length=config.n_substeps)
-        return state
+        return _join_state(state)
 
     def step(params: DroneParams, state: DroneState, rpm) -> DroneState:
         rpm = check_rpm(config, state, rpm)
@@ -182,3 +213,39 @@ def _rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Arr
         return s, s
 
     return jax.lax.scan(body, state, rpms)[1]
+
+
+def shard_worlds(tree, axis: int = 0, devices=None):
+    """Spread the world axis of every array in ``tree`` over devices, for a step or rollout to run on all of them.
+
+    Each leaf is placed with a `jax.sharding.NamedSharding` over a 1-D mesh ``("worlds",)``: device k holds a
+    contiguous slice of the worlds. A jitted `make_step` step or `rollout` on such arrays runs on every device at
+    once, each on its own slice (worlds do not interact, so no data moves between devices), and returns arrays
+    sharded the same way. Shared, unbatched params need no sharding; per-world params are sharded like the state.
+    On a CPU host, start Python with ``XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`` (set before
+    ``jax`` is imported) to get one device per core; on GPUs the devices are the GPUs.
+
+    Args:
+        tree: a pytree of arrays whose axis ``axis`` is the world axis, e.g. a DroneState f[W, D, ...], an RPM
+            command f[W, D, 4] (``axis=0``) or a rollout's commands f[T, W, D, 4] (``axis=1``).
+        axis: the world axis of every leaf.
+        devices: the devices to use, default ``jax.devices()``.
+
+    Returns:
+        The same pytree with its leaves sharded over ``devices``.
+
+    Raises:
+        ValueError: if a leaf lacks ``axis`` or its size there is not a multiple of the number of devices.
+    """
+    devices = list(jax.devices() if devices is None else devices)
+    mesh = jax.sharding.Mesh(np.array(devices), ("worlds",))
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(*[None] * axis, "worlds"))
+
+    def put(x):
+        x = jnp.asarray(x)
+        if x.ndim <= axis or x.shape[axis] % len(devices):
+            raise ValueError(f"shard_worlds: a leaf of shape {x.shape} has no world axis {axis} whose size is a "
+                             f"multiple of the {len(devices)} devices")
+        return jax.device_put(x, sharding)
+
+    return jax.tree.map(put, tree)
