@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxdrones.params import DroneParams
-from jaxdrones.rotations import Components, dot, join, split
+from jaxdrones.rotations import GIMBAL_SNAP, Components, dot, join, split
 
 #: Downwash acts only between drones closer than this horizontally, m (facts §6.3).
 DOWNWASH_MAX_DIST = 10.0
@@ -47,8 +47,9 @@ def ground_effect_thrust(params: DroneParams, pos: jax.Array, rotmat: jax.Array,
     """Extra per-propeller thrust near the ground, paper eq. (ground): g_i = f_i · C_gnd · (R / (4 h_i))².
 
     h_i is the world height of propeller i, clipped from below at ``gnd_eff_h_clip`` (so the gain is at most 4/15).
-    The effect is on only while the drone is upright, |roll| < π/2 and |pitch| < π/2 (facts §6.1), which is
-    R[2, 2] > 0. The extra force acts along body +z at each propeller, like thrust.
+    The effect is on only while |roll| < π/2 and |pitch| < π/2 in PyBullet's Euler angles (facts §6.1): R[2, 2] > 0,
+    and |sin pitch| = |R[2, 0]| below PyBullet's gimbal-lock snap (0.99999), where it reports pitch = ±π/2. The
+    extra force acts along body +z at each propeller, like thrust.
 
     Args:
         params: DroneParams.
@@ -73,7 +74,7 @@ def ground_effect_thrust_c(params: DroneParams, pos_z: jax.Array, rotmat_z: Comp
         rotmat_z: (R20, R21, R22), the last row of R, each f[..., D].
         thrust: 4-tuple of f[..., D] N.
     """
-    upright = rotmat_z[2] > 0
+    upright = (rotmat_z[2] > 0) & (jnp.abs(rotmat_z[0]) < GIMBAL_SNAP)
     extra = []
     for i, thrust_i in enumerate(thrust):
         height = jnp.maximum(pos_z + dot(rotmat_z, split(params.prop_pos[..., i, :])), params.gnd_eff_h_clip)

@@ -7,6 +7,7 @@ ground-effect height clip) follow gym-pybullet-drones' `BaseAviary.__init__` (fa
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import xml.etree.ElementTree as ET
@@ -34,8 +35,9 @@ class DroneParams:
     """Physical parameters of one quadrotor model, as a pytree of float arrays.
 
     All leaves have JAX's default float dtype (float32, or float64 under ``jax_enable_x64``). Leaves may carry
-    leading batch axes (e.g. ``[W]`` or ``[W, D]``) for heterogeneous teams or domain randomisation; the shapes
-    below are those of one drone. Motor speed is in RPM (rev/min), as in the paper and its URDFs.
+    leading batch axes, right-aligned with the state's ``[..., D]``: per-drone ``[D]`` or ``[W, D]`` for
+    heterogeneous teams, per-world ``[W, 1]`` for domain randomisation (or ``vmap`` over worlds); the shapes below
+    are those of one drone. Motor speed is in RPM (rev/min), as in the paper and its URDFs.
 
     Attributes:
         mass: f[] kg (URDF ``base_link`` inertial mass).
@@ -94,6 +96,29 @@ class DroneParams:
     def weight(self) -> jax.Array:
         """f[] N, m·g."""
         return self.mass * self.gravity
+
+
+#: Number of trailing (per-drone) axes of each `DroneParams` field; the other fields are per-drone scalars.
+_CORE_NDIM = {"inertia": 2, "inertia_inv": 2, "prop_pos": 2, "torque_arm": 2, "drag_coeff": 1, "dw_coeff": 1,
+              "prop_spin": 1}
+
+
+def params_batch_shape(params: DroneParams) -> tuple[int, ...]:
+    """The leading batch shape shared by all fields of ``params`` (``()`` for one model).
+
+    Raises:
+        ValueError: if the fields disagree on it.
+    """
+    shapes = {}
+    for field in dataclasses.fields(params):
+        leaf = getattr(params, field.name)
+        core = _CORE_NDIM.get(field.name, 0)
+        shapes[field.name] = tuple(leaf.shape[:leaf.ndim - core])
+    batch = shapes["mass"]
+    odd = {k: v for k, v in shapes.items() if v != batch}
+    if odd:
+        raise ValueError(f"DroneParams fields have different batch shapes: mass {batch}, {odd}")
+    return batch
 
 
 def model_path(name: str) -> str:

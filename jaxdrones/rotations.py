@@ -149,7 +149,8 @@ def quat_integrate(quat: jax.Array, ang_vel: jax.Array, dt: float) -> jax.Array:
     """Exact exponential-map update for a constant body rate: q ⊗ [sin(|ω|dt/2) ω/|ω|, cos(|ω|dt/2)].
 
     This is the paper code's explicit-dynamics quaternion update (facts §4.6); q is left unchanged when
-    |ω| ≤ 1e-8 rad/s. Safe to differentiate at ω = 0.
+    |ω| ≤ 1e-8 rad/s; there its derivative is that of the first-order update q ⊗ (½ dt ω, 1), so gradients
+    with respect to ω do not vanish at rest.
 
     Args:
         quat: f[..., 4] (x, y, z, w), body→world.
@@ -170,7 +171,10 @@ def quat_integrate_c(quat: Components, ang_vel: Components, dt: float) -> Compon
     theta = 0.5 * dt * norm
     sin_over_norm = jnp.where(moving, jnp.sin(theta) / norm, 0.5 * dt)
     delta = (*(sin_over_norm * w for w in ang_vel), jnp.where(moving, jnp.cos(theta), 1.0))
-    return tuple(jnp.where(moving, r, q) for r, q in zip(quat_mul_c(quat, delta), quat))
+    # Below the threshold q is returned unchanged, but with the gradient of the first-order update q ⊗ (½dt ω, 1)
+    # (which is what `delta` is there), so that attitude gradients flow through a drone at rest.
+    rotated = quat_mul_c(quat, delta)
+    return tuple(jnp.where(moving, r, q + (r - jax.lax.stop_gradient(r))) for r, q in zip(rotated, quat))
 
 
 def quat_derivative(quat: jax.Array, ang_vel: jax.Array) -> jax.Array:

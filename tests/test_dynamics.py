@@ -321,7 +321,6 @@ def test_ground_effect_on_just_short_of_gimbal_lock(x64):
     assert _gain(params, 0.05, (0.0, np.pi / 2 - 0.01, 0.0)).min() > 0
 
 
-@pytest.mark.xfail(strict=True, reason="ground effect gate uses R[2,2] > 0, not PyBullet's snapped pitch (facts §0)")
 def test_ground_effect_off_in_gimbal_snap_band(x64):
     """Facts §6.1: the effect is applied only if |roll| < π/2 and |pitch| < π/2 with the rpy *as PyBullet reports
     it*; within ~0.26° of pitch ±90° (|sin pitch| ≥ 0.99999) PyBullet snaps pitch to exactly ±π/2 (facts §0), so
@@ -567,25 +566,16 @@ def test_per_world_params_with_drone_axis_equal_vmap(rng):
     _assert_states_close(step(with_drone_axis, states, rpms), vmapped)
 
 
-@pytest.mark.xfail(strict=True, reason="[W]-batched params are broadcast against the drone axis, not rejected")
 def test_per_world_params_without_drone_axis_rejected(rng):
-    """DroneParams documents leading batch axes "e.g. [W] or [W, D]". Passed directly with a [W, D] state, [W]
-    params are right-aligned with the *drone* axis: with W == D each drone silently gets world w's params (the
-    result differs from vmap), with W != D jnp raises an opaque broadcasting error. Either should be a ValueError
-    naming the params' shape (or [W] should be documented as vmap-only)."""
+    """Batched params are right-aligned with the state's [..., D]: [W] params with W != D cannot line up and must
+    be rejected with a ValueError naming the params' shape, not an opaque broadcasting error."""
     params = jd.load_params("cf2x")
     step = stepper(ALL_EFFECTS)
-    states = _world_states(rng, 4)  # W = D = 4
-    rpms = rng.uniform(1e4, 2.1e4, (4, 4, 4)).astype(np.float32)
-    masses = params.mass * np.array([0.8, 0.9, 1.1, 1.2], dtype=np.float32)
-    per_world = jax.tree.map(lambda x: jnp.broadcast_to(x, (4,) + x.shape), params).replace(mass=masses)
-    vmapped = jax.vmap(step)(per_world, states, rpms)
-    try:
-        direct = step(per_world, states, rpms)
-    except ValueError as err:  # rejecting the ambiguous layout is a fix
-        assert "params" in str(err)
-        return
-    _assert_states_close(direct, vmapped)  # so is interpreting it per world
+    states = _world_states(rng, 3)  # W = 3, D = 4
+    rpms = rng.uniform(1e4, 2.1e4, (3, 4, 4)).astype(np.float32)
+    per_world = jax.tree.map(lambda x: jnp.broadcast_to(x, (3,) + x.shape), params)
+    with pytest.raises(ValueError, match=r"params have batch shape \(3,\).*per-world params \[W, 1\]"):
+        step(per_world, states, rpms)
 
 
 def test_permuting_drones_permutes_outputs(rng):
@@ -694,3 +684,17 @@ def test_rk4_converges_with_fourth_order_and_agrees_with_fine_euler(x64):
     assert rk4[240] < 1e-6
     assert 6 < euler[240] / euler[1920] < 10  # first order: 8
     assert rk4[240] < 1e-3 * euler[240]
+
+
+def test_quaternion_update_gradient_at_rest_is_first_order(x64):
+    """At |ω| ≤ 1e-8 the update is a no-op (facts §4.6) but its derivative is that of q ⊗ (½dt ω, 1), so attitude
+    gradients flow through a drone at rest; it matches the derivative just above the threshold."""
+    from jaxdrones.rotations import quat_integrate
+
+    quat = jnp.asarray(np.array([0.1, -0.2, 0.3, 0.9]) / np.linalg.norm([0.1, -0.2, 0.3, 0.9]))
+    dt = 1 / 240
+    at_rest = jax.jacobian(lambda w: quat_integrate(quat, w, dt))(jnp.zeros(3))
+    moving = jax.jacobian(lambda w: quat_integrate(quat, w, dt))(jnp.full(3, 1e-6))
+    np.testing.assert_array_equal(quat_integrate(quat, jnp.zeros(3), dt), quat)
+    assert float(jnp.max(jnp.abs(at_rest))) > 1e-3
+    np.testing.assert_allclose(at_rest, moving, atol=1e-9)
