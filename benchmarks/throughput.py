@@ -41,14 +41,14 @@ DRONES = (1, 4)
 QUICK_WORLDS = (1, 1024, 16384)
 DEFAULT_OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "throughput.json")
 #: Aim for calls of about this many drone-steps, so each timed call lasts long enough to measure.
-TARGET_DRONE_STEPS = 8_000_000
+TARGET_DRONE_STEPS = 2_000_000
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true",
-                        help=f"smaller grid (worlds {QUICK_WORLDS}) and 3 repeats")
+                        help=f"smaller grid (worlds {QUICK_WORLDS}) and 5 repeats")
     parser.add_argument("--worlds", type=int, nargs="+", help=f"numbers of worlds (default {WORLDS})")
     parser.add_argument("--drones", type=int, nargs="+", help=f"drones per world (default {DRONES})")
     parser.add_argument("--effects", choices=("on", "off"), nargs="+", default=["on", "off"],
@@ -59,14 +59,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--steps", type=int, default=None,
                         help="control steps per timed call (default: chosen per size, about "
                              f"{TARGET_DRONE_STEPS:.0e} drone-steps per call)")
-    parser.add_argument("--repeats", type=int, default=None, help="timed calls per measurement (default 5; 3 quick)")
+    parser.add_argument("--repeats", type=int, default=None, help="timed calls per measurement (default 10; 5 quick)")
     parser.add_argument("--devices", type=int, default=None,
                         help="CPU devices to create (default: one per core, or what XLA_FLAGS says)")
     parser.add_argument("--out", default=DEFAULT_OUT, help="JSON output path (default: %(default)s)")
     args = parser.parse_args(argv)
     args.worlds = args.worlds or (QUICK_WORLDS if args.quick else WORLDS)
     args.drones = args.drones or DRONES
-    args.repeats = args.repeats or (3 if args.quick else 5)
+    args.repeats = args.repeats or (5 if args.quick else 10)
     for name in ("worlds", "drones"):
         if min(getattr(args, name)) < 1:
             parser.error(f"--{name} must be positive")

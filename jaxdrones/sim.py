@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones import dynamics
-from jaxdrones.params import DroneParams
+from jaxdrones.params import DroneParams, params_batch_shape
 from jaxdrones.rotations import join, normalize_c, split
 from jaxdrones.state import DroneState
 
@@ -146,15 +146,22 @@ def make_step(config: SimConfig, backend: str = "jax") -> StepFn:
         # not normalise it again for their rotation matrices. The motors' output is held over the substeps too.
         state = state.replace(quat=normalize_c(state.quat))
         motors = dynamics.motors_c(params, rpm)
+        # The RPM of the previous substep, which drag uses, is the state's in the first substep and the held
+        # command in the others: it is chosen per substep rather than carried (and copied) through the loop.
+        rpm_before = state.rpm
 
-        def substep(s, _):
-            return physics_substep_c(config, params, s, rpm, motors, unit_quat=True), None
+        def substep(s, first):
+            rpm_prev = tuple(jnp.where(first, before, now) for before, now in zip(rpm_before, rpm))
+            s = physics_substep_c(config, params, s.replace(rpm=rpm_prev), rpm, motors, unit_quat=True)
+            return s.replace(rpm=()), None
 
-        state, _ = jax.lax.scan(substep, state, None, length=config.n_substeps)
-        return _join_state(state)
+        first = jnp.arange(config.n_substeps) == 0
+        state, _ = jax.lax.scan(substep, state.replace(rpm=()), first)
+        return _join_state(state.replace(rpm=rpm))
 
     def step(params: DroneParams, state: DroneState, rpm) -> DroneState:
         rpm = check_rpm(config, state, rpm)
+        check_params_batch(params, state)
         return core(params, state, rpm)
 
     step.config = config
@@ -182,6 +189,26 @@ def check_rpm(config: SimConfig, state: DroneState, rpm) -> jax.Array:
     if not isinstance(rpm, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(rpm))):
         raise ValueError("rpm contains NaN or inf")
     return rpm
+
+
+def check_params_batch(params: DroneParams, state: DroneState) -> None:
+    """Check that the params' batch axes line up with the state's ``[..., D]`` (right-aligned broadcasting).
+
+    Per-drone params are ``[D]`` or ``[W, D]``; per-world params are ``[W, 1]`` (or used under ``vmap``).
+
+    Raises:
+        ValueError: if the params' batch shape does not broadcast to the state's leading shape ``[..., D]``.
+    """
+    lead = state.pos.shape[:-1]
+    batch = params_batch_shape(params)
+    try:
+        ok = np.broadcast_shapes(batch, lead) == lead
+    except ValueError:
+        ok = False
+    if not ok:
+        raise ValueError(f"params have batch shape {batch}, which does not line up with the state's [..., D] = "
+                         f"{lead}: batched params are right-aligned with the drone axis, so per-drone params are "
+                         f"[D] or [W, D] and per-world params [W, 1] (or vmap the step over worlds)")
 
 
 def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Array) -> DroneState:
