@@ -41,10 +41,7 @@ def plot_flight(flight: Mapping, path: str | os.PathLike, *, title: str | None =
     Raises:
         ValueError: if a key is missing or the shapes do not agree.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     data = _check(flight)
     times, n_drones = data["times"], data["pos"].shape[1]
@@ -91,6 +88,26 @@ def plot_flight(flight: Mapping, path: str | os.PathLike, *, title: str | None =
     return path
 
 
+def _pyplot():
+    """matplotlib.pyplot on the non-interactive Agg backend (files only, no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(plt, fig, path: str | os.PathLike, title: str | None) -> str:
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = os.fspath(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def _check(flight: Mapping) -> dict:
     missing = [k for k in ("times", *(g[0] for g in _GROUPS)) if k not in flight]
     if missing:
@@ -119,10 +136,7 @@ def plot_learning_curve(history: list[Mapping], path: str | os.PathLike, *, titl
     Returns:
         ``path`` as a string.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     steps = np.array([row["env_steps"] for row in history], dtype=float)
     fig, (ax_r, ax_d) = plt.subplots(1, 2, figsize=(10, 3.8))
@@ -134,13 +148,7 @@ def plot_learning_curve(history: list[Mapping], path: str | os.PathLike, *, titl
     for ax in (ax_r, ax_d):
         ax.set_xlabel("env steps")
         ax.grid(alpha=0.3)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    path = os.fspath(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, title)
 
 
 def plot_hover_flight(times, pos, vel, rpm, target_z: float, path: str | os.PathLike, *,
@@ -159,10 +167,7 @@ def plot_hover_flight(times, pos, vel, rpm, target_z: float, path: str | os.Path
     Returns:
         ``path`` as a string.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     times, pos, vel, rpm = (np.asarray(x) for x in (times, pos, vel, rpm))
     fig, axes = plt.subplots(3, 1, figsize=(7, 7), sharex=True)
@@ -179,10 +184,4 @@ def plot_hover_flight(times, pos, vel, rpm, target_z: float, path: str | os.Path
     axes[2].legend(fontsize=8, ncol=4)
     for ax in axes:
         ax.grid(alpha=0.3)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    path = os.fspath(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, title)
