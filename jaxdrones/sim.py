@@ -224,7 +224,8 @@ def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Arra
         DroneState whose leaves have a leading time axis ``[T, *L, ...]``: the state after each step.
 
     Raises:
-        ValueError: if ``rpms`` is not f[T, *L, D, 4].
+        ValueError: if ``rpms`` is not f[T, *L, D, 4]. The commands are not checked for NaN (the scan runs under
+            ``jit``): a NaN command propagates into the states from that step on.
     """
     rpms = jnp.asarray(rpms)
     if rpms.ndim != state.rpm.ndim + 1 or rpms.shape[1:] != state.rpm.shape:
