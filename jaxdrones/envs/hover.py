@@ -11,7 +11,7 @@ import numpy as np
 
 from jaxdrones.envs.base import Env, EnvState, kinematic_obs
 from jaxdrones.params import load_params
-from jaxdrones.rotations import quat_from_euler, quat_to_euler
+from jaxdrones.rotations import quat_from_euler
 from jaxdrones.sim import SimConfig, make_step
 from jaxdrones.state import DroneState
 
@@ -162,13 +162,14 @@ class HoverEnv(Env):
         rpm = state.params.hover_rpm * (1.0 + RPM_ACTION_SCALE * jnp.broadcast_to(action, (4,)))
         sim = self._step(state.params, state.sim, rpm[None])
         steps = state.steps + 1
-        crashed = self._crashed(sim)
+        obs = self._obs(sim)
+        crashed = self._crashed(sim, rpy=obs[3:6])
         terminated = crashed | ~finite
         truncated = (steps >= self.episode_length) & ~terminated
         dtype = sim.pos.dtype
         metrics = {"distance": self._distance(sim), "crash": crashed.astype(dtype),
                    "invalid_action": (~finite).astype(dtype)}
-        return state.replace(sim=sim, obs=self._obs(sim), reward=self._reward(sim), terminated=terminated,
+        return state.replace(sim=sim, obs=obs, reward=self._reward(sim), terminated=terminated,
                              truncated=truncated, steps=steps, metrics=metrics)
 
     def _obs(self, sim: DroneState) -> jax.Array:
@@ -185,10 +186,10 @@ class HoverEnv(Env):
         shaped = jnp.exp(-jnp.sqrt(d2 + 1e-12) / 0.3) + 2.0 * jnp.exp(-d2 / 0.03**2) - 0.1 * speed2
         return jnp.maximum(0.0, shaped)
 
-    def _crashed(self, sim: DroneState) -> jax.Array:
+    def _crashed(self, sim: DroneState, rpy: jax.Array) -> jax.Array:
+        """Left the arena or tilted too far (``rpy`` f[3] rad, from the observation), or touched the ground."""
         cfg = self.config
         pos = sim.pos[0]
-        rpy = quat_to_euler(sim.quat[0])
         out = (jnp.any(jnp.abs(pos[:2]) > cfg.arena_xy) | (pos[2] > cfg.arena_z)
                | jnp.any(jnp.abs(rpy[:2]) > cfg.max_tilt))
         if cfg.terminate_on_ground:
