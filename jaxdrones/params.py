@@ -121,6 +121,29 @@ def params_batch_shape(params: DroneParams) -> tuple[int, ...]:
     return batch
 
 
+def broadcast_params(params: DroneParams, lead: tuple[int, ...], xp=jnp) -> DroneParams:
+    """Broadcast every field of ``params`` to the batch shape ``lead`` (e.g. a state's ``[..., D]``).
+
+    Args:
+        params: DroneParams whose batch shape broadcasts to ``lead`` (right-aligned, see `params_batch_shape`).
+        lead: the target batch shape.
+        xp: the array module, ``jax.numpy`` (default) or ``numpy`` (host-side arrays).
+
+    Raises:
+        ValueError: if a field does not broadcast to ``lead``.
+    """
+    def widen(name, leaf):
+        core = _CORE_NDIM.get(name, 0)
+        shape = tuple(lead) + tuple(leaf.shape[leaf.ndim - core:])
+        try:
+            return xp.broadcast_to(xp.asarray(leaf), shape)
+        except ValueError:
+            raise ValueError(f"DroneParams.{name} of shape {leaf.shape} does not broadcast to the batch shape "
+                             f"{tuple(lead)}") from None
+
+    return DroneParams(**{f.name: widen(f.name, getattr(params, f.name)) for f in dataclasses.fields(params)})
+
+
 def model_path(name: str) -> str:
     """Path of a shipped model's URDF.
 

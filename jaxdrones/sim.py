@@ -18,7 +18,7 @@ import numpy as np
 from jaxdrones import dynamics
 from jaxdrones.params import DroneParams, params_batch_shape
 from jaxdrones.rotations import join, normalize_c, split
-from jaxdrones.state import DroneState
+from jaxdrones.state import CONTACT_GROUND, DroneState
 
 StepFn = Callable[[DroneParams, DroneState, jax.Array], DroneState]
 
@@ -91,7 +91,7 @@ def physics_substep(config: SimConfig, params: DroneParams, state: DroneState, r
 def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState, rpm: tuple,
                       motors: dynamics.Motors | None = None, unit_quat: bool = False) -> DroneState:
     """`physics_substep` in component form: ``state``'s vector fields and ``rpm`` are tuples of f[..., D] arrays
-    (``ground_contact`` stays bool[..., D]); ``motors`` is ``dynamics.motors_c(params, rpm)`` when already known;
+    (``contact`` stays i32[..., D]); ``motors`` is ``dynamics.motors_c(params, rpm)`` when already known;
     ``unit_quat=True`` if ``state.quat`` is known to be of unit norm (see `dynamics.accelerations_c`)."""
     if motors is None:
         motors = dynamics.motors_c(params, rpm)
@@ -99,20 +99,20 @@ def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState,
     kin = dynamics.Kinematics(state.pos, state.quat, state.vel, state.ang_vel)
     kin = integrate(params, config.effects, kin, motors, state.rpm, config.dt, unit_quat)
     kin, touching = dynamics.ground_contact_c(params, kin)
-    return DroneState(*kin, rpm=rpm, ground_contact=state.ground_contact | touching)
+    return DroneState(*kin, rpm=rpm, contact=state.contact | jnp.where(touching, CONTACT_GROUND, 0).astype(jnp.int32))
 
 
 def _split_state(state: DroneState) -> DroneState:
     vectors = {name: split(getattr(state, name)) for name in ("pos", "quat", "vel", "ang_vel", "rpm")}
-    return DroneState(**vectors, ground_contact=state.ground_contact)
+    return DroneState(**vectors, contact=state.contact)
 
 
 def _join_state(state: DroneState) -> DroneState:
     vectors = {name: join(getattr(state, name)) for name in ("pos", "quat", "vel", "ang_vel", "rpm")}
-    return DroneState(**vectors, ground_contact=state.ground_contact)
+    return DroneState(**vectors, contact=state.contact)
 
 
-def make_step(config: SimConfig, backend: str = "jax") -> StepFn:
+def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
     """Build the control step ``step(params, state, rpm) -> state`` for a config.
 
     One call holds ``rpm`` over ``config.n_substeps`` physics substeps (run under ``lax.scan``). RPMs are clipped
@@ -122,26 +122,39 @@ def make_step(config: SimConfig, backend: str = "jax") -> StepFn:
 
     Args:
         config: SimConfig.
-        backend: ``"jax"`` (this pure-JAX core).
+        backend: ``"jax"`` (this pure-JAX core) or ``"pybullet"`` (`jaxdrones.backends.pybullet.PyBulletStep`:
+            collisions with the ground, obstacles and other drones, cameras; not differentiable).
+        **options: PyBullet backend options: ``obstacles`` (None, True/"paper", or a sequence of
+            `jaxdrones.backends.scene.Obstacle` / URDF paths), ``damping`` (keep Bullet's velocity damping,
+            default False), ``gui`` (show world 0 in PyBullet's GUI), ``renderer`` ("tiny" or "egl").
 
     Returns:
         ``step(params, state, rpm)`` where ``rpm`` is f[..., D, 4] in RPM (ints are cast to the state's float
-        dtype) with the leading shape of ``state``. ``state.ground_contact`` reports contact during this step.
+        dtype) with the leading shape of ``state``. ``state.contact`` reports ground contact during this step.
 
     Raises:
-        ValueError: unknown backend; and, when ``step`` is called, an ``rpm`` or ``state`` of the wrong shape or a
+        ValueError: unknown backend or option; and, when ``step`` is called, an ``rpm`` or ``state`` of the wrong shape or a
             non-numeric dtype. Called on concrete arrays (outside ``jit``), a non-finite ``rpm`` raises too; inside
             ``jit`` NaN propagates into the state (the envs detect and report it).
     """
     if not isinstance(config, SimConfig):
         raise ValueError(f"make_step expects a SimConfig, got {type(config).__name__}")
+    if backend == "pybullet":
+        from jaxdrones.backends.pybullet import OPTIONS, PyBulletStep
+
+        unknown = sorted(set(options) - set(OPTIONS))
+        if unknown:
+            raise ValueError(f"unknown PyBullet backend option(s) {unknown}: expected some of {OPTIONS}")
+        return PyBulletStep(config, **options)
     if backend != "jax":
-        raise ValueError(f"unknown backend {backend!r}: expected 'jax'")
+        raise ValueError(f"unknown backend {backend!r}: expected 'jax' or 'pybullet'")
+    if options:
+        raise ValueError(f"the jax backend takes no options, got {sorted(options)} (they are PyBullet's)")
 
     @jax.jit
     def core(params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
         rpm = split(jnp.clip(rpm, 0.0, params.max_rpm[..., None]))
-        state = _split_state(state.replace(ground_contact=jnp.zeros_like(state.ground_contact)))
+        state = _split_state(state.replace(contact=jnp.zeros_like(state.contact)))
         # The quaternion is normalised here once; every substep then leaves it of unit norm, so the substeps need
         # not normalise it again for their rotation matrices. The motors' output is held over the substeps too.
         state = state.replace(quat=normalize_c(state.quat))
@@ -174,21 +187,30 @@ def check_rpm(config: SimConfig, state: DroneState, rpm) -> jax.Array:
     Raises:
         ValueError: see `make_step`.
     """
+    dtype = rpm.dtype if hasattr(rpm, "dtype") else np.asarray(rpm).dtype
+    check_rpm_shape(config, state, np.shape(rpm), dtype)
+    rpm = jnp.asarray(rpm, dtype=state.pos.dtype)
+    if not isinstance(rpm, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(rpm))):
+        raise ValueError("rpm contains NaN or inf")
+    return rpm
+
+
+def check_rpm_shape(config: SimConfig, state: DroneState, shape: tuple[int, ...], dtype) -> None:
+    """Check an RPM command's shape and dtype (and the state's drone axis) against the config and state.
+
+    Raises:
+        ValueError: see `make_step`.
+    """
     n = config.n_drones
     if state.pos.shape[-2:] != (n, 3) or state.quat.shape[-2:] != (n, 4):
         raise ValueError(f"state has pos {state.pos.shape} and quat {state.quat.shape}; expected [..., {n}, 3] and "
                          f"[..., {n}, 4] for n_drones={n} (build it with jd.init_state(config, ...))")
-    dtype = rpm.dtype if hasattr(rpm, "dtype") else np.asarray(rpm).dtype
     if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)) or dtype == bool:
         raise ValueError(f"rpm must be a real (float or int) array in RPM, got dtype {dtype}")
-    rpm = jnp.asarray(rpm, dtype=state.pos.dtype)
     expected = state.rpm.shape
-    if rpm.shape != expected:
+    if tuple(shape) != tuple(expected):
         raise ValueError(f"rpm must have shape {expected} ([..., n_drones={n}, 4] motor speeds in RPM, with the "
-                         f"state's leading shape {expected[:-2]}), got {rpm.shape}")
-    if not isinstance(rpm, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(rpm))):
-        raise ValueError("rpm contains NaN or inf")
-    return rpm
+                         f"state's leading shape {expected[:-2]}), got {tuple(shape)}")
 
 
 def check_params_batch(params: DroneParams, state: DroneState) -> None:

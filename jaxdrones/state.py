@@ -14,6 +14,11 @@ _CF2_ARM = 0.0397
 #: Default start height of the paper's environments: collision half-height + 0.1 m (facts §1.1).
 DEFAULT_START_Z = 0.1125
 
+#: Bits of `DroneState.contact`: what a drone touched during the last control step.
+CONTACT_GROUND = 1
+CONTACT_OBSTACLE = 2
+CONTACT_DRONE = 4
+
 
 @struct.dataclass
 class DroneState:
@@ -26,7 +31,9 @@ class DroneState:
         ang_vel: f[..., D, 3] rad/s, body frame.
         rpm: f[..., D, 4] RPM, the clipped motor speeds applied in the last physics substep (zero at start).
             The drag model uses it, as the paper's code uses ``last_clipped_action`` (facts §6.2).
-        ground_contact: bool[..., D] whether the drone touched the ground during the last control step.
+        contact: i32[..., D] what the drone touched during the last control step, a bit mask of
+            `CONTACT_GROUND` (1), `CONTACT_OBSTACLE` (2) and `CONTACT_DRONE` (4); 0 = nothing. The JAX backend
+            models the ground only; the PyBullet backend reports all three.
     """
 
     pos: jax.Array
@@ -34,7 +41,17 @@ class DroneState:
     vel: jax.Array
     ang_vel: jax.Array
     rpm: jax.Array
-    ground_contact: jax.Array
+    contact: jax.Array
+
+    @property
+    def ground_contact(self) -> jax.Array:
+        """bool[..., D], whether the drone touched the ground during the last control step."""
+        return (self.contact & CONTACT_GROUND) != 0
+
+    @property
+    def collided(self) -> jax.Array:
+        """bool[..., D], whether the drone touched an obstacle or another drone during the last control step."""
+        return (self.contact & (CONTACT_OBSTACLE | CONTACT_DRONE)) != 0
 
 
 def default_start_pos(n_drones: int) -> np.ndarray:
@@ -104,5 +121,5 @@ def init_state(config, *, pos=None, rpy=None, quat=None, vel=None, ang_vel=None,
     return DroneState(
         pos=full(arrays["pos"], 3), quat=full(quat_arr, 4), vel=full(arrays["vel"], 3),
         ang_vel=full(arrays["ang_vel"], 3), rpm=full(arrays["rpm"], 4),
-        ground_contact=jnp.zeros(lead + (n,), dtype=bool),
+        contact=jnp.zeros(lead + (n,), dtype=jnp.int32),
     )

@@ -521,7 +521,7 @@ def _world_states(rng, n_worlds):
 def _assert_states_close(a, b, rtol=1e-5, atol=1e-6):
     for name in ("pos", "quat", "vel", "ang_vel", "rpm"):
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=rtol, atol=atol, err_msg=name)
-    np.testing.assert_array_equal(a.ground_contact, b.ground_contact)
+    np.testing.assert_array_equal(a.contact, b.contact)
 
 
 def test_jit_equals_eager(rng):

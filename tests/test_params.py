@@ -66,7 +66,9 @@ def test_urdf_constants_match_facts_table(model, x64):
     np.testing.assert_allclose(params.drag_coeff, [9.1785e-7, 9.1785e-7, 10.311e-7], rtol=1e-15)
     np.testing.assert_allclose(params.dw_coeff, [2267.18, 0.16, -0.11], rtol=1e-15)
     np.testing.assert_allclose(params.max_speed_kmh, {"racer": 200.0}.get(model, 30.0), rtol=1e-15)
-    np.testing.assert_allclose(params.collision_radius, 0.06, rtol=1e-15)
+    # The original's cylinder (r = 0.06 m) let the propellers stick out; ours covers every propeller disk.
+    prop_reach = np.max(np.linalg.norm(np.asarray(params.prop_pos)[:, :2], axis=1)) + float(params.prop_radius)
+    assert prop_reach <= float(params.collision_radius) < prop_reach + 1e-3
     np.testing.assert_allclose(params.collision_height, 0.025, rtol=1e-15)
     assert float(params.gravity) == 9.8
 
@@ -123,7 +125,7 @@ def test_dtype_follows_x64_setting():
         state = jd.init_state(jd.SimConfig(n_drones=2))
         leaves = jax.tree.leaves(params) + [state.pos, state.quat, state.vel, state.ang_vel, state.rpm]
         assert {x.dtype for x in leaves} == {jnp.dtype(jnp.float32)}
-        assert state.ground_contact.dtype == jnp.bool_
+        assert state.contact.dtype == jnp.int32
     with jax.enable_x64(True):
         params = jd.load_params("cf2x")
         state = jd.init_state(jd.SimConfig(n_drones=2))
@@ -149,5 +151,5 @@ def test_default_start_pose(x64):
     np.testing.assert_allclose(state.pos, np.concatenate([4 * i * 0.0397, 4 * i * 0.0397, 0.1125 + 0 * i], 1),
                                rtol=1e-15)
     np.testing.assert_array_equal(state.quat, np.tile([0.0, 0.0, 0.0, 1.0], (3, 1)))
-    for field in (state.vel, state.ang_vel, state.rpm, state.ground_contact):
+    for field in (state.vel, state.ang_vel, state.rpm, state.contact):
         np.testing.assert_array_equal(field, 0)

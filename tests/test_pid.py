@@ -39,7 +39,7 @@ def _random_state(rng, lead, tilt=0.6):
 def _drone_state(arrays, lead):
     return DroneState(pos=jnp.asarray(arrays["pos"]), quat=jnp.asarray(arrays["quat"]),
                       vel=jnp.asarray(arrays["vel"]), ang_vel=jnp.asarray(arrays["ang_vel"]),
-                      rpm=jnp.zeros(lead + (4,)), ground_contact=jnp.zeros(lead, dtype=bool))
+                      rpm=jnp.zeros(lead + (4,)), contact=jnp.zeros(lead, dtype=jnp.int32))
 
 
 def _random_targets(rng, lead, scale):
@@ -122,7 +122,7 @@ def test_hover_at_target_gives_hover_pwm():
     with jax.enable_x64(True):
         params, gains = load_params("cf2x"), pid.PIDGains.dsl()
         state = DroneState(pos=jnp.array([[0.0, 0, 1]]), quat=jnp.array([[0.0, 0, 0, 1]]), vel=jnp.zeros((1, 3)),
-                           ang_vel=jnp.zeros((1, 3)), rpm=jnp.zeros((1, 4)), ground_contact=jnp.zeros(1, bool))
+                           ang_vel=jnp.zeros((1, 3)), rpm=jnp.zeros((1, 4)), contact=jnp.zeros(1, jnp.int32))
         rpm, _, info = pid.pid_compute(params, gains, pid.pid_init(state), state, state.pos, ctrl_dt=1 / 48)
         np.testing.assert_allclose(info.thrust_pwm, [38726.7], atol=0.05)
         np.testing.assert_allclose(rpm, np.full((1, 4), 0.2685 * float(info.thrust_pwm[0]) + 4070.3), atol=1e-9)
@@ -241,7 +241,7 @@ def test_bad_inputs_raise():
     params, gains = load_params("cf2x"), pid.PIDGains.dsl()
     state = DroneState(pos=jnp.zeros((4, 3)), quat=jnp.tile(jnp.array([0.0, 0, 0, 1]), (4, 1)),
                        vel=jnp.zeros((4, 3)), ang_vel=jnp.zeros((4, 3)), rpm=jnp.zeros((4, 4)),
-                       ground_contact=jnp.zeros(4, bool))
+                       contact=jnp.zeros(4, jnp.int32))
     ps = pid.pid_init(state)
     with pytest.raises(ValueError, match="target_pos"):
         pid.pid_control(params, gains, ps, state, jnp.zeros((3, 3)), ctrl_dt=1 / 48)

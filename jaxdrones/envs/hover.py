@@ -140,7 +140,7 @@ class HoverEnv(Env):
         sim = DroneState(
             pos=jnp.concatenate([xy, z[None]])[None], quat=quat_from_euler(rpy)[None],
             vel=zeros3.at[0, 2].set(vz), ang_vel=zeros3, rpm=jnp.zeros((1, 4), dtype),
-            ground_contact=jnp.zeros((1,), bool),
+            contact=jnp.zeros((1,), jnp.int32),
         )
         zero = jnp.zeros((), dtype)
         return EnvState(

@@ -1,0 +1,398 @@
+"""The PyBullet backend: the same ``step(params, state, rpm) -> state`` as the JAX core, stepped by Bullet.
+
+Bullet adds what the JAX core does not model: collisions with the ground, obstacles and other drones, and
+rendering. Each simulated world is its own Bullet world (a ``DIRECT`` client, headless). A control step writes the
+state into the drone bodies, holds the RPM command over ``sim_freq // ctrl_freq`` Bullet steps, and reads the state
+back; nothing is kept between calls that the state does not carry (obstacles are fixed).
+
+Forces, as in the paper's PyBullet update (eq. physics; facts §3.2, §5, §6), re-applied before every Bullet step:
+
+- each motor's force kf·rpm² (plus its ground-effect thrust) along body +z at its lever-arm point, so Bullet derives
+  the roll and pitch torques from the geometry; the yaw reaction torque -Σ spin_i km rpm_i² about body z;
+- drag (world frame, at the centre of mass) and downwash (body -z, at the centre of mass), computed by the same
+  functions as the JAX core (`jaxdrones.aerodynamics`);
+- gravity 9.8 m/s² (params), the gyroscopic term by Bullet's rigid-body solver.
+
+Differences from the original's PyBullet modes, each documented so both backends share one model:
+
+- forces are applied in the *current* body frame (on the base, which Bullet keeps up to date), not through the
+  propeller links, whose frames lag one step in the original (facts §5);
+- the lever-arm points are the explicit model's (``DroneParams.torque_arm``, from the URDF's ``arm`` and ``frame``):
+  for the cf2x they sit at arm/√2 = 0.02807 m where the URDF's propeller links are at 0.028 m (facts §3.1);
+- Bullet's default velocity damping (facts §5) is off unless ``damping=True``;
+- mass, inertia and collision shape are taken from the same `DroneParams` as the JAX core (URDF inertia, as the
+  original's main branch does), and the collision cylinder covers the propellers.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import weakref
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pybullet
+
+from jaxdrones import aerodynamics
+from jaxdrones.backends import scene
+from jaxdrones.dynamics import Effects
+from jaxdrones.params import DroneParams, broadcast_params
+from jaxdrones.rotations import join, quat_to_rotmat_c, split
+from jaxdrones.sim import SimConfig, check_params_batch, check_rpm, check_rpm_shape
+from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, DroneState
+
+#: Renderers of the cameras: TinyRenderer (CPU, always there) or Bullet's OpenGL through EGL (headless GPU).
+RENDERERS = ("tiny", "egl")
+#: The keyword options of `PyBulletStep` (and of ``make_step(..., backend="pybullet")``).
+OPTIONS = ("obstacles", "damping", "gui", "renderer")
+_STATE_FIELDS = ("pos", "quat", "vel", "ang_vel", "rpm", "contact")
+#: What a drone of a failed world reads: NaN kinematics and command, no contact.
+_NAN_DRONE = ([math.nan] * 3, [math.nan] * 4, [math.nan] * 3, [math.nan] * 3, [math.nan] * 4, 0)
+
+
+class _World:
+    """One Bullet world: its client and the ids of what it holds."""
+
+    def __init__(self, client: int, ground: int, obstacles: list[int]):
+        self.client = client
+        self.ground = ground
+        self.obstacles = obstacles
+        self.drones: list[int] = []
+        self.geometry: list[dict] = []
+        self.category = {ground: CONTACT_GROUND, **{b: CONTACT_OBSTACLE for b in obstacles}}
+        self.drone_index: dict[int, int] = {}
+        self.host = None  # the host params the world was last synced with
+        self.jax_params = None  # this world's params as jax arrays, for the aerodynamic effects
+
+    def disconnect(self) -> None:
+        if self.client >= 0:
+            try:
+                pybullet.disconnect(physicsClientId=self.client)
+            except pybullet.error:
+                pass
+            self.client = -1
+
+
+def _disconnect_all(worlds: list[_World]) -> None:
+    for world in worlds:
+        world.disconnect()
+    worlds.clear()
+
+
+class PyBulletStep:
+    """The PyBullet backend's control step; build it with ``jd.make_step(config, backend="pybullet", ...)``.
+
+    Call it as ``step(params, state, rpm) -> state``, like the JAX backend: ``state`` is a `DroneState` with leading
+    world axes ``[..., D, ...]`` (one Bullet world per world), ``rpm`` f[..., D, 4] in RPM, clipped to
+    [0, max_rpm]. NumPy inputs give NumPy outputs (the fastest path), JAX arrays give JAX arrays; inside ``jit``,
+    ``vmap`` or ``lax.scan`` (e.g. `jd.rollout`, the envs) the step runs as a host callback
+    (`jax.pure_callback`). It is not differentiable. ``state.contact`` reports what each drone touched (ground,
+    obstacle, drone). Bullet worlds are created on first use and released by `close` (or a ``with`` block, or
+    garbage collection).
+
+    A world whose input is not finite, or whose Bullet client fails, returns NaN for its drones and is rebuilt;
+    the other worlds are unaffected.
+    """
+
+    def __init__(self, config: SimConfig, *, obstacles=None, damping: bool = False, gui: bool = False,
+                 renderer: str = "tiny"):
+        if renderer not in RENDERERS:
+            raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
+        self.config = config
+        self.obstacles = scene.resolve_obstacles(obstacles)
+        self.damping = bool(damping)
+        self.gui = bool(gui)
+        self.renderer = renderer
+        self._worlds: list[_World] = []
+        self._closed = False
+        self._host_cache = (None, None, None)  # (params object, lead shape, host params)
+        self._finalizer = weakref.finalize(self, _disconnect_all, self._worlds)
+
+    # ----------------------------------------------------------------------------------------------- lifecycle
+    def close(self) -> None:
+        """Disconnect every Bullet world. The step cannot be called afterwards."""
+        self._finalizer()
+        self._closed = True
+
+    def __enter__(self) -> PyBulletStep:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def n_worlds(self) -> int:
+        """Number of Bullet worlds created so far."""
+        return len(self._worlds)
+
+    @property
+    def clients(self) -> tuple[int, ...]:
+        """The Bullet client ids of the worlds (for direct PyBullet calls, e.g. adding debug items)."""
+        return tuple(w.client for w in self._worlds)
+
+    # ----------------------------------------------------------------------------------------------- stepping
+    def __call__(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
+        if self._closed:
+            raise RuntimeError("this PyBullet step was closed; build a new one with jd.make_step(...)")
+        if any(isinstance(x, jax.core.Tracer) for x in (state.pos, state.quat, rpm, params.mass, params.kf)):
+            return self._traced(params, state, rpm)
+        n = self.config.n_drones
+        if not (isinstance(rpm, np.ndarray) and rpm.dtype.kind in "fiu" and rpm.shape == state.rpm.shape
+                and state.pos.shape[-2:] == (n, 3) and state.quat.shape[-2:] == (n, 4)):
+            dtype = rpm.dtype if hasattr(rpm, "dtype") else np.asarray(rpm).dtype
+            check_rpm_shape(self.config, state, np.shape(rpm), dtype)  # raises the error, or passes for lists
+            rpm = np.asarray(rpm, dtype=np.float64)
+        lead = tuple(state.pos.shape[:-1])
+        cached_params, cached_lead, host = self._host_cache
+        if params is not cached_params or lead != cached_lead:
+            check_params_batch(params, state)
+            host = _host_params(params, lead)
+            self._host_cache = (params, lead, host)
+        out = self._host_step(host, [np.asarray(getattr(state, f)) for f in _STATE_FIELDS], rpm, strict=True)
+        if not isinstance(state.pos, np.ndarray):
+            out = [jnp.asarray(x) for x in out]
+        return DroneState(*out)
+
+    def _traced(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
+        rpm = check_rpm(self.config, state, rpm)
+        check_params_batch(params, state)
+        params = broadcast_params(params, state.pos.shape[:-1])
+        shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), state)
+
+        def callback(params, state, rpm):
+            host = _host_params(params, state.pos.shape[:-1])
+            fields = [np.asarray(getattr(state, f)) for f in _STATE_FIELDS]
+            return DroneState(*self._host_step(host, fields, np.asarray(rpm, np.float64)))
+
+        return jax.pure_callback(callback, shapes, params, state, rpm, vmap_method="broadcast_all")
+
+    def _host_step(self, host: dict, fields: list[np.ndarray], rpm: np.ndarray, strict: bool = False
+                   ) -> list[np.ndarray]:
+        """Step NumPy state fields [*L, D, k] with host params (see `_host_params`); returns the new fields.
+
+        A world whose inputs are not all finite gives NaN; with ``strict``, a non-finite ``rpm`` raises instead.
+
+        The per-drone work runs on Python floats (the Bullet API takes sequences), which for a few drones costs far
+        less than NumPy's per-call overhead.
+        """
+        lead = fields[0].shape[:-1]
+        n_drones = lead[-1]
+        n_worlds = math.prod(lead[:-1])
+        lists = [np.asarray(f).reshape(n_worlds, n_drones, -1).tolist() for f in fields[:5]]
+        rpm = rpm.reshape(n_worlds, n_drones, 4).tolist()
+        self._ensure_worlds(n_worlds, host)
+        out = ([], [], [], [], [], [])  # flat pos, quat, vel, ang_vel, rpm, contact
+        for w, world in enumerate(self._worlds[:n_worlds]):
+            inputs = [x[w] for x in lists] + [rpm[w]]
+            result = None
+            if strict and not math.isfinite(sum(sum(row) for row in inputs[-1])):
+                raise ValueError("rpm contains NaN or inf")
+            if math.isfinite(sum(sum(row) for x in inputs for row in x)):
+                try:
+                    result = self._step_world(world, w, host, *inputs)
+                except pybullet.error:
+                    self._rebuild_world(w, host)
+            for drone in result or [_NAN_DRONE] * n_drones:
+                for flat, value in zip(out[:5], drone[:5]):
+                    flat.extend(value)
+                out[5].append(drone[5])
+        shapes = (lead + (3,), lead + (4,), lead + (3,), lead + (3,), lead + (4,), lead)
+        return [np.array(flat, dtype=field.dtype).reshape(shape) for flat, field, shape in zip(out, fields, shapes)]
+
+    def _step_world(self, world: _World, w: int, host: dict, pos, quat, vel, ang_vel, rpm_prev, rpm):
+        """One control step of world ``w``; every argument is a per-drone list of floats [D][k].
+
+        Returns per drone (pos, quat, vel, ang_vel, rpm, contact), ang_vel in the body frame and rpm clipped.
+        """
+        client, bodies = world.client, world.drones
+        kf, km, spin, max_rpm = (host[k][w] for k in ("kf", "km", "prop_spin", "max_rpm"))
+        rpm = [[min(max(r, 0.0), max_rpm[d]) for r in rpm_d] for d, rpm_d in enumerate(rpm)]
+        # The motor model (facts §3): f_i = kf rpm_i², yaw torque -Σ spin_i km rpm_i², as `dynamics.motors_c`.
+        thrust = [[kf[d] * r * r for r in rpm_d] for d, rpm_d in enumerate(rpm)]
+        yaw = [-km[d] * sum(s * r * r for s, r in zip(spin[d], rpm_d)) for d, rpm_d in enumerate(rpm)]
+        for d, body in enumerate(bodies):
+            q = _normalized(quat[d])
+            pybullet.resetBasePositionAndOrientation(body, pos[d], q, physicsClientId=client)
+            pybullet.resetBaseVelocity(body, vel[d], _rotate(q, ang_vel[d]), physicsClientId=client)
+        effects = self.config.effects
+        any_effect = effects.drag or effects.ground_effect or (effects.downwash and len(bodies) > 1)
+        points = host["thrust_points"][w]
+        contact = [0] * len(bodies)
+        link, world_frame = pybullet.LINK_FRAME, pybullet.WORLD_FRAME
+        for sub in range(self.config.n_substeps):
+            lift, body_z, drag = thrust, None, None
+            if any_effect:
+                if sub > 0:
+                    pos, quat, vel, _ = _read_kinematics(client, bodies)
+                if world.jax_params is None:
+                    world.jax_params = jax.tree.map(jnp.asarray, DroneParams(**_world_slice(host["arrays"], w)))
+                lift, body_z, drag = (np.asarray(x).tolist() for x in _effect_forces(
+                    effects, world.jax_params, *map(np.asarray, (pos, quat, vel, thrust,
+                                                                 rpm_prev if sub == 0 else rpm))))
+            for d, body in enumerate(bodies):
+                lift_d, points_d = lift[d], points[d]
+                for i in range(4):
+                    pybullet.applyExternalForce(body, -1, (0.0, 0.0, lift_d[i]), points_d[i], link,
+                                                physicsClientId=client)
+                pybullet.applyExternalTorque(body, -1, (0.0, 0.0, yaw[d]), link, physicsClientId=client)
+                if body_z is not None and body_z[d] != 0.0:
+                    pybullet.applyExternalForce(body, -1, (0.0, 0.0, body_z[d]), (0.0, 0.0, 0.0), link,
+                                                physicsClientId=client)
+                if drag is not None and effects.drag:
+                    pybullet.applyExternalForce(body, -1, drag[d], pos[d], world_frame, physicsClientId=client)
+            pybullet.stepSimulation(physicsClientId=client)
+            for point in pybullet.getContactPoints(physicsClientId=client):
+                for me, other in ((point[1], point[2]), (point[2], point[1])):
+                    d = world.drone_index.get(me)
+                    if d is not None:
+                        contact[d] |= world.category.get(other, 0)
+        out = []
+        for d, body in enumerate(bodies):
+            p, q = pybullet.getBasePositionAndOrientation(body, physicsClientId=client)
+            v, omega = pybullet.getBaseVelocity(body, physicsClientId=client)
+            out.append((p, q, v, _rotate_inverse(q, omega), rpm[d], contact[d]))  # ω world → body: Rᵀ ω
+        return out
+
+    # ----------------------------------------------------------------------------------------------- worlds
+    def _ensure_worlds(self, n_worlds: int, host: dict) -> None:
+        """Create worlds up to ``n_worlds`` and make every world's drones match the params."""
+        while len(self._worlds) < n_worlds:
+            self._worlds.append(self._new_world(len(self._worlds)))
+        for w in range(n_worlds):
+            world = self._worlds[w]
+            if world.host is not host:
+                if world.geometry != host["geometry"][w]:
+                    self._sync_drones(world, host["geometry"][w])
+                world.jax_params = None
+                world.host = host
+
+    def _new_world(self, index: int) -> _World:
+        if self.gui and index == 0:
+            try:
+                client = pybullet.connect(pybullet.GUI)
+            except pybullet.error as err:
+                raise RuntimeError(f"PyBullet GUI could not open ({err}); it needs a display, and only one GUI "
+                                   f"per process") from None
+            pybullet.configureDebugVisualizer(pybullet.COV_ENABLE_GUI, 0, physicsClientId=client)
+        else:
+            client = pybullet.connect(pybullet.DIRECT)
+        if client < 0:
+            raise RuntimeError("PyBullet could not create a physics client")
+        pybullet.setGravity(0.0, 0.0, 0.0, physicsClientId=client)  # gravity is set from the params
+        pybullet.setTimeStep(self.config.dt, physicsClientId=client)
+        pybullet.setRealTimeSimulation(0, physicsClientId=client)
+        ground = scene.load_ground(client)
+        obstacles = [scene.load_obstacle(client, o) for o in self.obstacles]
+        if self.renderer == "egl":
+            _load_egl(client)
+        return _World(client, ground, obstacles)
+
+    def _rebuild_world(self, w: int, host: dict) -> None:
+        self._worlds[w].disconnect()
+        self._worlds[w] = self._new_world(w)
+        self._sync_drones(self._worlds[w], host["geometry"][w])
+
+    def _sync_drones(self, world: _World, geometry: list[dict]) -> None:
+        """Make the world's drone bodies match ``geometry`` (one dict per drone, see `scene.drone_geometry`)."""
+        client = world.client
+        gravity = geometry[0]["gravity"]
+        pybullet.setGravity(0.0, 0.0, -gravity, physicsClientId=client)
+        for d, geom in enumerate(geometry):
+            if d < len(world.drones):
+                old = world.geometry[d]
+                if all(old[k] == geom[k] for k in geom if k not in ("mass", "inertia", "gravity")):
+                    scene.set_drone_dynamics(client, world.drones[d], geom, self.damping)
+                    continue
+                pybullet.removeBody(world.drones[d], physicsClientId=client)
+                world.drones[d] = scene.create_drone(client, geom, self.damping)
+            else:
+                world.drones.append(scene.create_drone(client, geom, self.damping))
+        for body in world.drones[len(geometry):]:
+            pybullet.removeBody(body, physicsClientId=client)
+        del world.drones[len(geometry):]
+        world.geometry = [dict(g) for g in geometry]
+        world.drone_index = {body: d for d, body in enumerate(world.drones)}
+        world.category.update({body: CONTACT_DRONE for body in world.drones})
+
+
+def _world_slice(arrays: dict, w: int) -> dict:
+    """World ``w``'s entries of a dict of [W, ...] arrays."""
+    return {k: v[w] for k, v in arrays.items()}
+
+
+def _host_params(params: DroneParams, lead: tuple[int, ...]) -> dict:
+    """Params as NumPy arrays [W, D, ...] plus what the Bullet worlds need, for a state of leading shape ``lead``."""
+    lead = tuple(lead)
+    n_drones, n_worlds = lead[-1], int(np.prod(lead[:-1], dtype=np.int64))
+    full = broadcast_params(jax.tree.map(np.asarray, params), lead, xp=np)
+    arrays = {name: np.asarray(getattr(full, name), np.float64).reshape((n_worlds, n_drones)
+                                                                        + getattr(full, name).shape[len(lead):])
+              for name in DroneParams.__dataclass_fields__}
+    arm = arrays["torque_arm"]  # τx = Σ arm[0, i] f_i, τy = Σ arm[1, i] f_i  ⇔  f_i at (-arm[1, i], arm[0, i])
+    points = np.stack([-arm[..., 1, :], arm[..., 0, :], arrays["prop_pos"][..., 2]], axis=-1)
+    geometry = [[{**scene.drone_geometry({k: v[w, d] for k, v in arrays.items()}),
+                  "gravity": float(arrays["gravity"][w, d])} for d in range(n_drones)] for w in range(n_worlds)]
+    return {
+        **{k: arrays[k].tolist() for k in ("kf", "km", "prop_spin", "max_rpm")},
+        "thrust_points": points.tolist(), "geometry": geometry,
+        "arrays": arrays,
+    }
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _effect_forces(effects: Effects, params: DroneParams, pos, quat, vel, thrust, rpm_prev):
+    """The aerodynamic effects of one world, by the JAX core's functions: per-motor lift (thrust + ground effect)
+    f[D, 4] N, downwash f[D] N along body z, and drag f[D, 3] N in the world frame."""
+    rotmat = quat_to_rotmat_c(split(quat))
+    lift = split(thrust)
+    if effects.ground_effect:
+        extra = aerodynamics.ground_effect_thrust_c(params, pos[:, 2], rotmat[2], lift)
+        lift = tuple(t + e for t, e in zip(lift, extra))
+    if effects.downwash and pos.shape[0] > 1:
+        body_z = aerodynamics.downwash_force_c(params, split(pos))
+    else:
+        body_z = jnp.zeros(pos.shape[0], pos.dtype)
+    if effects.drag:
+        drag = join(aerodynamics.drag_force_c(params, split(vel), split(rpm_prev)))
+    else:
+        drag = jnp.zeros_like(vel)
+    return join(lift), body_z, drag
+
+
+def _read_kinematics(client: int, bodies: list[int]):
+    """pos, quat, vel and world-frame angular velocity of the drones, each a list (per drone) of tuples."""
+    poses = [pybullet.getBasePositionAndOrientation(b, physicsClientId=client) for b in bodies]
+    vels = [pybullet.getBaseVelocity(b, physicsClientId=client) for b in bodies]
+    return [p for p, _ in poses], [q for _, q in poses], [v for v, _ in vels], [w for _, w in vels]
+
+
+def _normalized(q) -> list[float]:
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return [q[0] / n, q[1] / n, q[2] / n, q[3] / n]
+
+
+def _rotate(q, v) -> list[float]:
+    """Rotate a 3-vector by a unit quaternion (x, y, z, w): R v = v + 2w (u × v) + 2 u × (u × v)."""
+    x, y, z, w = q
+    tx, ty, tz = 2 * (y * v[2] - z * v[1]), 2 * (z * v[0] - x * v[2]), 2 * (x * v[1] - y * v[0])
+    return [v[0] + w * tx + y * tz - z * ty, v[1] + w * ty + z * tx - x * tz, v[2] + w * tz + x * ty - y * tx]
+
+
+def _rotate_inverse(q, v) -> list[float]:
+    """Rᵀ v for a unit quaternion (x, y, z, w)."""
+    return _rotate((-q[0], -q[1], -q[2], q[3]), v)
+
+
+def _load_egl(client: int) -> None:
+    """Load Bullet's EGL renderer plugin into a world, for hardware OpenGL rendering without a display."""
+    import pkgutil
+
+    egl = pkgutil.get_loader("eglRenderer")
+    plugin = -1
+    if egl is not None:
+        plugin = pybullet.loadPlugin(egl.get_filename(), "_eglRendererPlugin", physicsClientId=client)
+    if plugin < 0:
+        raise RuntimeError("renderer='egl': Bullet's EGL plugin could not be loaded on this machine; use "
+                           "renderer='tiny' (TinyRenderer, CPU)")
