@@ -1,4 +1,4 @@
-"""Command line: ``jaxdrones train hover``, ``jaxdrones fly``."""
+"""Command line: ``jaxdrones train hover``, ``jaxdrones fly``, ``jaxdrones camera``."""
 
 from __future__ import annotations
 
@@ -8,13 +8,14 @@ import time
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from jaxdrones.examples import circle
+    from jaxdrones.examples import camera_scene, circle
     from jaxdrones.training import hover
 
     parser = argparse.ArgumentParser(prog="jaxdrones", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     hover.register(sub)
     circle.register(sub)
+    camera_scene.register(sub)
     return parser
 
 

@@ -27,6 +27,14 @@ def rng():
 
 @pytest.fixture
 def x64():
-    """Run the test with ``jax_enable_x64`` on (float64 default dtype), restoring the previous setting after."""
-    with jax.enable_x64(True):
+    """Run the test with ``jax_enable_x64`` on (float64 default dtype), restoring the previous setting after.
+
+    The setting is global, not the thread-local ``jax.enable_x64`` context: host callbacks (the PyBullet backend
+    under ``jit``) run on XLA's threads, where JAX converts their outputs with the global setting.
+    """
+    previous = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", True)
+    try:
         yield
+    finally:
+        jax.config.update("jax_enable_x64", previous)

@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import functools
 import math
+import os
+import sys
 import weakref
 
 import jax
@@ -36,7 +38,7 @@ import numpy as np
 import pybullet
 
 from jaxdrones import aerodynamics
-from jaxdrones.backends import scene
+from jaxdrones.backends import camera, scene
 from jaxdrones.dynamics import Effects
 from jaxdrones.params import DroneParams, broadcast_params
 from jaxdrones.rotations import join, quat_to_rotmat_c, split
@@ -94,12 +96,23 @@ class PyBulletStep:
 
     A world whose input is not finite, or whose Bullet client fails, returns NaN for its drones and is rebuilt;
     the other worlds are unaffected.
+
+    Float64 under ``jit``: turn it on globally (``jax.config.update("jax_enable_x64", True)``), not with the
+    thread-local ``jax.enable_x64`` context, since host callbacks run on XLA's threads and JAX converts their
+    outputs with the global setting there.
+
+    Cameras: `camera_images` renders every drone's onboard camera (rgb, depth, segmentation) and `render` a
+    third-person view of one world (for videos); `body_ids` maps segmentation ids to the ground, obstacles and
+    drones. ``gui=True`` shows world 0 in PyBullet's window; it needs a display (on Linux an X server reachable
+    through ``$DISPLAY``) and raises RuntimeError at construction without one.
     """
 
     def __init__(self, config: SimConfig, *, obstacles=None, damping: bool = False, gui: bool = False,
                  renderer: str = "tiny"):
         if renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
+        if gui:
+            _require_display()
         self.config = config
         self.obstacles = scene.resolve_obstacles(obstacles)
         self.damping = bool(damping)
@@ -283,10 +296,10 @@ class PyBulletStep:
         pybullet.setGravity(0.0, 0.0, 0.0, physicsClientId=client)  # gravity is set from the params
         pybullet.setTimeStep(self.config.dt, physicsClientId=client)
         pybullet.setRealTimeSimulation(0, physicsClientId=client)
+        if self.renderer == "egl":  # before any body: the plugin only draws bodies created after it is loaded
+            _load_egl(client)
         ground = scene.load_ground(client)
         obstacles = [scene.load_obstacle(client, o) for o in self.obstacles]
-        if self.renderer == "egl":
-            _load_egl(client)
         return _World(client, ground, obstacles)
 
     def _rebuild_world(self, w: int, host: dict) -> None:
@@ -315,6 +328,90 @@ class PyBulletStep:
         world.geometry = [dict(g) for g in geometry]
         world.drone_index = {body: d for d, body in enumerate(world.drones)}
         world.category.update({body: CONTACT_DRONE for body in world.drones})
+
+
+    # ----------------------------------------------------------------------------------------------- cameras
+    def camera_images(self, params: DroneParams, state: DroneState, *, width: int = 64, height: int = 48,
+                      fov: float = 60.0, near: float | None = None, far: float = 100.0) -> dict:
+        """Render every drone's onboard camera (see `jaxdrones.backends.camera` for the camera model).
+
+        The drones are first placed at ``state``'s poses (its velocities are not used), then each drone's camera
+        is rendered with one ``pybullet.getCameraImage`` call: eye on body +x just in front of the drone's
+        collision cylinder (``params.collision_radius`` + `camera.EYE_MARGIN` = 5 mm), looking along body +x with
+        body +z up; vertical field of view ``fov``, aspect W/H (square pixels, focal length
+        f = (H/2)/tan(fov/2) pixels). The original instead puts the eye L above the drone with world +z up and
+        aspect 1.0 (facts §8): a camera fixed to the frame that does not see its own drone is what a real
+        onboard camera is. Renderer: TinyRenderer for ``renderer="tiny"``, OpenGL through EGL for ``"egl"``.
+
+        Inputs follow the step's conventions: NumPy arrays give NumPy images, JAX arrays JAX images, and inside
+        ``jit``/``vmap``/``scan`` the rendering runs as a host callback (`jax.pure_callback`); leading world
+        axes ``[..., D]`` map to one Bullet world each (created here if no step has run yet).
+
+        Args:
+            params: DroneParams, batched like for the step (``[D]``, ``[W, D]``, ``[W, 1]`` or unbatched).
+            state: DroneState with pos f[..., D, 3] m and quat f[..., D, 4] (x, y, z, w) body → world.
+            width, height: image size, pixels, in [1, 8192] (the original's 64 × 48 by default).
+            fov: vertical field of view, degrees, in (0, 180).
+            near: near clipping plane, m; None: each drone's arm L (the original's near plane).
+            far: far clipping plane, m (and the depth of pixels that see nothing).
+
+        Returns:
+            dict with ``"rgb"`` uint8[..., D, H, W, 4] (RGBA), ``"depth"`` float32[..., D, H, W] m along the
+            optical axis (from Bullet's z-buffer z: far·near / (far − (far − near)·z)), ``"seg"``
+            int32[..., D, H, W] Bullet body ids (-1: nothing; see `body_ids`). Row 0 is the top of the image.
+            Inside ``jit``, a drone with a non-finite pose reads rgb 0, depth NaN and seg -1.
+
+        Raises:
+            ValueError: on a bad width/height/fov/near/far, a state whose pos/quat are not [..., D, 3]/[..., D, 4],
+                params that do not line up with the state, or (outside ``jit``) a non-finite pose.
+            RuntimeError: if the step was closed, or a world fails to render twice in a row.
+        """
+        return camera.camera_images(self, params, state, width=width, height=height, fov=fov, near=near, far=far)
+
+    def render(self, params: DroneParams, state: DroneState, *, world: int = 0, width: int = 640,
+               height: int = 480, target=None, distance: float = 1.5, yaw: float = -30.0,
+               pitch: float = -30.0) -> np.ndarray:
+        """A third-person RGB image of one world, e.g. for a video frame (`jaxdrones.video.VideoWriter`).
+
+        The world's drones are placed at ``state``'s poses; the camera orbits ``target`` as in PyBullet's
+        ``computeViewMatrixFromYawPitchRoll`` (z up), with a 60° vertical field of view, aspect W/H, near 0.01 m
+        and far 100 m, rendered by the step's renderer.
+
+        Args:
+            params: DroneParams, as for the step.
+            state: DroneState with concrete (NumPy or JAX) pos f[..., D, 3] m and quat f[..., D, 4].
+            world: which world, an index into the state's leading world axes flattened in C order.
+            width, height: image size, pixels, in [1, 8192].
+            target: f[3] m, world frame, the point looked at; None: the mean position of the world's drones.
+            distance: camera distance from ``target``, m.
+            yaw, pitch: camera yaw about world z and pitch (negative looks down), degrees.
+
+        Returns:
+            uint8[H, W, 3] RGB, row 0 at the top.
+
+        Raises:
+            ValueError: on a bad argument, traced inputs (call it outside ``jit``), or a non-finite pose.
+            RuntimeError: if the step was closed.
+        """
+        return camera.render(self, params, state, world=world, width=width, height=height, target=target,
+                             distance=distance, yaw=yaw, pitch=pitch)
+
+    def body_ids(self, world: int = 0) -> dict:
+        """The Bullet body ids of world ``world``, to read segmentation images (`camera_images`).
+
+        Returns:
+            dict with ``"ground"`` (int), ``"obstacles"`` (tuple, in the order of ``step.obstacles``) and
+            ``"drones"`` (tuple, in state order). In a freshly built world these are 0, 1..K and K+1..K+D (the
+            load order), but drone ids change when a drone's geometry changes between calls, so look them up.
+
+        Raises:
+            ValueError: if the world has not been created yet (call the step or `camera_images` first).
+        """
+        if not isinstance(world, int) or isinstance(world, bool) or not 0 <= world < len(self._worlds):
+            raise ValueError(f"world must be an int in [0, {len(self._worlds)}) (the worlds created so far, "
+                             f"by calling the step or camera_images), got {world!r}")
+        w = self._worlds[world]
+        return {"ground": w.ground, "obstacles": tuple(w.obstacles), "drones": tuple(w.drones)}
 
 
 def _world_slice(arrays: dict, w: int) -> dict:
@@ -396,3 +493,31 @@ def _load_egl(client: int) -> None:
     if plugin < 0:
         raise RuntimeError("renderer='egl': Bullet's EGL plugin could not be loaded on this machine; use "
                            "renderer='tiny' (TinyRenderer, CPU)")
+
+
+def _require_display() -> None:
+    """Raise RuntimeError unless PyBullet's GUI can open a window.
+
+    On Linux the GUI needs an X server: without one, ``pybullet.connect(pybullet.GUI)`` ends the whole process
+    ("cannot connect to X server") instead of raising, so the display is probed first with ``XOpenDisplay``.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    display = os.environ.get("DISPLAY")
+    hint = "; run headless (gui=False) and record frames with step.render / jaxdrones.video.VideoWriter"
+    if not display:
+        raise RuntimeError("gui=True needs a display, but DISPLAY is not set" + hint)
+    import ctypes
+    import ctypes.util
+
+    try:
+        x11 = ctypes.CDLL(ctypes.util.find_library("X11") or "libX11.so.6")
+    except OSError:
+        raise RuntimeError("gui=True needs libX11, which cannot be loaded" + hint) from None
+    x11.XOpenDisplay.restype = ctypes.c_void_p
+    x11.XOpenDisplay.argtypes = [ctypes.c_char_p]
+    x11.XCloseDisplay.argtypes = [ctypes.c_void_p]
+    handle = x11.XOpenDisplay(display.encode())
+    if not handle:
+        raise RuntimeError(f"gui=True needs a display, but X display {display!r} cannot be opened" + hint)
+    x11.XCloseDisplay(handle)

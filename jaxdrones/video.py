@@ -1,0 +1,133 @@
+"""Write RGB frames (e.g. from ``step.render``) to an MP4 or GIF file.
+
+    with VideoWriter("flight.mp4", fps=24) as video:
+        for state in states:
+            video.append(step.render(params, state))
+
+MP4 files are H.264 (yuv420p, readable by common players) written through imageio's ffmpeg plugin
+(``imageio-ffmpeg`` ships an ffmpeg binary); GIFs are written by Pillow. An existing file is never replaced unless
+``overwrite=True``.
+"""
+
+from __future__ import annotations
+
+import numbers
+import os
+
+import numpy as np
+
+#: File extensions and their formats.
+FORMATS = {".mp4": "mp4", ".gif": "gif"}
+
+
+class VideoWriter:
+    """A context manager that appends uint8 RGB frames to a video file.
+
+    Args:
+        path: output file; its extension picks the format: ``.mp4`` (H.264 through imageio-ffmpeg) or ``.gif``
+            (Pillow, looping forever). Missing parent folders are created.
+        fps: frames per second, > 0. A GIF stores frame durations in 10 ms units, so its rate is rounded to that.
+        overwrite: replace an existing file.
+
+    Every frame must be uint8[H, W, 3] (RGB) with the first frame's shape. H.264 needs even sizes, so MP4 frames
+    with an odd height or width are padded by repeating their last row or column. Frames are encoded as they come
+    (MP4) or kept in memory until `close` (GIF, meant for short clips). Nothing is written when no frame was
+    appended.
+
+    Raises:
+        ValueError: on an unknown extension or a bad fps (here), a frame that is not uint8[H, W, 3] or whose shape
+            differs from the first frame's (in `append`).
+        FileExistsError: if ``path`` exists and not ``overwrite``.
+    """
+
+    def __init__(self, path: str | os.PathLike, fps: float = 24, overwrite: bool = False):
+        path = os.fspath(path)
+        ext = os.path.splitext(path)[1].lower()
+        if ext not in FORMATS:
+            raise ValueError(f"video path {path!r}: unknown extension {ext!r}, expected one of {tuple(FORMATS)}")
+        if isinstance(fps, bool) or not isinstance(fps, numbers.Real) or not (0 < fps < float("inf")):
+            raise ValueError(f"fps must be a positive number of frames per second, got {fps!r}")
+        if os.path.isdir(path):
+            raise ValueError(f"video path {path!r} is a folder")
+        if os.path.exists(path) and not overwrite:
+            raise FileExistsError(f"{path!r} exists; pass overwrite=True to replace it")
+        self.path = path
+        self.fps = float(fps)
+        self.format = FORMATS[ext]
+        self._overwrite = bool(overwrite)
+        self._shape: tuple[int, ...] | None = None
+        self._frames: list = []  # GIF: the frames as Pillow images
+        self._writer = None  # MP4: the imageio writer, opened on the first frame
+        self._count = 0
+        self._closed = False
+
+    @property
+    def n_frames(self) -> int:
+        """Number of frames appended so far."""
+        return self._count
+
+    def __enter__(self) -> VideoWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def append(self, frame) -> None:
+        """Add one frame, uint8[H, W, 3] RGB (NumPy or JAX array), row 0 at the top.
+
+        Raises:
+            ValueError: if the frame is not uint8[H, W, 3], or its shape differs from the first frame's.
+            RuntimeError: if the writer was closed.
+        """
+        if self._closed:
+            raise RuntimeError(f"the video {self.path!r} was closed")
+        frame = np.asarray(frame)
+        if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3 or 0 in frame.shape:
+            raise ValueError(f"a video frame must be uint8[H, W, 3] RGB, got {frame.dtype}{list(frame.shape)}")
+        if self._shape is None:
+            self._shape = frame.shape
+            self._open()
+        elif frame.shape != self._shape:
+            raise ValueError(f"frame {self._count} has shape {frame.shape}, but the video's frames are "
+                             f"{self._shape}")
+        if self.format == "mp4":
+            self._writer.append_data(_pad_even(frame))
+        else:
+            from PIL import Image
+
+            self._frames.append(Image.fromarray(frame, "RGB"))
+        self._count += 1
+
+    def close(self) -> None:
+        """Finish the file (idempotent). Called by the ``with`` block."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        if self._frames:
+            duration = max(10, int(round(100.0 / self.fps)) * 10)  # ms, in GIF's 10 ms units
+            self._frames[0].save(self.path, format="GIF", save_all=True, append_images=self._frames[1:],
+                                 duration=duration, loop=0)
+            self._frames = []
+
+    def _open(self) -> None:
+        if os.path.exists(self.path) and not self._overwrite:  # created since __init__
+            raise FileExistsError(f"{self.path!r} exists; pass overwrite=True to replace it")
+        folder = os.path.dirname(self.path)
+        if folder:
+            os.makedirs(folder, exist_ok=True)
+        if self.format == "mp4":
+            import imageio.v2 as imageio
+
+            self._writer = imageio.get_writer(self.path, format="FFMPEG", mode="I", fps=self.fps, codec="libx264",
+                                              pixelformat="yuv420p", macro_block_size=1, ffmpeg_log_level="error")
+
+
+def _pad_even(frame: np.ndarray) -> np.ndarray:
+    """Pad uint8[H, W, 3] to even H and W by repeating the last row / column (H.264 with yuv420p needs even sizes)."""
+    h, w = frame.shape[:2]
+    if h % 2 == 0 and w % 2 == 0:
+        return frame
+    return np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
