@@ -144,6 +144,26 @@ def broadcast_params(params: DroneParams, lead: tuple[int, ...], xp=jnp) -> Dron
     return DroneParams(**{f.name: widen(f.name, getattr(params, f.name)) for f in dataclasses.fields(params)})
 
 
+def pack_params(params: DroneParams, lead: tuple[int, ...]):
+    """Pack params of batch shape ``lead`` into one array f[*lead, K], and return it with its inverse.
+
+    Used to hand params to a host callback as a single array. The inverse takes an array f[*L, K] (``L`` may
+    have extra leading axes, e.g. from ``vmap``) and returns NumPy DroneParams of batch shape ``L``.
+    """
+    lead = tuple(lead)
+    names = [f.name for f in dataclasses.fields(params)]
+    cores = [tuple(getattr(params, n).shape[len(lead):]) for n in names]
+    packed = jnp.concatenate([jnp.reshape(getattr(params, n), lead + (-1,)) for n in names], axis=-1)
+    sizes = np.cumsum([math.prod(c) for c in cores])[:-1]
+
+    def unpack(array) -> DroneParams:
+        array = np.asarray(array)
+        parts = np.split(array, sizes, axis=-1)
+        return DroneParams(**{n: part.reshape(array.shape[:-1] + core) for n, part, core in zip(names, parts, cores)})
+
+    return packed, unpack
+
+
 def model_path(name: str) -> str:
     """Path of a shipped model's URDF.
 

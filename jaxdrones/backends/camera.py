@@ -48,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 import pybullet
 
-from jaxdrones.params import DroneParams, broadcast_params
+from jaxdrones.params import DroneParams, broadcast_params, pack_params
 from jaxdrones.sim import check_params_batch
 from jaxdrones.state import DroneState
 
@@ -202,21 +202,10 @@ def camera_images(step, params: DroneParams, state: DroneState, *, width: int = 
         raise ValueError("state.pos or state.quat contains NaN or inf")
     if np.any(np.sum(quat * quat, -1) == 0.0):
         raise ValueError("state.quat has a zero quaternion")
-    out = _host_images(step, _cached_host(step, params, lead), pos, quat, settings)
+    out = _host_images(step, step.host_params(params, state.pos), pos, quat, settings)
     if not isinstance(state.pos, np.ndarray):
         out = {k: jnp.asarray(v) for k, v in out.items()}
     return out
-
-
-def _cached_host(step, params: DroneParams, lead: tuple[int, ...]) -> dict:
-    """Host params for a state of leading shape ``lead``, shared with the step's own cache."""
-    from jaxdrones.backends.pybullet import _host_params
-
-    cached_params, cached_lead, host = step._host_cache
-    if params is not cached_params or lead != cached_lead:
-        host = _host_params(params, lead)
-        step._host_cache = (params, lead, host)
-    return host
 
 
 def _image_shapes(lead: tuple[int, ...], width: int, height: int) -> dict:
@@ -227,15 +216,13 @@ def _image_shapes(lead: tuple[int, ...], width: int, height: int) -> dict:
 
 def _traced_images(step, params: DroneParams, state: DroneState, lead: tuple[int, ...], settings) -> dict:
     """`camera_images` inside jit/vmap/scan: a host callback; drones with a non-finite pose read nothing there."""
-    from jaxdrones.backends.pybullet import _host_params
+    packed_params, unpack_params = pack_params(broadcast_params(params, lead), lead)
 
-    params = broadcast_params(params, lead)
-
-    def callback(params, pos, quat):
-        host = _host_params(params, pos.shape[:-1])
+    def callback(packed_params, pos, quat):
+        host = step.host_params(unpack_params(packed_params), pos, by_value=True)
         return _host_images(step, host, np.asarray(pos, np.float64), np.asarray(quat, np.float64), settings)
 
-    return jax.pure_callback(callback, _image_shapes(lead, settings[0], settings[1]), params, state.pos,
+    return jax.pure_callback(callback, _image_shapes(lead, settings[0], settings[1]), packed_params, state.pos,
                              state.quat, vmap_method="broadcast_all")
 
 
@@ -331,7 +318,7 @@ def render(step, params: DroneParams, state: DroneState, *, world: int = 0, widt
     target = np.asarray(target, np.float64)
     if target.shape != (3,) or not np.all(np.isfinite(target)):
         raise ValueError(f"target must be None or a finite point (x, y, z) in m, got {target!r}")
-    host = _cached_host(step, params, lead)
+    host = step.host_params(params, state.pos)
     step._ensure_worlds(world + 1, host)
     client, bodies = step._worlds[world].client, step._worlds[world].drones
     for body, p, q in zip(bodies, pos.tolist(), (quat / norm).tolist()):

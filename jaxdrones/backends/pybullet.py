@@ -40,7 +40,7 @@ import pybullet
 from jaxdrones import aerodynamics
 from jaxdrones.backends import camera, scene
 from jaxdrones.dynamics import Effects
-from jaxdrones.params import DroneParams, broadcast_params
+from jaxdrones.params import DroneParams, broadcast_params, pack_params, params_batch_shape
 from jaxdrones.rotations import join, quat_to_rotmat_c, split
 from jaxdrones.sim import SimConfig, check_params_batch, check_rpm, check_rpm_shape
 from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, DroneState
@@ -50,6 +50,8 @@ RENDERERS = ("tiny", "egl")
 #: The keyword options of `PyBulletStep` (and of ``make_step(..., backend="pybullet")``).
 OPTIONS = ("obstacles", "damping", "gui", "renderer")
 _STATE_FIELDS = ("pos", "quat", "vel", "ang_vel", "rpm", "contact")
+#: Where `_traced` splits the packed kinematics (pos 3, quat 4, vel 3, ang_vel 3, rpm 4).
+_KINEMATIC_SPLITS = (3, 7, 10, 13)
 #: What a drone of a failed world reads: NaN kinematics and command, no contact.
 _NAN_DRONE = ([math.nan] * 3, [math.nan] * 4, [math.nan] * 3, [math.nan] * 3, [math.nan] * 4, 0)
 
@@ -121,6 +123,7 @@ class PyBulletStep:
         self._worlds: list[_World] = []
         self._closed = False
         self._host_cache = (None, None, None)  # (params object, lead shape, host params)
+        self._value_cache = (None, None)  # (params values and lead shape, host params)
         self._finalizer = weakref.finalize(self, _disconnect_all, self._worlds)
 
     # ----------------------------------------------------------------------------------------------- lifecycle
@@ -157,12 +160,7 @@ class PyBulletStep:
             dtype = rpm.dtype if hasattr(rpm, "dtype") else np.asarray(rpm).dtype
             check_rpm_shape(self.config, state, np.shape(rpm), dtype)  # raises the error, or passes for lists
             rpm = np.asarray(rpm, dtype=np.float64)
-        lead = tuple(state.pos.shape[:-1])
-        cached_params, cached_lead, host = self._host_cache
-        if params is not cached_params or lead != cached_lead:
-            check_params_batch(params, state)
-            host = _host_params(params, lead)
-            self._host_cache = (params, lead, host)
+        host = self.host_params(params, state.pos)
         out = self._host_step(host, [np.asarray(getattr(state, f)) for f in _STATE_FIELDS], rpm, strict=True)
         if not isinstance(state.pos, np.ndarray):
             out = [jnp.asarray(x) for x in out]
@@ -171,15 +169,37 @@ class PyBulletStep:
     def _traced(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
         rpm = check_rpm(self.config, state, rpm)
         check_params_batch(params, state)
-        params = broadcast_params(params, state.pos.shape[:-1])
+        lead = state.pos.shape[:-1]
         shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), state)
+        # The callback's arguments are packed into a few arrays: JAX moves each argument separately per call.
+        packed_params, unpack_params = pack_params(broadcast_params(params, lead), lead)
+        kinematics = jnp.concatenate([state.pos, state.quat, state.vel, state.ang_vel, state.rpm], axis=-1)
 
-        def callback(params, state, rpm):
-            host = _host_params(params, state.pos.shape[:-1])
-            fields = [np.asarray(getattr(state, f)) for f in _STATE_FIELDS]
+        def callback(packed_params, kinematics, contact, rpm):
+            fields = np.split(np.asarray(kinematics), _KINEMATIC_SPLITS, axis=-1) + [np.asarray(contact)]
+            host = self.host_params(unpack_params(packed_params), fields[0], by_value=True)
             return DroneState(*self._host_step(host, fields, np.asarray(rpm, np.float64)))
 
-        return jax.pure_callback(callback, shapes, params, state, rpm, vmap_method="broadcast_all")
+        return jax.pure_callback(callback, shapes, packed_params, kinematics, state.contact, rpm,
+                                 vmap_method="broadcast_all")
+
+    def host_params(self, params: DroneParams, pos, by_value: bool = False) -> dict:
+        """The host-side params (`_host_params`) for drone positions ``pos`` f[*L, D, 3], cached: by identity of
+        ``params`` (concrete inputs, whose batch is checked here), or ``by_value`` (the fresh NumPy arrays of a
+        callback)."""
+        lead = tuple(pos.shape[:-1])
+        if by_value:
+            key = (lead, tuple((x.shape, x.tobytes()) for x in map(np.asarray, jax.tree.leaves(params))))
+            if key != self._value_cache[0]:
+                self._value_cache = (key, _host_params(params, lead))
+            return self._value_cache[1]
+        cached_params, cached_lead, host = self._host_cache
+        if params is not cached_params or lead != cached_lead:
+            if params_batch_shape(params) != lead:
+                check_params_batch(params, DroneState(pos, None, None, None, None, None))
+            host = _host_params(params, lead)
+            self._host_cache = (params, lead, host)
+        return host
 
     def _host_step(self, host: dict, fields: list[np.ndarray], rpm: np.ndarray, strict: bool = False
                    ) -> list[np.ndarray]:

@@ -1,0 +1,214 @@
+"""PyBullet backend vs the JAX core: physics steps per second, PID-in-the-loop speed, camera frames.
+
+What is measured (all on one host process, wall clock, best and median of ``--repeats`` timed runs):
+
+- ``physics``: one world of 1, 10 and 80 drones at 240 Hz physics, hovering at their start positions (the paper's
+  formation), effects off, no rendering. The PyBullet backend is called from a Python loop on NumPy state, one
+  call per control step; ``ctrl_freq`` 240 (one Bullet step per call) and 48 (five). The JAX core does the same
+  work (same config, same number of steps) two ways: called from the same Python loop, and as one jitted
+  ``jd.rollout`` (``lax.scan``). Reported: physics steps/s (Bullet steps, i.e. 1/240 s of one world), drone-steps/s
+  and the real-time factor (physics steps/s ÷ 240).
+- ``pid_loop``: the original's speed test setup (facts §13/§15): 240 Hz physics, 48 Hz DSL PID control of each
+  drone toward a fixed hover target, the PID (`jaxdrones.control.pid_control`, jitted) called once per control step
+  from Python, with and without the paper's obstacle scene. The original's PYB mode ran its PID loop at about
+  18,500 physics steps/s (77× real time) on this class of machine, and 15.5-16.8× real time in the paper's Table.
+- ``camera``: per-drone 64×48 captures (`PyBulletStep.camera_images`, RGBA + depth + segmentation) with
+  TinyRenderer, in the paper's obstacle scene: frames/s per drone and kB/s of RGBA (the paper reports about
+  750 kB/s of TinyRenderer frames).
+
+Usage::
+
+    python benchmarks/backends.py            # writes benchmarks/results/backends.json
+    python benchmarks/backends.py --quick    # fewer steps and repeats
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import statistics
+import sys
+import time
+
+import jax
+import numpy as np
+
+import jaxdrones as jd
+from jaxdrones.control import PIDGains, pid_control, pid_init
+from throughput import machine_info
+
+DEFAULT_OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "backends.json")
+DRONES = (1, 10, 80)
+SIM_FREQ = 240
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="fewer simulated seconds and 3 repeats")
+    parser.add_argument("--drones", type=int, nargs="+", default=list(DRONES), help="drones per world")
+    parser.add_argument("--seconds", type=float, default=None, help="simulated seconds per timed run (default 5)")
+    parser.add_argument("--repeats", type=int, default=None, help="timed runs per measurement (default 5)")
+    parser.add_argument("--out", default=DEFAULT_OUT, help="JSON output path (default: %(default)s)")
+    args = parser.parse_args(argv)
+    args.seconds = args.seconds or (1.0 if args.quick else 5.0)
+    args.repeats = args.repeats or (3 if args.quick else 5)
+    return args
+
+
+def timed(run, repeats: int) -> tuple[float, float]:
+    """Best and median wall time of ``run()`` over ``repeats`` calls, after one warm-up call."""
+    run()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - start)
+    return min(times), statistics.median(times)
+
+
+def hover_setup(n_drones: int, ctrl_freq: int):
+    config = jd.SimConfig(n_drones=n_drones, sim_freq=SIM_FREQ, ctrl_freq=ctrl_freq)
+    params = jd.load_params("cf2x")
+    state = jd.init_state(config)
+    rpm = np.full((n_drones, 4), float(params.hover_rpm), dtype=np.asarray(state.pos).dtype)
+    return config, params, state, rpm
+
+
+def rates(n_ctrl_steps: int, config, seconds: float) -> dict:
+    physics = n_ctrl_steps * config.n_substeps / seconds
+    return {"physics_steps_per_s": physics, "drone_steps_per_s": physics * config.n_drones,
+            "real_time_factor": physics / config.sim_freq}
+
+
+def bench_physics(args, n_drones: int, ctrl_freq: int) -> list[dict]:
+    config, params, state, rpm = hover_setup(n_drones, ctrl_freq)
+    n_steps = int(args.seconds * ctrl_freq)
+    np_state = jax.tree.map(np.asarray, state)
+    rows = []
+
+    with jd.make_step(config, backend="pybullet") as step:
+        def bullet_loop():
+            s = np_state
+            for _ in range(n_steps):
+                s = step(params, s, rpm)
+            return s
+
+        best, median = timed(bullet_loop, args.repeats)
+    rows.append({"backend": "pybullet", "loop": "python", "best_s": best, "median_s": median})
+
+    jax_step = jd.make_step(config)
+    rpm_jax = jax.numpy.asarray(rpm)
+
+    def jax_loop():
+        s = state
+        for _ in range(n_steps):
+            s = jax_step(params, s, rpm_jax)
+        return jax.block_until_ready(s)
+
+    best, median = timed(jax_loop, args.repeats)
+    rows.append({"backend": "jax", "loop": "python", "best_s": best, "median_s": median})
+
+    rpms = jax.numpy.broadcast_to(rpm_jax, (n_steps,) + rpm.shape)
+    best, median = timed(lambda: jax.block_until_ready(jd.rollout(jax_step, params, state, rpms)), args.repeats)
+    rows.append({"backend": "jax", "loop": "lax.scan", "best_s": best, "median_s": median})
+
+    for row in rows:
+        row.update({"measure": "physics", "drones": n_drones, "ctrl_freq": ctrl_freq, "ctrl_steps": n_steps,
+                    "best": rates(n_steps, config, row["best_s"]), "median": rates(n_steps, config, row["median_s"])})
+    return rows
+
+
+def bench_pid_loop(args, n_drones: int, obstacles: bool) -> dict:
+    ctrl_freq = 48
+    config, params, state, _ = hover_setup(n_drones, ctrl_freq)
+    n_steps = int(args.seconds * ctrl_freq)
+    gains = PIDGains.dsl()
+    target = np.asarray(state.pos) + np.array([0.0, 0.0, 0.5])
+    np_state = jax.tree.map(np.asarray, state)
+    with jd.make_step(config, backend="pybullet", obstacles="paper" if obstacles else None) as step:
+        def loop():
+            s, pid = np_state, pid_init(np_state)
+            for _ in range(n_steps):
+                rpm, pid = pid_control(params, gains, pid, s, target, ctrl_dt=config.ctrl_dt)
+                s = step(params, s, np.asarray(rpm))
+            return s
+
+        best, median = timed(loop, args.repeats)
+        final = loop()
+    return {"measure": "pid_loop", "backend": "pybullet", "drones": n_drones, "obstacles": obstacles,
+            "ctrl_freq": ctrl_freq, "ctrl_steps": n_steps, "best_s": best, "median_s": median,
+            "best": rates(n_steps, config, best), "median": rates(n_steps, config, median),
+            "final_height_error_m": float(np.max(np.abs(final.pos[:, 2] - target[:, 2])))}
+
+
+def bench_camera(args, n_drones: int) -> dict:
+    config, params, state, _ = hover_setup(n_drones, 48)
+    np_state = jax.tree.map(np.asarray, state)
+    n_frames = max(5, int(args.seconds * 24))  # the original's 24 Hz capture rate
+    with jd.make_step(config, backend="pybullet", obstacles="paper") as step:
+        def capture():
+            for _ in range(n_frames):
+                images = step.camera_images(params, np_state)
+            return images
+
+        best, median = timed(capture, args.repeats)
+        images = capture()
+    rgba_bytes = images["rgb"][..., 0, :, :, :].nbytes  # one drone's frame
+    frames = n_frames * n_drones
+    return {"measure": "camera", "backend": "pybullet", "renderer": "tiny", "drones": n_drones,
+            "width": images["rgb"].shape[-2], "height": images["rgb"].shape[-3], "frames": frames,
+            "best_s": best, "median_s": median,
+            "frames_per_s_best": frames / best, "frames_per_s_median": frames / median,
+            "rgba_kB_per_s_best": frames * rgba_bytes / best / 1e3,
+            "rgba_kB_per_s_median": frames * rgba_bytes / median / 1e3}
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    info = machine_info(jax)
+    print(f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, load {os.getloadavg()}")
+    results = []
+    print(f"{'measure':<9} {'backend':<9} {'loop':<9} {'drones':>6} {'ctrl Hz':>7} {'physics steps/s':>16} "
+          f"{'drone-steps/s':>14} {'x real time':>11}")
+    for n_drones in args.drones:
+        for ctrl_freq in (240, 48):
+            for row in bench_physics(args, n_drones, ctrl_freq):
+                results.append(row)
+                best = row["best"]
+                print(f"{'physics':<9} {row['backend']:<9} {row['loop']:<9} {n_drones:>6} {ctrl_freq:>7} "
+                      f"{best['physics_steps_per_s']:>16,.0f} {best['drone_steps_per_s']:>14,.0f} "
+                      f"{best['real_time_factor']:>11,.1f}")
+    for n_drones in (1, 10):
+        for obstacles in (False, True):
+            row = bench_pid_loop(args, n_drones, obstacles)
+            results.append(row)
+            best = row["best"]
+            loop = "pid+obst" if obstacles else "pid"
+            print(f"{'pid_loop':<9} {'pybullet':<9} {loop:<9} {n_drones:>6} {48:>7} "
+                  f"{best['physics_steps_per_s']:>16,.0f} {best['drone_steps_per_s']:>14,.0f} "
+                  f"{best['real_time_factor']:>11,.1f}")
+    for n_drones in (1, 10):
+        row = bench_camera(args, n_drones)
+        results.append(row)
+        print(f"camera    tiny      64x48     {n_drones:>6}: {row['frames_per_s_best']:,.0f} frames/s per process, "
+              f"{row['rgba_kB_per_s_best']:,.0f} kB/s RGBA (median {row['rgba_kB_per_s_median']:,.0f})")
+    report = {
+        "benchmark": "jaxdrones PyBullet backend vs JAX core",
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "machine": info,
+        "loadavg_end": os.getloadavg(),
+        "settings": {k: v for k, v in vars(args).items() if k != "out"},
+        "results": results,
+    }
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(report, f, indent=2)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
