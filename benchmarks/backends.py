@@ -9,8 +9,9 @@ What is measured (all on one host process, wall clock, best and median of ``--re
   ``jd.rollout`` (``lax.scan``). Reported: physics steps/s (Bullet steps, i.e. 1/240 s of one world), drone-steps/s
   and the real-time factor (physics steps/s ÷ 240).
 - ``pid_loop``: the original's speed test setup (facts §13/§15): 240 Hz physics, 48 Hz DSL PID control of each
-  drone toward a fixed hover target, the PID (`jaxdrones.control.pid_control`, jitted) called once per control step
-  from Python, with and without the paper's obstacle scene. The original's PYB mode ran its PID loop at about
+  drone toward a target 0.5 m above its start, the PID (`jaxdrones.control.pid_control`, jitted with params,
+  gains and target closed over) called once per control step from the same Python loop as the backend, with and
+  without the paper's obstacle scene. The original's PYB mode ran its PID loop at about
   18,500 physics steps/s (77× real time) on this class of machine, and 15.5-16.8× real time in the paper's Table.
 - ``camera``: per-drone 64×48 captures (`PyBulletStep.camera_images`, RGBA + depth + segmentation) with
   TinyRenderer, in the paper's obstacle scene: frames/s per drone and kB/s of RGBA (the paper reports about
@@ -128,11 +129,12 @@ def bench_pid_loop(args, n_drones: int, obstacles: bool) -> dict:
     gains = PIDGains.dsl()
     target = np.asarray(state.pos) + np.array([0.0, 0.0, 0.5])
     np_state = jax.tree.map(np.asarray, state)
+    controller = jax.jit(lambda pid, s: pid_control(params, gains, pid, s, target, ctrl_dt=config.ctrl_dt))
     with jd.make_step(config, backend="pybullet", obstacles="paper" if obstacles else None) as step:
         def loop():
             s, pid = np_state, pid_init(np_state)
             for _ in range(n_steps):
-                rpm, pid = pid_control(params, gains, pid, s, target, ctrl_dt=config.ctrl_dt)
+                rpm, pid = controller(pid, s)
                 s = step(params, s, np.asarray(rpm))
             return s
 
