@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numbers
 import os
+import warnings
 
 import numpy as np
 
@@ -91,7 +92,11 @@ class VideoWriter:
             raise ValueError(f"frame {self._count} has shape {frame.shape}, but the video's frames are "
                              f"{self._shape}")
         if self.format == "mp4":
-            self._writer.append_data(_pad_even(frame))
+            with warnings.catch_warnings():
+                # The first frame starts ffmpeg as a subprocess; Python warns that forking a process with JAX's
+                # threads could deadlock the child, which does not apply to a child that at once runs ffmpeg.
+                warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+                self._writer.append_data(_pad_even(frame))
         else:
             from PIL import Image
 

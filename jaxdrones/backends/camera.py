@@ -22,7 +22,10 @@ Here the camera is rigidly mounted on the body:
 
 A point at camera coordinates (right, up, forward Z) lands at the pixel (column, row)
 = (W/2 + f·right/Z, H/2 − f·up/Z), with pixel (i, j) covering [i, i+1) × [j, j+1) and row 0 at the top, as in
-OpenGL after Bullet's flip of the rows. Bullet's pixel values:
+OpenGL after Bullet's flip of the rows. (TinyRenderer's rasterisation sits up to a pixel off this model at object edges,
+e.g. a box face predicted 42 × 42 pixels renders 41 × 41, and its rows sample about half a pixel low; the EGL
+renderer matches the model exactly.)
+Bullet's pixel values:
 
 * ``rgb``: uint8 RGBA, as ``pybullet.getCameraImage`` returns it (alpha 255);
 * ``depth``: Bullet's normalised z-buffer z ∈ [0, 1] (OpenGL's, for the projection matrix of `projection_matrix`)

@@ -114,7 +114,7 @@ class PyBulletStep:
         if renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
         if gui:
-            _require_display()
+            require_display()
         self.config = config
         self.obstacles = scene.resolve_obstacles(obstacles)
         self.damping = bool(damping)
@@ -515,7 +515,7 @@ def _load_egl(client: int) -> None:
                            "renderer='tiny' (TinyRenderer, CPU)")
 
 
-def _require_display() -> None:
+def require_display() -> None:
     """Raise RuntimeError unless PyBullet's GUI can open a window.
 
     On Linux the GUI needs an X server: without one, ``pybullet.connect(pybullet.GUI)`` ends the whole process

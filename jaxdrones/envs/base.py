@@ -22,7 +22,8 @@ class EnvState:
         sim: DroneState of the task's drones, f[..., D, ...].
         params: DroneParams used by this episode (sampled at reset; differentiable).
         key: PRNG key for the episode's randomness.
-        obs: f[..., obs_size] observation after the last reset/step.
+        obs: f[..., obs_size] observation after the last reset/step; for a task with camera images, a dict of
+            arrays (see the task's ``observation_spec``).
         reward: f[...] reward of the last step (0 after reset).
         terminated: bool[...] the episode ended in a terminal state (crash, left the arena, invalid action).
         truncated: bool[...] the episode hit its time limit without terminating.
@@ -49,7 +50,19 @@ class EnvState:
 
 
 class Env(abc.ABC):
-    """A jittable environment over the JAX core: pure ``reset`` and ``step``, batched by ``vmap``."""
+    """A jittable environment over a physics backend: pure ``reset`` and ``step``, batched by ``vmap``.
+
+    `close` releases what the backend holds (PyBullet worlds); an env is also a context manager that closes it.
+    """
+
+    def close(self) -> None:
+        """Release the backend's resources (nothing to do for the JAX backend)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     @abc.abstractmethod
     def reset(self, key: jax.Array) -> EnvState:

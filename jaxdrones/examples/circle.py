@@ -11,7 +11,11 @@ model, optionally with drag, ground effect and downwash):
 * 240 Hz physics, 48 Hz control, 12 s; the first control step applies 0 RPM, then each step applies the PID
   command computed from the state reached by the previous one.
 
-The whole flight is one jitted ``lax.scan``.
+The whole flight is one jitted ``lax.scan``, on either physics backend: the JAX core (default) or PyBullet
+(``backend="pybullet"``, optionally among the obstacles of `jaxdrones.backends.scene.PAPER_OBSTACLES`, placed
+around the circle), where the same scan calls Bullet through a host callback. With a video (PyBullet only) or the
+PyBullet GUI the scan runs in chunks of a few control steps, and a third-person frame is rendered after each
+chunk; the chunks give the same flight as one scan.
 
 Tracking metrics (``result["metrics"]``), each an RMS over all control steps with t ≥ ``settle_s`` (default 1 s,
 which leaves out the take-off transient: the drones start at rest while their way-points already move, and the
@@ -24,12 +28,16 @@ first PID call sees the derivative spike of the non-zero initial yaw):
 Without velocity feed-forward the PID lags its moving way-point by about half a second (≈ 9 cm at 0.19 m/s, as
 the facts sheet reports for the original), while staying within millimetres of the path. With ``feedforward``
 (the default), the way-point's velocity is passed as ``target_vel`` and the lag almost disappears.
+
+Contacts (``result["contacts"]``), from `DroneState.contact`: the control steps in which each drone touched the
+ground, an obstacle or another drone (the JAX backend models the ground only).
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import dataclasses
 import json
 import math
 import os
@@ -43,7 +51,7 @@ from jaxdrones.control.pid import PIDGains, pid_control, pid_init
 from jaxdrones.params import MODELS, load_params
 from jaxdrones.rotations import quat_to_euler
 from jaxdrones.sim import SimConfig, make_step
-from jaxdrones.state import init_state
+from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, init_state
 
 #: Circle radius (m), first altitude (m) and altitude step between drones (m) of the paper's example (§13).
 RADIUS = 0.3
@@ -56,6 +64,13 @@ LAP_S = 10
 DEFAULT_FEEDFORWARD = True
 #: Default length of the excluded initial transient, s.
 DEFAULT_SETTLE_S = 1.0
+#: Physics backends of the example.
+BACKENDS = ("jax", "pybullet")
+#: Defaults of the third-person video (PyBullet backend): frame size (width, height) in pixels and frame rate, Hz.
+DEFAULT_VIDEO_SIZE = (640, 480)
+DEFAULT_VIDEO_FPS = 24.0
+#: The video's camera: distance from the circle's centre (m), yaw and pitch (degrees), as in `PyBulletStep.render`.
+VIDEO_CAMERA = dict(distance=1.7, yaw=-30.0, pitch=-35.0)
 
 
 def circle_setup(num_drones: int, ctrl_freq: int = 48) -> dict:
@@ -96,13 +111,12 @@ def circle_targets(setup: dict, n_steps: int, ctrl_freq: int = 48) -> tuple[np.n
     return np.concatenate([xy, z[..., None]], -1), vel
 
 
-@functools.lru_cache(maxsize=8)
-def _simulator(config: SimConfig):
-    """The jitted closed loop for a config: zero RPM for the first step, then PID commands (one scan)."""
-    step = make_step(config)
+def _closed_loop(step, config: SimConfig):
+    """The jitted closed loop over a run of control steps: each step applies the command in the carry, then the
+    PID computes the next one from the state reached (a ``lax.scan``; call it on chunks to pause in between)."""
 
     @jax.jit
-    def simulate(params, gains, state, target_pos, target_vel, target_rpy, feedforward):
+    def simulate(params, gains, carry, target_pos, target_vel, target_rpy, feedforward):
         def body(carry, targets):
             sim_state, pid_state, action = carry
             sim_state = step(params, sim_state, action)
@@ -111,17 +125,87 @@ def _simulator(config: SimConfig):
                                          target_rpy=target_rpy, ctrl_dt=config.ctrl_dt)
             return (sim_state, pid_state, rpm), (sim_state, rpm)
 
-        carry = (state, pid_init(state), jnp.zeros_like(state.rpm))
-        _, (states, rpms) = jax.lax.scan(body, carry, (target_pos, target_vel))
-        return states, rpms
+        return jax.lax.scan(body, carry, (target_pos, target_vel))
 
     return simulate
+
+
+@functools.lru_cache(maxsize=8)
+def _simulator(config: SimConfig):
+    """The closed loop on the JAX backend for a config (compiled once per config)."""
+    return _closed_loop(make_step(config), config)
+
+
+def check_video_name(video: str | os.PathLike) -> None:
+    """Raise ValueError unless ``video`` names an ``.mp4`` or ``.gif`` file (`jaxdrones.video.FORMATS`)."""
+    from jaxdrones.video import FORMATS
+
+    if os.path.splitext(os.fspath(video))[1].lower() not in FORMATS:
+        raise ValueError(f"video must be a file name ending in one of {tuple(FORMATS)}, got {os.fspath(video)!r}")
+
+
+def check_flight(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x", *,
+                 settle_s: float = DEFAULT_SETTLE_S, sim_freq: int = 240, ctrl_freq: int = 48, backend: str = "jax",
+                 obstacles=None, gui: bool = False, video=None, video_size=DEFAULT_VIDEO_SIZE,
+                 video_fps: float = DEFAULT_VIDEO_FPS, drag: bool = False, ground_effect: bool = False,
+                 downwash: bool = False) -> dict:
+    """Validate `fly_circle`'s arguments without flying (cheap; `fly_circle` calls it first).
+
+    Returns:
+        dict with ``config`` (`SimConfig`), ``n_steps``, ``params`` (`DroneParams`), ``obstacles`` (the resolved
+        tuple of `jaxdrones.backends.scene.Obstacle`) and ``video_size`` (width, height).
+
+    Raises:
+        ValueError: see `fly_circle`.
+        RuntimeError: ``gui`` without a display.
+    """
+    if isinstance(num_drones, bool) or not isinstance(num_drones, (int, np.integer)) or num_drones < 1:
+        raise ValueError(f"num_drones must be a positive integer, got {num_drones!r}")
+    config = SimConfig(n_drones=int(num_drones), sim_freq=sim_freq, ctrl_freq=ctrl_freq, drag=drag,
+                       ground_effect=ground_effect, downwash=downwash)
+    if not math.isfinite(duration_s) or duration_s * ctrl_freq < 1:
+        raise ValueError(f"duration_s must be at least one control step (1/{ctrl_freq} s), got {duration_s!r}")
+    n_steps = int(duration_s * ctrl_freq + 1e-9)
+    if not math.isfinite(settle_s) or settle_s < 0 or settle_s >= n_steps / ctrl_freq:
+        raise ValueError(f"settle_s must be in [0, {n_steps / ctrl_freq}) s (the flight time), got {settle_s!r}")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    resolved = ()
+    if backend == "jax":
+        for name, value in (("obstacles", obstacles not in (None, False)), ("gui", gui), ("video", video)):
+            if value:
+                raise ValueError(f"{name} needs backend='pybullet' (the jax backend has no obstacles, GUI or "
+                                 f"renderer)")
+    else:
+        from jaxdrones.backends.scene import resolve_obstacles
+
+        resolved = resolve_obstacles(obstacles)
+    if video is not None:
+        video = os.fspath(video)
+        check_video_name(video)
+        if os.path.exists(video):
+            raise ValueError(f"video file {video!r} exists; choose another name (it is never overwritten)")
+    if (not isinstance(video_size, (tuple, list)) or len(video_size) != 2
+            or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 1 <= v <= 8192
+                       for v in video_size)):
+        raise ValueError(f"video_size must be (width, height) in pixels, each in [1, 8192], got {video_size!r}")
+    if isinstance(video_fps, bool) or not (isinstance(video_fps, (int, float)) and 0 < video_fps < math.inf):
+        raise ValueError(f"video_fps must be a positive frame rate in Hz, got {video_fps!r}")
+    if gui:
+        from jaxdrones.backends.pybullet import require_display
+
+        require_display()
+    params = load_params(model)
+    return dict(config=config, n_steps=n_steps, params=params, obstacles=resolved,
+                video_size=tuple(int(v) for v in video_size))
 
 
 def fly_circle(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x", drag: bool = False,
                ground_effect: bool = False, downwash: bool = False, *, feedforward: bool = DEFAULT_FEEDFORWARD,
                settle_s: float = DEFAULT_SETTLE_S, sim_freq: int = 240, ctrl_freq: int = 48,
-               gains: PIDGains | None = None) -> dict:
+               gains: PIDGains | None = None, backend: str = "jax", obstacles=None, gui: bool = False,
+               video: str | os.PathLike | None = None, video_size: tuple[int, int] = DEFAULT_VIDEO_SIZE,
+               video_fps: float = DEFAULT_VIDEO_FPS, progress: bool = False) -> dict:
     """Fly the paper's circle example and measure how well it tracks.
 
     Args:
@@ -135,43 +219,69 @@ def fly_circle(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x
         sim_freq: physics rate, Hz (240).
         ctrl_freq: control rate, Hz (48); a divisor of ``sim_freq``.
         gains: PID gains; default `PIDGains.dsl`.
+        backend: ``"jax"`` or ``"pybullet"`` (see `jaxdrones.sim.make_step`).
+        obstacles: PyBullet only: None, True or ``"paper"`` (`jaxdrones.backends.scene.PAPER_OBSTACLES`), or a
+            sequence of `jaxdrones.backends.scene.Obstacle` / URDF paths.
+        gui: PyBullet only: show the flight in PyBullet's GUI, paced to real time (needs a display).
+        video: PyBullet only: write a third-person video of the flight to this new ``.mp4`` or ``.gif`` file (see
+            `jaxdrones.video.VideoWriter`); an existing file is never replaced.
+        video_size: (width, height) of the video, pixels.
+        video_fps: video frame rate asked for, Hz. A frame is rendered every k = max(1, round(ctrl_freq /
+            video_fps)) control steps, so the video plays at ctrl_freq / k frames per second in real time (24 fps
+            at the default 48 Hz control), independently of the physics and control rates.
+        progress: show a progress bar (tqdm) while a video or GUI flight runs.
 
     Returns:
         dict of NumPy arrays and values: ``times`` f[T] s (time of each state, (k+1)/ctrl_freq); ``pos``, ``vel``
         f[T, N, 3] (world), ``quat`` f[T, N, 4], ``rpy`` f[T, N, 3] rad, ``ang_vel`` f[T, N, 3] rad/s (body) after
         each control step; ``rpm`` f[T, N, 4] RPM applied during the step that ends at ``times``; ``rpm_cmd``
-        f[T, N, 4] the PID command computed at ``times`` (applied next); ``target_pos``, ``target_vel`` f[T, N, 3]
-        the way-point commanded at ``times``; ``waypoint_err``, ``cross_track_err`` f[T, N] m; ``metrics``
-        (RMS errors per drone and overall, see the module docstring); ``setup`` (`circle_setup`); ``settings``;
-        ``wall_s`` (seconds for the call, compilation included).
+        f[T, N, 4] the PID command computed at ``times`` (applied next); ``contact`` i32[T, N] the contact bits of
+        each step (`DroneState.contact`); ``target_pos``, ``target_vel`` f[T, N, 3] the way-point commanded at
+        ``times``; ``waypoint_err``, ``cross_track_err`` f[T, N] m; ``metrics`` (RMS errors per drone and overall,
+        see the module docstring); ``contacts`` (`contact_metrics`); ``setup`` (`circle_setup`); ``settings``;
+        ``wall_s`` (seconds for the call, compilation included); ``video`` (the file written, or None) and
+        ``video_frames``.
 
     Raises:
         ValueError: non-positive ``num_drones``, ``duration_s`` shorter than one control step, a negative
-            ``settle_s`` or one that leaves no samples, an unknown model, or invalid rates.
+            ``settle_s`` or one that leaves no samples, an unknown model, invalid rates, an unknown backend,
+            ``obstacles``/``gui``/``video`` on the jax backend, a video name without ``.mp4``/``.gif`` or that
+            exists, a bad ``video_size`` or ``video_fps``.
+        RuntimeError: ``gui`` without a display.
     """
-    if isinstance(num_drones, bool) or not isinstance(num_drones, (int, np.integer)) or num_drones < 1:
-        raise ValueError(f"num_drones must be a positive integer, got {num_drones!r}")
-    config = SimConfig(n_drones=int(num_drones), sim_freq=sim_freq, ctrl_freq=ctrl_freq, drag=drag,
-                       ground_effect=ground_effect, downwash=downwash)
-    if not math.isfinite(duration_s) or duration_s * ctrl_freq < 1:
-        raise ValueError(f"duration_s must be at least one control step (1/{ctrl_freq} s), got {duration_s!r}")
-    n_steps = int(duration_s * ctrl_freq + 1e-9)
-    if not math.isfinite(settle_s) or settle_s < 0 or settle_s >= n_steps / ctrl_freq:
-        raise ValueError(f"settle_s must be in [0, {n_steps / ctrl_freq}) s (the flight time), got {settle_s!r}")
+    checked = check_flight(num_drones, duration_s, model, settle_s=settle_s, sim_freq=sim_freq, ctrl_freq=ctrl_freq,
+                           backend=backend, obstacles=obstacles, gui=gui, video=video, video_size=video_size,
+                           video_fps=video_fps, drag=drag, ground_effect=ground_effect, downwash=downwash)
+    config, n_steps, params = checked["config"], checked["n_steps"], checked["params"]
 
     start = time.perf_counter()
-    params = load_params(model)
     gains = PIDGains.dsl() if gains is None else gains
     setup = circle_setup(config.n_drones, ctrl_freq)
     target_pos, target_vel = circle_targets(setup, n_steps, ctrl_freq)
     state = init_state(config, pos=setup["init_pos"], rpy=setup["init_rpy"])
     dtype = state.pos.dtype
-    states, rpm_cmd = _simulator(config)(params, gains, state, jnp.asarray(target_pos, dtype),
-                                         jnp.asarray(target_vel, dtype), jnp.asarray(setup["init_rpy"], dtype),
-                                         jnp.asarray(float(feedforward), dtype))
+    carry = (state, pid_init(state), jnp.zeros_like(state.rpm))
+    inputs = (jnp.asarray(target_pos, dtype), jnp.asarray(target_vel, dtype))
+    fixed = (jnp.asarray(setup["init_rpy"], dtype), jnp.asarray(float(feedforward), dtype))
+    n_frames = 0
+    if backend == "jax":
+        _, (states, rpm_cmd) = _simulator(config)(params, gains, carry, *inputs, *fixed)
+    else:
+        step = make_step(config, backend="pybullet", obstacles=checked["obstacles"], gui=gui)
+        try:
+            simulate = _closed_loop(step, config)
+            if video is None and not gui:
+                _, (states, rpm_cmd) = simulate(params, gains, carry, *inputs, *fixed)
+            else:
+                states, rpm_cmd, n_frames = _fly_in_chunks(
+                    step, simulate, params, gains, carry, inputs, fixed, setup, video=video,
+                    video_size=checked["video_size"], video_fps=video_fps, gui=gui, progress=progress)
+        finally:
+            step.close()
     rpy = quat_to_euler(states.quat)
     out = {k: np.asarray(v) for k, v in dict(pos=states.pos, quat=states.quat, vel=states.vel, rpy=rpy,
-                                             ang_vel=states.ang_vel, rpm=states.rpm, rpm_cmd=rpm_cmd).items()}
+                                             ang_vel=states.ang_vel, rpm=states.rpm, rpm_cmd=rpm_cmd,
+                                             contact=states.contact).items()}
     wall_s = time.perf_counter() - start
 
     times = np.arange(1, n_steps + 1) / ctrl_freq
@@ -183,11 +293,90 @@ def fly_circle(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x
         times=times, target_pos=target_pos, target_vel=target_vel, waypoint_err=waypoint_err,
         cross_track_err=cross_track_err, setup=setup, wall_s=wall_s,
         metrics=tracking_metrics(waypoint_err[keep], cross_track_err[keep], settle_s),
+        contacts=contact_metrics(out["contact"], times, backend),
+        video=None if video is None else os.fspath(video), video_frames=n_frames,
         settings=dict(num_drones=config.n_drones, duration_s=n_steps / ctrl_freq, model=str(model), drag=drag,
                       ground_effect=ground_effect, downwash=downwash, feedforward=bool(feedforward),
-                      settle_s=settle_s, sim_freq=sim_freq, ctrl_freq=ctrl_freq, dtype=str(dtype)),
+                      settle_s=settle_s, sim_freq=sim_freq, ctrl_freq=ctrl_freq, dtype=str(dtype), backend=backend,
+                      obstacles=[_obstacle_dict(o) for o in checked["obstacles"]]),
     )
     return out
+
+
+def _fly_in_chunks(step, simulate, params, gains, carry, inputs, fixed, setup, *, video, video_size, video_fps,
+                   gui, progress):
+    """Run the closed loop in chunks of k = max(1, round(ctrl_freq / video_fps)) control steps, rendering a video
+    frame of world 0 at the start and after each chunk, and pacing the flight to real time with the GUI.
+
+    Returns:
+        (states with a leading time axis [T, ...], PID commands f[T, N, 4], number of video frames).
+    """
+    from tqdm.auto import tqdm
+
+    from jaxdrones.video import VideoWriter
+
+    config = step.config
+    chunk = max(1, int(round(config.ctrl_freq / video_fps)))
+    n_steps = inputs[0].shape[0]
+    center = np.array([*setup["center"], float(np.mean(setup["init_pos"][:, 2]))])
+    width, height = video_size
+    writer = None if video is None else VideoWriter(video, fps=config.ctrl_freq / chunk)
+
+    def frame(state):
+        if writer is not None:
+            writer.append(step.render(params, state, width=width, height=height, target=center, **VIDEO_CAMERA))
+
+    pieces = []
+    t0 = time.perf_counter()
+    try:
+        frame(carry[0])
+        with tqdm(total=n_steps, unit="step", disable=not progress, desc="flying (PyBullet)") as bar:
+            for begin in range(0, n_steps, chunk):
+                end = min(begin + chunk, n_steps)
+                carry, piece = simulate(params, gains, carry, *(x[begin:end] for x in inputs), *fixed)
+                pieces.append(piece)
+                frame(carry[0])
+                if gui and begin == 0:  # the GUI's world exists from the first step on: aim its camera
+                    import pybullet
+
+                    camera = VIDEO_CAMERA
+                    pybullet.resetDebugVisualizerCamera(camera["distance"], camera["yaw"], camera["pitch"],
+                                                        center.tolist(), physicsClientId=step.clients[0])
+                if gui:  # real time: step k ends at (k + 1) / ctrl_freq
+                    time.sleep(max(0.0, t0 + end * config.ctrl_dt - time.perf_counter()))
+                bar.update(end - begin)
+    finally:
+        if writer is not None:
+            writer.close()
+    states, rpm_cmd = jax.tree.map(lambda *xs: jnp.concatenate(xs), *pieces)
+    return states, rpm_cmd, 0 if writer is None else writer.n_frames
+
+
+def _obstacle_dict(obstacle) -> dict:
+    """An obstacle as JSON-ready values."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(obstacle).items()}
+
+
+def contact_metrics(contact: np.ndarray, times: np.ndarray, backend: str = "pybullet") -> dict:
+    """Summary of contact bits i32[T, N] (`DroneState.contact`) at ``times`` f[T] s.
+
+    Returns:
+        dict: ``ground_steps``, ``obstacle_steps``, ``drone_steps`` (per drone, the control steps in which it
+        touched that), ``collided`` (any drone touched an obstacle or another drone), ``first_collision_s`` (time
+        of the first such step, or None) and ``modelled`` (what the backend detects: the JAX backend the ground
+        only).
+    """
+    contact = np.asarray(contact)
+    hits = {name: ((contact & bit) != 0) for name, bit in (("ground", CONTACT_GROUND), ("obstacle", CONTACT_OBSTACLE),
+                                                           ("drone", CONTACT_DRONE))}
+    collided = hits["obstacle"] | hits["drone"]
+    any_step = collided.any(axis=1)
+    return {
+        "modelled": ["ground"] if backend == "jax" else ["ground", "obstacle", "drone"],
+        **{f"{name}_steps": hit.sum(axis=0).astype(int).tolist() for name, hit in hits.items()},
+        "collided": bool(any_step.any()),
+        "first_collision_s": float(times[np.argmax(any_step)]) if any_step.any() else None,
+    }
 
 
 def tracking_metrics(waypoint_err: np.ndarray, cross_track_err: np.ndarray, settle_s: float) -> dict:
@@ -215,11 +404,15 @@ def plot_flight(result: dict, path: str | os.PathLike) -> str:
 
     s, m = result["settings"], result["metrics"]
     title = (f"Circle tracking: {s['num_drones']} × {s['model']}, DSL PID at {s['ctrl_freq']} Hz, physics "
-             f"{s['sim_freq']} Hz, feed-forward {'on' if s['feedforward'] else 'off'}")
+             f"{s['sim_freq']} Hz ({s.get('backend', 'jax')}), feed-forward {'on' if s['feedforward'] else 'off'}")
     effects = [name for name in ("drag", "ground_effect", "downwash") if s[name]]
     note = (f"RMS for t ≥ {m['settle_s']:g} s: to the moving way-point {100 * m['waypoint_rms_m']:.2f} cm, "
             f"to the circle (cross-track) {100 * m['cross_track_rms_m']:.2f} cm; effects: "
             f"{', '.join(effects) or 'none'}")
+    if s.get("obstacles"):
+        c = result["contacts"]
+        note += (f"; {len(s['obstacles'])} obstacles, " + ("no collision" if not c["collided"] else
+                                                            f"first collision at {c['first_collision_s']:.2f} s"))
     return _plot(result, path, title=title, note=note, mark_t=m["settle_s"])
 
 
@@ -240,35 +433,89 @@ def register(subparsers) -> None:
                              f"(default {'on' if DEFAULT_FEEDFORWARD else 'off'}; the original passes 0)")
     parser.add_argument("--settle", type=float, default=DEFAULT_SETTLE_S,
                         help=f"initial transient excluded from the metrics, s (default {DEFAULT_SETTLE_S:g})")
+    parser.add_argument("--backend", choices=BACKENDS, default="jax",
+                        help="physics: jax (default) or pybullet (collisions, obstacles, video, GUI)")
+    parser.add_argument("--obstacles", action="store_true",
+                        help="pybullet: fly among the example's obstacles (boxes, a sphere and a duck, around the "
+                             "circle); contacts are reported in metrics.json")
+    video = parser.add_mutually_exclusive_group()
+    video.add_argument("--video", metavar="PATH", default=None,
+                       help="pybullet: video file, .mp4 or .gif (default flight.mp4; a relative path is inside the "
+                            "run folder; an existing file is never replaced)")
+    video.add_argument("--no-video", action="store_true", help="pybullet: do not render a video (faster)")
+    parser.add_argument("--video-size", default="x".join(map(str, DEFAULT_VIDEO_SIZE)), metavar="WxH",
+                        help="video frame size in pixels (default %(default)s)")
+    parser.add_argument("--fps", type=float, default=DEFAULT_VIDEO_FPS,
+                        help=f"video frame rate, Hz (default {DEFAULT_VIDEO_FPS:g}; rounded to a whole number of "
+                             f"control steps per frame)")
+    parser.add_argument("--gui", action="store_true",
+                        help="pybullet: show the flight in PyBullet's GUI in real time (needs a display)")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("--out", default="runs/fly", help="output folder (default runs/fly; a numbered sibling "
                                                           "is used if it exists, unless --overwrite)")
     parser.add_argument("--overwrite", action="store_true", help="replace the contents of an existing --out")
     parser.set_defaults(func=run_cli)
 
 
+def _video_size(text: str) -> tuple[int, int]:
+    """Parse ``WxH`` (pixels)."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--video-size must be WIDTHxHEIGHT in pixels, e.g. 640x480, got {text!r}") from None
+    return width, height
+
+
 def run_cli(args: argparse.Namespace) -> int:
     """Run the ``fly`` subcommand; returns the exit status."""
     from jaxdrones.runs import new_run_dir
 
+    backend, video = args.backend, args.video
+    if backend == "pybullet" and video is None and not args.no_video:
+        video = "flight.mp4"
+    kwargs = dict(num_drones=args.num_drones, duration_s=args.duration, model=args.model, drag=args.drag,
+                  ground_effect=args.ground_effect, downwash=args.downwash, settle_s=args.settle, backend=backend,
+                  obstacles=True if args.obstacles else None, gui=args.gui)
     try:
-        result = fly_circle(args.num_drones, args.duration, args.model, args.drag, args.ground_effect,
-                            args.downwash, feedforward=args.feedforward, settle_s=args.settle)
-    except ValueError as err:
+        if backend == "jax" and video is not None:
+            raise ValueError("--video needs --backend pybullet (the jax backend does not render)")
+        if video is not None:
+            kwargs.update(video_size=_video_size(args.video_size), video_fps=args.fps)
+            check_video_name(video)
+        # Validate before creating the run folder (a relative video path is inside the new folder, so it is new).
+        check_flight(**kwargs, video=video if video is not None and os.path.isabs(video) else None)
+    except (ValueError, RuntimeError) as err:
         print(f"jaxdrones fly: error: {err}")
         return 2
     out = new_run_dir(args.out, overwrite=args.overwrite)
+    if video is not None:
+        video = os.path.join(out, video)
+    try:
+        result = fly_circle(**kwargs, feedforward=args.feedforward, video=video,
+                            progress=not args.no_progress)
+    except (ValueError, RuntimeError) as err:
+        print(f"jaxdrones fly: error: {err}")
+        return 2
     plot_path = plot_flight(result, os.path.join(out, "flight.png"))
-    m = result["metrics"]
+    m, c = result["metrics"], result["contacts"]
     with open(os.path.join(out, "metrics.json"), "w") as f:
-        json.dump({"settings": result["settings"], "metrics": m, "wall_s": result["wall_s"]}, f, indent=2)
+        json.dump({"settings": result["settings"], "metrics": m, "contacts": c, "wall_s": result["wall_s"],
+                   "video": result["video"], "video_frames": result["video_frames"]}, f, indent=2)
     np.savez_compressed(os.path.join(out, "flight.npz"), **{k: result[k] for k in (
-        "times", "pos", "quat", "vel", "rpy", "ang_vel", "rpm", "rpm_cmd", "target_pos", "target_vel")})
+        "times", "pos", "quat", "vel", "rpy", "ang_vel", "rpm", "rpm_cmd", "contact", "target_pos", "target_vel")})
     s = result["settings"]
-    print(f"{s['num_drones']} × {s['model']}, {s['duration_s']:g} s, feed-forward "
+    print(f"{s['num_drones']} × {s['model']}, {s['duration_s']:g} s on {s['backend']}, feed-forward "
           f"{'on' if s['feedforward'] else 'off'}: simulated in {result['wall_s']:.2f} s (compilation included)")
     print(f"RMS tracking error for t ≥ {m['settle_s']:g} s (cm):  to the moving way-point | to the circle path")
-    for d, (w, c) in enumerate(zip(m["waypoint_rms_per_drone_m"], m["cross_track_rms_per_drone_m"])):
-        print(f"  drone {d}: {100 * w:8.3f} | {100 * c:8.3f}")
+    for d, (w, ct) in enumerate(zip(m["waypoint_rms_per_drone_m"], m["cross_track_rms_per_drone_m"])):
+        print(f"  drone {d}: {100 * w:8.3f} | {100 * ct:8.3f}")
     print(f"  overall: {100 * m['waypoint_rms_m']:8.3f} | {100 * m['cross_track_rms_m']:8.3f}")
-    print(f"saved {plot_path}, {os.path.join(out, 'metrics.json')} and {os.path.join(out, 'flight.npz')}")
+    if backend == "pybullet":
+        touched = "none" if not c["collided"] else f"first at {c['first_collision_s']:.2f} s"
+        print(f"contacts with obstacles or other drones: {touched} (steps per drone: obstacle "
+              f"{c['obstacle_steps']}, drone {c['drone_steps']}; ground {c['ground_steps']})")
+    saved = [plot_path, os.path.join(out, "metrics.json"), os.path.join(out, "flight.npz")]
+    if result["video"] is not None:
+        saved.append(f"{result['video']} ({result['video_frames']} frames)")
+    print(f"saved {', '.join(saved[:-1])} and {saved[-1]}")
     return 0
