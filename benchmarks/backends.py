@@ -26,8 +26,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
 import statistics
 import sys
@@ -38,7 +36,7 @@ import numpy as np
 
 import jaxdrones as jd
 from jaxdrones.control import PIDGains, pid_control, pid_init
-from throughput import machine_info
+from throughput import machine_info, write_report
 
 DEFAULT_OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "backends.json")
 DRONES = (1, 10, 80)
@@ -197,18 +195,8 @@ def main(argv=None) -> int:
         results.append(row)
         print(f"camera    tiny      64x48     {n_drones:>6}: {row['frames_per_s_best']:,.0f} frames/s per process, "
               f"{row['rgba_kB_per_s_best']:,.0f} kB/s RGBA (median {row['rgba_kB_per_s_median']:,.0f})")
-    report = {
-        "benchmark": "jaxdrones PyBullet backend vs JAX core",
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "machine": info,
-        "loadavg_end": os.getloadavg(),
-        "settings": {k: v for k, v in vars(args).items() if k != "out"},
-        "results": results,
-    }
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(report, f, indent=2)
-    print(f"wrote {args.out}")
+    write_report(args.out, "jaxdrones PyBullet backend vs JAX core", info,
+                 {k: v for k, v in vars(args).items() if k != "out"}, results)
     return 0
 
 

@@ -217,21 +217,27 @@ def main(argv=None) -> int:
         results.append(result)
         print_row(result)
 
+    settings = {k: v for k, v in vars(args).items() if k != "out"} | {"worlds": list(args.worlds),
+                                                                    "drones": list(args.drones)}
+    write_report(args.out, "jaxdrones physics core throughput", info, settings, results, loadavg_start=load_start)
+    return 0
+
+
+def write_report(path: str, benchmark: str, info: dict, settings: dict, results: list, **extra) -> None:
+    """Write a benchmark's JSON report (name, date, machine, load, settings, results) to ``path``."""
     report = {
-        "benchmark": "jaxdrones physics core throughput",
+        "benchmark": benchmark,
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "machine": info,
-        "loadavg_start": load_start,
+        **extra,
         "loadavg_end": os.getloadavg(),
-        "settings": {k: v for k, v in vars(args).items() if k != "out"} | {"worlds": list(args.worlds),
-                                                                         "drones": list(args.drones)},
+        "settings": settings,
         "results": results,
     }
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
         json.dump(report, f, indent=2)
-    print(f"wrote {args.out}")
-    return 0
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":
