@@ -6,8 +6,7 @@ Euler's equation J ω̇ = τ - ω × Jω in the body frame, and m a = R (0, 0, �
 All functions broadcast over leading axes; the drone axis is ``-2`` for f[..., D, k] arrays.
 
 Each equation is written once, in component form (``*_c``: vectors as tuples of f[..., D] arrays, see
-`jaxdrones.rotations`), which the simulation core steps on; the array-form functions split their inputs, call it
-and join the results.
+`jaxdrones.rotations`), which the simulation core steps on.
 """
 
 from __future__ import annotations
@@ -34,8 +33,7 @@ class Effects(NamedTuple):
 class Kinematics(NamedTuple):
     """The integrated quantities of ``D`` drones (see `DroneState` for units and frames).
 
-    In array form each field is f[..., D, k]; in component form (the ``*_c`` functions) each is a k-tuple of
-    f[..., D] arrays.
+    In component form (the ``*_c`` functions) each field is a k-tuple of f[..., D] arrays.
     """
 
     pos: jax.Array
@@ -59,13 +57,8 @@ def motors_c(params: DroneParams, rpm: Components) -> Motors:
     return Motors(motor_thrust_c(params, rpm), yaw_torque_c(params, rpm))
 
 
-def motor_thrust(params: DroneParams, rpm: jax.Array) -> jax.Array:
-    """Per-motor thrust kf·rpm², f[..., D, 4] RPM -> f[..., D, 4] N."""
-    return join(motor_thrust_c(params, split(rpm)))
-
-
 def motor_thrust_c(params: DroneParams, rpm: Components) -> Components:
-    """`motor_thrust` in component form: 4-tuple of f[..., D] RPM -> 4-tuple of f[..., D] N."""
+    """Per-motor thrust kf·rpm² (facts §3): 4-tuple of f[..., D] RPM -> 4-tuple of f[..., D] N."""
     return tuple(params.kf * r**2 for r in rpm)
 
 
@@ -75,41 +68,22 @@ def yaw_torque_c(params: DroneParams, rpm: Components) -> jax.Array:
     return -dot(tuple(s * params.km for s in spin), tuple(r**2 for r in rpm))
 
 
-def body_torque(params: DroneParams, lift: jax.Array, rpm: jax.Array) -> jax.Array:
-    """Body-frame torque from the motors (facts §3.1), N·m, f[..., D, 3].
+def body_torque_c(params: DroneParams, lift: Components, yaw_torque: jax.Array) -> Components:
+    """Body-frame torque from the motors (facts §3.1), N·m: (τx, τy) = torque_arm @ lift, τz = ``yaw_torque``.
 
     Args:
-        params: DroneParams (``torque_arm`` f[..., 2, 4] m, ``prop_spin`` f[..., 4], ``km``).
-        lift: f[..., D, 4] N, per-motor force along body z (thrust, plus ground effect when on).
-        rpm: f[..., D, 4] RPM, for the yaw reaction torque -Σ spin_i km rpm_i².
+        params: DroneParams (``torque_arm`` f[..., 2, 4] m).
+        lift: 4-tuple of f[..., D] N, per-motor force along body z (thrust, plus ground effect when on).
+        yaw_torque: f[..., D] N·m, the rotors' reaction torque (`yaw_torque_c`).
     """
-    return join(body_torque_c(params, split(lift), yaw_torque_c(params, split(rpm))))
-
-
-def body_torque_c(params: DroneParams, lift: Components, yaw_torque: jax.Array) -> Components:
-    """`body_torque` in component form: lift 4-tuple of f[..., D] N, yaw torque f[..., D] -> (τx, τy, τz)."""
     tau_x, tau_y = matvec(params.torque_arm, lift)
     return tau_x, tau_y, yaw_torque
 
 
-def accelerations(params: DroneParams, effects: Effects, kin: Kinematics, rpm: jax.Array, rpm_prev: jax.Array):
-    """Linear (world, m/s²) and angular (body, rad/s²) accelerations, each f[..., D, 3].
-
-    Args:
-        params: DroneParams.
-        effects: which aerodynamic effects to add.
-        kin: the drones' kinematics.
-        rpm: f[..., D, 4] RPM applied now (already clipped).
-        rpm_prev: f[..., D, 4] RPM of the previous substep (drag only).
-    """
-    motors = motors_c(params, split(rpm))
-    acc, ang_acc = accelerations_c(params, effects, _split_kin(kin), motors, split(rpm_prev))
-    return join(acc), join(ang_acc)
-
-
 def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors, rpm_prev: Components,
                     unit_quat: bool = False):
-    """`accelerations` in component form, with the motors' output for the applied RPM (`motors_c`).
+    """Linear (world, m/s²) and angular (body, rad/s²) accelerations, with the motors' output for the applied RPM
+    (`motors_c`) and ``rpm_prev`` (4-tuple of f[..., D], the RPM of the previous substep, for drag only).
 
     ``unit_quat=True`` tells that ``kin.quat`` is of unit norm (as every step leaves it), which skips normalising it
     again for the rotation matrix.
@@ -137,20 +111,13 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
     return tuple(f / params.mass for f in force), ang_acc
 
 
-def euler_step(params, effects, kin: Kinematics, rpm, rpm_prev, dt: float) -> Kinematics:
+def euler_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
+                 unit_quat: bool = False) -> Kinematics:
     """The paper code's semi-implicit Euler update (facts §4.5-4.6), one physics step of ``dt`` s.
 
     v ← v + dt·a; ω ← ω + dt·ω̇; p ← p + dt·v_new; q ← exp-map(q, ω_new, dt), then q is normalised as PyBullet
-    does when the state is written back.
+    does when the state is written back. ``motors`` and ``unit_quat`` as in `accelerations_c`.
     """
-    motors = motors_c(params, split(rpm))
-    return _join_kin(euler_step_c(params, effects, _split_kin(kin), motors, split(rpm_prev), dt))
-
-
-def euler_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
-                 unit_quat: bool = False) -> Kinematics:
-    """`euler_step` in component form, with the motors' output for the applied RPM (`motors_c`); ``unit_quat`` as
-    in `accelerations_c`."""
     acc, ang_acc = accelerations_c(params, effects, kin, motors, rpm_prev, unit_quat)
     vel = tuple(v + dt * a for v, a in zip(kin.vel, acc))
     ang_vel = tuple(w + dt * a for w, a in zip(kin.ang_vel, ang_acc))
@@ -159,16 +126,13 @@ def euler_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Com
     return Kinematics(pos, normalize_c(quat), vel, ang_vel)
 
 
-def rk4_step(params, effects, kin: Kinematics, rpm, rpm_prev, dt: float) -> Kinematics:
-    """Classical 4th-order Runge-Kutta on (p, q, v, ω) with the motor inputs held over the step; q renormalised."""
-    motors = motors_c(params, split(rpm))
-    return _join_kin(rk4_step_c(params, effects, _split_kin(kin), motors, split(rpm_prev), dt))
-
-
 def rk4_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
                unit_quat: bool = False) -> Kinematics:
-    """`rk4_step` in component form, with the motors' output for the applied RPM (`motors_c`); ``unit_quat`` as in
-    `accelerations_c` (it concerns the first stage only: the others are normalised for their rotation matrix)."""
+    """Classical 4th-order Runge-Kutta on (p, q, v, ω) with the motor inputs held over the step; q renormalised.
+
+    ``motors`` and ``unit_quat`` as in `accelerations_c` (``unit_quat`` concerns the first stage only: the others
+    are normalised for their rotation matrix).
+    """
 
     def deriv(k: Kinematics, unit: bool = False) -> Kinematics:
         acc, ang_acc = accelerations_c(params, effects, k, motors, rpm_prev, unit)
@@ -190,12 +154,11 @@ def rk4_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Compo
     return out._replace(quat=normalize_c(out.quat))
 
 
-INTEGRATORS = {"euler": euler_step, "rk4": rk4_step}
-#: The integrators in component form, by the same names.
-INTEGRATORS_C = {"euler": euler_step_c, "rk4": rk4_step_c}
+#: The integrators, by `SimConfig.integrator` name.
+INTEGRATORS = {"euler": euler_step_c, "rk4": rk4_step_c}
 
 
-def ground_contact(params: DroneParams, kin: Kinematics) -> tuple[Kinematics, jax.Array]:
+def ground_contact_c(params: DroneParams, kin: Kinematics) -> tuple[Kinematics, jax.Array]:
     """Ground plane at z = 0: the collision cylinder cannot go below it.
 
     Contact rule (documented, not in the paper's explicit model, which fell through the ground): when the base
@@ -206,12 +169,6 @@ def ground_contact(params: DroneParams, kin: Kinematics) -> tuple[Kinematics, ja
     Returns:
         The corrected kinematics and bool[..., D], True where the drone touched the ground.
     """
-    kin, touching = ground_contact_c(params, _split_kin(kin))
-    return _join_kin(kin), touching
-
-
-def ground_contact_c(params: DroneParams, kin: Kinematics) -> tuple[Kinematics, jax.Array]:
-    """`ground_contact` in component form."""
     rest = 0.5 * params.collision_height
     (x, y, z), (vx, vy, vz) = kin.pos, kin.vel
     touching = z < rest
@@ -219,11 +176,3 @@ def ground_contact_c(params: DroneParams, kin: Kinematics) -> tuple[Kinematics, 
     vel = (jnp.where(touching, 0.0, vx), jnp.where(touching, 0.0, vy), jnp.where(touching, jnp.maximum(vz, 0.0), vz))
     ang_vel = tuple(jnp.where(touching, 0.0, w) for w in kin.ang_vel)
     return Kinematics(pos, kin.quat, vel, ang_vel), touching
-
-
-def _split_kin(kin: Kinematics) -> Kinematics:
-    return Kinematics(*(split(x) for x in kin))
-
-
-def _join_kin(kin: Kinematics) -> Kinematics:
-    return Kinematics(*(join(x) for x in kin))

@@ -8,7 +8,7 @@ Component form. The physics is written on tuples of per-component arrays (a posi
 f[..., D]) rather than on f[..., D, 3] arrays; `split` and `join` convert. Every operation then runs over the
 contiguous world and drone axes, which XLA vectorises on CPU, where a trailing axis of 3 or 4 gives strided loops,
 stacks and small dot products. Matrices stay arrays (f[..., 3, 3]) and `matvec` reads their entries. The
-array-form functions (``quat_mul``, ``quat_integrate``, ...) wrap the component form (``*_c``).
+array-form functions (``quat_mul``, ``quat_integrate``, ``quat_to_rotmat``) wrap the component form (``*_c``).
 """
 
 from __future__ import annotations
@@ -177,16 +177,6 @@ def quat_integrate_c(quat: Components, ang_vel: Components, dt: float) -> Compon
     return tuple(jnp.where(moving, r, q + (r - jax.lax.stop_gradient(r))) for r, q in zip(rotated, quat))
 
 
-def quat_derivative(quat: jax.Array, ang_vel: jax.Array) -> jax.Array:
-    """q̇ = ½ q ⊗ (ω, 0) for a body-frame rate ω in rad/s; f[..., 4], f[..., 3] -> f[..., 4] per second."""
-    return join(quat_derivative_c(split(quat), split(ang_vel)))
-
-
 def quat_derivative_c(quat: Components, ang_vel: Components) -> Components:
-    """`quat_derivative` in component form."""
+    """q̇ = ½ q ⊗ (ω, 0) for a body-frame rate ω in rad/s: (x, y, z, w), (ωx, ωy, ωz) -> q̇ per second."""
     return tuple(0.5 * c for c in quat_mul_c(quat, (*ang_vel, jnp.zeros_like(ang_vel[0]))))
-
-
-def rotate(rotmat: jax.Array, vec: jax.Array) -> jax.Array:
-    """R @ v over leading axes: f[..., 3, 3], f[..., 3] -> f[..., 3]."""
-    return jnp.einsum("...ij,...j->...i", rotmat, vec)

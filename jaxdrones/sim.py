@@ -83,19 +83,14 @@ class SimConfig:
         return dynamics.Effects(self.drag, self.ground_effect, self.downwash)
 
 
-def physics_substep(config: SimConfig, params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
-    """One physics step of ``config.dt`` with already-clipped RPM f[..., D, 4]; pure and differentiable."""
-    return _join_state(physics_substep_c(config, params, _split_state(state), split(rpm)))
-
-
 def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState, rpm: tuple,
                       motors: dynamics.Motors | None = None, unit_quat: bool = False) -> DroneState:
-    """`physics_substep` in component form: ``state``'s vector fields and ``rpm`` are tuples of f[..., D] arrays
-    (``contact`` stays i32[..., D]); ``motors`` is ``dynamics.motors_c(params, rpm)`` when already known;
+    """One physics step of ``config.dt`` with already-clipped RPM, pure and differentiable, in component form:
+    ``state``'s vector fields and ``rpm`` are tuples of f[..., D] arrays (``contact`` stays i32[..., D]); ``motors`` is ``dynamics.motors_c(params, rpm)`` when already known;
     ``unit_quat=True`` if ``state.quat`` is known to be of unit norm (see `dynamics.accelerations_c`)."""
     if motors is None:
         motors = dynamics.motors_c(params, rpm)
-    integrate = dynamics.INTEGRATORS_C[config.integrator]
+    integrate = dynamics.INTEGRATORS[config.integrator]
     kin = dynamics.Kinematics(state.pos, state.quat, state.vel, state.ang_vel)
     kin = integrate(params, config.effects, kin, motors, state.rpm, config.dt, unit_quat)
     kin, touching = dynamics.ground_contact_c(params, kin)
@@ -195,6 +190,21 @@ def check_rpm(config: SimConfig, state: DroneState, rpm) -> jax.Array:
     return rpm
 
 
+def check_state_shape(config: SimConfig, state: DroneState) -> tuple[int, ...]:
+    """Check that ``state`` has pos f[..., D, 3] and quat f[..., D, 4] with D = ``config.n_drones`` and the same
+    leading shape; returns that shape ``[..., D]``.
+
+    Raises:
+        ValueError: on other shapes.
+    """
+    n = config.n_drones
+    pos, quat = np.shape(state.pos), np.shape(state.quat)
+    if pos[-2:] != (n, 3) or quat[-2:] != (n, 4) or pos[:-1] != quat[:-1]:
+        raise ValueError(f"state has pos {pos} and quat {quat}; expected [..., {n}, 3] and [..., {n}, 4] with the "
+                         f"same leading shape, for n_drones={n} (build it with jd.init_state(config, ...))")
+    return tuple(pos[:-1])
+
+
 def check_rpm_shape(config: SimConfig, state: DroneState, shape: tuple[int, ...], dtype) -> None:
     """Check an RPM command's shape and dtype (and the state's drone axis) against the config and state.
 
@@ -202,9 +212,7 @@ def check_rpm_shape(config: SimConfig, state: DroneState, shape: tuple[int, ...]
         ValueError: see `make_step`.
     """
     n = config.n_drones
-    if state.pos.shape[-2:] != (n, 3) or state.quat.shape[-2:] != (n, 4):
-        raise ValueError(f"state has pos {state.pos.shape} and quat {state.quat.shape}; expected [..., {n}, 3] and "
-                         f"[..., {n}, 4] for n_drones={n} (build it with jd.init_state(config, ...))")
+    check_state_shape(config, state)
     if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)) or dtype == bool:
         raise ValueError(f"rpm must be a real (float or int) array in RPM, got dtype {dtype}")
     expected = state.rpm.shape

@@ -21,6 +21,20 @@ import numpy as np
 FORMATS = {".mp4": "mp4", ".gif": "gif"}
 
 
+def video_format(path: str | os.PathLike) -> str:
+    """The format of a video file, ``"mp4"`` or ``"gif"``, from its extension (`FORMATS`).
+
+    Raises:
+        ValueError: on another extension.
+    """
+    path = os.fspath(path)
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in FORMATS:
+        raise ValueError(f"video path {path!r} has an unknown extension {ext!r}: expected a file name ending in one "
+                         f"of {tuple(FORMATS)}")
+    return FORMATS[ext]
+
+
 class VideoWriter:
     """A context manager that appends uint8 RGB frames to a video file.
 
@@ -43,9 +57,7 @@ class VideoWriter:
 
     def __init__(self, path: str | os.PathLike, fps: float = 24, overwrite: bool = False):
         path = os.fspath(path)
-        ext = os.path.splitext(path)[1].lower()
-        if ext not in FORMATS:
-            raise ValueError(f"video path {path!r}: unknown extension {ext!r}, expected one of {tuple(FORMATS)}")
+        video_format(path)
         if isinstance(fps, bool) or not isinstance(fps, numbers.Real) or not (0 < fps < float("inf")):
             raise ValueError(f"fps must be a positive number of frames per second, got {fps!r}")
         if os.path.isdir(path):
@@ -54,7 +66,7 @@ class VideoWriter:
             raise FileExistsError(f"{path!r} exists; pass overwrite=True to replace it")
         self.path = path
         self.fps = float(fps)
-        self.format = FORMATS[ext]
+        self.format = video_format(path)
         self._overwrite = bool(overwrite)
         self._shape: tuple[int, ...] | None = None
         self._frames: list = []  # GIF: the frames as Pillow images

@@ -52,7 +52,7 @@ import numpy as np
 import pybullet
 
 from jaxdrones.params import DroneParams, broadcast_params, pack_params
-from jaxdrones.sim import check_params_batch
+from jaxdrones.sim import check_params_batch, check_state_shape
 from jaxdrones.state import DroneState
 
 #: Gap between the front of a drone's collision cylinder and its camera's eye, m.
@@ -166,22 +166,17 @@ def _real(name: str, value) -> float:
 
 
 def check_pose(config, state: DroneState) -> tuple[int, ...]:
-    """Check that ``state`` has pos f[..., D, 3] and quat f[..., D, 4] with D = n_drones; returns [..., D].
+    """Check that ``state`` has real pos f[..., D, 3] and quat f[..., D, 4] with D = n_drones; returns [..., D].
 
     Raises:
-        ValueError: on other shapes, or a non-numeric dtype.
+        ValueError: on other shapes (`jaxdrones.sim.check_state_shape`), or a non-numeric dtype.
     """
-    n = config.n_drones
-    pos, quat = state.pos, state.quat
-    if (np.shape(pos)[-2:] != (n, 3) or np.shape(quat)[-2:] != (n, 4)
-            or np.shape(pos)[:-1] != np.shape(quat)[:-1]):
-        raise ValueError(f"state has pos {np.shape(pos)} and quat {np.shape(quat)}; expected [..., {n}, 3] and "
-                         f"[..., {n}, 4] with the same leading shape, for n_drones={n}")
-    for name, x in (("pos", pos), ("quat", quat)):
+    lead = check_state_shape(config, state)
+    for name, x in (("pos", state.pos), ("quat", state.quat)):
         kind = np.dtype(x.dtype).kind if hasattr(x, "dtype") else np.asarray(x).dtype.kind
         if kind not in "fiu":
             raise ValueError(f"state.{name} must be a real array, got dtype {getattr(x, 'dtype', None)}")
-    return tuple(np.shape(pos)[:-1])
+    return lead
 
 
 def _is_traced(*xs) -> bool:
@@ -192,8 +187,7 @@ def _is_traced(*xs) -> bool:
 def camera_images(step, params: DroneParams, state: DroneState, *, width: int = 64, height: int = 48,
                   fov: float = 60.0, near: float | None = None, far: float = 100.0) -> dict:
     """The onboard camera images of every drone; see ``PyBulletStep.camera_images``."""
-    if step._closed:
-        raise RuntimeError("this PyBullet step was closed; build a new one with jd.make_step(...)")
+    step.check_open()
     width, height, fov, near, far = check_camera_args(width, height, fov, near, far)
     lead = check_pose(step.config, state)
     check_params_batch(params, state)
@@ -295,8 +289,7 @@ def _capture_world(world, pos, quat, ok, views, projections, image, rgb, zbuf, s
 def render(step, params: DroneParams, state: DroneState, *, world: int = 0, width: int = 640, height: int = 480,
            target=None, distance: float = 1.5, yaw: float = -30.0, pitch: float = -30.0) -> np.ndarray:
     """A third-person image of one world; see ``PyBulletStep.render``."""
-    if step._closed:
-        raise RuntimeError("this PyBullet step was closed; build a new one with jd.make_step(...)")
+    step.check_open()
     width, height = check_image_size(width, height)
     lead = check_pose(step.config, state)
     check_params_batch(params, state)

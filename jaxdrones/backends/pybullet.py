@@ -149,9 +149,13 @@ class PyBulletStep:
         return tuple(w.client for w in self._worlds)
 
     # ----------------------------------------------------------------------------------------------- stepping
-    def __call__(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
+    def check_open(self) -> None:
+        """Raise RuntimeError if the step was closed."""
         if self._closed:
             raise RuntimeError("this PyBullet step was closed; build a new one with jd.make_step(...)")
+
+    def __call__(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
+        self.check_open()
         if any(isinstance(x, jax.core.Tracer) for x in (state.pos, state.quat, rpm, params.mass, params.kf)):
             return self._traced(params, state, rpm)
         n = self.config.n_drones
@@ -254,16 +258,18 @@ class PyBulletStep:
         points = host["thrust_points"][w]
         contact = [0] * len(bodies)
         link, world_frame = pybullet.LINK_FRAME, pybullet.WORLD_FRAME
+        if any_effect:
+            if world.jax_params is None:
+                world.jax_params = jax.tree.map(jnp.asarray, DroneParams(**_world_slice(host["arrays"], w)))
+            thrust_array, rpm_prev_array, rpm_array = np.asarray(thrust), np.asarray(rpm_prev), np.asarray(rpm)
         for sub in range(self.config.n_substeps):
             lift, body_z, drag = thrust, None, None
             if any_effect:
                 if sub > 0:
                     pos, quat, vel, _ = _read_kinematics(client, bodies)
-                if world.jax_params is None:
-                    world.jax_params = jax.tree.map(jnp.asarray, DroneParams(**_world_slice(host["arrays"], w)))
                 lift, body_z, drag = (np.asarray(x).tolist() for x in _effect_forces(
-                    effects, world.jax_params, *map(np.asarray, (pos, quat, vel, thrust,
-                                                                 rpm_prev if sub == 0 else rpm))))
+                    effects, world.jax_params, np.asarray(pos), np.asarray(quat), np.asarray(vel), thrust_array,
+                    rpm_prev_array if sub == 0 else rpm_array))
             for d, body in enumerate(bodies):
                 lift_d, points_d = lift[d], points[d]
                 for i in range(4):
@@ -442,7 +448,7 @@ def _world_slice(arrays: dict, w: int) -> dict:
 def _host_params(params: DroneParams, lead: tuple[int, ...]) -> dict:
     """Params as NumPy arrays [W, D, ...] plus what the Bullet worlds need, for a state of leading shape ``lead``."""
     lead = tuple(lead)
-    n_drones, n_worlds = lead[-1], int(np.prod(lead[:-1], dtype=np.int64))
+    n_drones, n_worlds = lead[-1], math.prod(lead[:-1])
     full = broadcast_params(jax.tree.map(np.asarray, params), lead, xp=np)
     arrays = {name: np.asarray(getattr(full, name), np.float64).reshape((n_worlds, n_drones)
                                                                         + getattr(full, name).shape[len(lead):])

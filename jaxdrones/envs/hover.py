@@ -50,7 +50,7 @@ class HoverConfig:
         arena_z: the episode terminates when z exceeds this, m.
         max_tilt: the episode terminates when |roll| or |pitch| exceeds this, rad (the paper's code: 0.4).
         terminate_on_ground: a touch of the ground terminates the episode as a crash. Off by default: the ground
-            holds the drone (see `dynamics.ground_contact`) and it may take off again, as in the paper's task.
+            holds the drone (see `dynamics.ground_contact_c`) and it may take off again, as in the paper's task.
         backend: ``"jax"`` (the differentiable JAX core) or ``"pybullet"`` (Bullet: collisions with the ground and
             obstacles, cameras; see `jaxdrones.backends.pybullet`). Both take the same actions and give the same
             kinematic observation; on ``"pybullet"`` ``reset``/``step`` still run under ``jit`` and ``vmap`` (the

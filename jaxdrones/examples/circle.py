@@ -52,6 +52,7 @@ from jaxdrones.params import MODELS, load_params
 from jaxdrones.rotations import quat_to_euler
 from jaxdrones.sim import SimConfig, make_step
 from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, init_state
+from jaxdrones.video import VideoWriter, video_format
 
 #: Circle radius (m), first altitude (m) and altitude step between drones (m) of the paper's example (§13).
 RADIUS = 0.3
@@ -136,14 +137,6 @@ def _simulator(config: SimConfig):
     return _closed_loop(make_step(config), config)
 
 
-def check_video_name(video: str | os.PathLike) -> None:
-    """Raise ValueError unless ``video`` names an ``.mp4`` or ``.gif`` file (`jaxdrones.video.FORMATS`)."""
-    from jaxdrones.video import FORMATS
-
-    if os.path.splitext(os.fspath(video))[1].lower() not in FORMATS:
-        raise ValueError(f"video must be a file name ending in one of {tuple(FORMATS)}, got {os.fspath(video)!r}")
-
-
 def check_flight(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x", *,
                  settle_s: float = DEFAULT_SETTLE_S, sim_freq: int = 240, ctrl_freq: int = 48, backend: str = "jax",
                  obstacles=None, gui: bool = False, video=None, video_size=DEFAULT_VIDEO_SIZE,
@@ -182,7 +175,7 @@ def check_flight(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf
         resolved = resolve_obstacles(obstacles)
     if video is not None:
         video = os.fspath(video)
-        check_video_name(video)
+        video_format(video)
         if os.path.exists(video):
             raise ValueError(f"video file {video!r} exists; choose another name (it is never overwritten)")
     if (not isinstance(video_size, (tuple, list)) or len(video_size) != 2
@@ -312,8 +305,6 @@ def _fly_in_chunks(step, simulate, params, gains, carry, inputs, fixed, setup, *
         (states with a leading time axis [T, ...], PID commands f[T, N, 4], number of video frames).
     """
     from tqdm.auto import tqdm
-
-    from jaxdrones.video import VideoWriter
 
     config = step.config
     chunk = max(1, int(round(config.ctrl_freq / video_fps)))
@@ -481,7 +472,7 @@ def run_cli(args: argparse.Namespace) -> int:
             raise ValueError("--video needs --backend pybullet (the jax backend does not render)")
         if video is not None:
             kwargs.update(video_size=_video_size(args.video_size), video_fps=args.fps)
-            check_video_name(video)
+            video_format(video)
         # Validate before creating the run folder (a relative video path is inside the new folder, so it is new).
         check_flight(**kwargs, video=video if video is not None and os.path.isabs(video) else None)
     except (ValueError, RuntimeError) as err:
