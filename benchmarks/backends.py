@@ -8,8 +8,8 @@ What is measured (all on one host process, wall clock, best and median of ``--re
   work (same config, same number of steps) two ways: called from the same Python loop, and as one jitted
   ``jd.rollout`` (``lax.scan``). Reported: physics steps/s (Bullet steps, i.e. 1/240 s of one world), drone-steps/s
   and the real-time factor (physics steps/s ÷ 240).
-- ``pid_loop``: the original's speed test setup (facts §13/§15): 240 Hz physics, 48 Hz DSL PID control of each
-  drone toward a target 0.5 m above its start, the PID (`jaxdrones.control.pid_control`, jitted with params,
+- ``pid_loop``: the original's speed test setup (docs/physics.md §13, §15): 240 Hz physics, 48 Hz DSL PID control
+  of each drone toward a target 0.5 m above its start, the PID (`jaxdrones.control.pid_control`, jitted with params,
   gains and target closed over) called once per control step from the same Python loop as the backend, with and
   without the paper's obstacle scene. The original's PYB mode ran its PID loop at about
   18,500 physics steps/s (77× real time) on this class of machine, and 15.5-16.8× real time in the paper's Table.

@@ -2,7 +2,7 @@
 
 Each function is pure, differentiable and broadcasts over leading (world) axes; downwash couples the ``D`` drones
 of one world along the drone axis. Equations are those of the paper (eqs. drag, ground, down) as the paper's code
-applies them in its PyBullet modes (facts sheet §6). Each is written once, in component form (``*_c``, see
+applies them in its PyBullet modes (docs/physics.md §6). Each is written once, in component form (``*_c``, see
 `jaxdrones.rotations`), which the simulation core runs on; the array-form functions wrap it.
 """
 
@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jaxdrones.params import DroneParams
 from jaxdrones.rotations import GIMBAL_SNAP, Components, dot, join, split
 
-#: Downwash acts only between drones closer than this horizontally, m (facts §6.3).
+#: Downwash acts only between drones closer than this horizontally, m (docs/physics.md §6.3).
 DOWNWASH_MAX_DIST = 10.0
 #: Floor on the squared downwash width β², m², so that β → 0 (at Δz = -c3/c2) gives the d → 0 limit, not 0/0.
 _BETA2_FLOOR = 1e-12
@@ -23,8 +23,8 @@ _BETA2_FLOOR = 1e-12
 def drag_force(params: DroneParams, vel: jax.Array, rpm_prev: jax.Array) -> jax.Array:
     """Rotor drag, paper eq. (drag): F = -Ω · diag(c_xy, c_xy, c_z) · v, with Ω = Σ_i 2π rpm_i / 60.
 
-    As in the paper's code (facts §6.2), the coefficients act on the world-frame velocity components and Ω uses the
-    RPM applied in the *previous* physics substep.
+    As in the paper's code (docs/physics.md §6.2), the coefficients act on the world-frame velocity components and
+    Ω uses the RPM applied in the *previous* physics substep.
 
     Args:
         params: DroneParams (``drag_coeff`` f[..., 3]).
@@ -47,9 +47,9 @@ def ground_effect_thrust(params: DroneParams, pos: jax.Array, rotmat: jax.Array,
     """Extra per-propeller thrust near the ground, paper eq. (ground): g_i = f_i · C_gnd · (R / (4 h_i))².
 
     h_i is the world height of propeller i, clipped from below at ``gnd_eff_h_clip`` (so the gain is at most 4/15).
-    The effect is on only while |roll| < π/2 and |pitch| < π/2 in PyBullet's Euler angles (facts §6.1): R[2, 2] > 0,
-    and |sin pitch| = |R[2, 0]| below PyBullet's gimbal-lock snap (0.99999), where it reports pitch = ±π/2. The
-    extra force acts along body +z at each propeller, like thrust.
+    The effect is on only while |roll| < π/2 and |pitch| < π/2 in PyBullet's Euler angles (docs/physics.md §6.1):
+    R[2, 2] > 0, and |sin pitch| = |R[2, 0]| below PyBullet's gimbal-lock snap (0.99999), where it reports
+    pitch = ±π/2. The extra force acts along body +z at each propeller, like thrust.
 
     Args:
         params: DroneParams.
@@ -87,7 +87,7 @@ def downwash_force(params: DroneParams, pos: jax.Array) -> jax.Array:
     """Downwash on each drone from every drone above it, paper eq. (down), along the lower drone's body -z.
 
     For a lower drone j and a drone i with Δz = z_i - z_j > 0 and horizontal distance d < 10 m:
-    α = c1 (R / (4 Δz))², β = c2 Δz + c3, F = -α exp(-½ (d/β)²) (facts §6.3). Contributions add up; the upper
+    α = c1 (R / (4 Δz))², β = c2 Δz + c3, F = -α exp(-½ (d/β)²) (docs/physics.md §6.3). Contributions add up; the upper
     drone's RPM plays no part; drones at equal height do not interact. The coefficients are the lower drone's.
     Where β = 0 (Δz = 0.6875 m for the shipped models) the d → 0 limit is used instead of the original's 0/0.
 

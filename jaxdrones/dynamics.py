@@ -1,8 +1,9 @@
 """Explicit rigid-body dynamics of a quadrotor: motor model, mixer, Newton-Euler equations, integrators.
 
-The update is the paper's explicit model (IROS 2021, eqs. 1-2; gym-pybullet-drones' DYN mode, facts §3.1, §4):
-thrust f_i = kf·rpm_i² along body +z, torques from the x/+ lever arms and the yaw reaction -spin_i·km·rpm_i²,
-Euler's equation J ω̇ = τ - ω × Jω in the body frame, and m a = R (0, 0, Σf) - (0, 0, m g) in the world frame.
+The update is the paper's explicit model (IROS 2021, eqs. (motors) and (physics); gym-pybullet-drones' DYN mode;
+docs/physics.md §3.1, §4): thrust f_i = kf·rpm_i² along body +z, torques from the x/+ lever arms and the yaw
+reaction -spin_i·km·rpm_i², Euler's equation J ω̇ = τ - ω × Jω in the body frame, and m a = R (0, 0, Σf) - (0, 0, m g)
+in the world frame.
 All functions broadcast over leading axes; the drone axis is ``-2`` for f[..., D, k] arrays.
 
 Each equation is written once, in component form (``*_c``: vectors as tuples of f[..., D] arrays, see
@@ -58,7 +59,7 @@ def motors_c(params: DroneParams, rpm: Components) -> Motors:
 
 
 def motor_thrust_c(params: DroneParams, rpm: Components) -> Components:
-    """Per-motor thrust kf·rpm² (facts §3): 4-tuple of f[..., D] RPM -> 4-tuple of f[..., D] N."""
+    """Per-motor thrust kf·rpm² (docs/physics.md §3): 4-tuple of f[..., D] RPM -> 4-tuple of f[..., D] N."""
     return tuple(params.kf * r**2 for r in rpm)
 
 
@@ -69,7 +70,7 @@ def yaw_torque_c(params: DroneParams, rpm: Components) -> jax.Array:
 
 
 def body_torque_c(params: DroneParams, lift: Components, yaw_torque: jax.Array) -> Components:
-    """Body-frame torque from the motors (facts §3.1), N·m: (τx, τy) = torque_arm @ lift, τz = ``yaw_torque``.
+    """Body-frame torque from the motors (docs/physics.md §3.1), N·m: (τx, τy) = torque_arm @ lift, τz = ``yaw_torque``.
 
     Args:
         params: DroneParams (``torque_arm`` f[..., 2, 4] m).
@@ -113,7 +114,7 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
 
 def euler_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
                  unit_quat: bool = False) -> Kinematics:
-    """The paper code's semi-implicit Euler update (facts §4.5-4.6), one physics step of ``dt`` s.
+    """The paper code's semi-implicit Euler update (docs/physics.md §4.5-4.6), one physics step of ``dt`` s.
 
     v ← v + dt·a; ω ← ω + dt·ω̇; p ← p + dt·v_new; q ← exp-map(q, ω_new, dt), then q is normalised as PyBullet
     does when the state is written back. ``motors`` and ``unit_quat`` as in `accelerations_c`.
@@ -130,8 +131,8 @@ def rk4_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Compo
                unit_quat: bool = False) -> Kinematics:
     """Classical 4th-order Runge-Kutta on (p, q, v, ω) with the motor inputs held over the step; q renormalised.
 
-    ``motors`` and ``unit_quat`` as in `accelerations_c` (``unit_quat`` concerns the first stage only: the others
-    are normalised for their rotation matrix).
+    See docs/physics.md §4.11. ``motors`` and ``unit_quat`` as in `accelerations_c` (``unit_quat`` concerns the first
+    stage only: the others are normalised for their rotation matrix).
     """
 
     def deriv(k: Kinematics, unit: bool = False) -> Kinematics:
@@ -161,7 +162,7 @@ INTEGRATORS = {"euler": euler_step_c, "rk4": rk4_step_c}
 def ground_contact_c(params: DroneParams, kin: Kinematics) -> tuple[Kinematics, jax.Array]:
     """Ground plane at z = 0: the collision cylinder cannot go below it.
 
-    Contact rule (documented, not in the paper's explicit model, which fell through the ground): when the base
+    Contact rule (docs/physics.md §5.6; not in the paper's explicit model, which fell through the ground): when the base
     is below its resting height ``collision_height / 2`` (0.0125 m for the shipped models, where the original's
     PyBullet drones rest), it is put back at that height and the contact is perfectly inelastic and sticking:
     the velocity becomes (0, 0, max(v_z, 0)) and the angular velocity 0. Orientation is left unchanged.

@@ -2,7 +2,7 @@
 
 Every constant comes from a URDF (`assets/*.urdf`): the `<properties>` element, the `base_link` inertial block and
 the `prop{i}_link` inertial origins. The derived quantities (hover and maximum RPM, maximum thrust and torques,
-ground-effect height clip) follow gym-pybullet-drones' `BaseAviary.__init__` (facts sheet §1.1).
+ground-effect height clip) follow gym-pybullet-drones' `BaseAviary.__init__` (docs/physics.md §1.1).
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ class DroneParams:
         prop_pos: f[4, 3] m, body-frame motor positions (URDF ``prop{i}_link`` inertial origins).
         prop_spin: f[4] +1 for a counter-clockwise motor seen from above (yaw reaction -km·rpm²), -1 for clockwise.
         torque_arm: f[2, 4] m, the explicit-dynamics lever arms: body (τx, τy) = torque_arm @ thrusts.
-            x frame: L/√2 along each motor's diagonal; + frame: L along its axis (facts §3.1).
+            x frame: L/√2 along each motor's diagonal; + frame: L along its axis (docs/physics.md §3.1).
         gravity: f[] m/s², 9.8 as in the paper's code.
         collision_radius: f[] m, radius of the collision cylinder.
         collision_height: f[] m, length of the collision cylinder (centred on the base origin).
@@ -286,7 +286,7 @@ def _check_physical(raw: dict, path: str) -> None:
 
 
 def _torque_arm(frame: str, arm: float, prop_pos: np.ndarray) -> np.ndarray:
-    """Explicit-dynamics lever arms (facts §3.1): (τx, τy) = torque_arm @ thrusts.
+    """Explicit-dynamics lever arms (docs/physics.md §3.1): (τx, τy) = torque_arm @ thrusts.
 
     A motor at body (x, y) produces τx = y·f and τy = -x·f. The paper's explicit update places each motor at
     distance L along its diagonal (x frame, |x| = |y| = L/√2) or its axis (+ frame).

@@ -1,8 +1,8 @@
 """Quaternion and Euler-angle helpers, PyBullet conventions, and the component form of small vectors.
 
 Quaternions are (x, y, z, w) and rotate body to world. Euler angles are (roll, pitch, yaw) with
-R = Rz(yaw)·Ry(pitch)·Rx(roll), PyBullet's ``getQuaternionFromEuler``/``getEulerFromQuaternion`` (facts §0).
-All functions broadcast over leading axes.
+R = Rz(yaw)·Ry(pitch)·Rx(roll), PyBullet's ``getQuaternionFromEuler``/``getEulerFromQuaternion`` (docs/physics.md
+§0.3-0.4). All functions broadcast over leading axes.
 
 Component form. The physics is written on tuples of per-component arrays (a position is ``(x, y, z)``, each
 f[..., D]) rather than on f[..., D, 3] arrays; `split` and `join` convert. Every operation then runs over the
@@ -16,9 +16,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-#: |ω| at or below which the exponential-map update leaves q unchanged (numpy ``isclose(|ω|, 0)``, facts §4.6).
+#: |ω| at or below which the exponential-map update leaves q unchanged (numpy ``isclose(|ω|, 0)``;
+#: docs/physics.md §4.6).
 OMEGA_EPS = 1e-8
-#: |sin(pitch)| at which PyBullet's Euler conversion snaps to gimbal lock (facts §0).
+#: |sin(pitch)| at which PyBullet's Euler conversion snaps to gimbal lock (docs/physics.md §0.4).
 GIMBAL_SNAP = 0.99999
 
 #: A small vector in component form: a tuple of same-shaped arrays, e.g. (x, y, z) or (x, y, z, w).
@@ -121,7 +122,7 @@ def quat_from_euler(rpy: jax.Array) -> jax.Array:
 
 
 def quat_to_euler(quat: jax.Array) -> jax.Array:
-    """Roll, pitch, yaw in rad of a unit quaternion, exactly as ``getEulerFromQuaternion`` (facts §0).
+    """Roll, pitch, yaw in rad of a unit quaternion, exactly as ``getEulerFromQuaternion`` (docs/physics.md §0.4).
 
     Within about 0.26° of pitch ±90° (|sin pitch| ≥ 0.99999) PyBullet snaps to roll = 0, pitch = ±π/2, and so does
     this function.
@@ -148,7 +149,7 @@ def quat_to_euler(quat: jax.Array) -> jax.Array:
 def quat_integrate(quat: jax.Array, ang_vel: jax.Array, dt: float) -> jax.Array:
     """Exact exponential-map update for a constant body rate: q ⊗ [sin(|ω|dt/2) ω/|ω|, cos(|ω|dt/2)].
 
-    This is the paper code's explicit-dynamics quaternion update (facts §4.6); q is left unchanged when
+    This is the paper code's explicit-dynamics quaternion update (docs/physics.md §4.6); q is left unchanged when
     |ω| ≤ 1e-8 rad/s; there its derivative is that of the first-order update q ⊗ (½ dt ω, 1), so gradients
     with respect to ω do not vanish at rest.
 

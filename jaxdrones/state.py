@@ -9,9 +9,9 @@ from flax import struct
 
 from jaxdrones.rotations import quat_from_euler
 
-#: Arm length of the Crazyflie used by the paper's default start pose (facts §1.1).
+#: Arm length of the Crazyflie used by the paper's default start pose (docs/physics.md §1.1, §14.4).
 _CF2_ARM = 0.0397
-#: Default start height of the paper's environments: collision half-height + 0.1 m (facts §1.1).
+#: Default start height of the paper's environments: collision half-height + 0.1 m (docs/physics.md §1.1).
 DEFAULT_START_Z = 0.1125
 
 #: Bits of `DroneState.contact`: what a drone touched during the last control step.
@@ -30,7 +30,7 @@ class DroneState:
         vel: f[..., D, 3] m/s, world frame.
         ang_vel: f[..., D, 3] rad/s, body frame.
         rpm: f[..., D, 4] RPM, the clipped motor speeds applied in the last physics substep (zero at start).
-            The drag model uses it, as the paper's code uses ``last_clipped_action`` (facts §6.2).
+            The drag model uses it, as the paper's code uses ``last_clipped_action`` (docs/physics.md §6.2).
         contact: i32[..., D] what the drone touched during the last control step, a bit mask of
             `CONTACT_GROUND` (1), `CONTACT_OBSTACLE` (2) and `CONTACT_DRONE` (4); 0 = nothing. The JAX backend
             models the ground only; the PyBullet backend reports all three.
@@ -55,7 +55,7 @@ class DroneState:
 
 
 def default_start_pos(n_drones: int) -> np.ndarray:
-    """The paper's default start: drone i at (4iL, 4iL, 0.1125) m with the Crazyflie's L (facts §1.1)."""
+    """The paper's default start: drone i at (4iL, 4iL, 0.1125) m with the Crazyflie's L (docs/physics.md §1.1)."""
     i = np.arange(n_drones, dtype=np.float64)
     return np.stack([4 * i * _CF2_ARM, 4 * i * _CF2_ARM, np.full(n_drones, DEFAULT_START_Z)], axis=-1)
 

@@ -1,9 +1,10 @@
 """Independent NumPy re-derivation of gym-pybullet-drones' explicit dynamics (DYN mode, main branch).
 
-Written from the facts sheet only (``reference/gym-pybullet-drones-facts.md`` §1, §1.1, §2, §3.1, §4); nothing here
-imports jaxdrones. Constants are typed in from the airframe table (§1), derived constants follow §1.1, the
-per-model thrust/torque formulas are spelled out as in §3.1, and one physics step is the semi-implicit Euler update
-of §4 with the Λ-matrix quaternion map of §4.6, followed by the normalisation PyBullet applies on write-back.
+It spells out the original's equations as docs/physics.md §1, §1.1, §2, §3.1 and §4 state them (section numbers
+below refer to that document); nothing here imports jaxdrones. Constants are typed in from the airframe table (§1),
+derived constants follow §1.1, the per-model thrust/torque formulas are spelled out as in §3.1, and one physics step
+is the semi-implicit Euler update of §4 with the Λ-matrix quaternion map of §4.6, followed by the normalisation
+PyBullet applies on write-back (§4.7).
 
 All arrays are float64. Quaternions are (x, y, z, w), body→world; ``ang_vel`` is the body-frame rate.
 """
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Gravity of the original code, m/s² (facts §0).
+#: Gravity of the original code, m/s² (§0.5).
 G = 9.8
 
 
@@ -73,7 +74,7 @@ AIRFRAMES = {
     "racer": Airframe("racer", 0.830, 0.109, (0.003113, 0.003113, 0.003113), 8.47e-9, 2.13e-11, 4.17, 12.7e-2),
 }
 
-#: The §1.1 derived-constant table, as printed in the facts sheet.
+#: The §1.1 derived-constant table, as printed in docs/physics.md.
 DERIVED_TABLE = {
     "cf2x": dict(hover_rpm=14468.4292, max_rpm=21702.6438, max_thrust=0.59535, max_xy_torque=8.35637e-3,
                  max_z_torque=7.47956e-3, gnd_eff_h_clip=0.0377637),
@@ -83,7 +84,7 @@ DERIVED_TABLE = {
                   max_z_torque=4.264876e-2, gnd_eff_h_clip=0.2073064),
 }
 
-#: §2 "positive-torque RPM patterns": raise the + motors, lower the - motors.
+#: §2, the positive-torque RPM patterns of the mixers: raise the + motors, lower the - motors.
 POSITIVE_TORQUE_PATTERNS = {
     "cf2x": {"roll": (-1, -1, 1, 1), "pitch": (-1, 1, 1, -1), "yaw": (-1, 1, -1, 1)},
     "cf2p": {"roll": (0, 1, 0, -1), "pitch": (-1, 0, 1, 0), "yaw": (-1, 1, -1, 1)},
@@ -115,7 +116,7 @@ def forces_torques(frame: Airframe, rpm: np.ndarray) -> tuple[float, np.ndarray]
 
 
 def rotmat(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix (world = R @ body) of an (x, y, z, w) quaternion, normalised first (§0)."""
+    """Rotation matrix (world = R @ body) of an (x, y, z, w) quaternion, normalised first (§0.3)."""
     x, y, z, w = q / np.linalg.norm(q)
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

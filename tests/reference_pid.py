@@ -1,10 +1,10 @@
 """Independent NumPy re-implementation of gym-pybullet-drones' DSLPIDControl (main branch).
 
-Written from the facts sheet only (``reference/gym-pybullet-drones-facts.md`` §0 and §12); nothing here imports
-jaxdrones. The class mirrors the original's structure: one controller per drone, with ``reset()``, mutable
-integrals and ``last_rpy``, and ``computeControl`` split into the position and attitude loops. The intrinsic 'XYZ'
-Euler conversions use scipy, as the original does; PyBullet's quaternion→matrix and quaternion→Euler functions
-are spelled out from §0.
+It spells out the controller as docs/physics.md §0 and §12 describe it (section numbers below refer to that
+document); nothing here imports jaxdrones. The class mirrors the original's structure: one controller per drone,
+with ``reset()``, mutable integrals and ``last_rpy``, and ``computeControl`` split into the position and attitude
+loops. The intrinsic 'XYZ' Euler conversions use scipy, as the original does; PyBullet's quaternion→matrix and
+quaternion→Euler functions are spelled out from §0.3-0.4.
 
 All arrays are float64. Quaternions are (x, y, z, w), body→world.
 """
@@ -16,20 +16,20 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-#: Gravity of the original code, m/s² (facts §0).
+#: Gravity of the original code, m/s² (§0.5).
 G = 9.8
 
-#: Mixers of the original (facts §12; main-branch cf2x motor order).
+#: Mixers of the original (§12.1; main-branch cf2x motor order).
 MIXERS = {
     "cf2x": np.array([[-0.5, -0.5, -1.0], [-0.5, 0.5, 1.0], [0.5, 0.5, -1.0], [0.5, -0.5, 1.0]]),
     "cf2p": np.array([[0.0, -1.0, -1.0], [1.0, 0.0, 1.0], [0.0, 1.0, -1.0], [-1.0, 0.0, 1.0]]),
 }
-#: (mass kg, kf N/rpm²) from the airframe table (facts §1).
+#: (mass kg, kf N/rpm²) from the airframe table (§1).
 AIRFRAMES = {"cf2x": (0.027, 3.16e-10), "cf2p": (0.027, 3.16e-10)}
 
 
 def matrix_from_quaternion(q) -> np.ndarray:
-    """``getMatrixFromQuaternion``: the rotation matrix of (x, y, z, w), normalised first (facts §0)."""
+    """``getMatrixFromQuaternion``: the rotation matrix of (x, y, z, w), normalised first (§0.3)."""
     x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -39,7 +39,7 @@ def matrix_from_quaternion(q) -> np.ndarray:
 
 
 def euler_from_quaternion(q) -> np.ndarray:
-    """``getEulerFromQuaternion`` including its gimbal-lock branch (facts §0)."""
+    """``getEulerFromQuaternion`` including its gimbal-lock branch (§0.4)."""
     x, y, z, w = (float(v) for v in q)
     s = -2.0 * (x * z - w * y)
     if s <= -0.99999:
@@ -54,7 +54,7 @@ def euler_from_quaternion(q) -> np.ndarray:
 
 
 class DSLPIDControl:
-    """The paper's PID controller for one Crazyflie (facts §12)."""
+    """The paper's PID controller for one Crazyflie (§12)."""
 
     P_COEFF_FOR = np.array([0.4, 0.4, 1.25])
     I_COEFF_FOR = np.array([0.05, 0.05, 0.05])
@@ -131,7 +131,7 @@ class DSLPIDControl:
 
 
 def velocity_targets(state_pos, state_quat, action, speed_limit):
-    """The VEL action (facts §10.1): (target_pos, target_vel, target_rpy) for one drone."""
+    """The VEL action (§10.1): (target_pos, target_vel, target_rpy) for one drone."""
     v = np.asarray(action, dtype=np.float64)
     norm = np.linalg.norm(v[0:3])
     unit = v[0:3] / norm if norm != 0 else np.zeros(3)

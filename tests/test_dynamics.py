@@ -1,7 +1,8 @@
 """Physics of the JAX step: agreement with an independent NumPy re-derivation, physical checks, aerodynamic
 effects, gradients, invariances and the RK4 integrator.
 
-Figures worth knowing are printed with the prefix ``MEASURED`` (see them with ``pytest -s``).
+Figures worth knowing are printed with the prefix ``MEASURED`` (see them with ``pytest -s``). Section numbers (§)
+refer to docs/physics.md.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ def rel_err(actual, expected) -> float:
 
 
 def rpm_sequence(model: str, pattern: str, n_steps: int, rng: np.random.Generator) -> np.ndarray:
-    """f64[T, 4] RPM commands for a named pattern, around the model's hover RPM (facts §1.1)."""
+    """f64[T, 4] RPM commands for a named pattern, around the model's hover RPM (§1.1)."""
     hover = ref.AIRFRAMES[model].hover_rpm
     if pattern == "hover":
         rpm = np.full(4, hover)
@@ -66,7 +67,7 @@ def initial_conditions(pattern: str, rng: np.random.Generator) -> dict:
 
 
 def euler_matrix(rpy) -> np.ndarray:
-    """R = Rz(yaw) Ry(pitch) Rx(roll) (facts §0)."""
+    """R = Rz(yaw) Ry(pitch) Rx(roll) (§0.4)."""
     r, p, y = rpy
     rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
     ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
@@ -84,7 +85,7 @@ def compare_with_reference(model: str, pattern: str, ctrl_freq: int, n_physics: 
     rpms = rpm_sequence(model, pattern, n_physics // n_sub, rng)
     state = jd.init_state(config, **ic)
     assert state.pos.dtype == jnp.float64
-    # The start quaternion is built by init_state from rpy; check it against the facts' Euler convention.
+    # The start quaternion is built by init_state from rpy; check it against PyBullet's Euler convention (§0.4).
     np.testing.assert_allclose(ref.rotmat(np.asarray(state.quat[0])), euler_matrix(ic["rpy"][0]), atol=1e-15)
 
     out = jd.rollout(stepper(config), params, state, rpms[:, None, :])
@@ -98,7 +99,7 @@ def compare_with_reference(model: str, pattern: str, ctrl_freq: int, n_physics: 
 
 
 # ------------------------------------------------------------------------------------------------------------------
-# 1. Agreement with the NumPy re-derivation of the paper code's explicit dynamics (facts §3.1, §4)
+# 1. Agreement with the NumPy re-derivation of the paper code's explicit dynamics (§3.1, §4)
 # ------------------------------------------------------------------------------------------------------------------
 
 
@@ -119,7 +120,7 @@ def test_euler_matches_numpy_reference_with_substeps(model, pattern, x64):
 
 @pytest.mark.parametrize("model", MODELS)
 def test_out_of_range_rpm_is_clipped_like_the_reference(model, x64, rng):
-    """RPM outside [0, max_rpm] is clipped (facts §9), before the dynamics and in the stored ``state.rpm``."""
+    """RPM outside [0, max_rpm] is clipped (§9), before the dynamics and in the stored ``state.rpm``."""
     config = jd.SimConfig()
     params = jd.load_params(model)
     frame = ref.AIRFRAMES[model]
@@ -147,7 +148,7 @@ def test_held_action_equals_repeated_action(x64, rng):
 
 
 def test_quaternion_update_tiny_rate_is_a_no_op(x64):
-    """|ω| ≤ 1e-8 leaves q bit-identical (numpy isclose in the original, facts §4.6); slightly above, q moves."""
+    """|ω| ≤ 1e-8 leaves q bit-identical (numpy isclose in the original, §4.6); slightly above, q moves."""
     config = jd.SimConfig()
     params = jd.load_params("cf2x")
     step = stepper(config)
@@ -227,7 +228,7 @@ def test_ground_contact_keeps_upward_velocity(x64):
 @pytest.mark.parametrize("axis", ["roll", "pitch", "yaw"])
 @pytest.mark.parametrize("model", MODELS)
 def test_positive_torque_patterns(model, axis, x64):
-    """Facts §2: raising the + motors and lowering the - motors spins the body positively about that axis."""
+    """§2: raising the + motors and lowering the - motors spins the body positively about that axis."""
     config = jd.SimConfig()
     params = jd.load_params(model)
     pattern = np.array(ref.POSITIVE_TORQUE_PATTERNS[model][axis], dtype=np.float64)
@@ -239,7 +240,7 @@ def test_positive_torque_patterns(model, axis, x64):
     assert np.all(np.abs(np.delete(w, k)) < 0.01 * w[k]), w
 
 
-#: Body-frame motor positions (x, y) of facts §2, and whether the motor spins CCW seen from above (yaw reaction -).
+#: Body-frame motor positions (x, y) of §2, and whether the motor spins CCW seen from above (yaw reaction -).
 MOTOR_XY = {
     "cf2x": [(0.028, -0.028), (-0.028, -0.028), (-0.028, 0.028), (0.028, 0.028)],
     "cf2p": [(0.0397, 0), (0, 0.0397), (-0.0397, 0), (0, -0.0397)],
@@ -285,7 +286,7 @@ def test_quaternion_norm_over_1e5_steps_float32(key):
 
 
 # ------------------------------------------------------------------------------------------------------------------
-# 2b. Aerodynamic effects (facts §6), unit checks on jaxdrones.aerodynamics plus whole-step checks
+# 2b. Aerodynamic effects (§6), unit checks on jaxdrones.aerodynamics plus whole-step checks
 # ------------------------------------------------------------------------------------------------------------------
 
 
@@ -305,7 +306,7 @@ def test_ground_effect_far_and_clip(model, x64):
     np.testing.assert_allclose(far, frame.gnd_eff_coeff * (frame.prop_radius / 40.0) ** 2, rtol=1e-12)
     assert far.max() < 2e-4 if model == "racer" else far.max() < 1e-5
     np.testing.assert_allclose(_gain(params, 1000.0), 1e-4 * far, rtol=1e-10)  # ∝ 1/h², no cut-off
-    # At and below the clip height the gain is exactly 4/15 (facts §1.1).
+    # At and below the clip height the gain is exactly 4/15 (§1.1).
     clip = float(params.gnd_eff_h_clip)
     for z in (clip, 0.5 * clip, 0.0125, -1.0):
         np.testing.assert_allclose(_gain(params, z), 4 / 15, rtol=1e-13)
@@ -322,9 +323,9 @@ def test_ground_effect_on_just_short_of_gimbal_lock(x64):
 
 
 def test_ground_effect_off_in_gimbal_snap_band(x64):
-    """Facts §6.1: the effect is applied only if |roll| < π/2 and |pitch| < π/2 with the rpy *as PyBullet reports
-    it*; within ~0.26° of pitch ±90° (|sin pitch| ≥ 0.99999) PyBullet snaps pitch to exactly ±π/2 (facts §0), so
-    the original applies no ground effect there. jaxdrones gates on R[2,2] = cos(roll) cos(pitch) > 0 instead."""
+    """§6.1: the effect is applied only if |roll| < π/2 and |pitch| < π/2 with the rpy *as PyBullet reports it*;
+    within ~0.26° of pitch ±90° (|sin pitch| ≥ 0.99999) PyBullet snaps pitch to exactly ±π/2 (§0.4), so the original
+    applies no ground effect there. jaxdrones gates on R[2,2] > 0 and |R[2,0]| < 0.99999, the same condition."""
     params = jd.load_params("cf2x")
     rpy = (0.0, np.pi / 2 - 0.002, 0.0)
     quat = np.asarray(jd.init_state(jd.SimConfig(), rpy=[rpy]).quat[0])
@@ -361,7 +362,7 @@ def test_downwash_unit():
     def force(*positions):
         return np.asarray(downwash(params, jnp.array(positions, dtype=jnp.float32)))
 
-    # Facts §6.3 magnitudes, directly below: 0.303 N at Δz = 0.5 m, 0.0758 N at Δz = 1 m; the upper drone feels 0.
+    # §6.3 magnitudes, directly below: 0.303 N at Δz = 0.5 m, 0.0758 N at Δz = 1 m; the upper drone feels 0.
     np.testing.assert_allclose(force([0, 0, 0.5], [0, 0, 1.0]), [-0.303, 0.0], rtol=2e-3)
     np.testing.assert_allclose(force([0, 0, 0.0], [0, 0, 1.0]), [-0.0758, 0.0], rtol=2e-3)
     np.testing.assert_allclose(force([0, 0, 0.0], [0, 0, 1.0])[0], -2267.18 * (radius / 4) ** 2, rtol=1e-6)
@@ -410,19 +411,19 @@ def test_drag_opposes_velocity(rng):
     rpm_prev = rng.uniform(100.0, float(params.max_rpm), (256, 1, 4))
     drag = np.asarray(aerodynamics.drag_force(params, jnp.asarray(vel), jnp.asarray(rpm_prev)), np.float64)
     assert np.all(np.sum(drag * vel, axis=-1) < 0)
-    # Facts §6.2: world-axis coefficients, F = -Ω diag(c_xy, c_xy, c_z) v.
+    # §6.2: world-axis coefficients, F = -Ω diag(c_xy, c_xy, c_z) v.
     omega = rpm_prev.sum(-1, keepdims=True) * 2 * np.pi / 60
     np.testing.assert_allclose(drag, -omega * np.array([9.1785e-7, 9.1785e-7, 10.311e-7]) * vel, rtol=1e-5)
     zero = aerodynamics.drag_force(params, jnp.asarray(vel), jnp.zeros((256, 1, 4)))
     np.testing.assert_array_equal(zero, 0.0)
-    # Magnitude at hover (facts §6.2): about -6.25e-3 N per m/s vertically.
+    # Magnitude at hover (§6.2): about -6.25e-3 N per m/s vertically.
     hover = jnp.full((1, 4), params.hover_rpm)
     fz = float(aerodynamics.drag_force(params, jnp.array([[0.0, 0.0, 1.0]]), hover)[0, 2])
     assert fz == pytest.approx(-6.25e-3, rel=2e-3)
 
 
 def test_drag_uses_previous_substep_rpm(x64):
-    """Facts §6.2: the first substep of a control step uses the previous step's RPM (zero after init_state); the
+    """§6.2: the first substep of a control step uses the previous step's RPM (zero after init_state); the
     other substeps use the new one. Level hover with v = (1, 0, 0): v_x = (1 - dt Ω c_xy / m)^(n_substeps - 1)."""
     params = jd.load_params("cf2x")
     config = jd.SimConfig(sim_freq=240, ctrl_freq=48, drag=True)
@@ -687,7 +688,7 @@ def test_rk4_converges_with_fourth_order_and_agrees_with_fine_euler(x64):
 
 
 def test_quaternion_update_gradient_at_rest_is_first_order(x64):
-    """At |ω| ≤ 1e-8 the update is a no-op (facts §4.6) but its derivative is that of q ⊗ (½dt ω, 1), so attitude
+    """At |ω| ≤ 1e-8 the update is a no-op (§4.6) but its derivative is that of q ⊗ (½dt ω, 1), so attitude
     gradients flow through a drone at rest; it matches the derivative just above the threshold."""
     from jaxdrones.rotations import quat_integrate
 

@@ -1,4 +1,4 @@
-"""The shipped airframes: URDF constants (facts §1), derived constants (§1.1), mixer lever arms (§3.1), dtypes."""
+"""The shipped airframes: URDF constants (docs/physics.md §1), derived constants (§1.1), lever arms (§3.1), dtypes."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def _printed_tolerance(value: float) -> float:
 
 @pytest.mark.parametrize("model", MODELS)
 def test_derived_constants_match_facts_table(model, x64):
-    """§1.1 table, to ~1e-6 relative (or half a unit of the last printed digit where the table prints fewer)."""
+    """docs/physics.md §1.1 table, to ~1e-6 relative (or half a unit of the last printed digit where it has fewer)."""
     params = jd.load_params(model)
     for name, expected in ref.DERIVED_TABLE[model].items():
         actual = float(getattr(params, name))
@@ -39,7 +39,7 @@ def test_derived_constants_match_facts_table(model, x64):
 
 @pytest.mark.parametrize("model", MODELS)
 def test_derived_constants_match_formulas(model, x64):
-    """The §1.1 formulas evaluated on the §1 table agree to float64 round-off."""
+    """The docs/physics.md §1.1 formulas evaluated on the §1 table agree to float64 round-off."""
     params = jd.load_params(model)
     frame = ref.AIRFRAMES[model]
     for name in DERIVED:
@@ -73,7 +73,7 @@ def test_urdf_constants_match_facts_table(model, x64):
     assert float(params.gravity) == 9.8
 
 
-#: §2 motor positions (body frame, m) and §2 spin: +1 = CCW seen from above (yaw reaction -km rpm²).
+#: docs/physics.md §2 motor positions (body frame, m) and spins: +1 = CCW seen from above (yaw reaction -km rpm²).
 PROP_POS = {
     "cf2x": [(0.028, -0.028), (-0.028, -0.028), (-0.028, 0.028), (0.028, 0.028)],
     "cf2p": [(0.0397, 0), (0, 0.0397), (-0.0397, 0), (0, -0.0397)],
@@ -92,7 +92,7 @@ def test_motor_layout_matches_facts(model, x64):
 
 @pytest.mark.parametrize("model", MODELS)
 def test_torque_arm_matches_explicit_mixer(model, x64):
-    """§3.1: (τx, τy) = torque_arm @ (f0..f3) with the explicit-dynamics arms L/√2 (x frame) or L (+ frame)."""
+    """docs/physics.md §3.1: (τx, τy) = torque_arm @ (f0..f3) with the explicit arms L/√2 (x frame) or L (+ frame)."""
     params = jd.load_params(model)
     arm = ref.AIRFRAMES[model].arm
     a = arm / math.sqrt(2)
@@ -106,7 +106,7 @@ def test_torque_arm_matches_explicit_mixer(model, x64):
     rpm = np.array([13000.0, 14000.0, 15000.0, 16000.0])
     _, torque = ref.forces_torques(ref.AIRFRAMES[model], rpm)
     np.testing.assert_allclose(np.asarray(params.torque_arm) @ (params.kf * rpm**2), torque[:2], rtol=1e-14)
-    # The maximum xy torque is the arm times the thrust of two motors at max rpm (§1.1).
+    # The maximum xy torque is the arm times the thrust of two motors at max rpm (docs/physics.md §1.1).
     np.testing.assert_allclose(np.abs(np.asarray(params.torque_arm)).sum(1) / 2 * params.kf * params.max_rpm**2,
                                params.max_xy_torque, rtol=1e-14)
 
@@ -145,7 +145,7 @@ def test_params_are_a_stackable_pytree():
 
 
 def test_default_start_pose(x64):
-    """Facts §1.1: drone i starts at (4iL, 4iL, collision_height/2 + 0.1) with L = 0.0397 m, level and at rest."""
+    """docs/physics.md §1.1: drone i starts at (4iL, 4iL, collision_height/2 + 0.1), L = 0.0397 m, level, at rest."""
     state = jd.init_state(jd.SimConfig(n_drones=3))
     i = np.arange(3)[:, None]
     np.testing.assert_allclose(state.pos, np.concatenate([4 * i * 0.0397, 4 * i * 0.0397, 0.1125 + 0 * i], 1),

@@ -118,7 +118,7 @@ def test_circle_like_call_matches_reference(rng):
 
 
 def test_hover_at_target_gives_hover_pwm():
-    """Level, at rest, on target: thrust PWM 38726.7 (facts §12) and four equal hover-ish RPMs."""
+    """Level, at rest, on target: thrust PWM 38726.7 (docs/physics.md §12.2) and four equal hover-ish RPMs."""
     with jax.enable_x64(True):
         params, gains = load_params("cf2x"), pid.PIDGains.dsl()
         state = DroneState(pos=jnp.array([[0.0, 0, 1]]), quat=jnp.array([[0.0, 0, 0, 1]]), vel=jnp.zeros((1, 3)),
@@ -135,7 +135,7 @@ def test_mixer_is_the_original(model):
 
 
 def test_mixer_racer_follows_its_positive_torque_patterns():
-    """Racer (facts §2): roll+ raises (+,+,−,−), pitch+ (−,+,+,−), yaw+ (+,−,+,−)."""
+    """Racer (docs/physics.md §2): roll+ raises (+,+,−,−), pitch+ (−,+,+,−), yaw+ (+,−,+,−)."""
     signs = np.sign(np.asarray(pid.mixer_matrix(load_params("racer"))))
     np.testing.assert_array_equal(signs.T, [[1, 1, -1, -1], [-1, 1, 1, -1], [1, -1, 1, -1]])
 

@@ -221,7 +221,7 @@ def test_damping_is_off_unless_asked():
         with jd.make_step(config, backend="pybullet", damping=damping) as step:
             speeds[damping] = fly(step, params, state, hover, 240).vel[-1, 0, 0]
     assert abs(speeds[False] - 1.0) < 1e-5
-    assert speeds[True] < 0.97  # facts §5: a = -(0.04 + 0.04|v|) v
+    assert speeds[True] < 0.97  # docs/physics.md §5.2: a = -(0.04 + 0.04|v|) v
 
 
 def test_params_changes_reach_the_bodies(x64):

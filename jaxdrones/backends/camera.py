@@ -3,7 +3,7 @@
 Onboard camera (`camera_images`, ``step.camera_images(...)``)
 -------------------------------------------------------------
 
-The original (gym-pybullet-drones, facts sheet §8 "Camera", ``main:BA:565-617``) puts the eye at p + (0, 0, L)
+The original (gym-pybullet-drones main, envs/BaseAviary.py:565-617; docs/physics.md §8.5) puts the eye at p + (0, 0, L)
 (L = the arm, a world-frame offset above the drone), looks at p + R·(1000, 0, 0), keeps the world +z as the up
 vector, and renders a 64 × 48 image with a 60° vertical field of view, aspect 1.0, near plane L and far plane 1000.
 Here the camera is rigidly mounted on the body:

@@ -5,7 +5,7 @@ rendering. Each simulated world is its own Bullet world (a ``DIRECT`` client, he
 state into the drone bodies, holds the RPM command over ``sim_freq // ctrl_freq`` Bullet steps, and reads the state
 back; nothing is kept between calls that the state does not carry (obstacles are fixed).
 
-Forces, as in the paper's PyBullet update (eq. physics; facts §3.2, §5, §6), re-applied before every Bullet step:
+Forces, as in the paper's PyBullet update (docs/physics.md §3.2, §5, §6), re-applied before every Bullet step:
 
 - each motor's force kf·rpm² (plus its ground-effect thrust) along body +z at its lever-arm point, so Bullet derives
   the roll and pitch torques from the geometry; the yaw reaction torque -Σ spin_i km rpm_i² about body z;
@@ -13,13 +13,13 @@ Forces, as in the paper's PyBullet update (eq. physics; facts §3.2, §5, §6), 
   functions as the JAX core (`jaxdrones.aerodynamics`);
 - gravity 9.8 m/s² (params), the gyroscopic term by Bullet's rigid-body solver.
 
-Differences from the original's PyBullet modes, each documented so both backends share one model:
+Differences from the original's PyBullet modes (docs/physics.md §14.3), so that both backends share one model:
 
 - forces are applied in the *current* body frame (on the base, which Bullet keeps up to date), not through the
-  propeller links, whose frames lag one step in the original (facts §5);
+  propeller links, whose frames lag one step in the original (docs/physics.md §5.4);
 - the lever-arm points are the explicit model's (``DroneParams.torque_arm``, from the URDF's ``arm`` and ``frame``):
-  for the cf2x they sit at arm/√2 = 0.02807 m where the URDF's propeller links are at 0.028 m (facts §3.1);
-- Bullet's default velocity damping (facts §5) is off unless ``damping=True``;
+  for the cf2x they sit at arm/√2 = 0.02807 m where the URDF's propeller links are at 0.028 m (docs/physics.md §3.1);
+- Bullet's default velocity damping (docs/physics.md §5.2) is off unless ``damping=True``;
 - mass, inertia and collision shape are taken from the same `DroneParams` as the JAX core (URDF inertia, as the
   original's main branch does), and the collision cylinder covers the propellers.
 """
@@ -246,7 +246,7 @@ class PyBulletStep:
         client, bodies = world.client, world.drones
         kf, km, spin, max_rpm = (host[k][w] for k in ("kf", "km", "prop_spin", "max_rpm"))
         rpm = [[min(max(r, 0.0), max_rpm[d]) for r in rpm_d] for d, rpm_d in enumerate(rpm)]
-        # The motor model (facts §3): f_i = kf rpm_i², yaw torque -Σ spin_i km rpm_i², as `dynamics.motors_c`.
+        # The motor model (docs/physics.md §3): f_i = kf rpm_i², yaw torque -Σ spin_i km rpm_i², as `dynamics.motors_c`.
         thrust = [[kf[d] * r * r for r in rpm_d] for d, rpm_d in enumerate(rpm)]
         yaw = [-km[d] * sum(s * r * r for s, r in zip(spin[d], rpm_d)) for d, rpm_d in enumerate(rpm)]
         for d, body in enumerate(bodies):
@@ -366,7 +366,7 @@ class PyBulletStep:
         collision cylinder (``params.collision_radius`` + `camera.EYE_MARGIN` = 5 mm), looking along body +x with
         body +z up; vertical field of view ``fov``, aspect W/H (square pixels, focal length
         f = (H/2)/tan(fov/2) pixels). The original instead puts the eye L above the drone with world +z up and
-        aspect 1.0 (facts §8): a camera fixed to the frame that does not see its own drone is what a real
+        aspect 1.0 (docs/physics.md §8.5): a camera fixed to the frame that does not see its own drone is what a real
         onboard camera is. Renderer: TinyRenderer for ``renderer="tiny"``, OpenGL through EGL for ``"egl"``.
 
         Inputs follow the step's conventions: NumPy arrays give NumPy images, JAX arrays JAX images, and inside

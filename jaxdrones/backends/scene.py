@@ -176,8 +176,8 @@ def create_drone(client: int, geometry: dict, damping: bool) -> int:
 
     The collision shape is the params' cylinder (centred on the base origin, covering the propellers); the visual
     shape is a plate with four propeller disks. The base's centre of mass is its origin, as in the URDFs. Bullet's
-    velocity damping (0.04 linear and angular, facts §5) is removed unless ``damping``; sleeping is disabled, so a
-    drone resting on the ground responds to thrust at once.
+    velocity damping (0.04 linear and angular, docs/physics.md §5.2) is removed unless ``damping``; sleeping is
+    disabled, so a drone resting on the ground responds to thrust at once.
     """
     col = pybullet.createCollisionShape(pybullet.GEOM_CYLINDER, radius=geometry["collision_radius"],
                                         height=geometry["collision_height"], physicsClientId=client)

@@ -1,13 +1,13 @@
 """The paper's DSLPIDControl in pure JAX, with its state carried explicitly.
 
-A cascaded PID (gym-pybullet-drones ``control/DSLPIDControl.py`` on ``main``; facts sheet §12): a position loop
+A cascaded PID (gym-pybullet-drones ``control/DSLPIDControl.py`` on ``main``; docs/physics.md §12): a position loop
 computes a desired force, hence a collective thrust in PWM units and a desired attitude; an attitude loop turns
 the rotation error into roll/pitch/yaw "torques" in PWM units; a mixer and the Crazyflie's PWM→RPM map give the
 four motor speeds. Everything here is a pure function of arrays, so it runs under ``jit``, ``vmap`` and ``grad``
 and broadcasts over any leading axes ``[..., D]`` (worlds, drones). The gains are data (`PIDGains`), so they can
 be tuned, batched per world, or differentiated.
 
-Reproduced exactly, quirks included (facts §12, §14.9):
+Reproduced exactly, quirks included (docs/physics.md §12.2-12.4, §14.9):
 
 * only the target *yaw* of ``target_rpy`` is used; the target roll and pitch are ignored;
 * the measured angular velocity is never used: the rate error is the finite difference of PyBullet Euler angles
@@ -21,7 +21,7 @@ The mixer is derived from the airframe (`mixer_matrix`), so it equals the origin
 motor order) and ``cf2p``. The original accepts only those two; here the ``racer`` (or any URDF) is accepted as
 well, but the gains are tuned for the 27 g Crazyflie and are far too weak for a heavier airframe (the 0.83 kg
 racer drifts tens of centimetres off the circle example's path). The original's RL/VEL environments always build
-the cf2x controller, even for a cf2p airframe (facts §10.1); pass cf2x params here to reproduce that.
+the cf2x controller, even for a cf2p airframe (docs/physics.md §10.1); pass cf2x params here to reproduce that.
 """
 
 from __future__ import annotations
@@ -38,18 +38,18 @@ from jaxdrones.params import DroneParams
 from jaxdrones.rotations import quat_to_euler, quat_to_rotmat
 from jaxdrones.state import DroneState
 
-#: PWM→RPM map of the Crazyflie: rpm = PWM2RPM_SCALE·pwm + PWM2RPM_CONST (facts §12).
+#: PWM→RPM map of the Crazyflie: rpm = PWM2RPM_SCALE·pwm + PWM2RPM_CONST (docs/physics.md §12.1).
 PWM2RPM_SCALE = 0.2685
 #: RPM, see `PWM2RPM_SCALE`.
 PWM2RPM_CONST = 4070.3
-#: Motor PWM limits (facts §12); the output RPM therefore lies in [9440.3, 21666.45].
+#: Motor PWM limits (docs/physics.md §12.1); the output RPM therefore lies in [9440.3, 21666.45].
 MIN_PWM = 20000.0
 MAX_PWM = 65535.0
-#: Limit of the roll/pitch/yaw torques, PWM units (facts §12, attitude loop step 5).
+#: Limit of the roll/pitch/yaw torques, PWM units (docs/physics.md §12.3, step 5).
 MAX_TORQUE_PWM = 3200.0
-#: Per-axis limits of the position-error integral, m·s: ±2 in x/y, ±0.15 in z (facts §12, position loop step 2).
+#: Per-axis limits of the position-error integral, m·s: ±2 in x/y, ±0.15 in z (docs/physics.md §12.2, step 2).
 POS_INTEGRAL_LIMIT = (2.0, 2.0, 0.15)
-#: Per-axis limits of the attitude-error integral, s: ±1 roll/pitch, ±1500 yaw (facts §12, attitude loop step 4).
+#: Per-axis limits of the attitude-error integral, s: ±1 roll/pitch, ±1500 yaw (docs/physics.md §12.3, step 4).
 ATT_INTEGRAL_LIMIT = (1.0, 1.0, 1500.0)
 #: |sin(pitch)| above which the intrinsic 'XYZ' conversion treats the attitude as gimbal-locked (third angle 0,
 #: as scipy does).
@@ -81,7 +81,7 @@ class PIDGains:
 
     @classmethod
     def dsl(cls, dtype=None) -> "PIDGains":
-        """The DSL gains of the paper's controller (facts §12 gain table), in JAX's default float or ``dtype``."""
+        """The DSL gains of the paper's controller (docs/physics.md §12.1), in JAX's default float or ``dtype``."""
         dtype = jnp.result_type(float) if dtype is None else dtype
         values = dict(
             p_pos=(0.4, 0.4, 1.25), i_pos=(0.05, 0.05, 0.05), d_pos=(0.2, 0.2, 0.5),
@@ -154,7 +154,7 @@ def mixer_matrix(params: DroneParams) -> jax.Array:
 
     Roll/pitch columns: sign(torque_arm)ᵀ, scaled so each column's absolute values sum to 2 (½ per motor for an x
     frame, 1 for the two active motors of a + frame); yaw column: −prop_spin. This gives exactly the original's
-    matrices (facts §12): cf2x (main) [[−½,−½,−1],[−½,½,1],[½,½,−1],[½,−½,1]] and cf2p
+    matrices (docs/physics.md §12.1): cf2x (main) [[−½,−½,−1],[−½,½,1],[½,½,−1],[½,−½,1]] and cf2p
     [[0,−1,−1],[1,0,1],[0,1,−1],[−1,0,1]]; for the racer, its mirrored spins and motor order.
 
     Args:
@@ -235,7 +235,9 @@ def pid_control(params: DroneParams, gains: PIDGains, pid_state: PIDState, state
 def pid_compute(params: DroneParams, gains: PIDGains, pid_state: PIDState, state: DroneState, target_pos, *,
                 target_vel=None, target_rpy=None, target_rpy_rates=None,
                 ctrl_dt) -> tuple[jax.Array, PIDState, PIDInfo]:
-    """DSLPIDControl ``computeControl`` (facts §12; ``main:PID:82-145``, ``187-208``, ``240-259``), batched.
+    """DSLPIDControl ``computeControl`` (docs/physics.md §12), batched.
+
+    Source: gym-pybullet-drones main, control/DSLPIDControl.py:82-145, 187-208, 240-259.
 
     Position loop: e_p = p* − p, e_v = v* − v; I_p ← clip(I_p + e_p·dt); F = P∘e_p + I∘I_p + D∘e_v + (0, 0, m g);
     thrust_pwm = (√(max(0, F·R e_z)/(4 kf)) − 4070.3)/0.2685; desired attitude R_d = [x_d y_d z_d] with
@@ -296,7 +298,7 @@ def _pid_compute(params, gains, pid_state, state, target_pos, target_vel, target
 
 
 def _position_loop(params, gains, integral_pos_e, rotmat, state, target_pos, target_vel, target_rpy, dt):
-    """``_dslPIDPositionControl`` (facts §12 position loop, ``main:PID:187-208``)."""
+    """``_dslPIDPositionControl`` (docs/physics.md §12.2; main, control/DSLPIDControl.py:187-208)."""
     pos_err = target_pos - state.pos
     vel_err = target_vel - state.vel
     limit = jnp.asarray(POS_INTEGRAL_LIMIT, dtype=pos_err.dtype)
@@ -320,7 +322,7 @@ def _position_loop(params, gains, integral_pos_e, rotmat, state, target_pos, tar
 
 
 def _attitude_loop(params, gains, pid_state, rotmat, quat, thrust_pwm, target_euler, target_rpy_rates, dt):
-    """``_dslPIDAttitudeControl`` (facts §12 attitude loop, ``main:PID:240-259``)."""
+    """``_dslPIDAttitudeControl`` (docs/physics.md §12.3; main, control/DSLPIDControl.py:240-259)."""
     rpy = quat_to_euler(quat)
     target_rotmat = rotmat_from_euler_xyz(target_euler)
     err = (jnp.swapaxes(target_rotmat, -1, -2) @ rotmat - jnp.swapaxes(rotmat, -1, -2) @ target_rotmat)
@@ -336,16 +338,16 @@ def _attitude_loop(params, gains, pid_state, rotmat, quat, thrust_pwm, target_eu
 
 
 def speed_limit(params: DroneParams) -> jax.Array:
-    """The VEL action's speed limit, m/s: 3 % of the airframe's maximum speed (``main:RL:93-95``, facts §10.1).
+    """The VEL action's speed limit, m/s: 3 % of the airframe's maximum speed (docs/physics.md §10.1).
 
-    SPEED_LIMIT = 0.03 · max_speed_kmh · 1000/3600, i.e. 0.25 m/s for cf2x/cf2p. Returns f[...] like
-    ``params.max_speed_kmh``.
+    SPEED_LIMIT = 0.03 · max_speed_kmh · 1000/3600 (gym-pybullet-drones main, envs/BaseRLAviary.py:93-95), i.e.
+    0.25 m/s for cf2x/cf2p. Returns f[...] like ``params.max_speed_kmh``.
     """
     return 0.03 * params.max_speed_kmh * (1000.0 / 3600.0)
 
 
 def velocity_targets(state: DroneState, action, speed_limit) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Map a desired-velocity action (vx, vy, vz, s) to PID targets (the VEL action, facts §10.1-10.2).
+    """Map a desired-velocity action (vx, vy, vz, s) to PID targets (the VEL action, docs/physics.md §10.1-10.2).
 
     target position = current position; target velocity = speed_limit · |s| · (vx, vy, vz)/‖(vx, vy, vz)‖
     (0 when the direction is 0); target rpy = (0, 0, current PyBullet yaw). Target rates are 0.
