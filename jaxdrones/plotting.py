@@ -125,13 +125,17 @@ def _check(flight: Mapping) -> dict:
     return data
 
 
-def plot_learning_curve(history: list[Mapping], path: str | os.PathLike, *, title: str | None = None) -> str:
-    """Plot evaluation return and mean distance to the target against env steps.
+def plot_learning_curve(history: list[Mapping], path: str | os.PathLike, *, title: str | None = None,
+                        metric: str = "mean_distance_m", metric_label: str = "mean distance to target over episode (m)"
+                        ) -> str:
+    """Plot evaluation return and the task's success metric against env steps.
 
     Args:
-        history: rows with ``env_steps``, ``episode_reward`` and ``mean_distance_m`` (as `ProgressLog` records).
+        history: rows with ``env_steps``, ``episode_reward`` and ``metric`` (as `ProgressLog` records).
         path: output image file.
         title: figure title.
+        metric: the row key of the metric to plot on the right (log scale).
+        metric_label: its axis label.
 
     Returns:
         ``path`` as a string.
@@ -142,11 +146,49 @@ def plot_learning_curve(history: list[Mapping], path: str | os.PathLike, *, titl
     fig, (ax_r, ax_d) = plt.subplots(1, 2, figsize=(10, 3.8))
     ax_r.plot(steps, [row["episode_reward"] for row in history], marker="o")
     ax_r.set_ylabel("evaluation episode return")
-    ax_d.plot(steps, [row["mean_distance_m"] for row in history], marker="o", color="tab:red")
-    ax_d.set_ylabel("mean distance to target over episode (m)")
+    ax_d.plot(steps, [row[metric] for row in history], marker="o", color="tab:red")
+    ax_d.set_ylabel(metric_label)
     ax_d.set_yscale("log")
     for ax in (ax_r, ax_d):
         ax.set_xlabel("env steps")
+        ax.grid(alpha=0.3)
+    return _save(plt, fig, path, title)
+
+
+def plot_task_flight(times, pos, ref_pos, vel, rpm, path: str | os.PathLike, *, title: str | None = None) -> str:
+    """An evaluation flight of a task: position against the task's reference, velocity and motor speeds.
+
+    Args:
+        times: f[T] s.
+        pos: f[T, D, 3] m, world frame.
+        ref_pos: f[T, D, 3] m, the task's reference point (drawn dashed).
+        vel: f[T, D, 3] m/s, world frame.
+        rpm: f[T, D, 4] RPM.
+        path: output image file.
+        title: figure title.
+
+    Returns:
+        ``path`` as a string.
+    """
+    plt = _pyplot()
+
+    times, pos, ref_pos, vel, rpm = (np.asarray(x) for x in (times, pos, ref_pos, vel, rpm))
+    fig, axes = plt.subplots(5, 1, figsize=(8, 10), sharex=True)
+    for d in range(pos.shape[1]):
+        for k, name in enumerate("xyz"):
+            line = axes[k].plot(times, pos[:, d, k], label=f"drone {d}")[0]
+            axes[k].plot(times, ref_pos[:, d, k], ls="--", lw=0.8, color=line.get_color())
+            axes[k].set_ylabel(f"{name} (m)")
+        axes[3].plot(times, np.linalg.norm(vel[:, d], axis=-1), label=f"drone {d}")
+        for m in range(rpm.shape[-1]):
+            axes[4].plot(times, rpm[:, d, m], lw=0.8, label=f"drone {d} motor {m}" if pos.shape[1] > 1 else
+                         f"motor {m}")
+    axes[0].legend(fontsize=7, ncol=4, title="dashed: reference", title_fontsize=7)
+    axes[3].set_ylabel("speed (m/s)")
+    axes[4].set_ylabel("motor speed (RPM)")
+    axes[4].set_xlabel("time (s)")
+    axes[4].legend(fontsize=6, ncol=4)
+    for ax in axes:
         ax.grid(alpha=0.3)
     return _save(plt, fig, path, title)
 
@@ -185,3 +227,187 @@ def plot_hover_flight(times, pos, vel, rpm, target_z: float, path: str | os.Path
     for ax in axes:
         ax.grid(alpha=0.3)
     return _save(plt, fig, path, title)
+
+
+def plot_velocity_tracking(times, vel, vel_cmd, path: str | os.PathLike, *, settled=None, title: str | None = None,
+                           note: str | None = None) -> str:
+    """Commanded vs reached velocity: one row per drone, one column per world axis (vx, vy, vz).
+
+    Args:
+        times: f[T] s.
+        vel: f[T, N, 3] m/s, world frame, the velocity reached (solid line).
+        vel_cmd: f[T, N, 3] m/s, world frame, the velocity commanded (dashed black line).
+        path: output image file.
+        settled: optional bool[T, N]; the samples where it is False (settling after a command change) are shaded
+            grey.
+        title: figure title.
+        note: text printed under the title.
+
+    Returns:
+        ``path`` as a string.
+    """
+    plt = _pyplot()
+
+    times, vel, vel_cmd = (np.asarray(x) for x in (times, vel, vel_cmd))
+    n_drones = vel.shape[1]
+    colors = plt.get_cmap("tab10")(np.arange(n_drones) % 10)
+    fig, axes = plt.subplots(n_drones, 3, figsize=(12, 2.1 * n_drones + 1.2), sharex=True, squeeze=False)
+    for d in range(n_drones):
+        for axis, label in enumerate(("vx", "vy", "vz")):
+            ax = axes[d, axis]
+            if settled is not None:
+                ax.fill_between(times, 0, 1, where=~np.asarray(settled)[:, d], color="0.85", step="pre",
+                                transform=ax.get_xaxis_transform(), lw=0)
+            ax.plot(times, vel[:, d, axis], color=colors[d], lw=1.2, label="reached")
+            ax.plot(times, vel_cmd[:, d, axis], color="k", lw=0.9, ls="--", label="commanded")
+            ax.set_ylabel(f"drone {d} {label} (m/s)")
+            ax.grid(alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)")
+    axes[0, 0].legend(fontsize=7, loc="best")
+    return _save_with_note(plt, fig, path, title, note)
+
+
+def plot_takeoff_comparison(times, runs: Mapping[str, Mapping], target_z, path: str | os.PathLike, *,
+                            title: str | None = None, note: str | None = None) -> str:
+    """Take-off of one drone in several runs: altitude, vertical velocity and the four motor speeds against time.
+
+    Args:
+        times: f[T] s.
+        runs: label → mapping with ``pos`` f[T, 3] m and ``vel`` f[T, 3] m/s (world frame) and ``rpm`` f[T, 4] RPM.
+            The first run is drawn solid, the others dashed, dotted, ...
+        target_z: f[T] m, the altitude commanded (thin black line).
+        path: output image file.
+        title: figure title.
+        note: text printed under the title.
+
+    Returns:
+        ``path`` as a string.
+    """
+    plt = _pyplot()
+
+    times, target_z = np.asarray(times), np.asarray(target_z)
+    styles = ("-", "--", ":", "-.")
+    fig, axes = plt.subplots(3, 1, figsize=(8, 8.5), sharex=True)
+    axes[0].plot(times, target_z, color="k", lw=0.8, label="target")
+    for j, (label, run) in enumerate(runs.items()):
+        ls = styles[j % len(styles)]
+        pos, vel, rpm = (np.asarray(run[k]) for k in ("pos", "vel", "rpm"))
+        axes[0].plot(times, pos[:, 2], color=f"C{j}", ls=ls, label=label)
+        axes[1].plot(times, vel[:, 2], color=f"C{j}", ls=ls, label=label)
+        for k in range(rpm.shape[-1]):
+            axes[2].plot(times, rpm[:, k], color=f"C{k + 2}", ls=ls, lw=1.0,
+                         label=f"motor {k} ({label})" if j < 2 else None)
+    axes[0].set_ylabel("z (m)")
+    axes[1].set_ylabel("vz (m/s)")
+    axes[2].set_ylabel("motor speed (RPM)")
+    axes[2].set_xlabel("time (s)")
+    axes[0].legend(fontsize=8)
+    axes[1].legend(fontsize=8)
+    axes[2].legend(fontsize=7, ncol=2)
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    return _save_with_note(plt, fig, path, title, note)
+
+
+def plot_altitude_comparison(times, runs: Mapping[str, np.ndarray], target_z, path: str | os.PathLike, *,
+                             drone_labels=None, shade=None, title: str | None = None, note: str | None = None) -> str:
+    """Altitude of each drone in several runs (one panel per drone), e.g. with and without downwash.
+
+    Args:
+        times: f[T] s.
+        runs: label → altitude f[T, N] m. The first run is drawn solid, the others dashed, dotted, ...
+        target_z: f[N] or f[T, N] m, the commanded altitude (thin black line).
+        path: output image file.
+        drone_labels: N panel labels; default "drone i".
+        shade: optional bool[T], times shaded grey in every panel (e.g. when the drones pass over each other).
+        title: figure title.
+        note: text printed under the title.
+
+    Returns:
+        ``path`` as a string.
+    """
+    plt = _pyplot()
+
+    times = np.asarray(times)
+    first = np.asarray(next(iter(runs.values())))
+    n_drones = first.shape[1]
+    target_z = np.broadcast_to(np.asarray(target_z), first.shape)
+    labels = drone_labels or [f"drone {d}" for d in range(n_drones)]
+    styles = ("-", "--", ":", "-.")
+    fig, axes = plt.subplots(n_drones, 1, figsize=(10, 2.6 * n_drones + 1.0), sharex=True, squeeze=False)
+    for d, ax in enumerate(axes[:, 0]):
+        if shade is not None:
+            ax.fill_between(times, 0, 1, where=np.asarray(shade), color="0.88", step="pre",
+                            transform=ax.get_xaxis_transform(), lw=0)
+        ax.plot(times, target_z[:, d], color="k", lw=0.8, label="target")
+        for j, (label, z) in enumerate(runs.items()):
+            ax.plot(times, np.asarray(z)[:, d], color=f"C{j}", ls=styles[j % len(styles)], lw=1.1, label=label)
+        ax.set_ylabel(f"{labels[d]}: z (m)")
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel("time (s)")
+    axes[0, 0].legend(fontsize=8, loc="best")
+    return _save_with_note(plt, fig, path, title, note)
+
+
+def _save_with_note(plt, fig, path: str | os.PathLike, title: str | None, note: str | None) -> str:
+    """Save like `_save`, with ``note`` printed under the title."""
+    if note:
+        fig.text(0.5, 0.955, note, ha="center", va="top", fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout(rect=(0, 0, 1, 0.93 if note else 0.97))
+    path = os.fspath(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def render_state(pos, quat, *, arm: float = 0.0397, targets=None, width: int = 480, height: int = 480,
+                 title: str | None = None) -> np.ndarray:
+    """A 3-D view of drones drawn with matplotlib, as an RGB image (what ``render()`` shows on the JAX backend).
+
+    Args:
+        pos: f[D, 3] m, world frame.
+        quat: f[D, 4] (x, y, z, w), body→world; each drone is drawn as its two arms (body x ± y diagonals).
+        arm: arm length to draw, m.
+        targets: optional f[K, 3] m, drawn as crosses.
+        width, height: image size, pixels.
+        title: optional title.
+
+    Returns:
+        u8[height, width, 3].
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from jaxdrones.rotations import quat_to_rotmat
+
+    pos = np.asarray(pos, np.float64).reshape(-1, 3)
+    rot = np.asarray(quat_to_rotmat(np.asarray(quat, np.float64).reshape(-1, 4)))
+    fig = Figure(figsize=(width / 100, height / 100), dpi=100)
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.add_subplot(projection="3d")
+    scale = 3 * arm
+    for p, r in zip(pos, rot):
+        for diag in (np.array([1.0, 1.0, 0.0]), np.array([1.0, -1.0, 0.0])):
+            d = r @ diag * scale / np.sqrt(2)
+            ax.plot(*np.stack([p - d, p + d]).T, color="tab:blue", lw=2)
+        up = r[:, 2] * scale
+        ax.plot(*np.stack([p, p + up]).T, color="tab:red", lw=1)
+    if targets is not None:
+        t = np.asarray(targets, np.float64).reshape(-1, 3)
+        ax.scatter(t[:, 0], t[:, 1], t[:, 2], marker="x", color="tab:green")
+    finite = pos[np.all(np.isfinite(pos), axis=1)]
+    centre = finite.mean(axis=0) if len(finite) else np.zeros(3)
+    span = max(1.0, float(np.ptp(finite, axis=0).max()) if len(finite) else 1.0)
+    ax.set_xlim(centre[0] - span, centre[0] + span)
+    ax.set_ylim(centre[1] - span, centre[1] + span)
+    ax.set_zlim(0.0, max(2.0, centre[2] + span))
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_zlabel("z (m)")
+    if title:
+        ax.set_title(title)
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()

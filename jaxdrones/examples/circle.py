@@ -11,7 +11,8 @@ model, optionally with drag, ground effect and downwash):
 * 240 Hz physics, 48 Hz control, 12 s; the first control step applies 0 RPM, then each step applies the PID
   command computed from the state reached by the previous one.
 
-The whole flight is one jitted ``lax.scan``, on either physics backend: the JAX core (default) or PyBullet
+The whole flight is one jitted ``lax.scan`` (`jaxdrones.examples.closed_loop`, shared with the other examples of
+``jaxdrones fly --example``), on either physics backend: the JAX core (default) or PyBullet
 (``backend="pybullet"``, optionally among the obstacles of `jaxdrones.backends.scene.PAPER_OBSTACLES`, placed
 around the circle), where the same scan calls Bullet through a host callback. With a video (PyBullet only) or the
 PyBullet GUI the scan runs in chunks of a few control steps, and a third-person frame is rendered after each
@@ -36,20 +37,32 @@ ground, an obstacle or another drone (the JAX backend models the ground only).
 from __future__ import annotations
 
 import argparse
-import functools
 import dataclasses
 import json
 import math
 import os
+import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrones.control.pid import PIDGains, pid_control, pid_init
+from jaxdrones.control.pid import PIDGains
+from jaxdrones.examples import downwash as downwash_example
+from jaxdrones.examples import ground_effect as ground_effect_example
+from jaxdrones.examples import velocity as velocity_example
+from jaxdrones.examples.closed_loop import (
+    BACKENDS,
+    check_backend,
+    check_steps,
+    closed_loop,
+    flight_arrays,
+    initial_carry,
+    run_closed_loop,
+    track_position,
+)
 from jaxdrones.params import MODELS, load_params
-from jaxdrones.rotations import quat_to_euler
 from jaxdrones.sim import SimConfig, make_step
 from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, init_state
 from jaxdrones.video import VideoWriter, video_format
@@ -65,8 +78,6 @@ LAP_S = 10
 DEFAULT_FEEDFORWARD = True
 #: Default length of the excluded initial transient, s.
 DEFAULT_SETTLE_S = 1.0
-#: Physics backends of the example.
-BACKENDS = ("jax", "pybullet")
 #: Defaults of the third-person video (PyBullet backend): frame size (width, height) in pixels and frame rate, Hz.
 DEFAULT_VIDEO_SIZE = (640, 480)
 DEFAULT_VIDEO_FPS = 24.0
@@ -112,31 +123,6 @@ def circle_targets(setup: dict, n_steps: int, ctrl_freq: int = 48) -> tuple[np.n
     return np.concatenate([xy, z[..., None]], -1), vel
 
 
-def _closed_loop(step, config: SimConfig):
-    """The jitted closed loop over a run of control steps: each step applies the command in the carry, then the
-    PID computes the next one from the state reached (a ``lax.scan``; call it on chunks to pause in between)."""
-
-    @jax.jit
-    def simulate(params, gains, carry, target_pos, target_vel, target_rpy, feedforward):
-        def body(carry, targets):
-            sim_state, pid_state, action = carry
-            sim_state = step(params, sim_state, action)
-            pos_k, vel_k = targets
-            rpm, pid_state = pid_control(params, gains, pid_state, sim_state, pos_k, target_vel=feedforward * vel_k,
-                                         target_rpy=target_rpy, ctrl_dt=config.ctrl_dt)
-            return (sim_state, pid_state, rpm), (sim_state, rpm)
-
-        return jax.lax.scan(body, carry, (target_pos, target_vel))
-
-    return simulate
-
-
-@functools.lru_cache(maxsize=8)
-def _simulator(config: SimConfig):
-    """The closed loop on the JAX backend for a config (compiled once per config)."""
-    return _closed_loop(make_step(config), config)
-
-
 def check_flight(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x", *,
                  settle_s: float = DEFAULT_SETTLE_S, sim_freq: int = 240, ctrl_freq: int = 48, backend: str = "jax",
                  obstacles=None, gui: bool = False, video=None, video_size=DEFAULT_VIDEO_SIZE,
@@ -156,13 +142,10 @@ def check_flight(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf
         raise ValueError(f"num_drones must be a positive integer, got {num_drones!r}")
     config = SimConfig(n_drones=int(num_drones), sim_freq=sim_freq, ctrl_freq=ctrl_freq, drag=drag,
                        ground_effect=ground_effect, downwash=downwash)
-    if not math.isfinite(duration_s) or duration_s * ctrl_freq < 1:
-        raise ValueError(f"duration_s must be at least one control step (1/{ctrl_freq} s), got {duration_s!r}")
-    n_steps = int(duration_s * ctrl_freq + 1e-9)
+    n_steps = check_steps(duration_s, ctrl_freq)
     if not math.isfinite(settle_s) or settle_s < 0 or settle_s >= n_steps / ctrl_freq:
         raise ValueError(f"settle_s must be in [0, {n_steps / ctrl_freq}) s (the flight time), got {settle_s!r}")
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    check_backend(backend)
     resolved = ()
     if backend == "jax":
         for name, value in (("obstacles", obstacles not in (None, False)), ("gui", gui), ("video", video)):
@@ -253,37 +236,32 @@ def fly_circle(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x
     target_pos, target_vel = circle_targets(setup, n_steps, ctrl_freq)
     state = init_state(config, pos=setup["init_pos"], rpy=setup["init_rpy"])
     dtype = state.pos.dtype
-    carry = (state, pid_init(state), jnp.zeros_like(state.rpm))
+    carry = initial_carry(state)
     inputs = (jnp.asarray(target_pos, dtype), jnp.asarray(target_vel, dtype))
     fixed = (jnp.asarray(setup["init_rpy"], dtype), jnp.asarray(float(feedforward), dtype))
     n_frames = 0
-    if backend == "jax":
-        _, (states, rpm_cmd) = _simulator(config)(params, gains, carry, *inputs, *fixed)
+    if video is None and not gui:
+        options = {} if backend == "jax" else {"obstacles": checked["obstacles"]}
+        states, rpm_cmd = run_closed_loop(config, track_position, params, gains, carry, inputs, fixed, backend,
+                                          **options)
     else:
         step = make_step(config, backend="pybullet", obstacles=checked["obstacles"], gui=gui)
         try:
-            simulate = _closed_loop(step, config)
-            if video is None and not gui:
-                _, (states, rpm_cmd) = simulate(params, gains, carry, *inputs, *fixed)
-            else:
-                states, rpm_cmd, n_frames = _fly_in_chunks(
-                    step, simulate, params, gains, carry, inputs, fixed, setup, video=video,
-                    video_size=checked["video_size"], video_fps=video_fps, gui=gui, progress=progress)
+            states, rpm_cmd, n_frames = _fly_in_chunks(
+                step, closed_loop(step, track_position), params, gains, carry, inputs, fixed, setup, video=video,
+                video_size=checked["video_size"], video_fps=video_fps, gui=gui, progress=progress)
         finally:
             step.close()
-    rpy = quat_to_euler(states.quat)
-    out = {k: np.asarray(v) for k, v in dict(pos=states.pos, quat=states.quat, vel=states.vel, rpy=rpy,
-                                             ang_vel=states.ang_vel, rpm=states.rpm, rpm_cmd=rpm_cmd,
-                                             contact=states.contact).items()}
+    out = flight_arrays(states, rpm_cmd, ctrl_freq)
     wall_s = time.perf_counter() - start
 
-    times = np.arange(1, n_steps + 1) / ctrl_freq
+    times = out["times"]
     waypoint_err = np.linalg.norm(out["pos"] - target_pos, axis=-1)
     radial = np.linalg.norm(out["pos"][..., :2] - setup["center"], axis=-1) - RADIUS
     cross_track_err = np.hypot(radial, out["pos"][..., 2] - setup["init_pos"][:, 2])
     keep = times >= settle_s - 1e-9
     out.update(
-        times=times, target_pos=target_pos, target_vel=target_vel, waypoint_err=waypoint_err,
+        target_pos=target_pos, target_vel=target_vel, waypoint_err=waypoint_err,
         cross_track_err=cross_track_err, setup=setup, wall_s=wall_s,
         metrics=tracking_metrics(waypoint_err[keep], cross_track_err[keep], settle_s),
         contacts=contact_metrics(out["contact"], times, backend),
@@ -324,7 +302,7 @@ def _fly_in_chunks(step, simulate, params, gains, carry, inputs, fixed, setup, *
         with tqdm(total=n_steps, unit="step", disable=not progress, desc="flying (PyBullet)") as bar:
             for begin in range(0, n_steps, chunk):
                 end = min(begin + chunk, n_steps)
-                carry, piece = simulate(params, gains, carry, *(x[begin:end] for x in inputs), *fixed)
+                carry, piece = simulate(params, gains, carry, tuple(x[begin:end] for x in inputs), fixed)
                 pieces.append(piece)
                 frame(carry[0])
                 if gui and begin == 0:  # the GUI's world exists from the first step on: aim its camera
@@ -339,7 +317,7 @@ def _fly_in_chunks(step, simulate, params, gains, carry, inputs, fixed, setup, *
     finally:
         if writer is not None:
             writer.close()
-    states, rpm_cmd = jax.tree.map(lambda *xs: jnp.concatenate(xs), *pieces)
+    states, rpm_cmd = jax.block_until_ready(jax.tree.map(lambda *xs: jnp.concatenate(xs), *pieces))
     return states, rpm_cmd, 0 if writer is None else writer.n_frames
 
 
@@ -407,43 +385,72 @@ def plot_flight(result: dict, path: str | os.PathLike) -> str:
     return _plot(result, path, title=title, note=note, mark_t=m["settle_s"])
 
 
+#: The examples of ``jaxdrones fly --example`` (paper §V-A); every one but the circle is a module of
+#: `jaxdrones.examples` with the same interface (``check``, ``fly``, ``plot``, ``summary``, ``arrays``,
+#: ``CLI_OPTIONS``, ``DEFAULT_DURATION_S``, ``DEFAULT_OUT``).
+EXAMPLES = {"circle": None, "velocity": velocity_example, "ground-effect": ground_effect_example,
+            "downwash": downwash_example}
+#: Options of ``jaxdrones fly`` that only some examples take (argparse dest → flag). Their defaults are None, so a
+#: value means the user gave the option; each example resolves its own defaults.
+_SPECIFIC_OPTIONS = {
+    "num_drones": "--num-drones", "ground_effect": "--ground-effect", "downwash": "--downwash",
+    "feedforward": "--feedforward/--no-feedforward", "settle": "--settle", "obstacles": "--obstacles",
+    "video": "--video", "no_video": "--no-video", "video_size": "--video-size", "fps": "--fps", "gui": "--gui",
+}
+_CIRCLE_DEFAULT_NUM_DRONES = 4
+_CIRCLE_DEFAULT_DURATION_S = 12.0
+
+
 def register(subparsers) -> None:
-    """Add the ``fly`` subcommand (the circle example) to an argparse subparsers object."""
+    """Add the ``fly`` subcommand (the paper's control examples) to an argparse subparsers object."""
     parser = subparsers.add_parser(
-        "fly", help="fly the paper's PID circle example and plot it",
-        description="Fly N Crazyflies around a circle with the DSL PID controller (the paper's first example), "
-                    "save a plot and metrics.json in a new run folder, and print the RMS tracking errors.")
-    parser.add_argument("--num-drones", type=int, default=4, help="number of drones (default 4)")
-    parser.add_argument("--duration", type=float, default=12.0, help="flight time in s (default 12)")
+        "fly", help="fly one of the paper's control examples (circle, velocity, ground effect, downwash) and plot it",
+        description="Fly one of the paper's control examples with the DSL PID controller, save a plot, "
+                    "metrics.json and flight.npz in a new run folder, and print a summary. circle: N Crazyflies "
+                    "track a circle (RMS tracking errors); velocity: 4 Crazyflies follow step-wise velocity "
+                    "commands (RMS velocity errors); ground-effect: one Crazyflie takes off with and without "
+                    "ground effect (height at 0.5 s); downwash: two Crazyflies cross 0.5 m apart with and without "
+                    "downwash (the lower one's dips).")
+    parser.add_argument("--example", choices=tuple(EXAMPLES), default="circle",
+                        help="which example (default circle)")
+    parser.add_argument("--num-drones", type=int, default=None, help="circle: number of drones (default 4)")
+    parser.add_argument("--duration", type=float, default=None,
+                        help="flight time in s (default: circle 12, velocity 5, ground-effect 0.5, downwash 12)")
     parser.add_argument("--model", default="cf2x", help=f"airframe: one of {', '.join(MODELS)} or a URDF path")
     parser.add_argument("--drag", action="store_true", help="rotor drag")
-    parser.add_argument("--ground-effect", action="store_true", help="ground effect")
-    parser.add_argument("--downwash", action="store_true", help="downwash between drones")
-    parser.add_argument("--feedforward", action=argparse.BooleanOptionalAction, default=DEFAULT_FEEDFORWARD,
-                        help="pass the way-point velocity as the PID's target velocity "
+    parser.add_argument("--ground-effect", action="store_true", default=None,
+                        help="ground effect (circle, velocity, downwash; ground-effect flies with and without)")
+    parser.add_argument("--downwash", action="store_true", default=None,
+                        help="downwash between drones (circle, velocity; downwash flies with and without)")
+    parser.add_argument("--feedforward", action=argparse.BooleanOptionalAction, default=None,
+                        help="circle: pass the way-point velocity as the PID's target velocity "
                              f"(default {'on' if DEFAULT_FEEDFORWARD else 'off'}; the original passes 0)")
-    parser.add_argument("--settle", type=float, default=DEFAULT_SETTLE_S,
-                        help=f"initial transient excluded from the metrics, s (default {DEFAULT_SETTLE_S:g})")
+    parser.add_argument("--settle", type=float, default=None,
+                        help=f"circle: initial transient excluded from the metrics, s (default "
+                             f"{DEFAULT_SETTLE_S:g}); velocity: time after each command change excluded (default "
+                             f"{velocity_example.DEFAULT_SETTLE_S:g})")
     parser.add_argument("--backend", choices=BACKENDS, default="jax",
-                        help="physics: jax (default) or pybullet (collisions, obstacles, video, GUI)")
-    parser.add_argument("--obstacles", action="store_true",
-                        help="pybullet: fly among the example's obstacles (boxes, a sphere and a duck, around the "
-                             "circle); contacts are reported in metrics.json")
+                        help="physics: jax (default) or pybullet (collisions; circle: obstacles, video, GUI)")
+    parser.add_argument("--obstacles", action="store_true", default=None,
+                        help="circle, pybullet: fly among the example's obstacles (boxes, a sphere and a duck, "
+                             "around the circle); contacts are reported in metrics.json")
     video = parser.add_mutually_exclusive_group()
     video.add_argument("--video", metavar="PATH", default=None,
-                       help="pybullet: video file, .mp4 or .gif (default flight.mp4; a relative path is inside the "
-                            "run folder; an existing file is never replaced)")
-    video.add_argument("--no-video", action="store_true", help="pybullet: do not render a video (faster)")
-    parser.add_argument("--video-size", default="x".join(map(str, DEFAULT_VIDEO_SIZE)), metavar="WxH",
-                        help="video frame size in pixels (default %(default)s)")
-    parser.add_argument("--fps", type=float, default=DEFAULT_VIDEO_FPS,
-                        help=f"video frame rate, Hz (default {DEFAULT_VIDEO_FPS:g}; rounded to a whole number of "
-                             f"control steps per frame)")
-    parser.add_argument("--gui", action="store_true",
-                        help="pybullet: show the flight in PyBullet's GUI in real time (needs a display)")
+                       help="circle, pybullet: video file, .mp4 or .gif (default flight.mp4; a relative path is "
+                            "inside the run folder; an existing file is never replaced)")
+    video.add_argument("--no-video", action="store_true", default=None,
+                       help="circle, pybullet: do not render a video (faster)")
+    parser.add_argument("--video-size", default=None, metavar="WxH",
+                        help=f"circle: video frame size in pixels (default {'x'.join(map(str, DEFAULT_VIDEO_SIZE))})")
+    parser.add_argument("--fps", type=float, default=None,
+                        help=f"circle: video frame rate, Hz (default {DEFAULT_VIDEO_FPS:g}; rounded to a whole "
+                             f"number of control steps per frame)")
+    parser.add_argument("--gui", action="store_true", default=None,
+                        help="circle, pybullet: show the flight in PyBullet's GUI in real time (needs a display)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    parser.add_argument("--out", default="runs/fly", help="output folder (default runs/fly; a numbered sibling "
-                                                          "is used if it exists, unless --overwrite)")
+    parser.add_argument("--out", default=None,
+                        help="output folder (default runs/fly for the circle, runs/<example> for the others; a "
+                             "numbered sibling is used if it exists, unless --overwrite)")
     parser.add_argument("--overwrite", action="store_true", help="replace the contents of an existing --out")
     parser.set_defaults(func=run_cli)
 
@@ -459,30 +466,36 @@ def _video_size(text: str) -> tuple[int, int]:
 
 def run_cli(args: argparse.Namespace) -> int:
     """Run the ``fly`` subcommand; returns the exit status."""
+    if args.example != "circle":
+        return _run_example(args)
     from jaxdrones.runs import new_run_dir
 
     backend, video = args.backend, args.video
     if backend == "pybullet" and video is None and not args.no_video:
         video = "flight.mp4"
-    kwargs = dict(num_drones=args.num_drones, duration_s=args.duration, model=args.model, drag=args.drag,
-                  ground_effect=args.ground_effect, downwash=args.downwash, settle_s=args.settle, backend=backend,
-                  obstacles=True if args.obstacles else None, gui=args.gui)
+    kwargs = dict(num_drones=_CIRCLE_DEFAULT_NUM_DRONES if args.num_drones is None else args.num_drones,
+                  duration_s=_CIRCLE_DEFAULT_DURATION_S if args.duration is None else args.duration,
+                  model=args.model, drag=args.drag, ground_effect=bool(args.ground_effect),
+                  downwash=bool(args.downwash), settle_s=DEFAULT_SETTLE_S if args.settle is None else args.settle,
+                  backend=backend, obstacles=True if args.obstacles else None, gui=bool(args.gui))
+    feedforward = DEFAULT_FEEDFORWARD if args.feedforward is None else args.feedforward
     try:
         if backend == "jax" and video is not None:
             raise ValueError("--video needs --backend pybullet (the jax backend does not render)")
         if video is not None:
-            kwargs.update(video_size=_video_size(args.video_size), video_fps=args.fps)
+            size = "x".join(map(str, DEFAULT_VIDEO_SIZE)) if args.video_size is None else args.video_size
+            kwargs.update(video_size=_video_size(size), video_fps=DEFAULT_VIDEO_FPS if args.fps is None else args.fps)
             video_format(video)
         # Validate before creating the run folder (a relative video path is inside the new folder, so it is new).
         check_flight(**kwargs, video=video if video is not None and os.path.isabs(video) else None)
     except (ValueError, RuntimeError) as err:
         print(f"jaxdrones fly: error: {err}")
         return 2
-    out = new_run_dir(args.out, overwrite=args.overwrite)
+    out = new_run_dir("runs/fly" if args.out is None else args.out, overwrite=args.overwrite)
     if video is not None:
         video = os.path.join(out, video)
     try:
-        result = fly_circle(**kwargs, feedforward=args.feedforward, video=video,
+        result = fly_circle(**kwargs, feedforward=feedforward, video=video,
                             progress=not args.no_progress)
     except (ValueError, RuntimeError) as err:
         print(f"jaxdrones fly: error: {err}")
@@ -510,3 +523,48 @@ def run_cli(args: argparse.Namespace) -> int:
         saved.append(f"{result['video']} ({result['video_frames']} frames)")
     print(f"saved {', '.join(saved[:-1])} and {saved[-1]}")
     return 0
+
+
+def _run_example(args: argparse.Namespace) -> int:
+    """Run ``jaxdrones fly --example NAME`` for an example other than the circle; returns the exit status.
+
+    Options the example does not take, and invalid values, are reported on stderr with exit status 2 before any
+    run folder is created.
+    """
+    from jaxdrones.runs import new_run_dir
+
+    module = EXAMPLES[args.example]
+    given = [flag for dest, flag in _SPECIFIC_OPTIONS.items()
+             if getattr(args, dest) is not None and dest not in module.CLI_OPTIONS]
+    if given:
+        takes = ", ".join(_SPECIFIC_OPTIONS[d] for d in module.CLI_OPTIONS) or "none"
+        return _fail(f"{', '.join(given)} {'does' if len(given) == 1 else 'do'} not apply to --example "
+                     f"{args.example} (of the options that only some examples take, it takes {takes})")
+    kwargs = {"duration_s": module.DEFAULT_DURATION_S if args.duration is None else args.duration,
+              "model": args.model, "backend": args.backend, "drag": args.drag}
+    for dest in ("ground_effect", "downwash"):
+        if dest in module.CLI_OPTIONS:
+            kwargs[dest] = bool(getattr(args, dest))
+    if "settle" in module.CLI_OPTIONS:
+        kwargs["settle_s"] = module.DEFAULT_SETTLE_S if args.settle is None else args.settle
+    try:
+        module.check(**kwargs)
+        out = new_run_dir(module.DEFAULT_OUT if args.out is None else args.out, overwrite=args.overwrite)
+    except ValueError as err:
+        return _fail(str(err))
+    result = module.fly(**kwargs)
+    paths = [module.plot(result, os.path.join(out, "flight.png")), os.path.join(out, "metrics.json"),
+             os.path.join(out, "flight.npz")]
+    with open(paths[1], "w") as f:
+        json.dump({"settings": result["settings"], "metrics": result["metrics"], "wall_s": result["wall_s"]}, f,
+                  indent=2)
+    np.savez_compressed(paths[2], **module.arrays(result))
+    print("\n".join(module.summary(result)))
+    print(f"saved {', '.join(paths[:-1])} and {paths[-1]}")
+    return 0
+
+
+def _fail(message: str) -> int:
+    """Print a ``jaxdrones fly`` error on stderr; returns the exit status 2 (argparse's for bad usage)."""
+    print(f"jaxdrones fly: error: {message}", file=sys.stderr)
+    return 2

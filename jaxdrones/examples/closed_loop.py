@@ -1,0 +1,176 @@
+"""The closed loop shared by the control examples: physics step, then controller, in one jitted ``lax.scan``.
+
+Every example of the paper (§V-A: circle, velocity, ground effect, downwash) runs the same loop as the original
+scripts (``examples/pid.py``, ``velocity.py``, ``groundeffect.py``, ``downwash.py``): each control step applies
+the command held in the carry for ``sim_freq // ctrl_freq`` physics substeps, then the controller computes the
+next command from the state reached. Only the controller and its per-step inputs differ between examples, so the
+loop takes the controller as a function:
+
+    control(params, gains, pid_state, state, x_k, fixed, ctrl_dt) -> (rpm f[D, 4] RPM, pid_state)
+
+where ``x_k`` is the example's input of control step k (a pytree sliced from the scan's ``xs``, e.g. a way-point
+or a velocity command), ``fixed`` a pytree of inputs constant over the flight, and ``ctrl_dt`` the control
+period in s. Controllers are module-level functions (hashable), so the JAX backend compiles one loop per
+(config, controller) pair and reuses it (`jax_closed_loop`).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrones.control.pid import PIDGains, PIDState, pid_control, pid_init
+from jaxdrones.params import DroneParams
+from jaxdrones.rotations import quat_to_euler
+from jaxdrones.sim import SimConfig, StepFn, make_step
+from jaxdrones.state import DroneState
+
+#: Physics backends of the examples (`jaxdrones.sim.make_step`).
+BACKENDS = ("jax", "pybullet")
+#: Fields of a flight record (`flight_arrays`), each with a leading time axis.
+FLIGHT_KEYS = ("times", "pos", "quat", "vel", "rpy", "ang_vel", "rpm", "rpm_cmd", "contact")
+
+Control = Callable[[DroneParams, PIDGains, PIDState, DroneState, Any, Any, float], tuple[jax.Array, PIDState]]
+#: The loop's carry: (drone state, controller state, RPM command f[..., D, 4] to apply in the next step).
+Carry = tuple[DroneState, PIDState, jax.Array]
+
+
+def track_position(params: DroneParams, gains: PIDGains, pid_state: PIDState, state: DroneState, x_k, fixed,
+                   ctrl_dt: float) -> tuple[jax.Array, PIDState]:
+    """Position tracking with the DSL PID (the controller of the circle, ground-effect and downwash examples).
+
+    Args:
+        params, gains, pid_state, state: as for `jaxdrones.control.pid.pid_control`.
+        x_k: (target_pos f[D, 3] m, target_vel f[D, 3] m/s), world frame, of this control step.
+        fixed: (target_rpy f[D, 3] rad, feedforward f[] 0 or 1): the target attitude (only its yaw is used) and
+            whether ``target_vel`` is passed to the PID (the original scripts pass 0).
+        ctrl_dt: control period, s.
+
+    Returns:
+        (rpm f[D, 4] in RPM, new PIDState).
+    """
+    target_pos, target_vel = x_k
+    target_rpy, feedforward = fixed
+    return pid_control(params, gains, pid_state, state, target_pos, target_vel=feedforward * target_vel,
+                       target_rpy=target_rpy, ctrl_dt=ctrl_dt)
+
+
+def closed_loop(step: StepFn, control: Control) -> Callable:
+    """The jitted closed loop over a run of control steps for a step function (either backend).
+
+    Args:
+        step: ``step(params, state, rpm) -> state`` from `jaxdrones.sim.make_step`, with a ``config`` attribute.
+        control: the controller, see the module docstring.
+
+    Returns:
+        ``simulate(params, gains, carry, xs, fixed, x_first=None) -> (carry, (states, rpm_cmd))``: a ``lax.scan``
+        over the leading axis T of every leaf of ``xs``; ``states`` is the `DroneState` after each step (leaves
+        [T, ...]) and ``rpm_cmd`` f[T, D, 4] the command computed from it (applied in the next step). The first
+        step applies the carry's command, or, given ``x_first`` (an input like one of ``xs``), the controller's
+        command for it computed from the carry's state (as the original's VEL environment converts its first
+        action). Call it on consecutive slices of ``xs`` to pause in between (e.g. to render a video frame); the
+        pieces give the same flight as one call.
+    """
+    ctrl_dt = step.config.ctrl_dt
+
+    @jax.jit
+    def simulate(params, gains, carry, xs, fixed, x_first=None):
+        def body(carry, x_k):
+            state, pid_state, rpm = carry
+            state = step(params, state, rpm)
+            rpm, pid_state = control(params, gains, pid_state, state, x_k, fixed, ctrl_dt)
+            return (state, pid_state, rpm), (state, rpm)
+
+        if x_first is not None:
+            state, pid_state, _ = carry
+            rpm, pid_state = control(params, gains, pid_state, state, x_first, fixed, ctrl_dt)
+            carry = (state, pid_state, rpm)
+        return jax.lax.scan(body, carry, xs)
+
+    return simulate
+
+
+@functools.lru_cache(maxsize=16)
+def jax_closed_loop(config: SimConfig, control: Control) -> Callable:
+    """`closed_loop` on the JAX backend for a config and controller, built (and compiled) once per pair."""
+    return closed_loop(make_step(config), control)
+
+
+def initial_carry(state: DroneState, rpm=None) -> Carry:
+    """The loop's first carry: the start state, a zeroed `PIDState`, and the first step's RPM command f[..., D, 4]
+    (default 0 RPM, as the original scripts apply on their first ``env.step``)."""
+    first = jnp.zeros_like(state.rpm) if rpm is None else jnp.asarray(rpm, state.rpm.dtype)
+    return state, pid_init(state), first
+
+
+def run_closed_loop(config: SimConfig, control: Control, params: DroneParams, gains: PIDGains, carry: Carry, xs,
+                    fixed, backend: str = "jax", x_first=None, **options) -> tuple[DroneState, jax.Array]:
+    """Fly one closed loop to the end on a backend; the PyBullet worlds are closed afterwards.
+
+    Args:
+        config: SimConfig of the flight.
+        control: the controller (see the module docstring).
+        params, gains: drone params and PID gains.
+        carry: the first carry (`initial_carry`).
+        xs: pytree of per-step inputs, leaves with a leading axis T (the number of control steps).
+        fixed: pytree of constant inputs.
+        backend: ``"jax"`` or ``"pybullet"``.
+        x_first: optional input of the first step's command (see `closed_loop`); default: the carry's command.
+        **options: PyBullet backend options (e.g. ``obstacles``), see `jaxdrones.sim.make_step`.
+
+    Returns:
+        (states, rpm_cmd): the `DroneState` after each step (leaves [T, ...]) and the commands f[T, D, 4] RPM
+        computed from them.
+    """
+    if backend == "jax":
+        if options:
+            raise ValueError(f"the jax backend takes no options, got {sorted(options)} (they are PyBullet's)")
+        _, out = jax_closed_loop(config, control)(params, gains, carry, xs, fixed, x_first)
+        return out
+    step = make_step(config, backend="pybullet", **options)
+    try:
+        _, out = closed_loop(step, control)(params, gains, carry, xs, fixed, x_first)
+        return jax.block_until_ready(out)  # the host callbacks must finish before the worlds are closed
+    finally:
+        step.close()
+
+
+def flight_arrays(states: DroneState, rpm_cmd, ctrl_freq: int) -> dict:
+    """A flight as NumPy arrays, one row per control step.
+
+    Returns:
+        dict with ``times`` f[T] s (the time of each state, (k + 1)/ctrl_freq); ``pos``, ``vel`` f[T, D, 3] (m,
+        m/s, world frame), ``quat`` f[T, D, 4] (x, y, z, w), ``rpy`` f[T, D, 3] rad, ``ang_vel`` f[T, D, 3] rad/s
+        (body frame) after each step; ``rpm`` f[T, D, 4] RPM applied during the step that ends at ``times``;
+        ``rpm_cmd`` f[T, D, 4] the command computed at ``times`` (applied next); ``contact`` i32[T, D]
+        (`DroneState.contact`).
+    """
+    fields = {"pos": states.pos, "quat": states.quat, "vel": states.vel, "rpy": quat_to_euler(states.quat),
+              "ang_vel": states.ang_vel, "rpm": states.rpm, "rpm_cmd": rpm_cmd, "contact": states.contact}
+    out = {k: np.asarray(v) for k, v in fields.items()}
+    out["times"] = np.arange(1, out["pos"].shape[0] + 1) / ctrl_freq
+    return out
+
+
+def check_steps(duration_s: float, ctrl_freq: int) -> int:
+    """The number of whole control steps in ``duration_s`` (rounded down).
+
+    Raises:
+        ValueError: if ``duration_s`` is not finite or shorter than one control step.
+    """
+    if isinstance(duration_s, bool) or not isinstance(duration_s, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(duration_s) or duration_s * ctrl_freq < 1:
+        raise ValueError(f"duration_s must be at least one control step (1/{ctrl_freq} s), got {duration_s!r}")
+    return int(duration_s * ctrl_freq + 1e-9)
+
+
+def check_backend(backend: str) -> None:
+    """Raises ValueError unless ``backend`` is one of `BACKENDS`."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
