@@ -13,7 +13,7 @@ __version__ = "0.1.0"
 
 def _register_gymnasium() -> None:
     try:
-        from jaxdrones.wrappers import gymnasium as _gym
+        from jaxdrones.adapters import gymnasium as _gym
     except ImportError:  # gymnasium is a dependency, but keep the core importable without it
         return
     _gym.register()

@@ -1,4 +1,4 @@
-"""Command line: ``jaxdrones train hover``, ``jaxdrones fly``, ``jaxdrones camera``."""
+"""Command line: ``jaxdrones train TASK``, ``jaxdrones fly``, ``jaxdrones camera``."""
 
 from __future__ import annotations
 
@@ -8,12 +8,14 @@ import time
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from jaxdrones import __version__
     from jaxdrones.examples import camera_scene, circle
-    from jaxdrones.training import hover
+    from jaxdrones.training import run
 
     parser = argparse.ArgumentParser(prog="jaxdrones", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"jaxdrones {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    hover.register(sub)
+    run.register(sub)
     circle.register(sub)
     camera_scene.register(sub)
     return parser

@@ -12,6 +12,7 @@ import math
 import os
 import xml.etree.ElementTree as ET
 from importlib import resources
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -303,24 +304,102 @@ def _derive(raw: dict, path: str) -> DroneParams:
     prop_pos = np.asarray(raw["prop_pos"])
     if np.any(np.linalg.norm(prop_pos[:, :2], axis=1) == 0):
         raise ValueError(f"{path}: every motor must sit off the body z axis, got positions {prop_pos.tolist()}")
-    weight = GRAVITY * raw["mass"]
-    kf, km, arm = raw["kf"], raw["km"], raw["arm"]
-    hover_rpm = math.sqrt(weight / (4 * kf))
-    max_rpm = math.sqrt(raw["thrust2weight"] * weight / (4 * kf))
-    max_thrust = 4 * kf * max_rpm**2
-    max_xy_torque = (2 * arm * kf * max_rpm**2 / math.sqrt(2)) if raw["frame"] == "x" else arm * kf * max_rpm**2
     inertia = np.asarray(raw["inertia"])
     values = dict(
-        mass=raw["mass"], arm=arm, inertia=inertia, inertia_inv=np.linalg.inv(inertia), kf=kf, km=km,
+        mass=raw["mass"], arm=raw["arm"], inertia=inertia, kf=raw["kf"], km=raw["km"],
         thrust2weight=raw["thrust2weight"], max_speed_kmh=raw["max_speed_kmh"], prop_radius=raw["prop_radius"],
         gnd_eff_coeff=raw["gnd_eff_coeff"],
         drag_coeff=[raw["drag_coeff_xy"], raw["drag_coeff_xy"], raw["drag_coeff_z"]],
         dw_coeff=[raw["dw_coeff_1"], raw["dw_coeff_2"], raw["dw_coeff_3"]],
-        prop_pos=prop_pos, prop_spin=raw["prop_spin"], torque_arm=_torque_arm(raw["frame"], arm, prop_pos),
+        prop_pos=prop_pos, prop_spin=raw["prop_spin"], torque_arm=_torque_arm(raw["frame"], raw["arm"], prop_pos),
         gravity=GRAVITY, collision_radius=raw["collision_radius"], collision_height=raw["collision_height"],
-        hover_rpm=hover_rpm, max_rpm=max_rpm, max_thrust=max_thrust, max_xy_torque=max_xy_torque,
-        max_z_torque=2 * km * max_rpm**2,
-        gnd_eff_h_clip=raw["prop_radius"] / 4 * math.sqrt(15 * max_rpm**2 * kf * raw["gnd_eff_coeff"] / max_thrust),
     )
+    values = {k: np.asarray(v, dtype=np.float64) for k, v in values.items()}
+    derived = derive_params(_PrimaryParams(**values), xp=np)  # in float64, then cast once
     dtype = jnp.result_type(float)
-    return DroneParams(**{k: jnp.asarray(np.asarray(v, dtype=np.float64), dtype=dtype) for k, v in values.items()})
+    return DroneParams(**{k: jnp.asarray(v, dtype=dtype) for k, v in {**values, **derived}.items()})
+
+
+#: The `DroneParams` fields computed from the others by `derive_params`.
+DERIVED_FIELDS = ("inertia_inv", "hover_rpm", "max_rpm", "max_thrust", "max_xy_torque", "max_z_torque",
+                  "gnd_eff_h_clip")
+
+
+class _PrimaryParams(NamedTuple):
+    """The primary fields of a model, before `derive_params` (host-side, used by the loader)."""
+
+    mass: np.ndarray
+    arm: np.ndarray
+    inertia: np.ndarray
+    kf: np.ndarray
+    km: np.ndarray
+    thrust2weight: np.ndarray
+    max_speed_kmh: np.ndarray
+    prop_radius: np.ndarray
+    gnd_eff_coeff: np.ndarray
+    drag_coeff: np.ndarray
+    dw_coeff: np.ndarray
+    prop_pos: np.ndarray
+    prop_spin: np.ndarray
+    torque_arm: np.ndarray
+    gravity: np.ndarray
+    collision_radius: np.ndarray
+    collision_height: np.ndarray
+
+
+def derive_params(params, xp=jnp) -> dict:
+    """The derived quantities of a model, recomputed from its primary fields (gym-pybullet-drones
+    ``BaseAviary.__init__``, main ``envs/BaseAviary.py:117-128``; docs/physics.md §1.1).
+
+    J⁻¹ = inv(inertia); hover_rpm = √(m g / (4 kf)); max_rpm = √(t2w · m g / (4 kf)); max_thrust = 4 kf max_rpm²;
+    max_xy_torque = kf max_rpm² · Σ_i max(0, torque_arm[0, i]) (= 2 L kf max_rpm²/√2 for an x frame, L kf max_rpm²
+    for a + frame); max_z_torque = 2 km max_rpm²; gnd_eff_h_clip = (R/4)·√(15 C_gnd / 4).
+
+    Use `with_derived` to get a `DroneParams` whose derived fields agree with edited primary ones (e.g. after
+    changing ``mass`` or ``kf``, or sampling them for domain randomisation): batched, jittable and differentiable.
+
+    Args:
+        params: a `DroneParams` (or any object with its primary fields), possibly batched.
+        xp: array module, ``jax.numpy`` (default) or ``numpy``.
+
+    Returns:
+        dict of the `DERIVED_FIELDS`, with the batch shape of ``params``.
+    """
+    weight = params.mass * params.gravity
+    hover_rpm = xp.sqrt(weight / (4 * params.kf))
+    max_rpm = xp.sqrt(params.thrust2weight * weight / (4 * params.kf))
+    max_sq = max_rpm**2
+    return dict(
+        inertia_inv=xp.linalg.inv(params.inertia), hover_rpm=hover_rpm, max_rpm=max_rpm,
+        max_thrust=4 * params.kf * max_sq,
+        max_xy_torque=params.kf * max_sq * xp.sum(xp.maximum(params.torque_arm[..., 0, :], 0.0), axis=-1),
+        max_z_torque=2 * params.km * max_sq,
+        gnd_eff_h_clip=params.prop_radius / 4 * xp.sqrt(15 * params.gnd_eff_coeff / 4),
+    )
+
+
+def with_derived(params: DroneParams) -> DroneParams:
+    """``params`` with its `DERIVED_FIELDS` recomputed from the primary ones by `derive_params` (jittable).
+
+    Example: ``with_derived(params.replace(mass=params.mass * 1.1))`` also raises ``hover_rpm`` and ``max_rpm``.
+    """
+    return params.replace(**derive_params(params))
+
+
+def stack_params(models) -> DroneParams:
+    """Params of a team, one model per drone: every field gets a leading drone axis ``[D]``.
+
+    Args:
+        models: a sequence of model names / URDF paths (see `load_params`) or of `DroneParams`.
+
+    Returns:
+        DroneParams with batch shape ``[D]`` (per-drone params, see `DroneParams`).
+
+    Raises:
+        ValueError: on an empty sequence or an unknown model.
+    """
+    models = list(models)
+    if not models:
+        raise ValueError("stack_params: expected at least one model")
+    params = [m if isinstance(m, DroneParams) else load_params(m) for m in models]
+    return jax.tree.map(lambda *leaves: jnp.stack(leaves), *params)

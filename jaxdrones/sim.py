@@ -7,80 +7,24 @@ components, and the result is joined back, so that XLA fuses each substep into a
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones import dynamics
-from jaxdrones.params import DroneParams, params_batch_shape
+from jaxdrones.backends import BACKENDS
+from jaxdrones.checks import check_params_batch, check_rpm
+from jaxdrones.config import SimConfig
+from jaxdrones.params import DroneParams
 from jaxdrones.rotations import join, normalize_c, split
 from jaxdrones.state import CONTACT_GROUND, DroneState
 
 StepFn = Callable[[DroneParams, DroneState, jax.Array], DroneState]
 
-
-@dataclasses.dataclass(frozen=True)
-class SimConfig:
-    """Static simulation settings (hashable; changing one recompiles).
-
-    Attributes:
-        n_drones: drones per world, D ≥ 1.
-        sim_freq: physics rate, Hz (the paper's ``pyb_freq``, default 240).
-        ctrl_freq: control rate, Hz; one `step` call runs ``sim_freq // ctrl_freq`` physics substeps with the
-            same RPM command. ``sim_freq`` must be a multiple of ``ctrl_freq`` (as in the paper's code).
-        drag: rotor drag, paper eq. (drag).
-        ground_effect: per-propeller ground effect, paper eq. (ground).
-        downwash: downwash between the drones of a world, paper eq. (down).
-        integrator: ``"euler"`` (the paper code's semi-implicit Euler with exact quaternion exponential map) or
-            ``"rk4"``.
-
-    Raises:
-        ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, or an unknown
-            integrator.
-    """
-
-    n_drones: int = 1
-    sim_freq: int = 240
-    ctrl_freq: int = 240
-    drag: bool = False
-    ground_effect: bool = False
-    downwash: bool = False
-    integrator: str = "euler"
-
-    def __post_init__(self):
-        for name in ("n_drones", "sim_freq", "ctrl_freq"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"SimConfig.{name} must be a positive integer, got {value!r}")
-        if self.sim_freq % self.ctrl_freq:
-            raise ValueError(f"SimConfig: sim_freq ({self.sim_freq} Hz) must be a multiple of ctrl_freq "
-                             f"({self.ctrl_freq} Hz), e.g. sim_freq=240 with ctrl_freq in 240, 120, 80, 48, 30, ...")
-        if self.integrator not in dynamics.INTEGRATORS:
-            raise ValueError(f"SimConfig.integrator must be one of {tuple(dynamics.INTEGRATORS)}, "
-                             f"got {self.integrator!r}")
-
-    @property
-    def n_substeps(self) -> int:
-        """Physics substeps per control step."""
-        return self.sim_freq // self.ctrl_freq
-
-    @property
-    def dt(self) -> float:
-        """Physics timestep, s."""
-        return 1.0 / self.sim_freq
-
-    @property
-    def ctrl_dt(self) -> float:
-        """Control period, s."""
-        return 1.0 / self.ctrl_freq
-
-    @property
-    def effects(self) -> dynamics.Effects:
-        return dynamics.Effects(self.drag, self.ground_effect, self.downwash)
+__all__ = ["JaxStep", "SimConfig", "StepFn", "make_step", "physics_substep_c", "rollout", "shard_worlds"]
 
 
 def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState, rpm: tuple,
@@ -124,7 +68,8 @@ def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
             default False), ``gui`` (show world 0 in PyBullet's GUI), ``renderer`` ("tiny" or "egl").
 
     Returns:
-        ``step(params, state, rpm)`` where ``rpm`` is f[..., D, 4] in RPM (ints are cast to the state's float
+        The backend's step (a `JaxStep` or a `jaxdrones.backends.pybullet.PyBulletStep`, both with ``config``,
+        ``has_cameras`` and ``close``), called as ``step(params, state, rpm)`` where ``rpm`` is f[..., D, 4] in RPM (ints are cast to the state's float
         dtype) with the leading shape of ``state``. ``state.contact`` reports ground contact during this step.
 
     Raises:
@@ -134,17 +79,22 @@ def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
     """
     if not isinstance(config, SimConfig):
         raise ValueError(f"make_step expects a SimConfig, got {type(config).__name__}")
-    if backend == "pybullet":
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}: expected one of {BACKENDS}")
+    if backend == "pybullet":  # pybullet is imported only when this backend is asked for
         from jaxdrones.backends.pybullet import OPTIONS, PyBulletStep
 
         unknown = sorted(set(options) - set(OPTIONS))
         if unknown:
             raise ValueError(f"unknown PyBullet backend option(s) {unknown}: expected some of {OPTIONS}")
         return PyBulletStep(config, **options)
-    if backend != "jax":
-        raise ValueError(f"unknown backend {backend!r}: expected 'jax' or 'pybullet'")
     if options:
         raise ValueError(f"the jax backend takes no options, got {sorted(options)} (they are PyBullet's)")
+    return JaxStep(config)
+
+
+def _core_step(config: SimConfig):
+    """The jitted control step of the JAX core on checked inputs."""
 
     @jax.jit
     def core(params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
@@ -159,7 +109,7 @@ def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
         rpm_before = state.rpm
 
         def substep(s, first):
-            rpm_prev = tuple(jnp.where(first, before, now) for before, now in zip(rpm_before, rpm))
+            rpm_prev = tuple(jnp.where(first, before, now) for before, now in zip(rpm_before, rpm, strict=False))
             s = physics_substep_c(config, params, s.replace(rpm=rpm_prev), rpm, motors, unit_quat=True)
             return s.replace(rpm=()), None
 
@@ -167,78 +117,42 @@ def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
         state, _ = jax.lax.scan(substep, state.replace(rpm=()), first)
         return _join_state(state.replace(rpm=rpm))
 
-    def step(params: DroneParams, state: DroneState, rpm) -> DroneState:
-        rpm = check_rpm(config, state, rpm)
+    return core
+
+
+class JaxStep:
+    """The JAX core's control step ``step(params, state, rpm) -> state`` (see `make_step`).
+
+    The backend interface, shared with `jaxdrones.backends.pybullet.PyBulletStep`: calling it steps the drones;
+    ``config`` is its `SimConfig`; ``has_cameras`` says whether it renders (``camera_images``, ``render``); `close`
+    releases its resources. The JAX core renders nothing and holds nothing to release.
+    """
+
+    has_cameras = False
+
+    def __init__(self, config: SimConfig):
+        self.config = config
+        self._core = _core_step(config)
+
+    def __call__(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
+        rpm = check_rpm(self.config, state, rpm)
         check_params_batch(params, state)
-        return core(params, state, rpm)
+        return self._core(params, state, rpm)
 
-    step.config = config
-    return step
+    def __hash__(self) -> int:
+        return hash((JaxStep, self.config))
 
+    def __eq__(self, other) -> bool:
+        return isinstance(other, JaxStep) and other.config == self.config
 
-def check_rpm(config: SimConfig, state: DroneState, rpm) -> jax.Array:
-    """Validate an RPM command against the config and state; returns it as a float array of the state's dtype.
+    def close(self) -> None:
+        """Nothing to release."""
 
-    Raises:
-        ValueError: see `make_step`.
-    """
-    dtype = rpm.dtype if hasattr(rpm, "dtype") else np.asarray(rpm).dtype
-    check_rpm_shape(config, state, np.shape(rpm), dtype)
-    rpm = jnp.asarray(rpm, dtype=state.pos.dtype)
-    if not isinstance(rpm, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(rpm))):
-        raise ValueError("rpm contains NaN or inf")
-    return rpm
+    def __enter__(self) -> JaxStep:
+        return self
 
-
-def check_state_shape(config: SimConfig, state: DroneState) -> tuple[int, ...]:
-    """Check that ``state`` has pos f[..., D, 3] and quat f[..., D, 4] with D = ``config.n_drones`` and the same
-    leading shape; returns that shape ``[..., D]``.
-
-    Raises:
-        ValueError: on other shapes.
-    """
-    n = config.n_drones
-    pos, quat = np.shape(state.pos), np.shape(state.quat)
-    if pos[-2:] != (n, 3) or quat[-2:] != (n, 4) or pos[:-1] != quat[:-1]:
-        raise ValueError(f"state has pos {pos} and quat {quat}; expected [..., {n}, 3] and [..., {n}, 4] with the "
-                         f"same leading shape, for n_drones={n} (build it with jd.init_state(config, ...))")
-    return tuple(pos[:-1])
-
-
-def check_rpm_shape(config: SimConfig, state: DroneState, shape: tuple[int, ...], dtype) -> None:
-    """Check an RPM command's shape and dtype (and the state's drone axis) against the config and state.
-
-    Raises:
-        ValueError: see `make_step`.
-    """
-    n = config.n_drones
-    check_state_shape(config, state)
-    if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)) or dtype == bool:
-        raise ValueError(f"rpm must be a real (float or int) array in RPM, got dtype {dtype}")
-    expected = state.rpm.shape
-    if tuple(shape) != tuple(expected):
-        raise ValueError(f"rpm must have shape {expected} ([..., n_drones={n}, 4] motor speeds in RPM, with the "
-                         f"state's leading shape {expected[:-2]}), got {tuple(shape)}")
-
-
-def check_params_batch(params: DroneParams, state: DroneState) -> None:
-    """Check that the params' batch axes line up with the state's ``[..., D]`` (right-aligned broadcasting).
-
-    Per-drone params are ``[D]`` or ``[W, D]``; per-world params are ``[W, 1]`` (or used under ``vmap``).
-
-    Raises:
-        ValueError: if the params' batch shape does not broadcast to the state's leading shape ``[..., D]``.
-    """
-    lead = state.pos.shape[:-1]
-    batch = params_batch_shape(params)
-    try:
-        ok = np.broadcast_shapes(batch, lead) == lead
-    except ValueError:
-        ok = False
-    if not ok:
-        raise ValueError(f"params have batch shape {batch}, which does not line up with the state's [..., D] = "
-                         f"{lead}: batched params are right-aligned with the drone axis, so per-drone params are "
-                         f"[D] or [W, D] and per-world params [W, 1] (or vmap the step over worlds)")
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Array) -> DroneState:

@@ -1,27 +1,100 @@
+"""gymnasium adapters: every registered id passes gymnasium's env checker, episodes, seeding, rendering, the
+vector env (one jitted call, next-step autoreset), SB3's ``make_vec_env`` keywords and bad input."""
+
 import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import jaxdrones  # noqa: F401  (registers jaxdrones/Hover-v0)
+import jaxdrones  # noqa: F401  (registers the ids)
+from jaxdrones.adapters.gymnasium import GYM_IDS
+
+#: Non-default action and observation types checked on each id.
+VARIANTS = [{}, {"action_type": "one_d_rpm", "obs_type": "kin_norm"}, {"action_type": "pid", "action_buffer": True},
+            {"action_type": "ctbr", "obs_type": "neighbors"}]
 
 
-def test_hover_passes_gymnasium_env_checker():
-    env = gym.make("jaxdrones/Hover-v0")
-    check_env(env.unwrapped, skip_render_check=True)
+@pytest.mark.slow
+@pytest.mark.parametrize("task, env_id", GYM_IDS.items())
+def test_every_id_passes_the_env_checker(task, env_id):
+    variants = [{}] if task == "tune" else VARIANTS
+    for options in variants:
+        env = gym.make(env_id, **options)
+        check_env(env.unwrapped, skip_render_check=True)
+        env.close()
 
 
 def test_hover_episode_through_gymnasium():
-    env = gym.make("jaxdrones/Hover-v0", action_type="rpm", init_vz=0.0)
+    env = gym.make("jaxdrones/Hover-v0", init_pos=[[0.0, 0.0, 1.0]], render_mode=None)
     obs, info = env.reset(seed=3)
     assert obs.shape == (12,) and obs.dtype == np.float32 and "distance" in info
+    assert np.all(np.isfinite(env.observation_space.low)) and np.all(np.isfinite(env.observation_space.high))
     obs2, _ = env.reset(seed=3)
     np.testing.assert_array_equal(obs, obs2)
     steps, truncated, terminated = 0, False, False
     while not (terminated or truncated):
         obs, reward, terminated, truncated, info = env.step(np.zeros(4, np.float32))
-        assert np.isfinite(reward) and reward >= 0
+        assert np.isfinite(reward) and reward >= 0 and env.observation_space.contains(obs)
         steps += 1
     assert truncated and not terminated and steps == 150
     with pytest.raises(ValueError, match=r"action must have shape \(4,\)"):
         env.step(np.zeros(3))
+    with pytest.raises(ValueError, match="action must lie in the action space"):
+        env.step(np.full(4, 1.5, np.float32))
+
+
+def test_random_resets_differ_and_seed_reproduces():
+    env = gym.make("jaxdrones/Velocity-v0")
+    a, _ = env.reset(seed=0)
+    b, _ = env.reset()
+    c, _ = env.reset(seed=0)
+    assert not np.allclose(a, b)
+    np.testing.assert_array_equal(a, c)
+
+
+def test_render_rgb_array():
+    env = gym.make("jaxdrones/LeaderFollower-v0", n_drones=3, render_mode="rgb_array")
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (3, env.unwrapped.env.observation_size)
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[-1] == 3 and frame.std() > 0
+    with pytest.raises(ValueError, match="render_mode"):
+        gym.make("jaxdrones/Hover-v0", render_mode="human")
+
+
+def test_module_prefix_registers_without_import():
+    env = gym.make("jaxdrones:jaxdrones/Takeoff-v0")
+    assert env.reset(seed=0)[0].shape == (12,)
+
+
+def test_vector_env_steps_all_worlds_with_next_step_autoreset():
+    n = 16
+    vec = gym.make_vec("jaxdrones/Hover-v0", num_envs=n, vectorization_mode="vector_entry_point", episode_len_s=0.2)
+    obs, info = vec.reset(seed=1)
+    assert obs.shape == (n, 12) and obs.dtype == np.float32 and info["distance"].shape == (n,)
+    length = 6
+    for _k in range(length):
+        obs, reward, terminated, truncated, _ = vec.step(np.zeros((n, 4), np.float32))
+    assert truncated.all() and not terminated.any()
+    obs_next, reward, terminated, truncated, _ = vec.step(np.zeros((n, 4), np.float32))
+    # The step after the end resets: a new start (reward 0, not done).
+    np.testing.assert_array_equal(reward, 0.0)
+    assert not (terminated | truncated).any() and not np.allclose(obs_next, obs)
+    obs2, _ = vec.reset(seed=1)
+    obs3, _ = gym.make_vec("jaxdrones/Hover-v0", num_envs=n, vectorization_mode="vector_entry_point").reset(seed=1)
+    np.testing.assert_array_equal(obs2, obs3)
+    with pytest.raises(ValueError, match=r"action must have shape \(16, 4\)"):
+        vec.step(np.zeros((n - 1, 4), np.float32))
+
+
+def test_sb3_style_keywords_pass_through():
+    # SB3's make_vec_env calls gymnasium.make(id, render_mode=None, ...) for each env.
+    env = gym.make("jaxdrones/Hover-v0", render_mode=None, action_type="one_d_rpm", ctrl_freq=48, model="cf2p")
+    assert env.action_space.shape == (1,) and env.unwrapped.env.config.ctrl_freq == 48
+
+
+def test_bad_options_name_what_was_expected():
+    with pytest.raises(ValueError, match="unknown action_type"):
+        gym.make("jaxdrones/Hover-v0", action_type="warp")
+    with pytest.raises(ValueError, match="num_envs must be a positive integer"):
+        gym.make_vec("jaxdrones/Hover-v0", num_envs=0, vectorization_mode="vector_entry_point")

@@ -1,5 +1,5 @@
-"""The command line: ``jaxdrones train hover`` (a short PPO run, its outputs, run folders, reloading the policy)
-and ``jaxdrones fly``."""
+"""The command line: ``jaxdrones train TASK`` (a short PPO run, its outputs, run folders, reloading the policy),
+its bad input, and ``jaxdrones fly``."""
 
 from __future__ import annotations
 
@@ -68,15 +68,15 @@ def test_train_cli_outputs_run_folders_and_reload(tmp_path, capsys, compile_cach
 
     # The saved policy reproduces the run's evaluation (same key as `train_hover`: split(key(seed + 1))[0]).
     env, policy = load_policy(run)
-    assert env.config.action_type == "one_d_rpm" and env.config.model == "cf2x"
+    assert env.config.action_type == "rpm" and env.config.model == "cf2x"
     key_eval = jax.random.split(jax.random.key(0 + 1))[0]
     stats = evaluate(env, policy, key_eval, 64)
     assert stats["final_pos_error_m"] == pytest.approx(summary["eval_final_pos_error_m"], abs=1e-5)
     assert stats["terminated_rate"] == summary["eval"]["terminated_rate"]
     assert stats["episode_reward"] == pytest.approx(summary["eval"]["episode_reward"], rel=1e-5)
-    obs = jax.vmap(env.reset)(jax.random.split(jax.random.key(5), 16)).obs
+    obs = jax.vmap(env.reset)(jax.random.split(jax.random.key(5), 16)).obs.reshape(16, -1)
     actions, _ = jax.vmap(policy, in_axes=(0, None))(obs, jax.random.key(6))
-    assert actions.shape == (16, 1) and np.all(np.abs(actions) <= 1.0)
+    assert actions.shape == (16, 4) and np.all(np.abs(actions) <= 1.0)
     _, policy_from_file = load_policy(run / "policy.pkl")
     np.testing.assert_array_equal(jax.vmap(policy_from_file, in_axes=(0, None))(obs, jax.random.key(7))[0], actions)
 
@@ -103,12 +103,26 @@ def test_train_cli_outputs_run_folders_and_reload(tmp_path, capsys, compile_cach
     assert not (tmp_path / "run-2").exists()
 
 
-def test_train_cli_bad_input(tmp_path, capsys):
+@pytest.mark.parametrize("extra, message", [
+    (("--eval-episodes", "10"), "n_eval_episodes must be >= 64"),
+    (("--steps", "-5"), "--steps must be a positive integer"),
+    (("--num-envs", "0"), "--num-envs must be a positive integer"),
+    (("--target", "0", "0", "-1"), "above the ground"),
+    (("--action-type", "warp"), "unknown action_type 'warp'"),
+    (("--num-drones", "2"), "n_drones must be exactly 1"),
+])
+def test_train_cli_bad_input(tmp_path, capsys, extra, message):
     args = train_args(tmp_path / "run")
-    args[args.index("--eval-episodes") + 1] = "10"
-    assert main(args) == 2
-    assert "n_eval_episodes must be >= 64" in capsys.readouterr().out
+    assert main(args + list(extra)) == 2
+    captured = capsys.readouterr()
+    assert message in captured.err and "error" in captured.err and captured.out == ""
     assert not (tmp_path / "run").exists()
+
+
+def test_cli_version(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0 and capsys.readouterr().out.startswith("jaxdrones 0.")
 
 
 def test_load_policy_rejects_missing_and_foreign_files(tmp_path):

@@ -52,7 +52,7 @@ import numpy as np
 import pybullet
 
 from jaxdrones.params import DroneParams, broadcast_params, pack_params
-from jaxdrones.sim import check_params_batch, check_state_shape
+from jaxdrones.checks import check_params_batch, check_state_shape
 from jaxdrones.state import DroneState
 
 #: Gap between the front of a drone's collision cylinder and its camera's eye, m.
@@ -169,7 +169,7 @@ def check_pose(config, state: DroneState) -> tuple[int, ...]:
     """Check that ``state`` has real pos f[..., D, 3] and quat f[..., D, 4] with D = n_drones; returns [..., D].
 
     Raises:
-        ValueError: on other shapes (`jaxdrones.sim.check_state_shape`), or a non-numeric dtype.
+        ValueError: on other shapes (`jaxdrones.checks.check_state_shape`), or a non-numeric dtype.
     """
     lead = check_state_shape(config, state)
     for name, x in (("pos", state.pos), ("quat", state.quat)):

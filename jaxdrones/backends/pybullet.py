@@ -42,11 +42,12 @@ from jaxdrones.backends import camera, scene
 from jaxdrones.dynamics import Effects
 from jaxdrones.params import DroneParams, broadcast_params, pack_params, params_batch_shape
 from jaxdrones.rotations import join, quat_to_rotmat_c, split
-from jaxdrones.sim import SimConfig, check_params_batch, check_rpm, check_rpm_shape
+from jaxdrones.backends import RENDERERS
+from jaxdrones.checks import check_params_batch, check_rpm, check_rpm_shape
+from jaxdrones.config import SimConfig
 from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, DroneState
 
 #: Renderers of the cameras: TinyRenderer (CPU, always there) or Bullet's OpenGL through EGL (headless GPU).
-RENDERERS = ("tiny", "egl")
 #: The keyword options of `PyBulletStep` (and of ``make_step(..., backend="pybullet")``).
 OPTIONS = ("obstacles", "damping", "gui", "renderer")
 _STATE_FIELDS = ("pos", "quat", "vel", "ang_vel", "rpm", "contact")
@@ -108,6 +109,9 @@ class PyBulletStep:
     drones. ``gui=True`` shows world 0 in PyBullet's window; it needs a display (on Linux an X server reachable
     through ``$DISPLAY``) and raises RuntimeError at construction without one.
     """
+
+    #: The PyBullet backend renders (`camera_images`, `render`).
+    has_cameras = True
 
     def __init__(self, config: SimConfig, *, obstacles=None, damping: bool = False, gui: bool = False,
                  renderer: str = "tiny"):

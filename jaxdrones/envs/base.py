@@ -6,36 +6,42 @@ import abc
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 from flax import struct
 
 from jaxdrones.params import DroneParams
-from jaxdrones.rotations import quat_to_euler
 from jaxdrones.state import DroneState
 
 
 @struct.dataclass
 class EnvState:
-    """State of one (or, with leading axes, many) environment instances.
+    """State of one (or, with leading axes, many) environment worlds of ``D`` drones.
 
     Attributes:
-        sim: DroneState of the task's drones, f[..., D, ...].
-        params: DroneParams used by this episode (sampled at reset; differentiable).
-        key: PRNG key for the episode's randomness.
-        obs: f[..., obs_size] observation after the last reset/step; for a task with camera images, a dict of
-            arrays (see the task's ``observation_spec``).
-        reward: f[...] reward of the last step (0 after reset).
+        sim: DroneState of the drones, f[..., D, ...].
+        params: DroneParams of this episode, batch shape [..., D] (sampled at reset with domain randomisation;
+            differentiable).
+        task: the task's params of this episode (`jaxdrones.envs.core.TaskParams`: targets, references, start
+            ranges, termination bounds, reward weights), sampled at reset.
+        ctrl: the action type's carry (the DSL PID's state for the PID-based actions, else ``()``).
+        history: f[..., D, K, n_act] the last K actions, oldest first (K = 0 without an action buffer).
+        key: PRNG key of the world, from which an auto-reset draws the next episode.
+        obs: f[..., D, n_obs] observation after the last reset/step; with camera images, a dict of arrays (see the
+            env's ``observation_spec``).
+        reward: f[..., D] per-drone reward of the last step (0 after reset).
         terminated: bool[...] the episode ended in a terminal state (crash, left the arena, invalid action).
         truncated: bool[...] the episode hit its time limit without terminating.
         steps: i32[...] control steps taken since reset.
-        metrics: dict of f[...] per-step diagnostics.
-        info: dict of extra per-step data.
+        metrics: dict of f[...] per-step diagnostics (per world: means over the drones).
+        info: dict of extra per-step data (wrappers add theirs, e.g. the auto-reset's final observation).
     """
 
     sim: DroneState
     params: DroneParams
+    task: Any
+    ctrl: Any
+    history: jax.Array
     key: jax.Array
-    obs: jax.Array
+    obs: Any
     reward: jax.Array
     terminated: jax.Array
     truncated: jax.Array
@@ -65,34 +71,29 @@ class Env(abc.ABC):
         self.close()
 
     @abc.abstractmethod
-    def reset(self, key: jax.Array) -> EnvState:
+    def reset(self, key: jax.Array, task=None) -> EnvState:
         """Start an episode from a PRNG key (typed ``jax.random.key`` or raw uint32)."""
 
     @abc.abstractmethod
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
-        """Advance one control step with ``action`` f[action_size] in [-1, 1]."""
+        """Advance one control step with ``action`` f[D, action_size]."""
+
+    @property
+    @abc.abstractmethod
+    def n_drones(self) -> int:
+        """Drones per world, D."""
 
     @property
     @abc.abstractmethod
     def observation_size(self) -> int:
-        """Length of the flat observation."""
+        """Length of one drone's observation."""
 
     @property
     @abc.abstractmethod
     def action_size(self) -> int:
-        """Length of the flat action."""
+        """Length of one drone's action."""
 
     @property
     @abc.abstractmethod
     def episode_length(self) -> int:
         """Control steps before truncation."""
-
-
-def kinematic_obs(sim: DroneState) -> jax.Array:
-    """The paper's kinematic observation (eq. obs, facts §8 KIN without the action buffer) of each drone.
-
-    Returns:
-        f[..., D, 12]: position (m, world), roll/pitch/yaw (rad, PyBullet convention), velocity (m/s, world) and
-        angular velocity (rad/s, body frame).
-    """
-    return jnp.concatenate([sim.pos, quat_to_euler(sim.quat), sim.vel, sim.ang_vel], axis=-1)

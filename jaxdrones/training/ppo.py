@@ -5,17 +5,29 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import math
 import os
 import pickle
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs.base import Env, EnvState
-from jaxdrones.wrappers.brax import BraxEnv, wrap_for_brax_training
+
+
+def _import_brax():
+    """Import brax's PPO with the lines that brax's MuJoCo dependency prints (missing GPU plugins) swallowed."""
+    import contextlib
+    import io
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        from brax.training.agents.ppo import networks, train  # noqa: F401
+    from jaxdrones.adapters import brax as adapter
+
+    return adapter
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,8 +58,10 @@ class PPOConfig:
     seed: int = 0
 
     def __post_init__(self):
-        if self.num_timesteps < 1 or self.num_envs < 1 or self.num_evals < 1:
-            raise ValueError("PPOConfig: num_timesteps, num_envs and num_evals must be >= 1")
+        for name in ("num_timesteps", "num_envs", "batch_size", "num_minibatches", "unroll_length", "num_evals"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"PPOConfig: {name} must be an integer >= 1, got {value!r}")
         if (self.batch_size * self.num_minibatches) % self.num_envs:
             raise ValueError(f"PPOConfig: batch_size·num_minibatches ({self.batch_size}·{self.num_minibatches}) "
                              f"must be a multiple of num_envs ({self.num_envs}), as brax's PPO requires")
@@ -66,7 +80,7 @@ def train(env: Env, config: PPOConfig = PPOConfig(),
     """Train a policy on ``env`` with brax's PPO.
 
     Args:
-        env: a jaxdrones `Env` (single agent, flat observation and action).
+        env: a jaxdrones `Env` without camera images (the brax adapter flattens its f[D, n] observation and action).
         config: PPO hyperparameters.
         progress: called as ``progress(env_steps, metrics)`` after each of brax's evaluations, with brax's metric
             dict (``eval/episode_reward``, ``eval/episode_<metric>`` summed over the episode, ...).
@@ -75,16 +89,30 @@ def train(env: Env, config: PPOConfig = PPOConfig(),
         ``(make_policy, params)``: brax's policy factory and the trained (normaliser, policy, value) parameters.
         ``make_policy(params, deterministic=True)`` gives ``policy(obs, key) -> (action, extras)``.
     """
+    adapter = _import_brax()
     from brax.training.agents.ppo import train as ppo
 
     kwargs = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
     for key in ("policy_hidden_layer_sizes", "value_hidden_layer_sizes"):
         kwargs.pop(key)
     make_policy, params, _ = ppo.train(
-        BraxEnv(env), episode_length=env.episode_length, wrap_env_fn=wrap_for_brax_training,
+        adapter.BraxEnv(env), episode_length=env.episode_length, wrap_env_fn=adapter.wrap_for_brax_training,
         network_factory=_network_factory(config), deterministic_eval=True,
         progress_fn=progress or (lambda *_: None), **kwargs)
     return make_policy, params
+
+
+def total_steps(config: PPOConfig) -> int:
+    """The env steps brax's PPO runs for ``config``: ``num_timesteps`` rounded up to whole training epochs."""
+    per_step = config.batch_size * config.unroll_length * config.num_minibatches
+    epochs = max(config.num_evals - 1, 1)
+    return int(epochs * math.ceil(config.num_timesteps / (epochs * per_step)) * per_step)
+
+
+def act(env: Env, policy, obs: jax.Array, key: jax.Array) -> jax.Array:
+    """The policy's action f[D, n_act] for an observation f[D, n_obs] (policies see flat vectors)."""
+    action, _ = policy(jnp.reshape(obs, (-1,)), key)
+    return jnp.reshape(action, (env.n_drones, env.action_size))
 
 
 def rollout_policy(env: Env, policy, key: jax.Array, state: EnvState | None = None) -> EnvState:
@@ -92,7 +120,7 @@ def rollout_policy(env: Env, policy, key: jax.Array, state: EnvState | None = No
 
     Args:
         env: the env.
-        policy: ``policy(obs, key) -> (action, extras)``.
+        policy: ``policy(obs, key) -> (action, extras)`` on flat vectors (as brax's policies).
         key: PRNG key (for reset and the policy).
         state: optional start state; by default ``env.reset(key)``.
 
@@ -103,8 +131,7 @@ def rollout_policy(env: Env, policy, key: jax.Array, state: EnvState | None = No
     state = env.reset(key_reset) if state is None else state
 
     def body(s, k):
-        action, _ = policy(s.obs, k)
-        nxt = env.step(s, action)
+        nxt = env.step(s, act(env, policy, s.obs, k))
         nxt = jax.tree.map(lambda old, new: jnp.where(s.done, old, new), s, nxt)
         return nxt, nxt
 
@@ -113,27 +140,41 @@ def rollout_policy(env: Env, policy, key: jax.Array, state: EnvState | None = No
 
 
 def evaluate(env: Env, policy, key: jax.Array, n_episodes: int = 256) -> dict:
-    """Final-state statistics of ``n_episodes`` episodes from random starts (one jitted, vmapped call).
+    """Statistics of ``n_episodes`` episodes from random starts (one jitted, vmapped call).
 
     Returns:
-        dict of floats: ``final_pos_error_m`` (mean ‖target − pos‖ at the episode's last state),
-        ``final_pos_error_max_m``, ``final_pos_error_p90_m``, ``terminated_rate`` (crashed or left the arena),
-        ``episode_reward`` (mean return).
+        dict of floats: ``final_<metric>`` (mean over episodes of the metric at the episode's last state) and
+        ``mean_<metric>`` (mean over episodes of its average over the episode) for every metric of the task,
+        ``success_value`` (the task's success metric, `Task.success_metric`, read as `Task.success_at`),
+        ``terminated_rate`` (crashed or left the arena), ``episode_reward`` (mean return, summed over drones),
+        ``n_episodes``; and for tasks measured by a distance, ``final_pos_error_m`` with its max and 90th percentile.
     """
 
     @jax.jit
     def run(keys):
         states = jax.vmap(lambda k: rollout_policy(env, policy, k))(keys)
-        final = jax.tree.map(lambda x: x[:, -1], states)
-        returns = jnp.sum(jnp.where(states.steps[:, 1:] > states.steps[:, :-1], states.reward[:, 1:], 0.0), axis=1)
-        return final.metrics["distance"], final.terminated, returns
+        live = (states.steps[:, 1:] > states.steps[:, :-1]).astype(states.reward.dtype)
+        returns = jnp.sum(live * jnp.sum(states.reward[:, 1:], axis=-1), axis=1)
+        final = {k: v[:, -1] for k, v in states.metrics.items()}
+        mean = {k: jnp.sum(live * v[:, 1:], axis=1) / jnp.maximum(jnp.sum(live, axis=1), 1) for k, v in
+                states.metrics.items()}
+        return final, mean, states.terminated[:, -1], returns
 
-    dist, terminated, returns = (np.asarray(x, dtype=np.float64) for x in run(jax.random.split(key, n_episodes)))
-    return {
-        "final_pos_error_m": float(dist.mean()), "final_pos_error_max_m": float(dist.max()),
-        "final_pos_error_p90_m": float(np.percentile(dist, 90)), "terminated_rate": float(terminated.mean()),
-        "episode_reward": float(returns.mean()), "n_episodes": int(n_episodes),
-    }
+    final, mean, terminated, returns = jax.tree.map(lambda x: np.asarray(x, np.float64),
+                                                     run(jax.random.split(key, n_episodes)))
+    stats = {f"final_{k}": float(v.mean()) for k, v in final.items()}
+    stats.update({f"mean_{k}": float(v.mean()) for k, v in mean.items()})
+    task = getattr(env, "task", None)
+    if task is not None and task.success_metric in final:
+        source = final if task.success_at == "final" else mean
+        stats["success_value"] = float(source[task.success_metric].mean())
+    if "distance" in final:
+        dist = final["distance"]
+        stats.update(final_pos_error_m=float(dist.mean()), final_pos_error_max_m=float(dist.max()),
+                     final_pos_error_p90_m=float(np.percentile(dist, 90)))
+    stats.update(terminated_rate=float(terminated.mean()), episode_reward=float(returns.mean()),
+                 n_episodes=int(n_episodes))
+    return stats
 
 
 def save_policy(path: str, params, env_name: str, env_overrides: dict, config: PPOConfig) -> None:
@@ -158,6 +199,7 @@ def load_policy(path: str | os.PathLike, deterministic: bool = True):
     Raises:
         ValueError: if the file is missing or is not a saved jaxdrones policy.
     """
+    _import_brax()
     from brax.training.agents.ppo import networks as ppo_networks
 
     from jaxdrones.envs import make
@@ -176,34 +218,48 @@ def load_policy(path: str | os.PathLike, deterministic: bool = True):
     from brax.training.acme import running_statistics
 
     preprocess = running_statistics.normalize if config.normalize_observations else (lambda x, _: x)
-    networks = _network_factory(config)(env.observation_size, env.action_size,
+    networks = _network_factory(config)(env.n_drones * env.observation_size, env.n_drones * env.action_size,
                                         preprocess_observations_fn=preprocess)
     make_policy = ppo_networks.make_inference_fn(networks)
     return env, make_policy(payload["params"], deterministic=deterministic)
 
 
 class ProgressLog:
-    """Collects brax's evaluation metrics and shows a progress bar with steps/s and reward (tqdm)."""
+    """Collects brax's evaluation metrics and shows a progress bar (tqdm) with the training speed, the evaluation
+    return and the task's success metric.
 
-    def __init__(self, total_steps: int, episode_length: int, enabled: bool = True):
+    The bar's total is the number of steps brax will run (`total_steps`); its steps/s counts from the first
+    evaluation (after compilation), so it is the training speed.
+
+    Args:
+        total_steps: env steps of the run.
+        metric: the task's success metric (a key of the env's metrics).
+        enabled: show the bar.
+    """
+
+    def __init__(self, total_steps: int, metric: str = "distance", enabled: bool = True):
         from tqdm.auto import tqdm
 
         self.t0 = time.perf_counter()
-        self.episode_length = episode_length
+        self.metric = metric
         self.history: list[dict] = []
+        self._first: tuple[float, int] | None = None
         self.bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not enabled,
                         bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}] {postfix}")
 
     def __call__(self, step: int, metrics: dict) -> None:
-        elapsed = time.perf_counter() - self.t0
-        row = {"env_steps": int(step), "time_s": elapsed,
+        now = time.perf_counter()
+        length = float(metrics.get("eval/avg_episode_length", np.nan))
+        row = {"env_steps": int(step), "time_s": now - self.t0,
                "episode_reward": float(metrics.get("eval/episode_reward", np.nan)),
-               "mean_distance_m": float(metrics.get("eval/episode_distance", np.nan)) / self.episode_length}
+               "metric": float(metrics.get(f"eval/episode_{self.metric}", np.nan)) / length}
         self.history.append(row)
-        rate = step / elapsed if elapsed > 0 else 0.0
-        self.bar.set_postfix_str(f"{rate:,.0f} steps/s  reward {row['episode_reward']:.1f}  "
-                                 f"mean dist {row['mean_distance_m']:.3f} m")
-        if step > self.bar.total:  # brax rounds the budget up to whole training epochs
+        if self._first is None:
+            self._first = (now, step)
+        elapsed, done = now - self._first[0], step - self._first[1]
+        rate = f"{done / elapsed:,.0f} steps/s  " if elapsed > 0 and done > 0 else ""
+        self.bar.set_postfix_str(f"{rate}reward {row['episode_reward']:.1f}  {self.metric} {row['metric']:.3g}")
+        if step > self.bar.total:
             self.bar.total = step
         self.bar.update(step - self.bar.n)
 

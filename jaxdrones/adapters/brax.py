@@ -1,0 +1,108 @@
+"""Adapter from a jaxdrones env to ``brax.envs.Env``, for ``brax.training``'s trainers (PPO, APG, SAC).
+
+brax's trainers take an env and a ``wrap_env_fn``; give them `BraxEnv` and `wrap_for_brax_training`::
+
+    from brax.training.agents.ppo import train as ppo
+    from jaxdrones.adapters.brax import BraxEnv, wrap_for_brax_training
+
+    env = jd.make("hover")
+    make_policy, params, _ = ppo.train(environment=BraxEnv(env), wrap_env_fn=wrap_for_brax_training,
+                                       episode_length=env.episode_length, num_timesteps=1_000_000, ...)
+
+(`jaxdrones.training.train` does this.) Passing ``jd.make("hover")`` itself as brax's ``environment`` does not
+work: brax's own wrappers expect its ``State`` with a physics ``pipeline_state``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from brax.envs.base import Env as BraxBaseEnv
+from brax.envs.base import State as BraxState
+from brax.envs.wrappers import training as brax_training
+
+from jaxdrones.envs.base import Env
+from jaxdrones.wrappers.autoreset import AutoReset
+
+
+class BraxEnv(BraxBaseEnv):
+    """A jaxdrones env seen as a brax env with flat observation and action vectors.
+
+    The observation is ``obs`` f[D, n_obs] flattened (D·n_obs), the action f[D·n_act] is reshaped to f[D, n_act],
+    the reward is the sum over drones (a team reward; the drone's own for D = 1). The jaxdrones `EnvState` travels
+    as brax's ``pipeline_state``. ``done`` is ``terminated | truncated`` and ``info["truncation"]`` marks the time
+    limit, so that PPO bootstraps there; ``info["steps"]`` is the episode's length so far (brax's evaluator
+    reads it), and ``info["episode_metrics"]``/``info["episode_done"]`` hold the running episode sums that brax's
+    trainer logs. Episodes are reset by `AutoReset` (a fresh start per episode), not by
+    brax's wrappers.
+
+    Keys: brax passes raw uint32 keys; typed ``jax.random.key`` keys work too.
+    """
+
+    def __init__(self, env: Env, auto_reset: bool = True):
+        self.env = env
+        self._inner = AutoReset(env) if auto_reset else env
+
+    def reset(self, rng: jax.Array) -> BraxState:
+        state = self._inner.reset(rng)
+        zero = jnp.zeros((), state.reward.dtype)
+        episode = {k: zero for k in ("sum_reward", "length", *state.metrics)}
+        info = {"truncation": zero, "steps": zero, "episode_done": zero, "episode_metrics": episode}
+        return BraxState(pipeline_state=state, obs=self._flat(state.obs), reward=zero, done=zero,
+                         metrics=dict(state.metrics), info=info)
+
+    def step(self, state: BraxState, action: jax.Array) -> BraxState:
+        action = jnp.reshape(action, (self.env.n_drones, self.env.action_size))
+        new = self._inner.step(state.pipeline_state, action)
+        dtype = new.reward.dtype
+        metrics = {**state.metrics, **new.metrics}
+        steps = new.info["final_steps"] if "final_steps" in new.info else new.steps  # the episode's length so far
+        reward, done = jnp.sum(new.reward), new.done.astype(dtype)
+        # Running sums over the current episode, restarted after one ends (what brax's training metrics read).
+        keep = 1 - state.info["episode_done"]
+        values = {"sum_reward": reward, "length": jnp.ones((), dtype), **new.metrics}
+        episode = {k: v * keep + values[k] for k, v in state.info["episode_metrics"].items()}
+        info = {**state.info, "truncation": new.truncated.astype(dtype), "steps": steps.astype(dtype),
+                "episode_done": done, "episode_metrics": episode}
+        return BraxState(pipeline_state=new, obs=self._flat(new.obs), reward=reward, done=done, metrics=metrics,
+                         info=info)
+
+    @staticmethod
+    def _flat(obs):
+        if isinstance(obs, dict):
+            raise ValueError("the brax adapter takes flat observations; camera images (vision) are not supported")
+        return jnp.reshape(obs, (-1,))
+
+    @property
+    def observation_size(self) -> int:
+        return self.env.n_drones * self.env.observation_size
+
+    @property
+    def action_size(self) -> int:
+        return self.env.n_drones * self.env.action_size
+
+    @property
+    def backend(self) -> str:
+        return "jaxdrones"
+
+
+def wrap_for_brax_training(env, episode_length: int | None = None, action_repeat: int = 1, randomization_fn=None):
+    """``wrap_env_fn`` for brax's trainers: a `BraxEnv` (with our `AutoReset`) under brax's ``VmapWrapper``.
+
+    Args:
+        env: a `BraxEnv` or a jaxdrones env.
+        episode_length: ignored: the env truncates at its own ``episode_length``.
+        action_repeat: must be 1 (the env's control rate sets the step).
+        randomization_fn: unsupported: domain randomisation is the task option ``randomize``, drawn at every reset.
+
+    Raises:
+        ValueError: ``action_repeat`` ≠ 1 or a ``randomization_fn``.
+    """
+    if randomization_fn is not None:
+        raise ValueError("brax's randomization_fn is not supported: pass randomize={'mass': 0.1, ...} to "
+                         "jd.make(...) to draw randomised drone params at every reset")
+    if action_repeat != 1:
+        raise ValueError(f"action_repeat must be 1 (set the env's ctrl_freq instead), got {action_repeat}")
+    if not isinstance(env, BraxEnv):
+        env = BraxEnv(env)
+    return brax_training.VmapWrapper(env)

@@ -1,0 +1,273 @@
+"""gymnasium adapters: `GymnasiumEnv` (one world, NumPy in and out) and `GymnasiumVectorEnv` (N worlds stepped
+in one jitted call), registered for every task.
+
+Ids (registered when ``jaxdrones`` is imported; ``gymnasium.make("jaxdrones:jaxdrones/Hover-v0")`` imports it
+for you): `GYM_IDS`, e.g. ``jaxdrones/Hover-v0``, ``jaxdrones/Velocity-v0``, ``jaxdrones/LeaderFollower-v0``. Task
+config fields are keyword arguments of ``gymnasium.make`` (``action_type``, ``obs_type``, ``model``,
+``ctrl_freq``, ``init_pos``, ...), and ``render_mode="rgb_array"`` renders a frame (PyBullet's renderer on that
+backend, a matplotlib view of the drones on the JAX backend).
+
+``gymnasium.make_vec(id, num_envs=N, vectorization_mode="vector_entry_point")`` gives a `GymnasiumVectorEnv`:
+all N worlds in one jitted, vmapped call, with gymnasium's default next-step autoreset. The ``"sync"`` mode works
+but compiles every sub-env separately; the ``"async"`` mode needs ``vector_kwargs={"context": "spawn"}`` (JAX
+cannot run in a forked process; with ``fork`` the sub-envs raise an error saying so).
+"""
+
+from __future__ import annotations
+
+import os
+
+import gymnasium as gym
+import jax
+import jax.numpy as jnp
+import numpy as np
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from jaxdrones.envs.base import Env
+
+#: gymnasium id of every task.
+GYM_IDS = {"hover": "jaxdrones/Hover-v0", "takeoff": "jaxdrones/Takeoff-v0", "velocity": "jaxdrones/Velocity-v0",
+           "waypoints": "jaxdrones/Waypoints-v0", "fly_thru_gate": "jaxdrones/FlyThruGate-v0",
+           "tune": "jaxdrones/Tune-v0", "multi_hover": "jaxdrones/MultiHover-v0",
+           "leader_follower": "jaxdrones/LeaderFollower-v0", "flock": "jaxdrones/Flock-v0",
+           "meetup": "jaxdrones/Meetup-v0"}
+RENDER_MODES = ("rgb_array",)
+#: The process that imported jaxdrones: JAX state does not survive ``fork``.
+_IMPORT_PID = os.getpid()
+
+
+def _check_render_mode(render_mode) -> None:
+    if render_mode is not None and render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
+
+
+def _check_process() -> None:
+    if os.getpid() != _IMPORT_PID:
+        raise RuntimeError("jaxdrones envs cannot run in a forked process (JAX is not fork-safe). Use "
+                           "gymnasium.make_vec(id, num_envs=N, vectorization_mode='vector_entry_point') (all envs in "
+                           "one jitted call) or vector_kwargs={'context': 'spawn'} for the async mode")
+
+
+def spaces(env: Env) -> tuple[gym.Space, gym.Space]:
+    """(observation space, action space) of one world: Boxes of shape (n,) for D = 1, (D, n) for D ≥ 2, float32,
+    bounded by the observation and action types (a ``Dict`` with the camera images under ``vision``)."""
+    low, high = env.observation_bounds()
+    a_low, a_high = env.action_bounds()
+    if env.n_drones == 1:
+        low, high, a_low, a_high = low[0], high[0], a_low[0], a_high[0]
+    obs = gym.spaces.Box(low, high, dtype=np.float32)
+    spec = env.observation_spec
+    if isinstance(spec, dict):
+        images = {k: _image_box(k, v.shape[1:] if env.n_drones == 1 else v.shape) for k, v in spec.items()
+                  if k != "state"}
+        obs = gym.spaces.Dict({"state": obs, **images})
+    return obs, gym.spaces.Box(a_low, a_high, dtype=np.float32)
+
+
+def _image_box(name: str, shape) -> gym.spaces.Box:
+    if name == "rgb":
+        return gym.spaces.Box(0, 255, shape, np.uint8)
+    if name == "seg":  # Bullet body ids, -1 where nothing is seen
+        return gym.spaces.Box(-1, np.iinfo(np.int32).max, shape, np.int32)
+    return gym.spaces.Box(0.0, np.inf, shape, np.float32)  # depth, m along the optical axis
+
+
+def _to_numpy(obs, space: gym.Space, squeeze: bool):
+    """``obs`` as NumPy in ``space``'s dtypes (``space`` of one world); ``squeeze`` drops the drone axis (D = 1)."""
+    if isinstance(space, gym.spaces.Dict):
+        return {k: _to_numpy(v, space[k], squeeze) for k, v in obs.items()}
+    obs = np.asarray(obs, space.dtype)
+    return np.take(obs, 0, axis=obs.ndim - len(space.shape) - 1) if squeeze else obs
+
+
+def _check_action(action, space: gym.spaces.Box, batch: tuple[int, ...] = ()) -> np.ndarray:
+    action = np.asarray(action, dtype=np.float32)
+    expected = batch + space.shape
+    if action.shape != expected:
+        raise ValueError(f"action must have shape {expected}, got {action.shape}")
+    if not np.all(np.isfinite(action)) or np.any(action < space.low - 1e-6) or np.any(action > space.high + 1e-6):
+        raise ValueError(f"action must lie in the action space [{space.low.min():g}, {space.high.max():g}], "
+                         f"got values in [{np.nanmin(action):g}, {np.nanmax(action):g}]")
+    return action
+
+
+class GymnasiumEnv(gym.Env):
+    """A functional jaxdrones env as a stateful gymnasium env (one world, NumPy in and out).
+
+    The wrapper owns the env state and the PRNG key: ``reset(seed=...)`` makes the episode sequence reproducible,
+    ``reset()`` without a seed continues it. ``reset`` and ``step`` are jitted once. Observations are float32 in
+    the env's bounded Box; actions must lie in the action space (otherwise a ``ValueError``).
+    ``step`` returns ``(obs, reward, terminated, truncated, info)``; ``info`` holds the env's metrics (floats) and,
+    for D ≥ 2, the per-drone rewards (``"rewards"``); the reward is the sum over drones. ``render()`` returns an
+    RGB frame when ``render_mode="rgb_array"``. `close` releases the backend.
+    """
+
+    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 30}
+
+    def __init__(self, env: Env, render_mode: str | None = None):
+        _check_render_mode(render_mode)
+        _check_process()
+        self.env = env
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": env.config.ctrl_freq}
+        self.observation_space, self.action_space = spaces(env)
+        self._reset = jax.jit(env.reset)
+        self._step = jax.jit(env.step)
+        self._state = None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        key = jax.random.key(int(self.np_random.integers(2**31)))
+        self._state = self._reset(key)
+        return self._obs(), self._info()
+
+    def step(self, action):
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        action = _check_action(action, self.action_space)
+        self._state = self._step(self._state, action.reshape(self.env.n_drones, self.env.action_size))
+        s = self._state
+        return self._obs(), float(np.sum(s.reward)), bool(s.terminated), bool(s.truncated), self._info()
+
+    def render(self):
+        """An RGB frame u8[H, W, 3] of the current state (``render_mode="rgb_array"``), else None."""
+        if self.render_mode is None or self._state is None:
+            return None
+        return render_frame(self.env, self._state)
+
+    def close(self) -> None:
+        """Release the env's backend (PyBullet worlds)."""
+        self.env.close()
+
+    def _obs(self):
+        return _to_numpy(self._state.obs, self.observation_space, self.env.n_drones == 1)
+
+    def _info(self) -> dict:
+        info = {k: float(v) for k, v in self._state.metrics.items()}
+        if self.env.n_drones > 1:
+            info["rewards"] = np.asarray(self._state.reward, np.float32)
+        return info
+
+
+def render_frame(env: Env, state, world: int = 0) -> np.ndarray:
+    """An RGB frame u8[H, W, 3] of one world of ``state``: PyBullet's renderer on that backend, else matplotlib."""
+    lead = np.shape(state.sim.pos)[:-2]
+
+    def one(x):
+        x = np.asarray(x)
+        return x.reshape((-1,) + x.shape[len(lead):])[world] if lead else x
+
+    sim, params = jax.tree.map(one, state.sim), jax.tree.map(one, state.params)
+    if env._step.has_cameras:
+        return env._step.render(params, sim, width=480, height=360)
+    return _plotting().render_state(sim.pos, sim.quat, targets=one(state.task.target), title=env.task.name)
+
+
+def _plotting():
+    from jaxdrones import plotting
+
+    return plotting
+
+
+class GymnasiumVectorEnv(VectorEnv):
+    """N worlds of a jaxdrones env as a gymnasium ``VectorEnv``: one jitted, vmapped call per ``step``.
+
+    NumPy in and out: observations f32[N, ...] (the single space batched), actions f32[N, ...] within the action
+    space. Autoreset follows gymnasium's default (``AutoresetMode.NEXT_STEP``): the step after a world's episode
+    ended resets it and returns its first observation with reward 0. Each reset draws a fresh start, task params
+    and (with ``randomize``) drone params from the world's key. ``infos`` holds the metrics, arrays f[N].
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": list(RENDER_MODES)}
+
+    def __init__(self, env: Env, num_envs: int, render_mode: str | None = None):
+        _check_render_mode(render_mode)
+        if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        self.env = env
+        self.num_envs = int(num_envs)
+        self.render_mode = render_mode
+        self.single_observation_space, self.single_action_space = spaces(env)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self._reset = jax.jit(jax.vmap(env.reset))
+        self._step = jax.jit(self._step_worlds)
+        self._state = None
+        self._needs_reset = None
+        self._key = None
+
+    def _step_worlds(self, state, action, needs_reset):
+        shape = (action.shape[0], self.env.n_drones, self.env.action_size)
+        stepped = jax.vmap(self.env.step)(state, action.reshape(shape).astype(state.sim.pos.dtype))
+        fresh = jax.vmap(self.env.reset)(state.key, state.task)
+
+        def pick(new, old):
+            mask = needs_reset.reshape(needs_reset.shape + (1,) * (new.ndim - 1))
+            return jnp.where(mask, new, old)
+
+        out = jax.tree.map(pick, fresh, stepped)
+        return out, out.done
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self._key = jax.random.key(int(self.np_random.integers(2**31)))
+        self._key, sub = jax.random.split(self._key)
+        self._state = self._reset(jax.random.split(sub, self.num_envs))
+        self._needs_reset = jnp.zeros((self.num_envs,), bool)
+        return self._obs(), self._infos()
+
+    def step(self, actions):
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        actions = _check_action(actions, self.single_action_space, (self.num_envs,))
+        was_reset = self._needs_reset
+        self._state, self._needs_reset = self._step(self._state, actions, self._needs_reset)
+        s = self._state
+        reset = np.asarray(was_reset)
+        reward = np.where(reset, 0.0, np.asarray(s.reward).reshape(self.num_envs, -1).sum(-1))
+        terminated = np.asarray(s.terminated) & ~reset
+        truncated = np.asarray(s.truncated) & ~reset
+        return self._obs(), reward.astype(np.float32), terminated, truncated, self._infos()
+
+    def render(self):
+        """An RGB frame of world 0 (``render_mode="rgb_array"``), else None."""
+        if self.render_mode is None or self._state is None:
+            return None
+        return render_frame(self.env, self._state, world=0)
+
+    def close_extras(self, **kwargs) -> None:
+        self.env.close()
+
+    def _obs(self):
+        return _to_numpy(self._state.obs, self.single_observation_space, self.env.n_drones == 1)
+
+    def _infos(self) -> dict:
+        return {k: np.asarray(v) for k, v in self._state.metrics.items()}
+
+
+def make_env(task: str, render_mode: str | None = None, **overrides) -> GymnasiumEnv:
+    """Entry point of ``gymnasium.make(GYM_IDS[task], **overrides)``; overrides are the task's config fields."""
+    from jaxdrones.envs import make
+
+    _check_render_mode(render_mode)
+    return GymnasiumEnv(make(task, **overrides), render_mode=render_mode)
+
+
+def make_vector_env(task: str, num_envs: int = 1, render_mode: str | None = None,
+                    **overrides) -> GymnasiumVectorEnv:
+    """Vector entry point of ``gymnasium.make_vec(GYM_IDS[task], num_envs, vectorization_mode="vector_entry_point",
+    **overrides)``."""
+    from jaxdrones.envs import make
+
+    _check_render_mode(render_mode)
+    return GymnasiumVectorEnv(make(task, **overrides), num_envs, render_mode=render_mode)
+
+
+def register() -> None:
+    """Register every task's id (`GYM_IDS`) with gymnasium (done on ``import jaxdrones``)."""
+    for task, env_id in GYM_IDS.items():
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point="jaxdrones.adapters.gymnasium:make_env",
+                         vector_entry_point="jaxdrones.adapters.gymnasium:make_vector_env", kwargs={"task": task},
+                         disable_env_checker=True)

@@ -1,0 +1,81 @@
+"""Host-side checks of RPM commands, states and params, shared by the simulation backends (`jaxdrones.sim` and
+`jaxdrones.backends.pybullet`); they raise `ValueError` at the API boundary."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrones.params import DroneParams, params_batch_shape
+from jaxdrones.state import DroneState
+
+if TYPE_CHECKING:
+    from jaxdrones.config import SimConfig
+
+
+def check_rpm(config: SimConfig, state: DroneState, rpm) -> jax.Array:
+    """Validate an RPM command against the config and state; returns it as a float array of the state's dtype.
+
+    Raises:
+        ValueError: see `make_step`.
+    """
+    dtype = rpm.dtype if hasattr(rpm, "dtype") else np.asarray(rpm).dtype
+    check_rpm_shape(config, state, np.shape(rpm), dtype)
+    rpm = jnp.asarray(rpm, dtype=state.pos.dtype)
+    if not isinstance(rpm, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(rpm))):
+        raise ValueError("rpm contains NaN or inf")
+    return rpm
+
+
+def check_state_shape(config: SimConfig, state: DroneState) -> tuple[int, ...]:
+    """Check that ``state`` has pos f[..., D, 3] and quat f[..., D, 4] with D = ``config.n_drones`` and the same
+    leading shape; returns that shape ``[..., D]``.
+
+    Raises:
+        ValueError: on other shapes.
+    """
+    n = config.n_drones
+    pos, quat = np.shape(state.pos), np.shape(state.quat)
+    if pos[-2:] != (n, 3) or quat[-2:] != (n, 4) or pos[:-1] != quat[:-1]:
+        raise ValueError(f"state has pos {pos} and quat {quat}; expected [..., {n}, 3] and [..., {n}, 4] with the "
+                         f"same leading shape, for n_drones={n} (build it with jd.init_state(config, ...))")
+    return tuple(pos[:-1])
+
+
+def check_rpm_shape(config: SimConfig, state: DroneState, shape: tuple[int, ...], dtype) -> None:
+    """Check an RPM command's shape and dtype (and the state's drone axis) against the config and state.
+
+    Raises:
+        ValueError: see `make_step`.
+    """
+    n = config.n_drones
+    check_state_shape(config, state)
+    if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)) or np.dtype(dtype) == np.bool_:
+        raise ValueError(f"rpm must be a real (float or int) array in RPM, got dtype {dtype}")
+    expected = state.rpm.shape
+    if tuple(shape) != tuple(expected):
+        raise ValueError(f"rpm must have shape {expected} ([..., n_drones={n}, 4] motor speeds in RPM, with the "
+                         f"state's leading shape {expected[:-2]}), got {tuple(shape)}")
+
+
+def check_params_batch(params: DroneParams, state: DroneState) -> None:
+    """Check that the params' batch axes line up with the state's ``[..., D]`` (right-aligned broadcasting).
+
+    Per-drone params are ``[D]`` or ``[W, D]``; per-world params are ``[W, 1]`` (or used under ``vmap``).
+
+    Raises:
+        ValueError: if the params' batch shape does not broadcast to the state's leading shape ``[..., D]``.
+    """
+    lead = state.pos.shape[:-1]
+    batch = params_batch_shape(params)
+    try:
+        ok = np.broadcast_shapes(batch, lead) == lead
+    except ValueError:
+        ok = False
+    if not ok:
+        raise ValueError(f"params have batch shape {batch}, which does not line up with the state's [..., D] = "
+                         f"{lead}: batched params are right-aligned with the drone axis, so per-drone params are "
+                         f"[D] or [W, D] and per-world params [W, 1] (or vmap the step over worlds)")

@@ -1,0 +1,209 @@
+"""Action types: how a policy's normalised action becomes motor RPMs (docs/physics.md §10).
+
+Every action type maps an action ``f[..., D, size]`` in its box (``low``, ``high``; [-1, 1] per entry, as the
+paper's RL envs) to an RPM command ``f[..., D, 4]`` for the physics step, with an explicit carry for controllers
+that have memory (the DSL PID's integrals). All are pure, batched over leading ``[world, drone]`` axes and, where
+the maths is, differentiable:
+
+=================  ====  ==========================================================================================
+name               size  mapping (source)
+=================  ====  ==========================================================================================
+``rpm``            4     rpm_i = hover_rpm · (1 + 0.05 a_i)  (gym-pybullet-drones RPM)
+``one_d_rpm``      1     the same value for all four motors  (ONE_D_RPM)
+``pid``            3     DSL PID to an absolute target a (m), at most 1 m from the drone per step (main's PID);
+                         ``pid_target="relative"``: target = pos + 0.1 a (the paper's PID)
+``one_d_pid``      1     DSL PID to pos + (0, 0, 0.1 a)  (ONE_D_PID)
+``vel``            4     DSL PID with target velocity speed_limit·|a_3|·unit(a_0:3), target pos = pos, target yaw
+                         = current yaw  (VEL; 0.25 m/s for the Crazyflies)
+``thrust_torque``  4     T = m g (a_0 + 1), τ = 0.05 · (max_xy_torque a_1, max_xy_torque a_2, max_z_torque a_3),
+                         converted to RPM by non-negative least squares  (the paper's DYN)
+``one_d_thrust``   1     T = m g (1 + 0.05 a), no torque, NNLS  (the paper's ONE_D_DYN)
+``tun``            6     DSL PID tracking the task's reference, its six gain vectors scaled by (a_k + 1)
+                         (the paper's TUN)
+``ctbr``           4     collective thrust T = m g (a_0 + 1) and body rates ω* = `CTBR_MAX_RATE` · a_1:4 (rad/s)
+                         through a body-rate controller (`jaxdrones.control.mixer.body_rate_control`)
+=================  ====  ==========================================================================================
+
+Unlike the original, actions are clipped to their box before mapping (the env does this), and the PID-based
+types use the airframe's own mixer (the original's RL envs always build the cf2x controller).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrones.control.pid import PIDGains, pid_control, pid_init, speed_limit, velocity_targets
+from jaxdrones.params import DroneParams
+from jaxdrones.state import DroneState
+
+#: Normalised RPM actions: rpm = hover_rpm · (1 + RPM_ACTION_SCALE · a) (gym-pybullet-drones RPM action).
+RPM_ACTION_SCALE = 0.05
+#: Largest PID target step per control step of the absolute ``pid`` action, m (main ``_calculateNextStep``).
+PID_MAX_STEP = 1.0
+#: Relative PID targets: target = pos + PID_RELATIVE_SCALE · a, m (the paper's PID and ONE_D_PID).
+PID_RELATIVE_SCALE = 0.1
+#: Torque of the ``thrust_torque`` action at |a| = 1, as a fraction of the maximum torques (the paper's DYN).
+TORQUE_ACTION_SCALE = 0.05
+#: Thrust change of the ``one_d_thrust`` action at |a| = 1, as a fraction of the weight (the paper's ONE_D_DYN).
+ONE_D_THRUST_SCALE = 0.05
+#: Body rate of the ``ctbr`` action at |a| = 1, rad/s.
+CTBR_MAX_RATE = 2.0 * np.pi
+#: How a ``pid`` action sets the PID's target: ``"absolute"`` (main) or ``"relative"`` (the paper).
+PID_TARGETS = ("absolute", "relative")
+
+
+class Reference(NamedTuple):
+    """What the task wants the drones to do at this control step (used by ``tun``).
+
+    Attributes:
+        pos: f[..., D, 3] m, world frame.
+        vel: f[..., D, 3] m/s, world frame.
+    """
+
+    pos: jax.Array
+    vel: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class ActionType:
+    """An action type: its size per drone, its box and its mapping to RPM (static, hashable).
+
+    Attributes:
+        name: the registered name (`ACTION_TYPES`).
+        size: action entries per drone.
+        pid_target: ``"absolute"`` or ``"relative"``, for ``pid`` only (see `PID_TARGETS`).
+    """
+
+    name: str
+    size: int
+    pid_target: str = "absolute"
+
+    @property
+    def low(self) -> np.ndarray:
+        """f[size], the lower bound of the box (-1)."""
+        return -np.ones(self.size, np.float32)
+
+    @property
+    def high(self) -> np.ndarray:
+        """f[size], the upper bound of the box (+1)."""
+        return np.ones(self.size, np.float32)
+
+    @property
+    def uses_pid(self) -> bool:
+        """Whether the mapping runs the DSL PID (whose state is the carry)."""
+        return self.name in ("pid", "one_d_pid", "vel", "tun")
+
+    def init(self, params: DroneParams, sim: DroneState) -> Any:
+        """The carry at reset: a zeroed `PIDState` f[..., D, 3] for the PID-based types, else ``()``."""
+        return pid_init(sim) if self.uses_pid else ()
+
+    def to_rpm(self, params: DroneParams, sim: DroneState, carry, action: jax.Array, ref: Reference,
+               ctrl_dt: float) -> tuple[jax.Array, Any]:
+        """Map ``action`` f[..., D, size] (already clipped to the box) to an RPM command.
+
+        Args:
+            params: per-drone DroneParams (batch shape broadcasting to ``[..., D]``).
+            sim: the drones' state before the step.
+            carry: from `init` or the previous call.
+            action: f[..., D, size].
+            ref: the task's reference for this step (``tun`` tracks it).
+            ctrl_dt: control period, s.
+
+        Returns:
+            (rpm f[..., D, 4] in RPM, new carry).
+        """
+        return _MAPPINGS[self.name](self, params, sim, carry, action, ref, ctrl_dt)
+
+
+def _hover_rpm(params: DroneParams, action: jax.Array) -> jax.Array:
+    return params.hover_rpm[..., None] * (1.0 + RPM_ACTION_SCALE * action)
+
+
+def _rpm(kind, params, sim, carry, action, ref, ctrl_dt):
+    return _hover_rpm(params, jnp.broadcast_to(action, action.shape[:-1] + (4,))), carry
+
+
+def _pid_to(params, sim, carry, target_pos, ctrl_dt, gains=None, **targets):
+    gains = PIDGains.dsl(sim.pos.dtype) if gains is None else gains
+    return pid_control(params, gains, carry, sim, target_pos, ctrl_dt=ctrl_dt, **targets)
+
+
+def _pid(kind, params, sim, carry, action, ref, ctrl_dt):
+    if kind.pid_target == "relative":
+        target = sim.pos + PID_RELATIVE_SCALE * action
+    else:  # move towards the absolute target by at most PID_MAX_STEP (main's _calculateNextStep)
+        delta = action - sim.pos
+        dist2 = jnp.sum(delta**2, axis=-1, keepdims=True)
+        far = dist2 > PID_MAX_STEP**2
+        dist = jnp.sqrt(jnp.where(far, dist2, 1.0))
+        target = jnp.where(far, sim.pos + PID_MAX_STEP * delta / dist, action)
+    return _pid_to(params, sim, carry, target, ctrl_dt)
+
+
+def _one_d_pid(kind, params, sim, carry, action, ref, ctrl_dt):
+    lift = jnp.concatenate([jnp.zeros_like(sim.pos[..., :2]), PID_RELATIVE_SCALE * action], axis=-1)
+    return _pid_to(params, sim, carry, sim.pos + lift, ctrl_dt)
+
+
+def _vel(kind, params, sim, carry, action, ref, ctrl_dt):
+    target_pos, target_vel, target_rpy = velocity_targets(sim, action, speed_limit(params))
+    return _pid_to(params, sim, carry, target_pos, ctrl_dt, target_vel=target_vel, target_rpy=target_rpy)
+
+
+def _tun(kind, params, sim, carry, action, ref, ctrl_dt):
+    base = PIDGains.dsl(sim.pos.dtype)
+    scale = action + 1.0
+    gains = PIDGains(*(g * scale[..., k:k + 1] for k, g in enumerate(
+        (base.p_pos, base.i_pos, base.d_pos, base.p_att, base.i_att, base.d_att))))
+    return _pid_to(params, sim, carry, ref.pos, ctrl_dt, gains=gains, target_vel=ref.vel)
+
+
+def _wrench_rpm(params, thrust, torque):
+    from jaxdrones.control.mixer import wrench_to_rpm
+
+    return wrench_to_rpm(params, jnp.concatenate([thrust[..., None], torque], axis=-1))
+
+
+def _thrust_torque(kind, params, sim, carry, action, ref, ctrl_dt):
+    thrust = params.weight * (action[..., 0] + 1.0)
+    limits = jnp.stack([params.max_xy_torque, params.max_xy_torque, params.max_z_torque], axis=-1)
+    return _wrench_rpm(params, thrust, TORQUE_ACTION_SCALE * limits * action[..., 1:]), carry
+
+
+def _one_d_thrust(kind, params, sim, carry, action, ref, ctrl_dt):
+    thrust = params.weight * (1.0 + ONE_D_THRUST_SCALE * action[..., 0])
+    return _wrench_rpm(params, thrust, jnp.zeros(thrust.shape + (3,), thrust.dtype)), carry
+
+
+def _ctbr(kind, params, sim, carry, action, ref, ctrl_dt):
+    from jaxdrones.control.mixer import body_rate_control
+
+    thrust = params.weight * (action[..., 0] + 1.0)
+    return body_rate_control(params, sim.ang_vel, CTBR_MAX_RATE * action[..., 1:], thrust), carry
+
+
+_MAPPINGS = {"rpm": _rpm, "one_d_rpm": _rpm, "pid": _pid, "one_d_pid": _one_d_pid, "vel": _vel,
+             "thrust_torque": _thrust_torque, "one_d_thrust": _one_d_thrust, "tun": _tun, "ctbr": _ctbr}
+#: Action entries per drone of every action type.
+ACTION_SIZES = {"rpm": 4, "one_d_rpm": 1, "pid": 3, "one_d_pid": 1, "vel": 4, "thrust_torque": 4,
+                "one_d_thrust": 1, "tun": 6, "ctbr": 4}
+#: The registered action type names.
+ACTION_TYPES = tuple(ACTION_SIZES)
+
+
+def make_action(name: str, pid_target: str = "absolute") -> ActionType:
+    """The `ActionType` called ``name``.
+
+    Raises:
+        ValueError: unknown name or ``pid_target``.
+    """
+    if name not in ACTION_SIZES:
+        raise ValueError(f"unknown action_type {name!r}: expected one of {ACTION_TYPES}")
+    if pid_target not in PID_TARGETS:
+        raise ValueError(f"pid_target must be one of {PID_TARGETS}, got {pid_target!r}")
+    return ActionType(name, ACTION_SIZES[name], pid_target)

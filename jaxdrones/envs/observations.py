@@ -1,0 +1,172 @@
+"""Observation types: what each drone sees, as stacked arrays ``f[..., D, size]`` (docs/physics.md §8).
+
+=============  ======================  =================================================================================
+name           size per drone          content
+=============  ======================  =================================================================================
+``kin``        12                      pos (m, world), rpy (rad, PyBullet convention), vel (m/s, world), ang_vel
+                                       (rad/s, body) — SI units, unnormalised, the order of gym-pybullet-drones' KIN
+``kin_norm``   12                      the paper's normalised KIN: xy/15, z/5, roll, pitch, yaw / π, vxy/3, vz/1,
+                                       ang_vel as a unit vector — with vz divided by its own limit (the original
+                                       divides it by the xy limit, 3, so its vz never leaves [-1/3, 1/3])
+``neighbors``  12 + D + 3(D - 1)       ``kin``, then the drone's adjacency row (1 for itself and every drone within
+                                       ``neighbor_radius`` m, eq. adj), then the positions of the other drones
+                                       relative to it (m, world, in drone order, 0 for drones outside the radius)
+=============  ======================  =================================================================================
+
+With ``action_buffer=True`` the last ``ctrl_freq // 2`` actions (0.5 s, oldest first, the current step's last) are
+appended, as the original's KIN does; unlike the original, the buffer is cleared at reset.
+
+Every observation has a box (`bounds`), and is clipped to it: positions to ±`POS_BOUND` m (z to [0, `POS_BOUND`]),
+velocities to ±`VEL_BOUND` m/s, body rates to ±`ANG_VEL_BOUND` rad/s. The bounds are far outside what a flying
+task reaches before it terminates; the unclipped state is ``EnvState.sim``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrones.rotations import quat_to_euler
+from jaxdrones.state import DroneState
+
+#: Clip bounds of the observations: position (m), velocity (m/s), body rates (rad/s), relative positions (m).
+POS_BOUND = 20.0
+VEL_BOUND = 30.0
+ANG_VEL_BOUND = 200.0
+#: The paper's normalisation limits (HoverAviary._clipAndNormalizeState): xy m, z m, vxy m/s, vz m/s.
+NORM_XY, NORM_Z, NORM_VXY, NORM_VZ = 15.0, 5.0, 3.0, 1.0
+#: The registered observation type names.
+OBS_TYPES = ("kin", "kin_norm", "neighbors")
+
+
+def kinematic_obs(sim: DroneState) -> jax.Array:
+    """The kinematic observation KIN of each drone, unclipped.
+
+    Returns:
+        f[..., D, 12]: pos (m, world), rpy (rad, PyBullet convention), vel (m/s, world), ang_vel (rad/s, body).
+    """
+    return jnp.concatenate([sim.pos, quat_to_euler(sim.quat), sim.vel, sim.ang_vel], axis=-1)
+
+
+def _kin_bounds() -> tuple[np.ndarray, np.ndarray]:
+    pi = np.pi
+    high = np.array([POS_BOUND] * 3 + [pi, pi / 2, pi] + [VEL_BOUND] * 3 + [ANG_VEL_BOUND] * 3, np.float32)
+    low = -high
+    low[2] = 0.0
+    # PyBullet's yaw in the gimbal-lock branch is 2·atan2(...), within [-2π, 2π].
+    low[5], high[5] = -2 * pi, 2 * pi
+    return low, high
+
+
+def kin_normalized(sim: DroneState) -> jax.Array:
+    """The paper's normalised KIN (``_clipAndNormalizeState``), with vz normalised by its own limit.
+
+    Returns:
+        f[..., D, 12] in [-1, 1] (z in [0, 1]).
+    """
+    pos, rpy = sim.pos, quat_to_euler(sim.quat)
+    xy = jnp.clip(pos[..., :2], -NORM_XY, NORM_XY) / NORM_XY
+    z = jnp.clip(pos[..., 2:], 0.0, NORM_Z) / NORM_Z
+    angles = jnp.clip(rpy, -np.pi, np.pi) / np.pi
+    vxy = jnp.clip(sim.vel[..., :2], -NORM_VXY, NORM_VXY) / NORM_VXY
+    vz = jnp.clip(sim.vel[..., 2:], -NORM_VZ, NORM_VZ) / NORM_VZ
+    sq = jnp.sum(sim.ang_vel**2, axis=-1, keepdims=True)
+    moving = sq > 0
+    unit = jnp.where(moving, sim.ang_vel / jnp.sqrt(jnp.where(moving, sq, 1.0)), 0.0)
+    return jnp.concatenate([xy, z, angles, vxy, vz, unit], axis=-1)
+
+
+def adjacency(pos: jax.Array, radius: float) -> jax.Array:
+    """The adjacency matrix of eq. adj: 1 where two drones are within ``radius`` m (3-D distance), and on the
+    diagonal (gym-pybullet-drones ``_getAdjacencyMatrix``).
+
+    Args:
+        pos: f[..., D, 3] m.
+        radius: m (``inf`` connects everyone).
+
+    Returns:
+        f[..., D, D] of 0 and 1.
+    """
+    delta = pos[..., None, :, :] - pos[..., :, None, :]
+    near = jnp.sum(delta**2, axis=-1) < radius**2
+    eye = jnp.eye(pos.shape[-2], dtype=bool)
+    return (near | eye).astype(pos.dtype)
+
+
+def relative_positions(pos: jax.Array, adj: jax.Array) -> jax.Array:
+    """Positions of the other drones relative to each drone, zero for non-neighbours.
+
+    Args:
+        pos: f[..., D, 3] m, world frame.
+        adj: f[..., D, D] adjacency (see `adjacency`).
+
+    Returns:
+        f[..., D, 3(D-1)] m: for drone i, p_j - p_i for every j ≠ i in increasing j.
+    """
+    n = pos.shape[-2]
+    delta = (pos[..., None, :, :] - pos[..., :, None, :]) * adj[..., None]
+    others = np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int32).reshape(n, n - 1)
+    picked = jnp.take_along_axis(delta, jnp.broadcast_to(others[..., None], delta.shape[:-2] + (n - 1, 3)), axis=-2)
+    return jnp.clip(picked, -POS_BOUND, POS_BOUND).reshape(pos.shape[:-2] + (n, 3 * (n - 1)))
+
+
+@dataclasses.dataclass(frozen=True)
+class ObsType:
+    """An observation type for ``n_drones`` drones (static, hashable).
+
+    Attributes:
+        name: registered name (`OBS_TYPES`).
+        n_drones: D.
+        neighbor_radius: m, for ``neighbors``.
+        buffer_len: actions kept in the action buffer (0: no buffer).
+        action_size: entries per action in the buffer.
+    """
+
+    name: str
+    n_drones: int
+    neighbor_radius: float = float("inf")
+    buffer_len: int = 0
+    action_size: int = 0
+
+    @property
+    def size(self) -> int:
+        """Entries per drone."""
+        extra = self.n_drones + 3 * (self.n_drones - 1) if self.name == "neighbors" else 0
+        return 12 + extra + self.buffer_len * self.action_size
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high), each f32[D, size]: the observation box."""
+        if self.name == "kin_norm":
+            low, high = -np.ones(12, np.float32), np.ones(12, np.float32)
+            low[2] = 0.0
+        else:
+            low, high = _kin_bounds()
+        if self.name == "neighbors":
+            n = self.n_drones
+            rel = np.full(3 * (n - 1), POS_BOUND, np.float32)
+            low = np.concatenate([low, np.zeros(n, np.float32), -rel])
+            high = np.concatenate([high, np.ones(n, np.float32), rel])
+        ones = np.ones(self.buffer_len * self.action_size, np.float32)
+        low, high = np.concatenate([low, -ones]), np.concatenate([high, ones])
+        return np.tile(low, (self.n_drones, 1)), np.tile(high, (self.n_drones, 1))
+
+    def observe(self, sim: DroneState, buffer: jax.Array) -> jax.Array:
+        """The observation f[..., D, size] of ``sim``, with the action ``buffer`` f[..., D, K, n_act] appended.
+
+        Clipped to `bounds` (see the module docstring).
+        """
+        if self.name == "kin_norm":
+            parts = [kin_normalized(sim)]
+        else:
+            parts = [kinematic_obs(sim)]
+            if self.name == "neighbors":
+                adj = adjacency(sim.pos, self.neighbor_radius)
+                parts += [adj, relative_positions(sim.pos, adj)]
+        if self.buffer_len:
+            parts.append(buffer.reshape(buffer.shape[:-2] + (-1,)))
+        obs = jnp.concatenate(parts, axis=-1)
+        low, high = self.bounds()
+        return jnp.clip(obs, low.astype(obs.dtype), high.astype(obs.dtype))

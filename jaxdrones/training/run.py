@@ -1,0 +1,211 @@
+"""``jaxdrones train TASK``: PPO on a single-agent task, with evaluation and saved outputs."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+
+#: Tasks ``jaxdrones train`` trains (the single-agent ones).
+TRAINABLE = ("hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune")
+
+
+def default_ppo(task: str):
+    """The tuned `PPOConfig` of a task (the hover settings for tasks without their own)."""
+    from jaxdrones.training.ppo import PPOConfig
+
+    tuned = {
+        "hover": dict(num_timesteps=4_000_000, num_envs=1024, batch_size=1024, num_minibatches=8, unroll_length=10,
+                      learning_rate=1e-3, entropy_cost=1e-3, discounting=0.97),
+        "velocity": dict(num_timesteps=4_000_000, num_envs=1024, batch_size=1024, num_minibatches=8,
+                         unroll_length=10, discounting=0.97),
+        "waypoints": dict(num_timesteps=6_000_000, num_envs=1024, batch_size=1024, num_minibatches=8,
+                          unroll_length=10, discounting=0.97),
+    }
+    return PPOConfig(**tuned.get(task, tuned["hover"]))
+
+
+def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool = False, ppo_config=None,
+               env_overrides=None, n_eval_episodes: int = 256, progress: bool = True,
+               t_start: float | None = None) -> dict:
+    """Train a policy on a task with brax's PPO and save the policy, a learning curve, a flight plot and a summary.
+
+    Outputs in a new run folder (see `jaxdrones.runs.new_run_dir`; an existing run is never overwritten unless
+    ``overwrite``): ``policy.pkl`` (load with `jaxdrones.training.load_policy`), ``learning_curve.png``,
+    ``progress.json``, ``flight.png`` (position against the task's reference, speed and RPMs of one evaluation
+    episode) and ``summary.json``.
+
+    Args:
+        task: a single-agent task name (`TRAINABLE`).
+        out: output folder (default ``runs/<task>``).
+        overwrite: replace an existing ``out``.
+        ppo_config: `PPOConfig` (default `default_ppo`).
+        env_overrides: task config fields for ``jd.make(task, ...)``.
+        n_eval_episodes: evaluation episodes from random starts (≥ 64).
+        progress: show the progress bar.
+        t_start: ``time.perf_counter()`` at which the wall-clock measurement starts (default: now).
+
+    Returns:
+        The summary dict (also written to ``summary.json``): ``wall_time_s`` (everything from ``t_start``:
+        imports, compilation, training, evaluation, plots), ``train_time_s``, ``env_steps``, ``success_metric``,
+        ``success_value`` (the task's success metric over ``n_eval_episodes`` random starts), ``success`` (that
+        value below the task's threshold with no episode terminated early), ``eval`` (all evaluation statistics),
+        for distance tasks ``eval_final_pos_error_m``, the output folder and the settings.
+
+    Raises:
+        ValueError: bad settings (unknown task or env option, fewer than 64 evaluation episodes, ...).
+    """
+    t_start = time.perf_counter() if t_start is None else t_start
+    import jax
+    import numpy as np
+
+    from jaxdrones.envs import make
+    from jaxdrones.plotting import plot_learning_curve, plot_task_flight
+    from jaxdrones.runs import new_run_dir
+    from jaxdrones.training.ppo import ProgressLog, evaluate, rollout_policy, save_policy, total_steps, train
+
+    if task not in TRAINABLE:
+        raise ValueError(f"train: task must be one of {TRAINABLE} (single-agent), got {task!r}")
+    if n_eval_episodes < 64:
+        raise ValueError(f"n_eval_episodes must be >= 64, got {n_eval_episodes}")
+    config = ppo_config or default_ppo(task)
+    env_overrides = dict(env_overrides or {})
+    env = make(task, **env_overrides)
+    if env.config.vision:
+        raise ValueError("train: vision observations are not supported by the PPO trainer")
+    out = new_run_dir(out or os.path.join("runs", task), overwrite=overwrite)
+
+    metric = env.task.success_metric
+    log = ProgressLog(total_steps(config), metric, enabled=progress)
+    t_train = time.perf_counter()
+    try:
+        make_policy, params = train(env, config, progress=log)
+    finally:
+        log.close()
+    train_time = time.perf_counter() - t_train
+    policy = make_policy(params, deterministic=True)
+
+    key_eval, key_flight = jax.random.split(jax.random.key(config.seed + 1))
+    stats = evaluate(env, policy, key_eval, n_eval_episodes)
+    flight = jax.jit(lambda k: rollout_policy(env, policy, k))(key_flight)
+    steps = np.arange(env.episode_length + 1)
+    ref = jax.vmap(lambda s: env.task.reference(jax.tree.map(lambda x: x[0], flight.task), s, env.config))(steps)
+    times = steps / env.config.ctrl_freq
+
+    save_policy(os.path.join(out, "policy.pkl"), params, task, env_overrides, config)
+    log.save(os.path.join(out, "progress.json"))
+    label = f"{metric} ({'final' if env.task.success_at == 'final' else 'mean over episode'})"
+    plot_learning_curve(log.history, os.path.join(out, "learning_curve.png"), metric="metric",
+                        metric_label=f"evaluation {metric} (mean over episode)",
+                        title=f"PPO on {task} ({env.config.model}, {env.config.action_type})")
+    plot_task_flight(times, flight.sim.pos, ref.pos, flight.sim.vel, flight.sim.rpm, os.path.join(out, "flight.png"),
+                     title=f"{task}: evaluation flight")
+    value = stats.get("success_value", math.nan)
+    summary = {
+        "task": task,
+        "wall_time_s": time.perf_counter() - t_start,
+        "train_time_s": train_time,
+        "env_steps": int(log.history[-1]["env_steps"]) if log.history else config.num_timesteps,
+        "success_metric": label,
+        "success_value": value,
+        "success_threshold": env.task.success_threshold,
+        "success": bool(value < env.task.success_threshold and stats["terminated_rate"] == 0.0),
+        "eval": stats,
+        "out_dir": out,
+        "env": json.loads(json.dumps(dataclasses.asdict(env.config), default=str)),
+        "ppo": dataclasses.asdict(config),
+        "devices": [str(d) for d in jax.devices()],
+    }
+    if "final_pos_error_m" in stats:
+        summary["eval_final_pos_error_m"] = stats["final_pos_error_m"]
+    with open(os.path.join(out, "summary.json"), "w") as f:
+        json.dump(summary, f, indent=2)
+    return summary
+
+
+def register(subparsers) -> None:
+    """Add the ``train`` subcommand to an argparse subparsers object."""
+    parser = subparsers.add_parser(
+        "train", help="train a policy with batched PPO (brax)",
+        description="Train a policy with brax's PPO on a jaxdrones task, then evaluate it and save the policy, "
+                    "a learning curve, an evaluation flight plot and summary.json in a new run folder.")
+    parser.add_argument("task", choices=TRAINABLE, help="task to train")
+    ppo = parser.add_argument_group("training")
+    ppo.add_argument("--steps", type=int, default=None, help="env steps to train (default: the task's tuned budget)")
+    ppo.add_argument("--num-envs", type=int, default=None, help="parallel environments")
+    ppo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    ppo.add_argument("--eval-episodes", type=int, default=256, help="evaluation episodes, >= 64 (default 256)")
+    env = parser.add_argument_group("task")
+    env.add_argument("--action-type", default=None, help="action type (default: the task's): rpm, one_d_rpm (the "
+                     "paper's 1-D hover setting), pid, one_d_pid, vel, thrust_torque, one_d_thrust, tun, ctbr")
+    env.add_argument("--obs-type", default=None, help="observation type: kin (default), kin_norm, neighbors")
+    env.add_argument("--model", default=None, help="drone model name (cf2x, cf2p, racer) or URDF path")
+    env.add_argument("--num-drones", type=int, default=None, help="drones per world (single-agent tasks: 1)")
+    env.add_argument("--ctrl-freq", type=int, default=None, help="control rate, Hz (default 30)")
+    env.add_argument("--episode-len", type=float, default=None, help="episode length, s")
+    env.add_argument("--reward", choices=("shaped", "paper"), default=None,
+                     help="shaped (default, for fast learning) or the paper's reward")
+    for effect in ("drag", "ground-effect", "downwash"):
+        env.add_argument(f"--{effect}", action="store_true", help=f"aerodynamic effect: {effect.replace('-', ' ')}")
+    env.add_argument("--backend", choices=("jax", "pybullet"), default=None, help="physics backend (default jax)")
+    env.add_argument("--target", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                     help="hover/takeoff target, m")
+    env.add_argument("--start-pos-range", type=float, nargs=3, default=None, metavar=("DX", "DY", "DZ"),
+                     help="half-widths of random start positions, m")
+    env.add_argument("--start-tilt", type=float, default=None, help="largest random start tilt, rad")
+    env.add_argument("--start-yaw", type=float, default=None, help="half-width of the random start yaw, rad")
+    env.add_argument("--start-vel", type=float, default=None, help="half-width of random start velocities, m/s")
+    env.add_argument("--start-ang-vel", type=float, default=None, help="half-width of random start body rates, rad/s")
+    out = parser.add_argument_group("output")
+    out.add_argument("--out", default=None, help="output folder (default runs/TASK; a numbered sibling is used if "
+                                                 "it exists, unless --overwrite)")
+    out.add_argument("--overwrite", action="store_true", help="replace the contents of an existing --out")
+    out.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.set_defaults(func=run_cli)
+
+
+_ENV_OPTIONS = {"action_type": "action_type", "obs_type": "obs_type", "model": "model", "num_drones": "n_drones",
+                "ctrl_freq": "ctrl_freq", "episode_len": "episode_len_s", "reward": "reward", "backend": "backend",
+                "target": "target", "start_pos_range": "start_pos_range", "start_tilt": "start_tilt",
+                "start_yaw": "start_yaw", "start_vel": "start_vel", "start_ang_vel": "start_ang_vel"}
+
+
+def _positive(name: str, value) -> None:
+    if value is not None and value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value}")
+
+
+def run_cli(args: argparse.Namespace) -> int:
+    """Run ``jaxdrones train``; returns the exit status (0 also when the run did not reach the threshold)."""
+    try:
+        _positive("--steps", args.steps)
+        _positive("--num-envs", args.num_envs)
+        _positive("--eval-episodes", args.eval_episodes)
+        overrides = {"seed": args.seed}
+        if args.steps is not None:
+            overrides["num_timesteps"] = args.steps
+        if args.num_envs is not None:
+            overrides["num_envs"] = overrides["batch_size"] = args.num_envs
+        env = {field: getattr(args, arg) for arg, field in _ENV_OPTIONS.items() if getattr(args, arg) is not None}
+        env.update({name: True for name in ("drag", "ground_effect", "downwash") if getattr(args, name)})
+        if "target" in env and args.task not in ("hover", "takeoff"):
+            raise ValueError(f"--target applies to hover and takeoff, not {args.task}")
+        config = dataclasses.replace(default_ppo(args.task), **overrides)
+        summary = train_task(args.task, args.out, overwrite=args.overwrite, ppo_config=config, env_overrides=env,
+                             n_eval_episodes=args.eval_episodes, progress=not args.no_progress,
+                             t_start=getattr(args, "t_start", None))
+    except (ValueError, OSError) as err:
+        print(f"jaxdrones train: error: {err}", file=sys.stderr)
+        return 2
+    verdict = "solved" if summary["success"] else "not solved"
+    stats = summary["eval"]
+    print(f"{verdict}: {summary['success_metric']} {summary['success_value']:.4g} (threshold "
+          f"{summary['success_threshold']:g}) over {stats['n_episodes']} random starts "
+          f"({stats['terminated_rate']:.0%} terminated), {summary['env_steps']:,} env steps, "
+          f"{summary['wall_time_s']:.1f} s wall time")
+    print(f"saved policy.pkl, learning_curve.png, flight.png, summary.json in {summary['out_dir']}")
+    return 0
