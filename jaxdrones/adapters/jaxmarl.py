@@ -1,0 +1,179 @@
+"""JaxMARL-style adapter: a task's stacked env seen through JaxMARL's ``MultiAgentEnv`` interface, pure JAX.
+
+``env = make("leader_follower", n_drones=3)`` gives agents ``drone_0 ... drone_2`` (agent ``drone_i`` is row ``i`` of
+the stacked env) and the methods of JaxMARL's ``MultiAgentEnv``::
+
+    obs, state = env.reset(key)
+    obs, state, rewards, dones, infos = env.step(key, state, actions)
+
+with per-agent dicts: ``obs[agent]`` f[n_obs], ``actions[agent]`` f[n_act], ``rewards[agent]`` f[],
+``dones[agent]`` bool[] and ``dones["__all__"]`` bool[]. ``reset`` and ``step`` are jitted (as JaxMARL's are), pure,
+and ``vmap`` over worlds. Like JaxMARL's envs, ``step`` resets a world whose episode ended in the same call, here
+with `jaxdrones.wrappers.AutoReset`: the new episode is drawn from the world's own key chain (``state.key``), so a
+run is reproducible from the reset key alone and ``step``'s ``key`` is accepted for the signature but not used.
+
+JaxMARL is not a dependency: the spaces are this module's small jittable `Box` (JaxMARL's ``spaces.Box`` methods:
+``sample(key)``, ``contains(x)``, ``shape``, ``dtype``, ``low``, ``high``).
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
+from jaxdrones.envs.base import EnvState
+from jaxdrones.envs.core import TaskEnv
+from jaxdrones.wrappers.autoreset import AutoReset
+
+
+class Box:
+    """A bounded box of arrays, jittable, with JaxMARL's ``spaces.Box`` interface.
+
+    Attributes:
+        low, high: f32[shape] bounds (NumPy).
+        shape: the array shape.
+        dtype: float32.
+    """
+
+    def __init__(self, low, high):
+        self.low = np.asarray(low, np.float32)
+        self.high = np.asarray(high, np.float32)
+        if self.low.shape != self.high.shape:
+            raise ValueError(f"low and high must have the same shape, got {self.low.shape} and {self.high.shape}")
+        self.shape = self.low.shape
+        self.dtype = np.dtype(np.float32)
+
+    def sample(self, key: jax.Array) -> jax.Array:
+        """f32[shape] uniform in the box."""
+        return jax.random.uniform(key, self.shape, jnp.float32, self.low, self.high)
+
+    def contains(self, x: jax.Array) -> jax.Array:
+        """bool[]: ``x`` has the box's shape and lies in it (jittable)."""
+        x = jnp.asarray(x)
+        if x.shape != self.shape:
+            return jnp.zeros((), bool)
+        return jnp.all((x >= self.low) & (x <= self.high))
+
+    def __repr__(self) -> str:
+        return f"Box(low={self.low.min():g}, high={self.high.max():g}, shape={self.shape}, dtype=float32)"
+
+
+class JaxMARLEnv:
+    """A `TaskEnv` of D drones with JaxMARL's ``MultiAgentEnv`` methods (see the module docstring).
+
+    Attributes:
+        env: the stacked env.
+        num_agents: D.
+        agents: ``["drone_0", ..., "drone_{D-1}"]``.
+        observation_spaces, action_spaces: `Box` by agent: the agent's row of ``env.observation_bounds()`` and
+            ``env.action_bounds()``.
+
+    The state is the env's `EnvState` (with the auto-reset's ``info``). Actions are clipped to their box by the env;
+    a non-finite action terminates the episode (``infos["invalid_action"]``), as in `TaskEnv.step`.
+
+    Raises:
+        ValueError: an env with camera images in its observation (``vision``; use the PettingZoo or gymnasium
+            adapter for those).
+    """
+
+    def __init__(self, env: TaskEnv):
+        if env.config.vision:
+            raise ValueError(f"the JaxMARL view takes state observations only, got vision={env.config.vision}; "
+                             "the PettingZoo and gymnasium adapters take camera images")
+        self.env = env
+        self._auto = AutoReset(env)
+        self.num_agents = env.n_drones
+        self.agents = agent_names(env.n_drones)
+        low, high = env.observation_bounds()
+        a_low, a_high = env.action_bounds()
+        self.observation_spaces = {a: Box(low[i], high[i]) for i, a in enumerate(self.agents)}
+        self.action_spaces = {a: Box(a_low[i], a_high[i]) for i, a in enumerate(self.agents)}
+
+    @property
+    def name(self) -> str:
+        """The task's registered name."""
+        return self.env.task.name
+
+    @partial(jax.jit, static_argnums=(0,))
+    def reset(self, key: jax.Array) -> tuple[dict[str, jax.Array], EnvState]:
+        """Start an episode from ``key`` (typed or raw uint32); returns ``(obs, state)``."""
+        state = self._auto.reset(key)
+        return self.get_obs(state), state
+
+    @partial(jax.jit, static_argnums=(0,))
+    def step(self, key: jax.Array, state: EnvState, actions: dict[str, jax.Array]):
+        """Advance one control step, resetting the world if its episode ended.
+
+        Args:
+            key: accepted for JaxMARL's signature; unused (see the module docstring).
+            state: from `reset` or `step`.
+            actions: f[n_act] by agent, exactly the agents of `agents`.
+
+        Returns:
+            ``(obs, state, rewards, dones, infos)``: the new episode's first observation where a world was reset;
+            ``rewards[agent]`` f[] and ``dones[agent]``, ``dones["__all__"]`` bool[] of the step that ended it;
+            ``infos``: the env's metrics (f[], per world), ``terminated`` and ``truncated`` (bool[]),
+            ``final_obs`` (the step's observation by agent, before any reset) and ``final_steps`` (i32[]).
+
+        Raises:
+            ValueError: (at trace time) missing, unknown or extra agent names, or an action of the wrong shape or
+                a non-float dtype.
+        """
+        del key
+        state = self._auto.step(state, self._stack(actions))
+        done = state.done
+        rewards = {a: state.reward[i] for i, a in enumerate(self.agents)}
+        dones = {**dict.fromkeys(self.agents, done), "__all__": done}
+        infos = {**state.metrics, "terminated": state.terminated, "truncated": state.truncated,
+                 "final_obs": self._by_agent(state.info["final_obs"]), "final_steps": state.info["final_steps"]}
+        return self.get_obs(state), state, rewards, dones, infos
+
+    def get_obs(self, state: EnvState) -> dict[str, jax.Array]:
+        """f[n_obs] by agent: the agent's row of ``state.obs``."""
+        return self._by_agent(state.obs)
+
+    def observation_space(self, agent: str) -> Box:
+        """The observation `Box` of ``agent`` (the same object at every call)."""
+        return self.observation_spaces[self._check_agent(agent)]
+
+    def action_space(self, agent: str) -> Box:
+        """The action `Box` of ``agent`` (the same object at every call)."""
+        return self.action_spaces[self._check_agent(agent)]
+
+    def _by_agent(self, stacked: jax.Array) -> dict[str, jax.Array]:
+        return {a: stacked[..., i, :] for i, a in enumerate(self.agents)}
+
+    def _check_agent(self, agent: str) -> str:
+        if agent not in self.observation_spaces:
+            raise ValueError(f"unknown agent {agent!r}: expected one of {self.agents}")
+        return agent
+
+    def _stack(self, actions: dict) -> jax.Array:
+        check_agent_keys(actions, self.agents)
+        shape = (self.env.action_size,)
+        rows = []
+        for agent in self.agents:
+            action = jnp.asarray(actions[agent])
+            if action.shape != shape or not jnp.issubdtype(action.dtype, jnp.floating):
+                raise ValueError(f"action of {agent} must be a float array of shape {shape} (vmap over worlds for "
+                                 f"a batch), got {action.dtype}{list(action.shape)}")
+            rows.append(action)
+        return jnp.stack(rows)
+
+
+def make(task: str, **options) -> JaxMARLEnv:
+    """A multi-agent task as a `JaxMARLEnv`, e.g. ``make("flock", n_drones=5)``.
+
+    Args:
+        task: one of `jaxdrones.envs.MULTI_AGENT` (``multi_hover``, ``leader_follower``, ``flock``, ``meetup``).
+        **options: fields of the task's config, as for `jaxdrones.make`.
+
+    Raises:
+        ValueError: a single-agent or unknown task (the message names the multi-agent tasks), an invalid option or
+            value, an ``n_drones`` the task does not allow, or camera images in the observation.
+    """
+    return JaxMARLEnv(make_multi_agent(task, **options))

@@ -1,0 +1,176 @@
+"""PettingZoo adapter: a multi-agent task as a ``pettingzoo.ParallelEnv`` (NumPy in and out, one dict per agent).
+
+``parallel_env("leader_follower", n_drones=3)`` gives agents ``drone_0 ... drone_2``; agent ``drone_i`` is row ``i``
+of the stacked env (`jaxdrones.envs.TaskEnv`): its observation is row ``i`` of ``obs f[D, n_obs]``, its action row
+``i`` of ``action f[D, n_act]``, its reward ``reward[i]``. Each ``reset``/``step`` is one jitted call of the whole
+stacked env (the per-agent dicts are built only here, at the boundary). All drones of a world end their episode
+together: the world's ``terminated``/``truncated`` apply to every agent, and ``agents`` is then empty until the next
+``reset``.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import jax
+import numpy as np
+from gymnasium.utils import seeding
+from pettingzoo import ParallelEnv
+
+from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
+from jaxdrones.adapters.gymnasium import RENDER_MODES, render_frame, spaces
+from jaxdrones.envs.core import TaskEnv
+
+#: Tolerance of the action-box check (float32 round-off of actions computed at the bounds).
+_BOX_TOL = 1e-6
+
+
+class PettingZooEnv(ParallelEnv):
+    """A `TaskEnv` of D drones as a PettingZoo ``ParallelEnv``; the adapter owns the env state and the PRNG key.
+
+    * Spaces per agent (`observation_space`, `action_space`, the same object at every call): float32 Boxes, the
+      agent's row of ``env.observation_bounds()`` and ``env.action_bounds()`` (a ``Dict`` with that drone's camera
+      images under ``vision``).
+    * ``reset(seed=..., options=None) -> (observations, infos)``: a seed makes the episode sequence reproducible,
+      ``reset()`` without one continues it; ``options`` is accepted and ignored.
+    * ``step(actions) -> (observations, rewards, terminations, truncations, infos)``: ``actions`` holds one action
+      f32[n_act] per live agent, inside its box (else a ``ValueError``). Rewards are floats, the drone's
+      ``reward[i]``; ``infos[agent]`` holds the world's metrics (floats, means over the drones).
+    * ``render()`` returns an RGB frame u8[H, W, 3] with ``render_mode="rgb_array"`` (else None); `close` releases
+      the backend.
+    """
+
+    metadata = {"render_modes": list(RENDER_MODES), "name": "jaxdrones", "is_parallelizable": True,
+                "render_fps": 30}
+
+    def __init__(self, env: TaskEnv, render_mode: str | None = None):
+        if render_mode is not None and render_mode not in RENDER_MODES:
+            raise ValueError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
+        self.env = env
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "name": f"jaxdrones_{env.task.name}_v0",
+                         "render_fps": env.config.ctrl_freq}
+        self.possible_agents = agent_names(env.n_drones)
+        self.agents = []
+        obs_space, action_space = spaces(env)
+        stacked = env.n_drones > 1  # `spaces` drops the drone axis of a single drone
+        self.observation_spaces = {a: _agent_space(obs_space, i, stacked) for i, a in enumerate(self.possible_agents)}
+        self.action_spaces = {a: _agent_space(action_space, i, stacked) for i, a in enumerate(self.possible_agents)}
+        self._reset = jax.jit(env.reset)
+        self._step = jax.jit(env.step)
+        self._state = None
+        self.np_random = None
+
+    def observation_space(self, agent: str) -> gym.Space:
+        """The observation space of ``agent`` (cached: the same object at every call)."""
+        return self.observation_spaces[self._check_agent(agent)]
+
+    def action_space(self, agent: str) -> gym.Space:
+        """The action space of ``agent`` (cached: the same object at every call)."""
+        return self.action_spaces[self._check_agent(agent)]
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        """Start an episode; returns ``(observations, infos)``, one entry per agent."""
+        if seed is not None or self.np_random is None:
+            self.np_random, _ = seeding.np_random(seed)
+        key = jax.random.key(int(self.np_random.integers(2**31)))
+        self._state = self._reset(key)
+        self.agents = list(self.possible_agents)
+        return self._observations(self.agents), self._infos(self.agents)
+
+    def step(self, actions: dict):
+        """Advance every drone one control step.
+
+        Returns:
+            Per-agent dicts ``(observations, rewards, terminations, truncations, infos)`` over the agents that were
+            live (all of them: the drones of a world end their episode together); ``agents`` is empty after the
+            episode's last step.
+
+        Raises:
+            ValueError: unknown, missing or extra agent names, or an action of the wrong shape, not finite or
+                outside its box.
+            RuntimeError: no episode is running (``reset`` not called, or the episode has ended).
+        """
+        if self._state is None or not self.agents:
+            raise RuntimeError("no episode is running: call reset() first (agents is empty after an episode ends)")
+        agents = self.agents
+        check_agent_keys(actions, agents)
+        action = np.stack([self._check_action(a, actions[a]) for a in agents])
+        self._state = self._step(self._state, action)
+        s = self._state
+        reward = np.asarray(s.reward, np.float32)
+        terminated, truncated = bool(s.terminated), bool(s.truncated)
+        out = (self._observations(agents), {a: float(reward[i]) for i, a in enumerate(agents)},
+               dict.fromkeys(agents, terminated), dict.fromkeys(agents, truncated), self._infos(agents))
+        if terminated or truncated:
+            self.agents = []
+        return out
+
+    def render(self):
+        """An RGB frame u8[H, W, 3] of the current state (``render_mode="rgb_array"``), else None."""
+        if self.render_mode is None or self._state is None:
+            return None
+        return render_frame(self.env, self._state)
+
+    def close(self) -> None:
+        """Release the env's backend (PyBullet worlds)."""
+        self.env.close()
+
+    def _check_agent(self, agent: str) -> str:
+        if agent not in self.observation_spaces:
+            raise ValueError(f"unknown agent {agent!r}: expected one of {self.possible_agents}")
+        return agent
+
+    def _check_action(self, agent: str, action) -> np.ndarray:
+        space = self.action_spaces[agent]
+        try:
+            action = np.asarray(action, dtype=np.float32)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"action of {agent} must be a float array of shape {space.shape}, got {action!r}") from e
+        if action.shape != space.shape:
+            raise ValueError(f"action of {agent} must have shape {space.shape}, got {action.shape}")
+        if (not np.all(np.isfinite(action)) or np.any(action < space.low - _BOX_TOL)
+                or np.any(action > space.high + _BOX_TOL)):
+            raise ValueError(f"action of {agent} must be finite and lie in its box [{space.low.min():g}, "
+                             f"{space.high.max():g}], got {action.tolist()}")
+        return action
+
+    def _observations(self, agents: list[str]) -> dict:
+        obs = jax.tree.map(np.asarray, self._state.obs)
+        return {a: _agent_obs(obs, self.observation_spaces[a], i) for i, a in enumerate(agents)}
+
+    def _infos(self, agents: list[str]) -> dict:
+        metrics = {k: float(v) for k, v in self._state.metrics.items()}
+        return {a: dict(metrics) for a in agents}
+
+
+def _agent_space(space: gym.Space, i: int, stacked: bool) -> gym.Space:
+    """Drone ``i``'s part of a one-world space (``stacked``: its arrays have the drone axis first)."""
+    if isinstance(space, gym.spaces.Dict):
+        return gym.spaces.Dict({k: _agent_space(v, i, stacked) for k, v in space.items()})
+    low, high = (space.low[i], space.high[i]) if stacked else (space.low, space.high)
+    return gym.spaces.Box(low, high, dtype=space.dtype)
+
+
+def _agent_obs(obs, space: gym.Space, i: int):
+    """Drone ``i``'s row of the stacked observation, in ``space``'s dtypes."""
+    if isinstance(space, gym.spaces.Dict):
+        return {k: _agent_obs(obs[k], space[k], i) for k in space}
+    return np.asarray(obs[i], space.dtype)
+
+
+def parallel_env(task: str, render_mode: str | None = None, **options) -> PettingZooEnv:
+    """A multi-agent task as a PettingZoo ``ParallelEnv``, e.g. ``parallel_env("flock", n_drones=5)``.
+
+    Args:
+        task: one of `jaxdrones.envs.MULTI_AGENT` (``multi_hover``, ``leader_follower``, ``flock``, ``meetup``).
+        render_mode: None or ``"rgb_array"``.
+        **options: fields of the task's config (``n_drones``, ``action_type``, ``obs_type``, ``episode_len_s``,
+            ``backend``, ...), as for `jaxdrones.make`.
+
+    Raises:
+        ValueError: a single-agent or unknown task (the message names the multi-agent tasks), an invalid option or
+            value, an ``n_drones`` the task does not allow, or an unknown render mode.
+    """
+    if render_mode is not None and render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
+    return PettingZooEnv(make_multi_agent(task, **options), render_mode=render_mode)
