@@ -1,0 +1,499 @@
+"""Env-steps per second of the jaxdrones gymnasium vector env, the JAX-native env, and crazyflow's vector env.
+
+One env-step is one control step of one world: the hover task at 30 Hz control and 240 Hz physics (8 substeps),
+one drone, random actions in [-1, 1]. Three ways of stepping N worlds, side by side in one run:
+
+- ``vector``: ``gymnasium.make_vec("jaxdrones/Hover-v0", num_envs=N, vectorization_mode="vector_entry_point")``,
+  one ``step(actions)`` per control step from a Python loop, NumPy actions in (drawn with NumPy before the timed
+  loop) and NumPy observations, rewards, flags and infos out; next-step autoreset.
+- ``native``: the JAX-native env, ``AutoReset(jd.make("hover", ctrl_freq=30))`` under ``jit`` + ``vmap``: one
+  jitted call runs ``lax.scan`` over K control steps, the random actions drawn inside the scan. Compile time is
+  measured separately (``compile_s``) and is not in the rate.
+- ``crazyflow``: crazyflow 0.4.0's ``gymnasium.make_vec("DroneReachPos-v0", num_envs=N, freq=30)`` (attitude
+  control, its ``so_rpy`` model, physics fixed at 500 Hz by its env class, so 16 substeps per 30 Hz step), wrapped
+  in its ``NormalizeActions`` (actions in [-1, 1]) and gymnasium's ``JaxToNumpy`` (NumPy in and out), stepped by
+  the same timing loop as ``vector``. It runs in its own virtual environment (``benchmarks/.venv-crazyflow``),
+  which this script creates with ``pip install crazyflow==0.4.0`` when it is missing (``--no-crazyflow`` skips
+  it); if that fails, the output and the JSON say why and the jaxdrones figures are still reported.
+
+Every measurement is warmed up (its first call, which compiles, is timed on its own), then timed ``--repeats``
+times over ``--steps`` control steps; the table gives the median rate (the JSON also the best, the CPU time over
+wall time, and the 1-minute load average, since the timings are wall-clock on a possibly shared machine).
+
+``--profile-sizes`` (default 1 and 4096 worlds) splits the vector env's ``step()`` into its parts by running a copy
+of its body with a timer around each (action check, jitted call, each NumPy conversion), and times the jitted pieces
+on their own: the physics (8 substeps), the env step, the reset computed for every world, the choice between the
+two, the bare cost of passing the env state in and out of a jitted call, and the whole jitted step, next to a
+proposed variant that resets only the worlds that need it (checked to give the same states).
+
+``--devices 2`` shards the JAX-native env's worlds over two CPU devices, one per core (the vector envs use one).
+
+Usage::
+
+    python benchmarks/envs.py                 # writes benchmarks/results/envs.json
+    python benchmarks/envs.py --quick         # sizes 1 and 1024, fewer steps and repeats
+    python benchmarks/envs.py --sizes 4096 --no-crazyflow --profile-sizes
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+from throughput import configure_devices, machine_info, write_report
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+DEFAULT_OUT = os.path.join(HERE, "results", "envs.json")
+SIZES = (1, 64, 1024, 4096)
+#: The JAX-native env also runs at these sizes by default.
+NATIVE_EXTRA = (16384,)
+QUICK_SIZES = (1, 1024)
+PROFILE_SIZES = (1, 4096)
+CTRL_FREQ = 30
+CRAZYFLOW = "crazyflow==0.4.0"
+CRAZYFLOW_VENV = os.path.join(HERE, ".venv-crazyflow")
+CRAZYFLOW_WORKER = os.path.join(HERE, "_crazyflow_worker.py")
+#: Aim for timed runs of about this many env-steps (fewer when --quick), within [MIN_STEPS, MAX_STEPS] steps.
+TARGET_ENV_STEPS = 400_000
+MIN_STEPS, MAX_STEPS = 20, 1000
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", type=int, nargs="+",
+                        help=f"numbers of worlds (default {SIZES}; the JAX-native env also {NATIVE_EXTRA})")
+    parser.add_argument("--steps", type=int, default=None,
+                        help=f"control steps per timed run (default: about {TARGET_ENV_STEPS:.0e} env-steps, "
+                             f"{MIN_STEPS} to {MAX_STEPS} steps)")
+    parser.add_argument("--repeats", type=int, default=None, help="timed runs per measurement (default 5; 3 quick)")
+    parser.add_argument("--quick", action="store_true", help=f"sizes {QUICK_SIZES}, shorter runs, 3 repeats")
+    parser.add_argument("--crazyflow", action=argparse.BooleanOptionalAction, default=True,
+                        help=f"also measure {CRAZYFLOW} (installed into {os.path.relpath(CRAZYFLOW_VENV)} when "
+                             "missing; default on)")
+    parser.add_argument("--crazyflow-venv", default=CRAZYFLOW_VENV, help="its virtual environment (%(default)s)")
+    parser.add_argument("--profile-sizes", type=int, nargs="*", default=None,
+                        help=f"worlds at which to profile the vector env's step (default {PROFILE_SIZES}; none "
+                             "when --quick; give none to skip)")
+    parser.add_argument("--devices", type=int, default=1,
+                        help="CPU devices for the JAX-native env, its worlds sharded over them when their number "
+                             "divides evenly (more than 1 sets XLA_FLAGS before jax is imported; the vector envs "
+                             "use one device); default 1")
+    parser.add_argument("--out", default=DEFAULT_OUT, help="JSON output path (default: %(default)s)")
+    args = parser.parse_args(argv)
+    explicit_sizes = args.sizes is not None
+    args.sizes = sorted(set(args.sizes or (QUICK_SIZES if args.quick else SIZES)))
+    args.native_sizes = args.sizes if explicit_sizes or args.quick else sorted(set(args.sizes) | set(NATIVE_EXTRA))
+    args.repeats = args.repeats or (3 if args.quick else 5)
+    args.target = TARGET_ENV_STEPS // (8 if args.quick else 1)
+    if args.profile_sizes is None:
+        args.profile_sizes = [] if args.quick else list(PROFILE_SIZES)
+    if min(args.sizes) < 1 or (args.steps is not None and args.steps < 1) or args.repeats < 1 or args.devices < 1:
+        parser.error("--sizes, --steps, --repeats and --devices must be positive")
+    return args
+
+
+def steps_for(n: int, steps: int | None, target: int) -> int:
+    """Control steps per timed run at ``n`` worlds: ``steps`` if given, else about ``target`` env-steps."""
+    return steps or int(np.clip(target // n, MIN_STEPS, MAX_STEPS))
+
+
+def time_vector_env(env, n: int, steps: int, repeats: int, seed: int = 0) -> dict:
+    """Env-steps/s of a gymnasium ``VectorEnv`` of ``n`` worlds with actions in [-1, 1].
+
+    The actions are drawn with NumPy before the clock starts, ``steps`` arrays f32[n, ...]; each timed run is a
+    Python loop of ``steps`` ``env.step`` calls. The first ``reset`` + ``step`` (which compile) are timed on their
+    own as ``first_call_s``, then one untimed run warms up. Used for crazyflow too (`_crazyflow_worker.py`), so
+    this function needs only NumPy.
+    """
+    rng = np.random.default_rng(seed)
+    actions = rng.uniform(-1.0, 1.0, (steps, n) + env.single_action_space.shape).astype(np.float32)
+    start = time.perf_counter()
+    env.reset(seed=seed)
+    out = env.step(actions[0])
+    first_call_s = time.perf_counter() - start
+
+    def run():
+        for action in actions:
+            result = env.step(action)
+        return result
+
+    run()
+    times, cpu = [], []
+    for _ in range(repeats):
+        wall, proc = time.perf_counter(), time.process_time()
+        out = run()
+        times.append(time.perf_counter() - wall)
+        cpu.append((time.process_time() - proc) / times[-1])
+    obs = out[0]
+    return {"worlds": n, "steps": steps, "first_call_s": first_call_s, **rates(n * steps, times),
+            "cpu_util": statistics.median(cpu), "loadavg_1min": os.getloadavg()[0],
+            "obs_types": sorted({type(v).__name__ for v in (obs.values() if isinstance(obs, dict) else [obs])}),
+            "reward_type": type(out[1]).__name__}
+
+
+def rates(env_steps: int, times: list[float]) -> dict:
+    return {"env_steps_per_run": env_steps, "times_s": times,
+            "median_env_steps_per_s": env_steps / statistics.median(times),
+            "best_env_steps_per_s": env_steps / min(times)}
+
+
+def bench_vector(gymnasium, n: int, args) -> dict:
+    env = gymnasium.make_vec("jaxdrones/Hover-v0", num_envs=n, vectorization_mode="vector_entry_point",
+                             ctrl_freq=CTRL_FREQ)
+    try:
+        cfg = env.unwrapped.env.config
+        result = time_vector_env(env, n, steps_for(n, args.steps, args.target), args.repeats)
+    finally:
+        env.close()
+    return {"env": "vector", **result, "sim_freq": cfg.sim_freq, "ctrl_freq": cfg.ctrl_freq,
+            "substeps": cfg.sim_freq // cfg.ctrl_freq}
+
+
+def bench_native(jax, jd, n: int, args) -> dict:
+    from jaxdrones.wrappers.autoreset import AutoReset
+
+    env = jd.make("hover", ctrl_freq=CTRL_FREQ)
+    auto = AutoReset(env)
+    steps = steps_for(n, args.steps, args.target)
+    shape = (n, env.n_drones, env.action_size)
+
+    def rollout(state, key):
+        def body(carry, _):
+            state, key = carry
+            key, sub = jax.random.split(key)
+            action = jax.random.uniform(sub, shape, env.dtype, -1.0, 1.0)
+            return (jax.vmap(auto.step)(state, action), key), None
+
+        return jax.lax.scan(body, (state, key), None, length=steps)[0]
+
+    state = jax.jit(jax.vmap(auto.reset))(jax.random.split(jax.random.key(0), n))
+    devices = jax.devices()[:max(k for k in range(1, args.devices + 1) if n % k == 0)]
+    key = jax.random.key(1)
+    if len(devices) > 1:
+        state = jd.sim.shard_worlds(state, devices=devices)
+        key = jax.device_put(key, jax.sharding.NamedSharding(state.sim.pos.sharding.mesh, jax.sharding.PartitionSpec()))
+    shardings = jax.tree.map(lambda x: x.sharding, (state, key))
+    start = time.perf_counter()
+    compiled = jax.jit(rollout, donate_argnums=0, out_shardings=shardings).lower(state, key).compile()
+    compile_s = time.perf_counter() - start
+    state, key = jax.block_until_ready(compiled(state, key))  # warm-up
+    times, cpu = [], []
+    for _ in range(args.repeats):
+        wall, proc = time.perf_counter(), time.process_time()
+        state, key = jax.block_until_ready(compiled(state, key))
+        times.append(time.perf_counter() - wall)
+        cpu.append((time.process_time() - proc) / times[-1])
+    return {"env": "native", "worlds": n, "devices": len(devices), "steps": steps, "compile_s": compile_s,
+            **rates(n * steps, times), "cpu_util": statistics.median(cpu), "loadavg_1min": os.getloadavg()[0],
+            "sim_freq": env.config.sim_freq, "ctrl_freq": env.config.ctrl_freq,
+            "substeps": env.sim_config.n_substeps,
+            "state_bytes_per_world": sum(x.nbytes for x in jax.tree.leaves(state)
+                                         if hasattr(x, "nbytes")) / n}
+
+
+# -- crazyflow -----------------------------------------------------------------------------------------------------
+
+
+def crazyflow_python(venv: str) -> tuple[str | None, str]:
+    """The Python of a virtual environment with crazyflow 0.4.0, created and installed when missing.
+
+    Returns:
+        (path to its python or None, what was done or why it failed).
+    """
+    python = os.path.join(venv, "bin", "python")
+    version = _crazyflow_version(python)
+    if version == CRAZYFLOW.split("==")[1]:
+        return python, f"reused {venv} (crazyflow {version})"
+    print(f"installing {CRAZYFLOW} into {venv} ...", flush=True)
+    try:
+        if not os.path.exists(python):
+            subprocess.run([sys.executable, "-m", "venv", venv], check=True, capture_output=True, text=True,
+                           timeout=300)
+        pip = subprocess.run([python, "-m", "pip", "install", "--disable-pip-version-check", CRAZYFLOW],
+                             check=False, capture_output=True, text=True, timeout=1800)
+    except (OSError, subprocess.SubprocessError) as e:
+        return None, f"could not create {venv}: {e}"
+    if pip.returncode != 0:
+        tail = " | ".join((pip.stdout + pip.stderr).strip().splitlines()[-5:])
+        return None, f"pip install {CRAZYFLOW} failed (exit {pip.returncode}): {tail}"
+    version = _crazyflow_version(python)
+    if version is None:
+        return None, f"pip installed {CRAZYFLOW} into {venv} but it does not import"
+    return python, f"installed {CRAZYFLOW} into {venv}"
+
+
+def _crazyflow_version(python: str) -> str | None:
+    if not os.path.exists(python):
+        return None
+    probe = subprocess.run([python, "-c", "import importlib.metadata as m, crazyflow; print(m.version('crazyflow'))"],
+                           check=False, capture_output=True, text=True, timeout=300)
+    lines = probe.stdout.strip().splitlines()  # crazyflow prints import messages first
+    return lines[-1] if probe.returncode == 0 and lines else None
+
+
+def bench_crazyflow(python: str, args) -> tuple[list[dict], dict, str | None]:
+    """Run `_crazyflow_worker.py` in crazyflow's venv; returns (results, its machine info, error or None)."""
+    command = [python, CRAZYFLOW_WORKER, "--sizes", *map(str, args.sizes), "--repeats", str(args.repeats),
+               "--target", str(args.target), "--ctrl-freq", str(CTRL_FREQ)]
+    if args.steps:
+        command += ["--steps", str(args.steps)]
+    results, info = [], {}
+    # stderr to a file (a full pipe would block the worker); run in the venv's folder, since MuJoCo writes
+    # MUJOCO_LOG.TXT into the working directory.
+    with tempfile.TemporaryFile("w+") as err, subprocess.Popen(command, stdout=subprocess.PIPE, stderr=err, text=True,
+                                                               cwd=args.crazyflow_venv) as proc:
+        for line in proc.stdout:
+            if line.startswith("RESULT "):
+                results.append(json.loads(line[7:]))
+                print_row(results[-1])
+            elif line.startswith("INFO "):
+                info = json.loads(line[5:])
+        proc.wait()
+        err.seek(0)
+        stderr = err.read().strip().splitlines()
+    if proc.returncode != 0:
+        return results, info, f"crazyflow worker exited {proc.returncode}: " + " | ".join(stderr[-5:])
+    return results, info, None
+
+
+# -- profile of the vector env's step ------------------------------------------------------------------------------
+
+
+def profile_vector_step(jax, gymnasium, n: int, calls: int = 100) -> dict:
+    """Median seconds per part of `GymnasiumVectorEnv.step` at ``n`` worlds, and of the jitted pieces alone.
+
+    ``step_parts`` runs a copy of the body of ``GymnasiumVectorEnv.step`` (jaxdrones/adapters/gymnasium.py) with a
+    timer around each part (``jit_call`` is dispatch and compute together: on CPU, XLA runs the call in the calling
+    thread). ``jit_parts`` times jitted functions one call at a time (to ``block_until_ready``) on the same state:
+    the physics (`make_step`, all substeps), the env step (physics included), the reset that the vector env
+    computes for every world at every step, the per-leaf choice between the two, a function that only takes the
+    state and returns it (the cost of passing the env state's leaves in and out of a jitted call), the vector
+    env's whole jitted step, and a proposed variant of it (`_compact_reset_step`). Each isolated piece pays its own
+    call overhead and writes its own outputs, which the fused step does not, so they add up to more than the
+    whole.
+    """
+    from jaxdrones.adapters import gymnasium as adapter
+
+    venv = gymnasium.make_vec("jaxdrones/Hover-v0", num_envs=n, vectorization_mode="vector_entry_point",
+                              ctrl_freq=CTRL_FREQ).unwrapped
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1.0, 1.0, (calls, n, 4)).astype(np.float32)
+    venv.reset(seed=0)
+    for a in actions[:5]:
+        venv.step(a)
+    env, state = venv.env, venv._state
+    action = jax.numpy.asarray(actions[0].reshape(n, env.n_drones, env.action_size))
+    compact = jax.jit(_compact_reset_step(jax, env, n, max(1, n // 16)))
+    matches = _same_trajectory(jax, venv._step, compact, state, venv._needs_reset, actions[:20])
+    rpm = jax.numpy.broadcast_to(env.params.hover_rpm[..., None], state.sim.rpm.shape).astype(state.sim.pos.dtype)
+    pieces = {
+        "physics": (jax.jit(jax.vmap(env._step)), (state.params, state.sim, rpm)),
+        "env_step": (jax.jit(jax.vmap(env.step)), (state, action)),
+        "reset_all_worlds": (jax.jit(jax.vmap(env.reset)), (state.key, state.task)),
+        "select_reset_or_stepped": (jax.jit(_select), (state, state, venv._needs_reset)),
+        "state_in_and_out": (jax.jit(lambda state, needs_reset: (state, needs_reset)), (state, venv._needs_reset)),
+        "vector_env_jitted_step": (venv._step, (state, jax.numpy.asarray(actions[0]), venv._needs_reset)),
+        "what_if_compact_reset": (compact, (state, jax.numpy.asarray(actions[0]), venv._needs_reset)),
+    }
+    for fn, inputs in pieces.values():
+        jax.block_until_ready(fn(*inputs))
+
+    # One loop, each iteration timing everything once, so that every part sees the same machine load.
+    parts = {k: [] for k in ("check_action", "jit_call", "reward", "terminated_truncated", "obs", "infos")}
+    jit_times = {k: [] for k in pieces}
+    totals, step_times = [], []
+    resetting = []
+    for a in actions:
+        resetting.append(float(np.mean(np.asarray(venv._needs_reset))))
+        totals.append(_timed_step_body(jax, adapter, venv, a, parts))
+        t0 = time.perf_counter()
+        venv.step(a)
+        step_times.append(time.perf_counter() - t0)
+        for name, (fn, inputs) in pieces.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(*inputs))
+            jit_times[name].append(time.perf_counter() - t0)
+    jit_parts = {k: statistics.median(v) for k, v in jit_times.items()}
+    venv.close()
+    leaves = jax.tree.leaves(state)
+    return {"worlds": n, "calls": calls, "step_s": statistics.median(step_times),
+            "step_parts_s": {k: statistics.median(v) for k, v in parts.items()},
+            "step_parts_total_s": statistics.median(totals), "jit_parts_s": jit_parts,
+            "fraction_of_worlds_reset_per_step": statistics.mean(resetting), "compact_reset_k": max(1, n // 16),
+            "compact_reset_matches_vector_env": matches,
+            "state_leaves": len(leaves), "state_bytes_per_world": sum(getattr(x, "nbytes", 0) for x in leaves) / n,
+            "loadavg_1min": os.getloadavg()[0]}
+
+
+def _timed_step_body(jax, adapter, venv, actions, parts: dict) -> float:
+    """Run the body of ``GymnasiumVectorEnv.step`` once, appending each part's time to ``parts``; returns the total."""
+    t0 = time.perf_counter()
+    checked = adapter._check_action(actions, venv.single_action_space, (venv.num_envs,))
+    t1 = time.perf_counter()
+    was_reset = venv._needs_reset
+    venv._state, venv._needs_reset = jax.block_until_ready(venv._step(venv._state, checked, venv._needs_reset))
+    t2 = time.perf_counter()
+    s = venv._state
+    reset = np.asarray(was_reset)
+    reward = np.where(reset, 0.0, np.asarray(s.reward).reshape(venv.num_envs, -1).sum(-1)).astype(np.float32)
+    t3 = time.perf_counter()
+    terminated, truncated = np.asarray(s.terminated) & ~reset, np.asarray(s.truncated) & ~reset
+    t4 = time.perf_counter()
+    venv._obs()
+    t5 = time.perf_counter()
+    venv._infos()
+    t6 = time.perf_counter()
+    for k, (u, v) in zip(parts, ((t0, t1), (t1, t2), (t2, t3), (t3, t4), (t4, t5), (t5, t6)), strict=True):
+        parts[k].append(v - u)
+    del reward, terminated, truncated
+    return t6 - t0
+
+
+def _compact_reset_step(jax, env, n: int, k: int):
+    """A variant of the vector env's jitted step that computes the reset for at most ``k`` worlds (those that need
+    it, gathered, reset and scattered back) and falls back to the full reset when more than ``k`` need it; the
+    result is the same as the vector env's. Measured as ``what_if_compact_reset``, a proposal for the adapter."""
+    jnp = jax.numpy
+
+    def step(state, action, needs_reset):
+        stepped = jax.vmap(env.step)(state, action.reshape(n, env.n_drones, env.action_size).astype(env.dtype))
+
+        def some():
+            index = jnp.nonzero(needs_reset, size=k, fill_value=n)[0]  # n (out of range) marks an unused slot
+            safe = jnp.minimum(index, n - 1)
+            fresh = jax.vmap(env.reset)(state.key[safe], jax.tree.map(lambda x: x[safe], state.task))
+            return jax.tree.map(lambda old, new: old.at[index].set(new, mode="drop"), stepped, fresh)
+
+        def every():
+            return _select(jax.vmap(env.reset)(state.key, state.task), stepped, needs_reset)
+
+        out = jax.lax.cond(jnp.sum(needs_reset) > k, every, some)
+        return out, out.done
+
+    return step
+
+
+def _same_trajectory(jax, step_a, step_b, state, needs_reset, actions) -> bool:
+    """Whether two jitted vector steps give identical states over ``actions`` from the same start."""
+    a = b = (state, needs_reset)
+    for action in actions:
+        a, b = step_a(*a[:1], action, a[1]), step_b(*b[:1], action, b[1])
+
+    def data(x):
+        return np.asarray(jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x)
+
+    pairs = [(data(x), data(y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)]
+    return all(np.array_equal(x, y, equal_nan=x.dtype.kind == "f") for x, y in pairs)
+
+
+def _select(fresh, stepped, needs_reset):
+    """The vector env's choice between the reset and the stepped state of each world (a `jnp.where` per leaf)."""
+    import jax
+
+    def pick(new, old):
+        return jax.numpy.where(needs_reset.reshape(needs_reset.shape + (1,) * (new.ndim - 1)), new, old)
+
+    return jax.tree.map(pick, fresh, stepped)
+
+
+def print_profile(p: dict) -> None:
+    step = p["step_s"]
+    print(f"\nvector env step() at {p['worlds']} worlds: {step * 1e3:.2f} ms median "
+          f"({p['worlds'] / step:,.0f} env-steps/s); parts of a copy of its body "
+          f"(total {p['step_parts_total_s'] * 1e3:.2f} ms):")
+    for k, v in p["step_parts_s"].items():
+        print(f"  {k:<24} {v * 1e3:>8.3f} ms  {100 * v / p['step_parts_total_s']:>5.1f} %")
+    print(f"jitted pieces alone (one call each, to block_until_ready; the state has {p['state_leaves']} leaves, "
+          f"{p['state_bytes_per_world']:.0f} bytes per world):")
+    for k, v in p["jit_parts_s"].items():
+        print(f"  {k:<24} {v * 1e3:>8.3f} ms  ({p['worlds'] / v:,.0f} env-steps/s)")
+    same = "gives" if p["compact_reset_matches_vector_env"] else "DOES NOT give"
+    print(f"  ({100 * p['fraction_of_worlds_reset_per_step']:.1f} % of the worlds reset per step; the compact reset "
+          f"of at most {p['compact_reset_k']} worlds {same} the vector env's states)")
+
+
+# -- report --------------------------------------------------------------------------------------------------------
+
+LABELS = {"vector": "jaxdrones vector env", "native": "jaxdrones JAX-native", "crazyflow": "crazyflow vector env"}
+
+
+def print_row(r: dict) -> None:
+    first = f"compile {r['compile_s']:.1f} s" if "compile_s" in r else f"first call {r['first_call_s']:.1f} s"
+    print(f"  {LABELS[r['env']]:<22} {r['worlds']:>6} worlds: {r['median_env_steps_per_s']:>13,.0f} env-steps/s "
+          f"median (best {r['best_env_steps_per_s']:,.0f}), {r['steps']} steps x {len(r['times_s'])}, {first}, "
+          f"cpu {r['cpu_util']:.2f}, load {r['loadavg_1min']:.2f}", flush=True)
+
+
+def print_table(results: list[dict], crazyflow_note: str) -> None:
+    by = {(r["env"], r["worlds"]): r for r in results}
+    sizes = sorted({r["worlds"] for r in results})
+    print(f"\nmedian env-steps/s (hover, {CTRL_FREQ} Hz control, random actions)")
+    print(f"{'worlds':>7} " + " ".join(f"{LABELS[e]:>22}" for e in LABELS))
+    for n in sizes:
+        cells = [f"{by[(e, n)]['median_env_steps_per_s']:>22,.0f}" if (e, n) in by else f"{'-':>22}" for e in LABELS]
+        print(f"{n:>7} " + " ".join(cells))
+    print(f"crazyflow: {crazyflow_note}")
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if args.devices > 1:
+        configure_devices(args.devices)
+    import gymnasium
+    import jax
+
+    import jaxdrones as jd
+
+    info = machine_info(jax)
+    load_start = os.getloadavg()
+    print(f"jax {info['jax']} on {info['backend']} (devices: {len(jax.devices())}), {info['cpu_model']}, "
+          f"{info['cpus_available']} cores, load {load_start}")
+    results = []
+    for n in args.sizes:
+        results.append(bench_vector(gymnasium, n, args))
+        print_row(results[-1])
+    for n in args.native_sizes:
+        results.append(bench_native(jax, jd, n, args))
+        print_row(results[-1])
+
+    crazyflow = {"requested": args.crazyflow, "requirement": CRAZYFLOW, "venv": args.crazyflow_venv}
+    if args.crazyflow:
+        python, note = crazyflow_python(args.crazyflow_venv)
+        print(f"crazyflow: {note}", flush=True)
+        crazyflow["setup"] = note
+        if python is not None:
+            rows, crazyflow["machine"], error = bench_crazyflow(python, args)
+            results += rows
+            crazyflow["error"] = error
+            note = error or (f"{crazyflow['machine'].get('env_id')}, {crazyflow['machine'].get('dynamics')}, "
+                             f"{crazyflow['machine'].get('sim_freq')} Hz physics, "
+                             f"{crazyflow['machine'].get('substeps')} substeps per step")
+        else:
+            crazyflow["error"] = note
+            note = f"NOT MEASURED: {note}"
+        crazyflow["measured"] = any(r["env"] == "crazyflow" for r in results)
+    else:
+        note = "skipped (--no-crazyflow)"
+        crazyflow["measured"] = False
+
+    profile = []
+    for n in args.profile_sizes:
+        profile.append(profile_vector_step(jax, gymnasium, n))
+        print_profile(profile[-1])
+    print_table(results, note)
+    settings = {k: v for k, v in vars(args).items() if k != "out"} | {"ctrl_freq": CTRL_FREQ, "task": "hover"}
+    write_report(args.out, "jaxdrones env-steps per second: vector env, JAX-native env, crazyflow", info, settings,
+                 results, loadavg_start=load_start, crazyflow=crazyflow, profile=profile)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
