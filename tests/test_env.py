@@ -17,7 +17,7 @@ from jaxdrones.envs import ACTION_TYPES, MULTI_AGENT, OBS_TYPES, SINGLE_AGENT, r
 from jaxdrones.envs.actions import ACTION_SIZES
 from jaxdrones.envs.observations import kinematic_obs
 from jaxdrones.params import with_derived
-from jaxdrones.rotations import quat_from_euler, quat_to_euler
+from jaxdrones.rotations import quat_from_euler, quat_to_euler, quat_to_rotmat
 from jaxdrones.wrappers import AutoReset
 
 N_WORLDS = 64
@@ -106,7 +106,7 @@ def keys(n=N_WORLDS, seed=0):
 
 def test_hover_default_is_3d_with_random_starts(hover):
     env, reset, _ = hover
-    assert env.config.action_type == "rpm" and env.action_size == 4 and env.observation_size == 12
+    assert env.config.action_type == "rpm" and env.action_size == 4 and env.observation_size == 21
     s = reset(keys(512))
     pos, vel, w = (np.asarray(x[:, 0]) for x in (s.sim.pos, s.sim.vel, s.sim.ang_vel))
     tilt = np.arccos(np.clip(np.asarray(jax.vmap(lambda q: 1 - 2 * (q[0] ** 2 + q[1] ** 2))(s.sim.quat[:, 0])), -1, 1))
@@ -219,7 +219,7 @@ def test_non_finite_action_terminates_and_is_reported(hover, bad):
 
 
 def test_action_buffer_holds_last_actions_and_is_cleared_at_reset():
-    env = jd.make("hover", action_buffer=True)
+    env = jd.make("hover", obs_type="kin", action_buffer=True)
     k = env.config.ctrl_freq // 2
     assert env.observation_size == 12 + 4 * k
     s = env.reset(jax.random.key(0))
@@ -246,6 +246,11 @@ def test_observation_types():
     rel = np.asarray(s.obs[0, 15:21]).reshape(2, 3)
     for row, j in zip(rel, (1, 2), strict=False):
         np.testing.assert_allclose(row, (pos[j] - pos[0]) * (dist[0, j] < 0.2), atol=1e-6)
+    rot = jd.make("hover")
+    s = rot.reset(jax.random.key(2))
+    assert rot.config.obs_type == "kin_rotmat" and rot.observation_size == 21
+    np.testing.assert_allclose(np.asarray(s.obs[0, 12:]).reshape(3, 3),
+                               np.asarray(jax.vmap(quat_to_rotmat)(s.sim.quat))[0], atol=1e-6)
     norm = jd.make("hover", obs_type="kin_norm")
     s = norm.reset(jax.random.key(1))
     s = s.replace(sim=s.sim.replace(vel=jnp.asarray([[0.3, -6.0, 0.5]], jnp.float32)))
@@ -297,7 +302,7 @@ def test_heterogeneous_team():
 
 
 def test_brax_adapter_auto_resets_with_fresh_starts():
-    env = jd.make("hover", episode_len_s=0.5)
+    env = jd.make("hover", obs_type="kin", episode_len_s=0.5)
     wrapped = wrap_for_brax_training(BraxEnv(env))
     reset, step = jax.jit(wrapped.reset), jax.jit(wrapped.step)
     state = reset(jax.random.split(jax.random.PRNGKey(0), 8))  # brax passes raw uint32 keys

@@ -27,7 +27,7 @@ def test_every_id_passes_the_env_checker(task, env_id):
 def test_hover_episode_through_gymnasium():
     env = gym.make("jaxdrones/Hover-v0", init_pos=[[0.0, 0.0, 1.0]], render_mode=None)
     obs, info = env.reset(seed=3)
-    assert obs.shape == (12,) and obs.dtype == np.float32 and "distance" in info
+    assert obs.shape == (21,) and obs.dtype == np.float32 and "distance" in info
     assert np.all(np.isfinite(env.observation_space.low)) and np.all(np.isfinite(env.observation_space.high))
     obs2, _ = env.reset(seed=3)
     np.testing.assert_array_equal(obs, obs2)
@@ -64,14 +64,14 @@ def test_render_rgb_array():
 
 def test_module_prefix_registers_without_import():
     env = gym.make("jaxdrones:jaxdrones/Takeoff-v0")
-    assert env.reset(seed=0)[0].shape == (12,)
+    assert env.reset(seed=0)[0].shape == (21,)
 
 
 def test_vector_env_steps_all_worlds_with_next_step_autoreset():
     n = 16
     vec = gym.make_vec("jaxdrones/Hover-v0", num_envs=n, vectorization_mode="vector_entry_point", episode_len_s=0.2)
     obs, info = vec.reset(seed=1)
-    assert obs.shape == (n, 12) and obs.dtype == np.float32 and info["distance"].shape == (n,)
+    assert obs.shape == (n, 21) and obs.dtype == np.float32 and info["distance"].shape == (n,)
     length = 6
     for _k in range(length):
         obs, reward, terminated, truncated, _ = vec.step(np.zeros((n, 4), np.float32))

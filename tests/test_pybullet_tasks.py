@@ -179,7 +179,7 @@ def test_vision_obs_shapes_and_render_schedule(vision_env):
     assert env.config.camera_period == 2
     spec = env.observation_spec
     assert {k: (v.shape, np.dtype(v.dtype)) for k, v in spec.items()} == {
-        "state": ((1, 12), np.dtype(np.float32)), "rgb": ((1, 48, 64, 4), np.dtype(np.uint8)),
+        "state": ((1, 21), np.dtype(np.float32)), "rgb": ((1, 48, 64, 4), np.dtype(np.uint8)),
         "depth": ((1, 48, 64), np.dtype(np.float32)), "seg": ((1, 48, 64), np.dtype(np.int32))}
     n = 3
     reset, step = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.step))
@@ -192,7 +192,7 @@ def test_vision_obs_shapes_and_render_schedule(vision_env):
     for obs in history:
         for name, s in spec.items():
             assert obs[name].shape == (n,) + s.shape and obs[name].dtype == s.dtype, name
-    np.testing.assert_allclose(history[-1]["state"], kinematic_obs(state.sim), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(history[-1]["state"][..., :12], kinematic_obs(state.sim), rtol=1e-6, atol=1e-7)
     for k in range(1, 7):  # steps 2, 4, 6 render (the drones climb, so the ground recedes); 1, 3, 5 hold
         same = [np.array_equal(history[k][name], history[k - 1][name]) for name in ("rgb", "depth", "seg")]
         if k % 2:

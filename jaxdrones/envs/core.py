@@ -156,7 +156,10 @@ class TaskConfig:
         model: drone model name or URDF path for all drones, or a tuple with one per drone (heterogeneous team,
             e.g. ``("cf2x", "racer")``).
         action_type: one of `jaxdrones.envs.actions.ACTION_TYPES`.
-        obs_type: one of `jaxdrones.envs.observations.OBS_TYPES`.
+        obs_type: one of `jaxdrones.envs.observations.OBS_TYPES`; default ``"kin_rotmat"`` (the paper's KIN followed
+            by the rotation matrix: with random headings, the Euler angles' wrap at ±π makes learning much slower
+            — PPO on 3-D hover reached 14 cm with ``"kin"`` and 1.2 cm with ``"kin_rotmat"`` in the same 4.4 M
+            steps); ``"kin"`` is the paper's.
         action_buffer: append the last ``ctrl_freq // 2`` actions to the observation (the original's KIN).
         pid_target: ``pid`` action: ``"absolute"`` (main) or ``"relative"`` (the paper).
         sim_freq: physics rate, Hz.
@@ -196,7 +199,7 @@ class TaskConfig:
     n_drones: int = 1
     model: str | tuple[str, ...] = "cf2x"
     action_type: str = "rpm"
-    obs_type: str = "kin"
+    obs_type: str = "kin_rotmat"
     action_buffer: bool = False
     pid_target: str = "absolute"
     sim_freq: int = 240

@@ -8,6 +8,9 @@ name           size per drone          content
 ``kin_norm``   12                      the paper's normalised KIN: xy/15, z/5, roll, pitch, yaw / π, vxy/3, vz/1,
                                        ang_vel as a unit vector — with vz divided by its own limit (the original
                                        divides it by the xy limit, 3, so its vz never leaves [-1/3, 1/3])
+``kin_rotmat`` 21                      ``kin``, then the rotation matrix R (body→world, row-major): the attitude
+                                       without the Euler angles' wrap-around at ±π (easier to learn from with any
+                                       heading)
 ``neighbors``  12 + D + 3(D - 1)       ``kin``, then the drone's adjacency row (1 for itself and every drone within
                                        ``neighbor_radius`` m, eq. adj), then the positions of the other drones
                                        relative to it (m, world, in drone order, 0 for drones outside the radius)
@@ -29,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrones.rotations import quat_to_euler
+from jaxdrones.rotations import quat_to_euler, quat_to_rotmat
 from jaxdrones.state import DroneState
 
 #: Clip bounds of the observations: position (m), velocity (m/s), body rates (rad/s), relative positions (m).
@@ -39,7 +42,7 @@ ANG_VEL_BOUND = 200.0
 #: The paper's normalisation limits (HoverAviary._clipAndNormalizeState): xy m, z m, vxy m/s, vz m/s.
 NORM_XY, NORM_Z, NORM_VXY, NORM_VZ = 15.0, 5.0, 3.0, 1.0
 #: The registered observation type names.
-OBS_TYPES = ("kin", "kin_norm", "neighbors")
+OBS_TYPES = ("kin", "kin_norm", "kin_rotmat", "neighbors")
 
 
 def kinematic_obs(sim: DroneState) -> jax.Array:
@@ -134,7 +137,7 @@ class ObsType:
     @property
     def size(self) -> int:
         """Entries per drone."""
-        extra = self.n_drones + 3 * (self.n_drones - 1) if self.name == "neighbors" else 0
+        extra = {"neighbors": self.n_drones + 3 * (self.n_drones - 1), "kin_rotmat": 9}.get(self.name, 0)
         return 12 + extra + self.buffer_len * self.action_size
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -144,6 +147,8 @@ class ObsType:
             low[2] = 0.0
         else:
             low, high = _kin_bounds()
+        if self.name == "kin_rotmat":
+            low, high = np.concatenate([low, -np.ones(9, np.float32)]), np.concatenate([high, np.ones(9, np.float32)])
         if self.name == "neighbors":
             n = self.n_drones
             rel = np.full(3 * (n - 1), POS_BOUND, np.float32)
@@ -162,6 +167,8 @@ class ObsType:
             parts = [kin_normalized(sim)]
         else:
             parts = [kinematic_obs(sim)]
+            if self.name == "kin_rotmat":
+                parts.append(quat_to_rotmat(sim.quat).reshape(sim.quat.shape[:-1] + (9,)))
             if self.name == "neighbors":
                 adj = adjacency(sim.pos, self.neighbor_radius)
                 parts += [adj, relative_positions(sim.pos, adj)]

@@ -19,8 +19,8 @@ def default_ppo(task: str):
     from jaxdrones.training.ppo import PPOConfig
 
     tuned = {
-        "hover": dict(num_timesteps=4_000_000, num_envs=1024, batch_size=1024, num_minibatches=8, unroll_length=10,
-                      learning_rate=1e-3, entropy_cost=1e-3, discounting=0.97),
+        "hover": dict(num_timesteps=2_500_000, num_envs=1024, batch_size=1024, num_minibatches=8, unroll_length=10,
+                      learning_rate=2e-3, entropy_cost=1e-3, discounting=0.97),
         "velocity": dict(num_timesteps=4_000_000, num_envs=1024, batch_size=1024, num_minibatches=8,
                          unroll_length=10, discounting=0.97),
         "waypoints": dict(num_timesteps=6_000_000, num_envs=1024, batch_size=1024, num_minibatches=8,
