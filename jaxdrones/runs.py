@@ -20,7 +20,8 @@ def new_run_dir(path: str | os.PathLike, overwrite: bool = False) -> str:
         The folder that was created (or emptied), as a string.
 
     Raises:
-        ValueError: if ``path`` exists and is a file.
+        ValueError: if ``path`` exists and is a file, or the folder cannot be created or written (permissions, a
+            read-only file system, ...).
     """
     path = os.fspath(path)
     if os.path.isfile(path):
@@ -33,5 +34,10 @@ def new_run_dir(path: str | os.PathLike, overwrite: bool = False) -> str:
             while os.path.exists(f"{path}-{k}"):
                 k += 1
             path = f"{path}-{k}"
-    os.makedirs(path, exist_ok=True)
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"cannot create the output folder {path!r}: {err.strerror or err}") from None
+    if not os.access(path, os.W_OK):
+        raise ValueError(f"the output folder {path!r} is not writable")
     return path

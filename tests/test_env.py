@@ -375,3 +375,71 @@ def test_registry_lists_every_task():
     for name in registered():
         fields = {f.name for f in dataclasses.fields(jd.envs.get_task(name).config_cls)}
         assert {"init_pos", "init_rpy", "randomize", "n_drones", "model"} <= fields
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# PID-based action types drive the DSL PID of the circle example with the original's target rules
+# ------------------------------------------------------------------------------------------------------------------
+
+
+def _pid_case(action_type, action, pos=(0.2, -0.1, 0.8), **options):
+    from jaxdrones.envs.actions import Reference
+
+    env = jd.make("hover", action_type=action_type, init_pos=[pos], init_rpy=[[0.1, -0.05, 0.3]], **options)
+    s = env.reset(jax.random.key(0))
+    s = s.replace(sim=s.sim.replace(vel=jnp.asarray([[0.1, 0.2, -0.1]], jnp.float32)))
+    action = jnp.asarray([action], jnp.float32)
+    ref = env.task.reference(s.task, s.steps, env.config)
+    rpm, carry = env.action_type.to_rpm(s.params, s.sim, s.ctrl, action, ref, 1 / 30)
+    assert isinstance(ref, Reference)
+    return env, s, rpm, carry
+
+
+@pytest.mark.parametrize("action_type, action, pos, target, options", [
+    ("pid", [0.5, 0.3, 0.9], (0.2, -0.1, 0.8), [0.5, 0.3, 0.9], {}),  # within 1 m: the target itself
+    ("pid", [-1.0, 0.0, 1.0], (2.0, 0.0, 1.0), [1.0, 0.0, 1.0], {}),  # 3 m away: 1 m towards it
+    ("pid", [0.5, -1.0, 1.0], (0.2, -0.1, 0.8), [0.25, -0.2, 0.9], {"pid_target": "relative"}),  # pos + 0.1 a
+    ("one_d_pid", [0.6], (0.2, -0.1, 0.8), [0.2, -0.1, 0.86], {}),  # pos + (0, 0, 0.1 a)
+])
+def test_pid_actions_follow_the_original_target_rules(action_type, action, pos, target, options):
+    from jaxdrones.control.pid import PIDGains, pid_control
+
+    env, s, rpm, carry = _pid_case(action_type, action, pos, **options)
+    expected, state = pid_control(s.params, PIDGains.dsl(), s.ctrl, s.sim, jnp.asarray([target], jnp.float32),
+                                  ctrl_dt=1 / 30)
+    np.testing.assert_allclose(rpm, expected, rtol=1e-5)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), carry, state)
+
+
+def test_vel_and_tun_actions_drive_the_dsl_pid():
+    from jaxdrones.control.pid import PIDGains, pid_control, velocity_control
+
+    env, s, rpm, _ = _pid_case("vel", [0.0, 1.0, 0.0, 0.5])
+    expected, _ = velocity_control(s.params, PIDGains.dsl(), s.ctrl, s.sim, jnp.asarray([[0.0, 1.0, 0.0, 0.5]]),
+                                   ctrl_dt=1 / 30)
+    np.testing.assert_allclose(rpm, expected, rtol=1e-5)
+    scale = np.array([0.5, -0.2, 0.1, 0.3, 0.0, -0.4], np.float32)
+    env, s, rpm, _ = _pid_case("tun", scale)
+    base = PIDGains.dsl()
+    gains = PIDGains(*(g * (1 + scale[k]) for k, g in enumerate(
+        (base.p_pos, base.i_pos, base.d_pos, base.p_att, base.i_att, base.d_att))))
+    expected, _ = pid_control(s.params, gains, s.ctrl, s.sim, s.task.target, ctrl_dt=1 / 30)
+    np.testing.assert_allclose(rpm, expected, rtol=1e-5)
+
+
+def test_thrust_actions_use_the_nnls_mixer():
+    from jaxdrones.control.mixer import allocation_matrix
+
+    env = jd.make("hover", action_type="thrust_torque")
+    s = env.reset(jax.random.key(0))
+    a = jnp.asarray([[0.1, 0.5, -0.3, 0.2]], jnp.float32)
+    rpm, _ = env.action_type.to_rpm(s.params, s.sim, s.ctrl, a, None, 1 / 30)
+    wrench = np.asarray(allocation_matrix(s.params)[0]) @ np.asarray(rpm[0], np.float64) ** 2
+    p = s.params
+    expected = [1.1 * float(p.weight[0]), 0.05 * 0.5 * float(p.max_xy_torque[0]),
+                -0.05 * 0.3 * float(p.max_xy_torque[0]), 0.05 * 0.2 * float(p.max_z_torque[0])]
+    np.testing.assert_allclose(wrench, expected, rtol=2e-4, atol=1e-9)
+    env = jd.make("hover", action_type="one_d_thrust")
+    rpm, _ = env.action_type.to_rpm(s.params, s.sim, s.ctrl, jnp.asarray([[-0.6]], jnp.float32), None, 1 / 30)
+    np.testing.assert_allclose(rpm[0], np.full(4, np.sqrt(0.97 * float(p.weight[0]) / (4 * float(p.kf[0])))),
+                               rtol=1e-5)

@@ -174,7 +174,13 @@ def test_cli_camera(tmp_path, capsys):
     assert main(["camera", "--out", str(out), "--width", "64", "--height", "48"]) == 0  # a new sibling folder
     assert sorted(os.listdir(tmp_path)) == ["run", "run-1"]
     assert main(["camera", "--out", str(out), "--distance", "-1"]) == 2
-    assert "distance" in capsys.readouterr().out
+    assert "distance" in capsys.readouterr().err
+    # An output folder that cannot be created: a clear error, no traceback.
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    assert main(["camera", "--out", str(blocker / "sub")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jaxdrones camera: error: cannot create the output folder") and "Traceback" not in err
 
 
 def two_drone_worlds(n_worlds=3):

@@ -305,18 +305,18 @@ def test_fly_cli_pybullet_writes_a_video(tmp_path, capsys):
     existing = tmp_path / "mine.mp4"
     existing.write_bytes(b"not a video")
     assert main(args[:-1] + [str(tmp_path / "bad"), "--video", str(existing)]) == 2
-    assert "exists" in capsys.readouterr().out
+    assert "exists" in capsys.readouterr().err
     assert existing.read_bytes() == b"not a video" and not (tmp_path / "bad").exists()
 
 
 def test_fly_cli_rejects_pybullet_options_on_jax_and_gui_without_display(tmp_path, capsys, monkeypatch):
     assert main(["fly", "--obstacles", "--out", str(tmp_path / "a")]) == 2
-    assert "needs backend='pybullet'" in capsys.readouterr().out
+    assert "needs backend='pybullet'" in capsys.readouterr().err
     assert main(["fly", "--video", "v.mp4", "--out", str(tmp_path / "b")]) == 2
-    assert "needs --backend pybullet" in capsys.readouterr().out
+    assert "needs --backend pybullet" in capsys.readouterr().err
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     monkeypatch.setattr("sys.platform", "linux")
     assert main(["fly", "--backend", "pybullet", "--gui", "--out", str(tmp_path / "c")]) == 2
-    assert "needs a display" in capsys.readouterr().out
+    assert "needs a display" in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in "abc")

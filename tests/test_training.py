@@ -149,5 +149,5 @@ def test_fly_cli(tmp_path, capsys):
         assert np.all(np.isfinite(flight["pos"]))
 
     assert main(["fly", "--num-drones", "0", "--out", str(tmp_path / "bad")]) == 2
-    assert "num_drones must be a positive integer" in capsys.readouterr().out
+    assert "num_drones must be a positive integer" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()

@@ -21,6 +21,7 @@ import json
 import math
 import numbers
 import os
+import sys
 
 import numpy as np
 
@@ -179,11 +180,11 @@ def run_cli(args: argparse.Namespace) -> int:
 
     try:
         scene = camera_scene(args.model, args.width, args.height, args.fov, args.distance, args.renderer)
-    except (ValueError, RuntimeError) as err:
-        print(f"jaxdrones camera: error: {err}")
+        out = new_run_dir(args.out, overwrite=args.overwrite)
+        paths = save_camera_images(scene, out, overwrite=args.overwrite)
+    except (ValueError, RuntimeError, OSError) as err:
+        print(f"jaxdrones camera: error: {err}", file=sys.stderr)
         return 2
-    out = new_run_dir(args.out, overwrite=args.overwrite)
-    paths = save_camera_images(scene, out, overwrite=args.overwrite)
     box = scene["seg"] == scene["body_ids"]["obstacles"][0]
     h, w = scene["depth"].shape
     print(f"{w} × {h} image, box face {args.distance:g} m ahead: depth at the image centre "

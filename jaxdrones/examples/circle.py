@@ -488,17 +488,17 @@ def run_cli(args: argparse.Namespace) -> int:
             video_format(video)
         # Validate before creating the run folder (a relative video path is inside the new folder, so it is new).
         check_flight(**kwargs, video=video if video is not None and os.path.isabs(video) else None)
+        out = new_run_dir("runs/fly" if args.out is None else args.out, overwrite=args.overwrite)
     except (ValueError, RuntimeError) as err:
-        print(f"jaxdrones fly: error: {err}")
+        print(f"jaxdrones fly: error: {err}", file=sys.stderr)
         return 2
-    out = new_run_dir("runs/fly" if args.out is None else args.out, overwrite=args.overwrite)
     if video is not None:
         video = os.path.join(out, video)
     try:
         result = fly_circle(**kwargs, feedforward=feedforward, video=video,
                             progress=not args.no_progress)
     except (ValueError, RuntimeError) as err:
-        print(f"jaxdrones fly: error: {err}")
+        print(f"jaxdrones fly: error: {err}", file=sys.stderr)
         return 2
     plot_path = plot_flight(result, os.path.join(out, "flight.png"))
     m, c = result["metrics"], result["contacts"]
