@@ -25,8 +25,6 @@ import sys
 
 import numpy as np
 
-from jaxdrones.backends import camera
-from jaxdrones.backends.scene import Obstacle
 
 #: The drone's position, m, world frame (level, yaw 0: the camera looks along world +x).
 DRONE_POS = (0.0, 0.0, 0.5)
@@ -47,15 +45,19 @@ _SEG_COLOURS = ((0, 0, 0), (128, 128, 128), (230, 90, 50), (60, 180, 80), (70, 1
 
 def eye_position(params) -> np.ndarray:
     """The camera's eye, f[3] m, world frame: `DRONE_POS` + (collision_radius + EYE_MARGIN, 0, 0)."""
-    return np.asarray(DRONE_POS) + np.array([float(params.collision_radius) + camera.EYE_MARGIN, 0.0, 0.0])
+    from jaxdrones.backends.camera import EYE_MARGIN  # imports pybullet, which prints on import: only when used
+
+    return np.asarray(DRONE_POS) + np.array([float(params.collision_radius) + EYE_MARGIN, 0.0, 0.0])
 
 
-def scene_obstacles(params, distance: float = BOX_DISTANCE) -> tuple[Obstacle, Obstacle]:
+def scene_obstacles(params, distance: float = BOX_DISTANCE) -> tuple:
     """The box (front face ``distance`` m ahead of the eye, centred on the optical axis) and the sphere.
 
     Raises:
         ValueError: if ``distance`` is not a positive finite number.
     """
+    from jaxdrones.backends.scene import Obstacle
+
     if isinstance(distance, bool) or not isinstance(distance, numbers.Real) or not 0 < distance < math.inf:
         raise ValueError(f"distance must be a positive number of metres, got {distance!r}")
     eye = eye_position(params)
