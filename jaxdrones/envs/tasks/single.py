@@ -297,7 +297,25 @@ def path_points(kind: jax.Array, radius: jax.Array, phase: jax.Array, direction:
     return centre + jnp.concatenate([xy, jnp.zeros_like(xy[:, :1])], axis=-1)
 
 
-class Waypoints(Task):
+class ReferenceTask(Task):
+    """A task that tracks a moving reference point (`Task.reference`): the observation appends the offset to the
+    reference and its velocity (6 entries), and the shaped reward pulls towards the reference as `Hover`'s."""
+
+    nonnegative_reward = True
+    obs_size = 6
+
+    def obs_bound(self, config):
+        return np.array([POS_BOUND] * 3 + [VEL_BOUND] * 3, np.float32)
+
+    def observe(self, config, task, sim, steps):
+        ref = self.reference(task, steps, config)
+        return jnp.concatenate([ref.pos - sim.pos, ref.vel], axis=-1)
+
+    def reward_terms(self, config, task, sim, action, steps):
+        return _tracking_terms(config, self.reference(task, steps, config).pos, sim)
+
+
+class Waypoints(ReferenceTask):
     """Follow a sequence of waypoints drawn per episode: a circle or a figure-8 of random radius, start phase and
     sense, one waypoint per control step (a moving reference at ``laps`` laps per episode).
 
@@ -312,11 +330,6 @@ class Waypoints(Task):
     success_metric = "waypoint_distance"
     success_at = "mean"
     success_threshold = 0.1
-    nonnegative_reward = True
-    obs_size = 6
-
-    def obs_bound(self, config):
-        return np.array([POS_BOUND] * 3 + [VEL_BOUND] * 3, np.float32)
 
     def start_defaults(self, config):
         return dict(pos=[config.centre], pos_range=(0.1, 0.1, 0.1), tilt=0.1, yaw=math.pi, vel=0.1, ang_vel=0.2)
@@ -352,13 +365,6 @@ class Waypoints(Task):
         k = jnp.minimum(steps, points.shape[0] - 2)
         pos, nxt = points[k], points[k + 1]
         return Reference(pos, (nxt - pos) * config.ctrl_freq)
-
-    def observe(self, config, task, sim, steps):
-        ref = self.reference(task, steps, config)
-        return jnp.concatenate([ref.pos - sim.pos, ref.vel], axis=-1)
-
-    def reward_terms(self, config, task, sim, action, steps):
-        return _tracking_terms(config, self.reference(task, steps, config).pos, sim)
 
     def metrics(self, config, task, sim, steps):
         return {"waypoint_distance": jnp.mean(rewards.distance(sim.pos, self.reference(task, steps, config).pos))}
@@ -425,7 +431,7 @@ class GateConfig(TaskConfig):
         super().__post_init__()
 
 
-class FlyThruGate(Task):
+class FlyThruGate(ReferenceTask):
     """Fly through the paper's gate (FlyThruGateAviary): follow a reference point moving from (0, 0, 0.75) m to
     (0, −2, 0.75) m over the episode, through the gate at y = −1 m.
 
@@ -441,11 +447,6 @@ class FlyThruGate(Task):
     config_cls = GateConfig
     success_at = "mean"
     success_threshold = 0.1
-    nonnegative_reward = True
-    obs_size = 6
-
-    def obs_bound(self, config):
-        return np.array([POS_BOUND] * 3 + [VEL_BOUND] * 3, np.float32)
 
     def start_defaults(self, config):
         return dict(pos=[[0.0, 0.0, DEFAULT_START_Z]], pos_range=(0.05, 0.05, 0.0), tilt=0.0, yaw=math.pi,
@@ -463,13 +464,6 @@ class FlyThruGate(Task):
         start = task.target.at[..., 1].set(0.0)
         vel = (task.target - start) / duration
         return Reference(start + (task.target - start) * tau, jnp.where(tau < 1, vel, 0.0))
-
-    def observe(self, config, task, sim, steps):
-        ref = self.reference(task, steps, config)
-        return jnp.concatenate([ref.pos - sim.pos, ref.vel], axis=-1)
-
-    def reward_terms(self, config, task, sim, action, steps):
-        return _tracking_terms(config, self.reference(task, steps, config).pos, sim)
 
 
 SINGLE_AGENT_TASKS = (Hover(), Takeoff(), Velocity(), Waypoints(), FlyThruGate(), Tune())
