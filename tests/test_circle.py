@@ -1,4 +1,4 @@
-"""The paper's circle example (facts §13): 4 Crazyflies track the circle with the DSL PID controller.
+"""The paper's circle example (docs/physics.md §13): 4 Crazyflies track the circle with the DSL PID controller.
 
 Metric (documented in `jaxdrones.examples.circle`): RMS over the control steps with t ≥ 1 s of the 3-D distance
 to the moving way-point, and to the nearest point of each drone's reference circle (cross-track).
@@ -49,7 +49,7 @@ def test_default_flight_tracks_within_5cm(flights):
 
 
 def test_without_feedforward_lags_like_the_original(flights):
-    """The original (no feed-forward) lags its moving way-point by ≈ 9 cm (facts §12) but stays on the circle."""
+    """The original (no feed-forward) lags its moving way-point by ≈ 9 cm (docs/physics.md §12) but stays on the circle."""
     m = flights[False]["metrics"]
     assert 0.07 < m["waypoint_rms_m"] < 0.11, m
     assert m["cross_track_rms_m"] < TOLERANCE_M, m

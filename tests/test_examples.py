@@ -116,7 +116,7 @@ def test_downwash_dips_the_lower_drone(flown, backend):
     assert max(np.abs(off["dips_m"])) < 0.003, off
     assert m["max_dip_m"]["difference"] > 0.02
     # Downwash acts on the lower drone only: the upper drone's altitude is the same in both runs (to round-off,
-    # which the chattering PID amplifies to about a centimetre along x on PyBullet, facts §12).
+    # which the chattering PID amplifies to about a centimetre along x on PyBullet, docs/physics.md §12).
     assert np.max(np.abs(a["on_pos"][:, 0, 2] - a["off_pos"][:, 0, 2])) < 1e-3
     assert np.max(np.abs(a["on_pos"][:, 1, 2] - a["off_pos"][:, 1, 2])) > 0.02
     assert on["upper_max_error_m"] < 0.015

@@ -35,7 +35,7 @@ MODELS = ("cf2x", "cf2p", "racer")
 F64_RTOL = 1e-12
 F32_RTOL_SQUARED = 2e-6
 F32_RTOL_RPM = 1e-5
-#: The scaled allocation matrices W A (rows T, τx, τy, τz) that facts §3.1 and §10.3 give: cf2x with main's motor
+#: The scaled allocation matrices W A (rows T, τx, τy, τz) that docs/physics.md §3.1 and §10.3 give: cf2x with main's motor
 #: order (the paper's matrix is for its own order), cf2p exactly the paper's, racer with its mirrored spins.
 SCALED = {
     "cf2x": [[1, 1, 1, 1], [-1 / math.sqrt(2), -1 / math.sqrt(2), 1 / math.sqrt(2), 1 / math.sqrt(2)],
@@ -70,7 +70,7 @@ def stacked_params(names) -> jd.DroneParams:
 def scaled_system(params: jd.DroneParams) -> tuple[np.ndarray, np.ndarray]:
     """Host-side (W A, W) in float64 for unbatched params, written from the params' fields in NumPy.
 
-    The matrix and row weights that the original hands to scipy's nnls (facts §10.3).
+    The matrix and row weights that the original hands to scipy's nnls (docs/physics.md §10.3).
     """
     kf, km, arm = (float(getattr(params, name)) for name in ("kf", "km", "arm"))
     torque_arm, spin = np.asarray(params.torque_arm, np.float64), np.asarray(params.prop_spin, np.float64)

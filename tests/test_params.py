@@ -27,7 +27,7 @@ def _printed_tolerance(value: float) -> float:
 
 
 @pytest.mark.parametrize("model", MODELS)
-def test_derived_constants_match_facts_table(model, x64):
+def test_derived_constants_match_the_documented_table(model, x64):
     """docs/physics.md §1.1 table, to ~1e-6 relative (or half a unit of the last printed digit where it has fewer)."""
     params = jd.load_params(model)
     for name, expected in ref.DERIVED_TABLE[model].items():
@@ -51,7 +51,7 @@ def test_derived_constants_match_formulas(model, x64):
 
 
 @pytest.mark.parametrize("model", MODELS)
-def test_urdf_constants_match_facts_table(model, x64):
+def test_urdf_constants_match_the_documented_table(model, x64):
     params = jd.load_params(model)
     frame = ref.AIRFRAMES[model]
     np.testing.assert_allclose(params.mass, frame.mass, rtol=1e-15)
@@ -83,7 +83,7 @@ PROP_SPIN = {"cf2x": (1, -1, 1, -1), "cf2p": (1, -1, 1, -1), "racer": (-1, 1, -1
 
 
 @pytest.mark.parametrize("model", MODELS)
-def test_motor_layout_matches_facts(model, x64):
+def test_motor_layout_matches_the_documented_layout(model, x64):
     params = jd.load_params(model)
     expected = np.concatenate([np.array(PROP_POS[model], dtype=np.float64), np.zeros((4, 1))], axis=1)
     np.testing.assert_allclose(params.prop_pos, expected, rtol=1e-15, atol=0)

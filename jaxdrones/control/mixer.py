@@ -2,8 +2,8 @@
 
 A quadrotor's four motor speeds set a body wrench (collective thrust T along body +z and the body torques τx, τy,
 τz). The map is linear in the squared speeds s = rpm², ``wrench = A s``, with A = `allocation_matrix`, built from
-the same constants and signs as `jaxdrones.dynamics` (facts sheet §2, §3.1). Its inverse with the constraint s ≥ 0
-is the paper's DYN action conversion (facts §10.3, ``paper:gym_pybullet_drones/utils/utils.py:58-133``): solve
+the same constants and signs as `jaxdrones.dynamics` (docs/physics.md §2, §3.1). Its inverse with the constraint s ≥ 0
+is the paper's DYN action conversion (docs/physics.md §10.3, ``paper:gym_pybullet_drones/utils/utils.py:58-133``): solve
 A s = b; if a squared speed comes out negative, take the non-negative least-squares (NNLS) solution instead;
 rpm = √s. `nnls_rpm_squared` solves that NNLS problem exactly, batched and jittable, by enumerating the 16 passive
 sets of the 4-motor problem.
@@ -69,7 +69,7 @@ class RateGains:
 def allocation_matrix(params: DroneParams) -> jax.Array:
     """The motor mixer of the explicit dynamics: wrench = A @ rpm², exactly as `jaxdrones.dynamics` computes it.
 
-    Rows (facts §3.1, ``main:BA:838-855``): collective thrust T = kf Σ rpm_i²; (τx, τy) = kf · torque_arm @ rpm²
+    Rows (docs/physics.md §3.1, ``main:BA:838-855``): collective thrust T = kf Σ rpm_i²; (τx, τy) = kf · torque_arm @ rpm²
     (the explicit model's lever arms: L/√2 along each diagonal for an x frame, L along each axis for a + frame);
     τz = −km Σ spin_i rpm_i² (`dynamics.yaw_torque_c`: a counter-clockwise motor, spin +1, pushes the body
     clockwise).
@@ -97,7 +97,7 @@ def _allocation_matrix(params: DroneParams) -> jax.Array:
 
 
 def wrench_scale(params: DroneParams) -> jax.Array:
-    """Row weights of the NNLS problem, the original's (facts §10.3): (1/kf, 1/(kf L), 1/(kf L), 1/km).
+    """Row weights of the NNLS problem, the original's (docs/physics.md §10.3): (1/kf, 1/(kf L), 1/(kf L), 1/km).
 
     They turn the wrench (N, N·m, N·m, N·m) into RPM² and the rows of `allocation_matrix` into numbers of order
     one (for the shipped models: (1, 1, 1, 1), the ±1/√2 or 0/±1 lever-arm signs, and −spin), so that float32
@@ -120,7 +120,7 @@ def _wrench_scale(params: DroneParams) -> jax.Array:
 
 
 def nnls_rpm_squared(params: DroneParams, wrench) -> jax.Array:
-    """Squared motor speeds for a desired wrench: the paper's DYN conversion (facts §10.3), solved exactly.
+    """Squared motor speeds for a desired wrench: the paper's DYN conversion (docs/physics.md §10.3), solved exactly.
 
     Minimises ‖W (A s − wrench)‖₂ over s ≥ 0, where A = `allocation_matrix` and W = diag(`wrench_scale`) =
     diag(1/kf, 1/(kf L), 1/(kf L), 1/km): the Euclidean norm of the residual measured in RPM², the norm the

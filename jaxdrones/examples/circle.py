@@ -1,6 +1,6 @@
 """The paper's first example: Crazyflies tracking a circle with the DSL PID controller (``jaxdrones fly``).
 
-Reproduces gym-pybullet-drones ``examples/pid.py`` (facts sheet §13) on the jaxdrones physics (the explicit
+Reproduces gym-pybullet-drones ``examples/pid.py`` (docs/physics.md §13) on the jaxdrones physics (the explicit
 model, optionally with drag, ground effect and downwash):
 
 * drone i starts at (R cos(2πi/6 + π/2), R sin(2πi/6 + π/2) − R, H + i·H_STEP) with R = 0.3 m, H = 0.1 m,
@@ -27,7 +27,7 @@ first PID call sees the derivative spike of the non-zero initial yaw):
   target altitude), i.e. the error regardless of the lag along the path.
 
 Without velocity feed-forward the PID lags its moving way-point by about half a second (≈ 9 cm at 0.19 m/s, as
-the facts sheet reports for the original), while staying within millimetres of the path. With ``feedforward``
+measured on the original, docs/physics.md §12.5), while staying within millimetres of the path. With ``feedforward``
 (the default), the way-point's velocity is passed as ``target_vel`` and the lag almost disappears.
 
 Contacts (``result["contacts"]``), from `DroneState.contact`: the control steps in which each drone touched the
@@ -86,7 +86,7 @@ VIDEO_CAMERA = dict(distance=1.7, yaw=-30.0, pitch=-35.0)
 
 
 def circle_setup(num_drones: int, ctrl_freq: int = 48) -> dict:
-    """Start poses and way-points of the paper's example (facts §13), as float64 NumPy arrays.
+    """Start poses and way-points of the paper's example (docs/physics.md §13), as float64 NumPy arrays.
 
     Returns:
         dict with ``init_pos`` f[N, 3] m, ``init_rpy`` f[N, 3] rad, ``waypoints`` f[NUM_WP, 2] m (x, y),
@@ -189,7 +189,7 @@ def fly_circle(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x
         duration_s: flight time, s (the paper: 12 s). Rounded down to whole control steps.
         model: airframe name or URDF path. The PID gains are tuned for the Crazyflies (``cf2x``, ``cf2p``); other
             airframes are accepted but will not fly well with them.
-        drag, ground_effect, downwash: aerodynamic effects of the physics (facts §6).
+        drag, ground_effect, downwash: aerodynamic effects of the physics (docs/physics.md §6).
         feedforward: pass the way-point's velocity as the PID's ``target_vel`` (the original passes 0).
         settle_s: initial transient, s, excluded from the metrics.
         sim_freq: physics rate, Hz (240).

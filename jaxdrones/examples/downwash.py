@@ -1,7 +1,7 @@
 """The paper's downwash example: two Crazyflies cross above each other, with and without downwash
 (``jaxdrones fly --example downwash``).
 
-Reproduces gym-pybullet-drones ``examples/downwash.py`` (facts §13; read at commit 0ff20a6: rates and duration
+Reproduces gym-pybullet-drones ``examples/downwash.py`` (docs/physics.md §13; read at commit 0ff20a6: rates and duration
 lines 27-30, start positions 47, physics mode 52, way-points 61-67) on the jaxdrones physics, flown twice, once with
 ``SimConfig(downwash=True)`` (the original's PYB_DW) and once without:
 
@@ -14,7 +14,7 @@ lines 27-30, start positions 47, physics mode 52, way-points 61-67) on the jaxdr
 The way-points cross twice per period (at t = 1.25 s, 3.75 s, ...); the drones, which lag their way-points by
 about half a second, pass over each other near t = 1.7 s, 4.3 s, ..., 0.5 m apart vertically, where the upper
 drone's downwash pushes the lower one down: at Δz = 0.5 m the force on the lower drone reaches
-c1·(R/(4Δz))² ≈ 0.30 N, more than its weight, within a Gaussian of width |c2Δz + c3| ≈ 3 cm (facts §6.3).
+c1·(R/(4Δz))² ≈ 0.30 N, more than its weight, within a Gaussian of width |c2Δz + c3| ≈ 3 cm (docs/physics.md §6.3).
 
 Metrics (``result["metrics"]``), for each run (``on``, ``off``): a *pass* is a maximal run of control steps in
 which the drones' horizontal distance is below `PASS_RADIUS_M`; the lower drone's *dip* in a pass is the largest

@@ -14,7 +14,7 @@ comparison"):
 * 240 Hz physics and 240 Hz control (one substep per control step); the first control step applies 0 RPM.
 
 The paper's figure shows z, vz and the four motor speeds over the first 0.5 s (`WINDOW_S`), the default flight
-time here. Ground effect adds thrust kf·rpm²·C_gnd·(R/(4h))² on each propeller at height h (facts §6.1): near the
+time here. Ground effect adds thrust kf·rpm²·C_gnd·(R/(4h))² on each propeller at height h (docs/physics.md §6.1): near the
 ground the same RPM lifts more, so the drone climbs faster and the PID settles on lower motor speeds.
 
 Metrics (``result["metrics"]``), for each run (``on``, ``off``) and their difference on − off:

@@ -4,7 +4,7 @@ Reproduces gym-pybullet-drones ``examples/velocity.py`` (``pid_velocity.py`` on 
 d27f30d: start poses lines 65-76, command schedule 100-110, loop 119-140) on the jaxdrones physics:
 
 * drone i starts at rest at (0.3·i, 0, 0.1) m with yaw (0, π/3, π/4, π/2)[i] rad;
-* each drone is flown through the VEL action (facts §10.1-10.2, `jaxdrones.control.velocity_control`): an action
+* each drone is flown through the VEL action (docs/physics.md §10.1-10.2, `jaxdrones.control.velocity_control`): an action
   (vx, vy, vz, s) becomes the DSL PID's targets position = current position, yaw = current yaw and velocity =
   SPEED_LIMIT·|s|·(vx, vy, vz)/‖(vx, vy, vz)‖, with the original's SPEED_LIMIT = 3 % of the airframe's maximum
   speed (`jaxdrones.control.speed_limit`: 0.25 m/s for the Crazyflies);
