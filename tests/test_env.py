@@ -25,15 +25,15 @@ CONTRACT_STEPS = 1000
 
 
 def contract_cases():
-    """Every task with every observation type (with its default action type, the action buffer on for ``kin``),
-    and every action type on a single-agent and a multi-agent task (hover, leader_follower) with the observation
-    types in turn. Tasks share the action and observation modules and differ only in their starts, rewards and
-    terminations, so this covers every task, every action mapping and every observation on both kinds of task."""
+    """Every task with its default observation type, and every action type on a single-agent and a multi-agent
+    task (hover, leader_follower) with the observation types and the action buffer in turn. Tasks share the action
+    and observation modules (a task adds only its own observation entries, present in every case) and differ in
+    their starts, rewards and terminations, so this covers every task, every action mapping and every observation
+    type on both kinds of task."""
     cases = {}
     for task in registered():
-        action = "tun" if task == "tune" else "rpm"
-        for obs in OBS_TYPES:
-            cases[(task, action, obs)] = obs == "kin"
+        default_obs = jd.envs.get_task(task).config_cls.obs_type
+        cases[(task, "tun" if task == "tune" else "rpm", default_obs)] = False
     for task in ("hover", "leader_follower"):
         for i, action in enumerate(ACTION_TYPES):
             cases.setdefault((task, action, OBS_TYPES[i % len(OBS_TYPES)]), i % 2 == 1)
