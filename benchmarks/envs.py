@@ -154,7 +154,7 @@ def bench_vector(gymnasium, n: int, args) -> dict:
     finally:
         env.close()
     return {"env": "vector", **result, "sim_freq": cfg.sim_freq, "ctrl_freq": cfg.ctrl_freq,
-            "substeps": cfg.sim_freq // cfg.ctrl_freq}
+            "substeps": cfg.sim_freq // cfg.ctrl_freq, "obs_type": cfg.obs_type, "action_type": cfg.action_type}
 
 
 def bench_native(jax, jd, n: int, args) -> dict:
@@ -194,7 +194,8 @@ def bench_native(jax, jd, n: int, args) -> dict:
     return {"env": "native", "worlds": n, "devices": len(devices), "steps": steps, "compile_s": compile_s,
             **rates(n * steps, times), "cpu_util": statistics.median(cpu), "loadavg_1min": os.getloadavg()[0],
             "sim_freq": env.config.sim_freq, "ctrl_freq": env.config.ctrl_freq,
-            "substeps": env.sim_config.n_substeps,
+            "substeps": env.sim_config.n_substeps, "obs_type": env.config.obs_type,
+            "action_type": env.config.action_type, "obs_size": env.observation_size,
             "state_bytes_per_world": sum(x.nbytes for x in jax.tree.leaves(state)
                                          if hasattr(x, "nbytes")) / n}
 
@@ -239,29 +240,28 @@ def _crazyflow_version(python: str) -> str | None:
     return lines[-1] if probe.returncode == 0 and lines else None
 
 
-def bench_crazyflow(python: str, args) -> tuple[list[dict], dict, str | None]:
-    """Run `_crazyflow_worker.py` in crazyflow's venv; returns (results, its machine info, error or None)."""
-    command = [python, CRAZYFLOW_WORKER, "--sizes", *map(str, args.sizes), "--repeats", str(args.repeats),
+def bench_crazyflow(python: str, n: int, args) -> tuple[dict | None, dict, str | None]:
+    """Run `_crazyflow_worker.py` at ``n`` worlds in crazyflow's venv; returns (result, its setup, error or None)."""
+    command = [python, CRAZYFLOW_WORKER, "--sizes", str(n), "--repeats", str(args.repeats),
                "--target", str(args.target), "--ctrl-freq", str(CTRL_FREQ)]
     if args.steps:
         command += ["--steps", str(args.steps)]
-    results, info = [], {}
+    result, info = None, {}
     # stderr to a file (a full pipe would block the worker); run in the venv's folder, since MuJoCo writes
     # MUJOCO_LOG.TXT into the working directory.
     with tempfile.TemporaryFile("w+") as err, subprocess.Popen(command, stdout=subprocess.PIPE, stderr=err, text=True,
                                                                cwd=args.crazyflow_venv) as proc:
         for line in proc.stdout:
             if line.startswith("RESULT "):
-                results.append(json.loads(line[7:]))
-                print_row(results[-1])
+                result = json.loads(line[7:])
             elif line.startswith("INFO "):
                 info = json.loads(line[5:])
         proc.wait()
         err.seek(0)
         stderr = err.read().strip().splitlines()
-    if proc.returncode != 0:
-        return results, info, f"crazyflow worker exited {proc.returncode}: " + " | ".join(stderr[-5:])
-    return results, info, None
+    if proc.returncode != 0 or result is None:
+        return result, info, f"crazyflow worker exited {proc.returncode}: " + " | ".join(stderr[-5:])
+    return result, info, None
 
 
 # -- profile of the vector env's step ------------------------------------------------------------------------------
@@ -435,10 +435,16 @@ def print_row(r: dict) -> None:
 def print_table(results: list[dict], crazyflow_note: str) -> None:
     by = {(r["env"], r["worlds"]): r for r in results}
     sizes = sorted({r["worlds"] for r in results})
-    print(f"\nmedian env-steps/s (hover, {CTRL_FREQ} Hz control, random actions)")
+    ours = next((r for r in results if "obs_type" in r), {})
+    print(f"\nmedian env-steps/s (hover, {CTRL_FREQ} Hz control, {ours.get('action_type')} actions drawn at random, "
+          f"{ours.get('obs_type')} observations)")
     print(f"{'worlds':>7} " + " ".join(f"{LABELS[e]:>22}" for e in LABELS))
     for n in sizes:
         cells = [f"{by[(e, n)]['median_env_steps_per_s']:>22,.0f}" if (e, n) in by else f"{'-':>22}" for e in LABELS]
+        print(f"{n:>7} " + " ".join(cells))
+    print("best of the timed runs:")
+    for n in sizes:
+        cells = [f"{by[(e, n)]['best_env_steps_per_s']:>22,.0f}" if (e, n) in by else f"{'-':>22}" for e in LABELS]
         print(f"{n:>7} " + " ".join(cells))
     print(f"crazyflow: {crazyflow_note}")
 
@@ -456,33 +462,40 @@ def main(argv=None) -> int:
     load_start = os.getloadavg()
     print(f"jax {info['jax']} on {info['backend']} (devices: {len(jax.devices())}), {info['cpu_model']}, "
           f"{info['cpus_available']} cores, load {load_start}")
-    results = []
-    for n in args.sizes:
-        results.append(bench_vector(gymnasium, n, args))
-        print_row(results[-1])
-    for n in args.native_sizes:
-        results.append(bench_native(jax, jd, n, args))
-        print_row(results[-1])
-
-    crazyflow = {"requested": args.crazyflow, "requirement": CRAZYFLOW, "venv": args.crazyflow_venv}
+    crazyflow = {"requested": args.crazyflow, "requirement": CRAZYFLOW, "venv": args.crazyflow_venv,
+                 "measured": False, "error": None}
+    python = None
     if args.crazyflow:
-        python, note = crazyflow_python(args.crazyflow_venv)
-        print(f"crazyflow: {note}", flush=True)
-        crazyflow["setup"] = note
-        if python is not None:
-            rows, crazyflow["machine"], error = bench_crazyflow(python, args)
-            results += rows
-            crazyflow["error"] = error
-            note = error or (f"{crazyflow['machine'].get('env_id')}, {crazyflow['machine'].get('dynamics')}, "
-                             f"{crazyflow['machine'].get('sim_freq')} Hz physics, "
-                             f"{crazyflow['machine'].get('substeps')} substeps per step")
-        else:
-            crazyflow["error"] = note
-            note = f"NOT MEASURED: {note}"
-        crazyflow["measured"] = any(r["env"] == "crazyflow" for r in results)
-    else:
+        python, crazyflow["setup"] = crazyflow_python(args.crazyflow_venv)
+        print(f"crazyflow: {crazyflow['setup']}", flush=True)
+        if python is None:
+            crazyflow["error"] = crazyflow["setup"]
+    # Size by size, the three side by side, so that each comparison sees about the same machine load.
+    results = []
+    for n in sorted(set(args.sizes) | set(args.native_sizes)):
+        if n in args.sizes:
+            results.append(bench_vector(gymnasium, n, args))
+            print_row(results[-1])
+        if n in args.native_sizes:
+            results.append(bench_native(jax, jd, n, args))
+            print_row(results[-1])
+        if python is not None and n in args.sizes and crazyflow["error"] is None:
+            result, crazyflow["setup_in_worker"], crazyflow["error"] = bench_crazyflow(python, n, args)
+            if result is not None:
+                results.append(result)
+                print_row(result)
+            if crazyflow["error"]:
+                print(f"crazyflow: {crazyflow['error']}", flush=True)
+    crazyflow["measured"] = any(r["env"] == "crazyflow" for r in results)
+    setup = crazyflow.get("setup_in_worker", {})
+    if not args.crazyflow:
         note = "skipped (--no-crazyflow)"
-        crazyflow["measured"] = False
+    elif crazyflow["error"]:
+        note = f"NOT MEASURED{' at every size' if crazyflow['measured'] else ''}: {crazyflow['error']}"
+    else:
+        note = (f"{setup.get('env_id')} (crazyflow {setup.get('crazyflow')}, jax {setup.get('jax')}), "
+                f"{setup.get('control')} control, {setup.get('dynamics')} model, {setup.get('sim_freq')} Hz physics: "
+                f"{setup.get('substeps')} substeps per step")
 
     profile = []
     for n in args.profile_sizes:
