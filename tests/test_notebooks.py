@@ -25,8 +25,20 @@ EXPECTED_OUTPUT = {
         r"mean final distance to target: [\d.]+ cm",
         r"episode z shape: \(151,\)",
     ],
+    "02_stable_baselines3.ipynb": [
+        r"TOTAL_STEPS = 2,000 ",
+        r"SB3 check_env: passed",
+        r"trained 8,192 env steps in [\d.]+ s",  # one PPO rollout: n_steps 2048 x 4 envs
+        r"mean final distance to target over 10 episodes: [\d.]+ cm",
+    ],
 }
-EXPECTED_FIGURES = {"01_quickstart.ipynb": 2}
+EXPECTED_FIGURES = {"01_quickstart.ipynb": 2, "02_stable_baselines3.ipynb": 1}
+#: Per notebook: environment variables of its kernel (a tiny training budget for the SB3 notebook).
+NOTEBOOK_ENV = {"02_stable_baselines3.ipynb": {"JAXDRONES_NB_STEPS": "2000"}}
+#: Per notebook: modules it needs beyond the test extras, and the reason to give when one cannot be imported.
+SB3_REASON = ('needs stable-baselines3: install the sb3 extra, `pip install torch==2.13.0 && pip install -e ".[sb3]"` '
+              "(the CPU torch first)")
+REQUIRES = {"02_stable_baselines3.ipynb": (("stable_baselines3",), SB3_REASON)}
 
 
 @pytest.fixture
@@ -71,7 +83,12 @@ def test_committed_without_outputs(path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
-def test_notebook_runs(path, tmp_path, kernel_for_this_interpreter):
+def test_notebook_runs(path, tmp_path, monkeypatch, kernel_for_this_interpreter):
+    modules, reason = REQUIRES.get(path.name, ((), ""))
+    for module in modules:
+        pytest.importorskip(module, reason=f"{path.name} {reason}")
+    for name, value in NOTEBOOK_ENV.get(path.name, {}).items():
+        monkeypatch.setenv(name, value)  # the kernel inherits this process's environment
     nb = nbformat.read(path, as_version=4)
     workdir = tmp_path / "work"
     workdir.mkdir()
