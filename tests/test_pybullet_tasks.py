@@ -108,12 +108,12 @@ def test_trained_hover_policy_flies_alike_on_both_backends():
     """
     from jaxdrones.training import PPOConfig, rollout_policy, train
 
-    env_jax = jd.make("hover", action_type="one_d_rpm")
+    env_jax = jd.make("hover", action_type="one_d_rpm", obs_type="kin")  # the paper's 1-D setting
     make_policy, params = train(env_jax, PPOConfig(num_timesteps=1_500_000, num_evals=2))
     policy = make_policy(params, deterministic=True)
     keys = jax.random.split(jax.random.key(1), 16)
     runs = {}
-    with jd.make("hover", action_type="one_d_rpm", backend="pybullet") as env_pb:
+    with jd.make("hover", action_type="one_d_rpm", obs_type="kin", backend="pybullet") as env_pb:
         for name, env in (("jax", env_jax), ("pybullet", env_pb)):
             episodes = jax.jit(jax.vmap(lambda k, env=env: rollout_policy(env, policy, k)))(keys)
             runs[name] = {"terminated": np.asarray(episodes.terminated), "truncated": np.asarray(episodes.truncated),
