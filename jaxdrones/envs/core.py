@@ -17,6 +17,7 @@ termination (`jaxdrones.envs.terminations`) modules. Every env holds ``D ≥ 1``
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import math
 from typing import Any
@@ -359,7 +360,7 @@ def _fixed_array(name: str, value, n: int):
     return tuple(tuple(float(v) for v in row) for row in arr)
 
 
-class Task:
+class Task(abc.ABC):
     """A task: its start sampling, reward terms and termination rule; `TaskEnv` does the rest.
 
     Subclasses set the class attributes and override what differs from the defaults.
@@ -406,9 +407,9 @@ class Task:
         """f[D, 3] m, the position targets (default: 1 m above each start centre)."""
         return self.start_defaults(config)["pos"] + np.array([0.0, 0.0, 1.0])
 
+    @abc.abstractmethod
     def weights(self, config: TaskConfig) -> dict[str, float]:
         """Reward weights by term name, for ``config.reward``."""
-        raise NotImplementedError
 
     def data(self, config: TaskConfig) -> dict[str, np.ndarray]:
         """Task-specific arrays of the task params (default: none)."""
@@ -434,10 +435,10 @@ class Task:
         """Where the drones should be at control step ``steps`` (default: at the target, at rest)."""
         return Reference(task.target, jnp.zeros_like(task.target))
 
+    @abc.abstractmethod
     def reward_terms(self, config: TaskConfig, task: TaskParams, sim: DroneState, action: jax.Array,
                      steps: jax.Array) -> dict[str, jax.Array]:
         """Reward terms by name, each f[D], from the post-step state."""
-        raise NotImplementedError
 
     def terminated(self, config: TaskConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         """bool[]: the world's episode ends (default: any drone crashed, see `terminations.crashed`)."""

@@ -54,10 +54,9 @@ class AutoReset(Env):
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         nxt = self.env.step(state, action)
+        nxt = nxt.replace(info={**nxt.info, "final_obs": nxt.obs, "final_steps": nxt.steps})
         fresh = self.env.reset(nxt.key, nxt.task)
         fresh = fresh.replace(reward=nxt.reward, terminated=nxt.terminated, truncated=nxt.truncated,
                               metrics=nxt.metrics, info={**fresh.info, **nxt.info})
-        nxt = nxt.replace(info={**nxt.info, "final_obs": nxt.obs, "final_steps": nxt.steps})
-        fresh = fresh.replace(info={**fresh.info, "final_obs": nxt.obs, "final_steps": nxt.steps})
         done = nxt.done
         return jax.tree.map(lambda new, old: jnp.where(done, new, old), fresh, nxt)
