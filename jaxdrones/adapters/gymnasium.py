@@ -24,7 +24,8 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from jaxdrones.envs.base import Env
+from jaxdrones.envs.base import Env, world_axes
+from jaxdrones.wrappers.autoreset import reset_where
 
 #: gymnasium id of every task.
 GYM_IDS = {"hover": "jaxdrones/Hover-v0", "takeoff": "jaxdrones/Takeoff-v0", "velocity": "jaxdrones/Velocity-v0",
@@ -86,7 +87,8 @@ def _check_action(action, space: gym.spaces.Box, batch: tuple[int, ...] = ()) ->
     expected = batch + space.shape
     if action.shape != expected:
         raise ValueError(f"action must have shape {expected}, got {action.shape}")
-    if not np.all(np.isfinite(action)) or np.any(action < space.low - 1e-6) or np.any(action > space.high + 1e-6):
+    # One pass: NaN fails both comparisons, so this also refuses non-finite actions.
+    if not np.all((action >= space.low - 1e-6) & (action <= space.high + 1e-6)):
         raise ValueError(f"action must lie in the action space [{space.low.min():g}, {space.high.max():g}], "
                          f"got values in [{np.nanmin(action):g}, {np.nanmax(action):g}]")
     return action
@@ -150,15 +152,17 @@ class GymnasiumEnv(gym.Env):
         return info
 
 
-def render_frame(env: Env, state, world: int = 0) -> np.ndarray:
-    """An RGB frame u8[H, W, 3] of one world of ``state``: PyBullet's renderer on that backend, else matplotlib."""
+def render_frame(env: Env, state, world: int = 0, shared_params: bool = False) -> np.ndarray:
+    """An RGB frame u8[H, W, 3] of one world of ``state``: PyBullet's renderer on that backend, else matplotlib.
+    ``shared_params``: ``state.params`` are those of every world (batch shape [D]), not per world."""
     lead = np.shape(state.sim.pos)[:-2]
 
     def one(x):
         x = np.asarray(x)
         return x.reshape((-1,) + x.shape[len(lead):])[world] if lead else x
 
-    sim, params = jax.tree.map(one, state.sim), jax.tree.map(one, state.params)
+    sim = jax.tree.map(one, state.sim)
+    params = jax.tree.map(np.asarray, state.params) if shared_params else jax.tree.map(one, state.params)
     if env._step.has_cameras:
         return env._step.render(params, sim, width=480, height=360)
     return _plotting().render_state(sim.pos, sim.quat, targets=one(state.task.target), title=env.task.name)
@@ -191,22 +195,22 @@ class GymnasiumVectorEnv(VectorEnv):
         self.single_observation_space, self.single_action_space = spaces(env)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
-        self._reset = jax.jit(jax.vmap(env.reset))
-        self._step = jax.jit(self._step_worlds)
+        # Params that every world shares are held once (see `Env.shared_params`); the old state is not kept, so
+        # each step may reuse its buffers.
+        self._shared_params = env.shared_params is not None
+        self._axes = world_axes(self._shared_params)
+        self._reset = jax.jit(jax.vmap(env.reset, out_axes=self._axes))
+        self._step = jax.jit(self._step_worlds, donate_argnums=0)
         self._state = None
         self._needs_reset = None
         self._key = None
 
     def _step_worlds(self, state, action, needs_reset):
         shape = (action.shape[0], self.env.n_drones, self.env.action_size)
-        stepped = jax.vmap(self.env.step)(state, action.reshape(shape).astype(state.sim.pos.dtype))
-        fresh = jax.vmap(self.env.reset)(state.key, state.task)
-
-        def pick(new, old):
-            mask = needs_reset.reshape(needs_reset.shape + (1,) * (new.ndim - 1))
-            return jnp.where(mask, new, old)
-
-        out = jax.tree.map(pick, fresh, stepped)
+        step = jax.vmap(self.env.step, in_axes=(self._axes, 0), out_axes=self._axes)
+        stepped = step(state, action.reshape(shape).astype(state.sim.pos.dtype))
+        # Only the worlds whose episode ended at the last step are reset.
+        out = reset_where(self.env, stepped, needs_reset, shared_params=self._shared_params)
         return out, out.done
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -234,7 +238,7 @@ class GymnasiumVectorEnv(VectorEnv):
         """An RGB frame of world 0 (``render_mode="rgb_array"``), else None."""
         if self.render_mode is None or self._state is None:
             return None
-        return render_frame(self.env, self._state, world=0)
+        return render_frame(self.env, self._state, world=0, shared_params=self._shared_params)
 
     def close_extras(self, **kwargs) -> None:
         self.env.close()

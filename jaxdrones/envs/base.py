@@ -55,6 +55,13 @@ class EnvState:
         return self.terminated | self.truncated
 
 
+def world_axes(shared_params: bool) -> EnvState:
+    """The ``vmap`` axes (``in_axes``/``out_axes``) of an `EnvState` batched over worlds: every field on axis 0,
+    except ``params`` on none when every world shares them (``shared_params``; see `Env.shared_params`)."""
+    return EnvState(sim=0, params=None if shared_params else 0, task=0, ctrl=0, history=0, key=0, obs=0, reward=0,
+                    terminated=0, truncated=0, steps=0, metrics=0, info=0)
+
+
 class Env(abc.ABC):
     """A jittable environment over a physics backend: pure ``reset`` and ``step``, batched by ``vmap``.
 
@@ -69,6 +76,13 @@ class Env(abc.ABC):
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    @property
+    def shared_params(self):
+        """The `DroneParams` (batch shape [D]) that every world and episode uses, or None when ``reset`` draws them
+        (domain randomisation). Batched wrappers keep shared params once rather than once per world: a step that
+        reads them per world is about a fifth slower on CPU."""
+        return None
 
     @abc.abstractmethod
     def reset(self, key: jax.Array, task=None) -> EnvState:
