@@ -1,9 +1,13 @@
 """jaxdrones: a JAX-vectorised, differentiable quadrotor simulator with the physics of gym-pybullet-drones."""
 
-from jaxdrones.envs import make
-from jaxdrones.params import MODELS, DroneParams, load_params
-from jaxdrones.sim import SimConfig, make_step, rollout
-from jaxdrones.state import DroneState, init_state
+from jaxdrones import _xla
+
+_xla.configure()  # before any JAX computation: see jaxdrones/_xla.py
+
+from jaxdrones.envs import make  # noqa: E402
+from jaxdrones.params import MODELS, DroneParams, load_params  # noqa: E402
+from jaxdrones.sim import SimConfig, make_step, rollout  # noqa: E402
+from jaxdrones.state import DroneState, init_state  # noqa: E402
 
 __all__ = [
     "MODELS", "make", "DroneParams", "DroneState", "SimConfig", "init_state", "load_params", "make_step", "rollout",

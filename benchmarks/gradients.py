@@ -1,0 +1,193 @@
+"""Cost of gradients through rollouts: forward time, gradient time and their ratio, by horizon and worlds.
+
+The work: a rollout of T control steps of W worlds of one Crazyflie (cf2x) at 240 Hz physics and 240 Hz control
+(one physics substep per command), drag and ground effect on, starting 5-30 cm above the ground (where ground
+effect acts) with RPM commands within 2 % of hover; the loss is the mean over the rollout of the squared distance
+to (0, 0, 1) m plus 0.1 × the mean squared velocity. Timed, each as one jitted call:
+
+- ``forward``: the loss;
+- ``grad_commands``: the loss and its gradient w.r.t. the RPM commands f[T, W, 1, 4];
+- ``grad_initial_state``: the loss and its gradient w.r.t. the initial pos, quat, vel and ang_vel.
+
+``ratio`` is gradient time over forward time. Each is run without and with ``jax.checkpoint`` around the control
+step (``remat``: the backward pass recomputes each step from its saved input state instead of storing every
+intermediate: less memory for long horizons). Memory is XLA's own count of the temporary buffers of the compiled
+call (``memory_analysis().temp_size_in_bytes``).
+
+crazyflow 0.4.0 runs the same work in the same run, in its own virtual environment (``benchmarks/.venv-crazyflow``,
+created with ``pip install crazyflow==0.4.0`` by `envs.py`'s installer when missing; ``--no-crazyflow`` skips it):
+its ``first_principles`` model with ``rotor_vel`` control (RPM commands), its ``Sim`` at 240 Hz stepped by its pure
+step function under ``lax.scan``, the same loss, gradients w.r.t. the commands and the initial position and
+velocity. Its model has no drag or ground effect.
+
+Usage::
+
+    python benchmarks/gradients.py                      # writes benchmarks/results/gradients.json
+    python benchmarks/gradients.py --quick              # horizons 10, 100; worlds 1, 1024
+    python benchmarks/gradients.py --horizons 100 --worlds 1024 --no-crazyflow
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+DEFAULT_OUT = os.path.join(HERE, "results", "gradients.json")
+HORIZONS = (10, 100, 1000)
+WORLDS = (1, 1024, 16384)
+QUICK_HORIZONS, QUICK_WORLDS = (10, 100), (1, 1024)
+SIM_FREQ = CTRL_FREQ = 240
+TARGET = (0.0, 0.0, 1.0)
+CRAZYFLOW_WORKER = os.path.join(HERE, "_crazyflow_gradients.py")
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--horizons", type=int, nargs="+", help=f"control steps T (default {HORIZONS})")
+    parser.add_argument("--worlds", type=int, nargs="+", help=f"worlds W (default {WORLDS})")
+    parser.add_argument("--repeats", type=int, default=3, help="timed calls per measurement (median; default 3)")
+    parser.add_argument("--quick", action="store_true", help=f"horizons {QUICK_HORIZONS}, worlds {QUICK_WORLDS}")
+    parser.add_argument("--crazyflow", action=argparse.BooleanOptionalAction, default=True,
+                        help="also measure crazyflow 0.4.0 in its own venv (default on)")
+    parser.add_argument("--out", default=DEFAULT_OUT, help="JSON output path (default: %(default)s)")
+    args = parser.parse_args(argv)
+    args.horizons = sorted(args.horizons or (QUICK_HORIZONS if args.quick else HORIZONS))
+    args.worlds = sorted(args.worlds or (QUICK_WORLDS if args.quick else WORLDS))
+    if min(args.horizons + args.worlds) < 1 or args.repeats < 1:
+        parser.error("--horizons, --worlds and --repeats must be positive")
+    return args
+
+
+def time_call(jax, fn, inputs, repeats: int) -> dict:
+    """Compile ``jax.jit(fn)`` for ``inputs``, then time ``repeats`` calls (to ``block_until_ready``).
+
+    Returns seconds (median and all), compile seconds and XLA's temporary-buffer bytes. Needs only the ``jax``
+    passed in, so crazyflow's worker (another JAX) uses it too.
+    """
+    start = time.perf_counter()
+    compiled = jax.jit(fn).lower(*inputs).compile()
+    compile_s = time.perf_counter() - start
+    jax.block_until_ready(compiled(*inputs))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(*inputs))
+        times.append(time.perf_counter() - t0)
+    memory = compiled.memory_analysis()
+    return {"s": statistics.median(times), "times_s": times, "compile_s": compile_s,
+            "temp_bytes": getattr(memory, "temp_size_in_bytes", None)}
+
+
+def measure(jax, loss, commands, state, horizon: int, worlds: int, repeats: int) -> dict:
+    """Forward, gradient w.r.t. the commands and gradient w.r.t. the initial state of ``loss(commands, state)``."""
+    forward = time_call(jax, loss, (commands, state), repeats)
+    by_commands = time_call(jax, jax.value_and_grad(loss, argnums=0), (commands, state), repeats)
+    by_state = time_call(jax, jax.value_and_grad(loss, argnums=1), (commands, state), repeats)
+    return {"horizon": horizon, "worlds": worlds, "forward": forward, "grad_commands": by_commands,
+            "grad_initial_state": by_state, "ratio_commands": by_commands["s"] / forward["s"],
+            "ratio_initial_state": by_state["s"] / forward["s"]}
+
+
+def start_positions(np, worlds: int):
+    """f32[W, 1, 3]: x, y in ±1 m, z in 5-30 cm (in ground effect)."""
+    rng = np.random.default_rng(0)
+    return np.concatenate([rng.uniform(-1, 1, (worlds, 1, 2)), rng.uniform(0.05, 0.3, (worlds, 1, 1))],
+                          axis=-1).astype(np.float32)
+
+
+def jaxdrones_case(jax, jd, np, horizon: int, worlds: int, remat: bool, repeats: int) -> dict:
+    jnp = jax.numpy
+    config = jd.SimConfig(n_drones=1, sim_freq=SIM_FREQ, ctrl_freq=CTRL_FREQ, drag=True, ground_effect=True)
+    params = jd.load_params("cf2x")
+    step = jd.make_step(config)
+    body_step = jax.checkpoint(step) if remat else step
+    init = jd.init_state(config, pos=jnp.asarray(start_positions(np, worlds)))
+    state = {k: getattr(init, k) for k in ("pos", "quat", "vel", "ang_vel")}
+    noise = np.random.default_rng(1).standard_normal((horizon, worlds, 1, 4))
+    commands = jnp.asarray(float(params.hover_rpm) * (1 + 0.02 * noise), jnp.float32)
+
+    def loss(commands, state):
+        def body(s, rpm):
+            s = body_step(params, s, rpm)
+            return s, (s.pos, s.vel)
+
+        _, (pos, vel) = jax.lax.scan(body, init.replace(**state), commands)
+        return jnp.mean(jnp.sum((pos - jnp.asarray(TARGET)) ** 2, -1)) + 0.1 * jnp.mean(vel**2)
+
+    return {"sim": "jaxdrones", "remat": remat, **measure(jax, loss, commands, state, horizon, worlds, repeats)}
+
+
+def run_crazyflow(args) -> tuple[list[dict], dict, str | None]:
+    """Run `_crazyflow_gradients.py` in crazyflow's venv (installed by `envs.crazyflow_python` when missing)."""
+    from envs import CRAZYFLOW_VENV, crazyflow_python
+
+    python, setup = crazyflow_python(CRAZYFLOW_VENV)
+    if python is None:
+        return [], {}, setup
+    command = [python, CRAZYFLOW_WORKER, "--horizons", *map(str, args.horizons), "--worlds",
+               *map(str, args.worlds), "--repeats", str(args.repeats)]
+    results, info = [], {"setup": setup}
+    with tempfile.TemporaryFile("w+") as err, subprocess.Popen(command, stdout=subprocess.PIPE, stderr=err,
+                                                               text=True, cwd=CRAZYFLOW_VENV) as proc:
+        for line in proc.stdout:
+            if line.startswith("RESULT "):
+                results.append(json.loads(line[7:]))
+                print_row(results[-1])
+            elif line.startswith("INFO "):
+                info.update(json.loads(line[5:]))
+        proc.wait()
+        err.seek(0)
+        stderr = err.read().strip().splitlines()
+    error = None if proc.returncode == 0 else f"worker exited {proc.returncode}: " + " | ".join(stderr[-5:])
+    return results, info, error
+
+
+def print_row(r: dict) -> None:
+    mib = (r["grad_commands"]["temp_bytes"] or 0) / 2**20
+    print(f"  {r['sim']:<9} remat={str(r.get('remat', False)):<5} T={r['horizon']:>5} W={r['worlds']:>6}: forward "
+          f"{r['forward']['s'] * 1e3:9.2f} ms, grad(commands) {r['grad_commands']['s'] * 1e3:9.2f} ms "
+          f"({r['ratio_commands']:5.1f}x, {mib:,.0f} MiB), grad(initial state) "
+          f"{r['grad_initial_state']['s'] * 1e3:9.2f} ms ({r['ratio_initial_state']:5.1f}x)", flush=True)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    import jax
+    import numpy as np
+    from throughput import machine_info, write_report
+
+    import jaxdrones as jd
+
+    info = machine_info(jax)
+    load_start = os.getloadavg()
+    print(f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, {info['cpus_available']} cores, "
+          f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}, load {load_start}", flush=True)
+    results = []
+    for horizon in args.horizons:
+        for worlds in args.worlds:
+            for remat in (False, True):
+                results.append(jaxdrones_case(jax, jd, np, horizon, worlds, remat, args.repeats))
+                print_row(results[-1])
+    crazyflow = {"requested": args.crazyflow}
+    if args.crazyflow:
+        cf_results, crazyflow["info"], crazyflow["error"] = run_crazyflow(args)
+        results += cf_results
+        if crazyflow["error"]:
+            print(f"crazyflow: NOT MEASURED: {crazyflow['error']}", flush=True)
+    settings = {k: v for k, v in vars(args).items() if k != "out"} | {
+        "sim_freq": SIM_FREQ, "ctrl_freq": CTRL_FREQ, "effects": ["drag", "ground_effect"], "model": "cf2x"}
+    write_report(args.out, "gradients through rollouts: forward vs gradient time", info, settings, results,
+                 loadavg_start=load_start, crazyflow=crazyflow)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
