@@ -212,9 +212,11 @@ def quat_integrate_c(quat: Components, ang_vel: Components, dt: float) -> Compon
     sin_over_norm = jnp.where(moving, jnp.sin(theta) / norm, 0.5 * dt)
     delta = (*(sin_over_norm * w for w in ang_vel), jnp.where(moving, jnp.cos(theta), 1.0))
     # Below the threshold q is returned unchanged, but with the gradient of the first-order update q ⊗ (½dt ω, 1)
-    # (which is what `delta` is there), so that attitude gradients flow through a drone at rest.
+    # (which is what `delta` is there), so that attitude gradients flow through a drone at rest: the value is
+    # q + 0 exactly, the derivative r's alone (it already holds q's own, through q ⊗ delta).
     rotated = quat_mul_c(quat, delta)
-    return tuple(jnp.where(moving, r, q + (r - jax.lax.stop_gradient(r))) for r, q in zip(rotated, quat))
+    stop = jax.lax.stop_gradient
+    return tuple(jnp.where(moving, r, stop(q) + (r - stop(r))) for r, q in zip(rotated, quat, strict=True))
 
 
 def quat_derivative_c(quat: Components, ang_vel: Components) -> Components:
