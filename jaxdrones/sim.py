@@ -155,14 +155,20 @@ class JaxStep:
         self.close()
 
 
-def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Array) -> DroneState:
+def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Array, remat: bool = True) -> DroneState:
     """Apply ``step`` to a sequence of RPM commands under ``lax.scan``.
+
+    Differentiated, each control step is rematerialised (``jax.checkpoint``): the backward pass recomputes a step
+    from its input state rather than storing all its intermediates. Measured with `benchmarks/gradients.py` (100
+    steps, 1024 worlds, drag and ground effect, 2 CPU cores) this made the gradient about 1.5 times faster and
+    used a third of the memory; the forward pass is unchanged.
 
     Args:
         step: a step function from `make_step`.
         params: DroneParams.
         state: initial DroneState with leading shape ``L`` (e.g. ``[W]`` or none).
         rpms: f[T, *L, D, 4] RPM, one command per control step.
+        remat: rematerialise each step in the backward pass (see above); False stores every intermediate.
 
     Returns:
         DroneState whose leaves have a leading time axis ``[T, *L, ...]``: the state after each step.
@@ -175,13 +181,15 @@ def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Arra
     if rpms.ndim != state.rpm.ndim + 1 or rpms.shape[1:] != state.rpm.shape:
         raise ValueError(f"rpms must have shape [T, {', '.join(map(str, state.rpm.shape))}] (one RPM command per "
                          f"control step), got {rpms.shape}")
-    return _rollout(step, params, state, rpms)
+    return _rollout(step, params, state, rpms, bool(remat))
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Array) -> DroneState:
+@functools.partial(jax.jit, static_argnums=(0, 4))
+def _rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Array, remat: bool) -> DroneState:
+    step_fn = jax.checkpoint(step) if remat else step
+
     def body(s, rpm):
-        s = step(params, s, rpm)
+        s = step_fn(params, s, rpm)
         return s, s
 
     return jax.lax.scan(body, state, rpms)[1]
