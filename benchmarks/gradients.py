@@ -9,9 +9,9 @@ to (0, 0, 1) m plus 0.1 × the mean squared velocity. Timed, each as one jitted 
 - ``grad_commands``: the loss and its gradient w.r.t. the RPM commands f[T, W, 1, 4];
 - ``grad_initial_state``: the loss and its gradient w.r.t. the initial pos, quat, vel and ang_vel.
 
-``ratio`` is gradient time over forward time. Each is run without and with ``jax.checkpoint`` around the control
-step (``remat``: the backward pass recomputes each step from its saved input state instead of storing every
-intermediate: less memory for long horizons). Memory is XLA's own count of the temporary buffers of the compiled
+The rollout is ``jaxdrones.rollout``; ``ratio`` is gradient time over forward time. Each is run with
+``remat=True`` (its default: the backward pass recomputes each control step from its saved input state instead of
+storing every intermediate) and ``remat=False``. Memory is XLA's own count of the temporary buffers of the compiled
 call (``memory_analysis().temp_size_in_bytes``).
 
 crazyflow 0.4.0 runs the same work in the same run, in its own virtual environment (``benchmarks/.venv-crazyflow``,
@@ -108,19 +108,14 @@ def jaxdrones_case(jax, jd, np, horizon: int, worlds: int, remat: bool, repeats:
     config = jd.SimConfig(n_drones=1, sim_freq=SIM_FREQ, ctrl_freq=CTRL_FREQ, drag=True, ground_effect=True)
     params = jd.load_params("cf2x")
     step = jd.make_step(config)
-    body_step = jax.checkpoint(step) if remat else step
     init = jd.init_state(config, pos=jnp.asarray(start_positions(np, worlds)))
     state = {k: getattr(init, k) for k in ("pos", "quat", "vel", "ang_vel")}
     noise = np.random.default_rng(1).standard_normal((horizon, worlds, 1, 4))
     commands = jnp.asarray(float(params.hover_rpm) * (1 + 0.02 * noise), jnp.float32)
 
     def loss(commands, state):
-        def body(s, rpm):
-            s = body_step(params, s, rpm)
-            return s, (s.pos, s.vel)
-
-        _, (pos, vel) = jax.lax.scan(body, init.replace(**state), commands)
-        return jnp.mean(jnp.sum((pos - jnp.asarray(TARGET)) ** 2, -1)) + 0.1 * jnp.mean(vel**2)
+        states = jd.rollout(step, params, init.replace(**state), commands, remat=remat)
+        return jnp.mean(jnp.sum((states.pos - jnp.asarray(TARGET)) ** 2, -1)) + 0.1 * jnp.mean(states.vel**2)
 
     return {"sim": "jaxdrones", "remat": remat, **measure(jax, loss, commands, state, horizon, worlds, repeats)}
 

@@ -93,29 +93,39 @@ def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
     return JaxStep(config)
 
 
-def _core_step(config: SimConfig):
-    """The jitted control step of the JAX core on checked inputs."""
+def _core_step_c(config: SimConfig):
+    """The control step of the JAX core in component form: ``core_c(params, state_c, rpm_c) -> state_c`` with the
+    state's vectors and the RPM command as tuples of f[..., D] arrays (see `jaxdrones.rotations`)."""
 
-    @jax.jit
-    def core(params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
-        rpm = split(jnp.clip(rpm, 0.0, params.max_rpm[..., None]))
-        state = _split_state(state.replace(contact=jnp.zeros_like(state.contact)))
+    def core_c(params: DroneParams, state: DroneState, rpm: tuple) -> DroneState:
+        rpm = tuple(jnp.clip(r, 0.0, params.max_rpm) for r in rpm)
         # The quaternion is normalised here once; every substep then leaves it of unit norm, so the substeps need
         # not normalise it again for their rotation matrices. The motors' output is held over the substeps too.
-        state = state.replace(quat=normalize_c(state.quat))
+        state = state.replace(quat=normalize_c(state.quat), contact=jnp.zeros_like(state.contact))
         motors = dynamics.motors_c(params, rpm)
         # The RPM of the previous substep, which drag uses, is the state's in the first substep and the held
         # command in the others: it is chosen per substep rather than carried (and copied) through the loop.
         rpm_before = state.rpm
 
         def substep(s, first):
-            rpm_prev = tuple(jnp.where(first, before, now) for before, now in zip(rpm_before, rpm, strict=False))
+            rpm_prev = tuple(jnp.where(first, before, now) for before, now in zip(rpm_before, rpm, strict=True))
             s = physics_substep_c(config, params, s.replace(rpm=rpm_prev), rpm, motors, unit_quat=True)
             return s.replace(rpm=()), None
 
         first = jnp.arange(config.n_substeps) == 0
         state, _ = jax.lax.scan(substep, state.replace(rpm=()), first)
-        return _join_state(state.replace(rpm=rpm))
+        return state.replace(rpm=rpm)
+
+    return core_c
+
+
+def _core_step(config: SimConfig):
+    """The jitted control step of the JAX core on checked inputs, in array form."""
+    core_c = _core_step_c(config)
+
+    @jax.jit
+    def core(params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
+        return _join_state(core_c(params, _split_state(state), split(rpm)))
 
     return core
 
@@ -133,6 +143,7 @@ class JaxStep:
     def __init__(self, config: SimConfig):
         self.config = config
         self._core = _core_step(config)
+        self._core_c = _core_step_c(config)
 
     def __call__(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
         rpm = check_rpm(self.config, state, rpm)
@@ -181,6 +192,9 @@ def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Arra
     if rpms.ndim != state.rpm.ndim + 1 or rpms.shape[1:] != state.rpm.shape:
         raise ValueError(f"rpms must have shape [T, {', '.join(map(str, state.rpm.shape))}] (one RPM command per "
                          f"control step), got {rpms.shape}")
+    if isinstance(step, JaxStep):
+        check_params_batch(params, state)
+        return _rollout_c(step, params, state, rpms.astype(state.pos.dtype), bool(remat))
     return _rollout(step, params, state, rpms, bool(remat))
 
 
@@ -193,6 +207,22 @@ def _rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Arr
         return s, s
 
     return jax.lax.scan(body, state, rpms)[1]
+
+
+@functools.partial(jax.jit, static_argnums=(0, 4))
+def _rollout_c(step: JaxStep, params: DroneParams, state: DroneState, rpms: jax.Array, remat: bool) -> DroneState:
+    """`rollout` of the JAX core in component form: the state is split once and the commands once, the scan steps
+    the components, and the stacked states are joined once at the end. On CPU, splitting and joining at every
+    step cost as much as the physics in the backward pass (where XLA recomputes the shared cotangents for each
+    component it joins)."""
+    core_c = jax.checkpoint(step._core_c) if remat else step._core_c
+
+    def body(s, rpm):
+        s = core_c(params, s, rpm)
+        return s, s
+
+    states = jax.lax.scan(body, _split_state(state), split(rpms))[1]
+    return _join_state(states)
 
 
 def shard_worlds(tree, axis: int = 0, devices=None):
