@@ -1,12 +1,12 @@
 """XLA settings that jaxdrones applies when it is imported, before JAX starts its CPU backend.
 
-XLA:CPU's MLIR fusion emitters, the default of jaxlib 0.9, compile the backward pass of a rollout with ground
+XLA:CPU's MLIR fusion emitters, the default of jaxlib 0.9, compile the backward pass of a control step with ground
 effect at one physics substep per control step into a fused loop that recomputes shared cotangents per element:
-measured on 2 cores (`benchmarks/gradients.py`), the gradient of a 100-step rollout over 1024 worlds with drag and
-ground effect cost 180 times its forward pass, against 6 times with XLA's classic emitters, which also run the
-forward pass, the envs and PPO training as fast or faster. jaxdrones therefore adds
-``--xla_cpu_use_fusion_emitters=false`` to ``XLA_FLAGS`` unless the variable already sets that flag. The flag
-concerns the CPU backend only.
+measured on 2 cores, the gradient of a 100-step rollout over 1024 worlds with drag and ground effect cost 180 times
+its forward pass, against 6 times with XLA's classic emitters, which also run the forward pass, the envs and PPO
+training as fast or faster (`jaxdrones.rollout`, which steps the component form of the state, then brought it
+under 3 times: `benchmarks/gradients.py`). jaxdrones therefore adds ``--xla_cpu_use_fusion_emitters=false`` to
+``XLA_FLAGS`` unless the variable already sets that flag. The flag concerns the CPU backend only.
 """
 
 from __future__ import annotations

@@ -699,3 +699,41 @@ def test_quaternion_update_gradient_at_rest_is_first_order(x64):
     np.testing.assert_array_equal(quat_integrate(quat, jnp.zeros(3), dt), quat)
     assert float(jnp.max(jnp.abs(at_rest))) > 1e-3
     np.testing.assert_allclose(at_rest, moving, atol=1e-9)
+    # With respect to q itself: the identity at rest, as just above the threshold (q's own derivative counted once).
+    by_quat = jax.jacobian(lambda q: quat_integrate(q, jnp.zeros(3), dt))(quat)
+    np.testing.assert_allclose(by_quat, np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(by_quat, jax.jacobian(lambda q: quat_integrate(q, jnp.full(3, 1e-6), dt))(quat),
+                               atol=1e-8)  # off the diagonal, ½ dt |ω| = 2e-9 just above
+
+
+@pytest.mark.parametrize("steps", [10, 100])
+def test_check_grads_rollout(steps, x64):
+    """check_grads (float64, order 1, fwd and rev) through `jd.rollout` of 10 and 100 control steps of 3 drones at
+    240 Hz with drag, ground effect and downwash on, w.r.t. the RPM commands, the initial state and mass, kf, km
+    and the drag coefficients (the rollout steps the component form, with each step rematerialised)."""
+    config = jd.SimConfig(n_drones=3, sim_freq=240, ctrl_freq=240, drag=True, ground_effect=True, downwash=True)
+    step = jd.make_step(config)
+    p0 = jd.load_params("cf2x")
+    hover = float(p0.hover_rpm)
+    rng = np.random.default_rng(5)
+    # 0.3 m apart horizontally: the lower drones feel the upper ones' downwash (up to 0.009 N) without falling.
+    state0 = jd.init_state(config, pos=[[0.0, 0.0, 0.3], [0.3, 0.02, 0.5], [0.6, 0.1, 0.8]],
+                           rpy=rng.uniform(-0.2, 0.2, (3, 3)), vel=rng.uniform(-0.2, 0.2, (3, 3)),
+                           ang_vel=rng.uniform(-0.3, 0.3, (3, 3)), rpm=hover * np.ones((3, 4)))
+    rpms = jnp.asarray(hover * (1.01 + 0.01 * rng.uniform(-1, 1, (steps, 3, 4))))
+
+    def f(rpm_scale, pos, vel, quat, ang_vel, scales):
+        params = p0.replace(mass=p0.mass * (1 + scales[0]), kf=p0.kf * (1 + scales[1]), km=p0.km * (1 + scales[2]),
+                            drag_coeff=p0.drag_coeff * (1 + scales[3]))
+        state = state0.replace(pos=pos, vel=vel, quat=quat, ang_vel=ang_vel)
+        out = jd.rollout(step, params, state, rpms * (1 + rpm_scale))
+        return jnp.concatenate([out.pos[-1].ravel(), out.quat[-1].ravel(), out.vel[::7].ravel()])
+
+    args = (jnp.zeros((steps, 3, 4)), state0.pos, state0.vel, state0.quat, state0.ang_vel, jnp.zeros(4))
+    out = jd.rollout(step, p0, state0, rpms)
+    # Smooth all the way: no contact, every drone in ground effect (gain > 5e-4) and the upper ones in downwash.
+    assert not bool(out.ground_contact.any()) and float(out.pos[..., 2].min()) > 0.1
+    gain = aerodynamics.ground_effect_thrust(p0, out.pos, quat_to_rotmat(out.quat), jnp.ones((steps, 3, 4)))
+    assert float(gain.min()) > 5e-4 and float(jnp.max(aerodynamics.downwash_force(p0, out.pos))) <= 0.0
+    assert float(jnp.min(aerodynamics.downwash_force(p0, out.pos))) < -1e-3
+    check_grads(f, args, order=1, modes=("fwd", "rev"), eps=1e-5, atol=1e-6, rtol=1e-5)
