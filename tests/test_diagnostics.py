@@ -20,13 +20,13 @@ def test_gradient_stats_match_a_direct_computation_and_grow_with_the_horizon():
     env = jd.make("hover", reward="paper")
     params = {"w": 0.05 * jax.random.normal(jax.random.key(1), (env.observation_size, env.action_size))}
     key = jax.random.key(0)
-    short, long = return_gradient_stats(env, linear_policy, params, key, horizons=(5, 60), n_starts=4)
+    short, long = return_gradient_stats(env, linear_policy, params, key, horizons=(5, 40), n_starts=4)
     # Direct: one gradient per start, in a Python loop.
     starts = jax.vmap(env.reset)(jax.random.split(key, 4))
+    value_and_grad = jax.jit(jax.value_and_grad(lambda p, s: episode_return(env, linear_policy, p, s, 5)))
     grads, returns = [], []
     for i in range(4):
-        state = jax.tree.map(lambda x, i=i: x[i], starts)
-        value, grad = jax.value_and_grad(lambda p, s=state: episode_return(env, linear_policy, p, s, 5))(params)
+        value, grad = value_and_grad(params, jax.tree.map(lambda x, i=i: x[i], starts))
         returns.append(float(value))
         grads.append(np.ravel(np.asarray(grad["w"], np.float64)))
     grads = np.array(grads)
@@ -36,7 +36,7 @@ def test_gradient_stats_match_a_direct_computation_and_grow_with_the_horizon():
     assert short["mean_grad_norm"] == pytest.approx(np.linalg.norm(mean), rel=1e-4)
     assert short["grad_norm_mean"] == pytest.approx(np.linalg.norm(grads, axis=1).mean(), rel=1e-4)
     assert short["grad_variance"] == pytest.approx(np.mean(np.sum((grads - mean) ** 2, axis=1)), rel=1e-4)
-    # 2 s instead of 0.17 s of an unstable system: the gradients are orders of magnitude larger.
+    # 1.3 s instead of 0.17 s of an unstable system: the gradients are orders of magnitude larger.
     assert long["nonfinite"] == 0 and long["grad_norm_mean"] > 100 * short["grad_norm_mean"]
 
 

@@ -149,19 +149,25 @@ def evaluate(env: Env, policy, key: jax.Array, n_episodes: int = 256) -> dict:
         ``terminated_rate`` (crashed or left the arena), ``episode_reward`` (mean return, summed over drones),
         ``n_episodes``; and for tasks measured by a distance, ``final_pos_error_m`` with its max and 90th percentile.
     """
+    return episode_statistics(env, jax.jit(lambda keys: episode_outcomes(env, policy, keys))(
+        jax.random.split(key, n_episodes)))
 
-    @jax.jit
-    def run(keys):
-        states = jax.vmap(lambda k: rollout_policy(env, policy, k))(keys)
-        live = (states.steps[:, 1:] > states.steps[:, :-1]).astype(states.reward.dtype)
-        returns = jnp.sum(live * jnp.sum(states.reward[:, 1:], axis=-1), axis=1)
-        final = {k: v[:, -1] for k, v in states.metrics.items()}
-        mean = {k: jnp.sum(live * v[:, 1:], axis=1) / jnp.maximum(jnp.sum(live, axis=1), 1) for k, v in
-                states.metrics.items()}
-        return final, mean, states.terminated[:, -1], returns
 
-    final, mean, terminated, returns = jax.tree.map(lambda x: np.asarray(x, np.float64),
-                                                     run(jax.random.split(key, n_episodes)))
+def episode_outcomes(env: Env, policy, keys: jax.Array):
+    """Traced part of `evaluate`: one episode per key; returns (final metrics, episode-mean metrics, terminated,
+    return), each with a leading episode axis."""
+    states = jax.vmap(lambda k: rollout_policy(env, policy, k))(keys)
+    live = (states.steps[:, 1:] > states.steps[:, :-1]).astype(states.reward.dtype)
+    returns = jnp.sum(live * jnp.sum(states.reward[:, 1:], axis=-1), axis=1)
+    final = {k: v[:, -1] for k, v in states.metrics.items()}
+    mean = {k: jnp.sum(live * v[:, 1:], axis=1) / jnp.maximum(jnp.sum(live, axis=1), 1) for k, v in
+            states.metrics.items()}
+    return final, mean, states.terminated[:, -1], returns
+
+
+def episode_statistics(env: Env, outcomes) -> dict:
+    """Host part of `evaluate`: the statistics of `episode_outcomes`."""
+    final, mean, terminated, returns = jax.tree.map(lambda x: np.asarray(x, np.float64), outcomes)
     stats = {f"final_{k}": float(v.mean()) for k, v in final.items()}
     stats.update({f"mean_{k}": float(v.mean()) for k, v in mean.items()})
     task = getattr(env, "task", None)
@@ -173,7 +179,7 @@ def evaluate(env: Env, policy, key: jax.Array, n_episodes: int = 256) -> dict:
         stats.update(final_pos_error_m=float(dist.mean()), final_pos_error_max_m=float(dist.max()),
                      final_pos_error_p90_m=float(np.percentile(dist, 90)))
     stats.update(terminated_rate=float(terminated.mean()), episode_reward=float(returns.mean()),
-                 n_episodes=int(n_episodes))
+                 n_episodes=int(terminated.shape[0]))
     return stats
 
 
@@ -186,11 +192,11 @@ def save_policy(path: str, params, env_name: str, env_overrides: dict, config: P
 
 
 def load_policy(path: str | os.PathLike, deterministic: bool = True):
-    """Load a policy saved by ``jaxdrones train``.
+    """Load a policy saved by ``jaxdrones train`` (PPO or APG).
 
     Args:
         path: ``policy.pkl`` of a run folder, or the run folder.
-        deterministic: use the distribution's mode (True) or sample.
+        deterministic: use the distribution's mode (True) or sample (PPO; APG policies are deterministic).
 
     Returns:
         ``(env, policy)``: the env it was trained on (``jd.make(name, **overrides)``) and
@@ -211,8 +217,14 @@ def load_policy(path: str | os.PathLike, deterministic: bool = True):
         raise ValueError(f"no saved policy at {path!r}")
     with open(path, "rb") as f:
         payload = pickle.load(f)
-    if not isinstance(payload, dict) or not {"params", "env_name", "ppo_config"} <= set(payload):
+    if not isinstance(payload, dict) or not ({"params", "env_name"} <= set(payload)
+                                             and ({"ppo_config", "apg_config"} & set(payload))):
         raise ValueError(f"{path!r} is not a jaxdrones policy file")
+    if payload.get("algo") == "apg":  # trained by `jaxdrones train --algo apg` (deterministic)
+        from jaxdrones.training import apg
+
+        env = make(payload["env_name"], **payload["env_overrides"])
+        return env, apg.load(payload, env)
     config = PPOConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in payload["ppo_config"].items()})
     env = make(payload["env_name"], **payload["env_overrides"])
     from brax.training.acme import running_statistics

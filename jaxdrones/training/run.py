@@ -1,4 +1,5 @@
-"""``jaxdrones train TASK``: PPO on a single-agent task, with evaluation and saved outputs."""
+"""``jaxdrones train TASK``: PPO (brax) or analytic policy gradients on a single-agent task, with evaluation and
+saved outputs."""
 
 from __future__ import annotations
 
@@ -29,10 +30,16 @@ def default_ppo(task: str):
     return PPOConfig(**tuned.get(task, tuned["hover"]))
 
 
+#: Training algorithms of ``jaxdrones train --algo``.
+ALGOS = ("ppo", "apg")
+
+
 def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool = False, ppo_config=None,
                env_overrides=None, n_eval_episodes: int = 256, progress: bool = True,
-               t_start: float | None = None) -> dict:
-    """Train a policy on a task with brax's PPO and save the policy, a learning curve, a flight plot and a summary.
+               t_start: float | None = None, algo: str = "ppo", apg_config=None) -> dict:
+    """Train a policy on a task with brax's PPO (``algo="ppo"``) or with analytic policy gradients through the
+    simulator (``"apg"``, `jaxdrones.training.apg`), and save the policy, a learning curve, a flight plot and a
+    summary.
 
     Outputs in a new run folder (see `jaxdrones.runs.new_run_dir`; an existing run is never overwritten unless
     ``overwrite``): ``policy.pkl`` (load with `jaxdrones.training.load_policy`), ``learning_curve.png``,
@@ -43,11 +50,13 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
         task: a single-agent task name (`TRAINABLE`).
         out: output folder (default ``runs/<task>``).
         overwrite: replace an existing ``out``.
-        ppo_config: `PPOConfig` (default `default_ppo`).
+        ppo_config: `PPOConfig` (default `default_ppo`), for PPO.
         env_overrides: task config fields for ``jd.make(task, ...)``.
         n_eval_episodes: evaluation episodes from random starts (≥ 64).
         progress: show the progress bar.
         t_start: ``time.perf_counter()`` at which the wall-clock measurement starts (default: now).
+        algo: one of `ALGOS`.
+        apg_config: `jaxdrones.training.apg.APGConfig` (default: its defaults), for APG.
 
     Returns:
         The summary dict (also written to ``summary.json``): ``wall_time_s`` (everything from ``t_start``:
@@ -57,7 +66,7 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
         for distance tasks ``eval_final_pos_error_m``, the output folder and the settings.
 
     Raises:
-        ValueError: bad settings (unknown task or env option, fewer than 64 evaluation episodes, ...).
+        ValueError: bad settings (unknown task, algorithm or env option, fewer than 64 evaluation episodes, ...).
     """
     t_start = time.perf_counter() if t_start is None else t_start
     import jax
@@ -66,28 +75,37 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     from jaxdrones.envs import make
     from jaxdrones.plotting import plot_learning_curve, plot_task_flight
     from jaxdrones.runs import new_run_dir
+    from jaxdrones.training import apg
     from jaxdrones.training.ppo import ProgressLog, evaluate, rollout_policy, save_policy, total_steps, train
 
     if task not in TRAINABLE:
         raise ValueError(f"train: task must be one of {TRAINABLE} (single-agent), got {task!r}")
+    if algo not in ALGOS:
+        raise ValueError(f"train: algo must be one of {ALGOS}, got {algo!r}")
     if n_eval_episodes < 64:
         raise ValueError(f"n_eval_episodes must be >= 64, got {n_eval_episodes}")
-    config = ppo_config or default_ppo(task)
+    config = (ppo_config or default_ppo(task)) if algo == "ppo" else (apg_config or apg.APGConfig())
     env_overrides = dict(env_overrides or {})
     env = make(task, **env_overrides)
     if env.config.vision:
-        raise ValueError("train: vision observations are not supported by the PPO trainer")
+        raise ValueError("train: vision observations are not supported by the trainers")
+    if algo == "apg" and env.config.backend != "jax":
+        raise ValueError("train: --algo apg differentiates the simulator and needs backend='jax'")
     out = new_run_dir(out or os.path.join("runs", task), overwrite=overwrite)
 
     metric = env.task.success_metric
-    log = ProgressLog(total_steps(config), metric, enabled=progress)
+    log = ProgressLog(total_steps(config) if algo == "ppo" else config.total_steps, metric, enabled=progress)
     t_train = time.perf_counter()
     try:
-        make_policy, params = train(env, config, progress=log)
+        if algo == "ppo":
+            make_policy, params = train(env, config, progress=log)
+            policy = make_policy(params, deterministic=True)
+        else:
+            network, params = apg.train(env, config, progress=log, evaluate=_apg_evaluation(env, config.seed))
+            policy = apg.make_policy(network, params)
     finally:
         log.close()
     train_time = time.perf_counter() - t_train
-    policy = make_policy(params, deterministic=True)
 
     key_eval, key_flight = jax.random.split(jax.random.key(config.seed + 1))
     stats = evaluate(env, policy, key_eval, n_eval_episodes)
@@ -96,12 +114,15 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     ref = jax.vmap(lambda s: env.task.reference(jax.tree.map(lambda x: x[0], flight.task), s, env.config))(steps)
     times = steps / env.config.ctrl_freq
 
-    save_policy(os.path.join(out, "policy.pkl"), params, task, env_overrides, config)
+    if algo == "ppo":
+        save_policy(os.path.join(out, "policy.pkl"), params, task, env_overrides, config)
+    else:
+        apg.save(os.path.join(out, "policy.pkl"), params, task, env_overrides, config)
     log.save(os.path.join(out, "progress.json"))
     label = f"{metric} ({'final' if env.task.success_at == 'final' else 'mean over episode'})"
     plot_learning_curve(log.history, os.path.join(out, "learning_curve.png"), metric="metric",
                         metric_label=f"evaluation {metric} (mean over episode)",
-                        title=f"PPO on {task} ({env.config.model}, {env.config.action_type})")
+                        title=f"{algo.upper()} on {task} ({env.config.model}, {env.config.action_type})")
     plot_task_flight(times, flight.sim.pos, ref.pos, flight.sim.vel, flight.sim.rpm, os.path.join(out, "flight.png"),
                      title=f"{task}: evaluation flight")
     value = stats.get("success_value", math.nan)
@@ -109,6 +130,7 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
         "task": task,
         "wall_time_s": time.perf_counter() - t_start,
         "train_time_s": train_time,
+        "algo": algo,
         "env_steps": int(log.history[-1]["env_steps"]) if log.history else config.num_timesteps,
         "success_metric": label,
         "success_value": value,
@@ -117,7 +139,7 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
         "eval": stats,
         "out_dir": out,
         "env": json.loads(json.dumps(dataclasses.asdict(env.config), default=str)),
-        "ppo": dataclasses.asdict(config),
+        algo: dataclasses.asdict(config),
         "devices": [str(d) for d in jax.devices()],
     }
     if "final_pos_error_m" in stats:
@@ -125,6 +147,28 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     with open(os.path.join(out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=2)
     return summary
+
+
+def _apg_evaluation(env, seed: int):
+    """Evaluation of an APG policy at each learning-curve point, as the brax-style metrics `ProgressLog` reads:
+    64 episodes from random starts, the task's metric averaged over each episode; compiled once for the run."""
+    import jax
+
+    from jaxdrones.training import apg
+    from jaxdrones.training.ppo import episode_outcomes, episode_statistics
+
+    keys = jax.random.split(jax.random.split(jax.random.key(seed + 2))[0], 64)
+    metric = env.task.success_metric
+    compiled = {}
+
+    def run(network, params) -> dict:
+        if "outcomes" not in compiled:
+            compiled["outcomes"] = jax.jit(lambda p: episode_outcomes(env, apg.make_policy(network, p), keys))
+        stats = episode_statistics(env, compiled["outcomes"](params))
+        return {"eval/episode_reward": stats["episode_reward"], f"eval/episode_{metric}": stats[f"mean_{metric}"],
+                "eval/avg_episode_length": 1.0}
+
+    return run
 
 
 def register(subparsers) -> None:
@@ -135,6 +179,8 @@ def register(subparsers) -> None:
                     "a learning curve, an evaluation flight plot and summary.json in a new run folder.")
     parser.add_argument("task", choices=TRAINABLE, help="task to train")
     ppo = parser.add_argument_group("training")
+    ppo.add_argument("--algo", choices=ALGOS, default="ppo",
+                     help="ppo (brax's batched PPO, default) or apg (analytic policy gradients through the simulator)")
     ppo.add_argument("--steps", type=int, default=None, help="env steps to train (default: the task's tuned budget)")
     ppo.add_argument("--num-envs", type=int, default=None, help="parallel environments")
     ppo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -189,15 +235,22 @@ def run_cli(args: argparse.Namespace) -> int:
         if args.steps is not None:
             overrides["num_timesteps"] = args.steps
         if args.num_envs is not None:
-            overrides["num_envs"] = overrides["batch_size"] = args.num_envs
+            overrides["num_envs"] = args.num_envs
+            if args.algo == "ppo":
+                overrides["batch_size"] = args.num_envs
         env = {field: getattr(args, arg) for arg, field in _ENV_OPTIONS.items() if getattr(args, arg) is not None}
         env.update({name: True for name in ("drag", "ground_effect", "downwash") if getattr(args, name)})
         if "target" in env and args.task not in ("hover", "takeoff"):
             raise ValueError(f"--target applies to hover and takeoff, not {args.task}")
-        config = dataclasses.replace(default_ppo(args.task), **overrides)
-        summary = train_task(args.task, args.out, overwrite=args.overwrite, ppo_config=config, env_overrides=env,
+        if args.algo == "ppo":
+            configs = {"ppo_config": dataclasses.replace(default_ppo(args.task), **overrides)}
+        else:
+            from jaxdrones.training.apg import APGConfig
+
+            configs = {"apg_config": APGConfig(**overrides)}
+        summary = train_task(args.task, args.out, overwrite=args.overwrite, env_overrides=env,
                              n_eval_episodes=args.eval_episodes, progress=not args.no_progress,
-                             t_start=getattr(args, "t_start", None))
+                             t_start=getattr(args, "t_start", None), algo=args.algo, **configs)
     except (ValueError, OSError) as err:
         print(f"jaxdrones train: error: {err}", file=sys.stderr)
         return 2

@@ -223,6 +223,11 @@ class Velocity(Task):
         vel = task.data["target_vel"]
         return Reference(task.start.pos + vel * (steps / config.ctrl_freq), vel)
 
+    def loss_weights(self, config):
+        # The reference position integrates the command from the start range's centre, not from the drone's own
+        # start: only its velocity is tracked.
+        return {"distance_sq": 0.0, "velocity_error_sq": 1.0, "ang_speed_sq": 0.01}
+
     def reward_terms(self, config, task, sim, action, steps):
         vel = task.data["target_vel"]
         if config.reward == "paper":

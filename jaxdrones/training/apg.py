@@ -1,0 +1,177 @@
+"""Analytic policy gradients (APG): a policy trained by backpropagation through batched rollouts of the simulator.
+
+Each update differentiates the task's smooth training loss (`jaxdrones.envs.core.Task.loss_terms`, weighted by
+`Task.loss_weights`, averaged over ``horizon`` control steps and ``num_envs`` worlds) w.r.t. the policy's
+parameters through the env's dynamics, and takes an Adam step. The worlds' states carry over from one window to
+the next with the gradient stopped (truncated backpropagation through time, as in brax's APG and in short-horizon
+actor-critic without the critic); a world whose episode ends is reset by `VmapAutoReset`, and no gradient crosses
+the reset. brax's APG trainer optimises ``-mean(reward)``, whose shaped hover reward (clipped at 0) has no
+gradient far from the target, so the loop is written here, on flax and optax.
+
+The policy is an MLP (tanh hidden layers, tanh output in the action box), deterministic.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrones.envs.base import Env
+
+
+@dataclasses.dataclass(frozen=True)
+class APGConfig:
+    """Settings of `train` (``num_timesteps`` counts env (control) steps).
+
+    Attributes:
+        num_timesteps: env steps to train, rounded up to whole evaluation chunks.
+        num_envs: worlds stepped in parallel.
+        horizon: control steps per gradient window.
+        learning_rate: Adam's step size.
+        max_grad_norm: the gradient's global norm is clipped to this.
+        hidden_layer_sizes: of the policy MLP.
+        num_evals: evaluations (learning-curve points) over the run, ≥ 2.
+        seed: random seed.
+
+    Raises:
+        ValueError: a count below 1 (``num_evals`` below 2) or a non-positive rate or norm.
+    """
+
+    num_timesteps: int = 3_000_000
+    num_envs: int = 64
+    horizon: int = 32
+    learning_rate: float = 2e-3
+    max_grad_norm: float = 1.0
+    hidden_layer_sizes: tuple[int, ...] = (64, 64)
+    num_evals: int = 10
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("num_timesteps", "num_envs", "horizon", "num_evals", "seed"):
+            value = getattr(self, name)
+            low = 2 if name == "num_evals" else (0 if name == "seed" else 1)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
+                raise ValueError(f"APGConfig: {name} must be an integer >= {low}, got {value!r}")
+        for name in ("learning_rate", "max_grad_norm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"APGConfig: {name} must be > 0, got {getattr(self, name)!r}")
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.horizon
+
+    @property
+    def updates_per_eval(self) -> int:
+        """Updates between two evaluations (one jitted call)."""
+        return max(1, -(-self.num_timesteps // (self.steps_per_update * (self.num_evals - 1))))
+
+    @property
+    def total_steps(self) -> int:
+        """The env steps `train` runs."""
+        return (self.num_evals - 1) * self.updates_per_eval * self.steps_per_update
+
+
+def make_network(config: APGConfig, action_size: int):
+    """The policy network (flax): obs f[..., n_obs] -> action f[..., action_size] in (-1, 1)."""
+    import flax.linen as nn
+
+    class Policy(nn.Module):
+        @nn.compact
+        def __call__(self, obs):
+            x = obs
+            for size in config.hidden_layer_sizes:
+                x = nn.tanh(nn.Dense(size)(x))
+            # A small last layer: the first actions are near 0 (hover RPM for the rpm action).
+            return jnp.tanh(nn.Dense(action_size, kernel_init=nn.initializers.normal(0.01))(x))
+
+    return Policy()
+
+
+def make_policy(network, params) -> Callable:
+    """``policy(obs, key) -> (action, {})``, deterministic, with the signature of brax's policies (on one drone's
+    flat observation for the single-agent tasks)."""
+
+    def policy(obs, key):
+        del key
+        return network.apply(params, obs), {}
+
+    return policy
+
+
+def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, dict], None] | None = None,
+          evaluate: Callable[..., dict] | None = None):
+    """Train a policy on ``env`` (one world; D drones share the policy, each seeing its own observation).
+
+    Args:
+        env: a jaxdrones env without camera images.
+        config: `APGConfig`.
+        progress: called as ``progress(env_steps, metrics)`` at each of ``config.num_evals`` points, the first
+            before training (``train/loss``, the mean window loss of the last update, ``train/grad_norm``, and
+            what ``evaluate`` returns).
+        evaluate: ``evaluate(network, params) -> dict`` of metrics of the current policy (see `make_policy`).
+
+    Returns:
+        ``(network, params)``: the flax module and its trained parameters (see `make_policy`).
+    """
+    import optax
+
+    from jaxdrones.envs.base import world_axes
+    from jaxdrones.wrappers import VmapAutoReset
+
+    auto = VmapAutoReset(env)
+    batched_loss = jax.vmap(env.loss, in_axes=(world_axes(auto.params_shared),))
+    network = make_network(config, env.action_size)
+    key_init, key_reset = jax.random.split(jax.random.key(config.seed))
+    params = network.init(key_init, jnp.zeros((env.observation_size,), env.dtype))
+    optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate))
+
+    def window_loss(params, state):
+        def body(s, _):
+            s = auto.step(s, network.apply(params, s.obs))
+            return s, jnp.mean(batched_loss(s))
+
+        state, losses = jax.lax.scan(body, state, None, length=config.horizon)
+        return jnp.mean(losses), state
+
+    def update(carry, _):
+        params, opt_state, state = carry
+        (loss, state), grad = jax.value_and_grad(window_loss, has_aux=True)(params, state)
+        updates, opt_state = optimizer.update(grad, opt_state, params)
+        carry = (optax.apply_updates(params, updates), opt_state, jax.lax.stop_gradient(state))
+        return carry, (loss, optax.global_norm(grad))
+
+    @jax.jit
+    def chunk(carry):
+        return jax.lax.scan(update, carry, None, length=config.updates_per_eval)
+
+    carry = (params, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs)))
+
+    def report(steps, loss, grad_norm):
+        if progress is not None:
+            extra = evaluate(network, carry[0]) if evaluate is not None else {}
+            progress(steps, {"train/loss": loss, "train/grad_norm": grad_norm, **extra})
+
+    report(0, float("nan"), float("nan"))
+    for k in range(1, config.num_evals):
+        carry, (loss, grad_norm) = chunk(carry)
+        report(k * config.updates_per_eval * config.steps_per_update, float(loss[-1]), float(grad_norm[-1]))
+    return network, carry[0]
+
+
+def save(path: str, params, env_name: str, env_overrides: dict, config: APGConfig) -> None:
+    """Save trained parameters with what rebuilds the policy (`jaxdrones.training.load_policy`)."""
+    payload = {"algo": "apg", "params": jax.tree.map(np.asarray, params), "env_name": env_name,
+               "env_overrides": env_overrides, "apg_config": dataclasses.asdict(config)}
+    with open(path, "wb") as f:
+        pickle.dump(payload, f)
+
+
+def load(payload: dict, env: Env) -> Callable:
+    """The policy of a payload written by `save`, for ``env``."""
+    config = APGConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in payload["apg_config"].items()})
+    return make_policy(make_network(config, env.action_size), payload["params"])
