@@ -119,9 +119,8 @@ def _core_step_c(config: SimConfig):
     return core_c
 
 
-def _core_step(config: SimConfig):
-    """The jitted control step of the JAX core on checked inputs, in array form."""
-    core_c = _core_step_c(config)
+def _core_step(core_c):
+    """The jitted control step of the JAX core on checked inputs, in array form, around `_core_step_c`'s step."""
 
     @jax.jit
     def core(params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
@@ -142,8 +141,8 @@ class JaxStep:
 
     def __init__(self, config: SimConfig):
         self.config = config
-        self._core = _core_step(config)
         self._core_c = _core_step_c(config)
+        self._core = _core_step(self._core_c)
 
     def __call__(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
         rpm = check_rpm(self.config, state, rpm)
@@ -200,10 +199,15 @@ def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Arra
 
 @functools.partial(jax.jit, static_argnums=(0, 4))
 def _rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Array, remat: bool) -> DroneState:
-    step_fn = jax.checkpoint(step) if remat else step
+    return _scan_steps(step, params, state, rpms, remat)
+
+
+def _scan_steps(step, params, state, rpms, remat: bool):
+    """The states after each command of ``rpms`` (leading time axis), ``step`` rematerialised when ``remat``."""
+    step = jax.checkpoint(step) if remat else step
 
     def body(s, rpm):
-        s = step_fn(params, s, rpm)
+        s = step(params, s, rpm)
         return s, s
 
     return jax.lax.scan(body, state, rpms)[1]
@@ -215,14 +219,7 @@ def _rollout_c(step: JaxStep, params: DroneParams, state: DroneState, rpms: jax.
     the components, and the stacked states are joined once at the end. On CPU, splitting and joining at every
     step cost as much as the physics in the backward pass (where XLA recomputes the shared cotangents for each
     component it joins)."""
-    core_c = jax.checkpoint(step._core_c) if remat else step._core_c
-
-    def body(s, rpm):
-        s = core_c(params, s, rpm)
-        return s, s
-
-    states = jax.lax.scan(body, _split_state(state), split(rpms))[1]
-    return _join_state(states)
+    return _join_state(_scan_steps(step._core_c, params, _split_state(state), split(rpms), remat))
 
 
 def shard_worlds(tree, axis: int = 0, devices=None):

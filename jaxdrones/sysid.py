@@ -29,11 +29,16 @@ NOISE = {"pos": 1e-3, "vel": 1e-2, "quat": 5e-3, "ang_vel": 0.1}
 FITTABLE = ("mass", "kf", "km", "drag_coeff", "inertia", "gnd_eff_coeff", "dw_coeff")
 
 
+def _apply(params0: DroneParams, theta: dict) -> DroneParams:
+    """``params0`` with each fitted field scaled by exp(θ), the derived fields recomputed."""
+    return with_derived(params0.replace(**{f: getattr(params0, f) * jnp.exp(t) for f, t in theta.items()}))
+
+
 def _residuals(step, params0, noise, starts, rpm_windows, observed_windows):
     """The scaled residuals of every window, as a function of the log-ratios θ (field -> array)."""
 
     def residuals(theta):
-        params = with_derived(params0.replace(**{f: getattr(params0, f) * jnp.exp(t) for f, t in theta.items()}))
+        params = _apply(params0, theta)
         predicted = jax.vmap(lambda s, r: rollout(step, params, s, r))(starts, rpm_windows)
         # q and −q are the same attitude: compare with the observed quaternion's sign.
         sign = jnp.sign(jnp.sum(predicted.quat * observed_windows.quat, axis=-1, keepdims=True))
@@ -118,7 +123,7 @@ def fit(config: SimConfig, params0: DroneParams, init_state: DroneState, rpms, o
         theta, state, value = iterate(theta, state)
         curve.append(float(value))
     curve.append(float(loss(theta)))
-    params = with_derived(params0.replace(**{f: getattr(params0, f) * jnp.exp(t) for f, t in theta.items()}))
+    params = _apply(params0, theta)
     return params, {"loss": curve, "estimates": {f: np.asarray(getattr(params, f)) for f in fields},
                     "initial": {f: np.asarray(getattr(params0, f)) for f in fields},
                     "std": _standard_errors(residuals, theta, params, fields), "windows": n // window, "window": window}

@@ -151,15 +151,15 @@ def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, di
 
     carry = (params, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs)))
 
-    def report(steps, loss, grad_norm):
+    def report(steps, params, loss, grad_norm):
         if progress is not None:
-            extra = evaluate(network, carry[0]) if evaluate is not None else {}
+            extra = evaluate(network, params) if evaluate is not None else {}
             progress(steps, {"train/loss": loss, "train/grad_norm": grad_norm, **extra})
 
-    report(0, float("nan"), float("nan"))
+    report(0, params, float("nan"), float("nan"))
     for k in range(1, config.num_evals):
         carry, (loss, grad_norm) = chunk(carry)
-        report(k * config.updates_per_eval * config.steps_per_update, float(loss[-1]), float(grad_norm[-1]))
+        report(k * config.updates_per_eval * config.steps_per_update, carry[0], float(loss[-1]), float(grad_norm[-1]))
     return network, carry[0]
 
 
