@@ -11,6 +11,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from jaxdrones.kinks import Kinks
 from jaxdrones.params import DroneParams
 from jaxdrones.rotations import GIMBAL_SNAP, Components, dot, join, split
 
@@ -43,29 +44,32 @@ def drag_force_c(params: DroneParams, vel: Components, rpm_prev: Components) -> 
     return tuple(-omega_sum * params.drag_coeff[..., k] * vel[k] for k in range(3))
 
 
-def ground_effect_thrust(params: DroneParams, pos: jax.Array, rotmat: jax.Array, thrust: jax.Array) -> jax.Array:
+def ground_effect_thrust(params: DroneParams, pos: jax.Array, rotmat: jax.Array, thrust: jax.Array,
+                         kinks: Kinks = Kinks()) -> jax.Array:
     """Extra per-propeller thrust near the ground, paper eq. (ground): g_i = f_i · C_gnd · (R / (4 h_i))².
 
     h_i is the world height of propeller i, clipped from below at ``gnd_eff_h_clip`` (so the gain is at most 4/15).
     The effect is on only while |roll| < π/2 and |pitch| < π/2 in PyBullet's Euler angles (docs/physics.md §6.1):
     R[2, 2] > 0, and |sin pitch| = |R[2, 0]| below PyBullet's gimbal-lock snap (0.99999), where it reports
-    pitch = ±π/2. The extra force acts along body +z at each propeller, like thrust.
+    pitch = ±π/2. The extra force acts along body +z at each propeller, like thrust. ``kinks`` (`jaxdrones.kinks`)
+    may smooth the height clip and the attitude condition.
 
     Args:
         params: DroneParams.
         pos: f[..., D, 3] m, world frame.
         rotmat: f[..., D, 3, 3] body→world.
         thrust: f[..., D, 4] N, kf·rpm² of each motor.
+        kinks: the kinks' treatment (default: the original's).
 
     Returns:
         f[..., D, 4] N, extra thrust of each motor.
     """
     rotmat_z = split(rotmat[..., 2, :])
-    return join(ground_effect_thrust_c(params, pos[..., 2], rotmat_z, split(thrust)))
+    return join(ground_effect_thrust_c(params, pos[..., 2], rotmat_z, split(thrust), kinks))
 
 
 def ground_effect_thrust_c(params: DroneParams, pos_z: jax.Array, rotmat_z: Components,
-                           thrust: Components) -> Components:
+                           thrust: Components, kinks: Kinks = Kinks()) -> Components:
     """`ground_effect_thrust` in component form.
 
     Args:
@@ -73,42 +77,54 @@ def ground_effect_thrust_c(params: DroneParams, pos_z: jax.Array, rotmat_z: Comp
         pos_z: f[..., D] m, world height of the base.
         rotmat_z: (R20, R21, R22), the last row of R, each f[..., D].
         thrust: 4-tuple of f[..., D] N.
+        kinks: the kinks' treatment.
     """
-    upright = (rotmat_z[2] > 0) & (jnp.abs(rotmat_z[0]) < GIMBAL_SNAP)
+    upright = kinks.step(rotmat_z[2], kinks.attitude) * kinks.step(GIMBAL_SNAP - jnp.abs(rotmat_z[0]), kinks.attitude)
     extra = []
     for i, thrust_i in enumerate(thrust):
-        height = jnp.maximum(pos_z + dot(rotmat_z, split(params.prop_pos[..., i, :])), params.gnd_eff_h_clip)
+        height = pos_z + dot(rotmat_z, split(params.prop_pos[..., i, :]))
+        height = kinks.maximum(height, params.gnd_eff_h_clip, kinks.height)
         gain = params.gnd_eff_coeff * (params.prop_radius / (4 * height)) ** 2
-        extra.append(jnp.where(upright, thrust_i * gain, 0.0))
+        extra.append(upright * thrust_i * gain)
     return tuple(extra)
 
 
-def downwash_force(params: DroneParams, pos: jax.Array) -> jax.Array:
+def downwash_force(params: DroneParams, pos: jax.Array, kinks: Kinks = Kinks()) -> jax.Array:
     """Downwash on each drone from every drone above it, paper eq. (down), along the lower drone's body -z.
 
     For a lower drone j and a drone i with Δz = z_i - z_j > 0 and horizontal distance d < 10 m:
     α = c1 (R / (4 Δz))², β = c2 Δz + c3, F = -α exp(-½ (d/β)²) (docs/physics.md §6.3). Contributions add up; the upper
     drone's RPM plays no part; drones at equal height do not interact. The coefficients are the lower drone's.
     Where β = 0 (Δz = 0.6875 m for the shipped models) the d → 0 limit is used instead of the original's 0/0.
+    ``kinks`` (`jaxdrones.kinks`) may smooth the onset at Δz = 0 (where α is unbounded) and the 10 m cut-off.
 
     Args:
         params: DroneParams.
         pos: f[..., D, 3] m, world frame.
+        kinks: the kinks' treatment (default: the original's).
 
     Returns:
         f[..., D] N, force along each drone's body z (negative: pushes down).
     """
-    return downwash_force_c(params, split(pos))
+    return downwash_force_c(params, split(pos), kinks)
 
 
-def downwash_force_c(params: DroneParams, pos: Components) -> jax.Array:
+def downwash_force_c(params: DroneParams, pos: Components, kinks: Kinks = Kinks()) -> jax.Array:
     """`downwash_force` in component form: pos (x, y, z), each f[..., D]; returns f[..., D] N."""
     dx, dy, dz = (p[..., None, :] - p[..., :, None] for p in pos)  # [..., j (lower), i (other)]
     dist2 = dx**2 + dy**2
-    active = (dz > 0) & (dist2 < DOWNWASH_MAX_DIST**2)
+    smooth = kinks.mode == "smooth"
+    reach = DOWNWASH_MAX_DIST + (kinks.downwash if smooth else 0.0)
+    active = (dz > 0) & (dist2 < reach**2)
     dz_safe = jnp.where(active, dz, 1.0)
     c1, c2, c3 = (params.dw_coeff[..., k, None] for k in range(3))
     alpha = c1 * (params.prop_radius[..., None] / (4 * dz_safe)) ** 2
     beta2 = jnp.maximum((c2 * dz_safe + c3) ** 2, _BETA2_FLOOR)
     force = alpha * jnp.exp(-0.5 * dist2 / beta2)
+    if smooth:
+        # On from Δz = 0 to 2w by smoothstep², which vanishes as Δz⁴ while α grows as Δz⁻²; off from
+        # d = 10 m - w to 10 m + w (d² - 100 m² ≈ 20 m·(d - 10 m)).
+        width = kinks.downwash
+        onset = kinks.step(dz - width, width) ** 2
+        force = force * onset * kinks.step(DOWNWASH_MAX_DIST**2 - dist2, 2 * DOWNWASH_MAX_DIST * width)
     return -jnp.sum(jnp.where(active, force, 0.0), axis=-1)

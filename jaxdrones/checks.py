@@ -25,7 +25,8 @@ def check_rpm(config: SimConfig, state: DroneState, rpm) -> jax.Array:
     dtype = rpm.dtype if hasattr(rpm, "dtype") else np.asarray(rpm).dtype
     check_rpm_shape(config, state, np.shape(rpm), dtype)
     rpm = jnp.asarray(rpm, dtype=state.pos.dtype)
-    if not isinstance(rpm, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(rpm))):
+    # On the host: inside a jit trace, jnp would turn even a constant command into a tracer.
+    if not isinstance(rpm, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(rpm))):
         raise ValueError("rpm contains NaN or inf")
     return rpm
 

@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 
 from jaxdrones import dynamics
+from jaxdrones.kinks import Kinks
 
 
 @dataclasses.dataclass(frozen=True)
@@ -23,10 +24,15 @@ class SimConfig:
         downwash: downwash between the drones of a world, paper eq. (down).
         integrator: ``"euler"`` (the paper code's semi-implicit Euler with exact quaternion exponential map) or
             ``"rk4"``.
+        kinks: how the JAX core treats the kinks of the physics (RPM clip, ground contact, ground effect's height
+            clip and attitude condition, downwash's onset and cut-off) for gradients: a `jaxdrones.kinks.Kinks`, or
+            its mode ``"exact"`` (the original's physics, default), ``"smooth"`` (C¹ within small bands, so that
+            gradients agree with finite differences across each kink) or ``"straight_through"`` (the original's
+            forward pass, identity gradients through the clips and the contact). Stored as a `Kinks`.
 
     Raises:
         ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, or an unknown
-            integrator.
+            integrator or kink treatment.
     """
 
     n_drones: int = 1
@@ -36,8 +42,13 @@ class SimConfig:
     ground_effect: bool = False
     downwash: bool = False
     integrator: str = "euler"
+    kinks: Kinks | str = "exact"
 
     def __post_init__(self):
+        if isinstance(self.kinks, str):
+            object.__setattr__(self, "kinks", Kinks(self.kinks))
+        elif not isinstance(self.kinks, Kinks):
+            raise ValueError(f"SimConfig.kinks must be a jaxdrones.kinks.Kinks or one of its modes, got {self.kinks!r}")
         for name in ("n_drones", "sim_freq", "ctrl_freq"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
@@ -66,4 +77,4 @@ class SimConfig:
 
     @property
     def effects(self) -> dynamics.Effects:
-        return dynamics.Effects(self.drag, self.ground_effect, self.downwash)
+        return dynamics.Effects(self.drag, self.ground_effect, self.downwash, self.kinks)

@@ -18,17 +18,19 @@ import jax
 import jax.numpy as jnp
 
 from jaxdrones import aerodynamics
+from jaxdrones.kinks import Kinks
 from jaxdrones.params import DroneParams
 from jaxdrones.rotations import (Components, cross, dot, join, matvec, normalize_c, quat_derivative_c,
                                  quat_integrate_c, quat_to_rotmat_c, split)
 
 
 class Effects(NamedTuple):
-    """Which aerodynamic effects are on (static)."""
+    """Which aerodynamic effects are on, and how the kinks are treated (static; see `SimConfig`)."""
 
     drag: bool = False
     ground_effect: bool = False
     downwash: bool = False
+    kinks: Kinks = Kinks()
 
 
 class Kinematics(NamedTuple):
@@ -96,11 +98,11 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
     thrust = motors.thrust
     lift = thrust
     if effects.ground_effect:
-        extra = aerodynamics.ground_effect_thrust_c(params, kin.pos[2], rotmat[2], thrust)
+        extra = aerodynamics.ground_effect_thrust_c(params, kin.pos[2], rotmat[2], thrust, effects.kinks)
         lift = tuple(t + e for t, e in zip(thrust, extra))
     body_z_force = sum(lift[1:], lift[0])
     if effects.downwash and kin.pos[2].shape[-1] > 1:  # a lone drone feels no downwash
-        body_z_force = body_z_force + aerodynamics.downwash_force_c(params, kin.pos)
+        body_z_force = body_z_force + aerodynamics.downwash_force_c(params, kin.pos, effects.kinks)
     fx, fy, fz = (row[2] * body_z_force for row in rotmat)
     force = (fx, fy, fz + -params.mass * params.gravity)
     if effects.drag:
@@ -159,21 +161,26 @@ def rk4_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Compo
 INTEGRATORS = {"euler": euler_step_c, "rk4": rk4_step_c}
 
 
-def ground_contact_c(params: DroneParams, kin: Kinematics) -> tuple[Kinematics, jax.Array]:
+def ground_contact_c(params: DroneParams, kin: Kinematics, kinks: Kinks = Kinks()) -> tuple[Kinematics, jax.Array]:
     """Ground plane at z = 0: the collision cylinder cannot go below it.
 
     Contact rule (docs/physics.md §5.6; not in the paper's explicit model, which fell through the ground): when the base
     is below its resting height ``collision_height / 2`` (0.0125 m for the shipped models, where the original's
     PyBullet drones rest), it is put back at that height and the contact is perfectly inelastic and sticking:
-    the velocity becomes (0, 0, max(v_z, 0)) and the angular velocity 0. Orientation is left unchanged.
+    the velocity becomes (0, 0, max(v_z, 0)) and the angular velocity 0. Orientation is left unchanged. ``kinks``
+    (`jaxdrones.kinks`) may smooth the contact over a band of ``kinks.height`` about the rest height, or pass
+    gradients straight through it.
 
     Returns:
-        The corrected kinematics and bool[..., D], True where the drone touched the ground.
+        The corrected kinematics and bool[..., D], True where the drone touched the ground (below the rest height).
     """
     rest = 0.5 * params.collision_height
     (x, y, z), (vx, vy, vz) = kin.pos, kin.vel
     touching = z < rest
-    pos = (x, y, jnp.maximum(z, rest))
-    vel = (jnp.where(touching, 0.0, vx), jnp.where(touching, 0.0, vy), jnp.where(touching, jnp.maximum(vz, 0.0), vz))
-    ang_vel = tuple(jnp.where(touching, 0.0, w) for w in kin.ang_vel)
+    weight = kinks.step(rest - z, kinks.height)  # the smooth degree of contact, for kinks.mode == "smooth"
+    pos = (x, y, kinks.maximum(z, rest, kinks.height))
+    vz_up = kinks.maximum(vz, 0.0, kinks.speed)
+    vz = vz_up * weight + vz * (1 - weight) if kinks.mode == "smooth" else jnp.where(touching, vz_up, vz)
+    vel = (kinks.zero_where(vx, touching, weight), kinks.zero_where(vy, touching, weight), vz)
+    ang_vel = tuple(kinks.zero_where(w, touching, weight) for w in kin.ang_vel)
     return Kinematics(pos, kin.quat, vel, ang_vel), touching

@@ -37,7 +37,7 @@ def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState,
     integrate = dynamics.INTEGRATORS[config.integrator]
     kin = dynamics.Kinematics(state.pos, state.quat, state.vel, state.ang_vel)
     kin = integrate(params, config.effects, kin, motors, state.rpm, config.dt, unit_quat)
-    kin, touching = dynamics.ground_contact_c(params, kin)
+    kin, touching = dynamics.ground_contact_c(params, kin, config.kinks)
     return DroneState(*kin, rpm=rpm, contact=state.contact | jnp.where(touching, CONTACT_GROUND, 0).astype(jnp.int32))
 
 
@@ -55,7 +55,8 @@ def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
     """Build the control step ``step(params, state, rpm) -> state`` for a config.
 
     One call holds ``rpm`` over ``config.n_substeps`` physics substeps (run under ``lax.scan``). RPMs are clipped
-    to [0, max_rpm] as the paper's code does. The step is pure (no hidden state, no key), jitted, and works under
+    to [0, max_rpm] as the paper's code does (smoothly or straight-through with ``config.kinks``, see
+    `jaxdrones.kinks`). The step is pure (no hidden state, no key), jitted, and works under
     ``jit``, ``vmap`` and ``grad``; arrays may carry leading world axes ``[W, D, ...]``. Worlds spread over several
     devices with `shard_worlds` are stepped on each device in parallel, in the same jitted call.
 
@@ -98,7 +99,7 @@ def _core_step_c(config: SimConfig):
     state's vectors and the RPM command as tuples of f[..., D] arrays (see `jaxdrones.rotations`)."""
 
     def core_c(params: DroneParams, state: DroneState, rpm: tuple) -> DroneState:
-        rpm = tuple(jnp.clip(r, 0.0, params.max_rpm) for r in rpm)
+        rpm = tuple(config.kinks.clip(r, 0.0, params.max_rpm, config.kinks.rpm) for r in rpm)
         # The quaternion is normalised here once; every substep then leaves it of unit norm, so the substeps need
         # not normalise it again for their rotation matrices. The motors' output is held over the substeps too.
         state = state.replace(quat=normalize_c(state.quat), contact=jnp.zeros_like(state.contact))

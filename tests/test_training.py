@@ -154,23 +154,56 @@ def test_fly_cli(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_train_cli_apg_learns_saves_and_reloads(tmp_path, capsys):
-    """``--algo apg``: analytic policy gradients through the simulator; the evaluation distance falls, the outputs
-    are PPO's, and the saved policy reproduces the run's evaluation."""
-    run = tmp_path / "apg"
-    args = ["train", "hover", "--algo", "apg", "--steps", "100000", "--num-envs", "8", "--out", str(run),
+@pytest.mark.parametrize("algo", ["apg", "shac"])
+def test_train_cli_gradient_algos_learn_save_and_reload(algo, tmp_path, capsys):
+    """``--algo apg`` (analytic policy gradients) and ``--algo shac`` (short-horizon actor-critic) through the
+    simulator: the evaluation distance falls, the outputs are PPO's, and the saved policy reproduces the run's
+    evaluation."""
+    run = tmp_path / algo
+    args = ["train", "hover", "--algo", algo, "--steps", "100000", "--num-envs", "8", "--out", str(run),
             "--no-progress", "--eval-episodes", "64"]
     assert main(args) == 0
     assert f"in {run}" in capsys.readouterr().out
     assert sorted(p.name for p in run.iterdir()) == sorted(TRAIN_OUTPUTS)
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["algo"] == "apg" and summary["apg"]["num_envs"] == 8 and summary["env_steps"] >= 100_000
+    assert summary["algo"] == algo and summary[algo]["num_envs"] == 8 and summary["env_steps"] >= 100_000
     progress = json.loads((run / "progress.json").read_text())
     assert progress[0]["env_steps"] == 0 and progress[-1]["env_steps"] == summary["env_steps"]
     assert progress[-1]["metric"] < 0.7 * progress[0]["metric"]  # mean distance over evaluation episodes, m
     env, policy = load_policy(run)
     stats = evaluate(env, policy, jax.random.split(jax.random.key(0 + 1))[0], 64)
     assert stats["final_pos_error_m"] == pytest.approx(summary["eval_final_pos_error_m"], abs=1e-5)
+
+
+def test_td_lambda_returns_by_hand():
+    """SHAC's critic targets: λ = 0 gives one-step TD, λ → 1 the discounted return bootstrapped at the window's
+    end, and an episode's end cuts the sum (its own next value, 0 if it terminated)."""
+    from jaxdrones.training.shac import td_lambda_returns
+
+    r, v = np.array([1.0, 2.0, 3.0]), np.array([10.0, 20.0, 30.0])
+    ended = np.zeros(3, bool)
+    g = 0.9
+    np.testing.assert_allclose(td_lambda_returns(r, v, ended, g, 0.0), r + g * v)
+    monte_carlo = [1 + g * 2 + g**2 * 3 + g**3 * 30, 2 + g * 3 + g**2 * 30, 3 + g * 30]
+    np.testing.assert_allclose(td_lambda_returns(r, v, ended, g, 1.0), monte_carlo, rtol=1e-6)
+    lam = 0.5
+    g2 = 3 + g * 30
+    g1 = 2 + g * ((1 - lam) * 20 + lam * g2)
+    np.testing.assert_allclose(td_lambda_returns(r, v, ended, g, lam), [1 + g * ((1 - lam) * 10 + lam * g1), g1, g2],
+                               rtol=1e-6)
+    cut = td_lambda_returns(r, np.array([0.0, 20.0, 30.0]), np.array([True, False, False]), g, lam)
+    np.testing.assert_allclose(cut, [1.0, g1, g2], rtol=1e-6)
+
+
+def test_shac_config_bad_input():
+    from jaxdrones.training.shac import SHACConfig
+
+    with pytest.raises(ValueError, match="discounting must be in"):
+        SHACConfig(discounting=1.0)
+    with pytest.raises(ValueError, match="critic_minibatches must be an integer"):
+        SHACConfig(critic_minibatches=0)
+    with pytest.raises(ValueError, match="horizon must be an integer"):
+        SHACConfig(horizon=0)
 
 
 def test_train_cli_unknown_algo(capsys):

@@ -117,6 +117,9 @@ class PyBulletStep:
                  renderer: str = "tiny"):
         if renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
+        if config.kinks.mode != "exact":
+            raise ValueError(f"the pybullet backend is not differentiable and steps the original's physics: "
+                             f"SimConfig.kinks must be 'exact', got {config.kinks.mode!r}")
         if gui:
             require_display()
         self.config = config

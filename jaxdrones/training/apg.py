@@ -4,8 +4,8 @@ Each update differentiates the task's smooth training loss (`jaxdrones.envs.core
 `Task.loss_weights`, averaged over ``horizon`` control steps and ``num_envs`` worlds) w.r.t. the policy's
 parameters through the env's dynamics, and takes an Adam step. The worlds' states carry over from one window to
 the next with the gradient stopped (truncated backpropagation through time, as in brax's APG and in short-horizon
-actor-critic without the critic); a world whose episode ends is reset by `VmapAutoReset`, and no gradient crosses
-the reset. brax's APG trainer optimises ``-mean(reward)``, whose shaped hover reward (clipped at 0) has no
+actor-critic without the critic); a world whose episode ends is reset (`jaxdrones.wrappers.reset_where`), and no
+gradient crosses the reset. brax's APG trainer optimises ``-mean(reward)``, whose shaped hover reward (clipped at 0) has no
 gradient far from the target, so the loop is written here, on flax and optax.
 
 The policy is an MLP (tanh hidden layers, tanh output in the action box), deterministic.
@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import pickle
 from collections.abc import Callable
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -50,6 +51,8 @@ class APGConfig:
     hidden_layer_sizes: tuple[int, ...] = (64, 64)
     num_evals: int = 10
     seed: int = 0
+
+    algo: ClassVar[str] = "apg"
 
     def __post_init__(self):
         for name in ("num_timesteps", "num_envs", "horizon", "num_evals", "seed"):
@@ -132,8 +135,8 @@ def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, di
 
     def window_loss(params, state):
         def body(s, _):
-            s = auto.step(s, network.apply(params, s.obs))
-            return s, jnp.mean(batched_loss(s))
+            ended, s = auto.step_ended(s, network.apply(params, s.obs))
+            return s, jnp.mean(batched_loss(ended))  # the loss of the step, also where it ended an episode
 
         state, losses = jax.lax.scan(body, state, None, length=config.horizon)
         return jnp.mean(losses), state
@@ -143,35 +146,51 @@ def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, di
         (loss, state), grad = jax.value_and_grad(window_loss, has_aux=True)(params, state)
         updates, opt_state = optimizer.update(grad, opt_state, params)
         carry = (optax.apply_updates(params, updates), opt_state, jax.lax.stop_gradient(state))
-        return carry, (loss, optax.global_norm(grad))
+        return carry, {"train/loss": loss, "train/grad_norm": optax.tree.norm(grad)}
+
+    carry = (params, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs)))
+    carry = run_updates(config, update, carry, lambda c: c[0], network, progress, evaluate)
+    return network, carry[0]
+
+
+def run_updates(config: APGConfig, update: Callable, carry, policy_params: Callable, network,
+                progress: Callable[[int, dict], None] | None, evaluate: Callable[..., dict] | None):
+    """The training loop of the gradient-based trainers: ``config.num_evals - 1`` jitted chunks of
+    ``config.updates_per_eval`` calls of ``update(carry, None) -> (carry, metrics)`` (a `jax.lax.scan` body), with
+    ``progress(env_steps, metrics)`` before the first chunk and after each: the last update's metrics and what
+    ``evaluate(network, policy_params(carry))`` returns. Returns the final carry."""
 
     @jax.jit
     def chunk(carry):
         return jax.lax.scan(update, carry, None, length=config.updates_per_eval)
 
-    carry = (params, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs)))
-
-    def report(steps, params, loss, grad_norm):
+    def report(steps, carry, metrics):
         if progress is not None:
-            extra = evaluate(network, params) if evaluate is not None else {}
-            progress(steps, {"train/loss": loss, "train/grad_norm": grad_norm, **extra})
+            extra = evaluate(network, policy_params(carry)) if evaluate is not None else {}
+            progress(steps, {**metrics, **extra})
 
-    report(0, params, float("nan"), float("nan"))
+    report(0, carry, {"train/loss": float("nan"), "train/grad_norm": float("nan")})
     for k in range(1, config.num_evals):
-        carry, (loss, grad_norm) = chunk(carry)
-        report(k * config.updates_per_eval * config.steps_per_update, carry[0], float(loss[-1]), float(grad_norm[-1]))
-    return network, carry[0]
+        carry, metrics = chunk(carry)
+        report(k * config.updates_per_eval * config.steps_per_update, carry,
+               {name: float(value[-1]) for name, value in metrics.items()})
+    return carry
 
 
 def save(path: str, params, env_name: str, env_overrides: dict, config: APGConfig) -> None:
-    """Save trained parameters with what rebuilds the policy (`jaxdrones.training.load_policy`)."""
-    payload = {"algo": "apg", "params": jax.tree.map(np.asarray, params), "env_name": env_name,
-               "env_overrides": env_overrides, "apg_config": dataclasses.asdict(config)}
+    """Save a policy trained by APG or SHAC (``config`` an `APGConfig` or a `SHACConfig`) with what rebuilds it
+    (`jaxdrones.training.load_policy`)."""
+    payload = {"algo": config.algo, "params": jax.tree.map(np.asarray, params), "env_name": env_name,
+               "env_overrides": env_overrides, f"{config.algo}_config": dataclasses.asdict(config)}
     with open(path, "wb") as f:
         pickle.dump(payload, f)
 
 
 def load(payload: dict, env: Env) -> Callable:
     """The policy of a payload written by `save`, for ``env``."""
-    config = APGConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in payload["apg_config"].items()})
+    from jaxdrones.training.shac import SHACConfig
+
+    config_cls = {"apg": APGConfig, "shac": SHACConfig}[payload["algo"]]
+    fields = payload[f"{payload['algo']}_config"]
+    config = config_cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
     return make_policy(make_network(config, env.action_size), payload["params"])

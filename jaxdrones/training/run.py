@@ -1,5 +1,5 @@
-"""``jaxdrones train TASK``: PPO (brax) or analytic policy gradients on a single-agent task, with evaluation and
-saved outputs."""
+"""``jaxdrones train TASK``: PPO (brax), analytic policy gradients or short-horizon actor-critic on a single-agent
+task, with evaluation and saved outputs."""
 
 from __future__ import annotations
 
@@ -31,15 +31,15 @@ def default_ppo(task: str):
 
 
 #: Training algorithms of ``jaxdrones train --algo``.
-ALGOS = ("ppo", "apg")
+ALGOS = ("ppo", "apg", "shac")
 
 
 def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool = False, ppo_config=None,
                env_overrides=None, n_eval_episodes: int = 256, progress: bool = True,
-               t_start: float | None = None, algo: str = "ppo", apg_config=None) -> dict:
-    """Train a policy on a task with brax's PPO (``algo="ppo"``) or with analytic policy gradients through the
-    simulator (``"apg"``, `jaxdrones.training.apg`), and save the policy, a learning curve, a flight plot and a
-    summary.
+               t_start: float | None = None, algo: str = "ppo", gradient_config=None) -> dict:
+    """Train a policy on a task with brax's PPO (``algo="ppo"``), or through the differentiable simulator with
+    analytic policy gradients (``"apg"``, `jaxdrones.training.apg`) or short-horizon actor-critic (``"shac"``,
+    `jaxdrones.training.shac`), and save the policy, a learning curve, a flight plot and a summary.
 
     Outputs in a new run folder (see `jaxdrones.runs.new_run_dir`; an existing run is never overwritten unless
     ``overwrite``): ``policy.pkl`` (load with `jaxdrones.training.load_policy`), ``learning_curve.png``,
@@ -56,7 +56,8 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
         progress: show the progress bar.
         t_start: ``time.perf_counter()`` at which the wall-clock measurement starts (default: now).
         algo: one of `ALGOS`.
-        apg_config: `jaxdrones.training.apg.APGConfig` (default: its defaults), for APG.
+        gradient_config: for ``"apg"`` an `jaxdrones.training.apg.APGConfig`, for ``"shac"`` a
+            `jaxdrones.training.shac.SHACConfig` (default: the class's defaults).
 
     Returns:
         The summary dict (also written to ``summary.json``): ``wall_time_s`` (everything from ``t_start``:
@@ -75,7 +76,7 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     from jaxdrones.envs import make
     from jaxdrones.plotting import plot_learning_curve, plot_task_flight
     from jaxdrones.runs import new_run_dir
-    from jaxdrones.training import apg
+    from jaxdrones.training import apg, shac
     from jaxdrones.training.ppo import ProgressLog, evaluate, rollout_policy, save_policy, total_steps, train
 
     if task not in TRAINABLE:
@@ -84,13 +85,19 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
         raise ValueError(f"train: algo must be one of {ALGOS}, got {algo!r}")
     if n_eval_episodes < 64:
         raise ValueError(f"n_eval_episodes must be >= 64, got {n_eval_episodes}")
-    config = (ppo_config or default_ppo(task)) if algo == "ppo" else (apg_config or apg.APGConfig())
+    gradient = {"apg": (apg.APGConfig, apg.train), "shac": (shac.SHACConfig, shac.train)}
+    if algo == "ppo":
+        config = ppo_config or default_ppo(task)
+    else:
+        config = gradient_config or gradient[algo][0]()
+        if type(config) is not gradient[algo][0]:
+            raise ValueError(f"train: algo {algo!r} takes a {gradient[algo][0].__name__}, got {type(config).__name__}")
     env_overrides = dict(env_overrides or {})
     env = make(task, **env_overrides)
     if env.config.vision:
         raise ValueError("train: vision observations are not supported by the trainers")
-    if algo == "apg" and env.config.backend != "jax":
-        raise ValueError("train: --algo apg differentiates the simulator and needs backend='jax'")
+    if algo != "ppo" and env.config.backend != "jax":
+        raise ValueError(f"train: --algo {algo} differentiates the simulator and needs backend='jax'")
     out = new_run_dir(out or os.path.join("runs", task), overwrite=overwrite)
 
     metric = env.task.success_metric
@@ -101,7 +108,8 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
             make_policy, params = train(env, config, progress=log)
             policy = make_policy(params, deterministic=True)
         else:
-            network, params = apg.train(env, config, progress=log, evaluate=_apg_evaluation(env, config.seed))
+            network, params = gradient[algo][1](env, config, progress=log,
+                                                evaluate=_gradient_evaluation(env, config.seed))
             policy = apg.make_policy(network, params)
     finally:
         log.close()
@@ -149,12 +157,12 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     return summary
 
 
-def _apg_evaluation(env, seed: int):
-    """Evaluation of an APG policy at each learning-curve point, as the brax-style metrics `ProgressLog` reads:
+def _gradient_evaluation(env, seed: int):
+    """Evaluation of an APG or SHAC policy at each learning-curve point, as the brax-style metrics `ProgressLog` reads:
     64 episodes from random starts, the task's metric averaged over each episode; compiled once for the run."""
     import jax
 
-    from jaxdrones.training import apg
+    from jaxdrones.training import apg, shac
     from jaxdrones.training.ppo import episode_outcomes, episode_statistics
 
     keys = jax.random.split(jax.random.split(jax.random.key(seed + 2))[0], 64)
@@ -174,13 +182,15 @@ def _apg_evaluation(env, seed: int):
 def register(subparsers) -> None:
     """Add the ``train`` subcommand to an argparse subparsers object."""
     parser = subparsers.add_parser(
-        "train", help="train a policy with batched PPO (brax)",
-        description="Train a policy with brax's PPO on a jaxdrones task, then evaluate it and save the policy, "
+        "train", help="train a policy with batched PPO (brax), APG or SHAC",
+        description="Train a policy on a jaxdrones task with brax's PPO or, through the differentiable simulator, "
+                    "with APG or SHAC; then evaluate it and save the policy, "
                     "a learning curve, an evaluation flight plot and summary.json in a new run folder.")
     parser.add_argument("task", choices=TRAINABLE, help="task to train")
     ppo = parser.add_argument_group("training")
     ppo.add_argument("--algo", choices=ALGOS, default="ppo",
-                     help="ppo (brax's batched PPO, default) or apg (analytic policy gradients through the simulator)")
+                     help="ppo (brax's batched PPO, default), apg (analytic policy gradients through the simulator) "
+                          "or shac (short-horizon actor-critic through the simulator)")
     ppo.add_argument("--steps", type=int, default=None, help="env steps to train (default: the task's tuned budget)")
     ppo.add_argument("--num-envs", type=int, default=None, help="parallel environments")
     ppo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -246,8 +256,9 @@ def run_cli(args: argparse.Namespace) -> int:
             configs = {"ppo_config": dataclasses.replace(default_ppo(args.task), **overrides)}
         else:
             from jaxdrones.training.apg import APGConfig
+            from jaxdrones.training.shac import SHACConfig
 
-            configs = {"apg_config": APGConfig(**overrides)}
+            configs = {"gradient_config": {"apg": APGConfig, "shac": SHACConfig}[args.algo](**overrides)}
         summary = train_task(args.task, args.out, overwrite=args.overwrite, env_overrides=env,
                              n_eval_episodes=args.eval_episodes, progress=not args.no_progress,
                              t_start=getattr(args, "t_start", None), algo=args.algo, **configs)

@@ -109,10 +109,15 @@ class VmapAutoReset(_Wrapper):
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Step every world with ``action`` f[W, D, n_act] and reset the ones whose episode ended."""
+        return self.step_ended(state, action)[1]
+
+    def step_ended(self, state: EnvState, action: jax.Array) -> tuple[EnvState, EnvState]:
+        """`step`, also returning each world's state right after the step, before any reset (e.g. for a training
+        loss of the step that ended an episode): ``(ended [W], state [W])``."""
         axes = world_axes(self.params_shared)
-        nxt = _final_info(jax.vmap(self.env.step, in_axes=(axes, 0), out_axes=axes)(state, action))
-        return reset_where(self.env, nxt, nxt.done, self.max_resets, keep=ENDING_STEP_FIELDS,
-                           shared_params=self.params_shared)
+        ended = _final_info(jax.vmap(self.env.step, in_axes=(axes, 0), out_axes=axes)(state, action))
+        return ended, reset_where(self.env, ended, ended.done, self.max_resets, keep=ENDING_STEP_FIELDS,
+                                  shared_params=self.params_shared)
 
 
 def reset_where(env: Env, state: EnvState, mask: jax.Array, max_resets: int | None = None,
