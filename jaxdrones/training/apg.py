@@ -43,8 +43,8 @@ class APGConfig:
         ValueError: a count below 1 (``num_evals`` below 2) or a non-positive rate or norm.
     """
 
-    num_timesteps: int = 3_000_000
-    num_envs: int = 64
+    num_timesteps: int = 1_000_000
+    num_envs: int = 16
     horizon: int = 32
     learning_rate: float = 2e-3
     max_grad_norm: float = 1.0
