@@ -5,8 +5,8 @@ Each update differentiates the task's smooth training loss (`jaxdrones.envs.core
 parameters through the env's dynamics, and takes an Adam step. The worlds' states carry over from one window to
 the next with the gradient stopped (truncated backpropagation through time, as in brax's APG and in short-horizon
 actor-critic without the critic); a world whose episode ends is reset (`jaxdrones.wrappers.reset_where`), and no
-gradient crosses the reset. brax's APG trainer optimises ``-mean(reward)``, whose shaped hover reward (clipped at 0) has no
-gradient far from the target, so the loop is written here, on flax and optax.
+gradient crosses the reset. brax's APG trainer optimises ``-mean(reward)``, whose shaped hover reward (clipped at 0)
+has no gradient far from the target, so the loop is written here, on flax and optax.
 
 The policy is an MLP (tanh hidden layers, tanh output in the action box), deterministic.
 """

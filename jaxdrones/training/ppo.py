@@ -192,11 +192,12 @@ def save_policy(path: str, params, env_name: str, env_overrides: dict, config: P
 
 
 def load_policy(path: str | os.PathLike, deterministic: bool = True):
-    """Load a policy saved by ``jaxdrones train`` (PPO, APG or SHAC).
+    """Load a policy saved by ``jaxdrones train`` (PPO, APG, SHAC, MAPPO or IPPO).
 
     Args:
         path: ``policy.pkl`` of a run folder, or the run folder.
-        deterministic: use the distribution's mode (True) or sample (PPO; APG and SHAC policies are deterministic).
+        deterministic: use the distribution's mode (True) or sample (PPO; the other trainers' policies are
+            deterministic).
 
     Returns:
         ``(env, policy)``: the env it was trained on (``jd.make(name, **overrides)``) and
@@ -218,13 +219,19 @@ def load_policy(path: str | os.PathLike, deterministic: bool = True):
     with open(path, "rb") as f:
         payload = pickle.load(f)
     if not isinstance(payload, dict) or not ({"params", "env_name"} <= set(payload)
-                                             and ({"ppo_config", "apg_config", "shac_config"} & set(payload))):
+                                             and ({"ppo_config", "apg_config", "shac_config", "mappo_config"}
+                                                  & set(payload))):
         raise ValueError(f"{path!r} is not a jaxdrones policy file")
     if payload.get("algo") in ("apg", "shac"):  # trained by `jaxdrones train --algo apg|shac` (deterministic)
         from jaxdrones.training import apg
 
         env = make(payload["env_name"], **payload["env_overrides"])
         return env, apg.load(payload, env)
+    if payload.get("algo") in ("mappo", "ippo"):  # trained by `jaxdrones train --algo mappo|ippo`
+        from jaxdrones.training import mappo
+
+        env = make(payload["env_name"], **payload["env_overrides"])
+        return env, mappo.load(payload, env)
     config = PPOConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in payload["ppo_config"].items()})
     env = make(payload["env_name"], **payload["env_overrides"])
     from brax.training.acme import running_statistics

@@ -1,5 +1,5 @@
 """``jaxdrones train TASK``: PPO (brax), analytic policy gradients or short-horizon actor-critic on a single-agent
-task, with evaluation and saved outputs."""
+task, multi-agent PPO on a team, with evaluation and saved outputs."""
 
 from __future__ import annotations
 
@@ -11,8 +11,14 @@ import os
 import sys
 import time
 
-#: Tasks ``jaxdrones train`` trains (the single-agent ones).
-TRAINABLE = ("hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune")
+#: Single-agent tasks ``jaxdrones train`` trains (default algorithm: PPO).
+SINGLE_AGENT = ("hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune")
+#: Multi-agent tasks ``jaxdrones train`` trains (default algorithm: MAPPO).
+MULTI_AGENT = ("leader_follower", "multi_hover", "flock", "meetup")
+TRAINABLE = SINGLE_AGENT + MULTI_AGENT
+#: Task settings ``jaxdrones train`` uses unless told otherwise: the paper's multi-agent example trains
+#: leader-follower with one_d_rpm actions (docs: reference facts §11.4).
+DEFAULT_ENV = {"leader_follower": {"action_type": "one_d_rpm"}}
 
 
 def default_ppo(task: str):
@@ -31,15 +37,34 @@ def default_ppo(task: str):
 
 
 #: Training algorithms of ``jaxdrones train --algo``.
-ALGOS = ("ppo", "apg", "shac")
+ALGOS = ("ppo", "apg", "shac", "mappo", "ippo")
+
+
+def default_algo(task: str) -> str:
+    """``"mappo"`` for a multi-agent task, ``"ppo"`` otherwise."""
+    return "mappo" if task in MULTI_AGENT else "ppo"
+
+
+def _trainer(algo: str):
+    """``(config class, default config, train, make_policy, save)`` of a trainer other than PPO."""
+    from jaxdrones.training import apg, mappo, shac
+
+    if algo in ("apg", "shac"):
+        module = {"apg": apg, "shac": shac}[algo]
+        cls = apg.APGConfig if algo == "apg" else shac.SHACConfig
+        return cls, cls(), module.train, apg.make_policy, apg.save
+    critic = "central" if algo == "mappo" else "local"
+    return mappo.MAPPOConfig, mappo.MAPPOConfig(critic=critic), mappo.train, mappo.make_policy, mappo.save
 
 
 def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool = False, ppo_config=None,
                env_overrides=None, n_eval_episodes: int = 256, progress: bool = True,
-               t_start: float | None = None, algo: str = "ppo", gradient_config=None) -> dict:
-    """Train a policy on a task with brax's PPO (``algo="ppo"``), or through the differentiable simulator with
+               t_start: float | None = None, algo: str | None = None, algo_config=None) -> dict:
+    """Train a policy on a task and save it with a learning curve, a flight plot and a summary. Algorithms:
+    brax's PPO (``algo="ppo"``, on the drones' joint observation and action); through the differentiable simulator,
     analytic policy gradients (``"apg"``, `jaxdrones.training.apg`) or short-horizon actor-critic (``"shac"``,
-    `jaxdrones.training.shac`), and save the policy, a learning curve, a flight plot and a summary.
+    `jaxdrones.training.shac`); for teams, multi-agent PPO with a centralised critic (``"mappo"``) or independent
+    PPO (``"ippo"``), `jaxdrones.training.mappo`.
 
     Outputs in a new run folder (see `jaxdrones.runs.new_run_dir`; an existing run is never overwritten unless
     ``overwrite``): ``policy.pkl`` (load with `jaxdrones.training.load_policy`), ``learning_curve.png``,
@@ -47,17 +72,19 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     episode) and ``summary.json``.
 
     Args:
-        task: a single-agent task name (`TRAINABLE`).
+        task: a task name (`TRAINABLE`).
         out: output folder (default ``runs/<task>``).
         overwrite: replace an existing ``out``.
         ppo_config: `PPOConfig` (default `default_ppo`), for PPO.
-        env_overrides: task config fields for ``jd.make(task, ...)``.
+        env_overrides: task config fields for ``jd.make(task, ...)``, over `DEFAULT_ENV`'s.
         n_eval_episodes: evaluation episodes from random starts (≥ 64).
         progress: show the progress bar.
         t_start: ``time.perf_counter()`` at which the wall-clock measurement starts (default: now).
-        algo: one of `ALGOS`.
-        gradient_config: for ``"apg"`` an `jaxdrones.training.apg.APGConfig`, for ``"shac"`` a
-            `jaxdrones.training.shac.SHACConfig` (default: the class's defaults).
+        algo: one of `ALGOS` (default `default_algo`).
+        algo_config: for ``"apg"`` an `jaxdrones.training.apg.APGConfig`, for ``"shac"`` a
+            `jaxdrones.training.shac.SHACConfig`, for ``"mappo"`` and ``"ippo"`` a
+            `jaxdrones.training.mappo.MAPPOConfig` with ``critic="central"`` or ``"local"`` (default: the
+            class's defaults).
 
     Returns:
         The summary dict (also written to ``summary.json``): ``wall_time_s`` (everything from ``t_start``:
@@ -76,27 +103,27 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     from jaxdrones.envs import make
     from jaxdrones.plotting import plot_learning_curve, plot_task_flight
     from jaxdrones.runs import new_run_dir
-    from jaxdrones.training import apg, shac
     from jaxdrones.training.ppo import ProgressLog, evaluate, rollout_policy, save_policy, total_steps, train
 
     if task not in TRAINABLE:
-        raise ValueError(f"train: task must be one of {TRAINABLE} (single-agent), got {task!r}")
+        raise ValueError(f"train: task must be one of {TRAINABLE}, got {task!r}")
+    algo = default_algo(task) if algo is None else algo
     if algo not in ALGOS:
         raise ValueError(f"train: algo must be one of {ALGOS}, got {algo!r}")
     if n_eval_episodes < 64:
         raise ValueError(f"n_eval_episodes must be >= 64, got {n_eval_episodes}")
-    gradient = {"apg": (apg.APGConfig, apg.train), "shac": (shac.SHACConfig, shac.train)}
     if algo == "ppo":
         config = ppo_config or default_ppo(task)
     else:
-        config = gradient_config or gradient[algo][0]()
-        if type(config) is not gradient[algo][0]:
-            raise ValueError(f"train: algo {algo!r} takes a {gradient[algo][0].__name__}, got {type(config).__name__}")
-    env_overrides = dict(env_overrides or {})
+        config_cls, config, train_fn, make_policy_fn, save_fn = _trainer(algo)
+        config = algo_config or config
+        if type(config) is not config_cls or getattr(config, "algo", algo) != algo:
+            raise ValueError(f"train: algo {algo!r} takes a {config_cls.__name__} for {algo}, got {config!r}")
+    env_overrides = {**DEFAULT_ENV.get(task, {}), **(env_overrides or {})}
     env = make(task, **env_overrides)
     if env.config.vision:
         raise ValueError("train: vision observations are not supported by the trainers")
-    if algo != "ppo" and env.config.backend != "jax":
+    if algo in ("apg", "shac") and env.config.backend != "jax":
         raise ValueError(f"train: --algo {algo} differentiates the simulator and needs backend='jax'")
     out = new_run_dir(out or os.path.join("runs", task), overwrite=overwrite)
 
@@ -108,9 +135,9 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
             make_policy, params = train(env, config, progress=log)
             policy = make_policy(params, deterministic=True)
         else:
-            network, params = gradient[algo][1](env, config, progress=log,
-                                                evaluate=_gradient_evaluation(env, config.seed))
-            policy = apg.make_policy(network, params)
+            network, params = train_fn(env, config, progress=log,
+                                       evaluate=_policy_evaluation(env, config.seed, make_policy_fn))
+            policy = make_policy_fn(network, params)
     finally:
         log.close()
     train_time = time.perf_counter() - t_train
@@ -125,7 +152,7 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     if algo == "ppo":
         save_policy(os.path.join(out, "policy.pkl"), params, task, env_overrides, config)
     else:
-        apg.save(os.path.join(out, "policy.pkl"), params, task, env_overrides, config)
+        save_fn(os.path.join(out, "policy.pkl"), params, task, env_overrides, config)
     log.save(os.path.join(out, "progress.json"))
     label = f"{metric} ({'final' if env.task.success_at == 'final' else 'mean over episode'})"
     plot_learning_curve(log.history, os.path.join(out, "learning_curve.png"), metric="metric",
@@ -157,12 +184,12 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     return summary
 
 
-def _gradient_evaluation(env, seed: int):
-    """Evaluation of an APG or SHAC policy at each learning-curve point, as the brax-style metrics `ProgressLog` reads:
-    64 episodes from random starts, the task's metric averaged over each episode; compiled once for the run."""
+def _policy_evaluation(env, seed: int, make_policy):
+    """Evaluation of the policy ``make_policy(network, params)`` at each learning-curve point of a trainer other
+    than brax's PPO, as the brax-style metrics `ProgressLog` reads: 64 episodes from random starts, the task's
+    metric averaged over each episode; compiled once for the run."""
     import jax
 
-    from jaxdrones.training import apg, shac
     from jaxdrones.training.ppo import episode_outcomes, episode_statistics
 
     keys = jax.random.split(jax.random.split(jax.random.key(seed + 2))[0], 64)
@@ -171,7 +198,7 @@ def _gradient_evaluation(env, seed: int):
 
     def run(network, params) -> dict:
         if "outcomes" not in compiled:
-            compiled["outcomes"] = jax.jit(lambda p: episode_outcomes(env, apg.make_policy(network, p), keys))
+            compiled["outcomes"] = jax.jit(lambda p: episode_outcomes(env, make_policy(network, p), keys))
         stats = episode_statistics(env, compiled["outcomes"](params))
         return {"eval/episode_reward": stats["episode_reward"], f"eval/episode_{metric}": stats[f"mean_{metric}"],
                 "eval/avg_episode_length": 1.0}
@@ -182,15 +209,17 @@ def _gradient_evaluation(env, seed: int):
 def register(subparsers) -> None:
     """Add the ``train`` subcommand to an argparse subparsers object."""
     parser = subparsers.add_parser(
-        "train", help="train a policy with batched PPO (brax), APG or SHAC",
-        description="Train a policy on a jaxdrones task with brax's PPO or, through the differentiable simulator, "
-                    "with APG or SHAC; then evaluate it and save the policy, "
+        "train", help="train a policy with batched PPO (brax), APG, SHAC or multi-agent PPO",
+        description="Train a policy on a jaxdrones task with brax's PPO, through the differentiable simulator with "
+                    "APG or SHAC, or a team with multi-agent PPO; then evaluate it and save the policy, "
                     "a learning curve, an evaluation flight plot and summary.json in a new run folder.")
     parser.add_argument("task", choices=TRAINABLE, help="task to train")
     ppo = parser.add_argument_group("training")
-    ppo.add_argument("--algo", choices=ALGOS, default="ppo",
-                     help="ppo (brax's batched PPO, default), apg (analytic policy gradients through the simulator) "
-                          "or shac (short-horizon actor-critic through the simulator)")
+    ppo.add_argument("--algo", choices=ALGOS, default=None,
+                     help="ppo (brax's batched PPO, the default for single-agent tasks), apg (analytic policy "
+                          "gradients through the simulator), shac (short-horizon actor-critic through the simulator), "
+                          "mappo (multi-agent PPO with a centralised critic, the default for multi-agent tasks) or "
+                          "ippo (independent PPO)")
     ppo.add_argument("--steps", type=int, default=None, help="env steps to train (default: the task's tuned budget)")
     ppo.add_argument("--num-envs", type=int, default=None, help="parallel environments")
     ppo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -200,7 +229,8 @@ def register(subparsers) -> None:
                      "paper's 1-D hover setting), pid, one_d_pid, vel, thrust_torque, one_d_thrust, tun, ctbr")
     env.add_argument("--obs-type", default=None, help="observation type: kin (default), kin_norm, neighbors")
     env.add_argument("--model", default=None, help="drone model name (cf2x, cf2p, racer) or URDF path")
-    env.add_argument("--num-drones", type=int, default=None, help="drones per world (single-agent tasks: 1)")
+    env.add_argument("--num-drones", type=int, default=None,
+                     help="drones per world (single-agent tasks: 1; multi-agent tasks: 2 by default)")
     env.add_argument("--ctrl-freq", type=int, default=None, help="control rate, Hz (default 30)")
     env.add_argument("--episode-len", type=float, default=None, help="episode length, s")
     env.add_argument("--reward", choices=("shaped", "paper"), default=None,
@@ -241,27 +271,25 @@ def run_cli(args: argparse.Namespace) -> int:
         _positive("--steps", args.steps)
         _positive("--num-envs", args.num_envs)
         _positive("--eval-episodes", args.eval_episodes)
+        algo = default_algo(args.task) if args.algo is None else args.algo
         overrides = {"seed": args.seed}
         if args.steps is not None:
             overrides["num_timesteps"] = args.steps
         if args.num_envs is not None:
             overrides["num_envs"] = args.num_envs
-            if args.algo == "ppo":
+            if algo == "ppo":
                 overrides["batch_size"] = args.num_envs
         env = {field: getattr(args, arg) for arg, field in _ENV_OPTIONS.items() if getattr(args, arg) is not None}
         env.update({name: True for name in ("drag", "ground_effect", "downwash") if getattr(args, name)})
         if "target" in env and args.task not in ("hover", "takeoff"):
             raise ValueError(f"--target applies to hover and takeoff, not {args.task}")
-        if args.algo == "ppo":
+        if algo == "ppo":
             configs = {"ppo_config": dataclasses.replace(default_ppo(args.task), **overrides)}
         else:
-            from jaxdrones.training.apg import APGConfig
-            from jaxdrones.training.shac import SHACConfig
-
-            configs = {"gradient_config": {"apg": APGConfig, "shac": SHACConfig}[args.algo](**overrides)}
+            configs = {"algo_config": dataclasses.replace(_trainer(algo)[1], **overrides)}
         summary = train_task(args.task, args.out, overwrite=args.overwrite, env_overrides=env,
                              n_eval_episodes=args.eval_episodes, progress=not args.no_progress,
-                             t_start=getattr(args, "t_start", None), algo=args.algo, **configs)
+                             t_start=getattr(args, "t_start", None), algo=algo, **configs)
     except (ValueError, OSError) as err:
         print(f"jaxdrones train: error: {err}", file=sys.stderr)
         return 2

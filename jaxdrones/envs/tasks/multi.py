@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs import rewards
-from jaxdrones.envs.actions import Reference
+from jaxdrones.envs.actions import ACTION_SIZES, Reference
 from jaxdrones.envs.core import Task, TaskConfig
 from jaxdrones.envs.observations import POS_BOUND
 from jaxdrones.envs.tasks.single import ANG_SPEED_WEIGHT, SPEED_WEIGHT
@@ -53,7 +53,8 @@ class FlockConfig(MultiConfig):
 
 class MultiTask(Task):
     """Shared pieces of the multi-agent tasks: D ≥ 2, the paper's default starts (drone i at (4iL, 4iL, 0.1125) m,
-    here with any yaw and small random tilts and speeds so that episodes differ), a 3-entry task observation (the
+    here with any yaw and small random tilts and speeds so that episodes differ; level, at rest and facing +x
+    with a 1-D action, which cannot level a drone), a 3-entry task observation (the
     offset to the drone's reference point `ref_points`) and shaped rewards towards those points."""
 
     config_cls = MultiConfig
@@ -66,6 +67,9 @@ class MultiTask(Task):
         return np.full(3, POS_BOUND, np.float32)
 
     def start_defaults(self, config):
+        if ACTION_SIZES[config.action_type] == 1:  # 1-D actions (the paper's one_d_rpm) cannot level a tilted drone
+            return dict(pos=default_start_pos(config.n_drones), pos_range=(0.02, 0.02, 0.0), tilt=0.0, yaw=0.0,
+                        vel=0.0, ang_vel=0.0)
         return dict(pos=default_start_pos(config.n_drones), pos_range=(0.02, 0.02, 0.0), tilt=0.05, yaw=math.pi,
                     vel=0.05, ang_vel=0.1)
 
@@ -125,12 +129,14 @@ class LeaderFollower(MultiTask):
     matches the leader's altitude over its own x, y.
 
     Reward ``"paper"``: r_0 = −‖(0, 0, 0.5) − p_0‖², r_i = −(1/D)(z_i − z_0)² for i ≥ 1; ``"shaped"``: towards
-    those reference points as `jaxdrones.envs.tasks.single.Hover`'s. Metrics: ``leader_distance`` (m) and
-    ``follower_altitude_error`` (m, mean |z_i − z_0| over followers).
+    those reference points as `jaxdrones.envs.tasks.single.Hover`'s. Metrics (m): ``leader_distance``,
+    ``leader_altitude_error`` |z_0 − 0.5|, ``follower_altitude_error`` (mean |z_i − z_0| over followers) and
+    ``max_altitude_error``, the largest of the leader's and every follower's altitude error (the success metric:
+    every drone within 5 cm at the end of the episode).
     """
 
     name = "leader_follower"
-    success_metric = "follower_altitude_error"
+    success_metric = "max_altitude_error"
 
     def target(self, config):
         return np.broadcast_to([0.0, 0.0, 0.5], (config.n_drones, 3))
@@ -146,8 +152,11 @@ class LeaderFollower(MultiTask):
         return jnp.concatenate([leader, followers])
 
     def metrics(self, config, task, sim, steps):
-        return {"leader_distance": rewards.distance(sim.pos[0], task.target[0]),
-                "follower_altitude_error": jnp.mean(jnp.abs(sim.pos[1:, 2] - sim.pos[0, 2]))}
+        leader = jnp.abs(sim.pos[0, 2] - task.target[0, 2])
+        followers = jnp.abs(sim.pos[1:, 2] - sim.pos[0, 2])
+        return {"leader_distance": rewards.distance(sim.pos[0], task.target[0]), "leader_altitude_error": leader,
+                "follower_altitude_error": jnp.mean(followers),
+                "max_altitude_error": jnp.maximum(leader, jnp.max(followers))}
 
 
 class Flock(MultiTask):

@@ -1,0 +1,351 @@
+"""Multi-agent PPO on the stacked ``[world, drone]`` envs: MAPPO (per-agent actors, a centralised critic; Yu et al.,
+"The Surprising Effectiveness of PPO in Cooperative Multi-Agent Games", NeurIPS 2022 Datasets and Benchmarks) or
+independent PPO (each agent's critic sees its own observation only; de Witt et al., 2020).
+
+Each drone of a world is an agent with its own reward ``f[D]``. The actor maps an agent's observation to a Gaussian
+over its action (the env clips actions to their box); the critic gives each agent a value. With parameter sharing
+(the default) one actor and one critic serve every agent, told apart by a one-hot agent id appended to their input;
+without it each agent has its own networks (the same MLPs, their parameters stacked along an agent axis). The
+centralised critic adds the positions and velocities of every drone of the world (6·D entries, relative to the
+world's centroid) to the agent's observation.
+
+One update collects ``unroll_length`` steps of ``num_envs`` worlds (episodes that end are reset by
+`jaxdrones.wrappers.VmapAutoReset`; an episode cut by the time limit is bootstrapped with the value of its last
+state), computes per-agent GAE advantages, and takes ``epochs`` passes of ``minibatches`` clipped-surrogate PPO
+steps with Adam; everything between two evaluations is one jitted `lax.scan`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrones.envs.base import Env, EnvState
+from jaxdrones.training.apg import run_updates
+
+#: Critic inputs of `MAPPOConfig.critic`.
+CRITICS = ("central", "local")
+
+
+@dataclasses.dataclass(frozen=True)
+class MAPPOConfig:
+    """Settings of `train` (``num_timesteps`` counts env steps: one step of one world, all its drones).
+
+    Attributes:
+        num_timesteps: env steps to train, rounded up to whole evaluation chunks.
+        num_envs: worlds stepped in parallel.
+        unroll_length: steps per world collected for each update.
+        epochs: passes over each update's samples.
+        minibatches: minibatches per pass (they split the ``num_envs · unroll_length`` world-steps).
+        learning_rate: Adam's step size.
+        discounting: discount γ per control step.
+        gae_lambda: λ of the GAE advantages.
+        clip: PPO's ratio clip ε.
+        entropy_cost: weight of the policy's entropy bonus.
+        value_cost: weight of the critic's squared error.
+        max_grad_norm: the gradient's global norm is clipped to this.
+        critic: ``"central"`` (MAPPO: the critic also sees every drone's position and velocity) or ``"local"``
+            (independent PPO).
+        share_params: one actor and one critic for all agents with an agent-id input (True) or per-agent networks.
+        hidden_layer_sizes: of the actor and critic MLPs.
+        init_std: the Gaussian policy's initial standard deviation (in action units; it is learned).
+        num_evals: evaluations (learning-curve points) over the run, ≥ 2.
+        seed: random seed.
+
+    Raises:
+        ValueError: a count below 1 (``num_evals`` below 2), a rate or weight out of range, an unknown critic, or
+            ``num_envs · unroll_length`` not divisible by ``minibatches``.
+    """
+
+    num_timesteps: int = 3_000_000
+    num_envs: int = 512
+    unroll_length: int = 10
+    epochs: int = 4
+    minibatches: int = 8
+    learning_rate: float = 1e-3
+    discounting: float = 0.97
+    gae_lambda: float = 0.95
+    clip: float = 0.2
+    entropy_cost: float = 1e-3
+    value_cost: float = 0.5
+    max_grad_norm: float = 0.5
+    critic: str = "central"
+    share_params: bool = True
+    hidden_layer_sizes: tuple[int, ...] = (64, 64)
+    init_std: float = 0.5
+    num_evals: int = 10
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("num_timesteps", "num_envs", "unroll_length", "epochs", "minibatches", "num_evals", "seed"):
+            value = getattr(self, name)
+            low = 2 if name == "num_evals" else (0 if name == "seed" else 1)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
+                raise ValueError(f"MAPPOConfig: {name} must be an integer >= {low}, got {value!r}")
+        for name in ("learning_rate", "clip", "max_grad_norm", "init_std"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"MAPPOConfig: {name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("discounting", "gae_lambda"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"MAPPOConfig: {name} must be in [0, 1], got {getattr(self, name)!r}")
+        for name in ("entropy_cost", "value_cost"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"MAPPOConfig: {name} must be >= 0, got {getattr(self, name)!r}")
+        if self.critic not in CRITICS:
+            raise ValueError(f"MAPPOConfig: critic must be one of {CRITICS}, got {self.critic!r}")
+        if (self.num_envs * self.unroll_length) % self.minibatches:
+            raise ValueError(f"MAPPOConfig: num_envs * unroll_length = {self.num_envs * self.unroll_length} must "
+                             f"split into minibatches={self.minibatches} equal parts")
+
+    @property
+    def algo(self) -> str:
+        return "mappo" if self.critic == "central" else "ippo"
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.unroll_length
+
+    @property
+    def updates_per_eval(self) -> int:
+        return max(1, -(-self.num_timesteps // (self.steps_per_update * (self.num_evals - 1))))
+
+    @property
+    def total_steps(self) -> int:
+        """The env steps `train` runs."""
+        return (self.num_evals - 1) * self.updates_per_eval * self.steps_per_update
+
+
+class Networks:
+    """The actor and critic of ``n_agents`` agents (see the module doc), as pure functions of their parameters.
+
+    ``actor(params, obs) -> mean`` and ``critic(params, obs, world) -> value`` take an observation f[..., D, n_obs]
+    (and, for the central critic, the world features f[..., 6·D]) and return f[..., D, n_act] and f[..., D].
+    """
+
+    def __init__(self, config: MAPPOConfig, n_agents: int, obs_size: int, action_size: int):
+        import flax.linen as nn
+
+        sizes = config.hidden_layer_sizes
+
+        class MLP(nn.Module):
+            out: int
+            last_scale: float
+
+            @nn.compact
+            def __call__(self, x):
+                for size in sizes:
+                    x = nn.tanh(nn.Dense(size)(x))
+                return nn.Dense(self.out, kernel_init=nn.initializers.variance_scaling(
+                    self.last_scale, "fan_in", "truncated_normal"))(x)
+
+        self.config, self.n_agents, self.obs_size, self.action_size = config, n_agents, obs_size, action_size
+        self.actor_mlp, self.critic_mlp = MLP(action_size, 0.01), MLP(1, 1.0)
+        world_size = 6 * n_agents if config.critic == "central" else 0
+        ids = n_agents if config.share_params else 0
+        self._actor_in, self._critic_in = obs_size + ids, obs_size + ids + world_size
+
+    def init(self, key: jax.Array) -> dict:
+        keys = jax.random.split(key, 2)
+
+        def one(key_actor, key_critic):
+            return {"actor": self.actor_mlp.init(key_actor, jnp.zeros(self._actor_in)),
+                    "critic": self.critic_mlp.init(key_critic, jnp.zeros(self._critic_in))}
+
+        if self.config.share_params:
+            params = one(*keys)
+        else:
+            params = jax.vmap(one)(*(jax.random.split(k, self.n_agents) for k in keys))
+        log_std = jnp.full((self.action_size,), np.log(self.config.init_std), jnp.float32)
+        norm = {"mean": jnp.zeros(self.obs_size), "var": jnp.ones(self.obs_size), "count": jnp.zeros(())}
+        return {**params, "log_std": log_std, "norm": norm}
+
+
+    @staticmethod
+    def normalize(params: dict, x: jax.Array) -> jax.Array:
+        """x standardised by the running statistics ``params["norm"]`` (`update_norm`), clipped to ±10."""
+        norm = params["norm"]
+        return jnp.clip((x - norm["mean"]) / jnp.sqrt(norm["var"] + 1e-6), -10.0, 10.0)
+
+    def _apply(self, mlp, params, x):
+        """``mlp`` on x f[..., D, n]: shared (agent id appended) or one parameter set per agent."""
+        if self.config.share_params:
+            ids = jnp.broadcast_to(jnp.eye(self.n_agents, dtype=x.dtype), x.shape[:-1] + (self.n_agents,))
+            return mlp.apply(params, jnp.concatenate([x, ids], axis=-1))
+        per_agent = jax.vmap(mlp.apply, in_axes=(0, -2), out_axes=-2)
+        return per_agent(params, x)
+
+    def actor(self, params: dict, obs: jax.Array) -> jax.Array:
+        return self._apply(self.actor_mlp, params["actor"], self.normalize(params, obs))
+
+    def critic(self, params: dict, obs: jax.Array, world: jax.Array | None) -> jax.Array:
+        obs = self.normalize(params, obs)
+        if world is not None:
+            obs = jnp.concatenate([obs, jnp.broadcast_to(world[..., None, :], obs.shape[:-1] + world.shape[-1:])], -1)
+        return self._apply(self.critic_mlp, params["critic"], obs)[..., 0]
+
+
+def update_norm(norm: dict, obs: jax.Array) -> dict:
+    """Running mean and variance of the observation entries (Chan et al.'s parallel update), over every agent and
+    sample of ``obs`` f[..., n_obs] (as brax's ``running_statistics``)."""
+    batch = obs.reshape(-1, obs.shape[-1])
+    n = batch.shape[0]
+    mean, var = jnp.mean(batch, 0), jnp.var(batch, 0)
+    total = norm["count"] + n
+    delta = mean - norm["mean"]
+    new_mean = norm["mean"] + delta * n / total
+    m2 = norm["var"] * norm["count"] + var * n + delta**2 * norm["count"] * n / total
+    return {"mean": new_mean, "var": m2 / total, "count": total}
+
+
+def world_features(state: EnvState) -> jax.Array:
+    """The central critic's view of a world: every drone's position relative to the drones' centroid (m) and
+    velocity (m/s), flattened: f[..., 6·D]."""
+    pos, vel = state.sim.pos, state.sim.vel
+    pos = pos - jnp.mean(pos, axis=-2, keepdims=True)
+    return jnp.concatenate([pos, vel], axis=-1).reshape(pos.shape[:-2] + (-1,))
+
+
+def make_policy(networks: Networks, params: dict) -> Callable:
+    """``policy(obs, key) -> (action, {})``, deterministic (the Gaussian's mean), on a world's flat observation
+    f[D·n_obs] (as brax's policies; see `jaxdrones.training.ppo.act`)."""
+
+    def policy(obs, key):
+        del key
+        mean = networks.actor(params, obs.reshape(networks.n_agents, networks.obs_size))
+        return mean.reshape(-1), {}
+
+    return policy
+
+
+def _log_prob(mean, log_std, action):
+    return jnp.sum(-0.5 * ((action - mean) / jnp.exp(log_std)) ** 2 - log_std - 0.5 * np.log(2 * np.pi), axis=-1)
+
+
+def gae(rewards, values, bootstrap, terminated, ended, discounting, gae_lambda):
+    """Generalised advantage estimates f[T, ...] (Schulman et al., 2016): δ_t = r_t + γ (1 - terminated_t) V'_t - V_t,
+    where V'_t is the value of the state the step reached (before any reset), and A_t = δ_t + γλ (1 - ended_t)
+    A_{t+1}."""
+    deltas = rewards + discounting * (1.0 - terminated) * bootstrap - values
+
+    def back(later, inputs):
+        delta, end = inputs
+        advantage = delta + discounting * gae_lambda * (1.0 - end) * later
+        return advantage, advantage
+
+    _, advantages = jax.lax.scan(back, jnp.zeros_like(deltas[0]), (deltas, ended), reverse=True)
+    return advantages
+
+
+def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int, dict], None] | None = None,
+          evaluate: Callable[..., dict] | None = None):
+    """Train the agents of ``env`` (D drones per world) with MAPPO or independent PPO (module doc).
+
+    Args:
+        env: a jaxdrones env without camera images (any D ≥ 1).
+        config: `MAPPOConfig`.
+        progress: called as ``progress(env_steps, metrics)`` at each of ``config.num_evals`` points, the first
+            before training (``train/policy_loss``, ``train/value_loss``, ``train/entropy``, ``train/std`` of the
+            last update and what ``evaluate`` returns).
+        evaluate: ``evaluate(networks, params) -> dict`` of metrics of the current policy (see `make_policy`).
+
+    Returns:
+        ``(networks, params)`` (see `make_policy`).
+    """
+    import optax
+
+    from jaxdrones.envs.base import world_axes
+    from jaxdrones.wrappers import VmapAutoReset
+
+    auto = VmapAutoReset(env)
+    axes = world_axes(auto.params_shared)
+    central = config.critic == "central"
+    nets = Networks(config, env.n_drones, env.observation_size, env.action_size)
+    key_init, key_reset, key_run = jax.random.split(jax.random.key(config.seed), 3)
+    params = nets.init(key_init)
+    norm = params.pop("norm")  # the observation statistics: updated from the data, not by the optimiser
+    optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate))
+    features = jax.vmap(world_features, in_axes=(axes,)) if central else (lambda s: None)
+    gamma = config.discounting
+
+    def collect(params, state, key):  # params with "norm"
+        def body(state, key):
+            world = features(state)
+            mean = nets.actor(params, state.obs)
+            action = mean + jnp.exp(params["log_std"]) * jax.random.normal(key, mean.shape, mean.dtype)
+            ended, nxt = auto.step_ended(state, action)
+            sample = {"obs": state.obs, "world": world, "action": action,
+                      "log_prob": _log_prob(mean, params["log_std"], action),
+                      "value": nets.critic(params, state.obs, world), "reward": ended.reward,
+                      "bootstrap": nets.critic(params, ended.obs, features(ended)),
+                      "terminated": jnp.broadcast_to(ended.terminated[:, None], ended.reward.shape),
+                      "ended": jnp.broadcast_to(ended.done[:, None], ended.reward.shape)}
+            return nxt, sample
+
+        return jax.lax.scan(body, state, jax.random.split(key, config.unroll_length))
+
+    def ppo_loss(trainable, norm, batch):
+        params = {**trainable, "norm": norm}
+        mean = nets.actor(params, batch["obs"])
+        ratio = jnp.exp(_log_prob(mean, params["log_std"], batch["action"]) - batch["log_prob"])
+        adv = batch["advantage"]
+        adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+        clipped = jnp.clip(ratio, 1 - config.clip, 1 + config.clip)
+        policy_loss = -jnp.mean(jnp.minimum(ratio * adv, clipped * adv))
+        value_loss = jnp.mean((nets.critic(params, batch["obs"], batch["world"]) - batch["return"]) ** 2)
+        entropy = jnp.sum(params["log_std"] + 0.5 * np.log(2 * np.pi * np.e))
+        total = policy_loss + config.value_cost * value_loss - config.entropy_cost * entropy
+        return total, {"train/policy_loss": policy_loss, "train/value_loss": value_loss, "train/entropy": entropy}
+
+    def update(carry, _):
+        params, norm, opt_state, state, key = carry
+        key, key_collect, key_shuffle = jax.random.split(key, 3)
+        state, data = collect({**params, "norm": norm}, state, key_collect)
+        advantage = gae(data["reward"], data["value"], data["bootstrap"], data["terminated"], data["ended"],
+                        gamma, config.gae_lambda)
+        data = {**data, "advantage": advantage, "return": advantage + data["value"]}
+        data.pop("bootstrap")
+        samples = jax.tree.map(lambda x: x.reshape((config.steps_per_update,) + x.shape[2:]),
+                               {k: v for k, v in data.items() if v is not None})
+
+        def minibatch(carry, index):
+            params, opt_state = carry
+            batch = jax.tree.map(lambda x: x[index], samples)
+            if not central:
+                batch["world"] = None
+            (_, metrics), grad = jax.value_and_grad(ppo_loss, has_aux=True)(params, norm, batch)
+            updates, opt_state = optimizer.update(grad, opt_state, params)
+            return (optax.apply_updates(params, updates), opt_state), metrics
+
+        orders = jax.vmap(lambda k: jax.random.permutation(k, config.steps_per_update))(
+            jax.random.split(key_shuffle, config.epochs))
+        (params, opt_state), metrics = jax.lax.scan(
+            minibatch, (params, opt_state), orders.reshape(config.epochs * config.minibatches, -1))
+        metrics = {k: v[-1] for k, v in metrics.items()}
+        metrics["train/std"] = jnp.mean(jnp.exp(params["log_std"]))
+        norm = update_norm(norm, data["obs"])  # after the update, which used the statistics the data was taken with
+        return (params, norm, opt_state, state, key), metrics
+
+    carry = (params, norm, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs)),
+             key_run)
+    carry = run_updates(config, update, carry, lambda c: {**c[0], "norm": c[1]}, nets, progress, evaluate)
+    return nets, {**carry[0], "norm": carry[1]}
+
+
+def save(path: str, params, env_name: str, env_overrides: dict, config: MAPPOConfig) -> None:
+    """Save trained parameters with what rebuilds the policy (`jaxdrones.training.load_policy`)."""
+    payload = {"algo": config.algo, "params": jax.tree.map(np.asarray, params), "env_name": env_name,
+               "env_overrides": env_overrides, "mappo_config": dataclasses.asdict(config)}
+    with open(path, "wb") as f:
+        pickle.dump(payload, f)
+
+
+def load(payload: dict, env: Env) -> Callable:
+    """The policy of a payload written by `save`, for ``env``."""
+    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in payload["mappo_config"].items()}
+    nets = Networks(MAPPOConfig(**fields), env.n_drones, env.observation_size, env.action_size)
+    return make_policy(nets, payload["params"])
