@@ -23,10 +23,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs.base import Env
+from jaxdrones.training.common import Schedule, check_config, mlp, run_updates
 
 
 @dataclasses.dataclass(frozen=True)
-class APGConfig:
+class APGConfig(Schedule):
     """Settings of `train` (``num_timesteps`` counts env (control) steps).
 
     Attributes:
@@ -55,44 +56,20 @@ class APGConfig:
     algo: ClassVar[str] = "apg"
 
     def __post_init__(self):
-        for name in ("num_timesteps", "num_envs", "horizon", "num_evals", "seed"):
-            value = getattr(self, name)
-            low = 2 if name == "num_evals" else (0 if name == "seed" else 1)
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
-                raise ValueError(f"APGConfig: {name} must be an integer >= {low}, got {value!r}")
-        for name in ("learning_rate", "max_grad_norm"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"APGConfig: {name} must be > 0, got {getattr(self, name)!r}")
+        check_config(self, integers={"num_timesteps": 1, "num_envs": 1, "horizon": 1, "num_evals": 2, "seed": 0},
+                     positive=("learning_rate", "max_grad_norm"))
 
     @property
     def steps_per_update(self) -> int:
         return self.num_envs * self.horizon
-
-    @property
-    def updates_per_eval(self) -> int:
-        """Updates between two evaluations (one jitted call)."""
-        return max(1, -(-self.num_timesteps // (self.steps_per_update * (self.num_evals - 1))))
-
-    @property
-    def total_steps(self) -> int:
-        """The env steps `train` runs."""
-        return (self.num_evals - 1) * self.updates_per_eval * self.steps_per_update
 
 
 def make_network(config: APGConfig, action_size: int):
     """The policy network (flax): obs f[..., n_obs] -> action f[..., action_size] in (-1, 1)."""
     import flax.linen as nn
 
-    class Policy(nn.Module):
-        @nn.compact
-        def __call__(self, obs):
-            x = obs
-            for size in config.hidden_layer_sizes:
-                x = nn.tanh(nn.Dense(size)(x))
-            # A small last layer: the first actions are near 0 (hover RPM for the rpm action).
-            return jnp.tanh(nn.Dense(action_size, kernel_init=nn.initializers.normal(0.01))(x))
-
-    return Policy()
+    # A small last layer: the first actions are near 0 (hover RPM for the rpm action).
+    return mlp(config.hidden_layer_sizes, action_size, nn.initializers.normal(0.01), squash=True)
 
 
 def make_policy(network, params) -> Callable:
@@ -151,30 +128,6 @@ def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, di
     carry = (params, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs)))
     carry = run_updates(config, update, carry, lambda c: c[0], network, progress, evaluate)
     return network, carry[0]
-
-
-def run_updates(config: APGConfig, update: Callable, carry, policy_params: Callable, network,
-                progress: Callable[[int, dict], None] | None, evaluate: Callable[..., dict] | None):
-    """The training loop of the gradient-based trainers: ``config.num_evals - 1`` jitted chunks of
-    ``config.updates_per_eval`` calls of ``update(carry, None) -> (carry, metrics)`` (a `jax.lax.scan` body), with
-    ``progress(env_steps, metrics)`` before the first chunk and after each: the last update's metrics and what
-    ``evaluate(network, policy_params(carry))`` returns. Returns the final carry."""
-
-    @jax.jit
-    def chunk(carry):
-        return jax.lax.scan(update, carry, None, length=config.updates_per_eval)
-
-    def report(steps, carry, metrics):
-        if progress is not None:
-            extra = evaluate(network, policy_params(carry)) if evaluate is not None else {}
-            progress(steps, {**metrics, **extra})
-
-    report(0, carry, {"train/loss": float("nan"), "train/grad_norm": float("nan")})
-    for k in range(1, config.num_evals):
-        carry, metrics = chunk(carry)
-        report(k * config.updates_per_eval * config.steps_per_update, carry,
-               {name: float(value[-1]) for name, value in metrics.items()})
-    return carry
 
 
 def save(path: str, params, env_name: str, env_overrides: dict, config: APGConfig) -> None:

@@ -26,14 +26,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs.base import Env, EnvState
-from jaxdrones.training.apg import run_updates
+from jaxdrones.training.common import Schedule, check_config, mlp, run_updates
 
 #: Critic inputs of `MAPPOConfig.critic`.
 CRITICS = ("central", "local")
 
 
 @dataclasses.dataclass(frozen=True)
-class MAPPOConfig:
+class MAPPOConfig(Schedule):
     """Settings of `train` (``num_timesteps`` counts env steps: one step of one world, all its drones).
 
     Attributes:
@@ -82,20 +82,10 @@ class MAPPOConfig:
     seed: int = 0
 
     def __post_init__(self):
-        for name in ("num_timesteps", "num_envs", "unroll_length", "epochs", "minibatches", "num_evals", "seed"):
-            value = getattr(self, name)
-            low = 2 if name == "num_evals" else (0 if name == "seed" else 1)
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
-                raise ValueError(f"MAPPOConfig: {name} must be an integer >= {low}, got {value!r}")
-        for name in ("learning_rate", "clip", "max_grad_norm", "init_std"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"MAPPOConfig: {name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("discounting", "gae_lambda"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ValueError(f"MAPPOConfig: {name} must be in [0, 1], got {getattr(self, name)!r}")
-        for name in ("entropy_cost", "value_cost"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"MAPPOConfig: {name} must be >= 0, got {getattr(self, name)!r}")
+        check_config(self, integers={"num_timesteps": 1, "num_envs": 1, "unroll_length": 1, "epochs": 1,
+                                     "minibatches": 1, "num_evals": 2, "seed": 0},
+                     positive=("learning_rate", "clip", "max_grad_norm", "init_std"),
+                     nonnegative=("entropy_cost", "value_cost"), fractions=("discounting", "gae_lambda"))
         if self.critic not in CRITICS:
             raise ValueError(f"MAPPOConfig: critic must be one of {CRITICS}, got {self.critic!r}")
         if (self.num_envs * self.unroll_length) % self.minibatches:
@@ -110,15 +100,6 @@ class MAPPOConfig:
     def steps_per_update(self) -> int:
         return self.num_envs * self.unroll_length
 
-    @property
-    def updates_per_eval(self) -> int:
-        return max(1, -(-self.num_timesteps // (self.steps_per_update * (self.num_evals - 1))))
-
-    @property
-    def total_steps(self) -> int:
-        """The env steps `train` runs."""
-        return (self.num_evals - 1) * self.updates_per_eval * self.steps_per_update
-
 
 class Networks:
     """The actor and critic of ``n_agents`` agents (see the module doc), as pure functions of their parameters.
@@ -130,21 +111,10 @@ class Networks:
     def __init__(self, config: MAPPOConfig, n_agents: int, obs_size: int, action_size: int):
         import flax.linen as nn
 
-        sizes = config.hidden_layer_sizes
-
-        class MLP(nn.Module):
-            out: int
-            last_scale: float
-
-            @nn.compact
-            def __call__(self, x):
-                for size in sizes:
-                    x = nn.tanh(nn.Dense(size)(x))
-                return nn.Dense(self.out, kernel_init=nn.initializers.variance_scaling(
-                    self.last_scale, "fan_in", "truncated_normal"))(x)
-
         self.config, self.n_agents, self.obs_size, self.action_size = config, n_agents, obs_size, action_size
-        self.actor_mlp, self.critic_mlp = MLP(action_size, 0.01), MLP(1, 1.0)
+        small = nn.initializers.variance_scaling(0.01, "fan_in", "truncated_normal")  # first actions near 0
+        self.actor_mlp = mlp(config.hidden_layer_sizes, action_size, small)
+        self.critic_mlp = mlp(config.hidden_layer_sizes, 1)
         world_size = 6 * n_agents if config.critic == "central" else 0
         ids = n_agents if config.share_params else 0
         self._actor_in, self._critic_in = obs_size + ids, obs_size + ids + world_size

@@ -25,7 +25,8 @@ import jax
 import jax.numpy as jnp
 
 from jaxdrones.envs.base import Env
-from jaxdrones.training.apg import APGConfig, make_network, run_updates
+from jaxdrones.training.apg import APGConfig, make_network
+from jaxdrones.training.common import check_config, mlp, run_updates
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,31 +60,13 @@ class SHACConfig(APGConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        for name in ("discounting", "td_lambda", "target_alpha"):
-            value = getattr(self, name)
-            if not 0 <= value < 1:
-                raise ValueError(f"SHACConfig: {name} must be in [0, 1), got {value!r}")
-        for name in ("critic_epochs", "critic_minibatches"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"SHACConfig: {name} must be an integer >= 1, got {value!r}")
-        if not self.critic_learning_rate > 0:
-            raise ValueError(f"SHACConfig: critic_learning_rate must be > 0, got {self.critic_learning_rate!r}")
+        check_config(self, integers={"critic_epochs": 1, "critic_minibatches": 1}, positive=("critic_learning_rate",),
+                     open_fractions=("discounting", "td_lambda", "target_alpha"))
 
 
 def make_critic(config: SHACConfig):
-    """The critic (flax): obs f[..., n_obs] -> value f[...]."""
-    import flax.linen as nn
-
-    class Critic(nn.Module):
-        @nn.compact
-        def __call__(self, obs):
-            x = obs
-            for size in config.critic_hidden_layer_sizes:
-                x = nn.tanh(nn.Dense(size)(x))
-            return nn.Dense(1)(x)[..., 0]
-
-    return Critic()
+    """The critic (flax): obs f[..., n_obs] -> value f[..., 1]."""
+    return mlp(config.critic_hidden_layer_sizes, 1)
 
 
 def td_lambda_returns(rewards: jax.Array, next_values: jax.Array, ended: jax.Array, discounting: float,
@@ -147,7 +130,7 @@ def train(env: Env, config: SHACConfig = SHACConfig(), progress: Callable[[int, 
             reward = -batched_loss(ended)  # [W, D]
             term, end = (jnp.broadcast_to(x[:, None], reward.shape) for x in (ended.terminated, ended.done))
             # The value after the step: of the last observation before any reset; 0 where the episode terminated.
-            next_value = jnp.where(term, 0.0, critic.apply(target_params, ended.obs))
+            next_value = jnp.where(term, 0.0, critic.apply(target_params, ended.obs)[..., 0])
             acc = acc + discount * reward
             closes = end | last  # an episode's return closes where it ends, and every one at the window's end
             total = total + jnp.sum(jnp.where(closes, acc + discount * gamma * next_value, 0.0))
@@ -166,7 +149,7 @@ def train(env: Env, config: SHACConfig = SHACConfig(), progress: Callable[[int, 
         size = samples // config.critic_minibatches
 
         def mse(p, o, t):
-            return jnp.mean((critic.apply(p, o) - t) ** 2)
+            return jnp.mean((critic.apply(p, o)[..., 0] - t) ** 2)
 
         def minibatch(carry, index):
             p, opt_state = carry
