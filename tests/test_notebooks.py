@@ -37,16 +37,25 @@ EXPECTED_OUTPUT = {
         r"[\d.]+e-0[3-9]",
         r"value and gradient [\d.]+ ms: [\d.]+ x",
         r"APG: mean final distance [\d.]+ cm over 256 starts",
+        r"SHAC: mean final distance [\d.]+ cm over 256 starts",
         r"PPO: mean final distance [\d.]+ cm over 256 starts",
         r"horizon   60: mean gradient norm",
         r"kf: largest relative error (0\.0e\+00|\d\.\de-0[4-9])",
         r"drag_coeff: largest relative error \d\.\de-0[4-9]",
     ],
+    "04_multi_agent.ipynb": [
+        r"training budget: 60,000 env steps; 3 drones",
+        r"trained [\d,]+ env steps in [\d.]+ s",
+        r"leader altitude error [\d.]+ cm, followers' mean altitude error [\d.]+ cm, largest [\d.]+ cm",
+        r"final altitudes: \[",
+    ],
 }
-EXPECTED_FIGURES = {"01_quickstart.ipynb": 2, "02_stable_baselines3.ipynb": 1, "03_gradients.ipynb": 1}
+EXPECTED_FIGURES = {"01_quickstart.ipynb": 2, "02_stable_baselines3.ipynb": 1, "03_gradients.ipynb": 2,
+                    "04_multi_agent.ipynb": 1}
 #: Per notebook: environment variables of its kernel (tiny training budgets for the training notebooks).
 NOTEBOOK_ENV = {"02_stable_baselines3.ipynb": {"JAXDRONES_NB_STEPS": "2000"},
-                "03_gradients.ipynb": {"JAXDRONES_NB_STEPS": "60000"}}
+                "03_gradients.ipynb": {"JAXDRONES_NB_STEPS": "60000"},
+                "04_multi_agent.ipynb": {"JAXDRONES_NB_STEPS": "60000"}}
 #: Per notebook: modules it needs beyond the test extras, and the reason to give when one cannot be imported.
 SB3_REASON = ('needs stable-baselines3: install the sb3 extra, `pip install torch==2.13.0 && pip install -e ".[sb3]"` '
               "(the CPU torch first)")

@@ -306,3 +306,24 @@ def test_train_cli_mappo_leader_follower_saves_and_reloads(tmp_path, capsys):
 def test_train_cli_multi_agent_bad_team_size(capsys):
     assert main(["train", "leader_follower", "--num-drones", "1", "--no-progress"]) == 2
     assert "n_drones" in capsys.readouterr().err
+
+
+def test_load_policy_into_another_env_checks_the_team(tmp_path):
+    """A saved policy flies in an env of the same task and team with other physics (here downwash on); an env of
+    another task or team size is refused."""
+    import jaxdrones as jd
+    from jaxdrones.training import mappo
+
+    env = jd.make("leader_follower", n_drones=3, action_type="one_d_rpm")
+    config = mappo.MAPPOConfig(num_timesteps=8, num_envs=4, unroll_length=2, minibatches=1, num_evals=2)
+    nets, params = mappo.train(env, config)
+    mappo.save(str(tmp_path / "policy.pkl"), params, "leader_follower", {"n_drones": 3, "action_type": "one_d_rpm"},
+               config)
+    coupled = jd.make("leader_follower", n_drones=3, action_type="one_d_rpm", downwash=True)
+    got, policy = load_policy(tmp_path, env=coupled)
+    assert got is coupled and got.config.downwash
+    assert policy(coupled.reset(jax.random.key(0)).obs.reshape(-1), None)[0].shape == (3,)
+    with pytest.raises(ValueError, match="trained on 'leader_follower' with 3 drones.*with 2 drones"):
+        load_policy(tmp_path, env=jd.make("leader_follower", n_drones=2, action_type="one_d_rpm"))
+    with pytest.raises(ValueError, match="the env given is 'multi_hover'"):
+        load_policy(tmp_path, env=jd.make("multi_hover", n_drones=3, action_type="one_d_rpm"))

@@ -191,24 +191,24 @@ def save_policy(path: str, params, env_name: str, env_overrides: dict, config: P
         pickle.dump(payload, f)
 
 
-def load_policy(path: str | os.PathLike, deterministic: bool = True):
+def load_policy(path: str | os.PathLike, deterministic: bool = True, env: Env | None = None):
     """Load a policy saved by ``jaxdrones train`` (PPO, APG, SHAC, MAPPO or IPPO).
 
     Args:
         path: ``policy.pkl`` of a run folder, or the run folder.
         deterministic: use the distribution's mode (True) or sample (PPO; the other trainers' policies are
             deterministic).
+        env: the env to fly the policy in (default: the one it was trained on, ``jd.make(name, **overrides)``);
+            it may differ in its physics or starts (e.g. with downwash on), not in its task, team size,
+            observation or action.
 
     Returns:
-        ``(env, policy)``: the env it was trained on (``jd.make(name, **overrides)``) and
-        ``policy(obs, key) -> (action, extras)``.
+        ``(env, policy)``: the env and ``policy(obs, key) -> (action, extras)``.
 
     Raises:
-        ValueError: if the file is missing or is not a saved jaxdrones policy.
+        ValueError: if the file is missing or is not a saved jaxdrones policy, or ``env`` is not of the policy's
+            task, team size, observation size or action size.
     """
-    _import_brax()
-    from brax.training.agents.ppo import networks as ppo_networks
-
     from jaxdrones.envs import make
 
     path = os.fspath(path)
@@ -222,25 +222,39 @@ def load_policy(path: str | os.PathLike, deterministic: bool = True):
                                              and ({"ppo_config", "apg_config", "shac_config", "mappo_config"}
                                                   & set(payload))):
         raise ValueError(f"{path!r} is not a jaxdrones policy file")
+    trained_on = make(payload["env_name"], **payload["env_overrides"])
+    if env is None:
+        env = trained_on
+    else:
+        _check_same_agents(path, payload["env_name"], trained_on, env)
     if payload.get("algo") in ("apg", "shac"):  # trained by `jaxdrones train --algo apg|shac` (deterministic)
         from jaxdrones.training import apg
 
-        env = make(payload["env_name"], **payload["env_overrides"])
         return env, apg.load(payload, env)
     if payload.get("algo") in ("mappo", "ippo"):  # trained by `jaxdrones train --algo mappo|ippo`
         from jaxdrones.training import mappo
 
-        env = make(payload["env_name"], **payload["env_overrides"])
         return env, mappo.load(payload, env)
-    config = PPOConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in payload["ppo_config"].items()})
-    env = make(payload["env_name"], **payload["env_overrides"])
+    _import_brax()
     from brax.training.acme import running_statistics
+    from brax.training.agents.ppo import networks as ppo_networks
 
+    config = PPOConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in payload["ppo_config"].items()})
     preprocess = running_statistics.normalize if config.normalize_observations else (lambda x, _: x)
     networks = _network_factory(config)(env.n_drones * env.observation_size, env.n_drones * env.action_size,
                                         preprocess_observations_fn=preprocess)
     make_policy = ppo_networks.make_inference_fn(networks)
     return env, make_policy(payload["params"], deterministic=deterministic)
+
+
+def _check_same_agents(path: str, name: str, trained_on: Env, env: Env) -> None:
+    """Raise ValueError unless ``env`` has the task, team size, observation and action sizes of ``trained_on``."""
+    have = (getattr(getattr(env, "task", None), "name", None), env.n_drones, env.observation_size, env.action_size)
+    want = (name, trained_on.n_drones, trained_on.observation_size, trained_on.action_size)
+    if have != want:
+        raise ValueError(f"the policy in {path!r} was trained on {want[0]!r} with {want[1]} drones, observation "
+                         f"size {want[2]} and action size {want[3]}; the env given is {have[0]!r} with {have[1]} "
+                         f"drones, observation size {have[2]} and action size {have[3]}")
 
 
 class ProgressLog:
