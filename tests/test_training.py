@@ -263,7 +263,8 @@ def test_running_observation_statistics_match_numpy():
     np.testing.assert_allclose(norm["var"], everything.var(0), rtol=1e-4)
 
 
-@pytest.mark.parametrize("kwargs", [dict(critic="central", share_params=True), dict(critic="local", share_params=False)])
+@pytest.mark.parametrize("kwargs", [dict(critic="central", share_params=True),
+                                    dict(critic="local", share_params=False)])
 def test_mappo_variants_train_on_three_drones(kwargs):
     """MAPPO (shared networks with agent ids, central critic) and IPPO with per-agent networks run on a 3-drone team
     and give a policy of the team's joint action shape; the per-agent parameters carry an agent axis."""
