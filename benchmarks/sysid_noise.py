@@ -5,8 +5,8 @@ control, drag on). The noise: `jaxdrones.sysid.add_noise` with a seeded key per 
 attitude (the acceptance case), and with ``--vel``/``--ang-vel`` velocity and body-rate noise too. The guess: kf ×1.2,
 km ×0.8, drag_coeff ×1.3. Each run fits kf, km and drag_coeff (x, y, z) twice: with the window starts estimated
 (``estimate_starts=True``, the default) and taken as observed (``False``, the method before it). Printed per seed and
-method: the relative error of each value, its Gauss-Newton standard error (relative), the iterations and the time of
-the fit (the first fit of each method includes compiling it).
+method: the relative error of each value, its Gauss-Newton standard error (relative), the solver steps (optimistix's
+Levenberg-Marquardt, accepted or rejected) and the time of the fit (the first fit of each method includes compiling it).
 
 Usage::
 
@@ -58,7 +58,7 @@ def main(argv=None) -> None:
     print(f"noise: pos {args.pos} m, att {args.att} rad, vel {args.vel} m/s, ang_vel {args.ang_vel} rad/s"
           f"{' (off)' if args.noise_free else ''}; {args.duration} s, window {args.window}, defect {args.defect}")
     print(f"{'seed':>4} {'starts':>9} " + " ".join(f"{v + ' %':>9}" for v in VALUES)
-          + "  max |err| %  " + " ".join(f"{'σ ' + v:>9}" for v in VALUES) + "  its   time s")
+          + "  max |err| %  " + " ".join(f"{'σ ' + v:>9}" for v in VALUES) + "  steps   time s")
     worst = {}
     for seed in args.seeds:
         flight = clean if seed is None else add_noise(clean, jax.random.key(seed), pos=args.pos, att=args.att,
@@ -74,7 +74,7 @@ def main(argv=None) -> None:
             worst[method] = max(worst.get(method, 0.0), float(np.abs(error).max()))
             print(f"{str(seed):>4} {method:>9} " + " ".join(f"{e:9.3f}" for e in error)
                   + f"  {np.abs(error).max():11.3f}  " + " ".join(f"{s:9.3f}" for s in std)
-                  + f"  {len(report['loss']) - 1:3d}  {seconds:7.2f}", flush=True)
+                  + f"  {report['steps']:5d}  {seconds:7.2f}", flush=True)
     print("largest |relative error| over the seeds, %: "
           + ", ".join(f"starts {method} {value:.2f}" for method, value in worst.items()))
 

@@ -9,8 +9,9 @@ the states together, every observation counted once in units of its noise, and t
 where the next one starts (the continuity defect) a residual on a much finer scale. A window started from the
 observed state instead would carry that observation's noise through the window: 0.01 rad of attitude error tilts
 the thrust as much as drag pushes at 0.5 m/s. The fitted fields are parameterised as log-ratios to their initial
-guess. The problem is solved by Levenberg-Marquardt, its normal equations (block tridiagonal in the starts, bordered
-by the parameters) eliminated window by window; the report gives a Gauss-Newton standard error for each fitted value.
+guess. The problem is solved by optimistix's Levenberg-Marquardt (`optimistix.least_squares`, Rader, Lyons and
+Kidger, "Optimistix: modular optimisation in JAX and Equinox", arXiv:2402.09983, 2024); the report gives a
+Gauss-Newton standard error for each fitted value.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 from jaxdrones.config import SimConfig
 from jaxdrones.params import DroneParams, with_derived
@@ -33,6 +35,9 @@ from jaxdrones.state import DroneState
 NOISE = {"pos": 1e-3, "vel": 1e-2, "quat": 5e-3, "ang_vel": 0.1}
 #: `DroneParams` fields that `fit` may fit (the others are derived from them, or geometry).
 FITTABLE = ("mass", "kf", "km", "drag_coeff", "inertia", "gnd_eff_coeff", "dw_coeff")
+#: The solver's relative and absolute tolerances: `fit` stops once a step moves every unknown and every residual by
+#: less than ATOL + RTOL × its size.
+RTOL, ATOL = 1e-8, 1e-8
 
 
 def _fields(theta: jax.Array, params0: DroneParams, fields: tuple) -> dict:
@@ -95,16 +100,23 @@ def _window_residuals(step, params0: DroneParams, fields: tuple, noise: dict, de
     return residuals
 
 
-@functools.partial(jax.jit, static_argnames=("step", "fields", "jacobian"))
-def _over_windows(theta, z, problem: tuple, *, step, fields: tuple, jacobian: bool):
-    """The residuals (`_window_residuals`) of every window k, f[W, m], or with ``jacobian`` their Jacobians with
-    respect to θ, z_k and z_k+1 ([W, m, p], [W, m, c], [W, m, c]), at θ and z f[W, c]; ``problem`` is
-    ``(params0, noise, defect, windows, joined)``. Jitted once per step, fields and shapes."""
-    params0, noise, defect, windows, joined = problem
+def _residuals(y: tuple, args: tuple) -> jax.Array:
+    """All residuals, flat: every window's (`_window_residuals`), then z[0] (the first start's own observation), at
+    ``y = (θ, z)``, z f[W, c]; ``args`` is ``(params0, noise, defect, windows, joined, step, fields)``."""
+    (theta, z), (params0, noise, defect, windows, joined, step, fields) = y, args
     one = _window_residuals(step, params0, fields, noise, defect)
     z_next = jnp.concatenate([z[1:], jnp.zeros_like(z[:1])])
-    fn = jax.jacfwd(one, argnums=(0, 1, 2)) if jacobian else one
-    return jax.vmap(fn, in_axes=(None, 0, 0, 0, 0))(theta, z, z_next, windows, joined)
+    return jnp.concatenate([jnp.ravel(jax.vmap(one, in_axes=(None, 0, 0, 0, 0))(theta, z, z_next, windows, joined)),
+                            z[0]])
+
+
+@functools.partial(jax.jit, static_argnames=("step", "fields"))
+def _evaluate(y: tuple, problem: tuple, *, step, fields: tuple) -> tuple:
+    """The residuals (`_residuals`) at ``y``, f[m], and their Jacobian with respect to θ and z, f[m, p + W·c];
+    ``problem`` is `_residuals`' ``args`` without the step and fields."""
+    args = problem + (step, fields)
+    jac = jax.jacfwd(_residuals)(y, args)
+    return _residuals(y, args), jnp.concatenate([j.reshape(len(j), -1) for j in jac], axis=1)
 
 
 def _check(init_state, rpms, observed, fields, window, iterations, noise, defect):
@@ -154,10 +166,11 @@ def fit(config: SimConfig, params0: DroneParams, init_state: DroneState, rpms, o
     rotation vector, 2·``noise["quat"]`` rad per unit) and body rate. The residuals, each in units of its noise,
     are every observation once (the states each window's rollout predicts, and the first start's: z itself) and
     the continuity defect between each window's end and the next window's start, in units of ``defect`` × the
-    noise. They are minimised by Levenberg-Marquardt, in float64 (``jax.enable_x64`` within the call; the inputs
-    are cast, the fitted params returned in ``params0``'s dtype): the defect's scale, 1 µm for 1 mm noise, is not
-    far above float32's rounding of a position near 1 m (6e-8 m, at each of a window's substeps), and in float32
-    the fit stalled short of the optimum for 3-s records or 12-step windows. Without ``estimate_starts`` each window
+    noise. They are minimised by `optimistix.LevenbergMarquardt` (tolerances `RTOL`, `ATOL`), in float64
+    (``jax.enable_x64`` within the call; the inputs are cast, the fitted params returned in ``params0``'s dtype):
+    the defect's scale, 1 µm for 1 mm noise, is not far above float32's rounding of a position near 1 m (6e-8 m, at
+    each of a window's substeps), and in float32 the fit stalled short of the optimum for 3-s records or 12-step
+    windows. Without ``estimate_starts`` each window
     starts from its observed state and only θ is fitted: exact for noise-free observations, biased by noisy ones
     (with 1 mm and 0.01 rad noise, drag off by 10-100 %).
 
@@ -170,12 +183,15 @@ def fit(config: SimConfig, params0: DroneParams, init_state: DroneState, rpms, o
             returns it), measured.
         fields: `DroneParams` fields to fit (from `FITTABLE`); each element of an array field is fitted.
         window: control steps per shooting window; the last T mod ``window`` steps are left out. Longer windows
-            make the problem more nonlinear: on `excitation_flight`'s 5 s from guesses 20-30 % off, windows of 5
-            and 10 steps converged in 12-45 iterations, 20 steps in about 100, 48 steps not at all.
+            make the problem more nonlinear: on `excitation_flight`'s 5 s from guesses 20-30 % off (noise-free, and
+            with 1 mm and 0.01 rad noise), windows of 5 steps converged in 24-35 solver steps, 10 in 11-17, 20 in
+            17-18 and 48 in 12-88.
         noise: the measurement noise's standard deviations that scale the residuals, some keys of `NOISE` (which
             gives the others): ``pos`` m, ``vel`` m/s, ``quat`` (quaternion components: half the attitude's in
             rad), ``ang_vel`` rad/s.
-        iterations: at most this many Levenberg-Marquardt steps (fewer once no step lowers the loss).
+        iterations: at most this many solver steps, accepted or rejected (``max_steps``; fewer once a step
+            changes the unknowns and the residuals by less than the tolerances). The fit after the last is
+            returned, converged or not.
         estimate_starts: fit each window's start state too (default); False starts each from its observation.
         defect: the continuity defect's standard deviation, as a fraction of ``noise``. Small joins the windows
             into one trajectory (the maximum-likelihood fit of a model without process noise); larger lets the
@@ -183,10 +199,11 @@ def fit(config: SimConfig, params0: DroneParams, init_state: DroneState, rpms, o
 
     Returns:
         ``(params, report)``: the fitted params (derived fields recomputed, `jaxdrones.params.with_derived`) and a
-        dict with ``loss`` (the loss before the first iteration and after each: mean squared residual in noise
-        units), ``estimates`` (field -> fitted value), ``initial`` (field -> initial guess), ``std`` (field ->
-        Gauss-Newton standard error of the fitted value, the start states unknown too, from the residuals'
-        scatter; inf where the data do not determine it), ``windows`` and ``window``.
+        dict with ``loss`` (two numbers: the loss at the initial guess and at the fit, each the mean squared
+        residual in noise units), ``steps`` (the solver steps taken, accepted or rejected), ``estimates`` (field ->
+        fitted value), ``initial`` (field -> initial guess), ``std`` (field -> Gauss-Newton standard error of the
+        fitted value, the start states unknown too, from the residuals' scatter; inf where the data do not
+        determine it), ``windows`` and ``window``.
 
     Raises:
         ValueError: an unknown field, ``rpms`` or ``observed`` of the wrong shape, a non-finite observation, a
@@ -201,126 +218,44 @@ def fit(config: SimConfig, params0: DroneParams, init_state: DroneState, rpms, o
         theta = jnp.zeros(sum(np.size(getattr(params0, f)) for f in fields), jnp.float64)
         z = jnp.zeros((count, 4 * init_state.pos.size if estimate_starts else 0), jnp.float64)
         joined = (jnp.arange(count) < count - 1) & estimate_starts
-        problem = (guess, _float64(noise), defect, windows, joined)
-        residuals, jacobians = (functools.partial(_over_windows, problem=problem, step=make_step(config),
-                                                  fields=fields, jacobian=jacobian) for jacobian in (False, True))
+        problem = (guess, _float64(noise), jnp.float64(defect), windows, joined)
+        static = {"step": make_step(config), "fields": fields}
         # The residuals: every observed state once, the defects that join the windows, and z[0].
         size = (count * window + int(joined.sum())) * _scaled(init_state, init_state, noise).size + z.shape[1]
-        theta, z, curve = _minimise(residuals, jacobians, theta, z, size, iterations)
-        std = _standard_errors(_normal_equations(residuals(theta, z), jacobians(theta, z), z), size)
-        theta = np.asarray(theta)
+        y, steps, r = (theta, z), 0, np.asarray(_evaluate((theta, z), problem, **static)[0])
+        loss = [float(r @ r) / size]
+        if iterations:
+            solution = optx.least_squares(_residuals, optx.LevenbergMarquardt(rtol=RTOL, atol=ATOL), y,
+                                          args=problem + tuple(static.values()), max_steps=iterations, throw=False)
+            y, steps = solution.value, int(solution.stats["num_steps"])
+        r, jac = (np.asarray(a) for a in _evaluate(y, problem, **static))
+        loss.append(float(r @ r) / size)
+        std = _standard_errors(r, jac, len(theta), size)
+        theta = np.asarray(y[0])
     dtype = jnp.result_type(getattr(params0, fields[0]))
     params = _apply(params0, _fields(jnp.asarray(theta, dtype), params0, fields))
     std = _fields(np.asarray(std), params0, fields)
-    return params, {"loss": curve, "estimates": {f: np.asarray(getattr(params, f)) for f in fields},
+    return params, {"loss": loss, "steps": steps, "estimates": {f: np.asarray(getattr(params, f)) for f in fields},
                     "initial": {f: np.asarray(getattr(params0, f)) for f in fields},
                     "std": {f: np.asarray(getattr(params, f)) * np.asarray(std[f]) for f in fields},
                     "windows": count, "window": window}
 
 
-def _minimise(residuals, jacobians, theta, z, size: int, iterations: int):
-    """At most ``iterations`` Levenberg-Marquardt steps from ``(θ, z)``: the last θ and z, and the loss (the
-    residuals' sum of squares over their number ``size``) before the first step and after each.
-
-    The residuals are those of every window, f[W, m] (``residuals(θ, z)``, their Jacobians ``jacobians(θ, z)``),
-    and z[0] (the first start's own observation). A step solves (H + λ D) δ = −g (`_step`), D the largest
-    diagonal of H so far (Moré's scaling, which keeps damping a variable whose effect has vanished; 1 for one that
-    never had any, which then stays put); it is taken if it lowers the loss, λ then divided by 3; else λ is
-    multiplied by 10 and the step solved again. The steps end early when one lowers the loss by less than 1e-12 of
-    itself, or none lowers it (at λ = 1e8)."""
-
-    def loss(theta, z):
-        return float(np.sum(np.asarray(residuals(theta, z)) ** 2) + np.sum(np.asarray(z[0]) ** 2)) / size
-
-    curve, lam, scale = [loss(theta, z)], 1e-3, None
-    for _ in range(iterations):
-        equations = _normal_equations(residuals(theta, z), jacobians(theta, z), z)
-        scale = _diagonal(equations) if scale is None else np.maximum(scale, _diagonal(equations))
-        while lam < 1e8:
-            try:
-                d_theta, d_z, _ = _step(equations, lam * np.where(scale > 0, scale, 1.0))
-                trial = (theta + d_theta, z + d_z)
-                value = loss(*trial)
-            except np.linalg.LinAlgError:
-                value = np.inf
-            if value < curve[-1]:
-                break
-            lam *= 10
-        else:
-            break
-        (theta, z), lam = trial, lam / 3
-        curve.append(value)
-        if curve[-2] - value <= 1e-12 * curve[-2]:
-            break
-    return theta, z, curve
-
-
-def _normal_equations(r, jacobians, z) -> dict:
-    """The Gauss-Newton normal equations H δ = −g, in blocks, of the window residuals ``r`` f[W, m] (with their
-    ``jacobians`` with respect to θ, z_k and z_k+1: [W, m, p], [W, m, c], [W, m, c]) and z[0]'s own: ``tt`` H_θθ
-    [p, p], ``tz`` H_θz_k [W, p, c], ``zz`` H_z_k z_k [W, c, c], ``zn`` H_z_k z_k+1 [W − 1, c, c], ``gt`` [p],
-    ``gz`` [W, c], and ``sq`` the residuals' sum of squares."""
-    jt, jz, jn = (np.asarray(j) for j in jacobians)
-    r, z = np.asarray(r), np.asarray(z)
-    gram = lambda a, b: np.einsum("wmi,wmj->wij", a, b)  # noqa: E731
-    grad = lambda a: np.einsum("wmi,wm->wi", a, r)  # noqa: E731
-    zz, tz, gz = gram(jz, jz), gram(jt, jz), grad(jz)
-    zz[1:] += gram(jn, jn)[:-1]
-    tz[1:] += gram(jt, jn)[:-1]
-    gz[1:] += grad(jn)[:-1]
-    zz[0] += np.eye(z.shape[1])
-    gz[0] += z[0]
-    return {"tt": gram(jt, jt).sum(0), "tz": tz, "zz": zz, "zn": gram(jz, jn)[:-1], "gt": grad(jt).sum(0),
-            "gz": gz, "sq": np.sum(r ** 2) + z[0] @ z[0]}
-
-
-def _diagonal(equations: dict) -> np.ndarray:
-    """H's diagonal, θ's then each z_k's, flat."""
-    return np.concatenate([np.diagonal(equations["tt"]), np.diagonal(equations["zz"], axis1=1, axis2=2).ravel()])
-
-
-def _step(equations: dict, damping: np.ndarray) -> tuple:
-    """``(δθ, δz, S)``: the solution of (H + diag(``damping``)) δ = −g (`_normal_equations`, `_diagonal`'s order),
-    the starts eliminated window by window, and S = H_θθ − H_θz H_zz⁻¹ H_zθ (damped), whose inverse is θ's
-    marginal covariance (in units of the residuals' variance)."""
-    tt, tz, zz = equations["tt"], equations["tz"], equations["zz"]
-    p, (w, c) = len(tt), zz.shape[:2]
-    zz = zz + damping[p:].reshape(w, c, 1) * np.eye(c)
-    rhs = np.concatenate([equations["gz"][..., None], tz.transpose(0, 2, 1)], axis=-1)
-    x = _block_tridiagonal_solve(zz, equations["zn"], rhs)
-    schur = tt + np.diag(damping[:p]) - np.einsum("wpc,wcq->pq", tz, x[..., 1:])
-    d_theta = -np.linalg.solve(schur, equations["gt"] - np.einsum("wpc,wc->p", tz, x[..., 0]))
-    return d_theta, -(x[..., 0] + x[..., 1:] @ d_theta), schur
-
-
-def _block_tridiagonal_solve(diagonal: np.ndarray, upper: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """X with M X = ``rhs`` [W, c, k], M symmetric positive definite block tridiagonal: blocks M_kk = ``diagonal``
-    [W, c, c], M_k,k+1 = ``upper`` [W − 1, c, c] = M_k+1,kᵀ. Block Gaussian elimination (Thomas), stable for such
-    an M, in O(W c³)."""
-    pivots, y = [diagonal[0]], [rhs[0]]
-    for k in range(1, len(diagonal)):
-        below = np.linalg.solve(pivots[-1], upper[k - 1]).T  # M_k,k−1 P_k−1⁻¹ (P symmetric)
-        pivots.append(diagonal[k] - below @ upper[k - 1])
-        y.append(rhs[k] - below @ y[-1])
-    x = [np.linalg.solve(pivots[-1], y[-1])]
-    for k in range(len(diagonal) - 2, -1, -1):
-        x.append(np.linalg.solve(pivots[k], y[k] - upper[k] @ x[-1]))
-    return np.stack(x[::-1])
-
-
-def _standard_errors(equations: dict, size: int) -> np.ndarray:
-    """θ's Gauss-Newton standard errors, f[p]: cov(θ) = s² S⁻¹ (`_step` undamped: the marginal covariance, the
-    start states unknown too), s² the residuals' mean square per degree of freedom; inf for every θ when S is
-    singular (the condition number of S with unit diagonal above 1e12)."""
+def _standard_errors(r: np.ndarray, jac: np.ndarray, p: int, size: int) -> np.ndarray:
+    """θ's Gauss-Newton standard errors, f[p], from the residuals ``r`` and their Jacobian ``jac`` [m, p + W·c] (θ's
+    columns first): cov(θ) = s² S⁻¹, S = H_θθ − H_θz H_zz⁻¹ H_zθ the Schur complement of H = JᵀJ (the marginal
+    covariance, the start states unknown too), s² the residuals' sum of squares over the ``size`` − p − W·c
+    degrees of freedom; inf for every θ when S is singular (its condition number with unit diagonal above 1e12)."""
+    h = jac.T @ jac
     try:
-        schur = _step(equations, np.zeros(len(_diagonal(equations))))[2]
+        schur = h[:p, :p] - h[:p, p:] @ np.linalg.solve(h[p:, p:], h[p:, :p]) if len(h) > p else h[:p, :p]
     except np.linalg.LinAlgError:
-        return np.full(len(equations["tt"]), np.inf)
-    scale = equations["sq"] / max(size - len(schur) - equations["gz"].size, 1)
+        return np.full(p, np.inf)
+    scale = (r @ r) / max(size - len(h), 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         unit = schur / np.sqrt(np.outer(np.diag(schur), np.diag(schur)))
         if not np.all(np.isfinite(unit)) or np.linalg.cond(unit) > 1e12:
-            return np.full(len(schur), np.inf)
+            return np.full(p, np.inf)
     return np.sqrt(np.diag(np.linalg.inv(schur)) * scale)
 
 

@@ -41,7 +41,8 @@ def test_fit_recovers_kf_km_and_drag_from_noise_free_closed_loop_flight(flight, 
               f"estimate_starts={estimate_starts})")
         assert np.all(np.abs(error) < 0.02), (name, error)
         assert np.all(np.isfinite(report["std"][name]))
-    assert report["loss"][-1] < 1e-6 * report["loss"][0] and report["windows"] == 24
+    assert len(report["loss"]) == 2 and report["loss"][-1] < 1e-6 * report["loss"][0] and report["windows"] == 24
+    assert 0 < report["steps"] <= 100  # optimistix's Levenberg-Marquardt steps, within the default iterations
     np.testing.assert_allclose(params.hover_rpm, np.sqrt(params.mass * params.gravity / (4 * params.kf)), rtol=1e-6)
 
 
@@ -78,6 +79,14 @@ def test_add_noise_has_the_stated_standard_deviations(flight):
     relative = np.asarray(quat_mul(conjugate, noisy.observed.quat))  # body-frame rotation: ≈ (r / 2, 1)
     assert np.all(relative[..., 3] > 0.99) and abs(np.std(2 * relative[..., :3]) / 1e-2 - 1) < 0.1
     assert not np.allclose(noisy.init_state.pos, flight.init_state.pos)
+
+
+def test_fit_with_no_iterations_returns_the_guess(flight):
+    guess = _guess(jd.load_params("cf2x"))
+    params, report = fit(CONFIG, guess, flight.init_state, flight.rpms, flight.observed, fields=FIELDS, iterations=0)
+    for name in FIELDS:
+        np.testing.assert_allclose(getattr(params, name), getattr(guess, name), rtol=1e-6)
+    assert report["steps"] == 0 and report["loss"][0] == report["loss"][1] > 1e3
 
 
 def test_fit_bad_input(flight):
