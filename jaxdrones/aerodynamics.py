@@ -79,13 +79,19 @@ def ground_effect_thrust_c(params: DroneParams, pos_z: jax.Array, rotmat_z: Comp
         thrust: 4-tuple of f[..., D] N.
         kinks: the kinks' treatment.
     """
-    upright = kinks.step(rotmat_z[2], kinks.attitude) * kinks.step(GIMBAL_SNAP - jnp.abs(rotmat_z[0]), kinks.attitude)
+    if kinks.mode == "smooth":
+        upright = kinks.step(rotmat_z[2], kinks.attitude) * kinks.step(GIMBAL_SNAP - jnp.abs(rotmat_z[0]),
+                                                                        kinks.attitude)
+        on = lambda value: upright * value  # noqa: E731
+    else:
+        upright = (rotmat_z[2] > 0) & (jnp.abs(rotmat_z[0]) < GIMBAL_SNAP)
+        on = lambda value: jnp.where(upright, value, 0.0)  # noqa: E731
     extra = []
     for i, thrust_i in enumerate(thrust):
         height = pos_z + dot(rotmat_z, split(params.prop_pos[..., i, :]))
         height = kinks.maximum(height, params.gnd_eff_h_clip, kinks.height)
         gain = params.gnd_eff_coeff * (params.prop_radius / (4 * height)) ** 2
-        extra.append(upright * thrust_i * gain)
+        extra.append(on(thrust_i * gain))
     return tuple(extra)
 
 
