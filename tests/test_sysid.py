@@ -69,6 +69,22 @@ def test_fit_recovers_kf_km_and_drag_within_10_percent_from_noisy_flight(flight,
     assert 0.2 < report["loss"][-1] < 1.0
 
 
+@pytest.mark.slow
+def test_fit_identifies_mass_with_kf_from_noisy_flight(flight):
+    """mass with kf, km and drag: the rotational dynamics (known inertia) give kf, the translational ones kf/m, so
+    the mass is identifiable from the same flight (guess 10 % off), here with position and attitude noise."""
+    true = jd.load_params("cf2x")
+    noisy = add_noise(flight, jax.random.key(0))
+    guess = _guess(true).replace(mass=true.mass * 1.1)
+    fields = ("mass",) + FIELDS
+    params, report = fit(CONFIG, with_derived(guess), noisy.init_state, noisy.rpms, noisy.observed, fields=fields)
+    for name in fields:
+        error = np.asarray(getattr(params, name)) / np.asarray(getattr(true, name)) - 1
+        print(f"\nMEASURED sysid noisy with mass {name}: relative error {np.array2string(error, precision=4)}")
+        assert np.all(np.abs(error) < 0.10), (name, error)
+    assert abs(float(params.mass / true.mass) - 1) < 0.01 and np.isfinite(report["std"]["mass"]).all()
+
+
 def test_add_noise_has_the_stated_standard_deviations(flight):
     noisy = add_noise(flight, jax.random.key(0), pos=1e-3, att=1e-2, vel=0.0, ang_vel=0.05)
     np.testing.assert_array_equal(noisy.rpms, flight.rpms)
