@@ -12,7 +12,7 @@ window's TD(λ) returns, computed with a slowly following target critic, for a f
 follows the critic by Polyak averaging. Each drone of a world is one sample (they share the policy and the critic).
 
 The policy is deterministic, the network of `jaxdrones.training.apg`; the loop, saving and loading are shared with
-it (`jaxdrones.training.apg.run_updates`, ``save``, ``load``).
+it (`jaxdrones.training.common.run_updates`, `jaxdrones.training.apg.save` and ``load``).
 """
 
 from __future__ import annotations
