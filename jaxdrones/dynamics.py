@@ -179,8 +179,7 @@ def ground_contact_c(params: DroneParams, kin: Kinematics, kinks: Kinks = Kinks(
     touching = z < rest
     weight = kinks.step(rest - z, kinks.height)  # the smooth degree of contact, for kinks.mode == "smooth"
     pos = (x, y, kinks.maximum(z, rest, kinks.height))
-    vz_up = kinks.maximum(vz, 0.0, kinks.speed)
-    vz = vz_up * weight + vz * (1 - weight) if kinks.mode == "smooth" else jnp.where(touching, vz_up, vz)
-    vel = (kinks.zero_where(vx, touching, weight), kinks.zero_where(vy, touching, weight), vz)
-    ang_vel = tuple(kinks.zero_where(w, touching, weight) for w in kin.ang_vel)
+    vz = kinks.choose(touching, weight, kinks.maximum(vz, 0.0, kinks.speed), vz)
+    vel = (kinks.choose(touching, weight, 0.0, vx), kinks.choose(touching, weight, 0.0, vy), vz)
+    ang_vel = tuple(kinks.choose(touching, weight, 0.0, w) for w in kin.ang_vel)
     return Kinematics(pos, kin.quat, vel, ang_vel), touching

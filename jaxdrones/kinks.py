@@ -85,13 +85,13 @@ class Kinks:
             return low + _soft_relu(x - low, width) - _soft_relu(x - high, width)
         return _straight_through(x, exact) if self.mode == "straight_through" else exact
 
-    def zero_where(self, x: jax.Array, off: jax.Array, weight_off: jax.Array | None) -> jax.Array:
-        """``where(off, 0, x)``: with ``mode="smooth"`` x scaled by 1 - ``weight_off`` (the smooth degree of ``off``,
-        in [0, 1]); straight-through passes x's gradient as is."""
+    def choose(self, cond: jax.Array, weight: jax.Array, if_true, if_false: jax.Array) -> jax.Array:
+        """``where(cond, if_true, if_false)``: with ``mode="smooth"`` the blend by ``weight`` (the smooth degree of
+        ``cond``, in [0, 1]); straight-through passes ``if_false``'s gradient as is."""
         if self.mode == "smooth":
-            return (1 - weight_off) * x
-        exact = jnp.where(off, 0.0, x)
-        return _straight_through(x, exact) if self.mode == "straight_through" else exact
+            return weight * if_true + (1 - weight) * if_false
+        exact = jnp.where(cond, if_true, if_false)
+        return _straight_through(if_false, exact) if self.mode == "straight_through" else exact
 
     def step(self, x: jax.Array, width: float) -> jax.Array:
         """The condition x > 0 as 0/1 (dtype of x); with ``mode="smooth"`` the smoothstep over x ∈ [-width, width]."""
