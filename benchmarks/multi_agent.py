@@ -1,7 +1,9 @@
-"""Multi-agent throughput against the team size D, with downwash on and off: the physics step, the multi-agent env
-and a full MAPPO update, in agent-steps per second (one agent-step: one control step of one drone).
+"""Multi-agent throughput against the team size D, with downwash on and off, with every drone coupled to every other
+or with a neighbour list of K: the physics step, the multi-agent env and a full MAPPO update, in agent-steps per
+second (one agent-step: one control step of one drone).
 
-For each D (default 2, 8, 64, 256) and downwash off/on, in one process:
+For each D (default 2, 8, 64, 256), coupling (every drone, or ``max_neighbors=K``: the downwash of the K horizontally
+nearest drones and a ``neighbors`` observation of the K nearest, default K = 8) and downwash off/on, in one process:
 
 * physics: `jaxdrones.make_step` on ``worlds`` worlds of D hovering drones (240 Hz physics, 30 Hz control, 8
   substeps per step), ``steps`` control steps in one jitted `lax.scan`; also given per drone and physics substep;
@@ -11,11 +13,14 @@ For each D (default 2, 8, 64, 256) and downwash off/on, in one process:
   ``epochs`` × ``minibatches`` PPO steps) timed as training chunks of a few updates, compilation excluded.
 
 ``worlds`` is chosen so that every size simulates about ``--agents`` drones at once (at least one world). Each
-timing is the best of ``--repeats`` calls after a warm-up call. The physics' downwash is pairwise: its cost per drone
-grows with D (the table shows by how much); the other effects are off.
+timing is the best of ``--repeats`` calls after a warm-up call. Every drone coupled to every other, the downwash and
+the ``neighbors`` observation cost D² per world; with the neighbour list D·K (and the list's choice, once per control
+step, D² comparisons). The other effects are off. For K, the table also gives the largest error of the downwash
+force against every pair over the physics benchmark's drones, as a fraction of the weight (the drones are spread
+at random over 4 m × 4 m, 0.5-2.5 m high: crowded at large D).
 
     python benchmarks/multi_agent.py                     # D = 2, 8, 64, 256; writes benchmarks/results/multi_agent.json
-    python benchmarks/multi_agent.py --drones 2 8 --no-mappo
+    python benchmarks/multi_agent.py --drones 2 8 --no-mappo --neighbors 4
 """
 
 from __future__ import annotations
@@ -42,7 +47,32 @@ def best_time(fn, *args, repeats: int) -> float:
     return min(times)
 
 
-def physics_rate(n_drones: int, worlds: int, downwash: bool, steps: int, repeats: int) -> float:
+def swarm(n_drones: int, worlds: int):
+    """Positions f[worlds, D, 3] m: uniform over 4 m × 4 m, 0.5-2.5 m high."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    return np.concatenate([rng.uniform(-2, 2, (worlds, n_drones, 2)), rng.uniform(0.5, 2.5, (worlds, n_drones, 1))],
+                          -1)
+
+
+def downwash_error(n_drones: int, worlds: int, k: int | None) -> float | None:
+    """max |F_K - F_all| / weight over the drones of `swarm`, None without a neighbour list (or K ≥ D - 1: exact)."""
+    import jax.numpy as jnp
+
+    import jaxdrones as jd
+    from jaxdrones import aerodynamics
+
+    if k is None or k >= n_drones - 1:
+        return None
+    params = jd.load_params("cf2x")
+    pos = jnp.asarray(swarm(n_drones, worlds), jnp.float32)
+    near = aerodynamics.downwash_neighbors(tuple(pos[..., i] for i in range(3)), k)
+    full = aerodynamics.downwash_force(params, pos)
+    return float(jnp.max(jnp.abs(aerodynamics.downwash_force(params, pos, neighbors=near) - full)) / params.weight)
+
+
+def physics_rate(n_drones: int, worlds: int, downwash: bool, steps: int, repeats: int, k: int | None) -> float:
     """Agent-steps/s (control steps × drones × worlds per second) of the JAX core."""
     import jax
     import jax.numpy as jnp
@@ -50,11 +80,10 @@ def physics_rate(n_drones: int, worlds: int, downwash: bool, steps: int, repeats
 
     import jaxdrones as jd
 
-    config = jd.SimConfig(n_drones=n_drones, sim_freq=240, ctrl_freq=30, downwash=downwash)
+    config = jd.SimConfig(n_drones=n_drones, sim_freq=240, ctrl_freq=30, downwash=downwash, max_neighbors=k)
     step = jd.make_step(config)
     params = jd.load_params("cf2x")
-    rng = np.random.default_rng(0)
-    pos = np.concatenate([rng.uniform(-2, 2, (worlds, n_drones, 2)), rng.uniform(0.5, 2.5, (worlds, n_drones, 1))], -1)
+    pos = swarm(n_drones, worlds)
     state = jd.init_state(config, pos=pos, rpm=float(params.hover_rpm) * np.ones((worlds, n_drones, 4)))
     rpm = jnp.full((worlds, n_drones, 4), params.hover_rpm)
 
@@ -65,14 +94,14 @@ def physics_rate(n_drones: int, worlds: int, downwash: bool, steps: int, repeats
     return steps * worlds * n_drones / best_time(run, state, repeats=repeats)
 
 
-def env_rate(n_drones: int, worlds: int, downwash: bool, steps: int, repeats: int) -> float:
+def env_rate(n_drones: int, worlds: int, downwash: bool, steps: int, repeats: int, k: int | None) -> float:
     """Agent-steps/s of the multi_hover env with auto-reset."""
     import jax
 
     import jaxdrones as jd
     from jaxdrones.wrappers import VmapAutoReset
 
-    env = VmapAutoReset(jd.make("multi_hover", n_drones=n_drones, downwash=downwash))
+    env = VmapAutoReset(jd.make("multi_hover", n_drones=n_drones, downwash=downwash, max_neighbors=k))
     state = env.reset(jax.random.split(jax.random.key(0), worlds))
     shape = (steps, worlds, n_drones, env.action_size)
 
@@ -84,13 +113,13 @@ def env_rate(n_drones: int, worlds: int, downwash: bool, steps: int, repeats: in
     return steps * worlds * n_drones / best_time(run, state, jax.random.key(1), repeats=repeats)
 
 
-def mappo_rate(n_drones: int, worlds: int, downwash: bool, repeats: int) -> float:
+def mappo_rate(n_drones: int, worlds: int, downwash: bool, repeats: int, k: int | None) -> float:
     """Agent-steps/s of MAPPO training (collection and update), from the wall time between its progress reports
     after the first (which includes compilation)."""
     import jaxdrones as jd
     from jaxdrones.training import mappo
 
-    env = jd.make("multi_hover", n_drones=n_drones, downwash=downwash)
+    env = jd.make("multi_hover", n_drones=n_drones, downwash=downwash, max_neighbors=k)
     config = mappo.MAPPOConfig(num_envs=worlds, unroll_length=10, minibatches=min(8, worlds * 10),
                                num_timesteps=worlds * 10 * 2 * (repeats + 1), num_evals=repeats + 2)
     stamps = []
@@ -106,6 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=30, help="control steps per timed call")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-mappo", action="store_true", help="skip the MAPPO update timing")
+    parser.add_argument("--neighbors", type=int, default=8, help="K of the neighbour-list rows (default 8)")
     parser.add_argument("--out", default=os.path.join(HERE, "results", "multi_agent.json"))
     args = parser.parse_args(argv)
 
@@ -115,19 +145,25 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     print(f"jax {jax.__version__} on {jax.default_backend()}, {os.cpu_count()} cores; agent-steps/s "
           f"(about {args.agents} drones at once)")
-    print(" D  worlds downwash   physics  (per drone-substep ns)        env      MAPPO")
+    print("  D worlds coupling downwash    physics (ns per drone-substep)        env      MAPPO  force error/weight")
     for n in args.drones:
         worlds = max(1, args.agents // n)
-        for downwash in (False, True):
-            row = {"n_drones": n, "worlds": worlds, "downwash": downwash,
-                   "physics": physics_rate(n, worlds, downwash, args.steps, args.repeats),
-                   "env": env_rate(n, worlds, downwash, args.steps, args.repeats),
-                   "mappo": None if args.no_mappo else mappo_rate(n, worlds, downwash, args.repeats)}
-            row["physics_ns_per_drone_substep"] = 1e9 / (row["physics"] * 8)
-            rows.append(row)
-            mappo_text = "-" if row["mappo"] is None else f"{row['mappo']:10.3g}"
-            print(f"{n:3d} {worlds:6d} {'on ' if downwash else 'off'}      {row['physics']:10.3g} "
-                  f"({row['physics_ns_per_drone_substep']:8.1f})          {row['env']:10.3g} {mappo_text}", flush=True)
+        for k in (None, args.neighbors):
+            error = downwash_error(n, worlds, k)
+            for downwash in (False, True):
+                row = {"n_drones": n, "worlds": worlds, "max_neighbors": k, "downwash": downwash,
+                       "physics": physics_rate(n, worlds, downwash, args.steps, args.repeats, k),
+                       "env": env_rate(n, worlds, downwash, args.steps, args.repeats, k),
+                       "mappo": None if args.no_mappo else mappo_rate(n, worlds, downwash, args.repeats, k),
+                       "downwash_error_over_weight": error if downwash else None}
+                row["physics_ns_per_drone_substep"] = 1e9 / (row["physics"] * 8)
+                rows.append(row)
+                mappo_text = "-" if row["mappo"] is None else f"{row['mappo']:10.3g}"
+                coupling = "all" if k is None else f"K={k}"
+                error_text = f"{error:.2g}" if downwash and error is not None else "-"
+                print(f"{n:3d} {worlds:6d} {coupling:8s} {'on ' if downwash else 'off'}      {row['physics']:10.3g} "
+                      f"({row['physics_ns_per_drone_substep']:6.1f})                 {row['env']:10.3g} {mappo_text}"
+                      f"  {error_text}", flush=True)
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w") as f:
         json.dump({"rows": rows, "machine": platform.platform(), "cpus": os.cpu_count(),

@@ -29,10 +29,15 @@ class SimConfig:
             its mode ``"exact"`` (the original's physics, default), ``"smooth"`` (C¹ within small bands, so that
             gradients agree with finite differences across each kink) or ``"straight_through"`` (the original's
             forward pass, identity gradients through the clips and the contact). Stored as a `Kinks`.
+        max_neighbors: downwash: None (every drone above a drone acts on it, the original; D² pairs per substep) or
+            K ≥ 1: only the K drones horizontally nearest to each drone act on it (D·K pairs; the drones beyond are
+            ones whose downwash has decayed, see `jaxdrones.aerodynamics.downwash_force`). The K are chosen at the
+            start of each control step and held over its substeps, as a neighbour list is. K ≥ D - 1 is the
+            original. The JAX core only.
 
     Raises:
-        ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, or an unknown
-            integrator or kink treatment.
+        ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, an unknown
+            integrator or kink treatment, or ``max_neighbors`` neither None nor a positive integer.
     """
 
     n_drones: int = 1
@@ -43,6 +48,7 @@ class SimConfig:
     downwash: bool = False
     integrator: str = "euler"
     kinks: Kinks | str = "exact"
+    max_neighbors: int | None = None
 
     def __post_init__(self):
         if isinstance(self.kinks, str):
@@ -56,6 +62,9 @@ class SimConfig:
         if self.sim_freq % self.ctrl_freq:
             raise ValueError(f"SimConfig: sim_freq ({self.sim_freq} Hz) must be a multiple of ctrl_freq "
                              f"({self.ctrl_freq} Hz), e.g. sim_freq=240 with ctrl_freq in 240, 120, 80, 48, 30, ...")
+        k = self.max_neighbors
+        if k is not None and (not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1):
+            raise ValueError(f"SimConfig.max_neighbors must be None (every drone) or a positive integer, got {k!r}")
         if self.integrator not in dynamics.INTEGRATORS:
             raise ValueError(f"SimConfig.integrator must be one of {tuple(dynamics.INTEGRATORS)}, "
                              f"got {self.integrator!r}")
@@ -77,4 +86,4 @@ class SimConfig:
 
     @property
     def effects(self) -> dynamics.Effects:
-        return dynamics.Effects(self.drag, self.ground_effect, self.downwash, self.kinks)
+        return dynamics.Effects(self.drag, self.ground_effect, self.downwash, self.kinks, self.max_neighbors)

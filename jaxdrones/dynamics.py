@@ -31,6 +31,15 @@ class Effects(NamedTuple):
     ground_effect: bool = False
     downwash: bool = False
     kinks: Kinks = Kinks()
+    max_neighbors: int | None = None
+
+    def downwash_neighbors(self, pos: Components) -> jax.Array | None:
+        """The drones whose downwash acts on each drone (`aerodynamics.downwash_neighbors`) when ``max_neighbors``
+        bounds them below D - 1, else None (every drone)."""
+        n = pos[0].shape[-1]
+        if not self.downwash or self.max_neighbors is None or self.max_neighbors >= n - 1:
+            return None
+        return aerodynamics.downwash_neighbors(pos, self.max_neighbors)
 
 
 class Kinematics(NamedTuple):
@@ -84,12 +93,13 @@ def body_torque_c(params: DroneParams, lift: Components, yaw_torque: jax.Array) 
 
 
 def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors, rpm_prev: Components,
-                    unit_quat: bool = False):
+                    unit_quat: bool = False, neighbors: jax.Array | None = None):
     """Linear (world, m/s²) and angular (body, rad/s²) accelerations, with the motors' output for the applied RPM
     (`motors_c`) and ``rpm_prev`` (4-tuple of f[..., D], the RPM of the previous substep, for drag only).
 
     ``unit_quat=True`` tells that ``kin.quat`` is of unit norm (as every step leaves it), which skips normalising it
-    again for the rotation matrix.
+    again for the rotation matrix. ``neighbors`` i32[..., D, K]: the drones whose downwash acts on each drone
+    (`Effects.downwash_neighbors`; default: chosen from ``kin.pos``).
 
     Returns:
         (ax, ay, az) m/s², world frame, and (ω̇x, ω̇y, ω̇z) rad/s², body frame, each f[..., D].
@@ -102,7 +112,9 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
         lift = tuple(t + e for t, e in zip(thrust, extra))
     body_z_force = sum(lift[1:], lift[0])
     if effects.downwash and kin.pos[2].shape[-1] > 1:  # a lone drone feels no downwash
-        body_z_force = body_z_force + aerodynamics.downwash_force_c(params, kin.pos, effects.kinks)
+        if neighbors is None:
+            neighbors = effects.downwash_neighbors(kin.pos)
+        body_z_force = body_z_force + aerodynamics.downwash_force_c(params, kin.pos, effects.kinks, neighbors)
     fx, fy, fz = (row[2] * body_z_force for row in rotmat)
     force = (fx, fy, fz + -params.mass * params.gravity)
     if effects.drag:
@@ -115,13 +127,13 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
 
 
 def euler_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
-                 unit_quat: bool = False) -> Kinematics:
+                 unit_quat: bool = False, neighbors: jax.Array | None = None) -> Kinematics:
     """The paper code's semi-implicit Euler update (docs/physics.md §4.5-4.6), one physics step of ``dt`` s.
 
     v ← v + dt·a; ω ← ω + dt·ω̇; p ← p + dt·v_new; q ← exp-map(q, ω_new, dt), then q is normalised as PyBullet
-    does when the state is written back. ``motors`` and ``unit_quat`` as in `accelerations_c`.
+    does when the state is written back. ``motors``, ``unit_quat`` and ``neighbors`` as in `accelerations_c`.
     """
-    acc, ang_acc = accelerations_c(params, effects, kin, motors, rpm_prev, unit_quat)
+    acc, ang_acc = accelerations_c(params, effects, kin, motors, rpm_prev, unit_quat, neighbors)
     vel = tuple(v + dt * a for v, a in zip(kin.vel, acc))
     ang_vel = tuple(w + dt * a for w, a in zip(kin.ang_vel, ang_acc))
     quat = quat_integrate_c(kin.quat, ang_vel, dt)
@@ -130,15 +142,17 @@ def euler_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Com
 
 
 def rk4_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
-               unit_quat: bool = False) -> Kinematics:
+               unit_quat: bool = False, neighbors: jax.Array | None = None) -> Kinematics:
     """Classical 4th-order Runge-Kutta on (p, q, v, ω) with the motor inputs held over the step; q renormalised.
 
     See docs/physics.md §4.11. ``motors`` and ``unit_quat`` as in `accelerations_c` (``unit_quat`` concerns the first
-    stage only: the others are normalised for their rotation matrix).
+    stage only: the others are normalised for their rotation matrix); ``neighbors`` too, held over the stages.
     """
+    if neighbors is None:
+        neighbors = effects.downwash_neighbors(kin.pos)
 
     def deriv(k: Kinematics, unit: bool = False) -> Kinematics:
-        acc, ang_acc = accelerations_c(params, effects, k, motors, rpm_prev, unit)
+        acc, ang_acc = accelerations_c(params, effects, k, motors, rpm_prev, unit, neighbors)
         return Kinematics(k.vel, quat_derivative_c(k.quat, k.ang_vel), acc, ang_acc)
 
     def stage(carry, coeffs):

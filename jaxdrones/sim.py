@@ -28,15 +28,17 @@ __all__ = ["JaxStep", "SimConfig", "StepFn", "make_step", "physics_substep_c", "
 
 
 def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState, rpm: tuple,
-                      motors: dynamics.Motors | None = None, unit_quat: bool = False) -> DroneState:
+                      motors: dynamics.Motors | None = None, unit_quat: bool = False,
+                      neighbors: jax.Array | None = None) -> DroneState:
     """One physics step of ``config.dt`` with already-clipped RPM, pure and differentiable, in component form:
-    ``state``'s vector fields and ``rpm`` are tuples of f[..., D] arrays (``contact`` stays i32[..., D]); ``motors`` is ``dynamics.motors_c(params, rpm)`` when already known;
-    ``unit_quat=True`` if ``state.quat`` is known to be of unit norm (see `dynamics.accelerations_c`)."""
+    ``state``'s vector fields and ``rpm`` are tuples of f[..., D] arrays (``contact`` stays i32[..., D]); ``motors``
+    is ``dynamics.motors_c(params, rpm)`` when already known; ``unit_quat=True`` if ``state.quat`` is known to be of
+    unit norm; ``neighbors`` the downwash's neighbour list when already chosen (see `dynamics.accelerations_c`)."""
     if motors is None:
         motors = dynamics.motors_c(params, rpm)
     integrate = dynamics.INTEGRATORS[config.integrator]
     kin = dynamics.Kinematics(state.pos, state.quat, state.vel, state.ang_vel)
-    kin = integrate(params, config.effects, kin, motors, state.rpm, config.dt, unit_quat)
+    kin = integrate(params, config.effects, kin, motors, state.rpm, config.dt, unit_quat, neighbors)
     kin, touching = dynamics.ground_contact_c(params, kin, config.kinks)
     return DroneState(*kin, rpm=rpm, contact=state.contact | jnp.where(touching, CONTACT_GROUND, 0).astype(jnp.int32))
 
@@ -107,10 +109,12 @@ def _core_step_c(config: SimConfig):
         # The RPM of the previous substep, which drag uses, is the state's in the first substep and the held
         # command in the others: it is chosen per substep rather than carried (and copied) through the loop.
         rpm_before = state.rpm
+        # With config.max_neighbors, the drones whose downwash acts on each drone are chosen once per control step.
+        neighbors = config.effects.downwash_neighbors(state.pos)
 
         def substep(s, first):
             rpm_prev = tuple(jnp.where(first, before, now) for before, now in zip(rpm_before, rpm, strict=True))
-            s = physics_substep_c(config, params, s.replace(rpm=rpm_prev), rpm, motors, unit_quat=True)
+            s = physics_substep_c(config, params, s.replace(rpm=rpm_prev), rpm, motors, True, neighbors)
             return s.replace(rpm=()), None
 
         first = jnp.arange(config.n_substeps) == 0

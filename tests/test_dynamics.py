@@ -405,6 +405,59 @@ def test_downwash_whole_step(x64):
     assert float(a.vel[0, 2]) < float(b.vel[0, 2])
 
 
+def _swarm(rng, side=8, spacing=0.5):
+    """A side×side grid, `spacing` m apart, at random heights between 0.5 and 1.5 m, with a little jitter."""
+    xy = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2) * spacing
+    xy = xy + rng.uniform(-0.05, 0.05, xy.shape)
+    return np.concatenate([xy, rng.uniform(0.5, 1.5, (len(xy), 1))], -1)
+
+
+def test_downwash_neighbors_bound_the_pairs(x64, rng):
+    """The K horizontally nearest drones carry the downwash: in a swarm 0.5 m apart K = 8 gives every drone's
+    force to 1e-12 of the weight, K = D - 1 gives all pairs bit for bit, and the chosen drones are the nearest."""
+    params = jd.load_params("cf2x")
+    pos = jnp.asarray(_swarm(rng))
+    full = aerodynamics.downwash_force(params, pos)
+    comps = tuple(pos[:, k] for k in range(3))
+    idx = aerodynamics.downwash_neighbors(comps, 8)
+    d2 = np.sum((np.asarray(pos)[:, None, :2] - np.asarray(pos)[None, :, :2]) ** 2, -1)
+    np.fill_diagonal(d2, np.inf)
+    np.testing.assert_allclose(np.take_along_axis(d2, np.asarray(idx), -1), np.sort(d2, -1)[:, :8])
+    assert float(jnp.min(full)) < -1e-3 * float(params.weight)  # the swarm has real downwash
+    near = aerodynamics.downwash_force(params, pos, neighbors=idx)
+    np.testing.assert_allclose(near, full, rtol=0, atol=1e-12 * float(params.weight))
+    all_but_self = aerodynamics.downwash_neighbors(comps, 63)
+    np.testing.assert_allclose(aerodynamics.downwash_force(params, pos, neighbors=all_but_self), full, rtol=1e-12)
+    # With too few neighbours a drone stacked further away is missed: the bound changes the physics.
+    column = jnp.asarray([[0.0, 0.0, 0.0], [0.1, 0.0, 5.0], [0.0, 0.0, 1.0]])
+    one = aerodynamics.downwash_neighbors(tuple(column[:, k] for k in range(3)), 1)
+    assert float(aerodynamics.downwash_force(params, column, neighbors=one)[0]) > float(
+        aerodynamics.downwash_force(params, column)[0])
+    with pytest.raises(ValueError, match=r"k must be an integer in \[1, D - 1\]"):
+        aerodynamics.downwash_neighbors(comps, 64)
+
+
+def test_max_neighbors_step_matches_all_pairs(x64, rng):
+    """SimConfig(max_neighbors=8) on 64 drones: the control step (its neighbour list held over 8 substeps) gives
+    the all-pairs step's state to 1e-12, in a batch of worlds; gradients flow through it; bad values are refused."""
+    params = jd.load_params("cf2x")
+    pos = np.stack([_swarm(rng) for _ in range(3)])
+    configs = [jd.SimConfig(n_drones=64, ctrl_freq=30, downwash=True, max_neighbors=k) for k in (None, 8)]
+    state = jd.init_state(configs[0], pos=pos)
+    rpm = jnp.full((3, 64, 4), float(params.hover_rpm))
+    full, near = (stepper(c)(params, state, rpm) for c in configs)
+    off = stepper(jd.SimConfig(n_drones=64, ctrl_freq=30))(params, state, rpm)
+    assert float(jnp.max(jnp.abs(full.vel - off.vel))) > 1e-4
+    for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(near), strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    loss = lambda p: jnp.sum(stepper(configs[1])(params, state.replace(pos=p), rpm).vel[..., 2])  # noqa: E731
+    grad = jax.grad(loss)(state.pos)
+    assert bool(jnp.all(jnp.isfinite(grad))) and float(jnp.max(jnp.abs(grad[..., 2]))) > 0
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match="max_neighbors"):
+            jd.SimConfig(n_drones=4, max_neighbors=bad)
+
+
 def test_drag_opposes_velocity(rng):
     params = jd.load_params("cf2x")
     vel = rng.normal(size=(256, 1, 3)) * rng.uniform(0.01, 10, (256, 1, 1))

@@ -258,6 +258,31 @@ def test_observation_types():
     np.testing.assert_allclose(obs[6:9], [0.1, -1.0, 0.5], rtol=1e-6)  # vz over its own limit, 1 m/s
 
 
+def test_nearest_neighbors_observation():
+    """max_neighbors=k: the k nearest drones, nearest first, flagged within the radius; the size stays 12 + 4k + 3
+    whatever the team; the downwash gets the same bound; k >= D - 1 holds everyone."""
+    env = jd.make("multi_hover", n_drones=16, max_neighbors=3, neighbor_radius=0.5)
+    assert env.observation_size == 12 + 4 * 3 + 3 and env.sim_config.max_neighbors == 3
+    assert jd.make("multi_hover", n_drones=64, max_neighbors=3).observation_size == env.observation_size
+    s = env.reset(jax.random.key(0))
+    pos = np.asarray(s.sim.pos, np.float64)
+    np.testing.assert_allclose(s.obs[:, :12], kinematic_obs(s.sim), rtol=1e-6, atol=1e-7)
+    for i in range(16):
+        dist = np.linalg.norm(pos - pos[i], axis=-1)
+        dist[i] = np.inf
+        order = np.argsort(dist)[:3]
+        np.testing.assert_array_equal(s.obs[i, 12:15], (dist[order] < 0.5).astype(np.float32))
+        expected = (pos[order] - pos[i]) * (dist[order] < 0.5)[:, None]
+        np.testing.assert_allclose(np.asarray(s.obs[i, 15:24]).reshape(3, 3), expected, atol=1e-6)
+    assert 0.0 < float(np.mean(s.obs[:, 12:15])) < 1.0  # some neighbours inside the radius, some outside
+    low, high = env.observation_bounds()
+    assert low.shape == (16, env.observation_size) and np.all(s.obs >= low) and np.all(s.obs <= high)
+    small = jd.make("multi_hover", n_drones=3, max_neighbors=8)
+    assert small.observation_size == 12 + 4 * 2 + 3
+    with pytest.raises(ValueError, match="max_neighbors"):
+        jd.make("multi_hover", n_drones=3, max_neighbors=0)
+
+
 def test_domain_randomisation_recomputes_derived_params():
     env = jd.make("hover", randomize={"mass": 0.2, "kf": 0.1, "inertia": 0.3})
     s = jax.vmap(env.reset)(keys(256))
@@ -406,7 +431,7 @@ def test_non_float_action_rejected(hover):
 def test_registry_lists_every_task():
     assert set(registered()) == set(SINGLE_AGENT) | set(MULTI_AGENT)
     assert {"hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune"} == set(SINGLE_AGENT)
-    assert {"multi_hover", "leader_follower", "flock", "meetup"} == set(MULTI_AGENT)
+    assert {"multi_hover", "leader_follower", "flock", "meetup", "crossing"} == set(MULTI_AGENT)
     assert set(ACTION_SIZES) == set(ACTION_TYPES)
     for name in registered():
         fields = {f.name for f in dataclasses.fields(jd.envs.get_task(name).config_cls)}

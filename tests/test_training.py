@@ -263,6 +263,25 @@ def test_running_observation_statistics_match_numpy():
     np.testing.assert_allclose(norm["var"], everything.var(0), rtol=1e-4)
 
 
+def test_agent_mlp_first_layer_is_the_concatenated_dense():
+    """The first layer by parts (obs, id embedding, world once per world) equals one Dense layer on
+    [obs, one-hot id, world] for every agent."""
+    from jaxdrones.training.mappo import agent_mlp
+
+    rng = np.random.default_rng(1)
+    n_agents, n_obs, n_world = 5, 7, 30
+    net = agent_mlp((16, 8), 3, n_agents, n_obs + n_agents + n_world)
+    obs, world = rng.normal(size=(4, n_agents, n_obs)), rng.normal(size=(4, n_world))
+    params = net.init(jax.random.key(0), obs, world)
+    p = params["params"]
+    kernel = np.concatenate([p["Dense_0"]["kernel"], p["Embed_0"]["embedding"], p["Dense_1"]["kernel"]])
+    joint = np.concatenate([obs, np.broadcast_to(np.eye(n_agents), (4, n_agents, n_agents)),
+                            np.broadcast_to(world[:, None], (4, n_agents, n_world))], -1)
+    hidden = np.tanh(np.tanh(joint @ kernel + p["Dense_0"]["bias"]) @ p["Dense_2"]["kernel"] + p["Dense_2"]["bias"])
+    expected = hidden @ p["Dense_3"]["kernel"] + p["Dense_3"]["bias"]
+    np.testing.assert_allclose(net.apply(params, obs, world), expected, rtol=2e-5, atol=2e-6)
+
+
 @pytest.mark.parametrize("kwargs", [dict(critic="central", share_params=True),
                                     dict(critic="local", share_params=False)])
 def test_mappo_variants_train_on_three_drones(kwargs):

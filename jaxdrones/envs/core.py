@@ -185,6 +185,10 @@ class TaskConfig:
         terminate_on_ground: a touch of the ground terminates the episode as a crash.
         randomize: `DomainRandomization` (or a dict of its fields) applied at every reset; None for none.
         neighbor_radius: ``neighbors`` observation: radius of the adjacency, m.
+        max_neighbors: None, or K ≥ 1 to bound the pairwise couplings for large teams: the downwash counts the K
+            horizontally nearest drones of each drone (`SimConfig.max_neighbors`), and the ``neighbors``
+            observation holds the min(K, D - 1) nearest drones instead of every drone (12 + 4·min(K, D - 1) entries,
+            `jaxdrones.envs.observations`).
         backend: ``"jax"`` (differentiable) or ``"pybullet"`` (collisions, obstacles, cameras; not differentiable;
             call ``close``).
         obstacles: ``"pybullet"`` only: None, True or ``"paper"``, or a sequence of `Obstacle` / URDF paths.
@@ -226,6 +230,7 @@ class TaskConfig:
     terminate_on_ground: bool = False
     randomize: Any = None
     neighbor_radius: float = math.inf
+    max_neighbors: int | None = None
     backend: str = "jax"
     obstacles: Any = None
     vision: tuple[str, ...] = ()
@@ -314,7 +319,8 @@ class TaskConfig:
     def sim_config(self) -> SimConfig:
         """The `SimConfig` of the physics."""
         return SimConfig(n_drones=self.n_drones, sim_freq=self.sim_freq, ctrl_freq=self.ctrl_freq, drag=self.drag,
-                         ground_effect=self.ground_effect, downwash=self.downwash, kinks=self.kinks)
+                         ground_effect=self.ground_effect, downwash=self.downwash, kinks=self.kinks,
+                         max_neighbors=self.max_neighbors)
 
     @property
     def camera_period(self) -> int:
@@ -374,20 +380,34 @@ class Task(abc.ABC):
         config_cls: its `TaskConfig` subclass.
         min_drones, max_drones: the drone counts it allows (``None``: no upper limit).
         nonnegative_reward: clip the shaped reward at 0 (the ``"paper"`` reward is never clipped).
-        success_metric, success_at, success_threshold: how an evaluation is judged (see the class attributes).
+        success_metric, success_at, success_threshold: how an evaluation is judged (see the class attributes;
+            ``success_at`` is ``"final"``, ``"mean"`` or ``"max"``).
     """
 
     name: str = ""
     config_cls: type[TaskConfig] = TaskConfig
     #: The metric (a key of ``metrics``) that says how well the task is solved, lower is better; whether it is read
-    #: at the episode's last step (``"final"``) or averaged over the episode (``"mean"``); and the threshold below
-    #: which an evaluation counts as solved.
+    #: at the episode's last step (``"final"``), averaged over the episode (``"mean"``) or taken at its largest over
+    #: the episode's steps (``"max"``, e.g. the worst altitude error of a flight); and the threshold below which an
+    #: evaluation counts as solved.
     success_metric: str = "distance"
     success_at: str = "final"
     success_threshold: float = 0.05
+    #: The values `success_at` may take.
+    SUCCESS_AT = ("final", "mean", "max")
     min_drones: int = 1
     max_drones: int | None = 1
     nonnegative_reward: bool = False
+
+    def __init_subclass__(cls, **kwargs):
+        """Check the class attributes when a task class is defined.
+
+        Raises:
+            ValueError: a `success_at` other than ``"final"``, ``"mean"`` or ``"max"``.
+        """
+        super().__init_subclass__(**kwargs)
+        if cls.success_at not in Task.SUCCESS_AT:
+            raise ValueError(f"{cls.__name__}: success_at must be one of {Task.SUCCESS_AT}, got {cls.success_at!r}")
 
     def check(self, config: TaskConfig) -> None:
         """Validate the config against what the task allows.
@@ -490,7 +510,8 @@ class TaskEnv(Env):
         self.params = broadcast_params(params, (config.n_drones,))
         self.action_type = make_action(config.action_type, config.pid_target)
         self.obs_type = ObsType(config.obs_type, config.n_drones, config.neighbor_radius,
-                                config.ctrl_freq // 2 if config.action_buffer else 0, self.action_type.size)
+                                config.ctrl_freq // 2 if config.action_buffer else 0, self.action_type.size,
+                                config.max_neighbors)
         options = ({"obstacles": config.obstacles, "renderer": config.renderer} if config.backend == "pybullet"
                    else {})
         self._step = make_step(self.sim_config, backend=config.backend, **options)

@@ -14,6 +14,10 @@ name           size per drone          content
 ``neighbors``  12 + D + 3(D - 1)       ``kin``, then the drone's adjacency row (1 for itself and every drone within
                                        ``neighbor_radius`` m, eq. adj), then the positions of the other drones
                                        relative to it (m, world, in drone order, 0 for drones outside the radius)
+               12 + 4k                 with ``max_neighbors`` (k = min(max_neighbors, D - 1)): ``kin``, then for the k
+                                       drones nearest to it (3-D distance, nearest first) a flag (1 within
+                                       ``neighbor_radius``), then their positions relative to it (m, world, 0 outside
+                                       the radius): a size that does not grow with the team
 =============  ======================  =================================================================================
 
 With ``action_buffer=True`` the last ``ctrl_freq // 2`` actions (0.5 s, oldest first, the current step's last) are
@@ -32,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrones.neighbors import nearest
 from jaxdrones.rotations import quat_to_euler, quat_to_rotmat
 from jaxdrones.state import DroneState
 
@@ -116,6 +121,27 @@ def relative_positions(pos: jax.Array, adj: jax.Array) -> jax.Array:
     return jnp.clip(picked, -POS_BOUND, POS_BOUND).reshape(pos.shape[:-2] + (n, 3 * (n - 1)))
 
 
+def nearest_neighbors(pos: jax.Array, radius: float, k: int) -> tuple[jax.Array, jax.Array]:
+    """The k drones nearest to each drone (3-D distance, itself excluded, nearest first).
+
+    Args:
+        pos: f[..., D, 3] m, world frame.
+        radius: m; drones farther away are flagged 0 and their relative position is 0.
+        k: 1 ≤ k ≤ D - 1 (else ValueError).
+
+    Returns:
+        (flags f[..., D, k]: 1 within ``radius``; relative positions f[..., D, 3k] m, p_j - p_i, clipped to
+        ±`POS_BOUND`).
+    """
+    delta = pos[..., None, :, :] - pos[..., :, None, :]  # [..., i, j]: p_j - p_i
+    dist2 = jnp.sum(delta**2, axis=-1)
+    indices = nearest(dist2, k)
+    near = jnp.take_along_axis(dist2, indices, axis=-1) < radius**2
+    rel = jnp.take_along_axis(delta, indices[..., None], axis=-2) * near[..., None]
+    rel = jnp.clip(rel, -POS_BOUND, POS_BOUND)
+    return near.astype(pos.dtype), rel.reshape(rel.shape[:-2] + (3 * k,))
+
+
 @dataclasses.dataclass(frozen=True)
 class ObsType:
     """An observation type for ``n_drones`` drones (static, hashable).
@@ -126,6 +152,7 @@ class ObsType:
         neighbor_radius: m, for ``neighbors``.
         buffer_len: actions kept in the action buffer (0: no buffer).
         action_size: entries per action in the buffer.
+        max_neighbors: ``neighbors``: None (every drone, the paper's layout) or K (the min(K, D - 1) nearest).
     """
 
     name: str
@@ -133,11 +160,19 @@ class ObsType:
     neighbor_radius: float = float("inf")
     buffer_len: int = 0
     action_size: int = 0
+    max_neighbors: int | None = None
+
+    @property
+    def n_nearest(self) -> int | None:
+        """k of the ``neighbors`` observation's nearest drones, or None for the paper's layout (every drone)."""
+        return None if self.max_neighbors is None else min(self.max_neighbors, self.n_drones - 1)
 
     @property
     def size(self) -> int:
         """Entries per drone."""
-        extra = {"neighbors": self.n_drones + 3 * (self.n_drones - 1), "kin_rotmat": 9}.get(self.name, 0)
+        n, k = self.n_drones, self.n_nearest
+        neighbors = n + 3 * (n - 1) if k is None else 4 * k
+        extra = {"neighbors": neighbors, "kin_rotmat": 9}.get(self.name, 0)
         return 12 + extra + self.buffer_len * self.action_size
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -150,10 +185,11 @@ class ObsType:
         if self.name == "kin_rotmat":
             low, high = np.concatenate([low, -np.ones(9, np.float32)]), np.concatenate([high, np.ones(9, np.float32)])
         if self.name == "neighbors":
-            n = self.n_drones
-            rel = np.full(3 * (n - 1), POS_BOUND, np.float32)
-            low = np.concatenate([low, np.zeros(n, np.float32), -rel])
-            high = np.concatenate([high, np.ones(n, np.float32), rel])
+            n, k = self.n_drones, self.n_nearest
+            flags, others = (n, n - 1) if k is None else (k, k)
+            rel = np.full(3 * others, POS_BOUND, np.float32)
+            low = np.concatenate([low, np.zeros(flags, np.float32), -rel])
+            high = np.concatenate([high, np.ones(flags, np.float32), rel])
         ones = np.ones(self.buffer_len * self.action_size, np.float32)
         low, high = np.concatenate([low, -ones]), np.concatenate([high, ones])
         return np.tile(low, (self.n_drones, 1)), np.tile(high, (self.n_drones, 1))
@@ -169,9 +205,11 @@ class ObsType:
             parts = [kinematic_obs(sim)]
             if self.name == "kin_rotmat":
                 parts.append(quat_to_rotmat(sim.quat).reshape(sim.quat.shape[:-1] + (9,)))
-            if self.name == "neighbors":
+            if self.name == "neighbors" and self.n_nearest is None:
                 adj = adjacency(sim.pos, self.neighbor_radius)
                 parts += [adj, relative_positions(sim.pos, adj)]
+            elif self.name == "neighbors":
+                parts += list(nearest_neighbors(sim.pos, self.neighbor_radius, self.n_nearest))
         if self.buffer_len:
             parts.append(buffer.reshape(buffer.shape[:-2] + (-1,)))
         obs = jnp.concatenate(parts, axis=-1)

@@ -227,7 +227,8 @@ def register(subparsers) -> None:
     env = parser.add_argument_group("task")
     env.add_argument("--action-type", default=None, help="action type (default: the task's): rpm, one_d_rpm (the "
                      "paper's 1-D hover setting), pid, one_d_pid, vel, thrust_torque, one_d_thrust, tun, ctbr")
-    env.add_argument("--obs-type", default=None, help="observation type: kin (default), kin_norm, neighbors")
+    env.add_argument("--obs-type", default=None, help="observation type (default: the task's): kin, kin_norm, "
+                     "kin_rotmat, neighbors")
     env.add_argument("--model", default=None, help="drone model name (cf2x, cf2p, racer) or URDF path")
     env.add_argument("--num-drones", type=int, default=None,
                      help="drones per world (single-agent tasks: 1; multi-agent tasks: 2 by default)")
@@ -236,7 +237,12 @@ def register(subparsers) -> None:
     env.add_argument("--reward", choices=("shaped", "paper"), default=None,
                      help="shaped (default, for fast learning) or the paper's reward")
     for effect in ("drag", "ground-effect", "downwash"):
-        env.add_argument(f"--{effect}", action="store_true", help=f"aerodynamic effect: {effect.replace('-', ' ')}")
+        env.add_argument(f"--{effect}", action=argparse.BooleanOptionalAction, default=None,
+                         help=f"aerodynamic effect {effect.replace('-', ' ')} on, or off with --no-{effect} "
+                              f"(default: the task's; downwash is on in crossing)")
+    env.add_argument("--max-neighbors", type=int, default=None, metavar="K",
+                     help="bound the pairwise couplings of large teams: downwash from the K horizontally nearest "
+                          "drones, and a neighbors observation of the K nearest (default: every drone)")
     env.add_argument("--backend", choices=("jax", "pybullet"), default=None, help="physics backend (default jax)")
     env.add_argument("--target", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                      help="hover/takeoff target, m")
@@ -257,7 +263,9 @@ def register(subparsers) -> None:
 _ENV_OPTIONS = {"action_type": "action_type", "obs_type": "obs_type", "model": "model", "num_drones": "n_drones",
                 "ctrl_freq": "ctrl_freq", "episode_len": "episode_len_s", "reward": "reward", "backend": "backend",
                 "target": "target", "start_pos_range": "start_pos_range", "start_tilt": "start_tilt",
-                "start_yaw": "start_yaw", "start_vel": "start_vel", "start_ang_vel": "start_ang_vel"}
+                "start_yaw": "start_yaw", "start_vel": "start_vel", "start_ang_vel": "start_ang_vel",
+                "max_neighbors": "max_neighbors", "drag": "drag", "ground_effect": "ground_effect",
+                "downwash": "downwash"}
 
 
 def _positive(name: str, value) -> None:
@@ -280,7 +288,6 @@ def run_cli(args: argparse.Namespace) -> int:
             if algo == "ppo":
                 overrides["batch_size"] = args.num_envs
         env = {field: getattr(args, arg) for arg, field in _ENV_OPTIONS.items() if getattr(args, arg) is not None}
-        env.update({name: True for name in ("drag", "ground_effect", "downwash") if getattr(args, name)})
         if "target" in env and args.task not in ("hover", "takeoff"):
             raise ValueError(f"--target applies to hover and takeoff, not {args.task}")
         if algo == "ppo":
