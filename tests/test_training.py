@@ -303,6 +303,41 @@ def test_mappo_variants_train_on_three_drones(kwargs):
     assert action.shape == (3 * env.action_size,) and np.all(np.isfinite(action))
 
 
+_SHARDED_MAPPO = """
+import os, sys
+os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=" + sys.argv[1]
+import jax, numpy as np
+import jaxdrones as jd
+from jaxdrones.training import mappo
+env = jd.make("leader_follower", n_drones=3, action_type="one_d_rpm")
+config = mappo.MAPPOConfig(num_timesteps=64, num_envs=8, unroll_length=4, minibatches=2, num_evals=2)
+seen = []
+_, params = mappo.train(env, config, progress=lambda steps, metrics: seen.append(metrics.get("train/value_loss")))
+kernel = params["actor"]["params"]["Dense_2"]["kernel"]
+print(len(kernel.sharding.device_set), float(seen[-1]))
+np.save(sys.argv[2], np.asarray(kernel))
+"""
+
+
+def test_mappo_spreads_worlds_over_devices(tmp_path):
+    """With 2 local devices MAPPO splits the worlds over both (its parameters are replicated on both) and trains the
+    same parameters as on one device."""
+    import subprocess
+    import sys
+
+    outputs = {}
+    for devices in ("1", "2"):
+        path = tmp_path / f"kernel_{devices}.npy"
+        run = subprocess.run([sys.executable, "-c", _SHARDED_MAPPO, devices, str(path)], capture_output=True,
+                             text=True, timeout=300)
+        assert run.returncode == 0, run.stderr[-2000:]
+        used, loss = run.stdout.split()
+        assert int(used) == int(devices) and math.isfinite(float(loss))
+        outputs[devices] = np.load(path)
+    assert np.abs(outputs["1"]).max() > 0.01
+    np.testing.assert_allclose(outputs["2"], outputs["1"], rtol=0, atol=1e-6)
+
+
 @pytest.mark.slow
 def test_train_cli_mappo_leader_follower_saves_and_reloads(tmp_path, capsys):
     """``jaxdrones train leader_follower``: MAPPO by default, the paper's one_d_rpm actions, every drone in the flight

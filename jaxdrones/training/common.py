@@ -1,5 +1,6 @@
 """Pieces shared by our own trainers (`jaxdrones.training.apg`, ``shac``, ``mappo``): checking a config, the
-schedule of updates between evaluations, the MLP, and the jitted training loop."""
+schedule of updates between evaluations, the MLP, spreading the worlds over devices, and the jitted training
+loop."""
 
 from __future__ import annotations
 
@@ -61,6 +62,26 @@ def mlp(hidden_layer_sizes: tuple[int, ...], out: int, last_init=None, squash: b
             return nn.tanh(x) if squash else x
 
     return MLP()
+
+
+def spread_worlds(shared, worlds, n_worlds: int):
+    """Place a trainer's carry on the local devices: ``worlds`` (the env states, world axis first) split along the
+    world axis (`jaxdrones.sim.shard_worlds`), ``shared`` (parameters, optimiser state, keys) replicated. The jitted
+    update then steps each device's worlds on that device, and XLA sums the gradients across devices. Uses the
+    largest number of local devices that divides ``n_worlds``; with one, both are returned as they are.
+
+    Returns:
+        ``(shared, worlds)`` placed.
+    """
+    from jaxdrones.sim import shard_worlds
+
+    devices = jax.local_devices()
+    count = max(n for n in range(1, len(devices) + 1) if n_worlds % n == 0)
+    if count == 1:
+        return shared, worlds
+    mesh = jax.sharding.Mesh(np.array(devices[:count]), ("worlds",))
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    return jax.device_put(shared, replicated), shard_worlds(worlds, devices=devices[:count])
 
 
 def run_updates(config: Schedule, update: Callable, carry, policy_params: Callable, network,

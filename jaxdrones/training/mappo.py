@@ -13,7 +13,9 @@ world's centroid) to the agent's observation. The first layer takes the id and t
 One update collects ``unroll_length`` steps of ``num_envs`` worlds (episodes that end are reset by
 `jaxdrones.wrappers.VmapAutoReset`; an episode cut by the time limit is bootstrapped with the value of its last
 state), computes per-agent GAE advantages, and takes ``epochs`` passes of ``minibatches`` clipped-surrogate PPO
-steps with Adam; everything between two evaluations is one jitted `lax.scan`.
+steps with Adam; everything between two evaluations is one jitted `lax.scan`. With several local devices (GPUs,
+or CPU devices from ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) the worlds are split over them
+(`jaxdrones.training.common.spread_worlds`).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs.base import Env, EnvState
-from jaxdrones.training.common import Schedule, check_config, run_updates
+from jaxdrones.training.common import Schedule, check_config, run_updates, spread_worlds
 
 #: Critic inputs of `MAPPOConfig.critic`.
 CRITICS = ("central", "local")
@@ -331,8 +333,12 @@ def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int
         norm = update_norm(norm, data["obs"])  # after the update, which used the statistics the data was taken with
         return (params, norm, opt_state, state, key), metrics
 
-    carry = (params, norm, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs)),
-             key_run)
+    state = auto.reset(jax.random.split(key_reset, config.num_envs))
+    shared_env = state.params if auto.params_shared else None  # one DroneParams for every world
+    (params, norm, opt_state, key_run, shared_env), state = spread_worlds(
+        (params, norm, optimizer.init(params), key_run, shared_env),
+        state.replace(params=None) if auto.params_shared else state, config.num_envs)
+    carry = (params, norm, opt_state, state.replace(params=shared_env) if auto.params_shared else state, key_run)
     carry = run_updates(config, update, carry, lambda c: {**c[0], "norm": c[1]}, nets, progress, evaluate)
     return nets, {**carry[0], "norm": carry[1]}
 

@@ -304,7 +304,7 @@ def run_cli(args: argparse.Namespace) -> int:
     stats = summary["eval"]
     print(f"{verdict}: {summary['success_metric']} {summary['success_value']:.4g} (threshold "
           f"{summary['success_threshold']:g}) over {stats['n_episodes']} random starts "
-          f"({stats['terminated_rate']:.0%} terminated), {summary['env_steps']:,} env steps, "
+          f"({stats['terminated_rate']:.1%} terminated), {summary['env_steps']:,} env steps, "
           f"{summary['wall_time_s']:.1f} s wall time")
     print(f"saved policy.pkl, learning_curve.png, flight.png, summary.json in {summary['out_dir']}")
     return 0
