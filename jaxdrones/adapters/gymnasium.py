@@ -32,7 +32,7 @@ GYM_IDS = {"hover": "jaxdrones/Hover-v0", "takeoff": "jaxdrones/Takeoff-v0", "ve
            "waypoints": "jaxdrones/Waypoints-v0", "fly_thru_gate": "jaxdrones/FlyThruGate-v0",
            "tune": "jaxdrones/Tune-v0", "multi_hover": "jaxdrones/MultiHover-v0",
            "leader_follower": "jaxdrones/LeaderFollower-v0", "flock": "jaxdrones/Flock-v0",
-           "meetup": "jaxdrones/Meetup-v0"}
+           "meetup": "jaxdrones/Meetup-v0", "crossing": "jaxdrones/Crossing-v0"}
 RENDER_MODES = ("rgb_array",)
 #: The process that imported jaxdrones: JAX state does not survive ``fork``.
 _IMPORT_PID = os.getpid()

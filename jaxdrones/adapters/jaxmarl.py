@@ -169,7 +169,8 @@ def make(task: str, **options) -> JaxMARLEnv:
     """A multi-agent task as a `JaxMARLEnv`, e.g. ``make("flock", n_drones=5)``.
 
     Args:
-        task: one of `jaxdrones.envs.MULTI_AGENT` (``multi_hover``, ``leader_follower``, ``flock``, ``meetup``).
+        task: one of `jaxdrones.envs.MULTI_AGENT` (``multi_hover``, ``leader_follower``, ``flock``, ``meetup``,
+            ``crossing``).
         **options: fields of the task's config, as for `jaxdrones.make`.
 
     Raises:

@@ -162,7 +162,8 @@ def parallel_env(task: str, render_mode: str | None = None, **options) -> Pettin
     """A multi-agent task as a PettingZoo ``ParallelEnv``, e.g. ``parallel_env("flock", n_drones=5)``.
 
     Args:
-        task: one of `jaxdrones.envs.MULTI_AGENT` (``multi_hover``, ``leader_follower``, ``flock``, ``meetup``).
+        task: one of `jaxdrones.envs.MULTI_AGENT` (``multi_hover``, ``leader_follower``, ``flock``, ``meetup``,
+            ``crossing``).
         render_mode: None or ``"rgb_array"``.
         **options: fields of the task's config (``n_drones``, ``action_type``, ``obs_type``, ``episode_len_s``,
             ``backend``, ...), as for `jaxdrones.make`.

@@ -1,7 +1,7 @@
 """Tasks of the paper as functional environments, and the registry behind `jaxdrones.make`.
 
 Single-agent: ``hover``, ``takeoff``, ``velocity``, ``waypoints``, ``fly_thru_gate``, ``tune``.
-Multi-agent: ``multi_hover``, ``leader_follower``, ``flock``, ``meetup``.
+Multi-agent: ``multi_hover``, ``leader_follower``, ``flock``, ``meetup``, ``crossing``.
 """
 
 from __future__ import annotations

@@ -144,8 +144,10 @@ def evaluate(env: Env, policy, key: jax.Array, n_episodes: int = 256) -> dict:
 
     Returns:
         dict of floats: ``final_<metric>`` (mean over episodes of the metric at the episode's last state) and
-        ``mean_<metric>`` (mean over episodes of its average over the episode) for every metric of the task,
-        ``success_value`` (the task's success metric, `Task.success_metric`, read as `Task.success_at`),
+        ``mean_<metric>`` (mean over episodes of its average over the episode) for every metric of the task, and for
+        a task judged at the maximum (`Task.success_at` ``"max"``) ``max_<metric>`` (mean over episodes of its
+        largest value over the episode's steps); ``success_value`` (the task's success metric,
+        `Task.success_metric`, read as `Task.success_at`: final, mean or max, averaged over the episodes),
         ``terminated_rate`` (crashed or left the arena), ``episode_reward`` (mean return, summed over drones),
         ``n_episodes``; and for tasks measured by a distance, ``final_pos_error_m`` with its max and 90th percentile.
     """
@@ -155,24 +157,32 @@ def evaluate(env: Env, policy, key: jax.Array, n_episodes: int = 256) -> dict:
 
 def episode_outcomes(env: Env, policy, keys: jax.Array):
     """Traced part of `evaluate`: one episode per key; returns (final metrics, episode-mean metrics, terminated,
-    return), each with a leading episode axis."""
+    return, episode-max metrics), each with a leading episode axis.
+
+    The mean and the max run over the episode's live steps (after each step until it ends; the reset state is not
+    counted)."""
     states = jax.vmap(lambda k: rollout_policy(env, policy, k))(keys)
     live = (states.steps[:, 1:] > states.steps[:, :-1]).astype(states.reward.dtype)
     returns = jnp.sum(live * jnp.sum(states.reward[:, 1:], axis=-1), axis=1)
     final = {k: v[:, -1] for k, v in states.metrics.items()}
     mean = {k: jnp.sum(live * v[:, 1:], axis=1) / jnp.maximum(jnp.sum(live, axis=1), 1) for k, v in
             states.metrics.items()}
-    return final, mean, states.terminated[:, -1], returns
+    # Every episode has a live first step; the frozen steps after its end repeat its last state.
+    maximum = {k: jnp.max(jnp.where(live > 0, v[:, 1:], -jnp.inf), axis=1) for k, v in states.metrics.items()}
+    return final, mean, states.terminated[:, -1], returns, maximum
 
 
 def episode_statistics(env: Env, outcomes) -> dict:
-    """Host part of `evaluate`: the statistics of `episode_outcomes`."""
-    final, mean, terminated, returns = jax.tree.map(lambda x: np.asarray(x, np.float64), outcomes)
+    """Host part of `evaluate`: the statistics of `episode_outcomes` (see `evaluate`)."""
+    final, mean, terminated, returns, maximum = jax.tree.map(lambda x: np.asarray(x, np.float64), outcomes)
     stats = {f"final_{k}": float(v.mean()) for k, v in final.items()}
     stats.update({f"mean_{k}": float(v.mean()) for k, v in mean.items()})
     task = getattr(env, "task", None)
+    success_at = getattr(task, "success_at", "final")
+    if success_at == "max":
+        stats.update({f"max_{k}": float(v.mean()) for k, v in maximum.items()})
     if task is not None and task.success_metric in final:
-        source = final if task.success_at == "final" else mean
+        source = {"final": final, "mean": mean, "max": maximum}[success_at]
         stats["success_value"] = float(source[task.success_metric].mean())
     if "distance" in final:
         dist = final["distance"]

@@ -1,9 +1,10 @@
-"""Multi-agent tasks (D ≥ 2): multi_hover, leader_follower, flock, meetup (docs/physics.md §11).
+"""Multi-agent tasks (D ≥ 2): multi_hover, leader_follower, flock, meetup, crossing (docs/physics.md §11).
 
 The default observation is ``neighbors`` (the kinematic state, the adjacency row and the relative positions of the
 other drones), followed by the task's 3 entries: the offset from the drone to its reference point (defined per
-task). Rewards are per drone, ``f[D]``. Episodes terminate when any drone leaves the arena, tilts beyond
-``max_tilt`` or its state is not finite, and truncate at ``episode_len_s``. Every task works for any D ≥ 2.
+task; ``crossing`` adds the reference velocity, 6 entries). Rewards are per drone, ``f[D]``. Episodes terminate
+when any drone leaves the arena, tilts beyond ``max_tilt`` or its state is not finite, and truncate at
+``episode_len_s``. Every task works for any D ≥ 2.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import numpy as np
 from jaxdrones.envs import rewards
 from jaxdrones.envs.actions import ACTION_SIZES, Reference
 from jaxdrones.envs.core import Task, TaskConfig
-from jaxdrones.envs.observations import POS_BOUND
+from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
 from jaxdrones.envs.tasks.single import ANG_SPEED_WEIGHT, SPEED_WEIGHT
 from jaxdrones.state import default_start_pos
 
@@ -258,4 +259,138 @@ class Meetup(MultiTask):
         return {"pair_distance": jnp.mean(rewards.distance(sim.pos, sim.pos[::-1]))}
 
 
-MULTI_AGENT_TASKS = (MultiHover(), LeaderFollower(), Flock(), Meetup())
+# ---------------------------------------------------------------------------------------------------------------
+# crossing: the paper's downwash example as a task
+# ---------------------------------------------------------------------------------------------------------------
+
+#: Reference altitude of the lowest drone of `Crossing`, m (the lower drone of the original downwash example).
+CROSSING_BASE_Z = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class CrossingConfig(MultiConfig):
+    """Settings of `Crossing`.
+
+    Attributes:
+        downwash: on by default, unlike the other tasks: the drones fly over each other, and the upper drone's
+            downwash on the lower one is what the task is about.
+        period_s: period of each drone's back-and-forth along x, s (the original: 5 s).
+        amplitude: half the length of each drone's path along x, m (the original: 0.5 m).
+        spacing: vertical spacing of the drones' paths, m: drone i flies at 0.5 m + spacing·(D − 1 − i) (the
+            original: 0.5 m, its drones at 1 m and 0.5 m).
+        arena_z: raised to 4 m so that teams of up to 7 drones fit at the default spacing.
+
+    Raises:
+        ValueError: ``period_s``, ``amplitude`` or ``spacing`` not a finite number > 0, or a path outside the
+            arena (``amplitude`` ≥ ``arena_xy``, or the top drone's altitude ≥ ``arena_z``).
+    """
+
+    downwash: bool = True
+    period_s: float = 5.0
+    amplitude: float = 0.5
+    spacing: float = 0.5
+    episode_len_s: float = 5.0
+    arena_z: float = 4.0
+
+    def __post_init__(self):
+        for name in ("period_s", "amplitude", "spacing"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+                    and math.isfinite(value) and value > 0):
+                raise ValueError(f"crossing: {name} must be a finite number > 0, got {value!r}")
+        super().__post_init__()
+        if self.amplitude >= self.arena_xy:
+            raise ValueError(f"crossing: amplitude must be below arena_xy ({self.arena_xy} m), the path would leave "
+                             f"the arena, got {self.amplitude!r}")
+        top = CROSSING_BASE_Z + self.spacing * (self.n_drones - 1)
+        if top >= self.arena_z:
+            raise ValueError(f"crossing: the top drone's altitude 0.5 + spacing·(n_drones − 1) = {top:g} m must be "
+                             f"below arena_z ({self.arena_z} m): lower spacing ({self.spacing!r}) or n_drones, "
+                             f"or raise arena_z")
+
+
+class Crossing(MultiTask):
+    """The paper's downwash example as a task (gym-pybullet-drones examples/downwash.py): the drones fly back and
+    forth along x at different altitudes, half a period apart, so that they pass over each other twice per period
+    and the upper drone's downwash pushes the lower one down (downwash is on by default, `CrossingConfig`).
+
+    Drone i's reference point at time t = steps / ctrl_freq (s) is (A cos(2π t / T + π i), 0, z_i) with
+    A = ``amplitude`` (m), T = ``period_s`` (s) and z_i = 0.5 + ``spacing``·(D − 1 − i) m; its reference velocity
+    is the time derivative (−A (2π/T) sin(2π t / T + π i), 0, 0) m/s. For D = 2 these are the original's paths:
+    drone 0 at 1 m from x = 0.5 m, drone 1 at 0.5 m from x = −0.5 m; the reference points cross (equal x) at
+    t = T/4, 3T/4, ... (the original's drones, which lag their way-points, pass over each other about 0.5 s
+    later). With D ≥ 3 the drones of even index share one path in x and those of odd index the other.
+    ``task.target`` f[D, 3] holds the centres (0, 0, z_i) of the paths and ``task.data`` the amplitude (m), period
+    (s) and phase π i (rad) of the reference; the starts use the config's values.
+
+    Starts: at the reference's t = 0 points (at rest there), with the `MultiTask` randomisation (±0.02 m in x and
+    y, tilts up to 0.05 rad, any yaw, up to ±0.05 m/s and ±0.1 rad/s; level, at rest and facing +x with a 1-D
+    action). The observation appends the offset from the drone to its reference point (m) and the reference
+    velocity (m/s), 6 entries.
+    Reward ``"shaped"``: per drone max(0, closeness to the reference point (`rewards.closeness`) − 0.1 ‖v − v*‖²
+    − 0.01 ‖ω‖²); ``"paper"``: per drone max(0, 2 − ‖p*_i − p_i‖⁴) (as `MultiHover`'s).
+    Metrics (m): ``tracking_error`` (mean over drones of the distance to the reference point), ``altitude_error``
+    (mean over drones of |z_i − z*_i|) and ``max_altitude_error`` (the largest over drones), the success metric,
+    judged at its largest over the episode (``success_at = "max"``: the lower drone's dip as the other passes over
+    it must stay within 5 cm).
+    """
+
+    name = "crossing"
+    config_cls = CrossingConfig
+    success_metric = "max_altitude_error"
+    success_at = "max"
+    obs_size = 6
+
+    def obs_bound(self, config):
+        return np.array([POS_BOUND] * 3 + [VEL_BOUND] * 3, np.float32)
+
+    def target(self, config):
+        n = config.n_drones
+        z = CROSSING_BASE_Z + config.spacing * (n - 1 - np.arange(n))
+        return np.stack([np.zeros(n), np.zeros(n), z], -1)
+
+    def data(self, config):
+        return {"amplitude": np.asarray(config.amplitude), "period": np.asarray(config.period_s),
+                "phase": np.pi * np.arange(config.n_drones)}
+
+    def start_defaults(self, config):
+        start = super().start_defaults(config)
+        phase = np.pi * np.arange(config.n_drones)
+        start["pos"] = self.target(config) + np.stack([config.amplitude * np.cos(phase), 0 * phase, 0 * phase], -1)
+        return start
+
+    def reference(self, task, steps, config):
+        """Reference(pos f[D, 3] m, vel f[D, 3] m/s) at control step ``steps`` (see the class docstring)."""
+        amplitude, period, phase = task.data["amplitude"], task.data["period"], task.data["phase"]
+        omega = 2 * jnp.pi / period
+        theta = omega * (steps / config.ctrl_freq) + phase
+        zero = jnp.zeros_like(theta)
+        offset = jnp.stack([amplitude * jnp.cos(theta), zero, zero], -1)
+        vel = jnp.stack([-amplitude * omega * jnp.sin(theta), zero, zero], -1)
+        return Reference(task.target + offset.astype(task.target.dtype), vel.astype(task.target.dtype))
+
+    def observe(self, config, task, sim, steps):
+        ref = self.reference(task, steps, config)
+        return jnp.concatenate([ref.pos - sim.pos, ref.vel], axis=-1)
+
+    def weights(self, config):
+        if config.reward == "paper":
+            return {"paper": 1.0}
+        return {"closeness": 1.0, "velocity_error_sq": -SPEED_WEIGHT, "ang_speed_sq": -ANG_SPEED_WEIGHT}
+
+    def reward_terms(self, config, task, sim, action, steps):
+        ref = self.reference(task, steps, config)
+        if config.reward == "paper":
+            return {"paper": jnp.maximum(0.0, 2.0 - rewards.distance_sq(sim.pos, ref.pos) ** 2)}
+        return {"closeness": rewards.closeness(sim.pos, ref.pos),
+                "velocity_error_sq": rewards.velocity_error_sq(sim.vel, ref.vel),
+                "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel)}
+
+    def metrics(self, config, task, sim, steps):
+        ref = self.reference(task, steps, config)
+        altitude = jnp.abs(sim.pos[..., 2] - ref.pos[..., 2])
+        return {"tracking_error": jnp.mean(rewards.distance(sim.pos, ref.pos)), "altitude_error": jnp.mean(altitude),
+                "max_altitude_error": jnp.max(altitude)}
+
+
+MULTI_AGENT_TASKS = (MultiHover(), LeaderFollower(), Flock(), Meetup(), Crossing())
