@@ -101,7 +101,8 @@ def env_rate(n_drones: int, worlds: int, downwash: bool, steps: int, repeats: in
     import jaxdrones as jd
     from jaxdrones.wrappers import VmapAutoReset
 
-    env = VmapAutoReset(jd.make("multi_hover", n_drones=n_drones, downwash=downwash, max_neighbors=k))
+    env = VmapAutoReset(jd.make("multi_hover", n_drones=n_drones, obs_type="neighbors", downwash=downwash,
+                                max_neighbors=k))
     state = env.reset(jax.random.split(jax.random.key(0), worlds))
     shape = (steps, worlds, n_drones, env.action_size)
 
@@ -119,7 +120,7 @@ def mappo_rate(n_drones: int, worlds: int, downwash: bool, repeats: int, k: int 
     import jaxdrones as jd
     from jaxdrones.training import mappo
 
-    env = jd.make("multi_hover", n_drones=n_drones, downwash=downwash, max_neighbors=k)
+    env = jd.make("multi_hover", n_drones=n_drones, obs_type="neighbors", downwash=downwash, max_neighbors=k)
     config = mappo.MAPPOConfig(num_envs=worlds, unroll_length=10, minibatches=min(8, worlds * 10),
                                num_timesteps=worlds * 10 * 2 * (repeats + 1), num_evals=repeats + 2)
     stamps = []

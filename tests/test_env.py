@@ -261,9 +261,10 @@ def test_observation_types():
 def test_nearest_neighbors_observation():
     """max_neighbors=k: the k nearest drones, nearest first, flagged within the radius; the size stays 12 + 4k + 3
     whatever the team; the downwash gets the same bound; k >= D - 1 holds everyone."""
-    env = jd.make("multi_hover", n_drones=16, max_neighbors=3, neighbor_radius=0.5)
+    env = jd.make("multi_hover", n_drones=16, obs_type="neighbors", max_neighbors=3, neighbor_radius=0.5)
     assert env.observation_size == 12 + 4 * 3 + 3 and env.sim_config.max_neighbors == 3
-    assert jd.make("multi_hover", n_drones=64, max_neighbors=3).observation_size == env.observation_size
+    assert jd.make("multi_hover", n_drones=64, obs_type="neighbors", max_neighbors=3).observation_size == \
+        env.observation_size
     s = env.reset(jax.random.key(0))
     pos = np.asarray(s.sim.pos, np.float64)
     np.testing.assert_allclose(s.obs[:, :12], kinematic_obs(s.sim), rtol=1e-6, atol=1e-7)
@@ -277,7 +278,7 @@ def test_nearest_neighbors_observation():
     assert 0.0 < float(np.mean(s.obs[:, 12:15])) < 1.0  # some neighbours inside the radius, some outside
     low, high = env.observation_bounds()
     assert low.shape == (16, env.observation_size) and np.all(s.obs >= low) and np.all(s.obs <= high)
-    small = jd.make("multi_hover", n_drones=3, max_neighbors=8)
+    small = jd.make("multi_hover", n_drones=3, obs_type="neighbors", max_neighbors=8)
     assert small.observation_size == 12 + 4 * 2 + 3
     with pytest.raises(ValueError, match="max_neighbors"):
         jd.make("multi_hover", n_drones=3, max_neighbors=0)

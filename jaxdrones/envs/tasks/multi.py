@@ -100,9 +100,18 @@ class MultiTask(Task):
         return {"distance": jnp.mean(rewards.distance(sim.pos, self.ref_points(config, task, sim)))}
 
 
+@dataclasses.dataclass(frozen=True)
+class MultiHoverConfig(MultiConfig):
+    """Settings of `MultiHover`: the ``kin_rotmat`` observation by default (its targets do not depend on the other
+    drones, and the rotation matrix spares the policy the Euler angles' wrap at ±π: MAPPO on 8 drones, 3 M steps,
+    ended at 2.0 cm with 0.4 % of episodes terminated with it, at 6.7 cm with 3 % terminated with ``neighbors``)."""
+
+    obs_type: str = "kin_rotmat"
+
+
 class MultiHover(MultiTask):
     """Every drone hovers at its own target: drone i at its start centre + (0, 0, 1/(i + 1)) m (gym-pybullet-drones
-    MultiHoverAviary).
+    MultiHoverAviary). Default observation ``kin_rotmat`` (`MultiHoverConfig`).
 
     Reward ``"shaped"``: per drone as `jaxdrones.envs.tasks.single.Hover`'s; ``"paper"``: per drone
     max(0, 2 − ‖target_i − p_i‖⁴) (MultiHoverAviary sums these into one scalar). Metric: ``distance`` (m, mean over
@@ -110,6 +119,7 @@ class MultiHover(MultiTask):
     """
 
     name = "multi_hover"
+    config_cls = MultiHoverConfig
     success_metric = "max_distance"
     success_threshold = 0.1
 
