@@ -12,11 +12,11 @@ import jax
 import jax.numpy as jnp
 
 from jaxdrones.kinks import Kinks
-from jaxdrones.neighbors import gather, nearest
+from jaxdrones.neighbors import gather
 from jaxdrones.params import DroneParams
 from jaxdrones.rotations import GIMBAL_SNAP, Components, dot, join, split
 
-#: Downwash acts only between drones closer than this horizontally, m (docs/physics.md §6.3).
+#: Downwash acts only between drones closer than this horizontally, m (docs/physics.md §6.3; the original's).
 DOWNWASH_MAX_DIST = 10.0
 #: Floor on the squared downwash width β², m², so that β → 0 (at Δz = -c3/c2) gives the d → 0 limit, not 0/0.
 _BETA2_FLOOR = 1e-12
@@ -97,42 +97,35 @@ def ground_effect_thrust_c(params: DroneParams, pos_z: jax.Array, rotmat_z: Comp
 
 
 def downwash_force(params: DroneParams, pos: jax.Array, kinks: Kinks = Kinks(),
-                   neighbors: jax.Array | None = None) -> jax.Array:
+                   neighbors: jax.Array | None = None, cutoff: float = DOWNWASH_MAX_DIST) -> jax.Array:
     """Downwash on each drone from every drone above it, paper eq. (down), along the lower drone's body -z.
 
     For a lower drone j and a drone i with Δz = z_i - z_j > 0 and horizontal distance d < 10 m:
     α = c1 (R / (4 Δz))², β = c2 Δz + c3, F = -α exp(-½ (d/β)²) (docs/physics.md §6.3). Contributions add up; the upper
     drone's RPM plays no part; drones at equal height do not interact. The coefficients are the lower drone's.
     Where β = 0 (Δz = 0.6875 m for the shipped models) the d → 0 limit is used instead of the original's 0/0.
-    ``kinks`` (`jaxdrones.kinks`) may smooth the onset at Δz = 0 (where α is unbounded) and the 10 m cut-off.
+    ``kinks`` (`jaxdrones.kinks`) may smooth the onset at Δz = 0 (where α is unbounded) and the cut-off.
 
-    Every pair costs the same whether it interacts or not, so the cost grows as D². ``neighbors`` (from
-    `downwash_neighbors`) bounds it: only the K drones it lists for each drone act on it, D·K pairs. The force falls
-    off as exp(-½ (d/β)²) with the horizontal distance d (β = 0.05 m at Δz = 1 m, 0.37 m at 3 m), so the
-    horizontally nearest drones carry it.
+    Every pair costs the same whether it interacts or not, so the cost grows as D². A shorter ``cutoff`` with a
+    neighbour list ``neighbors`` (`jaxdrones.neighbors.cell_candidates`) bounds it to the listed pairs: beyond
+    d = 1 m no drone, at any Δz, pushes a cf2x with more than 0.41 % of its weight (0.12 % beyond 2 m).
 
     Args:
         params: DroneParams.
         pos: f[..., D, 3] m, world frame.
         kinks: the kinks' treatment (default: the original's).
-        neighbors: None (every other drone, the original) or i32[..., D, K], the drones that act on each drone.
+        neighbors: None (every drone) or i32[..., D, K], the drones that may act on each drone (entries equal to
+            the drone itself count for nothing).
+        cutoff: horizontal distance beyond which drones do not interact, m (the original: 10 m).
 
     Returns:
         f[..., D] N, force along each drone's body z (negative: pushes down).
     """
-    return downwash_force_c(params, split(pos), kinks, neighbors)
-
-
-def downwash_neighbors(pos: Components, k: int) -> jax.Array:
-    """The ``k`` drones horizontally nearest to each drone (itself excluded, nearest first), whose downwash
-    `downwash_force` then counts: i32[..., D, k]. ``pos``: (x, y, z) m, each f[..., D] (z is not used); 1 ≤ k ≤ D - 1
-    (else ValueError)."""
-    x, y = pos[:2]
-    return nearest((x[..., None, :] - x[..., :, None]) ** 2 + (y[..., None, :] - y[..., :, None]) ** 2, k)
+    return downwash_force_c(params, split(pos), kinks, neighbors, cutoff)
 
 
 def downwash_force_c(params: DroneParams, pos: Components, kinks: Kinks = Kinks(),
-                     neighbors: jax.Array | None = None) -> jax.Array:
+                     neighbors: jax.Array | None = None, cutoff: float = DOWNWASH_MAX_DIST) -> jax.Array:
     """`downwash_force` in component form: pos (x, y, z), each f[..., D]; returns f[..., D] N."""
     if neighbors is None:  # every drone, itself included (Δz = 0: no force)
         others = tuple(p[..., None, :] for p in pos)
@@ -141,7 +134,7 @@ def downwash_force_c(params: DroneParams, pos: Components, kinks: Kinks = Kinks(
     dx, dy, dz = (o - p[..., :, None] for o, p in zip(others, pos, strict=True))  # [..., j (lower), i (other)]
     dist2 = dx**2 + dy**2
     smooth = kinks.mode == "smooth"
-    reach = DOWNWASH_MAX_DIST + (kinks.downwash if smooth else 0.0)
+    reach = cutoff + (kinks.downwash if smooth else 0.0)
     active = (dz > 0) & (dist2 < reach**2)
     dz_safe = jnp.where(active, dz, 1.0)
     c1, c2, c3 = (params.dw_coeff[..., k, None] for k in range(3))
@@ -150,8 +143,8 @@ def downwash_force_c(params: DroneParams, pos: Components, kinks: Kinks = Kinks(
     force = alpha * jnp.exp(-0.5 * dist2 / beta2)
     if smooth:
         # On from Δz = 0 to 2w by smoothstep², which vanishes as Δz⁴ while α grows as Δz⁻²; off from
-        # d = 10 m - w to 10 m + w (d² - 100 m² ≈ 20 m·(d - 10 m)).
+        # d = cutoff - w to cutoff + w (d² - cutoff² ≈ 2 cutoff·(d - cutoff)).
         width = kinks.downwash
         onset = kinks.step(dz - width, width) ** 2
-        force = force * onset * kinks.step(DOWNWASH_MAX_DIST**2 - dist2, 2 * DOWNWASH_MAX_DIST * width)
+        force = force * onset * kinks.step(cutoff**2 - dist2, 2 * cutoff * width)
     return -jnp.sum(jnp.where(active, force, 0.0), axis=-1)

@@ -29,15 +29,16 @@ class SimConfig:
             its mode ``"exact"`` (the original's physics, default), ``"smooth"`` (C¹ within small bands, so that
             gradients agree with finite differences across each kink) or ``"straight_through"`` (the original's
             forward pass, identity gradients through the clips and the contact). Stored as a `Kinks`.
-        max_neighbors: downwash: None (every drone above a drone acts on it, the original; D² pairs per substep) or
-            K ≥ 1: only the K drones horizontally nearest to each drone act on it (D·K pairs; the drones beyond are
-            ones whose downwash has decayed, see `jaxdrones.aerodynamics.downwash_force`). The K are chosen at the
-            start of each control step and held over its substeps, as a neighbour list is. K ≥ D - 1 is the
-            original. The JAX core only.
+        downwash_radius: downwash: None (every pair of drones closer than the original's 10 m horizontally; D² pairs
+            per substep) or a cut-off r in m, within which a cell list (`jaxdrones.neighbors.cell_candidates`, cells
+            of side r, built at the start of each control step and held over its substeps) finds each drone's
+            neighbours: O(D) pairs. Beyond 1 m no drone pushes a cf2x with more than 0.41 % of its weight
+            (docs/physics.md §6.3). The JAX core only.
+        cell_capacity: with ``downwash_radius``: drones per cell the list holds (a denser cell loses the extra ones).
 
     Raises:
         ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, an unknown
-            integrator or kink treatment, or ``max_neighbors`` neither None nor a positive integer.
+            integrator or kink treatment, a ``downwash_radius`` neither None nor > 0, or a ``cell_capacity`` below 1.
     """
 
     n_drones: int = 1
@@ -48,7 +49,8 @@ class SimConfig:
     downwash: bool = False
     integrator: str = "euler"
     kinks: Kinks | str = "exact"
-    max_neighbors: int | None = None
+    downwash_radius: float | None = None
+    cell_capacity: int = 8
 
     def __post_init__(self):
         if isinstance(self.kinks, str):
@@ -62,9 +64,14 @@ class SimConfig:
         if self.sim_freq % self.ctrl_freq:
             raise ValueError(f"SimConfig: sim_freq ({self.sim_freq} Hz) must be a multiple of ctrl_freq "
                              f"({self.ctrl_freq} Hz), e.g. sim_freq=240 with ctrl_freq in 240, 120, 80, 48, 30, ...")
-        k = self.max_neighbors
-        if k is not None and (not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1):
-            raise ValueError(f"SimConfig.max_neighbors must be None (every drone) or a positive integer, got {k!r}")
+        radius = self.downwash_radius
+        if radius is not None and (isinstance(radius, bool) or not isinstance(radius, (int, float, np.number))
+                                   or not np.isfinite(radius) or radius <= 0):
+            raise ValueError(f"SimConfig.downwash_radius must be None (every drone) or a finite radius > 0 m, "
+                             f"got {radius!r}")
+        capacity = self.cell_capacity
+        if not isinstance(capacity, (int, np.integer)) or isinstance(capacity, bool) or capacity < 1:
+            raise ValueError(f"SimConfig.cell_capacity must be a positive integer, got {capacity!r}")
         if self.integrator not in dynamics.INTEGRATORS:
             raise ValueError(f"SimConfig.integrator must be one of {tuple(dynamics.INTEGRATORS)}, "
                              f"got {self.integrator!r}")
@@ -86,4 +93,5 @@ class SimConfig:
 
     @property
     def effects(self) -> dynamics.Effects:
-        return dynamics.Effects(self.drag, self.ground_effect, self.downwash, self.kinks, self.max_neighbors)
+        return dynamics.Effects(self.drag, self.ground_effect, self.downwash, self.kinks, self.downwash_radius,
+                                self.cell_capacity)

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 
 from jaxdrones import aerodynamics
 from jaxdrones.kinks import Kinks
+from jaxdrones.neighbors import cell_candidates
 from jaxdrones.params import DroneParams
 from jaxdrones.rotations import (Components, cross, dot, join, matvec, normalize_c, quat_derivative_c,
                                  quat_integrate_c, quat_to_rotmat_c, split)
@@ -31,15 +32,22 @@ class Effects(NamedTuple):
     ground_effect: bool = False
     downwash: bool = False
     kinks: Kinks = Kinks()
-    max_neighbors: int | None = None
+    downwash_radius: float | None = None
+    cell_capacity: int = 8
+
+    @property
+    def downwash_cutoff(self) -> float:
+        """Horizontal distance beyond which drones feel no downwash from each other, m."""
+        return aerodynamics.DOWNWASH_MAX_DIST if self.downwash_radius is None else self.downwash_radius
 
     def downwash_neighbors(self, pos: Components) -> jax.Array | None:
-        """The drones whose downwash acts on each drone (`aerodynamics.downwash_neighbors`) when ``max_neighbors``
-        bounds them below D - 1, else None (every drone)."""
+        """The drones that may act on each drone through downwash, i32[..., D, 9·cell_capacity]
+        (`jaxdrones.neighbors.cell_candidates`) when ``downwash_radius`` is set and the list is shorter than the
+        team, else None (every drone)."""
         n = pos[0].shape[-1]
-        if not self.downwash or self.max_neighbors is None or self.max_neighbors >= n - 1:
+        if not self.downwash or self.downwash_radius is None or 9 * self.cell_capacity >= n - 1:
             return None
-        return aerodynamics.downwash_neighbors(pos, self.max_neighbors)
+        return cell_candidates(pos[0], pos[1], self.downwash_radius, self.cell_capacity)
 
 
 class Kinematics(NamedTuple):
@@ -114,7 +122,8 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
     if effects.downwash and kin.pos[2].shape[-1] > 1:  # a lone drone feels no downwash
         if neighbors is None:
             neighbors = effects.downwash_neighbors(kin.pos)
-        body_z_force = body_z_force + aerodynamics.downwash_force_c(params, kin.pos, effects.kinks, neighbors)
+        body_z_force = body_z_force + aerodynamics.downwash_force_c(params, kin.pos, effects.kinks, neighbors,
+                                                                    effects.downwash_cutoff)
     fx, fy, fz = (row[2] * body_z_force for row in rotmat)
     force = (fx, fy, fz + -params.mass * params.gravity)
     if effects.drag:

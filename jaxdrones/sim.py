@@ -109,7 +109,7 @@ def _core_step_c(config: SimConfig):
         # The RPM of the previous substep, which drag uses, is the state's in the first substep and the held
         # command in the others: it is chosen per substep rather than carried (and copied) through the loop.
         rpm_before = state.rpm
-        # With config.max_neighbors, the drones whose downwash acts on each drone are chosen once per control step.
+        # With config.downwash_radius, the neighbour list of the downwash is built once per control step.
         neighbors = config.effects.downwash_neighbors(state.pos)
 
         def substep(s, first):

@@ -405,57 +405,64 @@ def test_downwash_whole_step(x64):
     assert float(a.vel[0, 2]) < float(b.vel[0, 2])
 
 
-def _swarm(rng, side=8, spacing=0.5):
+def _swarm(rng, side=16, spacing=0.5):
     """A side×side grid, `spacing` m apart, at random heights between 0.5 and 1.5 m, with a little jitter."""
     xy = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2) * spacing
     xy = xy + rng.uniform(-0.05, 0.05, xy.shape)
     return np.concatenate([xy, rng.uniform(0.5, 1.5, (len(xy), 1))], -1)
 
 
-def test_downwash_neighbors_bound_the_pairs(x64, rng):
-    """The K horizontally nearest drones carry the downwash: in a swarm 0.5 m apart K = 8 gives every drone's
-    force to 1e-12 of the weight, K = D - 1 gives all pairs bit for bit, and the chosen drones are the nearest."""
+def test_downwash_cell_list(x64, rng):
+    """The cell list finds every drone within the radius (no duplicates); with it and a 1 m cut-off, the downwash
+    of a 256-drone swarm 0.5 m apart equals the all-pairs force with that cut-off, and the original's (10 m) to
+    1e-12 of the weight. A cell holding more drones than its capacity loses some."""
+    from jaxdrones.neighbors import cell_candidates
+
     params = jd.load_params("cf2x")
-    pos = jnp.asarray(_swarm(rng))
+    pos = _swarm(rng)
+    cand = np.asarray(cell_candidates(jnp.asarray(pos[:, 0]), jnp.asarray(pos[:, 1]), 1.0, 8))
+    assert cand.shape == (256, 72)
+    dist = np.linalg.norm(pos[:, None, :2] - pos[None, :, :2], axis=-1)
+    for i in range(256):
+        listed = [j for j in cand[i] if j != i]
+        assert len(listed) == len(set(listed)) and set(np.flatnonzero(dist[i] < 1.0)) - {i} <= set(listed)
+    pos = jnp.asarray(pos)
     full = aerodynamics.downwash_force(params, pos)
-    comps = tuple(pos[:, k] for k in range(3))
-    idx = aerodynamics.downwash_neighbors(comps, 8)
-    d2 = np.sum((np.asarray(pos)[:, None, :2] - np.asarray(pos)[None, :, :2]) ** 2, -1)
-    np.fill_diagonal(d2, np.inf)
-    np.testing.assert_allclose(np.take_along_axis(d2, np.asarray(idx), -1), np.sort(d2, -1)[:, :8])
     assert float(jnp.min(full)) < -1e-3 * float(params.weight)  # the swarm has real downwash
-    near = aerodynamics.downwash_force(params, pos, neighbors=idx)
+    near = aerodynamics.downwash_force(params, pos, neighbors=jnp.asarray(cand), cutoff=1.0)
+    np.testing.assert_allclose(near, aerodynamics.downwash_force(params, pos, cutoff=1.0), rtol=1e-12)
     np.testing.assert_allclose(near, full, rtol=0, atol=1e-12 * float(params.weight))
-    all_but_self = aerodynamics.downwash_neighbors(comps, 63)
-    np.testing.assert_allclose(aerodynamics.downwash_force(params, pos, neighbors=all_but_self), full, rtol=1e-12)
-    # With too few neighbours a drone stacked further away is missed: the bound changes the physics.
-    column = jnp.asarray([[0.0, 0.0, 0.0], [0.1, 0.0, 5.0], [0.0, 0.0, 1.0]])
-    one = aerodynamics.downwash_neighbors(tuple(column[:, k] for k in range(3)), 1)
-    assert float(aerodynamics.downwash_force(params, column, neighbors=one)[0]) > float(
-        aerodynamics.downwash_force(params, column)[0])
-    with pytest.raises(ValueError, match=r"k must be an integer in \[1, D - 1\]"):
-        aerodynamics.downwash_neighbors(comps, 64)
+    # 20 drones stacked in one cell, capacity 8: the top ones' downwash on the bottom one is partly missed.
+    column = jnp.asarray(np.stack([0.01 * np.arange(20), np.zeros(20), 0.5 + 0.5 * np.arange(20)], -1))
+    short = cell_candidates(column[:, 0], column[:, 1], 1.0, 8)
+    assert float(aerodynamics.downwash_force(params, column, neighbors=short, cutoff=1.0)[0]) > float(
+        aerodynamics.downwash_force(params, column, cutoff=1.0)[0])
 
 
-def test_max_neighbors_step_matches_all_pairs(x64, rng):
-    """SimConfig(max_neighbors=8) on 64 drones: the control step (its neighbour list held over 8 substeps) gives
-    the all-pairs step's state to 1e-12, in a batch of worlds; gradients flow through it; bad values are refused."""
+def test_downwash_radius_step_matches_all_pairs(x64, rng):
+    """SimConfig(downwash_radius=1): the control step of 256 drones (its neighbour list held over 8 substeps)
+    gives the all-pairs step's state to 1e-12, in a batch of worlds; gradients flow through it; bad values are
+    refused."""
     params = jd.load_params("cf2x")
-    pos = np.stack([_swarm(rng) for _ in range(3)])
-    configs = [jd.SimConfig(n_drones=64, ctrl_freq=30, downwash=True, max_neighbors=k) for k in (None, 8)]
+    pos = np.stack([_swarm(rng) for _ in range(2)])
+    configs = [jd.SimConfig(n_drones=256, ctrl_freq=30, downwash=True, downwash_radius=r) for r in (None, 1.0)]
+    assert configs[1].effects.downwash_neighbors(tuple(jnp.asarray(pos[..., k]) for k in range(3))).shape == (
+        2, 256, 72)
     state = jd.init_state(configs[0], pos=pos)
-    rpm = jnp.full((3, 64, 4), float(params.hover_rpm))
+    rpm = jnp.full((2, 256, 4), float(params.hover_rpm))
     full, near = (stepper(c)(params, state, rpm) for c in configs)
-    off = stepper(jd.SimConfig(n_drones=64, ctrl_freq=30))(params, state, rpm)
+    off = stepper(jd.SimConfig(n_drones=256, ctrl_freq=30))(params, state, rpm)
     assert float(jnp.max(jnp.abs(full.vel - off.vel))) > 1e-4
     for a, b in zip(jax.tree.leaves(full), jax.tree.leaves(near), strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
     loss = lambda p: jnp.sum(stepper(configs[1])(params, state.replace(pos=p), rpm).vel[..., 2])  # noqa: E731
     grad = jax.grad(loss)(state.pos)
     assert bool(jnp.all(jnp.isfinite(grad))) and float(jnp.max(jnp.abs(grad[..., 2]))) > 0
-    for bad in (0, -1, 2.5, True):
-        with pytest.raises(ValueError, match="max_neighbors"):
-            jd.SimConfig(n_drones=4, max_neighbors=bad)
+    for bad in (0, -1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="downwash_radius"):
+            jd.SimConfig(n_drones=4, downwash_radius=bad)
+    with pytest.raises(ValueError, match="cell_capacity"):
+        jd.SimConfig(n_drones=4, cell_capacity=0)
 
 
 def test_drag_opposes_velocity(rng):

@@ -260,9 +260,10 @@ def test_observation_types():
 
 def test_nearest_neighbors_observation():
     """max_neighbors=k: the k nearest drones, nearest first, flagged within the radius; the size stays 12 + 4k + 3
-    whatever the team; the downwash gets the same bound; k >= D - 1 holds everyone."""
-    env = jd.make("multi_hover", n_drones=16, obs_type="neighbors", max_neighbors=3, neighbor_radius=0.5)
-    assert env.observation_size == 12 + 4 * 3 + 3 and env.sim_config.max_neighbors == 3
+    whatever the team; k >= D - 1 holds everyone. downwash_radius reaches the physics."""
+    env = jd.make("multi_hover", n_drones=16, obs_type="neighbors", max_neighbors=3, neighbor_radius=0.5,
+                  downwash_radius=1.0)
+    assert env.observation_size == 12 + 4 * 3 + 3 and env.sim_config.downwash_radius == 1.0
     assert jd.make("multi_hover", n_drones=64, obs_type="neighbors", max_neighbors=3).observation_size == \
         env.observation_size
     s = env.reset(jax.random.key(0))
@@ -282,6 +283,8 @@ def test_nearest_neighbors_observation():
     assert small.observation_size == 12 + 4 * 2 + 3
     with pytest.raises(ValueError, match="max_neighbors"):
         jd.make("multi_hover", n_drones=3, max_neighbors=0)
+    with pytest.raises(ValueError, match="downwash_radius"):
+        jd.make("multi_hover", n_drones=3, downwash_radius=-1.0)
 
 
 def test_domain_randomisation_recomputes_derived_params():

@@ -120,9 +120,9 @@ class PyBulletStep:
         if config.kinks.mode != "exact":
             raise ValueError(f"the pybullet backend is not differentiable and steps the original's physics: "
                              f"SimConfig.kinks must be 'exact', got {config.kinks.mode!r}")
-        if config.max_neighbors is not None:
+        if config.downwash_radius is not None:
             raise ValueError(f"the pybullet backend steps the original's downwash between every pair of drones: "
-                             f"SimConfig.max_neighbors must be None, got {config.max_neighbors!r}")
+                             f"SimConfig.downwash_radius must be None, got {config.downwash_radius!r}")
         if gui:
             require_display()
         self.config = config

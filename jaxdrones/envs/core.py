@@ -185,10 +185,10 @@ class TaskConfig:
         terminate_on_ground: a touch of the ground terminates the episode as a crash.
         randomize: `DomainRandomization` (or a dict of its fields) applied at every reset; None for none.
         neighbor_radius: ``neighbors`` observation: radius of the adjacency, m.
-        max_neighbors: None, or K ≥ 1 to bound the pairwise couplings for large teams: the downwash counts the K
-            horizontally nearest drones of each drone (`SimConfig.max_neighbors`), and the ``neighbors``
-            observation holds the min(K, D - 1) nearest drones instead of every drone (12 + 4·min(K, D - 1) entries,
-            `jaxdrones.envs.observations`).
+        max_neighbors: ``neighbors`` observation: None (every drone) or K ≥ 1: the min(K, D - 1) nearest drones
+            only, 12 + 4·min(K, D - 1) entries whatever the team's size (`jaxdrones.envs.observations`).
+        downwash_radius: the downwash's cut-off with a neighbour list for large teams, m (`SimConfig`; None: every
+            pair of drones, the original).
         backend: ``"jax"`` (differentiable) or ``"pybullet"`` (collisions, obstacles, cameras; not differentiable;
             call ``close``).
         obstacles: ``"pybullet"`` only: None, True or ``"paper"``, or a sequence of `Obstacle` / URDF paths.
@@ -231,6 +231,7 @@ class TaskConfig:
     randomize: Any = None
     neighbor_radius: float = math.inf
     max_neighbors: int | None = None
+    downwash_radius: float | None = None
     backend: str = "jax"
     obstacles: Any = None
     vision: tuple[str, ...] = ()
@@ -256,6 +257,9 @@ class TaskConfig:
             value = getattr(self, name)
             if value is not None and not (_is_number(value) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite half-width >= 0, got {value!r}")
+        k = self.max_neighbors
+        if k is not None and (not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1):
+            raise ValueError(f"max_neighbors must be None (every drone) or a positive integer, got {k!r}")
         for name in ("arena_xy", "arena_z", "max_tilt", "neighbor_radius"):
             value = getattr(self, name)
             if not (_is_number(value) and value > 0):
@@ -320,7 +324,7 @@ class TaskConfig:
         """The `SimConfig` of the physics."""
         return SimConfig(n_drones=self.n_drones, sim_freq=self.sim_freq, ctrl_freq=self.ctrl_freq, drag=self.drag,
                          ground_effect=self.ground_effect, downwash=self.downwash, kinks=self.kinks,
-                         max_neighbors=self.max_neighbors)
+                         downwash_radius=self.downwash_radius)
 
     @property
     def camera_period(self) -> int:

@@ -250,8 +250,10 @@ def register(subparsers) -> None:
                          help=f"aerodynamic effect {effect.replace('-', ' ')} on, or off with --no-{effect} "
                               f"(default: the task's; downwash is on in crossing)")
     env.add_argument("--max-neighbors", type=int, default=None, metavar="K",
-                     help="bound the pairwise couplings of large teams: downwash from the K horizontally nearest "
-                          "drones, and a neighbors observation of the K nearest (default: every drone)")
+                     help="neighbors observation of the K nearest drones only (default: every drone)")
+    env.add_argument("--downwash-radius", type=float, default=None, metavar="R",
+                     help="downwash cut-off in m, with a neighbour list: a cost linear in the team size (default: "
+                          "every pair of drones within 10 m, the original)")
     env.add_argument("--backend", choices=("jax", "pybullet"), default=None, help="physics backend (default jax)")
     env.add_argument("--target", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                      help="hover/takeoff target, m")
@@ -273,8 +275,8 @@ _ENV_OPTIONS = {"action_type": "action_type", "obs_type": "obs_type", "model": "
                 "ctrl_freq": "ctrl_freq", "episode_len": "episode_len_s", "reward": "reward", "backend": "backend",
                 "target": "target", "start_pos_range": "start_pos_range", "start_tilt": "start_tilt",
                 "start_yaw": "start_yaw", "start_vel": "start_vel", "start_ang_vel": "start_ang_vel",
-                "max_neighbors": "max_neighbors", "drag": "drag", "ground_effect": "ground_effect",
-                "downwash": "downwash"}
+                "max_neighbors": "max_neighbors", "downwash_radius": "downwash_radius", "drag": "drag",
+                "ground_effect": "ground_effect", "downwash": "downwash"}
 
 
 def _positive(name: str, value) -> None:
