@@ -31,9 +31,10 @@ class SimConfig:
             forward pass, identity gradients through the clips and the contact). Stored as a `Kinks`.
         downwash_radius: downwash: None (every pair of drones closer than the original's 10 m horizontally; D² pairs
             per substep) or a cut-off r in m, within which a cell list (`jaxdrones.neighbors.cell_candidates`, cells
-            of side r, built at the start of each control step and held over its substeps) finds each drone's
-            neighbours: O(D) pairs. Beyond 1 m no drone pushes a cf2x with more than 0.41 % of its weight
-            (docs/physics.md §6.3). The JAX core only.
+            of side r, built at the start of each control step and held over its substeps: a drone that comes
+            within r during the step may be missed until the next) finds each drone's neighbours: O(D) pairs.
+            Beyond 1 m no drone pushes a cf2x with more than 0.41 % of its weight (docs/physics.md §6.3). The JAX
+            core only.
         cell_capacity: with ``downwash_radius``: drones per cell the list holds (a denser cell loses the extra ones).
 
     Raises:

@@ -102,9 +102,10 @@ class MultiTask(Task):
 
 @dataclasses.dataclass(frozen=True)
 class MultiHoverConfig(MultiConfig):
-    """Settings of `MultiHover`: the ``kin_rotmat`` observation by default (its targets do not depend on the other
-    drones, and the rotation matrix spares the policy the Euler angles' wrap at ±π: MAPPO on 8 drones, 3 M steps,
-    ended at 2.0 cm with 0.4 % of episodes terminated with it, at 6.7 cm with 3 % terminated with ``neighbors``)."""
+    """Settings of `MultiHover`: the ``kin_rotmat`` observation by default, as the single-agent tasks: the targets do
+    not depend on the other drones, and the rotation matrix spares the policy the Euler angles' wrap at ±π (the
+    drones start with any heading and their yaw wanders: in MAPPO runs with ``neighbors``, drones whose yaw spun up
+    lost control and left the arena)."""
 
     obs_type: str = "kin_rotmat"
 
