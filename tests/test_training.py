@@ -363,6 +363,27 @@ def test_train_cli_multi_agent_bad_team_size(capsys):
     assert "n_drones" in capsys.readouterr().err
 
 
+@pytest.mark.slow
+def test_train_cli_crossing_without_downwash(tmp_path, capsys):
+    """``jaxdrones train crossing --no-downwash``: the flag turns the task's default downwash off, MAPPO trains it,
+    and the summary judges the largest altitude error over the episode."""
+    run = tmp_path / "crossing"
+    assert main(["train", "crossing", "--no-downwash", "--steps", "2000", "--num-envs", "16", "--out", str(run),
+                 "--no-progress", "--eval-episodes", "64"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["algo"] == "mappo" and summary["env"]["downwash"] is False
+    assert summary["success_metric"] == "max_altitude_error (max over episode)"
+    assert summary["success_value"] == pytest.approx(summary["eval"]["max_max_altitude_error"])
+    assert summary["success_value"] >= summary["eval"]["final_max_altitude_error"]
+
+
+def test_train_cli_bad_neighbour_options(capsys):
+    assert main(["train", "multi_hover", "--downwash-radius", "-1", "--no-progress"]) == 2
+    assert "downwash_radius" in capsys.readouterr().err
+    assert main(["train", "multi_hover", "--max-neighbors", "0", "--no-progress"]) == 2
+    assert "max_neighbors" in capsys.readouterr().err
+
+
 def test_load_policy_into_another_env_checks_the_team(tmp_path):
     """A saved policy flies in an env of the same task and team with other physics (here downwash on); an env of
     another task or team size is refused."""
