@@ -18,7 +18,7 @@ import numpy as np
 
 from jaxdrones.envs import rewards
 from jaxdrones.envs.actions import ACTION_SIZES, Reference
-from jaxdrones.envs.core import Task, TaskConfig
+from jaxdrones.envs.core import Task, TaskConfig, _is_number
 from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
 from jaxdrones.envs.tasks.single import ANG_SPEED_WEIGHT, SPEED_WEIGHT
 from jaxdrones.state import default_start_pos
@@ -306,8 +306,7 @@ class CrossingConfig(MultiConfig):
     def __post_init__(self):
         for name in ("period_s", "amplitude", "spacing"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-                    and math.isfinite(value) and value > 0):
+            if not (_is_number(value) and math.isfinite(value) and value > 0):
                 raise ValueError(f"crossing: {name} must be a finite number > 0, got {value!r}")
         super().__post_init__()
         if self.amplitude >= self.arena_xy:
