@@ -158,7 +158,7 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     log.save(os.path.join(out, "progress.json"))
     label = f"{metric} ({AGGREGATES[env.task.success_at]})"
     plot_learning_curve(log.history, os.path.join(out, "learning_curve.png"), metric="metric",
-                        metric_label=f"evaluation {metric} ({_curve_aggregate(env, algo)} over episode)",
+                        metric_label=f"evaluation {metric} ({_curve_aggregate(env, brax_ppo=algo == 'ppo')} over episode)",
                         title=f"{algo.upper()} on {task} ({env.config.model}, {env.config.action_type})")
     plot_task_flight(times, flight.sim.pos, ref.pos, flight.sim.vel, flight.sim.rpm, os.path.join(out, "flight.png"),
                      title=f"{task}: evaluation flight")
@@ -203,16 +203,16 @@ def _policy_evaluation(env, seed: int, make_policy):
             compiled["outcomes"] = jax.jit(lambda p: episode_outcomes(env, make_policy(network, p), keys))
         stats = episode_statistics(env, compiled["outcomes"](params))
         return {"eval/episode_reward": stats["episode_reward"],
-                f"eval/episode_{metric}": stats[f"{_curve_aggregate(env, 'own')}_{metric}"],
+                f"eval/episode_{metric}": stats[f"{_curve_aggregate(env, brax_ppo=False)}_{metric}"],
                 "eval/avg_episode_length": 1.0}
 
     return run
 
 
-def _curve_aggregate(env, algo: str) -> str:
+def _curve_aggregate(env, brax_ppo: bool) -> str:
     """How the learning curve aggregates the metric over an episode: ``"max"`` for a task judged at the maximum
     trained by our own trainers, else ``"mean"`` (brax's PPO reports episode means)."""
-    return "max" if env.task.success_at == "max" and algo != "ppo" else "mean"
+    return "max" if env.task.success_at == "max" and not brax_ppo else "mean"
 
 
 def register(subparsers) -> None:
