@@ -157,8 +157,9 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
         save_fn(os.path.join(out, "policy.pkl"), params, task, env_overrides, config)
     log.save(os.path.join(out, "progress.json"))
     label = f"{metric} ({AGGREGATES[env.task.success_at]})"
+    curve = _curve_aggregate(env, brax_ppo=algo == "ppo")
     plot_learning_curve(log.history, os.path.join(out, "learning_curve.png"), metric="metric",
-                        metric_label=f"evaluation {metric} ({_curve_aggregate(env, brax_ppo=algo == 'ppo')} over episode)",
+                        metric_label=f"evaluation {metric} ({curve} over episode)",
                         title=f"{algo.upper()} on {task} ({env.config.model}, {env.config.action_type})")
     plot_task_flight(times, flight.sim.pos, ref.pos, flight.sim.vel, flight.sim.rpm, os.path.join(out, "flight.png"),
                      title=f"{task}: evaluation flight")
