@@ -76,7 +76,7 @@ def _network_factory(config: PPOConfig):
 
 
 def train(env: Env, config: PPOConfig = PPOConfig(),
-          progress: Callable[[int, dict], None] | None = None):
+          progress: Callable[[int, dict], None] | None = None, eval_env: Env | None = None):
     """Train a policy on ``env`` with brax's PPO.
 
     Args:
@@ -84,6 +84,8 @@ def train(env: Env, config: PPOConfig = PPOConfig(),
         config: PPO hyperparameters.
         progress: called as ``progress(env_steps, metrics)`` after each of brax's evaluations, with brax's metric
             dict (``eval/episode_reward``, ``eval/episode_<metric>`` summed over the episode, ...).
+        eval_env: the env of those evaluations (default ``env``), e.g. the task's starts where ``env`` trains from
+            wider ones.
 
     Returns:
         ``(make_policy, params)``: brax's policy factory and the trained (normaliser, policy, value) parameters.
@@ -98,7 +100,8 @@ def train(env: Env, config: PPOConfig = PPOConfig(),
     make_policy, params, _ = ppo.train(
         adapter.BraxEnv(env), episode_length=env.episode_length, wrap_env_fn=adapter.wrap_for_brax_training,
         network_factory=_network_factory(config), deterministic_eval=True,
-        progress_fn=progress or (lambda *_: None), **kwargs)
+        progress_fn=progress or (lambda *_: None), eval_env=None if eval_env is None else adapter.BraxEnv(eval_env),
+        **kwargs)
     return make_policy, params
 
 
