@@ -370,18 +370,18 @@ def test_train_multi_hover_trains_from_wider_starts_and_evaluates_the_tasks(tmp_
     monkeypatch.setattr(mappo, "train", lambda env, *a, **k: trained_in.append(env) or real_train(env, *a, **k))
     tiny = mappo.MAPPOConfig(num_timesteps=8, num_envs=4, unroll_length=2, minibatches=1, num_evals=2)
     cases = [({"n_drones": 3}, TRAIN_STARTS["multi_hover"]),
-             ({"n_drones": 3, "start_tilt": 0.1}, {"start_vel": 0.3, "start_ang_vel": 1.0}),
+             ({"n_drones": 3, "start_ang_vel": 0.5}, {}),
              ({"n_drones": 3, "action_type": "one_d_rpm"}, {})]
     for i, (overrides, expected) in enumerate(cases):
         summary = train_task("multi_hover", str(tmp_path / f"run{i}"), env_overrides=overrides, progress=False,
                              algo="mappo", algo_config=tiny, n_eval_episodes=64)
         assert summary["train_env_overrides"] == expected
-        for field in ("start_tilt", "start_vel", "start_ang_vel"):
+        for field in ("start_tilt", "start_ang_vel"):
             want = expected.get(field, overrides.get(field))
             assert getattr(trained_in[-1].config, field) == want
             assert summary["env"][field] == overrides.get(field)  # the evaluation env: the task's starts
         env, _ = load_policy(tmp_path / f"run{i}")
-        assert env.config.start_tilt == overrides.get("start_tilt") and env.config.start_ang_vel is None
+        assert env.config.start_ang_vel == overrides.get("start_ang_vel")
 
 
 def test_train_cli_multi_agent_bad_team_size(capsys):
