@@ -15,8 +15,9 @@ One update collects ``unroll_length`` steps of ``num_envs`` worlds (episodes tha
 state), computes per-agent GAE advantages, and takes ``epochs`` passes of ``minibatches`` clipped-surrogate PPO
 steps with Adam, the advantages standardised per agent within each minibatch (so that a role that one drone plays,
 as the leader of a leader-follower team, weighs as much as one that many play: with advantages standardised over
-the whole team, ``leader_follower`` with 5 drones failed on one seed of three, its leader climbing with the team); everything between two evaluations is one jitted `lax.scan`. With several local devices (GPUs,
-or CPU devices from ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) the worlds are split over them
+the whole team, ``leader_follower`` with 5 drones failed on one seed of three, its leader climbing with the team);
+everything between two evaluations is one jitted `lax.scan`. With several local devices (GPUs, or CPU devices from
+``XLA_FLAGS=--xla_force_host_platform_device_count=N``) the worlds are split over them
 (`jaxdrones.training.common.spread_worlds`).
 """
 
