@@ -283,7 +283,9 @@ def register(subparsers) -> None:
     env.add_argument("--start-tilt", type=float, default=None, help="largest random start tilt, rad")
     env.add_argument("--start-yaw", type=float, default=None, help="half-width of the random start yaw, rad")
     env.add_argument("--start-vel", type=float, default=None, help="half-width of random start velocities, m/s")
-    env.add_argument("--start-ang-vel", type=float, default=None, help="half-width of random start body rates, rad/s")
+    env.add_argument("--start-ang-vel", type=float, default=None,
+                     help="half-width of random start body rates, rad/s (default: the task's; multi_hover trains from "
+                          "1 rad/s and is evaluated from its own 0.1)")
     out = parser.add_argument_group("output")
     out.add_argument("--out", default=None, help="output folder (default runs/TASK; a numbered sibling is used if "
                                                  "it exists, unless --overwrite)")
