@@ -1,6 +1,6 @@
 """jaxdrones: a JAX-vectorised, differentiable quadrotor simulator with the physics of gym-pybullet-drones."""
 
-from jaxdrones import _xla
+from jaxdrones import _fork, _xla  # noqa: F401  (_fork: refuse forked processes instead of hanging)
 
 _xla.configure()  # before any JAX computation: see jaxdrones/_xla.py
 

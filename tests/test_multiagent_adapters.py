@@ -149,7 +149,7 @@ def test_bad_input_to_parallel_env(pz):
     with pytest.raises(ValueError, match="leader_follower: n_drones must be 2 or more, got 1"):
         parallel_env("leader_follower", n_drones=1)
     with pytest.raises(ValueError, match="render_mode must be None or one of"):
-        parallel_env("flock", render_mode="human")
+        parallel_env("flock", render_mode="window")
     with pytest.raises(ValueError, match="single-agent"):
         jaxmarl.make("velocity")
 
@@ -186,17 +186,21 @@ def test_jaxmarl_view_matches_the_stacked_env_under_jit_and_vmap(marl):
             np.testing.assert_allclose(rewards[agent], ref.reward[:, i], rtol=0, atol=1e-6)
             np.testing.assert_array_equal(dones[agent], dones["__all__"])
         np.testing.assert_array_equal(dones["__all__"], np.asarray(ref.done))
-        np.testing.assert_array_equal(infos["truncated"], np.asarray(ref.truncated))
+        # JaxMARL's convention: every info leaf has one entry per agent, f[W, D] here
+        assert set(infos) == set(ref.metrics) | {"terminated", "truncated", "final_steps"}
+        assert all(v.shape == (len(keys), n_drones) for v in infos.values())
+        np.testing.assert_array_equal(infos["truncated"], np.repeat(np.asarray(ref.truncated)[:, None], 3, 1))
+        for name, value in ref.metrics.items():
+            np.testing.assert_allclose(infos[name], np.repeat(np.asarray(value)[:, None], 3, 1), rtol=0, atol=1e-6)
         assert not np.any(ref.terminated)
         if t + 1 < env.episode_length:
             assert not np.any(dones["__all__"]) and np.all(state.steps == t + 1)
         elif t + 1 == env.episode_length:  # the last step: reported, then the world starts anew
             assert np.all(dones["__all__"]) and np.all(infos["final_steps"] == env.episode_length)
-            for i, agent in enumerate(marl.agents):
-                np.testing.assert_allclose(infos["final_obs"][agent], ref.obs[:, i], rtol=0, atol=1e-6)
+            np.testing.assert_allclose(state.info["final_obs"], ref.obs, rtol=0, atol=1e-6)
             assert np.all(state.steps == 0)
             ref = ref_reset(ref.key, ref.task)  # the auto-reset's new episode: a fresh start from the world's key
-            assert np.abs(ref.obs[:, :, :3] - infos["final_obs"]["drone_0"][:, None, :3]).max() > 0.01
+            assert np.abs(ref.obs[:, :, :3] - state.info["final_obs"][:, :1, :3]).max() > 0.01
         else:
             assert not np.any(dones["__all__"]) and np.all(state.steps == t + 1 - env.episode_length)
 
@@ -222,3 +226,54 @@ def test_bad_input_to_jaxmarl_view(marl):
     _, _, bound, _, _ = step(keys, state, {**ok, "drone_0": jnp.full((3, 4), 1.0, jnp.float32)})
     np.testing.assert_array_equal(clipped["drone_0"], bound["drone_0"])
     assert not np.allclose(clipped["drone_0"], step(keys, state, ok)[2]["drone_0"])
+
+
+class _LogWrapper:
+    """JaxMARL's ``jaxmarl.wrappers.baselines.LogWrapper`` (with ``replace_info=False``), restated: it adds episode
+    returns and lengths, one entry per agent, to the env's infos."""
+
+    def __init__(self, env):
+        self._env = env
+
+    def reset(self, key):
+        obs, state = self._env.reset(key)
+        zeros = jnp.zeros((self._env.num_agents,))
+        return obs, (state, zeros, zeros, zeros, zeros)
+
+    def step(self, key, log_state, action):
+        state, returns, lengths, returned, returned_lengths = log_state
+        obs, state, reward, done, info = self._env.step(key, state, action)
+        ep_done = done["__all__"]
+        returns = returns + jnp.stack([reward[a] for a in self._env.agents])
+        lengths = lengths + 1
+        returned = returned * (1 - ep_done) + returns * ep_done
+        returned_lengths = returned_lengths * (1 - ep_done) + lengths * ep_done
+        info["returned_episode_returns"] = returned
+        info["returned_episode_lengths"] = returned_lengths
+        info["returned_episode"] = jnp.full((self._env.num_agents,), ep_done)
+        log_state = (state, returns * (1 - ep_done), lengths * (1 - ep_done), returned, returned_lengths)
+        return obs, log_state, reward, done, info
+
+
+def test_jaxmarl_baselines_reshape_every_info_leaf_per_actor():
+    # What JaxMARL's IPPO/MAPPO baselines do inside their rollout scan: vmap a LogWrapper-ed env over worlds, then
+    # reshape every info leaf to one entry per actor (W worlds × num_agents).
+    view = _LogWrapper(jaxmarl.make("leader_follower", n_drones=2, episode_len_s=0.1))
+    n_worlds, n_actors = 4, 4 * 2
+    obs, state = jax.vmap(view.reset)(jax.random.split(jax.random.key(0), n_worlds))
+
+    def env_step(carry, key):
+        obs, state = carry
+        actions = {a: jnp.zeros((n_worlds, 4)) for a in view._env.agents}
+        obs, state, _, _, info = jax.vmap(view.step)(jax.random.split(key, n_worlds), state, actions)
+        info = jax.tree.map(lambda x: x.reshape((n_actors,)), info)
+        return (obs, state), info
+
+    n_steps = 2 * view._env.env.episode_length
+    _, infos = jax.jit(lambda k: jax.lax.scan(env_step, (obs, state), jax.random.split(k, n_steps)))(
+        jax.random.key(1))
+    assert all(v.shape == (n_steps, n_actors) for v in jax.tree.leaves(infos))
+    ended = np.asarray(infos["returned_episode"])
+    assert ended[view._env.env.episode_length - 1].all() and ended.sum() == 2 * n_actors
+    np.testing.assert_array_equal(np.asarray(infos["returned_episode_lengths"])[-1], view._env.env.episode_length)
+    np.testing.assert_array_equal(np.asarray(infos["final_steps"])[ended], view._env.env.episode_length)

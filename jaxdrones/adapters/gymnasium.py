@@ -4,18 +4,22 @@ in one jitted call), registered for every task.
 Ids (registered when ``jaxdrones`` is imported; ``gymnasium.make("jaxdrones:jaxdrones/Hover-v0")`` imports it
 for you): `GYM_IDS`, e.g. ``jaxdrones/Hover-v0``, ``jaxdrones/Velocity-v0``, ``jaxdrones/LeaderFollower-v0``. Task
 config fields are keyword arguments of ``gymnasium.make`` (``action_type``, ``obs_type``, ``model``,
-``ctrl_freq``, ``init_pos``, ...), and ``render_mode="rgb_array"`` renders a frame (PyBullet's renderer on that
-backend, a matplotlib view of the drones on the JAX backend).
+``ctrl_freq``, ``init_pos``, ...). ``render_mode="rgb_array"`` renders a frame (PyBullet's renderer on that
+backend, a matplotlib view of the drones on the JAX backend) and ``render_mode="human"`` shows it in a window at
+every ``reset`` and ``step`` (`HumanView`).
 
 ``gymnasium.make_vec(id, num_envs=N, vectorization_mode="vector_entry_point")`` gives a `GymnasiumVectorEnv`:
 all N worlds in one jitted, vmapped call, with gymnasium's default next-step autoreset. The ``"sync"`` mode works
-but compiles every sub-env separately; the ``"async"`` mode needs ``vector_kwargs={"context": "spawn"}`` (JAX
-cannot run in a forked process; with ``fork`` the sub-envs raise an error saying so).
+but compiles every sub-env separately; the ``"async"`` mode needs ``vector_kwargs={"context": "spawn"}``: JAX
+hangs in a process forked after it started, so with ``fork`` the sub-envs raise a `RuntimeError` saying so
+(`jaxdrones._fork`).
+
+The envs pickle as the arguments they were built with (the task env as its task and config): an unpickled copy
+is built anew, with no episode running and no seed (its first ``reset`` takes one), so that worker processes
+started with ``spawn`` receive small, JAX-free payloads.
 """
 
 from __future__ import annotations
-
-import os
 
 import gymnasium as gym
 import jax
@@ -24,6 +28,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from jaxdrones._fork import check_not_forked
 from jaxdrones.envs.base import Env, world_axes
 from jaxdrones.wrappers.autoreset import reset_where
 
@@ -33,21 +38,13 @@ GYM_IDS = {"hover": "jaxdrones/Hover-v0", "takeoff": "jaxdrones/Takeoff-v0", "ve
            "tune": "jaxdrones/Tune-v0", "multi_hover": "jaxdrones/MultiHover-v0",
            "leader_follower": "jaxdrones/LeaderFollower-v0", "flock": "jaxdrones/Flock-v0",
            "meetup": "jaxdrones/Meetup-v0", "crossing": "jaxdrones/Crossing-v0"}
-RENDER_MODES = ("rgb_array",)
-#: The process that imported jaxdrones: JAX state does not survive ``fork``.
-_IMPORT_PID = os.getpid()
+#: ``"human"``: a window shows every step (`HumanView`); ``"rgb_array"``: ``render()`` returns the frame.
+RENDER_MODES = ("human", "rgb_array")
 
 
 def _check_render_mode(render_mode) -> None:
     if render_mode is not None and render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
-
-
-def _check_process() -> None:
-    if os.getpid() != _IMPORT_PID:
-        raise RuntimeError("jaxdrones envs cannot run in a forked process (JAX is not fork-safe). Use "
-                           "gymnasium.make_vec(id, num_envs=N, vectorization_mode='vector_entry_point') (all envs in "
-                           "one jitted call) or vector_kwargs={'context': 'spawn'} for the async mode")
 
 
 def spaces(env: Env) -> tuple[gym.Space, gym.Space]:
@@ -102,14 +99,16 @@ class GymnasiumEnv(gym.Env):
     the env's bounded Box; actions must lie in the action space (otherwise a ``ValueError``).
     ``step`` returns ``(obs, reward, terminated, truncated, info)``; ``info`` holds the env's metrics (floats) and,
     for D ≥ 2, the per-drone rewards (``"rewards"``); the reward is the sum over drones. ``render()`` returns an
-    RGB frame when ``render_mode="rgb_array"``. `close` releases the backend.
+    RGB frame when ``render_mode="rgb_array"``; ``render_mode="human"`` shows every step in a window (`HumanView`).
+    `close` releases the backend. Pickled as its task env and render mode (see the module docstring).
     """
 
     metadata = {"render_modes": list(RENDER_MODES), "render_fps": 30}
 
     def __init__(self, env: Env, render_mode: str | None = None):
         _check_render_mode(render_mode)
-        _check_process()
+        check_not_forked()
+        self._init_args = (env, render_mode)
         self.env = env
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": env.config.ctrl_freq}
@@ -117,30 +116,45 @@ class GymnasiumEnv(gym.Env):
         self._reset = jax.jit(env.reset)
         self._step = jax.jit(env.step)
         self._state = None
+        self._view = HumanView(env.task.name, env.config.ctrl_freq) if render_mode == "human" else None
+
+    def __reduce__(self):
+        return type(self), self._init_args
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        check_not_forked()
         super().reset(seed=seed)
         key = jax.random.key(int(self.np_random.integers(2**31)))
         self._state = self._reset(key)
+        self._show()
         return self._obs(), self._info()
 
     def step(self, action):
+        check_not_forked()
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         action = _check_action(action, self.action_space)
         self._state = self._step(self._state, action.reshape(self.env.n_drones, self.env.action_size))
+        self._show()
         s = self._state
         return self._obs(), float(np.sum(s.reward)), bool(s.terminated), bool(s.truncated), self._info()
 
     def render(self):
-        """An RGB frame u8[H, W, 3] of the current state (``render_mode="rgb_array"``), else None."""
-        if self.render_mode is None or self._state is None:
+        """An RGB frame u8[H, W, 3] of the current state with ``render_mode="rgb_array"``; None otherwise (with
+        ``"human"``, `reset` and `step` show each frame)."""
+        if self.render_mode != "rgb_array" or self._state is None:
             return None
         return render_frame(self.env, self._state)
 
     def close(self) -> None:
-        """Release the env's backend (PyBullet worlds)."""
+        """Release the env's backend (PyBullet worlds) and close the window of ``render_mode="human"``."""
+        if self._view is not None:
+            self._view.close()
         self.env.close()
+
+    def _show(self) -> None:
+        if self._view is not None:
+            self._view.show(render_frame(self.env, self._state))
 
     def _obs(self):
         return _to_numpy(self._state.obs, self.observation_space, self.env.n_drones == 1)
@@ -174,6 +188,41 @@ def _plotting():
     return plotting
 
 
+class HumanView:
+    """The window of ``render_mode="human"``: each frame (`render_frame`) drawn with matplotlib's ``imshow`` and
+    shown for ``1 / fps`` s (``plt.pause``).
+
+    It needs an interactive matplotlib backend (a display). With a non-interactive one (Agg, e.g. on a headless
+    machine or after `jaxdrones.plotting` has written files) matplotlib warns that the figure cannot be shown, and
+    the env runs on, paced at ``fps``.
+    """
+
+    def __init__(self, title: str, fps: float):
+        self.title, self.fps = title, fps
+        self._figure = self._image = None
+
+    def show(self, frame: np.ndarray) -> None:
+        """Draw ``frame`` u8[H, W, 3] in the window (opened, or reopened if the user closed it)."""
+        import matplotlib.pyplot as plt
+
+        if self._figure is None or not plt.fignum_exists(self._figure.number):
+            self._figure, ax = plt.subplots(num=f"jaxdrones {self.title}")
+            ax.set_axis_off()
+            self._image = ax.imshow(frame)
+            plt.show(block=False)
+        else:
+            self._image.set_data(frame)
+        plt.pause(1.0 / self.fps)
+
+    def close(self) -> None:
+        """Close the window."""
+        if self._figure is not None:
+            import matplotlib.pyplot as plt
+
+            plt.close(self._figure)
+            self._figure = None
+
+
 class GymnasiumVectorEnv(VectorEnv):
     """N worlds of a jaxdrones env as a gymnasium ``VectorEnv``: one jitted, vmapped call per ``step``.
 
@@ -189,6 +238,8 @@ class GymnasiumVectorEnv(VectorEnv):
         _check_render_mode(render_mode)
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        check_not_forked()
+        self._init_args = (env, num_envs, render_mode)
         self.env = env
         self.num_envs = int(num_envs)
         self.render_mode = render_mode
@@ -204,6 +255,7 @@ class GymnasiumVectorEnv(VectorEnv):
         self._state = None
         self._needs_reset = None
         self._key = None
+        self._view = HumanView(env.task.name, env.config.ctrl_freq) if render_mode == "human" else None
 
     def _step_worlds(self, state, action, needs_reset):
         shape = (action.shape[0], self.env.n_drones, self.env.action_size)
@@ -213,20 +265,27 @@ class GymnasiumVectorEnv(VectorEnv):
         out = reset_where(self.env, stepped, needs_reset, shared_params=self._shared_params)
         return out, out.done
 
+    def __reduce__(self):
+        return type(self), self._init_args
+
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        check_not_forked()
         super().reset(seed=seed)
         self._key = jax.random.key(int(self.np_random.integers(2**31)))
         self._key, sub = jax.random.split(self._key)
         self._state = self._reset(jax.random.split(sub, self.num_envs))
         self._needs_reset = jnp.zeros((self.num_envs,), bool)
+        self._show()
         return self._obs(), self._infos()
 
     def step(self, actions):
+        check_not_forked()
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         actions = _check_action(actions, self.single_action_space, (self.num_envs,))
         was_reset = self._needs_reset
         self._state, self._needs_reset = self._step(self._state, actions, self._needs_reset)
+        self._show()
         s = self._state
         reset = np.asarray(was_reset)
         reward = np.where(reset, 0.0, np.asarray(s.reward).reshape(self.num_envs, -1).sum(-1))
@@ -235,13 +294,23 @@ class GymnasiumVectorEnv(VectorEnv):
         return self._obs(), reward.astype(np.float32), terminated, truncated, self._infos()
 
     def render(self):
-        """An RGB frame of world 0 (``render_mode="rgb_array"``), else None."""
-        if self.render_mode is None or self._state is None:
+        """An RGB frame of world 0 with ``render_mode="rgb_array"``; None otherwise (with ``"human"``, `reset`
+        and `step` show world 0)."""
+        if self.render_mode != "rgb_array" or self._state is None:
             return None
-        return render_frame(self.env, self._state, world=0, shared_params=self._shared_params)
+        return self._frame()
 
     def close_extras(self, **kwargs) -> None:
+        if self._view is not None:
+            self._view.close()
         self.env.close()
+
+    def _frame(self) -> np.ndarray:
+        return render_frame(self.env, self._state, world=0, shared_params=self._shared_params)
+
+    def _show(self) -> None:
+        if self._view is not None:
+            self._view.show(self._frame())
 
     def _obs(self):
         return _to_numpy(self._state.obs, self.single_observation_space, self.env.n_drones == 1)

@@ -116,8 +116,10 @@ class JaxMARLEnv:
         Returns:
             ``(obs, state, rewards, dones, infos)``: the new episode's first observation where a world was reset;
             ``rewards[agent]`` f[] and ``dones[agent]``, ``dones["__all__"]`` bool[] of the step that ended it;
-            ``infos``: the env's metrics (f[], per world), ``terminated`` and ``truncated`` (bool[]),
-            ``final_obs`` (the step's observation by agent, before any reset) and ``final_steps`` (i32[]).
+            ``infos``: one entry per agent in every leaf, as JaxMARL's baselines expect (they reshape each leaf of a
+            batch of W worlds to ``W × num_agents``): the env's metrics (f[D], the world's value for each agent),
+            ``terminated`` and ``truncated`` (bool[D]) and ``final_steps`` (i32[D], the ended episode's length).
+            The step's observation before a reset is ``state.info["final_obs"]`` (f[D, n_obs]).
 
         Raises:
             ValueError: (at trace time) missing, unknown or extra agent names, or an action of the wrong shape or
@@ -128,8 +130,9 @@ class JaxMARLEnv:
         done = state.done
         rewards = {a: state.reward[i] for i, a in enumerate(self.agents)}
         dones = {**dict.fromkeys(self.agents, done), "__all__": done}
-        infos = {**state.metrics, "terminated": state.terminated, "truncated": state.truncated,
-                 "final_obs": self._by_agent(state.info["final_obs"]), "final_steps": state.info["final_steps"]}
+        per_world = {**state.metrics, "terminated": state.terminated, "truncated": state.truncated,
+                     "final_steps": state.info["final_steps"]}
+        infos = {k: jnp.broadcast_to(v[..., None], v.shape + (self.num_agents,)) for k, v in per_world.items()}
         return self.get_obs(state), state, rewards, dones, infos
 
     def get_obs(self, state: EnvState) -> dict[str, jax.Array]:

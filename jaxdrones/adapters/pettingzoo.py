@@ -1,11 +1,27 @@
-"""PettingZoo adapter: a multi-agent task as a ``pettingzoo.ParallelEnv`` (NumPy in and out, one dict per agent).
+"""PettingZoo adapters: a multi-agent task as a ``pettingzoo.ParallelEnv`` (`parallel_env`) or, turn by turn, an
+``AECEnv`` (`env`); NumPy in and out, one dict per agent.
 
 ``parallel_env("leader_follower", n_drones=3)`` gives agents ``drone_0 ... drone_2``; agent ``drone_i`` is row ``i``
 of the stacked env (`jaxdrones.envs.TaskEnv`): its observation is row ``i`` of ``obs f[D, n_obs]``, its action row
 ``i`` of ``action f[D, n_act]``, its reward ``reward[i]``. Each ``reset``/``step`` is one jitted call of the whole
 stacked env (the per-agent dicts are built only here, at the boundary). All drones of a world end their episode
 together: the world's ``terminated``/``truncated`` apply to every agent, and ``agents`` is then empty until the next
-``reset``.
+``reset``. ``env(...)`` is PettingZoo's ``parallel_to_aec`` of it: the drones act in turn, and the world steps once
+the last of them has.
+
+This module has PettingZoo's environment-module layout (``parallel_env`` and ``env`` taking keyword arguments), so
+that PettingZoo's tutorials take it where they take one of PettingZoo's own, e.g. with SuperSuit and
+Stable-Baselines3::
+
+    from jaxdrones.adapters import pettingzoo as env_fn
+    env = env_fn.parallel_env(task="multi_hover", n_drones=2)
+    env = supersuit.pettingzoo_env_to_vec_env_v1(env)
+    env = supersuit.concat_vec_envs_v1(env, 8, num_cpus=0, base_class="stable_baselines3")
+
+``num_cpus > 1`` starts worker processes, which multiprocessing forks by default on Linux (before Python 3.14);
+JAX hangs in a process forked after it started, so the workers then raise a `RuntimeError` naming the fixes
+(``num_cpus=0``, or ``multiprocessing.set_start_method("spawn")``; `jaxdrones._fork`). The env pickles as its
+task, config and render mode (a copy is built anew, with no episode running), so ``spawn`` workers work.
 """
 
 from __future__ import annotations
@@ -14,10 +30,12 @@ import gymnasium as gym
 import jax
 import numpy as np
 from gymnasium.utils import seeding
-from pettingzoo import ParallelEnv
+from pettingzoo import AECEnv, ParallelEnv
+from pettingzoo.utils.conversions import parallel_to_aec
 
+from jaxdrones._fork import check_not_forked
 from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
-from jaxdrones.adapters.gymnasium import RENDER_MODES, render_frame, spaces
+from jaxdrones.adapters.gymnasium import RENDER_MODES, HumanView, render_frame, spaces
 from jaxdrones.envs.core import TaskEnv
 
 #: Tolerance of the action-box check (float32 round-off of actions computed at the bounds).
@@ -35,8 +53,9 @@ class PettingZooEnv(ParallelEnv):
     * ``step(actions) -> (observations, rewards, terminations, truncations, infos)``: ``actions`` holds one action
       f32[n_act] per live agent, inside its box (else a ``ValueError``). Rewards are floats, the drone's
       ``reward[i]``; ``infos[agent]`` holds the world's metrics (floats, means over the drones).
-    * ``render()`` returns an RGB frame u8[H, W, 3] with ``render_mode="rgb_array"`` (else None); `close` releases
-      the backend.
+    * ``render()`` returns an RGB frame u8[H, W, 3] with ``render_mode="rgb_array"`` (else None); with
+      ``render_mode="human"`` every ``reset`` and ``step`` shows the frame in a window
+      (`jaxdrones.adapters.gymnasium.HumanView`). `close` releases the backend.
     """
 
     metadata = {"render_modes": list(RENDER_MODES), "name": "jaxdrones", "is_parallelizable": True,
@@ -45,6 +64,8 @@ class PettingZooEnv(ParallelEnv):
     def __init__(self, env: TaskEnv, render_mode: str | None = None):
         if render_mode is not None and render_mode not in RENDER_MODES:
             raise ValueError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
+        check_not_forked()
+        self._init_args = (env, render_mode)
         self.env = env
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "name": f"jaxdrones_{env.task.name}_v0",
@@ -59,6 +80,7 @@ class PettingZooEnv(ParallelEnv):
         self._step = jax.jit(env.step)
         self._state = None
         self.np_random = None
+        self._view = HumanView(env.task.name, env.config.ctrl_freq) if render_mode == "human" else None
 
     def observation_space(self, agent: str) -> gym.Space:
         """The observation space of ``agent`` (cached: the same object at every call)."""
@@ -68,13 +90,18 @@ class PettingZooEnv(ParallelEnv):
         """The action space of ``agent`` (cached: the same object at every call)."""
         return self.action_spaces[self._check_agent(agent)]
 
+    def __reduce__(self):
+        return type(self), self._init_args
+
     def reset(self, seed: int | None = None, options: dict | None = None):
         """Start an episode; returns ``(observations, infos)``, one entry per agent."""
+        check_not_forked()
         if seed is not None or self.np_random is None:
             self.np_random, _ = seeding.np_random(seed)
         key = jax.random.key(int(self.np_random.integers(2**31)))
         self._state = self._reset(key)
         self.agents = list(self.possible_agents)
+        self._show()
         return self._observations(self.agents), self._infos(self.agents)
 
     def step(self, actions: dict):
@@ -88,14 +115,17 @@ class PettingZooEnv(ParallelEnv):
         Raises:
             ValueError: unknown, missing or extra agent names, or an action of the wrong shape, not finite or
                 outside its box.
-            RuntimeError: no episode is running (``reset`` not called, or the episode has ended).
+            RuntimeError: no episode is running (``reset`` not called, or the episode has ended), or a process
+                forked after JAX started (`jaxdrones._fork`).
         """
+        check_not_forked()
         if self._state is None or not self.agents:
             raise RuntimeError("no episode is running: call reset() first (agents is empty after an episode ends)")
         agents = self.agents
         check_agent_keys(actions, agents)
         action = np.stack([self._check_action(a, actions[a]) for a in agents])
         self._state = self._step(self._state, action)
+        self._show()
         s = self._state
         reward = np.asarray(s.reward, np.float32)
         terminated, truncated = bool(s.terminated), bool(s.truncated)
@@ -106,14 +136,20 @@ class PettingZooEnv(ParallelEnv):
         return out
 
     def render(self):
-        """An RGB frame u8[H, W, 3] of the current state (``render_mode="rgb_array"``), else None."""
-        if self.render_mode is None or self._state is None:
+        """An RGB frame u8[H, W, 3] of the current state with ``render_mode="rgb_array"``, else None."""
+        if self.render_mode != "rgb_array" or self._state is None:
             return None
         return render_frame(self.env, self._state)
 
     def close(self) -> None:
-        """Release the env's backend (PyBullet worlds)."""
+        """Release the env's backend (PyBullet worlds) and close the window of ``render_mode="human"``."""
+        if self._view is not None:
+            self._view.close()
         self.env.close()
+
+    def _show(self) -> None:
+        if self._view is not None:
+            self._view.show(render_frame(self.env, self._state))
 
     def _check_agent(self, agent: str) -> str:
         if agent not in self.observation_spaces:
@@ -164,14 +200,23 @@ def parallel_env(task: str, render_mode: str | None = None, **options) -> Pettin
     Args:
         task: one of `jaxdrones.envs.MULTI_AGENT` (``multi_hover``, ``leader_follower``, ``flock``, ``meetup``,
             ``crossing``).
-        render_mode: None or ``"rgb_array"``.
+        render_mode: None, ``"human"`` or ``"rgb_array"``.
         **options: fields of the task's config (``n_drones``, ``action_type``, ``obs_type``, ``episode_len_s``,
             ``backend``, ...), as for `jaxdrones.make`.
 
     Raises:
         ValueError: a single-agent or unknown task (the message names the multi-agent tasks), an invalid option or
             value, an ``n_drones`` the task does not allow, or an unknown render mode.
+        RuntimeError: in a process forked after JAX started (see the module docstring).
     """
     if render_mode is not None and render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
     return PettingZooEnv(make_multi_agent(task, **options), render_mode=render_mode)
+
+
+def env(task: str, render_mode: str | None = None, **options) -> AECEnv:
+    """A multi-agent task as a PettingZoo ``AECEnv`` (agents act in turn): PettingZoo's ``parallel_to_aec`` of
+    `parallel_env` (same arguments and errors). The world steps once every live agent has acted; ``last()`` gives
+    each agent its observation and the reward of the last world step.
+    """
+    return parallel_to_aec(parallel_env(task, render_mode=render_mode, **options))

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxdrones._fork import check_not_forked
 from jaxdrones.backends import BACKENDS, RENDERERS
 from jaxdrones.envs import rewards, terminations
 from jaxdrones.envs.actions import ACTION_TYPES, PID_TARGETS, Reference, make_action
@@ -501,9 +502,17 @@ class TaskEnv(Env):
     terminates the episode and sets ``metrics["invalid_action"]``. Reward ``f[D]``; ``terminated``/``truncated``
     per world. `reset` draws the start, the task params (from ``task`` or the config's defaults) and, with
     ``config.randomize``, the drones' params.
+
+    Pickling keeps the task and its config only (no JAX arrays, compiled functions or PyBullet connections): the
+    copy is built anew when unpickled, e.g. in a worker process started with ``spawn``.
+
+    Raises:
+        ValueError: a config of another task's class, or a drone count the task does not allow.
+        RuntimeError: in a process forked after JAX started (it would hang; `jaxdrones._fork`).
     """
 
     def __init__(self, task: Task, config: TaskConfig):
+        check_not_forked()
         if not isinstance(config, task.config_cls):
             raise ValueError(f"{task.name}: expected a {task.config_cls.__name__}, got {type(config).__name__}")
         task.check(config)
@@ -520,6 +529,9 @@ class TaskEnv(Env):
                    else {})
         self._step = make_step(self.sim_config, backend=config.backend, **options)
         self._default_task = None
+
+    def __reduce__(self):
+        return type(self), (self.task, self.config)
 
     # -- sizes and spaces ------------------------------------------------------------------------------------------
 
