@@ -17,9 +17,13 @@ __version__ = "0.1.0"
 
 def _register_gymnasium() -> None:
     try:
-        from jaxdrones.adapters import gymnasium as _gym
-    except ImportError:  # gymnasium is a dependency, but keep the core importable without it
+        import gymnasium  # noqa: F401
+    except ModuleNotFoundError as e:  # a dependency, but the core stays importable without it
+        if e.name != "gymnasium":
+            raise
         return
+    from jaxdrones.adapters import gymnasium as _gym
+
     _gym.register()
 
 

@@ -219,3 +219,67 @@ def test_human_render_mode_shows_each_step(monkeypatch):
         assert after.shape == before.shape and (after != before).any()  # the drones moved in the window
         env.close()
         assert not plt.fignum_exists(figure.number)
+
+
+#: CleanRL's main branch (gymnasium 0.29): ppo_continuous_action.py's env stack, stepped past an episode's end.
+CLEANRL_029 = """
+    import warnings
+    import gymnasium as gym
+    import numpy as np
+    warnings.simplefilter("error", UserWarning)  # a failed registration would warn
+    import jaxdrones
+    from jaxdrones.adapters.gymnasium import GymnasiumVectorEnv
+
+    def make_env(env_id, gamma):
+        def thunk():
+            env = gym.make(env_id, episode_len_s=0.5)
+            env = gym.wrappers.FlattenObservation(env)
+            env = gym.wrappers.RecordEpisodeStatistics(env)
+            env = gym.wrappers.ClipAction(env)
+            env = gym.wrappers.NormalizeObservation(env)
+            env = gym.wrappers.TransformObservation(env, lambda obs: np.clip(obs, -10, 10))
+            env = gym.wrappers.NormalizeReward(env, gamma=gamma)
+            env = gym.wrappers.TransformReward(env, lambda reward: np.clip(reward, -10, 10))
+            return env
+        return thunk
+
+    print("gymnasium", gym.__version__)
+    envs = gym.vector.SyncVectorEnv([make_env("jaxdrones/Hover-v0", 0.99) for _ in range(2)])
+    obs, _ = envs.reset(seed=1)
+    episodes = 0
+    for _ in range(20):
+        obs, reward, terminated, truncated, infos = envs.step(envs.action_space.sample())
+        for info in infos.get("final_info", []):
+            if info and "episode" in info:
+                episodes += 1
+    print("obs", obs.shape, "episodes", episodes)
+    try:
+        GymnasiumVectorEnv(jaxdrones.make("hover"), 2)
+    except RuntimeError as e:
+        print("vector:", e)
+"""
+
+
+@pytest.mark.slow
+def test_gymnasium_029_registers_the_ids_for_cleanrl(tmp_path):
+    target = tmp_path / "gymnasium029"
+    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--target", str(target),
+                          "gymnasium==0.29.1"], capture_output=True, text=True, timeout=300)
+    assert pip.returncode == 0, pip.stderr
+    script = tmp_path / "cleanrl.py"
+    script.write_text(textwrap.dedent(CLEANRL_029))
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                         env={**os.environ, "PYTHONPATH": str(target)})
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "gymnasium 0.29.1" in run.stdout
+    assert "obs (2, 21) episodes 2" in run.stdout  # 15-step episodes: each of the 2 envs ended one
+    assert "vector: jaxdrones' vector env needs gymnasium >= 1.0" in run.stdout and "SyncVectorEnv" in run.stdout
+
+
+def test_old_gymnasium_warns_with_the_installed_and_required_versions(monkeypatch):
+    from jaxdrones.adapters import gymnasium as adapter
+
+    monkeypatch.setattr(adapter, "GYMNASIUM_VERSION", (0, 25))
+    monkeypatch.setattr(gym, "__version__", "0.25.2")
+    with pytest.warns(UserWarning, match=r"gymnasium >= 0\.26.*gymnasium 0\.25\.2 is installed"):
+        adapter.register()

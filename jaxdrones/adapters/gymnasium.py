@@ -21,17 +21,31 @@ started with ``spawn`` receive small, JAX-free payloads.
 
 from __future__ import annotations
 
+import warnings
+
 import gymnasium as gym
 import jax
 import jax.numpy as jnp
 import numpy as np
-from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector import VectorEnv
 from gymnasium.vector.utils import batch_space
+
+try:
+    from gymnasium.vector import AutoresetMode
+
+    _NEXT_STEP = AutoresetMode.NEXT_STEP
+except ImportError:  # gymnasium < 1.1: next-step autoreset is the only mode
+    _NEXT_STEP = "next_step"
 
 from jaxdrones._fork import check_not_forked
 from jaxdrones.envs.base import Env, world_axes
 from jaxdrones.wrappers.autoreset import reset_where
 
+#: The gymnasium releases the adapters need: `GymnasiumEnv` the reset/step API of 0.26 (tested with 0.29.1, the
+#: release CleanRL's main branch pins), `GymnasiumVectorEnv` the ``VectorEnv`` of 1.0.
+MIN_GYMNASIUM, MIN_GYMNASIUM_VECTOR = (0, 26), (1, 0)
+#: The installed gymnasium's (major, minor).
+GYMNASIUM_VERSION = tuple(int(part) for part in gym.__version__.split(".")[:2])
 #: gymnasium id of every task.
 GYM_IDS = {"hover": "jaxdrones/Hover-v0", "takeoff": "jaxdrones/Takeoff-v0", "velocity": "jaxdrones/Velocity-v0",
            "waypoints": "jaxdrones/Waypoints-v0", "fly_thru_gate": "jaxdrones/FlyThruGate-v0",
@@ -40,6 +54,24 @@ GYM_IDS = {"hover": "jaxdrones/Hover-v0", "takeoff": "jaxdrones/Takeoff-v0", "ve
            "meetup": "jaxdrones/Meetup-v0", "crossing": "jaxdrones/Crossing-v0"}
 #: ``"human"``: a window shows every step (`HumanView`); ``"rgb_array"``: ``render()`` returns the frame.
 RENDER_MODES = ("human", "rgb_array")
+
+
+#: ``jax.jit`` of ``reset`` and ``step`` by (env class, task class, config): see `compiled`.
+_COMPILED: dict = {}
+
+
+def compiled(env: Env) -> tuple:
+    """``(jax.jit(env.reset), jax.jit(env.step))``, shared by every env of the same task class and config on the JAX
+    backend, so that copies compile once: SuperSuit's ``concat_vec_envs_v1`` makes one (by pickling) per slot.
+    The functions are pure, so the copies share nothing else. On the PyBullet backend each env steps its own Bullet
+    worlds and compiles its own."""
+    config = getattr(env, "config", None)
+    if getattr(config, "backend", None) != "jax":
+        return jax.jit(env.reset), jax.jit(env.step)
+    key = (type(env), type(env.task), config)
+    if key not in _COMPILED:
+        _COMPILED[key] = (jax.jit(env.reset), jax.jit(env.step))
+    return _COMPILED[key]
 
 
 def _check_render_mode(render_mode) -> None:
@@ -113,8 +145,7 @@ class GymnasiumEnv(gym.Env):
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": env.config.ctrl_freq}
         self.observation_space, self.action_space = spaces(env)
-        self._reset = jax.jit(env.reset)
-        self._step = jax.jit(env.step)
+        self._reset, self._step = compiled(env)
         self._state = None
         self._view = HumanView(env.task.name, env.config.ctrl_freq) if render_mode == "human" else None
 
@@ -232,9 +263,14 @@ class GymnasiumVectorEnv(VectorEnv):
     and (with ``randomize``) drone params from the world's key. ``infos`` holds the metrics, arrays f[N].
     """
 
-    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": list(RENDER_MODES)}
+    metadata = {"autoreset_mode": _NEXT_STEP, "render_modes": list(RENDER_MODES)}
 
     def __init__(self, env: Env, num_envs: int, render_mode: str | None = None):
+        if GYMNASIUM_VERSION < MIN_GYMNASIUM_VECTOR:
+            raise RuntimeError(f"jaxdrones' vector env needs gymnasium >= {'.'.join(map(str, MIN_GYMNASIUM_VECTOR))} "
+                               f"(its VectorEnv API); gymnasium {gym.__version__} is installed. With this gymnasium, "
+                               f"batch the single-world env: gymnasium.vector.SyncVectorEnv([lambda: "
+                               f"gymnasium.make(id) for _ in range(n)]), or upgrade: pip install 'gymnasium>=1.1'")
         _check_render_mode(render_mode)
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -338,7 +374,16 @@ def make_vector_env(task: str, num_envs: int = 1, render_mode: str | None = None
 
 
 def register() -> None:
-    """Register every task's id (`GYM_IDS`) with gymnasium (done on ``import jaxdrones``)."""
+    """Register every task's id (`GYM_IDS`) with gymnasium (done on ``import jaxdrones``).
+
+    With gymnasium older than `MIN_GYMNASIUM` nothing is registered and a `UserWarning` names the installed and the
+    required versions.
+    """
+    if GYMNASIUM_VERSION < MIN_GYMNASIUM:
+        warnings.warn(f"jaxdrones registers its gymnasium ids with gymnasium >= {'.'.join(map(str, MIN_GYMNASIUM))} "
+                      f"(the reset/step API of 0.26); gymnasium {gym.__version__} is installed, so none were "
+                      f"registered: pip install 'gymnasium>=0.29.1'", UserWarning, stacklevel=2)
+        return
     for task, env_id in GYM_IDS.items():
         if env_id not in gym.registry:
             gym.register(id=env_id, entry_point="jaxdrones.adapters.gymnasium:make_env",

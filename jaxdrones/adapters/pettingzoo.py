@@ -35,7 +35,7 @@ from pettingzoo.utils.conversions import parallel_to_aec
 
 from jaxdrones._fork import check_not_forked
 from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
-from jaxdrones.adapters.gymnasium import RENDER_MODES, HumanView, render_frame, spaces
+from jaxdrones.adapters.gymnasium import RENDER_MODES, HumanView, compiled, render_frame, spaces
 from jaxdrones.envs.core import TaskEnv
 
 #: Tolerance of the action-box check (float32 round-off of actions computed at the bounds).
@@ -76,8 +76,7 @@ class PettingZooEnv(ParallelEnv):
         stacked = env.n_drones > 1  # `spaces` drops the drone axis of a single drone
         self.observation_spaces = {a: _agent_space(obs_space, i, stacked) for i, a in enumerate(self.possible_agents)}
         self.action_spaces = {a: _agent_space(action_space, i, stacked) for i, a in enumerate(self.possible_agents)}
-        self._reset = jax.jit(env.reset)
-        self._step = jax.jit(env.step)
+        self._reset, self._step = compiled(env)
         self._state = None
         self.np_random = None
         self._view = HumanView(env.task.name, env.config.ctrl_freq) if render_mode == "human" else None
