@@ -273,7 +273,7 @@ def test_gymnasium_029_registers_the_ids_for_cleanrl(tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     assert "gymnasium 0.29.1" in run.stdout
     assert "obs (2, 21) episodes 2" in run.stdout  # 15-step episodes: each of the 2 envs ended one
-    assert "vector: jaxdrones' vector env needs gymnasium >= 1.0" in run.stdout and "SyncVectorEnv" in run.stdout
+    assert "vector: jaxdrones' vector env needs gymnasium >= 1.1" in run.stdout and "SyncVectorEnv" in run.stdout
 
 
 def test_old_gymnasium_warns_with_the_installed_and_required_versions(monkeypatch):

@@ -34,7 +34,7 @@ try:
     from gymnasium.vector import AutoresetMode
 
     _NEXT_STEP = AutoresetMode.NEXT_STEP
-except ImportError:  # gymnasium < 1.1: next-step autoreset is the only mode
+except ImportError:  # gymnasium < 1.1, where `GymnasiumVectorEnv` refuses to run
     _NEXT_STEP = "next_step"
 
 from jaxdrones._fork import check_not_forked
@@ -42,8 +42,8 @@ from jaxdrones.envs.base import Env, world_axes
 from jaxdrones.wrappers.autoreset import reset_where
 
 #: The gymnasium releases the adapters need: `GymnasiumEnv` the reset/step API of 0.26 (tested with 0.29.1, the
-#: release CleanRL's main branch pins), `GymnasiumVectorEnv` the ``VectorEnv`` of 1.0.
-MIN_GYMNASIUM, MIN_GYMNASIUM_VECTOR = (0, 26), (1, 0)
+#: release CleanRL's main branch pins), `GymnasiumVectorEnv` the ``VectorEnv`` of 1.x with ``AutoresetMode`` (1.1).
+MIN_GYMNASIUM, MIN_GYMNASIUM_VECTOR = (0, 26), (1, 1)
 #: The installed gymnasium's (major, minor).
 GYMNASIUM_VERSION = tuple(int(part) for part in gym.__version__.split(".")[:2])
 #: gymnasium id of every task.
