@@ -12,6 +12,7 @@ import gymnasium as gym
 import jax
 import numpy as np
 import pytest
+from pettingzoo.test import api_test
 
 import jaxdrones as jd
 from jaxdrones import _fork
@@ -198,6 +199,7 @@ def test_pettingzoo_aec_env_steps_the_world_once_every_agent_acted():
             steps += 1
             assert aec.rewards == pytest.approx(rewards)
     assert steps == 6  # 0.2 s at 30 Hz
+    api_test(jd_pettingzoo.env(task="leader_follower", n_drones=3, episode_len_s=0.2), num_cycles=12)
 
 
 def test_human_render_mode_shows_each_step(monkeypatch):
