@@ -13,7 +13,6 @@ import jaxdrones as jd
 from jaxdrones.adapters import jaxmarl
 from jaxdrones.adapters.pettingzoo import PettingZooEnv, parallel_env
 from jaxdrones.envs import MULTI_AGENT
-from jaxdrones.wrappers.normalize import PRIOR_COUNT
 
 #: Short episodes (0.3 s at 30 Hz: 9 control steps) so that the API test sees episodes end.
 SHORT = 0.3
@@ -278,39 +277,3 @@ def test_jaxmarl_baselines_reshape_every_info_leaf_per_actor():
     assert ended[view._env.env.episode_length - 1].all() and ended.sum() == 2 * n_actors
     np.testing.assert_array_equal(np.asarray(infos["returned_episode_lengths"])[-1], view._env.env.episode_length)
     np.testing.assert_array_equal(np.asarray(infos["final_steps"])[ended], view._env.env.episode_length)
-
-
-def test_jaxmarl_view_normalizes_observations_with_running_statistics_per_world():
-    # The same worlds with and without normalize_obs: the standardised observations are those of the raw ones with
-    # each world's mean and variance over every observation it has seen (its drones pooled), across auto-resets.
-    raw_view = jaxmarl.make("multi_hover", n_drones=2, episode_len_s=0.2)
-    view = jaxmarl.make("multi_hover", n_drones=2, episode_len_s=0.2, normalize_obs=True)
-    assert view.observation_space("drone_0").high.max() == 10.0
-    keys = jax.random.split(jax.random.key(3), 2)
-    obs, state = jax.vmap(view.reset)(keys)
-    raw, raw_state = jax.vmap(raw_view.reset)(keys)
-    step, raw_step = jax.jit(jax.vmap(view.step)), jax.jit(jax.vmap(raw_view.step))
-    seen = [np.stack([raw[a] for a in raw_view.agents], axis=1)]  # [W, D, n_obs] per step
-    actions = jax.random.uniform(jax.random.key(4), (9, 2, 2, 4), minval=-1, maxval=1)
-    for t in range(9):  # 6-step episodes: the statistics run on across the auto-reset
-        act = {a: actions[t, :, i] for i, a in enumerate(view.agents)}
-        obs, state, *_ = step(keys, state, act)
-        raw, raw_state, *_ = raw_step(keys, raw_state, act)
-        seen.append(np.stack([raw[a] for a in raw_view.agents], axis=1))
-    history = np.stack(seen, axis=1).astype(np.float64)  # [W, T, D, n_obs]
-    stats = state.info["obs_norm"]
-    prior = PRIOR_COUNT  # the statistics start from mean 0, variance 1 with this weight
-    for w in range(2):
-        flat = history[w].reshape(-1, history.shape[-1])
-        n = len(flat)
-        mean = flat.mean(0) * n / (n + prior)
-        var = (prior + n * flat.var(0) + flat.mean(0) ** 2 * prior * n / (n + prior)) / (n + prior)
-        np.testing.assert_allclose(np.asarray(stats.count[w]), n + prior, rtol=1e-6)
-        np.testing.assert_allclose(np.asarray(stats.mean[w]), mean, rtol=1e-4, atol=1e-6)
-        np.testing.assert_allclose(np.asarray(stats.var[w]), var, rtol=2e-3, atol=1e-7)
-        expected = np.clip((history[w, -1] - mean) / np.sqrt(var + 1e-8), -10, 10)
-        got = np.stack([obs[a][w] for a in view.agents])
-        np.testing.assert_allclose(got, expected, atol=5e-3)
-    np.testing.assert_allclose(state.info["final_obs"], raw_state.info["final_obs"], atol=1e-6)  # unstandardised
-    with pytest.raises(ValueError, match="normalize_obs must be True or False"):
-        jaxmarl.make("multi_hover", normalize_obs="yes")

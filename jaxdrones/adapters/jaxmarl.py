@@ -12,10 +12,6 @@ and ``vmap`` over worlds. Like JaxMARL's envs, ``step`` resets a world whose epi
 with `jaxdrones.wrappers.AutoReset`: the new episode is drawn from the world's own key chain (``state.key``), so a
 run is reproducible from the reset key alone and ``step``'s ``key`` is accepted for the signature but not used.
 
-``make(task, normalize_obs=True)`` standardises the observations with running statistics kept per world in the
-state (`jaxdrones.wrappers.NormalizeObservation`, gymnasium's ``NormalizeObservation`` in pure JAX), for baselines
-that do not normalise (JaxMARL's IPPO and MAPPO do not).
-
 JaxMARL is not a dependency: the spaces are this module's small jittable `Box` (JaxMARL's ``spaces.Box`` methods:
 ``sample(key)``, ``contains(x)``, ``shape``, ``dtype``, ``low``, ``high``).
 """
@@ -32,7 +28,6 @@ from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_
 from jaxdrones.envs.base import EnvState
 from jaxdrones.envs.core import TaskEnv
 from jaxdrones.wrappers.autoreset import AutoReset
-from jaxdrones.wrappers.normalize import CLIP, NormalizeObservation
 
 
 class Box:
@@ -74,14 +69,8 @@ class JaxMARLEnv:
         env: the stacked env.
         num_agents: D.
         agents: ``["drone_0", ..., "drone_{D-1}"]``.
-        observation_spaces, action_spaces: `Box` by agent: the agent's row of ``env.observation_bounds()`` (with
-            ``normalize_obs``: ±`jaxdrones.wrappers.normalize.CLIP`) and ``env.action_bounds()``.
-
-    Args:
-        env: the stacked env.
-        normalize_obs: standardise observations with running statistics per world
-            (`jaxdrones.wrappers.NormalizeObservation`: ``state.info["obs_norm"]``; ``state.info["final_obs"]``
-            stays unstandardised). They run on across the auto-resets and start anew at `reset`.
+        observation_spaces, action_spaces: `Box` by agent: the agent's row of ``env.observation_bounds()`` and
+            ``env.action_bounds()``.
 
     The state is the env's `EnvState` (with the auto-reset's ``info``). Actions are clipped to their box by the env;
     a non-finite action terminates the episode (``infos["invalid_action"]``), as in `TaskEnv.step`.
@@ -91,20 +80,15 @@ class JaxMARLEnv:
             adapter for those).
     """
 
-    def __init__(self, env: TaskEnv, normalize_obs: bool = False):
+    def __init__(self, env: TaskEnv):
         if env.config.vision:
             raise ValueError(f"the JaxMARL view takes state observations only, got vision={env.config.vision}; "
                              "the PettingZoo and gymnasium adapters take camera images")
-        if not isinstance(normalize_obs, bool):
-            raise ValueError(f"normalize_obs must be True or False, got {normalize_obs!r}")
         self.env = env
-        self.normalize_obs = normalize_obs
-        self._auto = NormalizeObservation(AutoReset(env)) if normalize_obs else AutoReset(env)
+        self._auto = AutoReset(env)
         self.num_agents = env.n_drones
         self.agents = agent_names(env.n_drones)
         low, high = env.observation_bounds()
-        if normalize_obs:
-            low, high = np.full_like(low, -CLIP), np.full_like(high, CLIP)
         a_low, a_high = env.action_bounds()
         self.observation_spaces = {a: Box(low[i], high[i]) for i, a in enumerate(self.agents)}
         self.action_spaces = {a: Box(a_low[i], a_high[i]) for i, a in enumerate(self.agents)}
@@ -184,18 +168,16 @@ class JaxMARLEnv:
         return jnp.stack(rows)
 
 
-def make(task: str, normalize_obs: bool = False, **options) -> JaxMARLEnv:
+def make(task: str, **options) -> JaxMARLEnv:
     """A multi-agent task as a `JaxMARLEnv`, e.g. ``make("flock", n_drones=5)``.
 
     Args:
         task: one of `jaxdrones.envs.MULTI_AGENT` (``multi_hover``, ``leader_follower``, ``flock``, ``meetup``,
             ``crossing``).
-        normalize_obs: standardise observations with running statistics per world (see `JaxMARLEnv`).
         **options: fields of the task's config, as for `jaxdrones.make`.
 
     Raises:
         ValueError: a single-agent or unknown task (the message names the multi-agent tasks), an invalid option or
-            value, an ``n_drones`` the task does not allow, camera images in the observation, or a
-            ``normalize_obs`` that is not a bool.
+            value, an ``n_drones`` the task does not allow, or camera images in the observation.
     """
-    return JaxMARLEnv(make_multi_agent(task, **options), normalize_obs=normalize_obs)
+    return JaxMARLEnv(make_multi_agent(task, **options))
