@@ -43,11 +43,6 @@ def _after_fork_in_child() -> None:
 os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
-def forked_after_jax() -> bool:
-    """True in a process forked (directly or not) from one where JAX had started a backend."""
-    return _forked_after_jax
-
-
 def check_not_forked() -> None:
     """Refuse to run jaxdrones in a process forked after JAX started (see the module docstring).
 

@@ -147,7 +147,7 @@ class GymnasiumEnv(gym.Env):
         self.observation_space, self.action_space = spaces(env)
         self._reset, self._step = compiled(env)
         self._state = None
-        self._view = HumanView(env.task.name, env.config.ctrl_freq) if render_mode == "human" else None
+        self._view = HumanView.for_mode(env, render_mode)
 
     def __reduce__(self):
         return type(self), self._init_args
@@ -232,6 +232,12 @@ class HumanView:
         self.title, self.fps = title, fps
         self._figure = self._image = None
 
+    @classmethod
+    def for_mode(cls, env: Env, render_mode: str | None) -> HumanView | None:
+        """The window of ``env`` (titled by its task, paced at its control rate) for ``render_mode="human"``, else
+        None."""
+        return cls(env.task.name, env.config.ctrl_freq) if render_mode == "human" else None
+
     def show(self, frame: np.ndarray) -> None:
         """Draw ``frame`` u8[H, W, 3] in the window (opened, or reopened if the user closed it)."""
         import matplotlib.pyplot as plt
@@ -291,7 +297,7 @@ class GymnasiumVectorEnv(VectorEnv):
         self._state = None
         self._needs_reset = None
         self._key = None
-        self._view = HumanView(env.task.name, env.config.ctrl_freq) if render_mode == "human" else None
+        self._view = HumanView.for_mode(env, render_mode)
 
     def _step_worlds(self, state, action, needs_reset):
         shape = (action.shape[0], self.env.n_drones, self.env.action_size)

@@ -79,7 +79,7 @@ class PettingZooEnv(ParallelEnv):
         self._reset, self._step = compiled(env)
         self._state = None
         self.np_random = None
-        self._view = HumanView(env.task.name, env.config.ctrl_freq) if render_mode == "human" else None
+        self._view = HumanView.for_mode(env, render_mode)
 
     def observation_space(self, agent: str) -> gym.Space:
         """The observation space of ``agent`` (cached: the same object at every call)."""
