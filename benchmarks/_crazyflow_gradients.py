@@ -40,7 +40,8 @@ def main(argv=None) -> int:
           flush=True)
     for horizon in args.horizons:
         for worlds in args.worlds:
-            sim = Sim(n_worlds=worlds, n_drones=1, dynamics="first_principles", control="rotor_vel", freq=SIM_FREQ)
+            sim = Sim(n_worlds=worlds, n_drones=1, dynamics="first_principles", control="rotor_vel", freq=SIM_FREQ,
+                      device="gpu" if jax.default_backend() == "gpu" else "cpu")  # crazyflow's default: "cpu"
             constants = sim_module.load_dynamics_params(sim.dynamics, sim.drone)
             hover = float(sim_module.motor_force2rotor_vel(np.asarray(constants["mass"] * 9.81 / 4),
                                                            constants["rpm2thrust"]))

@@ -1,6 +1,6 @@
 """Worker of `envs.py`: env-steps/s of crazyflow's gymnasium vector env, run in crazyflow's own venv.
 
-``gymnasium.make_vec("DroneReachPos-v0", num_envs=N, freq=<ctrl Hz>, device="cpu")`` (crazyflow's attitude control
+``gymnasium.make_vec("DroneReachPos-v0", num_envs=N, freq=<ctrl Hz>, device=<the JAX backend: "gpu" or "cpu">)`` (crazyflow's attitude control
 and default ``so_rpy`` model; its env class fixes the physics at 500 Hz, so a 30 Hz step is 500 // 30 = 16
 substeps, with a warning that 500 is not a multiple of 30), wrapped in crazyflow's ``NormalizeActions`` (actions in
 [-1, 1]) and gymnasium's ``JaxToNumpy`` (NumPy in and out), timed by `envs.time_vector_env`, the loop that times
@@ -40,13 +40,15 @@ def main(argv=None) -> int:
     import gymnasium
     import jax
     from crazyflow.envs import NormalizeActions
+
+    DEVICE = "gpu" if jax.default_backend() == "gpu" else "cpu"  # crazyflow's default is "cpu" on any machine
     from gymnasium.wrappers.vector import JaxToNumpy
 
     def make(n):
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Simulation frequency should be a multiple")
             return JaxToNumpy(NormalizeActions(gymnasium.make_vec(ENV_ID, num_envs=n, freq=args.ctrl_freq,
-                                                                  device="cpu")))
+                                                                  device=DEVICE)))
 
     env = make(1)
     sim = env.unwrapped.sim

@@ -33,7 +33,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxdrones.adapters import jaxmarl as jd_marl  # noqa: E402
-from jaxdrones.training.ppo import episode_outcomes, episode_statistics, rollout_policy  # noqa: E402
+from jaxdrones.training.evaluation import episode_outcomes, episode_statistics, rollout_policy  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

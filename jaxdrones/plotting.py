@@ -126,16 +126,18 @@ def _check(flight: Mapping) -> dict:
 
 
 def plot_learning_curve(history: list[Mapping], path: str | os.PathLike, *, title: str | None = None,
-                        metric: str = "mean_distance_m", metric_label: str = "mean distance to target over episode (m)"
-                        ) -> str:
+                        metric: str = "success_value", metric_label: str = "final distance (m)",
+                        threshold: float | None = None) -> str:
     """Plot evaluation return and the task's success metric against env steps.
 
     Args:
-        history: rows with ``env_steps``, ``episode_reward`` and ``metric`` (as `ProgressLog` records).
+        history: rows with ``env_steps``, ``episode_reward`` and ``metric`` (as
+            `jaxdrones.training.progress.ProgressLog` records).
         path: output image file.
         title: figure title.
         metric: the row key of the metric to plot on the right (log scale).
-        metric_label: its axis label.
+        metric_label: its axis label, with its unit.
+        threshold: drawn as a dashed line: the value below which the task counts as solved.
 
     Returns:
         ``path`` as a string.
@@ -146,7 +148,10 @@ def plot_learning_curve(history: list[Mapping], path: str | os.PathLike, *, titl
     fig, (ax_r, ax_d) = plt.subplots(1, 2, figsize=(10, 3.8))
     ax_r.plot(steps, [row["episode_reward"] for row in history], marker="o")
     ax_r.set_ylabel("evaluation episode return")
-    ax_d.plot(steps, [row[metric] for row in history], marker="o", color="tab:red")
+    ax_d.plot(steps, [row[metric] for row in history], marker="o", color="tab:red", label="evaluation")
+    if threshold is not None:
+        ax_d.axhline(threshold, color="k", linestyle="--", linewidth=1, label=f"solved below {threshold:g}")
+        ax_d.legend(loc="upper right")
     ax_d.set_ylabel(metric_label)
     ax_d.set_yscale("log")
     for ax in (ax_r, ax_d):

@@ -13,6 +13,13 @@ import pytest
 sys.path.insert(0, os.path.dirname(__file__))
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _compile_cache_in_tmp(tmp_path_factory):
+    """``jaxdrones train`` turns JAX's persistent compilation cache on in the user's cache folder: the suite's runs
+    use a folder of their own."""
+    os.environ["JAXDRONES_CACHE_DIR"] = str(tmp_path_factory.mktemp("jaxdrones_xla_cache"))
+
+
 @pytest.fixture
 def key():
     """A fixed typed PRNG key."""

@@ -15,7 +15,7 @@ import pytest
 import jaxdrones as jd
 from jaxdrones.envs.core import Task
 from jaxdrones.envs.tasks.multi import Crossing, CrossingConfig
-from jaxdrones.training.ppo import episode_outcomes, episode_statistics, rollout_policy
+from jaxdrones.training.evaluation import episode_outcomes, episode_statistics, rollout_policy
 
 
 def _reference(env, steps):

@@ -348,7 +348,8 @@ def test_vmap_auto_reset_equals_vmapped_auto_reset(randomize):
             np.testing.assert_array_equal(b.params.mass, env.params.mass)
             per_world = b.replace(params=jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), b.params))
         for x, y in zip(_key_free(a), _key_free(per_world), strict=True):
-            np.testing.assert_array_equal(x, y)
+            # Equal up to float32 rounding: XLA may fuse the two programs' arithmetic differently (1 ulp seen).
+            np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-7)
     # The time limit then ends at once the 19 worlds that were never reset (all but worlds 0-11 and 30).
     assert ended[5] == 3 and ended[9] == 12 and ended[14] == n - 13
     assert not np.allclose(a.sim.pos[1], b.sim.pos[2])

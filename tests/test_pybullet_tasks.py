@@ -109,12 +109,13 @@ def test_trained_hover_policy_flies_alike_on_both_backends():
     (on the JAX env alone, moving the start by 1e-6 m changes positions by centimetres within the episode), so the
     backends are compared on the statistics, not episode by episode.
     """
-    from jaxdrones.training import PPOConfig, rollout_policy, train
+    from jaxdrones.training import rollout_policy
+    from jaxdrones.training.brax_ppo import BraxPPOConfig, make_policy, train
 
     env_jax = jd.make("hover", action_type="one_d_rpm", obs_type="kin")  # the paper's 1-D setting
-    make_policy, params = train(env_jax, PPOConfig(num_timesteps=1_500_000, num_evals=2, num_envs=1024, batch_size=1024,
-                                                   learning_rate=2e-3, discounting=0.97))
-    policy = make_policy(params, deterministic=True)
+    networks, params = train(env_jax, BraxPPOConfig(num_timesteps=1_500_000, num_evals=2, num_envs=1024,
+                                                    batch_size=1024, learning_rate=2e-3, discounting=0.97))
+    policy = make_policy(networks, params)
     keys = jax.random.split(jax.random.key(1), 16)
     runs = {}
     with jd.make("hover", action_type="one_d_rpm", obs_type="kin", backend="pybullet") as env_pb:

@@ -63,7 +63,7 @@ def test_train_cli_outputs_run_folders_and_reload(tmp_path, capsys, compile_cach
     assert summary["success"] == (summary["eval_final_pos_error_m"] < 0.05 and summary["eval"]["terminated_rate"] == 0)
     progress = json.loads((run / "progress.json").read_text())
     steps = [row["env_steps"] for row in progress]
-    assert steps[0] == 0 and steps == sorted(steps) and steps[-1] == summary["env_steps"]
+    assert steps[0] > 0 and steps == sorted(steps) and steps[-1] == summary["env_steps"]
     assert all(math.isfinite(row["episode_reward"]) for row in progress)
 
     # The saved policy reproduces the run's evaluation (same key as `train_hover`: split(key(seed + 1))[0]).
@@ -166,10 +166,12 @@ def test_train_cli_gradient_algos_learn_save_and_reload(algo, tmp_path, capsys):
     assert f"in {run}" in capsys.readouterr().out
     assert sorted(p.name for p in run.iterdir()) == sorted(TRAIN_OUTPUTS)
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["algo"] == algo and summary[algo]["num_envs"] == 8 and summary["env_steps"] >= 100_000
+    assert summary["algo"] == algo and summary["config"]["num_envs"] == 8 and summary["env_steps"] >= 100_000
     progress = json.loads((run / "progress.json").read_text())
-    assert progress[0]["env_steps"] == 0 and progress[-1]["env_steps"] == summary["env_steps"]
-    assert progress[-1]["metric"] < 0.7 * progress[0]["metric"]  # mean distance over evaluation episodes, m
+    assert progress[-1]["env_steps"] == summary["env_steps"]
+    assert progress[-1]["success_value"] == summary["success_value"]
+    # The final distance fell below that of the first evaluation, after a ninth of the run.
+    assert progress[-1]["success_value"] < 0.7 * progress[0]["success_value"]
     env, policy = load_policy(run)
     stats = evaluate(env, policy, jax.random.split(jax.random.key(0 + 1))[0], 64)
     assert stats["final_pos_error_m"] == pytest.approx(summary["eval_final_pos_error_m"], abs=1e-5)
@@ -295,47 +297,13 @@ def test_mappo_variants_train_on_three_drones(kwargs):
                                **kwargs)
     seen = []
     nets, params = mappo.train(env, config, progress=lambda steps, metrics: seen.append((steps, metrics)))
-    assert [s for s, _ in seen] == [0, config.total_steps] and np.isfinite(seen[-1][1]["train/value_loss"])
+    assert [s for s, _ in seen] == [config.total_steps // 2, config.total_steps]
+    assert np.isfinite(seen[-1][1]["train/value_loss"])
     leaves = jax.tree.leaves(params["actor"])
     assert all(leaf.shape[0] == 3 for leaf in leaves) == (not kwargs["share_params"])
     obs = env.reset(jax.random.key(0)).obs
     action, _ = mappo.make_policy(nets, params)(obs.reshape(-1), None)
     assert action.shape == (3 * env.action_size,) and np.all(np.isfinite(action))
-
-
-_SHARDED_MAPPO = """
-import os, sys
-os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=" + sys.argv[1]
-import jax, numpy as np
-import jaxdrones as jd
-from jaxdrones.training import mappo
-env = jd.make("leader_follower", n_drones=3, action_type="one_d_rpm")
-config = mappo.MAPPOConfig(num_timesteps=64, num_envs=8, unroll_length=4, minibatches=2, num_evals=2)
-seen = []
-_, params = mappo.train(env, config, progress=lambda steps, metrics: seen.append(metrics.get("train/value_loss")))
-kernel = params["actor"]["params"]["Dense_2"]["kernel"]
-print(len(kernel.sharding.device_set), float(seen[-1]))
-np.save(sys.argv[2], np.asarray(kernel))
-"""
-
-
-def test_mappo_spreads_worlds_over_devices(tmp_path):
-    """With 2 local devices MAPPO splits the worlds over both (its parameters are replicated on both) and trains the
-    same parameters as on one device."""
-    import subprocess
-    import sys
-
-    outputs = {}
-    for devices in ("1", "2"):
-        path = tmp_path / f"kernel_{devices}.npy"
-        run = subprocess.run([sys.executable, "-c", _SHARDED_MAPPO, devices, str(path)], capture_output=True,
-                             text=True, timeout=300)
-        assert run.returncode == 0, run.stderr[-2000:]
-        used, loss = run.stdout.split()
-        assert int(used) == int(devices) and math.isfinite(float(loss))
-        outputs[devices] = np.load(path)
-    assert np.abs(outputs["1"]).max() > 0.01
-    np.testing.assert_allclose(outputs["2"], outputs["1"], rtol=0, atol=1e-6)
 
 
 @pytest.mark.slow
@@ -352,7 +320,7 @@ def test_train_cli_mappo_leader_follower_saves_and_reloads(tmp_path, capsys):
     assert summary["algo"] == "mappo" and summary["env"]["action_type"] == "one_d_rpm"
     assert summary["env"]["n_drones"] == 2 and "final_max_altitude_error" in summary["eval"]
     progress = json.loads((run / "progress.json").read_text())
-    assert progress[-1]["metric"] < progress[0]["metric"]
+    assert progress[-1]["success_value"] < progress[0]["success_value"]
     env, policy = load_policy(run)
     stats = evaluate(env, policy, jax.random.split(jax.random.key(0 + 1))[0], 64)
     assert stats["success_value"] == pytest.approx(summary["success_value"], abs=1e-5)
@@ -374,7 +342,7 @@ def test_train_multi_hover_trains_from_wider_starts_and_evaluates_the_tasks(tmp_
              ({"n_drones": 3, "action_type": "one_d_rpm"}, {})]
     for i, (overrides, expected) in enumerate(cases):
         summary = train_task("multi_hover", str(tmp_path / f"run{i}"), env_overrides=overrides, progress=False,
-                             algo="mappo", algo_config=tiny, n_eval_episodes=64)
+                             algo="mappo", config=tiny, n_eval_episodes=64)
         assert summary["train_env_overrides"] == expected
         for field in ("start_tilt", "start_ang_vel"):
             want = expected.get(field, overrides.get(field))
@@ -414,13 +382,13 @@ def test_load_policy_into_another_env_checks_the_team(tmp_path):
     """A saved policy flies in an env of the same task and team with other physics (here downwash on); an env of
     another task or team size is refused."""
     import jaxdrones as jd
-    from jaxdrones.training import mappo
+    from jaxdrones.training import checkpoint, mappo
 
     env = jd.make("leader_follower", n_drones=3, action_type="one_d_rpm")
     config = mappo.MAPPOConfig(num_timesteps=8, num_envs=4, unroll_length=2, minibatches=1, num_evals=2)
     nets, params = mappo.train(env, config)
-    mappo.save(str(tmp_path / "policy.pkl"), params, "leader_follower", {"n_drones": 3, "action_type": "one_d_rpm"},
-               config)
+    checkpoint.save(tmp_path / "policy.pkl", "mappo", params, "leader_follower",
+                    {"n_drones": 3, "action_type": "one_d_rpm"}, config)
     coupled = jd.make("leader_follower", n_drones=3, action_type="one_d_rpm", downwash=True)
     got, policy = load_policy(tmp_path, env=coupled)
     assert got is coupled and got.config.downwash

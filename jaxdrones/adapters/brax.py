@@ -9,20 +9,87 @@ brax's trainers take an env and a ``wrap_env_fn``; give them `BraxEnv` and `wrap
     make_policy, params, _ = ppo.train(environment=BraxEnv(env), wrap_env_fn=wrap_for_brax_training,
                                        episode_length=env.episode_length, num_timesteps=1_000_000, ...)
 
-(`jaxdrones.training.train` does this.) Passing ``jd.make("hover")`` itself as brax's ``environment`` does not
+(`jaxdrones.training.train` does this.) Importing this module also makes brax's trainers run on JAX releases
+without ``jax.device_put_replicated`` (removed in jax 0.10; brax 0.14 still calls it): see `patch_brax`.
+
+Passing ``jd.make("hover")`` itself as brax's ``environment`` does not
 work: brax's own wrappers expect its ``State`` with a physics ``pipeline_state``.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
+
 import jax
 import jax.numpy as jnp
-from brax.envs.base import Env as BraxBaseEnv
-from brax.envs.base import State as BraxState
-from brax.envs.wrappers import training as brax_training
+
+# brax imports MuJoCo, whose optional GPU plugins print "Failed to import warp" on a machine without them.
+with contextlib.redirect_stdout(io.StringIO()):
+    from brax.envs.base import Env as BraxBaseEnv
+    from brax.envs.base import State as BraxState
+    from brax.envs.wrappers import training as brax_training
+    from brax.training.agents.ppo import networks, train  # noqa: F401  (imported here, quietly, for patch_brax)
 
 from jaxdrones.envs.base import Env
 from jaxdrones.wrappers.autoreset import AutoReset
+
+#: brax's modules that call ``jax.device_put_replicated`` (brax 0.14.2): `patch_brax` gives them a stand-in.
+BRAX_REPLICATING_MODULES = ("brax.training.pmap", "brax.training.agents.ppo.train", "brax.training.agents.apg.train",
+                            "brax.training.agents.sac.train")
+
+
+def device_put_replicated(x, devices):
+    """A copy of every leaf of ``x`` on each of ``devices``, stacked on a new leading axis that ``jax.pmap`` splits
+    over them: what ``jax.device_put_replicated`` did before jax 0.10 removed it."""
+    import numpy as np
+
+    devices = list(devices)
+    sharding = jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devices), ("devices",)),
+                                          jax.sharding.PartitionSpec("devices"))
+
+    def put(leaf):
+        leaf = jnp.asarray(leaf)
+        shards = [jax.device_put(leaf[None], device) for device in devices]
+        return jax.make_array_from_single_device_arrays((len(devices),) + leaf.shape, sharding, shards)
+
+    return jax.tree.map(put, x)
+
+
+class _JaxWithReplicated:
+    """The ``jax`` module as brax's trainers see it after `patch_brax`: every attribute is jax's, plus
+    `device_put_replicated`."""
+
+    device_put_replicated = staticmethod(device_put_replicated)
+
+    def __getattr__(self, name):
+        return getattr(jax, name)
+
+
+def patch_brax() -> list[str]:
+    """Give brax's modules that call ``jax.device_put_replicated`` (`BRAX_REPLICATING_MODULES`) a ``jax`` that has
+    it, where the installed JAX does not (jax >= 0.10); returns the modules patched. Nothing else of brax or of
+    ``jax`` changes: the stand-in (`device_put_replicated`) is seen by those modules only, and what it builds is
+    what the removed function built (tested: brax's PPO trains on jax 0.10 as on 0.9). Idempotent; a no-op on a
+    JAX that still has the function."""
+    import importlib
+
+    if hasattr(jax, "device_put_replicated"):
+        return []
+    patched = []
+    for name in BRAX_REPLICATING_MODULES:
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):
+                module = importlib.import_module(name)
+        except ImportError:  # a brax without this trainer
+            continue
+        if getattr(module, "jax", None) is jax:
+            module.jax = _JaxWithReplicated()
+            patched.append(name)
+    return patched
+
+
+patch_brax()
 
 
 class BraxEnv(BraxBaseEnv):

@@ -398,6 +398,8 @@ class Task(abc.ABC):
     success_metric: str = "distance"
     success_at: str = "final"
     success_threshold: float = 0.05
+    #: The unit of `success_metric` (and its threshold), for progress displays and plots.
+    success_unit: str = "m"
     #: The values `success_at` may take.
     SUCCESS_AT = ("final", "mean", "max")
     min_drones: int = 1

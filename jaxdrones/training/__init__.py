@@ -1,15 +1,18 @@
-"""Training: batched PPO through brax.training, evaluation, saving and loading policies.
+"""Training: the table of trainers (`jaxdrones.training.trainers`: our PPO, brax's PPO, APG, SHAC, MAPPO, IPPO),
+their shared loop (`common`), evaluation (`evaluation`), progress display (`progress`), checkpoints (`checkpoint`)
+and the run of ``jaxdrones train`` (`run.train_task`).
 
-The names below are loaded on first use, so that importing ``jaxdrones.training.hover`` (e.g. for the command
-line's parser) does not import brax.
+The names below are loaded on first use, so that importing ``jaxdrones.training`` imports no trainer.
 """
 
-__all__ = ["PPOConfig", "evaluate", "load_policy", "rollout_policy", "train"]
+_EXPORTS = {"evaluate": "evaluation", "rollout_policy": "evaluation", "load_policy": "checkpoint",
+            "train_task": "run"}
+__all__ = sorted(_EXPORTS)
 
 
 def __getattr__(name: str):
-    if name in __all__:
-        from jaxdrones.training import ppo
+    if name in _EXPORTS:
+        import importlib
 
-        return getattr(ppo, name)
+        return getattr(importlib.import_module(f"jaxdrones.training.{_EXPORTS[name]}"), name)
     raise AttributeError(f"module 'jaxdrones.training' has no attribute {name!r}")

@@ -14,7 +14,6 @@ The policy is an MLP (tanh hidden layers, tanh output in the action box), determ
 from __future__ import annotations
 
 import dataclasses
-import pickle
 from collections.abc import Callable
 from typing import ClassVar
 
@@ -37,11 +36,11 @@ class APGConfig(Schedule):
         learning_rate: Adam's step size.
         max_grad_norm: the gradient's global norm is clipped to this.
         hidden_layer_sizes: of the policy MLP.
-        num_evals: evaluations (learning-curve points) over the run, ≥ 2.
+        num_evals: evaluations (learning-curve points) over the run, one after each chunk of updates, ≥ 1.
         seed: random seed.
 
     Raises:
-        ValueError: a count below 1 (``num_evals`` below 2) or a non-positive rate or norm.
+        ValueError: a count below 1 or a non-positive rate or norm.
     """
 
     num_timesteps: int = 1_000_000
@@ -56,7 +55,7 @@ class APGConfig(Schedule):
     algo: ClassVar[str] = "apg"
 
     def __post_init__(self):
-        check_config(self, integers={"num_timesteps": 1, "num_envs": 1, "horizon": 1, "num_evals": 2, "seed": 0},
+        check_config(self, integers={"num_timesteps": 1, "num_envs": 1, "horizon": 1, "num_evals": 1, "seed": 0},
                      positive=("learning_rate", "max_grad_norm"))
 
     @property
@@ -64,12 +63,12 @@ class APGConfig(Schedule):
         return self.num_envs * self.horizon
 
 
-def make_network(config: APGConfig, action_size: int):
-    """The policy network (flax): obs f[..., n_obs] -> action f[..., action_size] in (-1, 1)."""
+def make_network(config: APGConfig, env: Env):
+    """The policy network (flax): obs f[..., n_obs] -> action f[..., env.action_size] in (-1, 1)."""
     import flax.linen as nn
 
     # A small last layer: the first actions are near 0 (hover RPM for the rpm action).
-    return mlp(config.hidden_layer_sizes, action_size, nn.initializers.normal(0.01), squash=True)
+    return mlp(config.hidden_layer_sizes, env.action_size, nn.initializers.normal(0.01), squash=True)
 
 
 def make_policy(network, params) -> Callable:
@@ -90,10 +89,14 @@ def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, di
     Args:
         env: a jaxdrones env without camera images.
         config: `APGConfig`.
-        progress: called as ``progress(env_steps, metrics)`` at each of ``config.num_evals`` points, the first
-            before training (``train/loss``, the mean window loss of the last update, ``train/grad_norm``, and
-            what ``evaluate`` returns).
-        evaluate: ``evaluate(network, params) -> dict`` of metrics of the current policy (see `make_policy`).
+        progress: called as ``progress(env_steps, metrics)`` after each of the ``config.num_evals`` chunks of
+            updates (floats) and, under ``"eval"``, what ``evaluate``
+            returned (NumPy arrays).
+        evaluate: ``evaluate(network, params) -> pytree of arrays``, traced into the compiled chunk after its updates
+            (e.g. `jaxdrones.training.evaluation.episode_outcomes` of the current policy, see `make_policy`).
+
+    Raises:
+        jaxdrones.training.common.Interrupted: on Ctrl-C, with the result of the last completed chunk.
 
     Returns:
         ``(network, params)``: the flax module and its trained parameters (see `make_policy`).
@@ -105,9 +108,7 @@ def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, di
 
     auto = VmapAutoReset(env)
     batched_loss = jax.vmap(env.loss, in_axes=(world_axes(auto.params_shared),))
-    network = make_network(config, env.action_size)
-    key_init, key_reset = jax.random.split(jax.random.key(config.seed))
-    params = network.init(key_init, jnp.zeros((env.observation_size,), env.dtype))
+    network = make_network(config, env)
     optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate))
 
     def window_loss(params, state):
@@ -125,25 +126,13 @@ def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, di
         carry = (optax.apply_updates(params, updates), opt_state, jax.lax.stop_gradient(state))
         return carry, {"train/loss": loss, "train/grad_norm": optax.tree.norm(grad)}
 
-    carry = (params, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs)))
-    carry = run_updates(config, update, carry, lambda c: c[0], network, progress, evaluate)
-    return network, carry[0]
+    def init(key):
+        key_init, key_reset = jax.random.split(key)
+        params = network.init(key_init, jnp.zeros((env.observation_size,), env.dtype))
+        return params, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs))
 
+    def result(carry):
+        return network, carry[0]
 
-def save(path: str, params, env_name: str, env_overrides: dict, config: APGConfig) -> None:
-    """Save a policy trained by APG or SHAC (``config`` an `APGConfig` or a `SHACConfig`) with what rebuilds it
-    (`jaxdrones.training.load_policy`)."""
-    payload = {"algo": config.algo, "params": jax.tree.map(np.asarray, params), "env_name": env_name,
-               "env_overrides": env_overrides, f"{config.algo}_config": dataclasses.asdict(config)}
-    with open(path, "wb") as f:
-        pickle.dump(payload, f)
-
-
-def load(payload: dict, env: Env) -> Callable:
-    """The policy of a payload written by `save`, for ``env``."""
-    from jaxdrones.training.shac import SHACConfig
-
-    config_cls = {"apg": APGConfig, "shac": SHACConfig}[payload["algo"]]
-    fields = payload[f"{payload['algo']}_config"]
-    config = config_cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
-    return make_policy(make_network(config, env.action_size), payload["params"])
+    run_eval = None if evaluate is None else (lambda carry: evaluate(*result(carry)))
+    return run_updates(config, init, update, result, config.num_envs, progress, run_eval)

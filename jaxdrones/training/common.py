@@ -30,7 +30,7 @@ def check_config(config, *, integers: dict[str, int] | None = None, positive=(),
 
 
 class Schedule:
-    """The schedule of a trainer's config: ``num_timesteps`` env steps in ``num_evals - 1`` jitted chunks of updates
+    """The schedule of a trainer's config: ``num_timesteps`` env steps in ``num_evals`` jitted chunks of updates
     of `steps_per_update` env steps (a config mixin; the config defines ``steps_per_update``)."""
 
     num_timesteps: int
@@ -39,12 +39,12 @@ class Schedule:
     @property
     def updates_per_eval(self) -> int:
         """Updates between two evaluations (one jitted call)."""
-        return max(1, -(-self.num_timesteps // (self.steps_per_update * (self.num_evals - 1))))
+        return max(1, -(-self.num_timesteps // (self.steps_per_update * self.num_evals)))
 
     @property
     def total_steps(self) -> int:
         """The env steps `run_updates` runs (``num_timesteps`` rounded up to whole chunks)."""
-        return (self.num_evals - 1) * self.updates_per_eval * self.steps_per_update
+        return self.num_evals * self.updates_per_eval * self.steps_per_update
 
 
 def mlp(hidden_layer_sizes: tuple[int, ...], out: int, last_init=None, squash: bool = False):
@@ -64,45 +64,96 @@ def mlp(hidden_layer_sizes: tuple[int, ...], out: int, last_init=None, squash: b
     return MLP()
 
 
-def spread_worlds(shared, worlds, n_worlds: int):
-    """Place a trainer's carry on the local devices: ``worlds`` (the env states, world axis first) split along the
-    world axis (`jaxdrones.sim.shard_worlds`), ``shared`` (parameters, optimiser state, keys) replicated. The jitted
-    update then steps each device's worlds on that device, and XLA sums the gradients across devices. Uses the
-    largest number of local devices that divides ``n_worlds``; with one, both are returned as they are.
+class Interrupted(Exception):
+    """Training stopped by Ctrl-C (``KeyboardInterrupt``) between two evaluations.
 
-    Returns:
-        ``(shared, worlds)`` placed.
+    Attributes:
+        result: what the trainer returns, from the last completed chunk of updates (the initial parameters if none
+            completed).
+        env_steps: the env steps trained before the stop.
     """
-    from jaxdrones.sim import shard_worlds
 
-    devices = jax.local_devices()
+    def __init__(self, result, env_steps: int):
+        super().__init__(f"training interrupted after {env_steps} env steps")
+        self.result, self.env_steps = result, env_steps
+
+
+def host_array(x) -> np.ndarray:
+    """A NumPy copy of a JAX array, also of one replicated over the devices of several processes (where
+    ``np.asarray`` cannot gather it: each process holds a full copy)."""
+    if isinstance(x, jax.Array) and not x.is_fully_addressable:
+        return np.asarray(x.addressable_shards[0].data)
+    return np.asarray(x)
+
+
+def world_shardings(tree, n_worlds: int):
+    """Shardings that spread a trainer's carry over the devices of every process (`jax.devices()`): each leaf whose
+    leading axis has ``n_worlds`` entries (the worlds' states, observations, keys) split along it, every other leaf
+    (parameters, optimiser state, shared env params) replicated. Uses the largest number of devices that divides
+    ``n_worlds``; None with one device (no sharding needed).
+
+    Sharding never changes what a jitted program computes, only where: worlds do not interact, so each device steps
+    its own, and XLA sums gradients across devices where a loss averages over worlds.
+    """
+    devices = jax.devices()
     count = max(n for n in range(1, len(devices) + 1) if n_worlds % n == 0)
     if count == 1:
-        return shared, worlds
+        return None
     mesh = jax.sharding.Mesh(np.array(devices[:count]), ("worlds",))
+    split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("worlds"))
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    return jax.device_put(shared, replicated), shard_worlds(worlds, devices=devices[:count])
+    return jax.tree.map(lambda x: split if x.ndim and x.shape[0] == n_worlds else replicated, tree)
 
 
-def run_updates(config: Schedule, update: Callable, carry, policy_params: Callable, network,
-                progress: Callable[[int, dict], None] | None, evaluate: Callable[..., dict] | None):
-    """The training loop: ``config.num_evals - 1`` jitted chunks of ``config.updates_per_eval`` calls of
-    ``update(carry, None) -> (carry, metrics)`` (a `jax.lax.scan` body), with ``progress(env_steps, metrics)``
-    before the first chunk and after each: the last update's metrics and what
-    ``evaluate(network, policy_params(carry))`` returns. Returns the final carry."""
+def run_updates(config: Schedule, init: Callable, update: Callable, result: Callable, n_worlds: int,
+                progress: Callable[[int, dict], None] | None = None, evaluate: Callable | None = None):
+    """The training loop of our trainers: two compiled programs, ``init`` and a chunk of updates.
 
-    @jax.jit
+    ``init(key) -> carry`` builds the parameters, optimiser state and the worlds' states (jitted, with the carry
+    spread over every device: `world_shardings`). Then ``config.num_evals`` calls of one jitted chunk: a
+    `jax.lax.scan` of ``config.updates_per_eval`` calls of ``update(carry, None) -> (carry, metrics)``, followed in
+    the same program by ``evaluate(carry)`` (a pytree of arrays, e.g. per-episode outcomes of the current policy).
+    Each chunk is dispatched before the previous chunk's metrics are read, so that the host's work (the progress
+    display) overlaps the next chunk; nothing else leaves the device during training.
+
+    ``progress(env_steps, metrics)`` is called after each chunk, with the last update's metrics (floats) and the
+    evaluation under ``"eval"`` (NumPy arrays).
+
+    Returns:
+        ``result(carry)`` of the final carry.
+
+    Raises:
+        Interrupted: on Ctrl-C, with ``result`` of the last completed chunk's carry.
+    """
+    key = jax.random.key(config.seed)
+
     def chunk(carry):
-        return jax.lax.scan(update, carry, None, length=config.updates_per_eval)
+        carry, metrics = jax.lax.scan(update, carry, None, length=config.updates_per_eval)
+        metrics = {name: value[-1] for name, value in metrics.items()}
+        if evaluate is not None:
+            metrics["eval"] = evaluate(carry)
+        return carry, metrics
 
-    def report(steps, carry, metrics):
-        if progress is not None:
-            extra = evaluate(network, policy_params(carry)) if evaluate is not None else {}
-            progress(steps, {**metrics, **extra})
-
-    report(0, carry, {"train/loss": float("nan"), "train/grad_norm": float("nan")})
-    for k in range(1, config.num_evals):
-        carry, metrics = chunk(carry)
-        report(k * config.updates_per_eval * config.steps_per_update, carry,
-               {name: float(value[-1]) for name, value in metrics.items()})
-    return carry
+    steps_per_chunk = config.updates_per_eval * config.steps_per_update
+    init_c, carry, done = jax.jit(init), None, 0
+    try:
+        shardings = world_shardings(jax.eval_shape(init, key), n_worlds)
+        if shardings is None:
+            chunk_c = jax.jit(chunk)
+        else:
+            replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())
+            init_c = jax.jit(init, out_shardings=shardings)
+            chunk_c = jax.jit(chunk, in_shardings=(shardings,), out_shardings=(shardings, replicated))
+        carry = init_c(key)
+        pending = chunk_c(carry)
+        for k in range(1, config.num_evals + 1):
+            finished, metrics = pending
+            if k < config.num_evals:
+                pending = chunk_c(finished)  # runs while this chunk's metrics are read and shown
+            metrics = jax.tree.map(host_array, metrics)
+            carry, done = finished, k * steps_per_chunk
+            if progress is not None:
+                progress(done, {name: (value if name == "eval" else float(value)) for name, value in metrics.items()})
+    except KeyboardInterrupt:
+        raise Interrupted(result(init_c(key) if carry is None else carry), done) from None
+    return result(carry)

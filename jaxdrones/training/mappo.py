@@ -18,13 +18,12 @@ as the leader of a leader-follower team, weighs as much as one that many play: w
 the whole team, ``leader_follower`` with 5 drones failed on one seed of three, its leader climbing with the team);
 everything between two evaluations is one jitted `lax.scan`. With several local devices (GPUs, or CPU devices from
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) the worlds are split over them
-(`jaxdrones.training.common.spread_worlds`).
+(`jaxdrones.training.common.world_shardings`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import pickle
 from collections.abc import Callable
 
 import jax
@@ -32,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs.base import Env, EnvState
-from jaxdrones.training.common import Schedule, check_config, run_updates, spread_worlds
+from jaxdrones.training.common import Schedule, check_config, run_updates
 
 #: Critic inputs of `MAPPOConfig.critic`.
 CRITICS = ("central", "local")
@@ -59,12 +58,17 @@ class MAPPOConfig(Schedule):
             (independent PPO).
         share_params: one actor and one critic for all agents with an agent-id input (True) or per-agent networks.
         hidden_layer_sizes: of the actor and critic MLPs.
-        init_std: the Gaussian policy's initial standard deviation (in action units; it is learned).
-        num_evals: evaluations (learning-curve points) over the run, ≥ 2.
+        init_std: the Gaussian policy's initial standard deviation (in action units, or before the tanh with
+            ``squash``; it is learned).
+        squash: act with tanh of the Gaussian's sample (and tanh of its mean when deterministic), inside the action
+            box as brax's PPO does (its ``NormalTanhDistribution``), rather than with the sample itself, which the
+            env clips to the box. PPO's ratio is that of the Gaussian densities of the sample before the tanh (the
+            tanh's Jacobian cancels in it).
+        num_evals: evaluations (learning-curve points) over the run, one after each chunk of updates, ≥ 1.
         seed: random seed.
 
     Raises:
-        ValueError: a count below 1 (``num_evals`` below 2), a rate or weight out of range, an unknown critic, or
+        ValueError: a count below 1, a rate or weight out of range, an unknown critic, or
             ``num_envs · unroll_length`` not divisible by ``minibatches``.
     """
 
@@ -84,12 +88,13 @@ class MAPPOConfig(Schedule):
     share_params: bool = True
     hidden_layer_sizes: tuple[int, ...] = (64, 64)
     init_std: float = 0.5
+    squash: bool = False
     num_evals: int = 10
     seed: int = 0
 
     def __post_init__(self):
         check_config(self, integers={"num_timesteps": 1, "num_envs": 1, "unroll_length": 1, "epochs": 1,
-                                     "minibatches": 1, "num_evals": 2, "seed": 0},
+                                     "minibatches": 1, "num_evals": 1, "seed": 0},
                      positive=("learning_rate", "clip", "max_grad_norm", "init_std"),
                      nonnegative=("entropy_cost", "value_cost"), fractions=("discounting", "gae_lambda"))
         if self.critic not in CRITICS:
@@ -216,14 +221,20 @@ def world_features(state: EnvState) -> jax.Array:
     return jnp.concatenate([pos, vel], axis=-1).reshape(pos.shape[:-2] + (-1,))
 
 
+def make_network(config: MAPPOConfig, env: Env) -> Networks:
+    """The `Networks` of ``config`` for ``env``'s team, observation and action."""
+    return Networks(config, env.n_drones, env.observation_size, env.action_size)
+
+
 def make_policy(networks: Networks, params: dict) -> Callable:
-    """``policy(obs, key) -> (action, {})``, deterministic (the Gaussian's mean), on a world's flat observation
-    f[D·n_obs] (as brax's policies; see `jaxdrones.training.ppo.act`)."""
+    """``policy(obs, key) -> (action, {})``, deterministic (the Gaussian's mean, through a tanh with
+    ``config.squash``), on a world's flat observation f[D·n_obs] (as brax's policies; see
+    `jaxdrones.training.evaluation.act`)."""
 
     def policy(obs, key):
         del key
         mean = networks.actor(params, obs.reshape(networks.n_agents, networks.obs_size))
-        return mean.reshape(-1), {}
+        return (jnp.tanh(mean) if networks.config.squash else mean).reshape(-1), {}
 
     return policy
 
@@ -254,10 +265,14 @@ def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int
     Args:
         env: a jaxdrones env without camera images (any D ≥ 1).
         config: `MAPPOConfig`.
-        progress: called as ``progress(env_steps, metrics)`` at each of ``config.num_evals`` points, the first
-            before training (``train/policy_loss``, ``train/value_loss``, ``train/entropy``, ``train/std`` of the
-            last update and what ``evaluate`` returns).
-        evaluate: ``evaluate(networks, params) -> dict`` of metrics of the current policy (see `make_policy`).
+        progress: called as ``progress(env_steps, metrics)`` after each of the ``config.num_evals`` chunks of
+            updates (floats) and, under ``"eval"``, what ``evaluate``
+            returned (NumPy arrays).
+        evaluate: ``evaluate(networks, params) -> pytree of arrays``, traced into the compiled chunk after its updates
+            (e.g. `jaxdrones.training.evaluation.episode_outcomes` of the current policy, see `make_policy`).
+
+    Raises:
+        jaxdrones.training.common.Interrupted: on Ctrl-C, with the result of the last completed chunk.
 
     Returns:
         ``(networks, params)`` (see `make_policy`).
@@ -270,10 +285,7 @@ def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int
     auto = VmapAutoReset(env)
     axes = world_axes(auto.params_shared)
     central = config.critic == "central"
-    nets = Networks(config, env.n_drones, env.observation_size, env.action_size)
-    key_init, key_reset, key_run = jax.random.split(jax.random.key(config.seed), 3)
-    params = nets.init(key_init)
-    norm = params.pop("norm")  # the observation statistics: updated from the data, not by the optimiser
+    nets = make_network(config, env)
     optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate))
     features = jax.vmap(world_features, in_axes=(axes,)) if central else (lambda s: None)
     gamma = config.discounting
@@ -283,7 +295,7 @@ def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int
             world = features(state)
             mean = nets.actor(params, state.obs)
             action = mean + jnp.exp(params["log_std"]) * jax.random.normal(key, mean.shape, mean.dtype)
-            ended, nxt = auto.step_ended(state, action)
+            ended, nxt = auto.step_ended(state, jnp.tanh(action) if config.squash else action)
             sample = {"obs": state.obs, "world": world, "action": action,
                       "log_prob": _log_prob(mean, params["log_std"], action),
                       "value": nets.critic(params, state.obs, world), "reward": ended.reward,
@@ -336,26 +348,15 @@ def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int
         norm = update_norm(norm, data["obs"])  # after the update, which used the statistics the data was taken with
         return (params, norm, opt_state, state, key), metrics
 
-    state = auto.reset(jax.random.split(key_reset, config.num_envs))
-    shared_env = state.params if auto.params_shared else None  # one DroneParams for every world
-    (params, norm, opt_state, key_run, shared_env), state = spread_worlds(
-        (params, norm, optimizer.init(params), key_run, shared_env),
-        state.replace(params=None) if auto.params_shared else state, config.num_envs)
-    carry = (params, norm, opt_state, state.replace(params=shared_env) if auto.params_shared else state, key_run)
-    carry = run_updates(config, update, carry, lambda c: {**c[0], "norm": c[1]}, nets, progress, evaluate)
-    return nets, {**carry[0], "norm": carry[1]}
+    def init(key):
+        key_init, key_reset, key_run = jax.random.split(key, 3)
+        params = nets.init(key_init)
+        norm = params.pop("norm")  # the observation statistics: updated from the data, not by the optimiser
+        state = auto.reset(jax.random.split(key_reset, config.num_envs))
+        return params, norm, optimizer.init(params), state, key_run
 
+    def result(carry):
+        return nets, {**carry[0], "norm": carry[1]}
 
-def save(path: str, params, env_name: str, env_overrides: dict, config: MAPPOConfig) -> None:
-    """Save trained parameters with what rebuilds the policy (`jaxdrones.training.load_policy`)."""
-    payload = {"algo": config.algo, "params": jax.tree.map(np.asarray, params), "env_name": env_name,
-               "env_overrides": env_overrides, "mappo_config": dataclasses.asdict(config)}
-    with open(path, "wb") as f:
-        pickle.dump(payload, f)
-
-
-def load(payload: dict, env: Env) -> Callable:
-    """The policy of a payload written by `save`, for ``env``."""
-    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in payload["mappo_config"].items()}
-    nets = Networks(MAPPOConfig(**fields), env.n_drones, env.observation_size, env.action_size)
-    return make_policy(nets, payload["params"])
+    run_eval = None if evaluate is None else (lambda carry: evaluate(*result(carry)))
+    return run_updates(config, init, update, result, config.num_envs, progress, run_eval)

@@ -11,8 +11,8 @@ when it terminated; the world is reset and no gradient crosses the reset. The cr
 window's TD(λ) returns, computed with a slowly following target critic, for a few epochs of minibatches; the target
 follows the critic by Polyak averaging. Each drone of a world is one sample (they share the policy and the critic).
 
-The policy is deterministic, the network of `jaxdrones.training.apg`; the loop, saving and loading are shared with
-it (`jaxdrones.training.common.run_updates`, `jaxdrones.training.apg.save` and ``load``).
+The policy is deterministic, the network of `jaxdrones.training.apg`; the loop is shared with the other trainers
+(`jaxdrones.training.common.run_updates`).
 """
 
 from __future__ import annotations
@@ -112,10 +112,7 @@ def train(env: Env, config: SHACConfig = SHACConfig(), progress: Callable[[int, 
                          f"critic_minibatches={config.critic_minibatches} equal minibatches")
     auto = VmapAutoReset(env)
     batched_loss = jax.vmap(env.loss, in_axes=(world_axes(auto.params_shared),))
-    actor, critic = make_network(config, env.action_size), make_critic(config)
-    key_actor, key_critic, key_reset, key_shuffle = jax.random.split(jax.random.key(config.seed), 4)
-    obs0 = jnp.zeros((env.observation_size,), env.dtype)
-    actor_params, critic_params = actor.init(key_actor, obs0), critic.init(key_critic, obs0)
+    actor, critic = make_network(config, env), make_critic(config)
     actor_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate))
     critic_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
                              optax.adam(config.critic_learning_rate))
@@ -179,7 +176,15 @@ def train(env: Env, config: SHACConfig = SHACConfig(), progress: Callable[[int, 
         return carry, {"train/loss": loss, "train/grad_norm": optax.tree.norm(grad),
                        "train/critic_loss": critic_loss}
 
-    carry = (actor_params, critic_params, critic_params, actor_opt.init(actor_params),
-             critic_opt.init(critic_params), auto.reset(jax.random.split(key_reset, config.num_envs)), key_shuffle)
-    carry = run_updates(config, update, carry, lambda c: c[0], actor, progress, evaluate)
-    return actor, carry[0]
+    def init(key):
+        key_actor, key_critic, key_reset, key_shuffle = jax.random.split(key, 4)
+        obs0 = jnp.zeros((env.observation_size,), env.dtype)
+        actor_params, critic_params = actor.init(key_actor, obs0), critic.init(key_critic, obs0)
+        return (actor_params, critic_params, critic_params, actor_opt.init(actor_params),
+                critic_opt.init(critic_params), auto.reset(jax.random.split(key_reset, config.num_envs)), key_shuffle)
+
+    def result(carry):
+        return actor, carry[0]
+
+    run_eval = None if evaluate is None else (lambda carry: evaluate(*result(carry)))
+    return run_updates(config, init, update, result, config.num_envs, progress, run_eval)

@@ -192,6 +192,7 @@ class Velocity(Task):
     success_metric = "velocity_error"
     success_at = "mean"
     success_threshold = 0.1
+    success_unit = "m/s"
     nonnegative_reward = True
     obs_size = 3
 

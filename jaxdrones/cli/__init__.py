@@ -1,0 +1,52 @@
+"""Command line: ``jaxdrones train TASK``, ``jaxdrones fly``, ``jaxdrones camera``."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from jaxdrones import __version__
+    from jaxdrones.cli import train
+    from jaxdrones.examples import camera_scene, circle
+
+    parser = argparse.ArgumentParser(prog="jaxdrones", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"jaxdrones {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    train.register(sub)
+    circle.register(sub)
+    camera_scene.register(sub)
+    return parser
+
+
+def process_start() -> float:
+    """The `time.perf_counter` reading at which this process started (Linux: from ``/proc``), so that a run's wall
+    time includes Python's start and the imports before `main`; elsewhere, now."""
+    try:
+        with open("/proc/self/stat") as f:
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])  # field 22, starttime, in clock ticks
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        age = uptime - start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, AttributeError):
+        age = 0.0
+    return time.perf_counter() - max(age, 0.0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line on ``argv`` (default: the process's arguments, and the wall time of a run then counts
+    from the process's start); returns the exit status."""
+    t_start = process_start() if argv is None else time.perf_counter()
+    from jaxdrones import _xla
+
+    _xla.add_flags(_xla.CLI_FLAGS)  # before JAX starts a backend
+    args = build_parser().parse_args(argv)
+    args.t_start = t_start
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

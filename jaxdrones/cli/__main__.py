@@ -1,0 +1,7 @@
+"""``python -m jaxdrones.cli ...``: the ``jaxdrones`` command."""
+
+import sys
+
+from jaxdrones.cli import main
+
+sys.exit(main())

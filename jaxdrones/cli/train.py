@@ -1,0 +1,156 @@
+"""``jaxdrones train TASK``: the command line of `jaxdrones.training.run.train_task`."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+
+from jaxdrones import devices
+from jaxdrones.runs import enable_compilation_cache
+from jaxdrones.training import trainers
+from jaxdrones.training.run import train_task
+from jaxdrones.training.trainers import ALGOS, TRAINABLE, default_algo
+
+
+def register(subparsers) -> None:
+    """Add the ``train`` subcommand to an argparse subparsers object."""
+    parser = subparsers.add_parser(
+        "train", help="train a policy with batched PPO, APG, SHAC or multi-agent PPO",
+        description="Train a policy on a jaxdrones task with batched PPO (ours or brax's), through the "
+                    "differentiable simulator with APG or SHAC, or a team with multi-agent PPO, on every local "
+                    "device (and across processes with --coordinator); then evaluate it and save the policy, a "
+                    "learning curve, an evaluation flight plot and summary.json in a new run folder. Ctrl-C stops "
+                    "the run and saves the policy so far.")
+    parser.add_argument("task", choices=TRAINABLE, help="task to train")
+    ppo = parser.add_argument_group("training")
+    ppo.add_argument("--algo", choices=ALGOS, default=None,
+                     help="ppo (our batched PPO, the default for single-agent tasks), brax_ppo (brax's PPO), apg "
+                          "(analytic policy gradients through the simulator), shac (short-horizon actor-critic through "
+                          "the simulator), mappo (multi-agent PPO with a centralised critic, the default for "
+                          "multi-agent tasks) or ippo (independent PPO)")
+    ppo.add_argument("--steps", type=int, default=None, help="env steps to train (default: the task's tuned budget)")
+    ppo.add_argument("--num-envs", type=int, default=None, help="parallel environments")
+    ppo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    ppo.add_argument("--num-evals", type=int, default=None,
+                     help="evaluations over the run, the learning curve's points (default: the trainer's, 10)")
+    ppo.add_argument("--eval-episodes", type=int, default=256, help="evaluation episodes, >= 64 (default 256)")
+    env = parser.add_argument_group("task")
+    env.add_argument("--action-type", default=None, help="action type (default: the task's): rpm, one_d_rpm (the "
+                     "paper's 1-D hover setting), pid, one_d_pid, vel, thrust_torque, one_d_thrust, tun, ctbr")
+    env.add_argument("--obs-type", default=None, help="observation type (default: the task's): kin, kin_norm, "
+                     "kin_rotmat, neighbors")
+    env.add_argument("--model", default=None, help="drone model name (cf2x, cf2p, racer) or URDF path")
+    env.add_argument("--num-drones", type=int, default=None,
+                     help="drones per world (single-agent tasks: 1; multi-agent tasks: 2 by default)")
+    env.add_argument("--ctrl-freq", type=int, default=None, help="control rate, Hz (default 30)")
+    env.add_argument("--episode-len", type=float, default=None, help="episode length, s")
+    env.add_argument("--reward", choices=("shaped", "paper"), default=None,
+                     help="shaped (default, for fast learning) or the paper's reward")
+    for effect in ("drag", "ground-effect", "downwash"):
+        env.add_argument(f"--{effect}", action=argparse.BooleanOptionalAction, default=None,
+                         help=f"aerodynamic effect {effect.replace('-', ' ')} on, or off with --no-{effect} "
+                              f"(default: the task's; downwash is on in crossing)")
+    env.add_argument("--max-neighbors", type=int, default=None, metavar="K",
+                     help="neighbors observation of the K nearest drones only (default: every drone)")
+    env.add_argument("--downwash-radius", type=float, default=None, metavar="R",
+                     help="downwash cut-off in m, with a neighbour list: a cost linear in the team size (default: "
+                          "every pair of drones within 10 m, the original)")
+    env.add_argument("--backend", choices=("jax", "pybullet"), default=None, help="physics backend (default jax)")
+    env.add_argument("--target", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                     help="hover/takeoff target, m")
+    env.add_argument("--start-pos-range", type=float, nargs=3, default=None, metavar=("DX", "DY", "DZ"),
+                     help="half-widths of random start positions, m")
+    env.add_argument("--start-tilt", type=float, default=None, help="largest random start tilt, rad")
+    env.add_argument("--start-yaw", type=float, default=None, help="half-width of the random start yaw, rad")
+    env.add_argument("--start-vel", type=float, default=None, help="half-width of random start velocities, m/s")
+    env.add_argument("--start-ang-vel", type=float, default=None,
+                     help="half-width of random start body rates, rad/s (default: the task's; multi_hover trains from "
+                          "1 rad/s and is evaluated from its own 0.1)")
+    out = parser.add_argument_group("output")
+    out.add_argument("--out", default=None, help="output folder (default runs/TASK; a numbered sibling is used if "
+                                                 "it exists, unless --overwrite)")
+    out.add_argument("--overwrite", action="store_true", help="replace the contents of an existing --out")
+    out.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    out.add_argument("--no-compile-cache", action="store_true",
+                     help="do not use JAX's persistent compilation cache (default: on, in $JAXDRONES_CACHE_DIR or "
+                          "~/.cache/jaxdrones/xla, so that a second run compiles nothing)")
+    devices = parser.add_argument_group("devices and processes")
+    devices.add_argument("--device", default=None, metavar="PLATFORM",
+                         help="run on this JAX platform: cpu, gpu (cuda or rocm) or tpu (default: JAX's choice, a GPU "
+                              "when one is installed); the worlds are spread over all its local devices")
+    devices.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                         help="train across processes with jax.distributed: the address of process 0's coordinator "
+                              "(with --num-processes and --process-id; or set nothing and let "
+                              "jax.distributed.initialize read SLURM's or the cluster's variables with --distributed)")
+    devices.add_argument("--num-processes", type=int, default=None, help="processes in the run (with --coordinator)")
+    devices.add_argument("--process-id", type=int, default=None, help="this process's index, 0 .. N-1")
+    devices.add_argument("--distributed", action="store_true",
+                         help="call jax.distributed.initialize() with no arguments: it reads the coordinator, the "
+                              "process count and index from the cluster (SLURM, Open MPI, Cloud TPU, ...)")
+    devices.add_argument("--distributed-timeout", type=int, default=60, metavar="S",
+                         help="seconds to wait for every process to join the coordinator before failing (default 60)")
+    parser.set_defaults(func=run_cli)
+
+
+_ENV_OPTIONS = {"action_type": "action_type", "obs_type": "obs_type", "model": "model", "num_drones": "n_drones",
+                "ctrl_freq": "ctrl_freq", "episode_len": "episode_len_s", "reward": "reward", "backend": "backend",
+                "target": "target", "start_pos_range": "start_pos_range", "start_tilt": "start_tilt",
+                "start_yaw": "start_yaw", "start_vel": "start_vel", "start_ang_vel": "start_ang_vel",
+                "max_neighbors": "max_neighbors", "downwash_radius": "downwash_radius", "drag": "drag",
+                "ground_effect": "ground_effect", "downwash": "downwash"}
+
+
+def _positive(name: str, value) -> None:
+    if value is not None and value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value}")
+
+
+def run_cli(args: argparse.Namespace) -> int:
+    """Run ``jaxdrones train``; returns the exit status (0 also when the run did not reach the threshold; 130 when
+    stopped by Ctrl-C, after saving the policy so far)."""
+    try:
+        _positive("--steps", args.steps)
+        _positive("--num-envs", args.num_envs)
+        _positive("--eval-episodes", args.eval_episodes)
+        _positive("--num-evals", args.num_evals)
+        _positive("--distributed-timeout", args.distributed_timeout)
+        devices.start(platform=args.device, coordinator=args.coordinator, num_processes=args.num_processes,
+                      process_id=args.process_id, auto=args.distributed, timeout_s=args.distributed_timeout)
+        if not args.no_compile_cache:
+            enable_compilation_cache()
+        trainer = trainers.get(default_algo(args.task) if args.algo is None else args.algo)
+        overrides = {"seed": args.seed}
+        if args.steps is not None:
+            overrides["num_timesteps"] = args.steps
+        if args.num_evals is not None:
+            # brax's PPO counts an evaluation before training too.
+            overrides["num_evals"] = args.num_evals + (trainer.name == "brax_ppo")
+        if args.num_envs is not None:
+            overrides["num_envs"] = args.num_envs
+            if trainer.name == "brax_ppo":
+                overrides["batch_size"] = args.num_envs
+        env = {field: getattr(args, arg) for arg, field in _ENV_OPTIONS.items() if getattr(args, arg) is not None}
+        if "target" in env and args.task not in ("hover", "takeoff"):
+            raise ValueError(f"--target applies to hover and takeoff, not {args.task}")
+        config = dataclasses.replace(trainer.default_config(args.task), **overrides)
+        summary = train_task(args.task, args.out, overwrite=args.overwrite, env_overrides=env, config=config,
+                             n_eval_episodes=args.eval_episodes, progress=not args.no_progress,
+                             t_start=getattr(args, "t_start", None), algo=trainer.name)
+    except (ValueError, OSError, devices.DeviceError) as err:
+        print(f"jaxdrones train: error: {err}", file=sys.stderr)
+        return 2
+    if "out_dir" not in summary:  # a process other than 0: process 0 reports and saves
+        return 0
+    if summary["interrupted"]:
+        print(f"interrupted after {summary['env_steps']:,} env steps: saved the policy so far in "
+              f"{summary['out_dir']}", file=sys.stderr)
+        return 130
+    verdict = "solved" if summary["success"] else "not solved"
+    stats = summary["eval"]
+    print(f"{verdict}: {summary['success_metric']} {summary['success_value']:.4g} {summary['success_unit']} "
+          f"(threshold {summary['success_threshold']:g}) over {stats['n_episodes']} random starts "
+          f"({stats['terminated_rate']:.1%} terminated), {summary['env_steps']:,} env steps, "
+          f"{summary['wall_time_s']:.1f} s wall time")
+    print(f"saved policy.pkl, learning_curve.png, flight.png, summary.json in {summary['out_dir']}")
+    return 0

@@ -1,0 +1,158 @@
+"""brax's PPO (``brax.training.agents.ppo``) on jaxdrones envs, through the brax adapter (`jaxdrones.adapters.brax`),
+as a trainer of the table (`jaxdrones.training.trainers`: ``jaxdrones train --algo brax_ppo``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from collections.abc import Callable
+
+import jax
+import numpy as np
+
+from jaxdrones.envs.base import Env
+from jaxdrones.training.common import Interrupted
+
+
+def _import_brax():
+    """Import brax's PPO and the adapter (whose import silences what brax's MuJoCo dependency prints)."""
+    from jaxdrones.adapters import brax as adapter
+
+    return adapter
+
+
+@dataclasses.dataclass(frozen=True)
+class BraxPPOConfig:
+    """Hyperparameters of brax's PPO (``brax.training.agents.ppo.train``) and of the networks.
+
+    Field names and meanings are brax's; see its documentation. ``num_timesteps`` counts env (control) steps.
+    """
+
+    num_timesteps: int = 2_500_000
+    num_envs: int = 512
+    batch_size: int = 512
+    num_minibatches: int = 8
+    unroll_length: int = 10
+    num_updates_per_batch: int = 4
+    learning_rate: float = 1e-3
+    entropy_cost: float = 1e-3
+    discounting: float = 0.98
+    gae_lambda: float = 0.95
+    clipping_epsilon: float = 0.2
+    max_grad_norm: float = 1.0
+    reward_scaling: float = 1.0
+    normalize_observations: bool = True
+    num_evals: int = 10
+    num_eval_envs: int = 128
+    policy_hidden_layer_sizes: tuple[int, ...] = (32, 32)
+    value_hidden_layer_sizes: tuple[int, ...] = (64, 64)
+    seed: int = 0
+
+    @property
+    def total_steps(self) -> int:
+        """The env steps brax's PPO runs: ``num_timesteps`` rounded up to whole training epochs."""
+        per_step = self.batch_size * self.unroll_length * self.num_minibatches
+        epochs = max(self.num_evals - 1, 1)
+        return int(epochs * math.ceil(self.num_timesteps / (epochs * per_step)) * per_step)
+
+    def __post_init__(self):
+        for name in ("num_timesteps", "num_envs", "batch_size", "num_minibatches", "unroll_length", "num_evals"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"BraxPPOConfig: {name} must be an integer >= 1, got {value!r}")
+        if (self.batch_size * self.num_minibatches) % self.num_envs:
+            raise ValueError(f"BraxPPOConfig: batch_size·num_minibatches ({self.batch_size}·{self.num_minibatches}) "
+                             f"must be a multiple of num_envs ({self.num_envs}), as brax's PPO requires")
+
+
+def _network_factory(config: BraxPPOConfig):
+    from brax.training.agents.ppo import networks as ppo_networks
+
+    return functools.partial(ppo_networks.make_ppo_networks,
+                             policy_hidden_layer_sizes=tuple(config.policy_hidden_layer_sizes),
+                             value_hidden_layer_sizes=tuple(config.value_hidden_layer_sizes))
+
+
+def default_config(task: str) -> BraxPPOConfig:
+    """The settings brax's PPO was tuned with per task (the hover settings for tasks without their own)."""
+    tuned = {
+        "hover": dict(num_timesteps=2_500_000, num_envs=1024, batch_size=1024, num_minibatches=8, unroll_length=10,
+                      learning_rate=2e-3, entropy_cost=1e-3, discounting=0.97),
+        "velocity": dict(num_timesteps=4_000_000, num_envs=1024, batch_size=1024, num_minibatches=8,
+                         unroll_length=10, discounting=0.97),
+        "waypoints": dict(num_timesteps=6_000_000, num_envs=1024, batch_size=1024, num_minibatches=8,
+                          unroll_length=10, discounting=0.97),
+    }
+    return BraxPPOConfig(**tuned.get(task, tuned["hover"]))
+
+
+def make_network(config: BraxPPOConfig, env: Env):
+    """brax's PPO networks for ``env`` (on the world's flat observation and action, normalised observations when
+    ``config.normalize_observations``)."""
+    _import_brax()
+    from brax.training.acme import running_statistics
+    from brax.training.agents.ppo import networks as ppo_networks
+
+    preprocess = running_statistics.normalize if config.normalize_observations else (lambda x, _: x)
+    return _network_factory(config)(env.n_drones * env.observation_size, env.n_drones * env.action_size,
+                                    preprocess_observations_fn=preprocess)
+
+
+def make_policy(networks, params, deterministic: bool = True) -> Callable:
+    """``policy(obs, key) -> (action, extras)`` of brax's PPO networks and (normaliser, policy, value) params."""
+    from brax.training.agents.ppo import networks as ppo_networks
+
+    return ppo_networks.make_inference_fn(networks)(params, deterministic=deterministic)
+
+
+def train(env: Env, config: BraxPPOConfig = BraxPPOConfig(), progress: Callable[[int, dict], None] | None = None,
+          evaluate: Callable | None = None, eval_env: Env | None = None):
+    """Train a policy on ``env`` with brax's PPO.
+
+    Args:
+        env: a jaxdrones `Env` without camera images (the brax adapter flattens its f[D, n] observation and action).
+        config: PPO hyperparameters.
+        progress: called as ``progress(env_steps, metrics)`` at each of brax's evaluations after the first, with
+            brax's training metrics and, under ``"eval"``, what ``evaluate`` returns (NumPy arrays).
+        evaluate: ``evaluate(networks, params) -> pytree of arrays`` (jitted here, compiled once), as in the other
+            trainers (`jaxdrones.training.trainers`).
+        eval_env: the env of brax's own evaluations (``eval/...`` metrics); without one brax evaluates nothing
+            itself.
+
+    Returns:
+        ``(networks, params)``: brax's PPO networks (`make_network`) and the trained (normaliser, policy, value)
+        parameters; `make_policy` makes the policy.
+
+    Raises:
+        jaxdrones.training.common.Interrupted: on Ctrl-C, with the parameters of brax's last evaluation.
+    """
+    adapter = _import_brax()
+    from brax.training.agents.ppo import train as ppo
+
+    networks = make_network(config, env)
+    kwargs = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
+    for key in ("policy_hidden_layer_sizes", "value_hidden_layer_sizes"):
+        kwargs.pop(key)
+    latest = {"params": None, "steps": 0}
+    run_eval = None if evaluate is None else jax.jit(lambda params: evaluate(networks, params))
+
+    def keep(steps, make_policy, params):
+        latest.update(params=params, steps=int(steps))
+
+    def report(steps, metrics):
+        if progress is not None and steps > 0:
+            extra = {} if run_eval is None else {"eval": jax.tree.map(np.asarray, run_eval(latest["params"]))}
+            progress(int(steps), {**{k: float(v) for k, v in metrics.items() if np.ndim(v) == 0}, **extra})
+
+    try:
+        _, params, _ = ppo.train(
+            adapter.BraxEnv(env), episode_length=env.episode_length, wrap_env_fn=adapter.wrap_for_brax_training,
+            network_factory=_network_factory(config), deterministic_eval=True, progress_fn=report,
+            policy_params_fn=keep, eval_env=None if eval_env is None else adapter.BraxEnv(eval_env),
+            run_evals=eval_env is not None, **kwargs)
+    except KeyboardInterrupt:
+        if latest["params"] is None:
+            raise
+        raise Interrupted((networks, latest["params"]), latest["steps"]) from None
+    return networks, params

@@ -1,0 +1,96 @@
+"""One checkpoint format for every trainer: ``policy.pkl``, a pickle of a dict with the algorithm, the parameters
+(NumPy arrays), the task, its config overrides and the trainer's config; `save` writes it, `load_policy` rebuilds
+the policy through the trainers' table (`jaxdrones.training.trainers`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pickle
+
+import jax
+import numpy as np
+
+from jaxdrones.envs.base import Env
+from jaxdrones.training.common import host_array
+
+#: Version of the checkpoint format (files from before it carry ``<algo>_config`` and no version; still loaded).
+FORMAT = 1
+
+
+def save(path: str | os.PathLike, algo: str, params, task: str, env_overrides: dict, config) -> str:
+    """Write a policy file (see the module doc); returns ``path``. ``params`` may live on any devices."""
+    payload = {"format": FORMAT, "algo": algo, "params": jax.tree.map(host_array, params), "env_name": task,
+               "env_overrides": dict(env_overrides), "config": dataclasses.asdict(config)}
+    path = os.fspath(path)
+    with open(path, "wb") as f:
+        pickle.dump(payload, f)
+    return path
+
+
+def _config_fields(payload: dict) -> dict:
+    """The trainer config's fields of a payload, also of files from before `FORMAT` (``<algo>_config``)."""
+    for key in ("config", f"{payload['algo']}_config", "mappo_config", "ppo_config"):
+        if key in payload:
+            return {k: tuple(v) if isinstance(v, list) else v for k, v in payload[key].items()}
+    raise KeyError("config")
+
+
+def load_policy(path: str | os.PathLike, deterministic: bool = True, env: Env | None = None):
+    """Load a policy saved by ``jaxdrones train`` (any algorithm of `jaxdrones.training.trainers`).
+
+    Args:
+        path: ``policy.pkl`` of a run folder, or the run folder.
+        deterministic: use the distribution's mode (True) or sample (brax's PPO; the other trainers' saved policies
+            are deterministic).
+        env: the env to fly the policy in (default: the one it was trained on, ``jd.make(name, **overrides)``);
+            it may differ in its physics or starts (e.g. with downwash on), not in its task, team size,
+            observation or action.
+
+    Returns:
+        ``(env, policy)``: the env and ``policy(obs, key) -> (action, extras)``.
+
+    Raises:
+        ValueError: if the file is missing or is not a saved jaxdrones policy, or ``env`` is not of the policy's
+            task, team size, observation size or action size.
+    """
+    from jaxdrones.envs import make
+    from jaxdrones.training import trainers
+
+    path = os.fspath(path)
+    if os.path.isdir(path):
+        path = os.path.join(path, "policy.pkl")
+    if not os.path.isfile(path):
+        raise ValueError(f"no saved policy at {path!r}")
+    with open(path, "rb") as f:
+        payload = pickle.load(f)
+    if not isinstance(payload, dict) or not {"params", "env_name"} <= set(payload):
+        raise ValueError(f"{path!r} is not a jaxdrones policy file")
+    # Files from before FORMAT 1: brax's PPO wrote no "algo", and MAPPO's independent critic was "ippo".
+    algo = payload.get("algo") or ("brax_ppo" if "ppo_config" in payload else None)
+    if algo not in trainers.ALGOS:
+        raise ValueError(f"{path!r} is not a jaxdrones policy file (algorithm {algo!r})")
+    try:
+        fields = _config_fields({**payload, "algo": algo})
+    except KeyError:
+        raise ValueError(f"{path!r} is not a jaxdrones policy file (no trainer config)") from None
+    trained_on = make(payload["env_name"], **payload["env_overrides"])
+    if env is None:
+        env = trained_on
+    else:
+        _check_same_agents(path, payload["env_name"], trained_on, env)
+    trainer = trainers.get(algo)
+    network = trainer.make_network(trainer.config_cls(**fields), env)
+    if algo == "brax_ppo":
+        return env, trainer.make_policy(network, payload["params"], deterministic=deterministic)
+    return env, trainer.make_policy(network, payload["params"])
+
+
+def _check_same_agents(path: str, name: str, trained_on: Env, env: Env) -> None:
+    """Raise ValueError unless ``env`` has the task, team size, observation and action sizes of ``trained_on``."""
+    have = (getattr(getattr(env, "task", None), "name", None), env.n_drones, env.observation_size, env.action_size)
+    want = (name, trained_on.n_drones, trained_on.observation_size, trained_on.action_size)
+    if have != want:
+        raise ValueError(f"the policy in {path!r} was trained on {want[0]!r} with {want[1]} drones, observation "
+                         f"size {want[2]} and action size {want[3]}; the env given is {have[0]!r} with {have[1]} "
+                         f"drones, observation size {have[2]} and action size {have[3]}")

@@ -1,0 +1,104 @@
+"""Evaluating a policy on a task: episodes from random starts under one jitted, vmapped call, and their statistics
+(the task's success metric as it is judged: at the episode's end, its mean or its maximum).
+
+Every trainer is evaluated here, with the same episodes: `episode_outcomes` is traced into the trainers' compiled
+programs, `episode_statistics` turns its arrays into the numbers that progress displays, learning curves and
+``summary.json`` report.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrones.envs.base import Env, EnvState
+
+
+def act(env: Env, policy, obs: jax.Array, key: jax.Array) -> jax.Array:
+    """The policy's action f[D, n_act] for an observation f[D, n_obs] (policies see flat vectors)."""
+    action, _ = policy(jnp.reshape(obs, (-1,)), key)
+    return jnp.reshape(action, (env.n_drones, env.action_size))
+
+
+def rollout_policy(env: Env, policy, key: jax.Array, state: EnvState | None = None) -> EnvState:
+    """Run one episode of ``policy`` under ``lax.scan``; the env freezes once the episode is done.
+
+    Args:
+        env: the env.
+        policy: ``policy(obs, key) -> (action, extras)`` on flat vectors (as brax's policies).
+        key: PRNG key (for reset and the policy).
+        state: optional start state; by default ``env.reset(key)``.
+
+    Returns:
+        EnvState with a leading time axis [episode_length + 1] (the reset state first).
+    """
+    key_reset, key_act = jax.random.split(key)
+    state = env.reset(key_reset) if state is None else state
+
+    def body(s, k):
+        nxt = env.step(s, act(env, policy, s.obs, k))
+        nxt = jax.tree.map(lambda old, new: jnp.where(s.done, old, new), s, nxt)
+        return nxt, nxt
+
+    _, states = jax.lax.scan(body, state, jax.random.split(key_act, env.episode_length))
+    return jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest]), state, states)
+
+
+def evaluate(env: Env, policy, key: jax.Array, n_episodes: int = 256) -> dict:
+    """Statistics of ``n_episodes`` episodes from random starts (one jitted, vmapped call).
+
+    Returns:
+        dict of floats: ``final_<metric>`` (mean over episodes of the metric at the episode's last state) and
+        ``mean_<metric>`` (mean over episodes of its average over the episode) for every metric of the task, and for
+        a task judged at the maximum (`Task.success_at` ``"max"``) ``max_<metric>`` (mean over episodes of its
+        largest value over the episode's steps); ``success_value`` (the task's success metric,
+        `Task.success_metric`, read as `Task.success_at`: final, mean or max, averaged over the episodes),
+        ``terminated_rate`` (crashed or left the arena), ``episode_reward`` (mean return, summed over drones),
+        ``n_episodes``; and for tasks measured by a distance, ``final_pos_error_m`` with its max and 90th percentile.
+    """
+    return episode_statistics(env, jax.jit(lambda keys: episode_outcomes(env, policy, keys))(
+        jax.random.split(key, n_episodes)))
+
+
+def episode_outcomes(env: Env, policy, keys: jax.Array):
+    """Traced part of `evaluate`: one episode per key; returns (final metrics, episode-mean metrics, terminated,
+    return, episode-max metrics), each with a leading episode axis.
+
+    The mean and the max run over the episode's live steps (after each step until it ends; the reset state is not
+    counted)."""
+    return outcomes_of(jax.vmap(lambda k: rollout_policy(env, policy, k))(keys))
+
+
+def outcomes_of(states: EnvState):
+    """`episode_outcomes` of episodes already flown: ``states`` with leading axes [episode, time] (`rollout_policy`
+    vmapped)."""
+    live = (states.steps[:, 1:] > states.steps[:, :-1]).astype(states.reward.dtype)
+    returns = jnp.sum(live * jnp.sum(states.reward[:, 1:], axis=-1), axis=1)
+    final = {k: v[:, -1] for k, v in states.metrics.items()}
+    mean = {k: jnp.sum(live * v[:, 1:], axis=1) / jnp.maximum(jnp.sum(live, axis=1), 1) for k, v in
+            states.metrics.items()}
+    # Every episode has a live first step; the frozen steps after its end repeat its last state.
+    maximum = {k: jnp.max(jnp.where(live > 0, v[:, 1:], -jnp.inf), axis=1) for k, v in states.metrics.items()}
+    return final, mean, states.terminated[:, -1], returns, maximum
+
+
+def episode_statistics(env: Env, outcomes) -> dict:
+    """Host part of `evaluate`: the statistics of `episode_outcomes` (see `evaluate`)."""
+    final, mean, terminated, returns, maximum = jax.tree.map(lambda x: np.asarray(x, np.float64), outcomes)
+    stats = {f"final_{k}": float(v.mean()) for k, v in final.items()}
+    stats.update({f"mean_{k}": float(v.mean()) for k, v in mean.items()})
+    task = getattr(env, "task", None)
+    success_at = getattr(task, "success_at", "final")
+    if success_at == "max":
+        stats.update({f"max_{k}": float(v.mean()) for k, v in maximum.items()})
+    if task is not None and task.success_metric in final:
+        source = {"final": final, "mean": mean, "max": maximum}[success_at]
+        stats["success_value"] = float(source[task.success_metric].mean())
+    if "distance" in final:
+        dist = final["distance"]
+        stats.update(final_pos_error_m=float(dist.mean()), final_pos_error_max_m=float(dist.max()),
+                     final_pos_error_p90_m=float(np.percentile(dist, 90)))
+    stats.update(terminated_rate=float(terminated.mean()), episode_reward=float(returns.mean()),
+                 n_episodes=int(terminated.shape[0]))
+    return stats

@@ -1,0 +1,170 @@
+"""Training on several devices and processes, and stopping a run: every trainer on 2 forced CPU devices gives the
+result of one device; ``jaxdrones train`` over 2 processes (`jax.distributed`, CPU collectives over loopback) gives
+the result of one process with the same worlds; bad device and process settings fail fast with clear errors; Ctrl-C
+saves the policy so far."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from jaxdrones.cli import main
+
+#: Trains each trainer briefly (3 chunks) on the CPU devices forced by argv[1] and saves its policy's actions and
+#: values on fixed observations (the result a user sees), and the devices its parameters were spread over.
+_TRAIN_ON_DEVICES = """
+import dataclasses, os, sys
+os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=" + sys.argv[1]
+import jax, numpy as np
+import jaxdrones as jd
+from jaxdrones.training import trainers
+from jaxdrones.training.evaluation import episode_outcomes
+
+out = {}
+cases = (("ppo", "hover", {}, dict(num_envs=8, unroll_length=4, minibatches=2)),
+         ("mappo", "leader_follower", {"n_drones": 3, "action_type": "one_d_rpm"},
+          dict(num_envs=8, unroll_length=4, minibatches=2)),
+         ("apg", "hover", {}, dict(num_envs=8, horizon=4)),
+         ("shac", "hover", {}, dict(num_envs=8, horizon=4)))
+for algo, task, env_kw, kw in cases:
+    trainer = trainers.get(algo)
+    env = jd.make(task, **env_kw)
+    config = dataclasses.replace(trainer.default_config(task), **kw, num_timesteps=96, num_evals=4)
+    keys = jax.random.split(jax.random.key(3), 8)
+    seen = []
+    network, params = trainer.train(env, config, progress=lambda steps, m: seen.append(m["eval"]),
+                                    evaluate=lambda n, p: episode_outcomes(env, trainer.make_policy(n, p), keys)[0])
+    obs = jax.vmap(env.reset)(jax.random.split(jax.random.key(4), 64)).obs.reshape(64, -1)
+    actions = jax.vmap(lambda o: trainer.make_policy(network, params)(o, None)[0])(obs)
+    out[algo] = np.asarray(actions)
+    out[algo + "_eval"] = np.asarray(seen[-1]["distance"] if "distance" in seen[-1] else
+                                     seen[-1]["max_altitude_error"])
+    out[algo + "_devices"] = len(jax.tree.leaves(params)[0].sharding.device_set)
+np.savez(sys.argv[2], **out)
+"""
+
+
+@pytest.mark.slow
+def test_every_trainer_gives_one_devices_result_on_two_devices(tmp_path):
+    """PPO, MAPPO, APG and SHAC spread their worlds over 2 forced CPU devices (parameters replicated on both) and
+    train the policy of one device: its actions on 64 observations agree to 1e-6 and the evaluation after the last
+    chunk (final distances of 8 episodes) to 1e-6 relative."""
+    results = {}
+    for devices in ("1", "2"):
+        path = tmp_path / f"devices_{devices}.npz"
+        run = subprocess.run([sys.executable, "-c", _TRAIN_ON_DEVICES, devices, str(path)], capture_output=True,
+                             text=True, timeout=600)
+        assert run.returncode == 0, run.stderr[-3000:]
+        results[devices] = dict(np.load(path))
+    for algo in ("ppo", "mappo", "apg", "shac"):
+        assert int(results["1"][algo + "_devices"]) == 1 and int(results["2"][algo + "_devices"]) == 2
+        assert np.abs(results["1"][algo]).max() > 1e-3  # the policy acts (its outputs are not all zero)
+        np.testing.assert_allclose(results["2"][algo], results["1"][algo], rtol=1e-6, atol=1e-6, err_msg=algo)
+        # The evaluation flies each policy 150 steps in closed loop, which amplifies float32 rounding: 1e-6 relative.
+        np.testing.assert_allclose(results["2"][algo + "_eval"], results["1"][algo + "_eval"], rtol=1e-6, atol=1e-6,
+                                   err_msg=algo)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-c", "import sys; from jaxdrones.cli import main; sys.exit(main(sys.argv[1:]))", *args]
+
+
+def _train_args(out, *extra) -> list[str]:
+    """A short run: 2 updates of 16 worlds (one evaluation, after them)."""
+    return ["train", "hover", "--steps", "320", "--num-envs", "16", "--num-evals", "1", "--eval-episodes", "64",
+            "--no-progress", "--out", str(out), *extra]
+
+
+@pytest.mark.slow
+def test_two_processes_train_one_process_result(tmp_path):
+    """``jaxdrones train hover`` over 2 processes joined by ``--coordinator`` (each with its 8 of the 16 worlds on
+    its own CPU device, collectives over loopback) trains the policy that one process with 16 worlds trains:
+    the same evaluation to 1e-6. Process 0 writes the run; ``summary.json`` records 2 processes and both
+    devices."""
+    one = subprocess.run(_cli(*_train_args(tmp_path / "one")), capture_output=True, text=True, timeout=600)
+    assert one.returncode == 0, one.stderr[-3000:]
+    port = _free_port()
+    procs = [subprocess.Popen(_cli(*_train_args(tmp_path / "two", "--coordinator", f"127.0.0.1:{port}",
+                                                "--num-processes", "2", "--process-id", str(k))),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for k in (0, 1)]
+    outputs = [p.communicate(timeout=600) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [err[-3000:] for _, err in outputs]
+    summary_one = json.loads((tmp_path / "one" / "summary.json").read_text())
+    summary_two = json.loads((tmp_path / "two" / "summary.json").read_text())
+    assert summary_two["provenance"]["num_processes"] == 2 and len(summary_two["provenance"]["devices"]) == 2
+    assert summary_one["provenance"]["num_processes"] == 1
+    assert summary_two["env_steps"] == summary_one["env_steps"]
+    for key in ("final_distance", "mean_distance", "episode_reward"):
+        assert summary_two["eval"][key] == pytest.approx(summary_one["eval"][key], abs=1e-6), key
+    assert "saved policy.pkl" in outputs[0][0] and "saved" not in outputs[1][0]  # process 0 writes the run
+
+
+@pytest.mark.parametrize("extra, message", [
+    (("--coordinator", "127.0.0.1:1", "--num-processes", "2", "--process-id", "2"), "--process-id must be in [0, 1]"),
+    (("--coordinator", "127.0.0.1:1", "--num-processes", "2"), "go together"),
+    (("--coordinator", "nohost", "--num-processes", "2", "--process-id", "1"), "HOST:PORT"),
+    (("--device", "abacus"), "unknown device 'abacus'"),
+])
+def test_bad_device_and_process_settings(tmp_path, capsys, extra, message):
+    assert main(_train_args(tmp_path / "run", *extra)) == 2
+    err = capsys.readouterr().err
+    assert message in err and "error" in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_unreachable_coordinator_fails_within_the_timeout(tmp_path):
+    """Process 1 of 2 with no coordinator listening: exit status 2 and a message naming the address, after the
+    ``--distributed-timeout`` (2 s here), not a hang."""
+    port = _free_port()
+    start = time.perf_counter()
+    run = subprocess.run(_cli(*_train_args(tmp_path / "run", "--coordinator", f"127.0.0.1:{port}", "--num-processes",
+                                           "2", "--process-id", "1", "--distributed-timeout", "2")),
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and f"127.0.0.1:{port} could not be reached within 2 s" in run.stderr
+    assert time.perf_counter() - start < 60
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_saves_the_policy_so_far(tmp_path):
+    """SIGINT (Ctrl-C) during ``jaxdrones train``: exit status 130, one line on stderr after the progress bar, and a
+    run folder with the policy after the last finished chunk, its learning curve and a summary marked
+    interrupted."""
+    from jaxdrones.training import load_policy
+
+    run = tmp_path / "run"
+    args = ["train", "hover", "--steps", "50000000", "--num-envs", "64", "--out", str(run), "--eval-episodes", "64"]
+    proc = subprocess.Popen(_cli(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    os.set_blocking(proc.stderr.fileno(), False)
+    seen, deadline = "", time.monotonic() + 300
+    while "final distance" not in seen:  # the progress bar shows a first evaluation: a chunk has finished
+        assert proc.poll() is None and time.monotonic() < deadline, seen[-2000:]
+        seen += proc.stderr.read() or ""
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=300)
+    err = (seen + (err or "")).split("\r")[-1]
+    assert proc.returncode == 130, err[-3000:]
+    lines = [line for line in err.strip().splitlines() if line.strip()]
+    assert lines[-1].startswith("interrupted after ") and f"saved the policy so far in {run}" in lines[-1]
+    assert "Traceback" not in err
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["interrupted"] is True and 0 < summary["env_steps"] < 50_000_000
+    assert {"policy.pkl", "progress.json", "learning_curve.png", "flight.png"} <= {p.name for p in run.iterdir()}
+    env, policy = load_policy(run)
+    assert policy(env.reset(__import__("jax").random.key(0)).obs.reshape(-1), None)[0].shape == (4,)
