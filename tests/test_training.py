@@ -177,6 +177,25 @@ def test_train_cli_gradient_algos_learn_save_and_reload(algo, tmp_path, capsys):
     assert stats["final_pos_error_m"] == pytest.approx(summary["eval_final_pos_error_m"], abs=1e-5)
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("algo", ["ppo", "brax_ppo"])
+def test_train_cli_ppo_trainers_save_and_reload(algo, tmp_path, capsys):
+    """``--algo ppo`` (ours) and ``--algo brax_ppo`` (brax's, through the adapter): a short run writes the outputs,
+    its summary names the trainer, and the saved policy reproduces the run's last evaluation."""
+    run = tmp_path / algo
+    assert main(["train", "hover", "--algo", algo, "--steps", "20000", "--num-envs", "16", "--num-evals", "2",
+                 "--out", str(run), "--no-progress", "--eval-episodes", "64"]) == 0
+    assert f"in {run}" in capsys.readouterr().out
+    assert sorted(p.name for p in run.iterdir()) == sorted(TRAIN_OUTPUTS)
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["algo"] == algo and summary["env_steps"] >= 20_000 and not summary["interrupted"]
+    progress = json.loads((run / "progress.json").read_text())
+    assert len(progress) == 2 and progress[-1]["success_value"] == summary["success_value"]
+    env, policy = load_policy(run)
+    stats = evaluate(env, policy, jax.random.split(jax.random.key(0 + 1))[0], 64)
+    assert stats["final_pos_error_m"] == pytest.approx(summary["eval_final_pos_error_m"], abs=1e-5)
+
+
 def test_td_lambda_returns_by_hand():
     """SHAC's critic targets: λ = 0 gives one-step TD, λ → 1 the discounted return bootstrapped at the window's
     end, and an episode's end cuts the sum (its own next value, 0 if it terminated)."""

@@ -25,10 +25,10 @@ def register(subparsers) -> None:
     parser.add_argument("task", choices=TRAINABLE, help="task to train")
     ppo = parser.add_argument_group("training")
     ppo.add_argument("--algo", choices=ALGOS, default=None,
-                     help="ppo (our batched PPO, the default for single-agent tasks), brax_ppo (brax's PPO), apg "
-                          "(analytic policy gradients through the simulator), shac (short-horizon actor-critic through "
-                          "the simulator), mappo (multi-agent PPO with a centralised critic, the default for "
-                          "multi-agent tasks) or ippo (independent PPO)")
+                     help="apg (analytic policy gradients through the simulator, the default for hover), ppo (our "
+                          "batched PPO), brax_ppo (brax's PPO, the default for the other single-agent tasks), shac "
+                          "(short-horizon actor-critic through the simulator), mappo (multi-agent PPO with a "
+                          "centralised critic, the default for multi-agent tasks) or ippo (independent PPO)")
     ppo.add_argument("--steps", type=int, default=None, help="env steps to train (default: the task's tuned budget)")
     ppo.add_argument("--num-envs", type=int, default=None, help="parallel environments")
     ppo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -119,7 +119,7 @@ def run_cli(args: argparse.Namespace) -> int:
                       process_id=args.process_id, auto=args.distributed, timeout_s=args.distributed_timeout)
         if not args.no_compile_cache:
             enable_compilation_cache()
-        trainer = trainers.get(default_algo(args.task) if args.algo is None else args.algo)
+        trainer = trainers.get(default_algo(args.task, args.backend or "jax") if args.algo is None else args.algo)
         overrides = {"seed": args.seed}
         if args.steps is not None:
             overrides["num_timesteps"] = args.steps

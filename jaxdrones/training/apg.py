@@ -33,7 +33,9 @@ class APGConfig(Schedule):
         num_timesteps: env steps to train, rounded up to whole evaluation chunks.
         num_envs: worlds stepped in parallel.
         horizon: control steps per gradient window.
-        learning_rate: Adam's step size.
+        learning_rate: Adam's step size (at the start, with ``cosine_decay``).
+        cosine_decay: decay the step size to 0 over the run's updates along a half cosine (optax's
+            ``cosine_decay_schedule``), for a more precise policy at the end of a short run.
         max_grad_norm: the gradient's global norm is clipped to this.
         hidden_layer_sizes: of the policy MLP.
         num_evals: evaluations (learning-curve points) over the run, one after each chunk of updates, ≥ 1.
@@ -47,6 +49,7 @@ class APGConfig(Schedule):
     num_envs: int = 16
     horizon: int = 32
     learning_rate: float = 2e-3
+    cosine_decay: bool = False
     max_grad_norm: float = 1.0
     hidden_layer_sizes: tuple[int, ...] = (64, 64)
     num_evals: int = 10
@@ -61,6 +64,14 @@ class APGConfig(Schedule):
     @property
     def steps_per_update(self) -> int:
         return self.num_envs * self.horizon
+
+    def schedule(self):
+        """Adam's step size: ``learning_rate``, or its cosine decay over the run's updates."""
+        import optax
+
+        if not self.cosine_decay:
+            return self.learning_rate
+        return optax.cosine_decay_schedule(self.learning_rate, self.num_evals * self.updates_per_eval)
 
 
 def make_network(config: APGConfig, env: Env):
@@ -109,7 +120,7 @@ def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, di
     auto = VmapAutoReset(env)
     batched_loss = jax.vmap(env.loss, in_axes=(world_axes(auto.params_shared),))
     network = make_network(config, env)
-    optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate))
+    optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.schedule()))
 
     def window_loss(params, state):
         def body(s, _):

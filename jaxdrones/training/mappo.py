@@ -47,7 +47,9 @@ class MAPPOConfig(Schedule):
         unroll_length: steps per world collected for each update.
         epochs: passes over each update's samples.
         minibatches: minibatches per pass (they split the ``num_envs · unroll_length`` world-steps).
-        learning_rate: Adam's step size.
+        learning_rate: Adam's step size (at the start, with ``anneal_lr``).
+        anneal_lr: decay the step size linearly to 0 over the run's gradient steps (PureJaxRL's ``ANNEAL_LR``,
+            CleanRL's ``anneal_lr``).
         discounting: discount γ per control step.
         gae_lambda: λ of the GAE advantages.
         clip: PPO's ratio clip ε.
@@ -78,6 +80,7 @@ class MAPPOConfig(Schedule):
     epochs: int = 4
     minibatches: int = 8
     learning_rate: float = 1e-3
+    anneal_lr: bool = False
     discounting: float = 0.97
     gae_lambda: float = 0.95
     clip: float = 0.2
@@ -286,7 +289,9 @@ def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int
     axes = world_axes(auto.params_shared)
     central = config.critic == "central"
     nets = make_network(config, env)
-    optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate))
+    steps = config.num_evals * config.updates_per_eval * config.epochs * config.minibatches
+    rate = optax.linear_schedule(config.learning_rate, 0.0, steps) if config.anneal_lr else config.learning_rate
+    optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(rate))
     features = jax.vmap(world_features, in_axes=(axes,)) if central else (lambda s: None)
     gamma = config.discounting
 

@@ -113,7 +113,7 @@ def train(env: Env, config: SHACConfig = SHACConfig(), progress: Callable[[int, 
     auto = VmapAutoReset(env)
     batched_loss = jax.vmap(env.loss, in_axes=(world_axes(auto.params_shared),))
     actor, critic = make_network(config, env), make_critic(config)
-    actor_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate))
+    actor_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.schedule()))
     critic_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
                              optax.adam(config.critic_learning_rate))
     gamma = config.discounting
