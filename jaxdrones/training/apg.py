@@ -100,11 +100,8 @@ def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, di
     Args:
         env: a jaxdrones env without camera images.
         config: `APGConfig`.
-        progress: called as ``progress(env_steps, metrics)`` after each of the ``config.num_evals`` chunks of
-            updates (floats) and, under ``"eval"``, what ``evaluate``
-            returned (NumPy arrays).
-        evaluate: ``evaluate(network, params) -> pytree of arrays``, traced into the compiled chunk after its updates
-            (e.g. `jaxdrones.training.evaluation.episode_outcomes` of the current policy, see `make_policy`).
+        progress, evaluate: as every trainer takes them (`jaxdrones.training.trainers`); the metrics are
+            ``train/loss``, the mean window loss of the last update, ``train/grad_norm``.
 
     Raises:
         jaxdrones.training.common.Interrupted: on Ctrl-C, with the result of the last completed chunk.

@@ -268,11 +268,8 @@ def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int
     Args:
         env: a jaxdrones env without camera images (any D ≥ 1).
         config: `MAPPOConfig`.
-        progress: called as ``progress(env_steps, metrics)`` after each of the ``config.num_evals`` chunks of
-            updates (floats) and, under ``"eval"``, what ``evaluate``
-            returned (NumPy arrays).
-        evaluate: ``evaluate(networks, params) -> pytree of arrays``, traced into the compiled chunk after its updates
-            (e.g. `jaxdrones.training.evaluation.episode_outcomes` of the current policy, see `make_policy`).
+        progress, evaluate: as every trainer takes them (`jaxdrones.training.trainers`); the metrics are
+            ``train/policy_loss``, ``train/value_loss``, ``train/entropy``, ``train/std`` of the last update.
 
     Raises:
         jaxdrones.training.common.Interrupted: on Ctrl-C, with the result of the last completed chunk.

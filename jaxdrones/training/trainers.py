@@ -1,9 +1,11 @@
 """The table of trainers: every algorithm ``jaxdrones train --algo`` runs, with its config class, its default settings
 per task and device, how it trains, and how its saved parameters become a policy.
 
-A trainer's ``train(env, config, progress, evaluate) -> (network, params)`` takes ``progress(env_steps, metrics)``
-(training metrics and, under ``"eval"``, the arrays ``evaluate`` returned) and ``evaluate(network, params)``
-(traced; e.g. `jaxdrones.training.evaluation.episode_outcomes` of ``make_policy(network, params)``).
+A trainer's ``train(env, config, progress, evaluate) -> (network, params)`` calls ``progress(env_steps, metrics)``
+after each of its ``config.num_evals`` chunks of updates, with its training metrics (floats) and, under
+``"eval"``, the arrays that ``evaluate(network, params)`` returned (traced into the chunk; e.g.
+`jaxdrones.training.evaluation.episode_outcomes` of ``make_policy(network, params)``); on Ctrl-C it raises
+`jaxdrones.training.common.Interrupted` with the result of the last completed chunk.
 ``make_network(config, env)`` rebuilds the network of a saved policy, ``make_policy(network, params)`` gives
 ``policy(obs, key) -> (action, extras)`` on a world's flat observation (the signature of brax's policies).
 """
