@@ -168,3 +168,34 @@ def test_ctrl_c_saves_the_policy_so_far(tmp_path):
     assert {"policy.pkl", "progress.json", "learning_curve.png", "flight.png"} <= {p.name for p in run.iterdir()}
     env, policy = load_policy(run)
     assert policy(env.reset(__import__("jax").random.key(0)).obs.reshape(-1), None)[0].shape == (4,)
+
+
+@pytest.mark.slow
+def test_second_run_loads_the_traced_program_and_trains_the_same(tmp_path):
+    """With the compilation cache on, a run saves its traced chunk (`jaxdrones.training.programs`); an identical
+    second run loads it instead of tracing and gives the same result; another setting gets a program of its own;
+    a damaged file is traced anew."""
+    cache = tmp_path / "cache"
+    env = {**os.environ, "JAXDRONES_CACHE_DIR": str(cache)}
+    args = ["train", "hover", "--algo", "apg", "--steps", "2048", "--num-envs", "8", "--num-evals", "2",
+            "--eval-episodes", "64", "--no-progress"]
+
+    def run(name, *extra):
+        done = subprocess.run(_cli(*args, "--out", str(tmp_path / name), *extra), capture_output=True, text=True,
+                              env={**env, "JAX_LOG_COMPILES": "1"}, timeout=600)
+        assert done.returncode == 0, done.stderr[-3000:]
+        return json.loads((tmp_path / name / "summary.json").read_text()), done.stderr
+
+    programs = cache / "jaxdrones-programs"
+    first, log_first = run("first")
+    assert len(list(programs.glob("*.jaxexport"))) == 1
+    assert "Finished tracing + transforming traced_program" in log_first
+    second, log_second = run("second")
+    assert "Finished tracing + transforming traced_program" not in log_second  # loaded from disk, not traced
+    assert second["eval"] == first["eval"]
+    run("other", "--seed", "1")
+    assert len(list(programs.glob("*.jaxexport"))) == 2
+    for path in programs.glob("*.jaxexport"):
+        path.write_bytes(b"damaged")
+    third, log_third = run("third")
+    assert "Finished tracing + transforming traced_program" in log_third and third["eval"] == first["eval"]

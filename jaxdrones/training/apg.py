@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs.base import Env
-from jaxdrones.training.common import Schedule, check_config, mlp, run_updates
+from jaxdrones.training.common import Schedule, check_config, described, mlp, program_description, run_updates
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,5 +142,6 @@ def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, di
     def result(carry):
         return network, carry[0]
 
-    run_eval = None if evaluate is None else (lambda carry: evaluate(*result(carry)))
-    return run_updates(config, init, update, result, config.num_envs, progress, run_eval)
+    run_eval = None if evaluate is None else described(lambda carry: evaluate(*result(carry)), evaluate)
+    return run_updates(config, init, update, result, config.num_envs, progress, run_eval,
+                       description=program_description(config, env))

@@ -105,8 +105,21 @@ def world_shardings(tree, n_worlds: int):
     return jax.tree.map(lambda x: split if x.ndim and x.shape[0] == n_worlds else replicated, tree)
 
 
+def program_description(config, env) -> str:
+    """What a trainer's chunk is built from, as text for `jaxdrones.training.programs`: the trainer's config and the
+    env's task and config (its params follow from them)."""
+    return f"{type(config).__module__}.{config!r}\n{type(env).__name__} {env.task.name} {env.config!r}"
+
+
+def described(fn: Callable, evaluate: Callable) -> Callable:
+    """``fn`` with the ``description`` of the ``evaluate`` it calls (None if that has none)."""
+    fn.description = getattr(evaluate, "description", None)
+    return fn
+
+
 def run_updates(config: Schedule, init: Callable, update: Callable, result: Callable, n_worlds: int,
-                progress: Callable[[int, dict], None] | None = None, evaluate: Callable | None = None):
+                progress: Callable[[int, dict], None] | None = None, evaluate: Callable | None = None,
+                description: str | None = None):
     """The training loop of our trainers: two compiled programs, ``init`` and a chunk of updates.
 
     ``init(key) -> carry`` builds the parameters, optimiser state and the worlds' states (jitted, with the carry
@@ -118,6 +131,10 @@ def run_updates(config: Schedule, init: Callable, update: Callable, result: Call
 
     ``progress(env_steps, metrics)`` is called after each chunk, with the last update's metrics (floats) and the
     evaluation under ``"eval"`` (NumPy arrays).
+
+    ``description`` (the trainer, its config and its env's config, as text) lets a later process load the traced
+    chunk from disk instead of tracing it (`jaxdrones.training.programs`), when ``evaluate`` has a ``description``
+    too (or is None); otherwise the chunk is traced as usual.
 
     Returns:
         ``result(carry)`` of the final carry.
@@ -137,8 +154,15 @@ def run_updates(config: Schedule, init: Callable, update: Callable, result: Call
     steps_per_chunk = config.updates_per_eval * config.steps_per_update
     init_c, carry, done = jax.jit(init), None, 0
     try:
-        shardings = world_shardings(jax.eval_shape(init, key), n_worlds)
-        if shardings is None:
+        shapes = jax.eval_shape(init, key)
+        shardings = world_shardings(shapes, n_worlds)
+        eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
+        if shardings is None and description is not None and eval_description is not None:
+            from jaxdrones.training.programs import cached_jit
+
+            chunk_c = cached_jit(chunk, shapes, f"{description}\nupdates {config.updates_per_eval}\n"
+                                                f"{eval_description}")
+        elif shardings is None:
             chunk_c = jax.jit(chunk)
         else:
             replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())

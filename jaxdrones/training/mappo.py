@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs.base import Env, EnvState
-from jaxdrones.training.common import Schedule, check_config, run_updates
+from jaxdrones.training.common import Schedule, check_config, described, program_description, run_updates
 
 #: Critic inputs of `MAPPOConfig.critic`.
 CRITICS = ("central", "local")
@@ -360,5 +360,6 @@ def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int
     def result(carry):
         return nets, {**carry[0], "norm": carry[1]}
 
-    run_eval = None if evaluate is None else (lambda carry: evaluate(*result(carry)))
-    return run_updates(config, init, update, result, config.num_envs, progress, run_eval)
+    run_eval = None if evaluate is None else described(lambda carry: evaluate(*result(carry)), evaluate)
+    return run_updates(config, init, update, result, config.num_envs, progress, run_eval,
+                       description=program_description(config, env))

@@ -45,6 +45,7 @@ def _eval_program(env, trainer, n_episodes: int, seed: int):
         return {"outcomes": outcomes_of(states),
                 "flight": {"pos": flight.sim.pos, "ref": ref.pos, "vel": flight.sim.vel, "rpm": flight.sim.rpm}}
 
+    evaluate.description = f"evaluation {n_episodes} {seed} {trainer.name} {env.task.name} {env.config!r}"
     return evaluate
 
 

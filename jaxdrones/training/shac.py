@@ -26,7 +26,7 @@ import jax.numpy as jnp
 
 from jaxdrones.envs.base import Env
 from jaxdrones.training.apg import APGConfig, make_network
-from jaxdrones.training.common import check_config, mlp, run_updates
+from jaxdrones.training.common import check_config, described, mlp, program_description, run_updates
 
 
 @dataclasses.dataclass(frozen=True)
@@ -186,5 +186,6 @@ def train(env: Env, config: SHACConfig = SHACConfig(), progress: Callable[[int, 
     def result(carry):
         return actor, carry[0]
 
-    run_eval = None if evaluate is None else (lambda carry: evaluate(*result(carry)))
-    return run_updates(config, init, update, result, config.num_envs, progress, run_eval)
+    run_eval = None if evaluate is None else described(lambda carry: evaluate(*result(carry)), evaluate)
+    return run_updates(config, init, update, result, config.num_envs, progress, run_eval,
+                       description=program_description(config, env))

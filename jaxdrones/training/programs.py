@@ -1,0 +1,135 @@
+"""A disk cache of traced training programs, beside JAX's persistent compilation cache.
+
+JAX's compilation cache skips XLA's compilation on a second run, but not the tracing of the Python code into a
+program and its lowering to StableHLO, which take seconds for a trainer's chunk (the env's step traced for
+collection, for the gradient and for the evaluation). `cached_jit` saves the lowered program with `jax.export`
+(serialised StableHLO, JAX's stable format for exported programs) and a later process with the same program key
+loads it instead of tracing; XLA then finds the compiled program in the compilation cache.
+
+The key of a program is a hash of everything it is built from: the caller's description of its closure (the
+trainer, its config, the env's config, the evaluation's settings), the shapes, dtypes and tree structure of its
+inputs, the source of every module of jaxdrones, the jax and jaxlib versions and the device kind. A program whose
+inputs are spread over several devices is not cached (it is traced as usual), nor is any where the compilation
+cache is off or ``flatbuffers`` (needed by `jax.export`'s serialisation) is missing.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import pickle
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+
+#: Sub-folder of JAX's compilation cache folder holding the exported programs.
+FOLDER = "jaxdrones-programs"
+
+
+@functools.cache
+def _source_hash() -> str:
+    """Hash of every ``.py`` file of the installed jaxdrones package (its code defines every program)."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    digest = hashlib.sha256()
+    for folder, _, files in sorted(os.walk(root)):
+        for name in sorted(files):
+            if name.endswith(".py"):
+                path = os.path.join(folder, name)
+                digest.update(os.path.relpath(path, root).encode())
+                with open(path, "rb") as f:
+                    digest.update(f.read())
+    return digest.hexdigest()
+
+
+def _cache_folder() -> str | None:
+    folder = jax.config.jax_compilation_cache_dir
+    if not folder:
+        return None
+    try:
+        import flatbuffers  # noqa: F401  (jax.export's serialisation needs it)
+    except ImportError:
+        return None
+    return os.path.join(folder, FOLDER)
+
+
+def _is_key(x) -> bool:
+    return jnp.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def cached_jit(fn: Callable, example, description: str) -> Callable:
+    """``jax.jit(fn)`` for inputs shaped like ``example`` (one pytree argument), read from the program cache when
+    a process with the same key traced it before (see the module doc), else traced and saved there.
+
+    Args:
+        fn: ``fn(tree) -> pytree`` of arrays (PRNG keys allowed).
+        example: a pytree of arrays (or ``jax.ShapeDtypeStruct``) with the inputs' shapes and dtypes.
+        description: what ``fn`` closes over, as text (e.g. the repr of its configs); it must change whenever the
+            program would.
+
+    Returns:
+        A function of a tree like ``example`` returning what ``fn`` returns.
+    """
+    folder = _cache_folder()
+    if folder is None:
+        return jax.jit(fn)
+    leaves, treedef = jax.tree.flatten(example)
+    is_key = [_is_key(x) for x in leaves]
+    raw_avals = [jax.eval_shape(jax.random.key_data, x) if k else jax.ShapeDtypeStruct(x.shape, x.dtype)
+                 for x, k in zip(leaves, is_key, strict=True)]
+    device = jax.devices()[0]
+    key = hashlib.sha256("\n".join([
+        description, str(treedef), repr(is_key), repr([(a.shape, str(a.dtype)) for a in raw_avals]), _source_hash(),
+        jax.__version__, getattr(jax.lib, "__version__", ""), device.platform, device.device_kind,
+        str(jax.config.jax_enable_x64)]).encode()).hexdigest()
+    path = os.path.join(folder, key)
+    out_tree: dict = {}
+
+    def traced_program(*raw):
+        tree = jax.tree.unflatten(treedef, [jax.random.wrap_key_data(r) if k else r for r, k in zip(raw, is_key)])
+        out_leaves, out_tree["treedef"] = jax.tree.flatten(fn(tree))
+        out_tree["is_key"] = [_is_key(x) for x in out_leaves]
+        return [jax.random.key_data(x) if k else x for x, k in zip(out_leaves, out_tree["is_key"])]
+
+    loaded = _load(path)
+    if loaded is None:
+        serialized = jax.export.export(jax.jit(traced_program))(*raw_avals).serialize()
+        _save(path, serialized, out_tree)
+        # Run what later processes will load, so that all of them share one entry of the compilation cache.
+        exported = jax.export.deserialize(serialized)
+    else:
+        exported, out_tree = loaded
+    call = jax.jit(exported.call)
+
+    def run(tree):
+        leaves = jax.tree.leaves(tree)
+        out = call(*[jax.random.key_data(x) if k else x for x, k in zip(leaves, is_key)])
+        out = [jax.random.wrap_key_data(r) if k else r for r, k in zip(out, out_tree["is_key"])]
+        return jax.tree.unflatten(out_tree["treedef"], out)
+
+    return run
+
+
+def _load(path: str):
+    """``(exported, out_tree)`` saved at ``path``, or None if absent or unreadable (then traced anew)."""
+    try:
+        with open(path + ".jaxexport", "rb") as f:
+            exported = jax.export.deserialize(bytearray(f.read()))
+        with open(path + ".tree", "rb") as f:
+            return exported, pickle.load(f)
+    except Exception:  # noqa: BLE001  (a damaged or foreign file, whatever its error, is only a cache miss)
+        return None
+
+
+def _save(path: str, serialized, out_tree: dict) -> None:
+    """Write the program and its output structure, each atomically (a reader never sees half a file)."""
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        for suffix, data in ((".tree", pickle.dumps(out_tree)), (".jaxexport", bytes(serialized))):
+            tmp = f"{path}{suffix}.{os.getpid()}.tmp"
+            with open(tmp, "wb") as f:
+                f.write(data)
+            os.replace(tmp, path + suffix)
+    except (OSError, pickle.PicklingError):
+        pass  # no cache: the next run traces again
