@@ -148,17 +148,22 @@ def test_ctrl_c_saves_the_policy_so_far(tmp_path):
 
     run = tmp_path / "run"
     args = ["train", "hover", "--steps", "50000000", "--num-envs", "64", "--out", str(run), "--eval-episodes", "64"]
-    proc = subprocess.Popen(_cli(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    proc = subprocess.Popen(_cli(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     os.set_blocking(proc.stderr.fileno(), False)
     seen, deadline = "", time.monotonic() + 300
     while "final distance" not in seen:  # the progress bar shows a first evaluation: a chunk has finished
         assert proc.poll() is None and time.monotonic() < deadline, seen[-2000:]
-        seen += proc.stderr.read() or ""
+        try:
+            seen += os.read(proc.stderr.fileno(), 1 << 16).decode(errors="replace")
+        except BlockingIOError:
+            pass
         time.sleep(0.2)
     proc.send_signal(signal.SIGINT)
+    os.set_blocking(proc.stderr.fileno(), True)
     out, err = proc.communicate(timeout=300)
-    err = (seen + (err or "")).split("\r")[-1]
+    out, err = out.decode(), err.decode()
+    err = (seen + err).split("\r")[-1]
     assert proc.returncode == 130, err[-3000:]
     lines = [line for line in err.strip().splitlines() if line.strip()]
     assert lines[-1].startswith("interrupted after ") and f"saved the policy so far in {run}" in lines[-1]

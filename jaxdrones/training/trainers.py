@@ -94,7 +94,7 @@ def _config_cls(module: str, name: str):
 def _table() -> dict[str, Trainer]:
     mappo_kw = dict(train=_module_trainer("mappo", "train"), make_network=_module_trainer("mappo", "make_network"),
                     make_policy=_module_trainer("mappo", "make_policy"))
-    apg_kw = dict(make_network=_module_trainer("apg", "network_of"), make_policy=_module_trainer("apg", "make_policy"))
+    apg_kw = dict(make_network=_module_trainer("apg", "make_network"), make_policy=_module_trainer("apg", "make_policy"))
     return {
         "ppo": Trainer("ppo", "PPO (ours: one compiled program per chunk of updates)",
                        _config_cls("mappo", "MAPPOConfig"), _ppo_config, **mappo_kw),
