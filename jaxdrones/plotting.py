@@ -154,8 +154,11 @@ def plot_learning_curve(history: list[Mapping], path: str | os.PathLike, *, titl
         ax_d.legend(loc="upper right")
     ax_d.set_ylabel(metric_label)
     ax_d.set_yscale("log")
+    from matplotlib.ticker import EngFormatter
+
     for ax in (ax_r, ax_d):
         ax.set_xlabel("env steps")
+        ax.xaxis.set_major_formatter(EngFormatter())  # 200k, 1M: no overlapping tick labels
         ax.grid(alpha=0.3)
     return _save(plt, fig, path, title)
 
