@@ -13,8 +13,11 @@ array-form functions (``quat_mul``, ``quat_integrate``, ``quat_to_rotmat``) wrap
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 #: |ω| at or below which the exponential-map update leaves q unchanged (numpy ``isclose(|ω|, 0)``;
 #: docs/physics.md §4.6).
@@ -26,14 +29,84 @@ GIMBAL_SNAP = 0.99999
 Components = tuple
 
 
-def split(x: jax.Array) -> Components:
-    """Array f[..., k] -> component form, a k-tuple of f[...]."""
+def split(x: jax.Array, contiguous: bool = False) -> Components:
+    """Array f[..., k] -> component form, a k-tuple of f[...], bit for bit.
+
+    Differentiated, the tangent of component i is the sum over the last axis of the tangent masked to entry i, so
+    the cotangents of the k components are gathered back into f[..., k] by a masked sum of broadcasts, which XLA
+    on CPU compiles into a loop over the array. (The transpose of the slices ``x[..., i]``, a sum of k padded
+    arrays, is one that XLA:CPU's fusion emitters (jaxlib's default) compile into a loop that recomputes the
+    shared cotangents of the components for every element: the gradient of a user's scan over the control step
+    then cost over 200 times its forward pass.)
+
+    Args:
+        x: f[..., k].
+        contiguous: on CPU, compute the components as one integer matrix product on the bits of ``x`` (the k x k
+            identity times the rows: exact, NaN payloads and signed zeros included), which XLA does not fuse
+            into the consumers of the components: they become contiguous arrays, read at unit stride by the
+            physics, instead of strided reads of ``x`` repeated in every loop that uses them. For a state or
+            command split once per control step (see `jaxdrones.sim`).
+    """
+    return _split(x, bool(contiguous))
+
+
+def _slices(x: jax.Array) -> Components:
     return tuple(x[..., i] for i in range(x.shape[-1]))
 
 
+def _rows_of_product(x: jax.Array) -> Components:
+    """The components of x f[..., k] as the rows of I_k · bits(x)ᵀ, an integer matrix product (exact)."""
+    bits_type = {4: jnp.int32, 8: jnp.int64}[x.dtype.itemsize]
+    bits = jax.lax.bitcast_convert_type(x, bits_type)
+    rows = jnp.einsum("jk,...k->j...", jnp.eye(x.shape[-1], dtype=bits_type), bits)
+    return tuple(jax.lax.bitcast_convert_type(row, x.dtype) for row in rows)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+def _split(x: jax.Array, contiguous: bool) -> Components:
+    x = jnp.asarray(x)
+    if contiguous and x.dtype in (jnp.float32, jnp.float64) and x.ndim > 1:
+        return jax.lax.platform_dependent(x, cpu=_rows_of_product, default=_slices)
+    return _slices(x)
+
+
+@_split.defjvp
+def _split_jvp(contiguous, primals, tangents):
+    (x,), (t,) = primals, tangents
+    entry = np.arange(x.shape[-1])
+    if t.dtype == jax.dtypes.float0:  # integer input
+        return _split(x, contiguous), tuple(np.zeros(x.shape[:-1], jax.dtypes.float0) for _ in entry)
+    return _split(x, contiguous), tuple(jnp.sum(jnp.where(entry == i, t, 0), axis=-1) for i in entry)
+
+
 def join(c: Components) -> jax.Array:
-    """Component form (k-tuple of f[...]) -> array f[..., k]."""
+    """Component form (k-tuple of f[...]) -> array f[..., k], bit for bit.
+
+    Differentiated on CPU, the tangent is the product of the stacked component tangents with the k x k identity,
+    so that the backward pass splits an incoming cotangent f[..., k] into contiguous components with one matrix
+    product (which XLA does not fuse), rather than with strided slices fused into every loop that reads a
+    component: XLA:CPU's fusion emitters leave such loops unvectorised (an env step's gradient cost 3 times
+    more). The product is exact for finite tangents; a NaN or infinite tangent makes the whole vector's NaN.
+    """
+    return _join(tuple(jnp.broadcast_arrays(*c)))
+
+
+@jax.custom_jvp
+def _join(c: Components) -> jax.Array:
     return jnp.stack(c, axis=-1)
+
+
+def _join_by_product(t: Components) -> jax.Array:
+    eye = jnp.eye(len(t), dtype=t[0].dtype)
+    return jnp.einsum("kj,j...->...k", eye, jnp.stack(t), precision=jax.lax.Precision.HIGHEST)
+
+
+@_join.defjvp
+def _join_jvp(primals, tangents):
+    (c,), (t,) = primals, tangents
+    if t[0].ndim == 0:
+        return _join(c), jnp.stack(t, axis=-1)
+    return _join(c), jax.lax.platform_dependent(t, cpu=_join_by_product, default=lambda t: jnp.stack(t, axis=-1))
 
 
 def dot(a: Components, b: Components) -> jax.Array:
@@ -75,7 +148,7 @@ def quat_to_rotmat(quat: jax.Array) -> jax.Array:
     Returns:
         f[..., 3, 3] R with world = R @ body.
     """
-    return jnp.stack([join(row) for row in quat_to_rotmat_c(split(quat))], axis=-2)
+    return jnp.stack([join(row) for row in quat_to_rotmat_c(split(quat, contiguous=True))], axis=-2)
 
 
 def quat_to_rotmat_c(quat: Components, unit: bool = False) -> tuple[Components, Components, Components]:
@@ -132,11 +205,17 @@ def atan2(y: jax.Array, x: jax.Array) -> jax.Array:
     XLA on CPU computes ``jnp.arctan2`` with a scalar library call per element (about 18 ns); in float32 this uses
     Cephes' ``atanf`` instead (octant reduction to [0, 1], a second one at tan(π/8), a degree-9 odd polynomial;
     S. L. Moshier, Cephes Math Library, 1984-1992), which XLA vectorises: about 16 times faster on 4096 values and
-    within 3e-7 rad of the float64 result, as ``jnp.arctan2`` is. Other dtypes use ``jnp.arctan2``. Its
-    derivatives are finite everywhere, (0, 0) included (where atan2 has none).
+    within 3e-7 rad of the float64 result, as ``jnp.arctan2`` is. Other dtypes use ``jnp.arctan2``. In float32
+    its derivative is atan2's own, (x dy - y dx) / (x² + y²) (not the polynomial's, whose backward pass costs
+    several times more), taken as 0 at (0, 0), where atan2 has none.
     """
     if jnp.result_type(y, x) != jnp.float32:
         return jnp.arctan2(y, x)
+    return _atan2_f32(*jnp.broadcast_arrays(jnp.asarray(y, jnp.float32), jnp.asarray(x, jnp.float32)))
+
+
+@jax.custom_jvp
+def _atan2_f32(y: jax.Array, x: jax.Array) -> jax.Array:
     ax, ay = jnp.abs(x), jnp.abs(y)
     big, small = jnp.maximum(ax, ay), jnp.minimum(ax, ay)
     a = small / jnp.where(big > 0, big, 1.0)  # in [0, 1]
@@ -149,6 +228,13 @@ def atan2(y: jax.Array, x: jax.Array) -> jax.Array:
     r = jnp.where(ay > ax, jnp.pi / 2 - r, r)
     r = jnp.where(jnp.signbit(x), jnp.pi - r, r)
     return jnp.where(jnp.signbit(y), -r, r)
+
+
+@_atan2_f32.defjvp
+def _atan2_f32_jvp(primals, tangents):
+    (y, x), (dy, dx) = primals, tangents
+    r2 = x * x + y * y
+    return _atan2_f32(y, x), (x * dy - y * dx) / jnp.where(r2 > 0, r2, 1.0)
 
 
 def asin(x: jax.Array) -> jax.Array:
@@ -168,7 +254,7 @@ def quat_to_euler(quat: jax.Array) -> jax.Array:
     Returns:
         f[..., 3] (roll, pitch, yaw), rad.
     """
-    x, y, z, w = quat[..., 0], quat[..., 1], quat[..., 2], quat[..., 3]
+    x, y, z, w = split(quat, contiguous=True)
     s = -2.0 * (x * z - w * y)
     low, high = s <= -GIMBAL_SNAP, s >= GIMBAL_SNAP
     snap = low | high

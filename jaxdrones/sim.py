@@ -44,7 +44,7 @@ def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState,
 
 
 def _split_state(state: DroneState) -> DroneState:
-    vectors = {name: split(getattr(state, name)) for name in ("pos", "quat", "vel", "ang_vel", "rpm")}
+    vectors = {name: split(getattr(state, name), contiguous=True) for name in ("pos", "quat", "vel", "ang_vel", "rpm")}
     return DroneState(**vectors, contact=state.contact)
 
 
@@ -125,13 +125,19 @@ def _core_step_c(config: SimConfig):
 
 
 def _core_step(core_c):
-    """The jitted control step of the JAX core on checked inputs, in array form, around `_core_step_c`'s step."""
+    """The jitted control step of the JAX core on checked inputs, in array form, around `_core_step_c`'s step.
 
-    @jax.jit
+    The state and the command are split into contiguous components once (`jaxdrones.rotations.split`), and the
+    step is rematerialised (``jax.checkpoint``) when differentiated: the backward pass of a scan over this step
+    (a user's own, or an env's) recomputes each step from its input state, as `rollout` does, instead of storing
+    every intermediate of the physics (see `benchmarks/gradients.py`: on CPU that scan's gradient is otherwise
+    several times slower). Neither changes a value.
+    """
+
     def core(params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
-        return _join_state(core_c(params, _split_state(state), split(rpm)))
+        return _join_state(core_c(params, _split_state(state), split(rpm, contiguous=True)))
 
-    return core
+    return jax.jit(jax.checkpoint(core))
 
 
 class JaxStep:
@@ -224,7 +230,7 @@ def _rollout_c(step: JaxStep, params: DroneParams, state: DroneState, rpms: jax.
     the components, and the stacked states are joined once at the end. On CPU, splitting and joining at every
     step cost as much as the physics in the backward pass (where XLA recomputes the shared cotangents for each
     component it joins)."""
-    return _join_state(_scan_steps(step._core_c, params, _split_state(state), split(rpms), remat))
+    return _join_state(_scan_steps(step._core_c, params, _split_state(state), split(rpms, contiguous=True), remat))
 
 
 def shard_worlds(tree, axis: int = 0, devices=None):
