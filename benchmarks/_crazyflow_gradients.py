@@ -60,7 +60,8 @@ def main(argv=None) -> int:
                 return jnp.mean(jnp.sum((pos - jnp.asarray(TARGET)) ** 2, -1)) + 0.1 * jnp.mean(vel**2)
 
             result = measure(jax, loss, commands, state, horizon, worlds, args.repeats)
-            print("RESULT " + json.dumps({"sim": "crazyflow", "remat": False, **result}), flush=True)
+            print("RESULT " + json.dumps({"sim": "crazyflow", "caller": "user_scan", "remat": False, **result}),
+                  flush=True)
     return 0
 
 

@@ -9,10 +9,21 @@ to (0, 0, 1) m plus 0.1 × the mean squared velocity. Timed, each as one jitted 
 - ``grad_commands``: the loss and its gradient w.r.t. the RPM commands f[T, W, 1, 4];
 - ``grad_initial_state``: the loss and its gradient w.r.t. the initial pos, quat, vel and ang_vel.
 
-The rollout is ``jaxdrones.rollout``; ``ratio`` is gradient time over forward time. Each is run with
-``remat=True`` (its default: the backward pass recomputes each control step from its saved input state instead of
-storing every intermediate) and ``remat=False``. Memory is XLA's own count of the temporary buffers of the compiled
-call (``memory_analysis().temp_size_in_bytes``).
+``ratio`` is gradient time over forward time. The same work is run by three callers (the ``caller`` field of each
+result):
+
+- ``rollout``: ``jaxdrones.rollout``, with ``remat=True`` (its default: the backward pass recomputes each control
+  step from its saved input state instead of storing every intermediate) and ``remat=False``;
+- ``user_scan``: a user's own ``jax.lax.scan`` over the step that ``jaxdrones.make_step`` returns, stacking the
+  positions and velocities;
+- ``env_step``: ``jax.lax.scan`` over the ``hover`` env's ``step`` (``jaxdrones.make("hover", ctrl_freq=240,
+  drag=True, ground_effect=True)``, the physics above, vmapped over the worlds, started from the same states), the
+  action of each step being a linear policy of the observation (fixed small weights) plus a per-step offset, the
+  "command" (normalised RPM actions: an offset of 0.4 N(0, 1) is the rollouts' 2 % of hover). What the APG and
+  SHAC trainers differentiate; ``grad_policy`` is also timed: the loss and its gradient w.r.t. the policy's
+  weights and bias.
+
+Memory is XLA's own count of the temporary buffers of the compiled call (``memory_analysis().temp_size_in_bytes``).
 
 crazyflow 0.4.0 runs the same work in the same run, in its own virtual environment (``benchmarks/.venv-crazyflow``,
 created with ``pip install crazyflow==0.4.0`` by `envs.py`'s installer when missing; ``--no-crazyflow`` skips it):
@@ -103,21 +114,78 @@ def start_positions(np, worlds: int):
                           axis=-1).astype(np.float32)
 
 
-def jaxdrones_case(jax, jd, np, horizon: int, worlds: int, remat: bool, repeats: int) -> dict:
+def trajectory_loss(jnp, pos, vel):
+    """Mean squared distance to `TARGET` plus 0.1 × the mean squared velocity, over steps and worlds."""
+    return jnp.mean(jnp.sum((pos - jnp.asarray(TARGET)) ** 2, -1)) + 0.1 * jnp.mean(vel**2)
+
+
+def jaxdrones_setup(jax, jd, np, horizon: int, worlds: int):
+    """The config, params, step, initial state, the differentiated part of it and the RPM commands."""
     jnp = jax.numpy
     config = jd.SimConfig(n_drones=1, sim_freq=SIM_FREQ, ctrl_freq=CTRL_FREQ, drag=True, ground_effect=True)
     params = jd.load_params("cf2x")
-    step = jd.make_step(config)
     init = jd.init_state(config, pos=jnp.asarray(start_positions(np, worlds)))
     state = {k: getattr(init, k) for k in ("pos", "quat", "vel", "ang_vel")}
     noise = np.random.default_rng(1).standard_normal((horizon, worlds, 1, 4))
     commands = jnp.asarray(float(params.hover_rpm) * (1 + 0.02 * noise), jnp.float32)
+    return config, params, jd.make_step(config), init, state, commands, noise
+
+
+def jaxdrones_case(jax, jd, np, horizon: int, worlds: int, remat: bool, repeats: int) -> dict:
+    """``caller: rollout``: `jaxdrones.rollout` with ``remat``."""
+    _, params, step, init, state, commands, _ = jaxdrones_setup(jax, jd, np, horizon, worlds)
 
     def loss(commands, state):
         states = jd.rollout(step, params, init.replace(**state), commands, remat=remat)
-        return jnp.mean(jnp.sum((states.pos - jnp.asarray(TARGET)) ** 2, -1)) + 0.1 * jnp.mean(states.vel**2)
+        return trajectory_loss(jax.numpy, states.pos, states.vel)
 
-    return {"sim": "jaxdrones", "remat": remat, **measure(jax, loss, commands, state, horizon, worlds, repeats)}
+    return {"sim": "jaxdrones", "caller": "rollout", "remat": remat,
+            **measure(jax, loss, commands, state, horizon, worlds, repeats)}
+
+
+def user_scan_case(jax, jd, np, horizon: int, worlds: int, repeats: int) -> dict:
+    """``caller: user_scan``: a user's own ``lax.scan`` over `jaxdrones.make_step`'s step."""
+    _, params, step, init, state, commands, _ = jaxdrones_setup(jax, jd, np, horizon, worlds)
+
+    def loss(commands, state):
+        def body(s, rpm):
+            s = step(params, s, rpm)
+            return s, (s.pos, s.vel)
+
+        _, (pos, vel) = jax.lax.scan(body, init.replace(**state), commands)
+        return trajectory_loss(jax.numpy, pos, vel)
+
+    return {"sim": "jaxdrones", "caller": "user_scan", "remat": None,
+            **measure(jax, loss, commands, state, horizon, worlds, repeats)}
+
+
+def env_step_case(jax, jd, np, horizon: int, worlds: int, repeats: int) -> dict:
+    """``caller: env_step``: ``lax.scan`` over the hover env's vmapped ``step`` with a linear policy (see above)."""
+    from jaxdrones.envs.base import world_axes
+
+    jnp = jax.numpy
+    _, _, _, init, state, _, noise = jaxdrones_setup(jax, jd, np, horizon, worlds)
+    env = jd.make("hover", ctrl_freq=CTRL_FREQ, sim_freq=SIM_FREQ, drag=True, ground_effect=True)
+    axes = world_axes(env.shared_params is not None)
+    start = jax.vmap(env.reset, out_axes=axes)(jax.random.split(jax.random.key(0), worlds)).replace(sim=init)
+    step = jax.vmap(env.step, in_axes=(axes, 0), out_axes=axes)
+    offsets = jnp.asarray(0.4 * noise, jnp.float32)  # rpm = hover (1 + 0.05 a): 2 % of hover, as the commands
+    weights = np.random.default_rng(2).standard_normal((env.observation_size, env.action_size))
+    policy = {"w": jnp.asarray(0.01 * weights, jnp.float32), "b": jnp.zeros(env.action_size, jnp.float32)}
+
+    def loss_of(policy, offsets, state):
+        def body(s, offset):
+            s = step(s, s.obs @ policy["w"] + policy["b"] + offset)
+            return s, (s.sim.pos, s.sim.vel)
+
+        _, (pos, vel) = jax.lax.scan(body, start.replace(sim=init.replace(**state)), offsets)
+        return trajectory_loss(jnp, pos, vel)
+
+    result = measure(jax, lambda offsets, state: loss_of(policy, offsets, state), offsets, state, horizon, worlds,
+                     repeats)
+    by_policy = time_call(jax, jax.value_and_grad(loss_of), (policy, offsets, state), repeats)
+    return {"sim": "jaxdrones", "caller": "env_step", "remat": None, **result, "grad_policy": by_policy,
+            "ratio_policy": by_policy["s"] / result["forward"]["s"]}
 
 
 def run_crazyflow(args) -> tuple[list[dict], dict, str | None]:
@@ -147,10 +215,14 @@ def run_crazyflow(args) -> tuple[list[dict], dict, str | None]:
 
 def print_row(r: dict) -> None:
     mib = (r["grad_commands"]["temp_bytes"] or 0) / 2**20
-    print(f"  {r['sim']:<9} remat={str(r.get('remat', False)):<5} T={r['horizon']:>5} W={r['worlds']:>6}: forward "
+    caller = r.get("caller", "rollout")
+    label = f"{caller} remat={r['remat']}" if caller == "rollout" else caller
+    policy = (f", grad(policy) {r['grad_policy']['s'] * 1e3:9.2f} ms ({r['ratio_policy']:5.1f}x)"
+              if "grad_policy" in r else "")
+    print(f"  {r['sim']:<9} {label:<19} T={r['horizon']:>5} W={r['worlds']:>6}: forward "
           f"{r['forward']['s'] * 1e3:9.2f} ms, grad(commands) {r['grad_commands']['s'] * 1e3:9.2f} ms "
           f"({r['ratio_commands']:5.1f}x, {mib:,.0f} MiB), grad(initial state) "
-          f"{r['grad_initial_state']['s'] * 1e3:9.2f} ms ({r['ratio_initial_state']:5.1f}x)", flush=True)
+          f"{r['grad_initial_state']['s'] * 1e3:9.2f} ms ({r['ratio_initial_state']:5.1f}x){policy}", flush=True)
 
 
 def main(argv=None) -> int:
@@ -170,6 +242,9 @@ def main(argv=None) -> int:
         for worlds in args.worlds:
             for remat in (False, True):
                 results.append(jaxdrones_case(jax, jd, np, horizon, worlds, remat, args.repeats))
+                print_row(results[-1])
+            for case in (user_scan_case, env_step_case):
+                results.append(case(jax, jd, np, horizon, worlds, args.repeats))
                 print_row(results[-1])
     crazyflow = {"requested": args.crazyflow}
     if args.crazyflow:
