@@ -19,7 +19,6 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxdrones.envs.base import Env
 from jaxdrones.training.common import Schedule, check_config, described, mlp, program_description, run_updates

@@ -92,7 +92,6 @@ def make_network(config: BraxPPOConfig, env: Env):
     ``config.normalize_observations``)."""
     _import_brax()
     from brax.training.acme import running_statistics
-    from brax.training.agents.ppo import networks as ppo_networks
 
     preprocess = running_statistics.normalize if config.normalize_observations else (lambda x, _: x)
     return _network_factory(config)(env.n_drones * env.observation_size, env.n_drones * env.action_size,

@@ -9,7 +9,6 @@ import os
 import pickle
 
 import jax
-import numpy as np
 
 from jaxdrones.envs.base import Env
 from jaxdrones.training.common import host_array

@@ -58,8 +58,7 @@ class ProgressLog:
         self.bar.set_postfix_str(f"{rate}{AGGREGATES[task.success_at]} {task.success_metric} "
                                  f"{row['success_value']:.3g} {task.success_unit} (solved < "
                                  f"{task.success_threshold:g})  terminated {row['terminated_rate']:.0%}")
-        if step > self.bar.total:
-            self.bar.total = step
+        self.bar.total = max(self.bar.total, step)
         self.bar.update(step - self.bar.n)
 
     def close(self) -> None:

@@ -83,7 +83,9 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
 
     Returns:
         The summary dict (also written to ``summary.json``): ``wall_time_s`` (everything from ``t_start``: imports,
-        compilation, training, evaluation, plots), ``phases_s`` (the seconds of each phase), ``env_steps``,
+        compilation, training, evaluation, plots), ``phases_s`` (the seconds of each phase: ``startup`` before this
+        call, ``setup`` (envs, run folder), ``train`` (tracing, compilation, training and the evaluations),
+        ``save``, ``plots``), ``env_steps``,
         ``success_metric``, ``success_value`` (the task's success metric over ``n_eval_episodes`` random starts),
         ``success`` (that value below the task's threshold with no episode terminated early), ``eval`` (all
         evaluation statistics), ``interrupted``, ``provenance`` (versions, commit, devices, processes, CPU), the
@@ -93,11 +95,10 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
         ValueError: bad settings (unknown task, algorithm or env option, fewer than 64 evaluation episodes, a config
             of another trainer, ...).
     """
-    t_start = time.perf_counter() if t_start is None else t_start
-    phases = {}
     t_phase = time.perf_counter()
+    t_start = t_phase if t_start is None else t_start
+    phases = {"startup": t_phase - t_start}  # from t_start: Python, imports, the command line's parsing and devices
     import jax
-    import numpy as np
 
     from jaxdrones.envs import make
     from jaxdrones.runs import new_run_dir, provenance
@@ -139,10 +140,10 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     t_train = time.perf_counter()
     interrupted = False
     try:
-        network, params = trainer.train(train_env, config, progress=report,
-                                        evaluate=_eval_program(env, trainer, n_eval_episodes, config.seed))
+        _, params = trainer.train(train_env, config, progress=report,
+                                  evaluate=_eval_program(env, trainer, n_eval_episodes, config.seed))
     except Interrupted as stop:
-        (network, params), interrupted = stop.result, True
+        (_, params), interrupted = stop.result, True
     finally:
         log.close()
     phases["train"] = train_time = time.perf_counter() - t_train
