@@ -140,6 +140,9 @@ def run_cli(args: argparse.Namespace) -> int:
     except (ValueError, OSError, devices.DeviceError) as err:
         print(f"jaxdrones train: error: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # before training started (during training, the policy so far is saved)
+        print("interrupted before training started: nothing saved", file=sys.stderr)
+        return 130
     if "out_dir" not in summary:  # a process other than 0: process 0 reports and saves
         return 0
     if summary["interrupted"]:
