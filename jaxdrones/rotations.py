@@ -79,16 +79,22 @@ def _split_jvp(contiguous, primals, tangents):
     return _split(x, contiguous), tuple(jnp.sum(jnp.where(entry == i, t, 0), axis=-1) for i in entry)
 
 
-def join(c: Components) -> jax.Array:
+def join(c: Components, contiguous: bool = False) -> jax.Array:
     """Component form (k-tuple of f[...]) -> array f[..., k], bit for bit.
 
-    Differentiated on CPU, the tangent is the product of the stacked component tangents with the k x k identity,
-    so that the backward pass splits an incoming cotangent f[..., k] into contiguous components with one matrix
-    product (which XLA does not fuse), rather than with strided slices fused into every loop that reads a
-    component: XLA:CPU's fusion emitters leave such loops unvectorised (an env step's gradient cost 3 times
-    more). The product is exact for finite tangents; a NaN or infinite tangent makes the whole vector's NaN.
+    Args:
+        c: k-tuple of f[...].
+        contiguous: differentiated on CPU, take the tangent as the product of the stacked component tangents with
+            the k x k identity, so that the backward pass splits an incoming cotangent f[..., k] into its
+            components with one matrix product, which XLA does not fuse, rather than with strided slices fused
+            into every loop that reads a component (loops that XLA:CPU's fusion emitters leave unvectorised, with
+            the cotangent's own computation repeated in each). For a state joined at every control step (see
+            `jaxdrones.sim`). The product is exact for finite tangents; a NaN or infinite tangent makes the whole
+            vector's NaN.
     """
-    return _join(tuple(jnp.broadcast_arrays(*c)))
+    if contiguous:
+        return _join(tuple(jnp.broadcast_arrays(*c)))
+    return jnp.stack(c, axis=-1)
 
 
 @jax.custom_jvp

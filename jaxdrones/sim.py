@@ -43,13 +43,13 @@ def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState,
     return DroneState(*kin, rpm=rpm, contact=state.contact | jnp.where(touching, CONTACT_GROUND, 0).astype(jnp.int32))
 
 
-def _split_state(state: DroneState) -> DroneState:
-    vectors = {name: split(getattr(state, name), contiguous=True) for name in ("pos", "quat", "vel", "ang_vel", "rpm")}
+def _split_state(state: DroneState, contiguous: bool = False) -> DroneState:
+    vectors = {name: split(getattr(state, name), contiguous) for name in ("pos", "quat", "vel", "ang_vel", "rpm")}
     return DroneState(**vectors, contact=state.contact)
 
 
-def _join_state(state: DroneState) -> DroneState:
-    vectors = {name: join(getattr(state, name)) for name in ("pos", "quat", "vel", "ang_vel", "rpm")}
+def _join_state(state: DroneState, contiguous: bool = False) -> DroneState:
+    vectors = {name: join(getattr(state, name), contiguous) for name in ("pos", "quat", "vel", "ang_vel", "rpm")}
     return DroneState(**vectors, contact=state.contact)
 
 
@@ -127,15 +127,19 @@ def _core_step_c(config: SimConfig):
 def _core_step(core_c):
     """The jitted control step of the JAX core on checked inputs, in array form, around `_core_step_c`'s step.
 
-    The state and the command are split into contiguous components once (`jaxdrones.rotations.split`), and the
-    step is rematerialised (``jax.checkpoint``) when differentiated: the backward pass of a scan over this step
-    (a user's own, or an env's) recomputes each step from its input state, as `rollout` does, instead of storing
-    every intermediate of the physics (see `benchmarks/gradients.py`: on CPU that scan's gradient is otherwise
-    several times slower). Neither changes a value.
+    The state is split into contiguous components and joined back with ``contiguous=True``
+    (`jaxdrones.rotations.split`, `jaxdrones.rotations.join`), and the step is rematerialised (``jax.checkpoint``)
+    when differentiated: the backward pass of a scan over this step (a user's own, or an env's) recomputes each
+    step from its input state, as `rollout` does, instead of storing every intermediate of the physics (see
+    `benchmarks/gradients.py`: on CPU that scan's gradient is otherwise several times slower). None of this
+    changes a value. The command is sliced (with its components from the product, a level drone given four equal
+    commands drifted sideways by 5e-5 m in 60 steps: XLA then rounds the terms of equal and opposite torques
+    differently, see `jaxdrones.rotations.dot`; sliced, it stays exactly level, as on PyBullet).
     """
 
     def core(params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
-        return _join_state(core_c(params, _split_state(state), split(rpm, contiguous=True)))
+        state = core_c(params, _split_state(state, contiguous=True), split(rpm))
+        return _join_state(state, contiguous=True)
 
     return jax.jit(jax.checkpoint(core))
 
@@ -230,7 +234,7 @@ def _rollout_c(step: JaxStep, params: DroneParams, state: DroneState, rpms: jax.
     the components, and the stacked states are joined once at the end. On CPU, splitting and joining at every
     step cost as much as the physics in the backward pass (where XLA recomputes the shared cotangents for each
     component it joins)."""
-    return _join_state(_scan_steps(step._core_c, params, _split_state(state), split(rpms, contiguous=True), remat))
+    return _join_state(_scan_steps(step._core_c, params, _split_state(state), split(rpms), remat))
 
 
 def shard_worlds(tree, axis: int = 0, devices=None):
