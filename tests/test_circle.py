@@ -12,6 +12,7 @@ import os
 import numpy as np
 import pytest
 
+from jaxdrones.cli import fly
 from jaxdrones.examples import circle
 
 TOLERANCE_M = 0.05
@@ -64,7 +65,7 @@ def test_cli_writes_a_new_run_folder(tmp_path, flights, capsys):
     import argparse
 
     parser = argparse.ArgumentParser(prog="jaxdrones")
-    circle.register(parser.add_subparsers(dest="command", required=True))
+    fly.register(parser.add_subparsers(dest="command", required=True))
     out = tmp_path / "fly"
     out.mkdir()
     (out / "earlier.txt").write_text("an earlier run")

@@ -10,15 +10,14 @@ import time
 
 def build_parser() -> argparse.ArgumentParser:
     from jaxdrones import __version__
-    from jaxdrones.cli import train
-    from jaxdrones.examples import camera_scene, circle
+    from jaxdrones.cli import camera, fly, train
 
     parser = argparse.ArgumentParser(prog="jaxdrones", description=__doc__)
     parser.add_argument("--version", action="version", version=f"jaxdrones {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     train.register(sub)
-    circle.register(sub)
-    camera_scene.register(sub)
+    fly.register(sub)
+    camera.register(sub)
     return parser
 
 
