@@ -21,7 +21,7 @@ from jaxdrones import aerodynamics
 from jaxdrones.kinks import Kinks
 from jaxdrones.neighbors import cell_candidates
 from jaxdrones.params import DroneParams
-from jaxdrones.rotations import (Components, cross, dot, join, matvec, normalize_c, quat_derivative_c,
+from jaxdrones.rotations import (Components, cross, dot, matvec, normalize_c, quat_derivative_c,
                                  quat_integrate_c, quat_to_rotmat_c, split)
 
 
