@@ -203,6 +203,9 @@ def test_second_run_loads_the_traced_program_and_trains_the_same(tmp_path):
     first, log_first = run("first")
     assert len(list(programs.glob("*.jaxexport"))) == 1
     assert traced.search(log_first)
+    # One compilation of the chunk for all its calls: the first call's input (from init) and the later calls' (the
+    # chunk's own output) are committed to the device alike.
+    assert len(re.findall(r"compilation of jit\(call\)", log_first)) == 1, log_first[-3000:]
     second, log_second = run("second")
     assert not traced.search(log_second)  # loaded from disk, not traced
     assert second["eval"] == first["eval"]

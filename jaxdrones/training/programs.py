@@ -103,7 +103,9 @@ def cached_jit(fn: Callable, example, description: str) -> Callable:
     call = jax.jit(exported.call)
 
     def run(tree):
-        leaves = jax.tree.leaves(tree)
+        # Committed to the device, as the program's outputs are: a later call with its own outputs then reuses the
+        # compiled program (jit compiles anew for inputs committed otherwise).
+        leaves = jax.device_put(jax.tree.leaves(tree), device)
         out = call(*[jax.random.key_data(x) if k else x for x, k in zip(leaves, is_key)])
         out = [jax.random.wrap_key_data(r) if k else r for r, k in zip(out, out_tree["is_key"])]
         return jax.tree.unflatten(out_tree["treedef"], out)
