@@ -184,9 +184,9 @@ def test_ctrl_c_saves_the_policy_so_far(tmp_path):
 
 @pytest.mark.slow
 def test_second_run_loads_the_traced_program_and_trains_the_same(tmp_path):
-    """With the compilation cache on, a run saves its traced chunk (`jaxdrones.training.programs`); an identical
-    second run loads it instead of tracing and gives the same result; another setting gets a program of its own;
-    a damaged file is traced anew."""
+    """With the compilation cache on, a run saves its traced chunk and evaluation (`jaxdrones.training.programs`);
+    an identical second run loads them instead of tracing and gives the same result; another setting gets programs
+    of its own; a damaged file is traced anew."""
     cache = tmp_path / "cache"
     env = {**os.environ, "JAXDRONES_CACHE_DIR": str(cache)}
     args = ["train", "hover", "--algo", "apg", "--steps", "2048", "--num-envs", "8", "--num-evals", "2",
@@ -201,16 +201,16 @@ def test_second_run_loads_the_traced_program_and_trains_the_same(tmp_path):
     programs = cache / "jaxdrones-programs"
     traced = re.compile(r"Finished tracing (\+ transforming )?traced_program")  # the log's words vary with jax
     first, log_first = run("first")
-    assert len(list(programs.glob("*.jaxexport"))) == 1
+    assert len(list(programs.glob("*.jaxexport"))) == 2  # the chunk of updates and the evaluation
     assert traced.search(log_first)
-    # One compilation of the chunk for all its calls: the first call's input (from init) and the later calls' (the
-    # chunk's own output) are committed to the device alike.
-    assert len(re.findall(r"compilation of jit\(call\)", log_first)) == 1, log_first[-3000:]
+    # One compilation of each program for all its calls: the first call's input (from init) and the later calls'
+    # (the chunk's own output) are committed to the device alike.
+    assert len(re.findall(r"compilation of jit\(call\)", log_first)) == 2, log_first[-3000:]
     second, log_second = run("second")
     assert not traced.search(log_second)  # loaded from disk, not traced
     assert second["eval"] == first["eval"]
     run("other", "--seed", "1")
-    assert len(list(programs.glob("*.jaxexport"))) == 2
+    assert len(list(programs.glob("*.jaxexport"))) == 4
     for path in programs.glob("*.jaxexport"):
         path.write_bytes(b"damaged")
     third, log_third = run("third")

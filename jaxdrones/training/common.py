@@ -120,21 +120,23 @@ def described(fn: Callable, evaluate: Callable) -> Callable:
 def run_updates(config: Schedule, init: Callable, update: Callable, result: Callable, n_worlds: int,
                 progress: Callable[[int, dict], None] | None = None, evaluate: Callable | None = None,
                 description: str | None = None):
-    """The training loop of our trainers: two compiled programs, ``init`` and a chunk of updates.
+    """The training loop of our trainers: three compiled programs, ``init``, a chunk of updates and the evaluation.
 
     ``init(key) -> carry`` builds the parameters, optimiser state and the worlds' states (jitted, with the carry
-    spread over every device: `world_shardings`). Then ``config.num_evals`` calls of one jitted chunk: a
-    `jax.lax.scan` of ``config.updates_per_eval`` calls of ``update(carry, None) -> (carry, metrics)``, followed in
-    the same program by ``evaluate(carry)`` (a pytree of arrays, e.g. per-episode outcomes of the current policy).
-    Each chunk is dispatched before the previous chunk's metrics are read, so that the host's work (the progress
-    display) overlaps the next chunk; nothing else leaves the device during training.
+    spread over every device: `world_shardings`). Then ``config.num_evals`` calls of one jitted chunk, a
+    `jax.lax.scan` of ``config.updates_per_eval`` calls of ``update(carry, None) -> (carry, metrics)``, each followed
+    by a call of the jitted ``evaluate(carry)`` (a pytree of arrays, e.g. per-episode outcomes of the current
+    policy). Each chunk is dispatched before the previous chunk's metrics are read, so that the host's work (the
+    progress display) overlaps the next chunk; nothing else leaves the device during training. On one device the
+    evaluation is traced and compiled in a second thread while the chunk is compiled and the first chunk trains
+    (on 2 CPU cores this hides its 2 s of tracing and compiling; it is first run on the initial carry).
 
     ``progress(env_steps, metrics)`` is called after each chunk, with the last update's metrics (floats) and the
     evaluation under ``"eval"`` (NumPy arrays).
 
     ``description`` (the trainer, its config and its env's config, as text) lets a later process load the traced
-    chunk from disk instead of tracing it (`jaxdrones.training.programs`), when ``evaluate`` has a ``description``
-    too (or is None); otherwise the chunk is traced as usual.
+    chunk and evaluation from disk instead of tracing them (`jaxdrones.training.programs`), when ``evaluate`` has a
+    ``description`` too (or is None); otherwise they are traced as usual.
 
     Returns:
         ``result(carry)`` of the final carry.
@@ -142,17 +144,16 @@ def run_updates(config: Schedule, init: Callable, update: Callable, result: Call
     Raises:
         Interrupted: on Ctrl-C, with ``result`` of the last completed chunk's carry.
     """
+    import threading
+
     key = jax.random.key(config.seed)
 
     def chunk(carry):
         carry, metrics = jax.lax.scan(update, carry, None, length=config.updates_per_eval)
-        metrics = {name: value[-1] for name, value in metrics.items()}
-        if evaluate is not None:
-            metrics["eval"] = evaluate(carry)
-        return carry, metrics
+        return carry, {name: value[-1] for name, value in metrics.items()}
 
     steps_per_chunk = config.updates_per_eval * config.steps_per_update
-    init_c, carry, done = jax.jit(init), None, 0
+    init_c, carry, done, compiling = jax.jit(init), None, 0, None
     try:
         shapes = jax.eval_shape(init, key)
         shardings = world_shardings(shapes, n_worlds)
@@ -160,18 +161,53 @@ def run_updates(config: Schedule, init: Callable, update: Callable, result: Call
         if shardings is None and description is not None and eval_description is not None:
             from jaxdrones.training.programs import cached_jit
 
-            chunk_c = cached_jit(chunk, shapes, f"{description}\nupdates {config.updates_per_eval}\n"
-                                                f"{eval_description}")
+            def jit_chunk():
+                return cached_jit(chunk, shapes, f"{description}\nupdates {config.updates_per_eval}")
+
+            def jit_eval():
+                return cached_jit(evaluate, shapes, f"{description}\n{eval_description}")
         elif shardings is None:
-            chunk_c = jax.jit(chunk)
+            def jit_chunk():
+                return jax.jit(chunk)
+
+            def jit_eval():
+                return jax.jit(evaluate)
         else:
             replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())
             init_c = jax.jit(init, out_shardings=shardings)
-            chunk_c = jax.jit(chunk, in_shardings=(shardings,), out_shardings=(shardings, replicated))
+
+            def jit_chunk():
+                return jax.jit(chunk, in_shardings=(shardings,), out_shardings=(shardings, replicated))
+
+            def jit_eval():
+                return jax.jit(evaluate, in_shardings=(shardings,), out_shardings=replicated)
         carry = init_c(key)
+        eval_c = {}
+        if evaluate is not None and shardings is None:
+            # One device: trace and compile the evaluation beside the chunk (several devices, or processes, run
+            # their programs in the same order everywhere, so there it is compiled in turn).
+            def compile_eval(first=carry):
+                try:
+                    eval_c["fn"] = jit_eval()
+                    jax.block_until_ready(eval_c["fn"](first))
+                except BaseException as err:  # noqa: BLE001  (raised in the training thread, below)
+                    eval_c["error"] = err
+
+            compiling = threading.Thread(target=compile_eval, name="jaxdrones-compile-evaluation", daemon=True)
+            compiling.start()
+        elif evaluate is not None:
+            eval_c["fn"] = jit_eval()
+        chunk_c = jit_chunk()
         pending = chunk_c(carry)
         for k in range(1, config.num_evals + 1):
             finished, metrics = pending
+            if compiling is not None:
+                compiling.join()
+                compiling = None
+                if "error" in eval_c:
+                    raise eval_c["error"]
+            if evaluate is not None:
+                metrics = {**metrics, "eval": eval_c["fn"](finished)}
             if k < config.num_evals:
                 pending = chunk_c(finished)  # runs while this chunk's metrics are read and shown
             metrics = jax.tree.map(host_array, metrics)
@@ -180,4 +216,7 @@ def run_updates(config: Schedule, init: Callable, update: Callable, result: Call
                 progress(done, {name: (value if name == "eval" else float(value)) for name, value in metrics.items()})
     except KeyboardInterrupt:
         raise Interrupted(result(init_c(key) if carry is None else carry), done) from None
+    finally:
+        if compiling is not None:
+            compiling.join()  # never leave XLA compiling in a thread while Python shuts down
     return result(carry)

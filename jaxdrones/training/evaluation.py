@@ -1,9 +1,9 @@
 """Evaluating a policy on a task: episodes from random starts under one jitted, vmapped call, and their statistics
 (the task's success metric as it is judged: at the episode's end, its mean or its maximum).
 
-Every trainer is evaluated here, with the same episodes: `episode_outcomes` is traced into the trainers' compiled
-programs, `episode_statistics` turns its arrays into the numbers that progress displays, learning curves and
-``summary.json`` report.
+Every trainer is evaluated here, with the same episodes: `episode_outcomes` is compiled with the trainers' programs
+(`jaxdrones.training.common.run_updates`), `episode_statistics` turns its arrays into the numbers that progress
+displays, learning curves and ``summary.json`` report.
 """
 
 from __future__ import annotations

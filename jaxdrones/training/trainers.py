@@ -3,7 +3,7 @@ per task and device, how it trains, and how its saved parameters become a policy
 
 A trainer's ``train(env, config, progress, evaluate) -> (network, params)`` calls ``progress(env_steps, metrics)``
 after each of its ``config.num_evals`` chunks of updates, with its training metrics (floats) and, under
-``"eval"``, the arrays that ``evaluate(network, params)`` returned (traced into the chunk; e.g.
+``"eval"``, the arrays that ``evaluate(network, params)`` returned (compiled and called after each chunk; e.g.
 `jaxdrones.training.evaluation.episode_outcomes` of ``make_policy(network, params)``); on Ctrl-C it raises
 `jaxdrones.training.common.Interrupted` with the result of the last completed chunk.
 ``make_network(config, env)`` rebuilds the network of a saved policy, ``make_policy(network, params)`` gives
