@@ -9,8 +9,9 @@ to (0, 0, 1) m plus 0.1 × the mean squared velocity. Timed, each as one jitted 
 - ``grad_commands``: the loss and its gradient w.r.t. the RPM commands f[T, W, 1, 4];
 - ``grad_initial_state``: the loss and its gradient w.r.t. the initial pos, quat, vel and ang_vel.
 
-``ratio`` is gradient time over forward time. The same work is run by three callers (the ``caller`` field of each
-result):
+``ratio`` is gradient time over forward time: the median over rounds of one call of each (forward and
+gradients in turn, so that both see the machine's load of the moment). The same work is run by three callers (the
+``caller`` field of each result):
 
 - ``rollout``: ``jaxdrones.rollout``, with ``remat=True`` (its default: the backward pass recomputes each control
   step from its saved input state instead of storing every intermediate) and ``remat=False``;
@@ -64,7 +65,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--horizons", type=int, nargs="+", help=f"control steps T (default {HORIZONS})")
     parser.add_argument("--worlds", type=int, nargs="+", help=f"worlds W (default {WORLDS})")
-    parser.add_argument("--repeats", type=int, default=3, help="timed calls per measurement (median; default 3)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed rounds per measurement (median; default 5)")
     parser.add_argument("--quick", action="store_true", help=f"horizons {QUICK_HORIZONS}, worlds {QUICK_WORLDS}")
     parser.add_argument("--crazyflow", action=argparse.BooleanOptionalAction, default=True,
                         help="also measure crazyflow 0.4.0 in its own venv (default on)")
@@ -77,34 +78,44 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
-def time_call(jax, fn, inputs, repeats: int) -> dict:
-    """Compile ``jax.jit(fn)`` for ``inputs``, then time ``repeats`` calls (to ``block_until_ready``).
+def time_calls(jax, calls: dict, repeats: int) -> dict:
+    """Compile ``jax.jit(fn)`` for each ``name: (fn, inputs)`` of ``calls``, then time ``repeats`` rounds of one
+    call of each, in turn (to ``block_until_ready``): on a shared machine every call of a round sees the same load,
+    so that ratios taken within rounds hold where absolute times drift.
 
-    Returns seconds (median and all), compile seconds and XLA's temporary-buffer bytes. Needs only the ``jax``
-    passed in, so crazyflow's worker (another JAX) uses it too.
+    Returns, per name, seconds (median and all, in round order), compile seconds and XLA's temporary-buffer bytes.
+    Needs only the ``jax`` passed in, so crazyflow's worker (another JAX) uses it too.
     """
-    start = time.perf_counter()
-    compiled = jax.jit(fn).lower(*inputs).compile()
-    compile_s = time.perf_counter() - start
-    jax.block_until_ready(compiled(*inputs))
-    times = []
+    compiled, results = {}, {}
+    for name, (fn, inputs) in calls.items():
+        start = time.perf_counter()
+        compiled[name] = jax.jit(fn).lower(*inputs).compile()
+        memory = compiled[name].memory_analysis()
+        results[name] = {"times_s": [], "compile_s": time.perf_counter() - start,
+                         "temp_bytes": getattr(memory, "temp_size_in_bytes", None)}
+        jax.block_until_ready(compiled[name](*inputs))
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(*inputs))
-        times.append(time.perf_counter() - t0)
-    memory = compiled.memory_analysis()
-    return {"s": statistics.median(times), "times_s": times, "compile_s": compile_s,
-            "temp_bytes": getattr(memory, "temp_size_in_bytes", None)}
+        for name, (_, inputs) in calls.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(compiled[name](*inputs))
+            results[name]["times_s"].append(time.perf_counter() - t0)
+    for result in results.values():
+        result["s"] = statistics.median(result["times_s"])
+    return results
 
 
-def measure(jax, loss, commands, state, horizon: int, worlds: int, repeats: int) -> dict:
-    """Forward, gradient w.r.t. the commands and gradient w.r.t. the initial state of ``loss(commands, state)``."""
-    forward = time_call(jax, loss, (commands, state), repeats)
-    by_commands = time_call(jax, jax.value_and_grad(loss, argnums=0), (commands, state), repeats)
-    by_state = time_call(jax, jax.value_and_grad(loss, argnums=1), (commands, state), repeats)
-    return {"horizon": horizon, "worlds": worlds, "forward": forward, "grad_commands": by_commands,
-            "grad_initial_state": by_state, "ratio_commands": by_commands["s"] / forward["s"],
-            "ratio_initial_state": by_state["s"] / forward["s"]}
+def measure(jax, loss, commands, state, horizon: int, worlds: int, repeats: int, more: dict | None = None) -> dict:
+    """Forward, gradient w.r.t. the commands and gradient w.r.t. the initial state of ``loss(commands, state)``,
+    and the ``more`` calls (``"grad_<what>": (fn, inputs)``), timed in rounds (`time_calls`). ``ratio_<what>`` is
+    the median over rounds of that gradient's time over the forward time of the same round."""
+    calls = {"forward": (loss, (commands, state)),
+             "grad_commands": (jax.value_and_grad(loss, argnums=0), (commands, state)),
+             "grad_initial_state": (jax.value_and_grad(loss, argnums=1), (commands, state)), **(more or {})}
+    results = time_calls(jax, calls, repeats)
+    forward = results["forward"]["times_s"]
+    ratios = {"ratio_" + name.removeprefix("grad_"): statistics.median(t / f for t, f in zip(r["times_s"], forward))
+              for name, r in results.items() if name != "forward"}
+    return {"horizon": horizon, "worlds": worlds, **results, **ratios}
 
 
 def start_positions(np, worlds: int):
@@ -182,10 +193,8 @@ def env_step_case(jax, jd, np, horizon: int, worlds: int, repeats: int) -> dict:
         return trajectory_loss(jnp, pos, vel)
 
     result = measure(jax, lambda offsets, state: loss_of(policy, offsets, state), offsets, state, horizon, worlds,
-                     repeats)
-    by_policy = time_call(jax, jax.value_and_grad(loss_of), (policy, offsets, state), repeats)
-    return {"sim": "jaxdrones", "caller": "env_step", "remat": None, **result, "grad_policy": by_policy,
-            "ratio_policy": by_policy["s"] / result["forward"]["s"]}
+                     repeats, more={"grad_policy": (jax.value_and_grad(loss_of), (policy, offsets, state))})
+    return {"sim": "jaxdrones", "caller": "env_step", "remat": None, **result}
 
 
 def run_crazyflow(args) -> tuple[list[dict], dict, str | None]:

@@ -506,7 +506,8 @@ def render_gradients(data: dict, out: str) -> str:
         cells = []
         for m in measures:
             s = (r.get(m) or {}).get("s")
-            ratio = f" ({s / forward:.1f}×)" if s and forward and m != "forward" else ""
+            ratio = r.get("ratio_" + m.removeprefix("grad_"), s / forward if s and forward else None)
+            ratio = f" ({ratio:.1f}×)" if ratio and m != "forward" else ""
             cells.append(None if s is None else f"{1e3 * s:.2f}{ratio}")
         temps = [(r.get(m) or {}).get("temp_bytes") for m in grads]
         temps = [t for t in temps if t is not None]
