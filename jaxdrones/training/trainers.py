@@ -16,7 +16,7 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any
 
-#: Single-agent tasks ``jaxdrones train`` trains (default algorithm: PPO).
+#: Single-agent tasks ``jaxdrones train`` trains (default algorithm: `default_algo`).
 SINGLE_AGENT = ("hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune")
 #: Multi-agent tasks ``jaxdrones train`` trains (default algorithm: MAPPO).
 MULTI_AGENT = ("leader_follower", "multi_hover", "flock", "meetup", "crossing")
