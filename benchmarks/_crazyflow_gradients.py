@@ -18,7 +18,7 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from gradients import SIM_FREQ, TARGET, measure, start_positions
+from gradients import SIM_FREQ, measure, start_positions, trajectory_loss
 
 
 def main(argv=None) -> int:
@@ -57,7 +57,7 @@ def main(argv=None) -> int:
                     return d, (d.states.pos, d.states.vel)
 
                 _, (pos, vel) = jax.lax.scan(body, data.replace(states=data.states.replace(**state)), commands)
-                return jnp.mean(jnp.sum((pos - jnp.asarray(TARGET)) ** 2, -1)) + 0.1 * jnp.mean(vel**2)
+                return trajectory_loss(jnp, pos, vel)
 
             result = measure(jax, loss, commands, state, horizon, worlds, args.repeats)
             print("RESULT " + json.dumps({"sim": "crazyflow", "caller": "user_scan", "remat": False, **result}),

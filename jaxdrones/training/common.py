@@ -158,29 +158,26 @@ def run_updates(config: Schedule, init: Callable, update: Callable, result: Call
         shapes = jax.eval_shape(init, key)
         shardings = world_shardings(shapes, n_worlds)
         eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
-        if shardings is None and description is not None and eval_description is not None:
-            from jaxdrones.training.programs import cached_jit
+        if shardings is None:
+            replicated, cached = None, description is not None and eval_description is not None
 
-            def jit_chunk():
-                return cached_jit(chunk, shapes, f"{description}\nupdates {config.updates_per_eval}")
+            def jit(fn, what, out_shardings):  # what: the part of the program's key beyond ``description``
+                from jaxdrones.training.programs import cached_jit
 
-            def jit_eval():
-                return cached_jit(evaluate, shapes, f"{description}\n{eval_description}")
-        elif shardings is None:
-            def jit_chunk():
-                return jax.jit(chunk)
-
-            def jit_eval():
-                return jax.jit(evaluate)
+                return cached_jit(fn, shapes, f"{description}\n{what}") if cached else jax.jit(fn)
         else:
             replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())
             init_c = jax.jit(init, out_shardings=shardings)
 
-            def jit_chunk():
-                return jax.jit(chunk, in_shardings=(shardings,), out_shardings=(shardings, replicated))
+            def jit(fn, what, out_shardings):
+                return jax.jit(fn, in_shardings=(shardings,), out_shardings=out_shardings)
 
-            def jit_eval():
-                return jax.jit(evaluate, in_shardings=(shardings,), out_shardings=replicated)
+        def jit_chunk():
+            return jit(chunk, f"updates {config.updates_per_eval}", (shardings, replicated))
+
+        def jit_eval():
+            return jit(evaluate, eval_description, replicated)
+
         carry = init_c(key)
         eval_c = {}
         if evaluate is not None and shardings is None:

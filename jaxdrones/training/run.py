@@ -27,9 +27,9 @@ TRAIN_STARTS = {"multi_hover": {"start_ang_vel": 1.0}}
 
 
 def _eval_program(env, trainer, n_episodes: int, seed: int):
-    """The evaluation compiled beside the trainer's chunks: ``n_episodes`` episodes from random starts (the same keys at
-    every evaluation; `outcomes_of`) and the flight of the first one for the plot (positions, the task's reference,
-    velocities, RPMs)."""
+    """The evaluation compiled beside the trainer's chunks: ``n_episodes`` episodes from random starts (the same keys
+    at every evaluation; `outcomes_of`) and the flight of the first one for the plot (positions, the task's
+    reference, velocities, RPMs)."""
     import jax
 
     from jaxdrones.training.evaluation import outcomes_of, rollout_policy
@@ -63,8 +63,8 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     process 0 writes the run.
 
     An evaluation on ``n_eval_episodes`` random starts runs after each of the trainer's chunks of updates (compiled
-    beside them, for our trainers); the last one is the run's result. On Ctrl-C the run stops after the chunk running, and the policy so far, its
-    learning curve and a summary marked ``"interrupted": true`` are saved.
+    beside them, for our trainers); the last one is the run's result. On Ctrl-C the run stops after the chunk
+    running, and the policy so far, its learning curve and a summary marked ``"interrupted": true`` are saved.
 
     Args:
         task: a task name (`TRAINABLE`).
