@@ -36,10 +36,18 @@ class SimConfig:
             Beyond 1 m no drone pushes a cf2x with more than 0.41 % of its weight (docs/physics.md §6.3). The JAX
             core only.
         cell_capacity: with ``downwash_radius``: drones per cell the list holds (a denser cell loses the extra ones).
+        adjoint: take reverse-mode derivatives (``jax.grad``, ``jax.vjp``, ``jax.jacrev``) of the Euler integrator
+            with exact kinks through the hand-written adjoint of `jaxdrones.adjoint` (default True): a gradient
+            then costs 2-3 forward passes however the step is called (`benchmarks/gradients.py`). Such a step has
+            no forward-mode derivative: ``jax.jvp`` and ``jax.jacfwd`` raise JAX's "can't apply forward-mode
+            autodiff (jvp) to a custom_vjp function". False gives JAX's derived derivatives in both modes (the
+            control step is then rematerialised in the reverse pass). RK4 and the other kink treatments always
+            use JAX's.
 
     Raises:
         ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, an unknown
-            integrator or kink treatment, a ``downwash_radius`` neither None nor > 0, or a ``cell_capacity`` below 1.
+            integrator or kink treatment, a ``downwash_radius`` neither None nor > 0, a ``cell_capacity`` below 1,
+            or an ``adjoint`` that is not a bool.
     """
 
     n_drones: int = 1
@@ -52,6 +60,7 @@ class SimConfig:
     kinks: Kinks | str = "exact"
     downwash_radius: float | None = None
     cell_capacity: int = 8
+    adjoint: bool = True
 
     def __post_init__(self):
         if isinstance(self.kinks, str):
@@ -73,6 +82,8 @@ class SimConfig:
         capacity = self.cell_capacity
         if not isinstance(capacity, (int, np.integer)) or isinstance(capacity, bool) or capacity < 1:
             raise ValueError(f"SimConfig.cell_capacity must be a positive integer, got {capacity!r}")
+        if not isinstance(self.adjoint, (bool, np.bool_)):
+            raise ValueError(f"SimConfig.adjoint must be True or False, got {self.adjoint!r}")
         if self.integrator not in dynamics.INTEGRATORS:
             raise ValueError(f"SimConfig.integrator must be one of {tuple(dynamics.INTEGRATORS)}, "
                              f"got {self.integrator!r}")

@@ -101,13 +101,14 @@ def body_torque_c(params: DroneParams, lift: Components, yaw_torque: jax.Array) 
 
 
 def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors, rpm_prev: Components,
-                    unit_quat: bool = False, neighbors: jax.Array | None = None):
+                    unit_quat: bool = False, neighbors: jax.Array | None = None, downwash: jax.Array | None = None):
     """Linear (world, m/s²) and angular (body, rad/s²) accelerations, with the motors' output for the applied RPM
     (`motors_c`) and ``rpm_prev`` (4-tuple of f[..., D], the RPM of the previous substep, for drag only).
 
     ``unit_quat=True`` tells that ``kin.quat`` is of unit norm (as every step leaves it), which skips normalising it
     again for the rotation matrix. ``neighbors`` i32[..., D, K]: the drones whose downwash acts on each drone
-    (`Effects.downwash_neighbors`; default: chosen from ``kin.pos``).
+    (`Effects.downwash_neighbors`; default: chosen from ``kin.pos``). ``downwash`` f[..., D] N: the downwash force
+    along body z (`aerodynamics.downwash_force_c`) when already computed (see `jaxdrones.adjoint`).
 
     Returns:
         (ax, ay, az) m/s², world frame, and (ω̇x, ω̇y, ω̇z) rad/s², body frame, each f[..., D].
@@ -120,10 +121,9 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
         lift = tuple(t + e for t, e in zip(thrust, extra))
     body_z_force = sum(lift[1:], lift[0])
     if effects.downwash and kin.pos[2].shape[-1] > 1:  # a lone drone feels no downwash
-        if neighbors is None:
-            neighbors = effects.downwash_neighbors(kin.pos)
-        body_z_force = body_z_force + aerodynamics.downwash_force_c(params, kin.pos, effects.kinks, neighbors,
-                                                                    effects.downwash_cutoff)
+        if downwash is None:
+            downwash = downwash_c(params, effects, kin.pos, neighbors)
+        body_z_force = body_z_force + downwash
     fx, fy, fz = (row[2] * body_z_force for row in rotmat)
     force = (fx, fy, fz + -params.mass * params.gravity)
     if effects.drag:
@@ -135,14 +135,24 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
     return tuple(f / params.mass for f in force), ang_acc
 
 
+def downwash_c(params: DroneParams, effects: Effects, pos: Components, neighbors: jax.Array | None = None) -> jax.Array:
+    """The downwash force along each drone's body z, f[..., D] N (`aerodynamics.downwash_force_c` with the effects'
+    kinks and cut-off), from positions (x, y, z) each f[..., D]; ``neighbors`` as in `accelerations_c`."""
+    if neighbors is None:
+        neighbors = effects.downwash_neighbors(pos)
+    return aerodynamics.downwash_force_c(params, pos, effects.kinks, neighbors, effects.downwash_cutoff)
+
+
 def euler_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
-                 unit_quat: bool = False, neighbors: jax.Array | None = None) -> Kinematics:
+                 unit_quat: bool = False, neighbors: jax.Array | None = None,
+                 downwash: jax.Array | None = None) -> Kinematics:
     """The paper code's semi-implicit Euler update (docs/physics.md §4.5-4.6), one physics step of ``dt`` s.
 
     v ← v + dt·a; ω ← ω + dt·ω̇; p ← p + dt·v_new; q ← exp-map(q, ω_new, dt), then q is normalised as PyBullet
-    does when the state is written back. ``motors``, ``unit_quat`` and ``neighbors`` as in `accelerations_c`.
+    does when the state is written back. ``motors``, ``unit_quat``, ``neighbors`` and ``downwash`` as in
+    `accelerations_c`.
     """
-    acc, ang_acc = accelerations_c(params, effects, kin, motors, rpm_prev, unit_quat, neighbors)
+    acc, ang_acc = accelerations_c(params, effects, kin, motors, rpm_prev, unit_quat, neighbors, downwash)
     vel = tuple(v + dt * a for v, a in zip(kin.vel, acc))
     ang_vel = tuple(w + dt * a for w, a in zip(kin.ang_vel, ang_acc))
     quat = quat_integrate_c(kin.quat, ang_vel, dt)

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrones import dynamics
+from jaxdrones import adjoint, dynamics
 from jaxdrones.backends import BACKENDS
 from jaxdrones.checks import check_params_batch, check_rpm
 from jaxdrones.config import SimConfig
@@ -33,13 +33,20 @@ def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState,
     """One physics step of ``config.dt`` with already-clipped RPM, pure and differentiable, in component form:
     ``state``'s vector fields and ``rpm`` are tuples of f[..., D] arrays (``contact`` stays i32[..., D]); ``motors``
     is ``dynamics.motors_c(params, rpm)`` when already known; ``unit_quat=True`` if ``state.quat`` is known to be of
-    unit norm; ``neighbors`` the downwash's neighbour list when already chosen (see `dynamics.accelerations_c`)."""
+    unit norm; ``neighbors`` the downwash's neighbour list when already chosen (see `dynamics.accelerations_c`).
+
+    With ``config.adjoint`` (`SimConfig`), the Euler integrator and exact kinks (the defaults), and ``unit_quat``,
+    the substep has the hand-written reverse-mode derivative of `jaxdrones.adjoint` and no forward-mode one; other
+    configs keep JAX's derived derivatives."""
     if motors is None:
         motors = dynamics.motors_c(params, rpm)
-    integrate = dynamics.INTEGRATORS[config.integrator]
     kin = dynamics.Kinematics(state.pos, state.quat, state.vel, state.ang_vel)
-    kin = integrate(params, config.effects, kin, motors, state.rpm, config.dt, unit_quat, neighbors)
-    kin, touching = dynamics.ground_contact_c(params, kin, config.kinks)
+    if unit_quat and adjoint.supported(config):
+        kin, touching = adjoint.euler_substep_c(params, config.effects, kin, motors, state.rpm, config.dt, neighbors)
+    else:
+        integrate = dynamics.INTEGRATORS[config.integrator]
+        kin = integrate(params, config.effects, kin, motors, state.rpm, config.dt, unit_quat, neighbors)
+        kin, touching = dynamics.ground_contact_c(params, kin, config.kinks)
     return DroneState(*kin, rpm=rpm, contact=state.contact | jnp.where(touching, CONTACT_GROUND, 0).astype(jnp.int32))
 
 
@@ -124,15 +131,16 @@ def _core_step_c(config: SimConfig):
     return core_c
 
 
-def _core_step(core_c):
+def _core_step(core_c, remat: bool):
     """The jitted control step of the JAX core on checked inputs, in array form, around `_core_step_c`'s step.
 
     The state is split into contiguous components and joined back with ``contiguous=True``
-    (`jaxdrones.rotations.split`, `jaxdrones.rotations.join`), and the step is rematerialised (``jax.checkpoint``)
-    when differentiated: the backward pass of a scan over this step (a user's own, or an env's) recomputes each
-    step from its input state, as `rollout` does, instead of storing every intermediate of the physics (see
-    `benchmarks/gradients.py`: on CPU that scan's gradient is otherwise several times slower). None of this
-    changes a value. The command is sliced (with its components from the product, a level drone given four equal
+    (`jaxdrones.rotations.split`, `jaxdrones.rotations.join`). With ``remat`` (a step without the hand-written
+    adjoint of `jaxdrones.adjoint`, whose reverse pass keeps only each substep's input) the step is rematerialised
+    (``jax.checkpoint``) when differentiated: the backward pass of a scan over this step (a user's own, or an
+    env's) recomputes each step from its input state, as `rollout` does, instead of storing every intermediate of
+    the physics (see `benchmarks/gradients.py`: on CPU that scan's gradient is otherwise several times slower).
+    None of this changes a value. The command is sliced (with its components from the product, a level drone given four equal
     commands drifted sideways by 5e-5 m in 60 steps: XLA then rounds the terms of equal and opposite torques
     differently, see `jaxdrones.rotations.dot`; sliced, it stays exactly level, as on PyBullet).
     """
@@ -141,7 +149,7 @@ def _core_step(core_c):
         state = core_c(params, _split_state(state, contiguous=True), split(rpm))
         return _join_state(state, contiguous=True)
 
-    return jax.jit(jax.checkpoint(core))
+    return jax.jit(jax.checkpoint(core) if remat else core)
 
 
 class JaxStep:
@@ -157,7 +165,7 @@ class JaxStep:
     def __init__(self, config: SimConfig):
         self.config = config
         self._core_c = _core_step_c(config)
-        self._core = _core_step(self._core_c)
+        self._core = _core_step(self._core_c, remat=not adjoint.supported(config))
 
     def __call__(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
         rpm = check_rpm(self.config, state, rpm)

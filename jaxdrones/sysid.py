@@ -219,7 +219,8 @@ def fit(config: SimConfig, params0: DroneParams, init_state: DroneState, rpms, o
         z = jnp.zeros((count, 4 * init_state.pos.size if estimate_starts else 0), jnp.float64)
         joined = (jnp.arange(count) < count - 1) & estimate_starts
         problem = (guess, _float64(noise), jnp.float64(defect), windows, joined)
-        static = {"step": make_step(config), "fields": fields}
+        # The fit takes forward-mode Jacobians (jax.jacfwd), which the hand-written adjoint has not.
+        static = {"step": make_step(dataclasses.replace(config, adjoint=False)), "fields": fields}
         # The residuals: every observed state once, the defects that join the windows, and z[0].
         size = (count * window + int(joined.sum())) * _scaled(init_state, init_state, noise).size + z.shape[1]
         y, steps, r = (theta, z), 0, np.asarray(_evaluate((theta, z), problem, **static)[0])

@@ -170,6 +170,8 @@ class TaskConfig:
         drag, ground_effect, downwash: aerodynamic effects of the physics (docs/physics.md §6).
         kinks: the treatment of the physics' kinks for gradients (`SimConfig.kinks`, `jaxdrones.kinks`):
             ``"exact"`` (default), ``"smooth"`` or ``"straight_through"``, or a `jaxdrones.kinks.Kinks`.
+        adjoint: reverse-mode derivatives of the physics through its hand-written adjoint (`SimConfig.adjoint`;
+            default True); False for forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``) through ``step``.
         reward: ``"shaped"`` (the task's shaped reward) or ``"paper"`` (the original's reward).
         init_pos: f[D, 3] m, fixed start positions (the original's ``initial_xyzs``): they override the random
             start ranges; the drones start at rest and level (unless ``init_rpy`` is given).
@@ -217,6 +219,7 @@ class TaskConfig:
     ground_effect: bool = False
     downwash: bool = False
     kinks: Any = "exact"
+    adjoint: bool = True
     reward: str = "shaped"
     init_pos: Any = None
     init_rpy: Any = None
@@ -249,7 +252,7 @@ class TaskConfig:
         if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
             raise ValueError(f"n_drones must be a positive integer, got {n!r}")
         self._check_model()
-        self._set("kinks", SimConfig(kinks=self.kinks).kinks)
+        self._set("kinks", SimConfig(kinks=self.kinks, adjoint=self.adjoint).kinks)
         for name in ("init_pos", "init_rpy"):
             self._set(name, _fixed_array(name, getattr(self, name), n))
         if self.start_pos_range is not None:
@@ -325,7 +328,7 @@ class TaskConfig:
         """The `SimConfig` of the physics."""
         return SimConfig(n_drones=self.n_drones, sim_freq=self.sim_freq, ctrl_freq=self.ctrl_freq, drag=self.drag,
                          ground_effect=self.ground_effect, downwash=self.downwash, kinks=self.kinks,
-                         downwash_radius=self.downwash_radius)
+                         downwash_radius=self.downwash_radius, adjoint=self.adjoint)
 
     @property
     def camera_period(self) -> int:

@@ -1,0 +1,116 @@
+"""The hand-written adjoint of the Euler substep (`jaxdrones.adjoint`): the control step that uses it
+(``SimConfig(adjoint=True)``, the default) has the values and the reverse-mode derivatives of JAX's derived ones
+(``adjoint=False``), for the state, the command and the params, with and without drag, ground effect and downwash,
+over one or several substeps, across the RPM clip and the ground contact; forward mode is refused with JAX's own
+error and works with ``adjoint=False``."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdrones as jd
+from jaxdrones import adjoint
+
+WORLDS = 16
+EFFECTS = {
+    "none": {},
+    "drag_ground": {"drag": True, "ground_effect": True},
+    "all": {"drag": True, "ground_effect": True, "downwash": True},
+}
+
+
+def _case(effects: dict, substeps: int, seed: int = 0):
+    """A config, params, a start state (random pose, velocities and previous RPM, an unnormalised quaternion, some
+    drones at or below the rest height) and a command (some beyond 0 and max_rpm, one exactly at 0)."""
+    n = 3 if effects.get("downwash") else 1
+    config = jd.SimConfig(n_drones=n, sim_freq=240 * substeps, ctrl_freq=240, **effects)
+    params = jd.load_params("cf2x")
+    rng = np.random.default_rng(seed)
+    pos = np.concatenate([rng.uniform(-0.05, 0.05, (WORLDS, n, 2)), rng.uniform(0.0, 0.3, (WORLDS, n, 1))], -1)
+    pos[:2, 0, 2] = [0.0125, 0.005]  # at the rest height, below it, and falling
+    vel = rng.normal(size=(WORLDS, n, 3))
+    vel[:2, 0, 2] = -1.0
+    state = jd.init_state(config, pos=pos, vel=vel,
+                          ang_vel=rng.normal(size=(WORLDS, n, 3)),
+                          rpm=float(params.hover_rpm) * (1 + 0.1 * rng.normal(size=(WORLDS, n, 4))))
+    quat = rng.normal(size=(WORLDS, n, 4)) * 0.1 + [0.0, 0.0, 0.0, 1.3]
+    state = state.replace(quat=jnp.asarray(quat, state.quat.dtype))
+    rpm = float(params.hover_rpm) * (1 + 0.1 * rng.normal(size=(WORLDS, n, 4)))
+    rpm[:3, 0, 0] = [-5.0, 1e6, 0.0]
+    return config, params, state, jnp.asarray(rpm, state.pos.dtype)
+
+
+def _cotangent(out, rng):
+    return jax.tree.map(lambda x: np.zeros(x.shape, jax.dtypes.float0) if x.dtype == jnp.int32
+                        else jnp.asarray(rng.normal(size=x.shape), x.dtype), out)
+
+
+@pytest.mark.parametrize("substeps", [1, 4])
+@pytest.mark.parametrize("effects", list(EFFECTS))
+def test_adjoint_matches_derived_derivative(x64, effects, substeps):
+    """float64: values equal to rounding and the cotangents of the state, the command and every param within
+    1e-10 relative (params go through JAX's derived pass inside the adjoint's rule)."""
+    config, params, state, rpm = _case(EFFECTS[effects], substeps)
+    assert adjoint.supported(config) and not adjoint.supported(dataclasses.replace(config, adjoint=False))
+    results = []
+    for use in (False, True):
+        step = jd.make_step(dataclasses.replace(config, adjoint=use))
+        results.append(jax.vjp(lambda s, r, p, step=step: step(p, s, r), state, rpm, params))
+    (out_ref, vjp_ref), (out, vjp) = results
+    for a, b in zip(jax.tree.leaves(out_ref), jax.tree.leaves(out), strict=True):
+        np.testing.assert_allclose(b, a, rtol=1e-14, atol=1e-15)
+    assert bool(out.ground_contact[:2, 0].all()), "the drones at and below the rest height touch the ground"
+    ct = _cotangent(out_ref, np.random.default_rng(1))
+    checked = 0
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(vjp_ref(ct)), jax.tree.leaves(vjp(ct)), strict=True):
+        if a.dtype == jax.dtypes.float0:
+            continue
+        scale = float(jnp.max(jnp.abs(a)))
+        np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-12 * scale, err_msg=jax.tree_util.keystr(path))
+        checked += scale > 0
+    assert checked >= 12  # state, command and params cotangents, not all zero
+
+
+def test_adjoint_gradient_without_params_matches_derived_in_float32():
+    """float32, the case APG and SHAC run: the gradient w.r.t. state and command alone (the hand-written pass
+    proper, params not perturbed) agrees with JAX's derived one within float32 rounding."""
+    config, params, state, rpm = _case(EFFECTS["drag_ground"], 1, seed=2)
+    grads = []
+    for use in (False, True):
+        step = jd.make_step(dataclasses.replace(config, adjoint=use))
+
+        def loss(pos, quat, vel, ang_vel, r, step=step):
+            out = step(params, state.replace(pos=pos, quat=quat, vel=vel, ang_vel=ang_vel), r)
+            return jnp.sum(out.pos**2) + jnp.sum(out.vel**2) + jnp.sum(out.quat[..., :3] ** 2) + jnp.sum(out.ang_vel)
+
+        grads.append(jax.grad(loss, argnums=tuple(range(5)))(state.pos, state.quat, state.vel, state.ang_vel, rpm))
+    for a, b in zip(grads[0], grads[1], strict=True):
+        assert b.dtype == jnp.float32 and float(jnp.max(jnp.abs(a))) > 0
+        np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(a))))
+
+
+def test_forward_mode_needs_adjoint_false(x64):
+    """jax.jacfwd through the default step raises JAX's custom_vjp error; with adjoint=False it works and agrees
+    with jax.jacrev through the default step."""
+    config, params, state, rpm = _case(EFFECTS["drag_ground"], 1)
+
+    def final_pos(step):
+        return lambda r: step(params, state, r).pos
+
+    with pytest.raises(TypeError, match="custom_vjp"):
+        jax.jacfwd(final_pos(jd.make_step(config)))(rpm)
+    forward = jax.jacfwd(final_pos(jd.make_step(dataclasses.replace(config, adjoint=False))))(rpm)
+    reverse = jax.jacrev(final_pos(jd.make_step(config)))(rpm)
+    np.testing.assert_allclose(reverse, forward, rtol=1e-10, atol=1e-14)
+    assert float(jnp.max(jnp.abs(forward))) > 0
+
+
+@pytest.mark.parametrize("bad", [1, "yes", None])
+def test_adjoint_must_be_a_bool(bad):
+    with pytest.raises(ValueError, match="SimConfig.adjoint must be True or False"):
+        jd.SimConfig(adjoint=bad)
