@@ -11,11 +11,11 @@ Why: JAX derives the reverse pass one operation at a time, and XLA:CPU then comp
 cotangent terms into loops that recompute what the forward pass shares between components (the rotation matrix,
 the exponential map). The hand-written pass recomputes the forward quantities once and combines them, so the
 control step needs no rematerialisation (``jax.checkpoint``), and a reverse pass costs about as much as its forward
-pass. Measured with `benchmarks/gradients.py` (100 steps, 1024 worlds, drag and ground effect, 2 CPU cores; the
-gradient w.r.t. the commands over the forward pass, XLA:CPU's classic / fusion emitters, the latter jax 0.11's only
-ones): through `jaxdrones.rollout` 3.6x / 4.1x before, 2.0x / 2.7x after; through a user's own ``lax.scan`` over
-the step 2.8x / 4.9x before, 2.7x / 2.1x after; through the hover env's ``step`` 3.3x / 2.8x before, 2.7x / 2.0x
-after (README, "Benchmarks").
+pass. Measured with `benchmarks/gradients.py` on 2 idle CPU cores (100 steps, 1024 worlds, drag and ground effect;
+the gradient w.r.t. the commands over the forward pass, XLA:CPU's classic / fusion emitters, the latter jax 0.11's
+only ones): through `jaxdrones.rollout` 3.5x / 3.5x before, 2.4x / 2.6x after; through a user's own ``lax.scan``
+over the step 2.9x / 5.0x before, 2.4x / 2.1x after; through the hover env's ``step`` 3.7x / 2.9x before,
+3.0x / 2.3x after (README, "Benchmarks").
 
 It is checked against JAX's derived derivative to float64 rounding (tests/test_adjoint.py), and the
 derivative of the state goes through autodiff where the substep has none of its own: the downwash force is
