@@ -9,18 +9,18 @@ them (see `supported`).
 
 Why: JAX derives the reverse pass one operation at a time, and XLA:CPU then compiles each of the many small
 cotangent terms into loops that recompute what the forward pass shares between components (the rotation matrix,
-the exponential map). The hand-written pass recomputes the forward quantities once and combines them, so the
-control step needs no rematerialisation (``jax.checkpoint``), and a reverse pass costs about as much as its forward
-pass. Measured with `benchmarks/gradients.py` on 2 idle CPU cores (100 steps, 1024 worlds, drag and ground effect;
+the exponential map). The hand-written pass recomputes the forward quantities once from the substep's input and
+transposes the update equation by equation, so the control step needs no rematerialisation (``jax.checkpoint``).
+Measured with `benchmarks/gradients.py` on 2 idle CPU cores (100 steps, 1024 worlds, drag and ground effect;
 the gradient w.r.t. the commands over the forward pass, XLA:CPU's classic / fusion emitters, the latter jax 0.11's
 only ones): through `jaxdrones.rollout` 3.5x / 3.5x before, 2.4x / 2.6x after; through a user's own ``lax.scan``
 over the step 2.9x / 5.0x before, 2.4x / 2.1x after; through the hover env's ``step`` 3.7x / 2.9x before,
 3.0x / 2.3x after (README, "Benchmarks").
 
-It is checked against JAX's derived derivative to float64 rounding (tests/test_adjoint.py), and the
-derivative of the state goes through autodiff where the substep has none of its own: the downwash force is
-computed outside (an input of the substep, differentiated by JAX), and gradients with respect to the drone's
-params (`jaxdrones.sysid`) fall back to JAX's derived pass.
+tests/test_adjoint.py checks it against JAX's derived derivative to float64 rounding. Two parts keep JAX's
+derivative: the downwash force is computed outside the substep (an input of it, differentiated by JAX), and a
+gradient with respect to the drone's params (system identification) makes the rule fall back to JAX's derived pass
+for that substep.
 """
 
 from __future__ import annotations
@@ -34,7 +34,8 @@ from jax.custom_derivatives import CustomVJPPrimal, SymbolicZero
 from jaxdrones import dynamics
 from jaxdrones.dynamics import Effects, Kinematics, Motors
 from jaxdrones.params import DroneParams
-from jaxdrones.rotations import GIMBAL_SNAP, OMEGA_EPS, Components, cross, dot, matvec, quat_mul_c, quat_to_rotmat_c, split
+from jaxdrones.rotations import (GIMBAL_SNAP, OMEGA_EPS, Components, cross, dot, matvec, quat_mul_c, quat_to_rotmat_c,
+                                 split)
 
 
 def supported(config) -> bool:
@@ -121,7 +122,8 @@ def _matvec_t(m: jax.Array, v: Components) -> Components:
 
 
 def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors, rpm_prev: Components,
-                downwash: jax.Array | None, dt: float, ct: Kinematics) -> tuple[Kinematics, Motors, Components, jax.Array]:
+                downwash: jax.Array | None, dt: float,
+                ct: Kinematics) -> tuple[Kinematics, Motors, Components, jax.Array]:
     """The cotangents of the substep's inputs (``kin``, ``motors``, ``rpm_prev`` and ``downwash``, the downwash
     force f[..., D] N or None) for the cotangent ``ct`` of its output kinematics; the others as in `euler_substep_c`.
 
@@ -178,7 +180,7 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
     ang_vel_b = tuple(jnp.where(touching, 0.0, b) for b in ang_vel_b)
     # p ← p + dt v.
     vel_b = tuple(a + dt * b for a, b in zip(vel_b, pos_b, strict=True))
-    # q ← normalise(q ⊗ delta(ω)), delta = (sin(θ) ω / |ω|, cos θ), θ = ½ dt |ω| (½ dt ω and 1 below OMEGA_EPS).
+    # q ← normalise(q ⊗ delta(ω)), delta = (sin(θ) ω / |ω|, cos θ), θ = ½ dt |ω| (½ dt ω, 1 below OMEGA_EPS).
     unit = tuple(u / length for u in unnormalised)
     along = dot(unit, quat_b)
     unnormalised_b = tuple((b - u * along) / length for b, u in zip(quat_b, unit, strict=True))

@@ -140,9 +140,9 @@ def _core_step(core_c, remat: bool):
     (``jax.checkpoint``) when differentiated: the backward pass of a scan over this step (a user's own, or an
     env's) recomputes each step from its input state, as `rollout` does, instead of storing every intermediate of
     the physics (see `benchmarks/gradients.py`: on CPU that scan's gradient is otherwise several times slower).
-    None of this changes a value. The command is sliced (with its components from the product, a level drone given four equal
-    commands drifted sideways by 5e-5 m in 60 steps: XLA then rounds the terms of equal and opposite torques
-    differently, see `jaxdrones.rotations.dot`; sliced, it stays exactly level, as on PyBullet).
+    None of this changes a value. The command is sliced (with its components from the product, a level drone given
+    four equal commands drifted sideways by 5e-5 m in 60 steps: XLA then rounds the terms of equal and opposite
+    torques differently, see `jaxdrones.rotations.dot`; sliced, it stays exactly level, as on PyBullet).
     """
 
     def core(params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
