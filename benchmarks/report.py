@@ -524,7 +524,8 @@ def render_gradients(data: dict, out: str) -> str:
         note = f"crazyflow: **not measured**: {crazyflow['error']}"
     plot = _gradient_plot(rows, grads, out) if grads else ""
     return (f"Forward and gradient times (medians of the timed calls) and the gradient's cost in forward passes (the "
-            f"median over rounds of one call of each, in turn); memory is XLA's temporary buffers of the compiled call:\n\n{main}\n\n{note}\n\n{plot}")
+            f"median over rounds of one call of each, in turn); memory is XLA's temporary buffers of the compiled "
+            f"call:\n\n{main}\n\n{note}\n\n{plot}")
 
 
 def _gradient_plot(rows: list[dict], grads: list[str], out: str) -> str:

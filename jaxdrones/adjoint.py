@@ -63,9 +63,7 @@ def euler_substep_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
     Returns:
         The kinematics after the substep and bool[..., D], True where the drone touched the ground.
     """
-    downwash = None
-    if effects.downwash and kin.pos[2].shape[-1] > 1:
-        downwash = dynamics.downwash_c(params, effects, kin.pos, neighbors)
+    downwash = dynamics.downwash_c(params, effects, kin.pos, neighbors)
     return _substep(params, effects, kin, motors, rpm_prev, downwash, dt)
 
 

@@ -120,9 +120,9 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
         extra = aerodynamics.ground_effect_thrust_c(params, kin.pos[2], rotmat[2], thrust, effects.kinks)
         lift = tuple(t + e for t, e in zip(thrust, extra))
     body_z_force = sum(lift[1:], lift[0])
-    if effects.downwash and kin.pos[2].shape[-1] > 1:  # a lone drone feels no downwash
-        if downwash is None:
-            downwash = downwash_c(params, effects, kin.pos, neighbors)
+    if downwash is None:
+        downwash = downwash_c(params, effects, kin.pos, neighbors)
+    if downwash is not None:
         body_z_force = body_z_force + downwash
     fx, fy, fz = (row[2] * body_z_force for row in rotmat)
     force = (fx, fy, fz + -params.mass * params.gravity)
@@ -135,9 +135,13 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
     return tuple(f / params.mass for f in force), ang_acc
 
 
-def downwash_c(params: DroneParams, effects: Effects, pos: Components, neighbors: jax.Array | None = None) -> jax.Array:
+def downwash_c(params: DroneParams, effects: Effects, pos: Components,
+               neighbors: jax.Array | None = None) -> jax.Array | None:
     """The downwash force along each drone's body z, f[..., D] N (`aerodynamics.downwash_force_c` with the effects'
-    kinks and cut-off), from positions (x, y, z) each f[..., D]; ``neighbors`` as in `accelerations_c`."""
+    kinks and cut-off), from positions (x, y, z) each f[..., D]; ``neighbors`` as in `accelerations_c`. None where
+    no downwash acts: the effect is off, or the drone is alone in its world."""
+    if not effects.downwash or pos[2].shape[-1] == 1:
+        return None
     if neighbors is None:
         neighbors = effects.downwash_neighbors(pos)
     return aerodynamics.downwash_force_c(params, pos, effects.kinks, neighbors, effects.downwash_cutoff)

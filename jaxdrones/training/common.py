@@ -4,6 +4,7 @@ loop."""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 
 import jax
@@ -144,8 +145,6 @@ def run_updates(config: Schedule, init: Callable, update: Callable, result: Call
     Raises:
         Interrupted: on Ctrl-C, with ``result`` of the last completed chunk's carry.
     """
-    import threading
-
     key = jax.random.key(config.seed)
 
     def chunk(carry):
@@ -172,12 +171,6 @@ def run_updates(config: Schedule, init: Callable, update: Callable, result: Call
             def jit(fn, what, out_shardings):
                 return jax.jit(fn, in_shardings=(shardings,), out_shardings=out_shardings)
 
-        def jit_chunk():
-            return jit(chunk, f"updates {config.updates_per_eval}", (shardings, replicated))
-
-        def jit_eval():
-            return jit(evaluate, eval_description, replicated)
-
         carry = init_c(key)
         eval_c = {}
         if evaluate is not None and shardings is None:
@@ -185,7 +178,7 @@ def run_updates(config: Schedule, init: Callable, update: Callable, result: Call
             # their programs in the same order everywhere, so there it is compiled in turn).
             def compile_eval(first=carry):
                 try:
-                    eval_c["fn"] = jit_eval()
+                    eval_c["fn"] = jit(evaluate, eval_description, replicated)
                     jax.block_until_ready(eval_c["fn"](first))
                 except BaseException as err:  # noqa: BLE001  (raised in the training thread, below)
                     eval_c["error"] = err
@@ -193,8 +186,8 @@ def run_updates(config: Schedule, init: Callable, update: Callable, result: Call
             compiling = threading.Thread(target=compile_eval, name="jaxdrones-compile-evaluation", daemon=True)
             compiling.start()
         elif evaluate is not None:
-            eval_c["fn"] = jit_eval()
-        chunk_c = jit_chunk()
+            eval_c["fn"] = jit(evaluate, eval_description, replicated)
+        chunk_c = jit(chunk, f"updates {config.updates_per_eval}", (shardings, replicated))
         pending = chunk_c(carry)
         for k in range(1, config.num_evals + 1):
             finished, metrics = pending
