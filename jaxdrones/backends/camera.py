@@ -51,12 +51,12 @@ import jax.numpy as jnp
 import numpy as np
 import pybullet
 
+from jaxdrones.cameras import EYE_MARGIN, check_camera_args, check_image_size
+from jaxdrones.cameras import real as _real
 from jaxdrones.params import DroneParams, broadcast_params, pack_params
 from jaxdrones.checks import check_params_batch, check_state_shape
 from jaxdrones.state import DroneState
 
-#: Gap between the front of a drone's collision cylinder and its camera's eye, m.
-EYE_MARGIN = 0.005
 #: Vertical field of view (deg), near and far planes (m) of the third-person view `render`.
 RENDER_FOV = 60.0
 RENDER_NEAR = 0.01
@@ -130,41 +130,6 @@ def zbuffer_to_depth(z: np.ndarray, near, far: float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------- argument checks
-def check_image_size(width, height) -> tuple[int, int]:
-    """Width and height as positive ints (pixels), or ValueError."""
-    for name, value in (("width", width), ("height", height)):
-        if not isinstance(value, numbers.Integral) or isinstance(value, bool) or not 1 <= value <= 8192:
-            raise ValueError(f"{name} must be an integer number of pixels in [1, 8192], got {value!r}")
-    return int(width), int(height)
-
-
-def check_camera_args(width, height, fov, near, far) -> tuple[int, int, float, float | None, float]:
-    """Validate the onboard camera's settings (see `camera_images`); returns them as Python numbers.
-
-    Raises:
-        ValueError: width/height not an int in [1, 8192], fov not in (0, 180) degrees, far not finite and > 0, near
-            not None or finite with 0 < near < far.
-    """
-    width, height = check_image_size(width, height)
-    fov, far = _real("fov", fov), _real("far", far)
-    if not 0.0 < fov < 180.0:
-        raise ValueError(f"fov must be the vertical field of view in degrees, in (0, 180), got {fov}")
-    if not (math.isfinite(far) and far > 0.0):
-        raise ValueError(f"far must be a positive finite distance in m, got {far}")
-    if near is not None:
-        near = _real("near", near)
-        if not (math.isfinite(near) and 0.0 < near < far):
-            raise ValueError(f"near must be None (the drone's arm) or a distance in m with 0 < near < far={far}, "
-                             f"got {near}")
-    return width, height, fov, near, far
-
-
-def _real(name: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (numbers.Real, np.ndarray, jax.Array)) or np.ndim(value):
-        raise ValueError(f"{name} must be a real number, got {value!r}")
-    return float(value)
-
-
 def check_pose(config, state: DroneState) -> tuple[int, ...]:
     """Check that ``state`` has real pos f[..., D, 3] and quat f[..., D, 4] with D = n_drones; returns [..., D].
 

@@ -13,15 +13,10 @@ import numpy as np
 import pybullet
 import pybullet_data
 
-#: Colour of a drone's body and of its propeller disks (RGBA in [0, 1]).
-_BODY_RGBA = (0.15, 0.15, 0.15, 1.0)
-_PROP_RGBA = (0.55, 0.55, 0.6, 1.0)
-#: Visual body: a square plate of side ``_BODY_SIDE_PER_ARM * arm`` and this thickness, m.
-_BODY_SIDE_PER_ARM = 1.13
-_BODY_THICKNESS = 0.012
-#: Propeller disks: thickness and height above the base origin, m.
-_PROP_THICKNESS = 0.002
-_PROP_Z = 0.004
+# The drones' visual shape (a plate and four propeller disks), shared with the JAX cameras.
+from jaxdrones.cameras import (BODY_RGBA as _BODY_RGBA, BODY_SIDE_PER_ARM as _BODY_SIDE_PER_ARM,
+                               BODY_THICKNESS as _BODY_THICKNESS, PROP_RGBA as _PROP_RGBA,
+                               PROP_THICKNESS as _PROP_THICKNESS, PROP_Z as _PROP_Z)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,8 +27,10 @@ class Obstacle:
     drones' `DroneState`.
 
     Attributes:
-        shape: ``"box"``, ``"sphere"``, ``"cylinder"``, or ``"urdf"``.
-        size: box: full extents (x, y, z) m; sphere: (radius,); cylinder: (radius, length) m.
+        shape: ``"box"``, ``"sphere"``, ``"cylinder"``, ``"capsule"`` or ``"urdf"``.
+        size: box: full extents (x, y, z) m; sphere: (radius,); cylinder: (radius, length) m; capsule: (radius,
+            length of the axis segment between the centres of its hemispherical ends) m, as Bullet's capsule. The
+            cylinder's and capsule's axis is their local z.
         pos: (x, y, z) m, world frame, of the shape's centre (box, sphere, cylinder) or the URDF's base.
         rpy: (roll, pitch, yaw) rad.
         urdf: for ``shape="urdf"``: a file path, or a file name in ``pybullet_data`` (e.g. ``"duck_vhacd.urdf"``).
@@ -53,7 +50,7 @@ class Obstacle:
     rgba: tuple[float, float, float, float] = (0.8, 0.3, 0.2, 1.0)
 
     def __post_init__(self):
-        n_size = {"box": 3, "sphere": 1, "cylinder": 2, "urdf": None}
+        n_size = {"box": 3, "sphere": 1, "cylinder": 2, "capsule": 2, "urdf": None}
         if self.shape not in n_size:
             raise ValueError(f"Obstacle.shape must be one of {tuple(n_size)}, got {self.shape!r}")
         if self.shape == "urdf":
@@ -140,13 +137,12 @@ def load_obstacle(client: int, obstacle: Obstacle) -> int:
         geom = pybullet.GEOM_SPHERE
     else:
         kwargs = {"radius": obstacle.size[0]}
-        geom = pybullet.GEOM_CYLINDER
-    col = pybullet.createCollisionShape(
-        geom, **kwargs, **({"height": obstacle.size[1]} if geom == pybullet.GEOM_CYLINDER else {}),
-        physicsClientId=client)
-    vis = pybullet.createVisualShape(
-        geom, **kwargs, **({"length": obstacle.size[1]} if geom == pybullet.GEOM_CYLINDER else {}),
-        rgbaColor=obstacle.rgba, physicsClientId=client)
+        geom = pybullet.GEOM_CYLINDER if obstacle.shape == "cylinder" else pybullet.GEOM_CAPSULE
+    axial = geom in (pybullet.GEOM_CYLINDER, pybullet.GEOM_CAPSULE)
+    col = pybullet.createCollisionShape(geom, **kwargs, **({"height": obstacle.size[1]} if axial else {}),
+                                        physicsClientId=client)
+    vis = pybullet.createVisualShape(geom, **kwargs, **({"length": obstacle.size[1]} if axial else {}),
+                                     rgbaColor=obstacle.rgba, physicsClientId=client)
     return pybullet.createMultiBody(0.0, col, vis, obstacle.pos, quat, physicsClientId=client)
 
 

@@ -1,0 +1,513 @@
+"""Per-drone cameras in pure JAX: a ray caster against analytic primitives, batched, differentiable.
+
+Each drone carries a pinhole camera (`CameraSpec`). `render` casts one ray through the centre of every pixel of
+every drone's camera and intersects it, in closed form, with a `Scene` of primitives (the ground plane, boxes,
+spheres, cylinders and capsules in any pose) and with the other drones of its world; it returns metric depth, a
+segmentation of ids and a flat-shaded RGB image. No host callback: it is `jit`-, `vmap`- and `grad`-able, and
+every array has a static shape (primitives are padded to a capacity and masked), so that scenes can be drawn per
+episode without recompiling.
+
+The camera model is the PyBullet backend's onboard camera (`jaxdrones.backends.camera`), so that both backends
+give the same images of the same scene:
+
+* the eye sits on the body +x axis just in front of the drone's collision cylinder, at p + R·(r + `EYE_MARGIN`,
+  0, 0) (r = ``DroneParams.collision_radius``), unless ``CameraSpec.mount_pos`` says otherwise;
+* the optical axis is body +x and the image's up body +z (the image rolls and pitches with the drone), or with
+  ``CameraSpec.level`` world +z, as the original gym-pybullet-drones camera (BaseAviary._getDroneImages) keeps it;
+* square pixels: the focal length in pixels is f = (H / 2) / tan(fov / 2) along both axes, fov vertical; pixel
+  (column i, row j), row 0 at the top, looks along forward + ((i + ½ − W/2)·right + (H/2 − j − ½)·up) / f;
+* only hits beyond the near plane count (OpenGL clips nearer geometry); nothing within ``far`` reads ``far``.
+
+Images, for a state with leading axes [..., D]:
+
+* ``depth``: f[..., D, H, W] in the dtype of the poses (float32 normally), metres along the optical axis (OpenGL's eye-space depth, what the PyBullet backend
+  reports), ``far`` where nothing is hit;
+* ``seg``: i32[..., D, H, W], the id of what each pixel sees, numbered as in a PyBullet world built from scratch
+  (`jaxdrones.backends.pybullet.PyBulletStep.body_ids`): the ground 0, the obstacles 1..K in scene order, the drones
+  K+1..K+D in state order; -1 where nothing is within ``far``;
+* ``rgb``: u8[..., D, H, W, 3], each primitive's colour times ``AMBIENT + (1 − AMBIENT)·max(0, n·l)`` for the
+  light direction `LIGHT` (Lambertian, no textures or shadows); black where nothing is hit.
+
+Drones appear as the PyBullet backend draws them (`drone_primitives`): a square plate and four propeller disks; a
+drone's own body is never in its own image. Depth is differentiable with respect to the drones' poses and the
+primitives' poses and sizes wherever the pixel sees the same surface of the same primitive under a small change;
+at silhouette edges, where a small change swaps what a pixel sees, depth jumps and its derivative is that of the
+surface seen (it ignores the jump). Segmentation and RGB colours are piecewise constant.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import numbers
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+#: Gap between the front of a drone's collision cylinder and its camera's eye, m.
+EYE_MARGIN = 0.005
+#: Direction towards the light (world frame, unit) and the ambient share of the shading of `render`'s RGB.
+LIGHT = tuple(np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0]))
+AMBIENT = 0.35
+#: Colour of the ground (RGB in [0, 1]).
+GROUND_RGB = (0.72, 0.72, 0.72)
+#: The drones' visual shape, as the PyBullet backend builds it (`jaxdrones.backends.scene.create_drone`): a square
+#: plate of side ``BODY_SIDE_PER_ARM * arm`` and ``BODY_THICKNESS`` m, centred on the body origin, and four
+#: propeller disks of the propeller radius, ``PROP_THICKNESS`` m thick, ``PROP_Z`` m above each propeller position.
+BODY_SIDE_PER_ARM = 1.13
+BODY_THICKNESS = 0.012
+PROP_THICKNESS = 0.002
+PROP_Z = 0.004
+BODY_RGBA = (0.15, 0.15, 0.15, 1.0)
+PROP_RGBA = (0.55, 0.55, 0.6, 1.0)
+#: The primitive types of a `Scene`, in the order `render` numbers them.
+SHAPES = ("box", "sphere", "cylinder", "capsule")
+#: What an image kind is and holds per pixel: (dtype, channels or None).
+IMAGE_KINDS = {"rgb": (jnp.uint8, 3), "depth": (jnp.float32, None), "seg": (jnp.int32, None)}
+
+
+# --------------------------------------------------------------------------------------------- the camera spec
+def check_image_size(width, height) -> tuple[int, int]:
+    """Width and height as positive ints (pixels), or ValueError."""
+    for name, value in (("width", width), ("height", height)):
+        if not isinstance(value, numbers.Integral) or isinstance(value, bool) or not 1 <= value <= 8192:
+            raise ValueError(f"{name} must be an integer number of pixels in [1, 8192], got {value!r}")
+    return int(width), int(height)
+
+
+def real(name: str, value) -> float:
+    """``value`` as a Python float, or ValueError naming ``name`` if it is not a real scalar."""
+    if isinstance(value, bool) or not isinstance(value, (numbers.Real, np.ndarray, jax.Array)) or np.ndim(value):
+        raise ValueError(f"{name} must be a real number, got {value!r}")
+    return float(value)
+
+
+def check_camera_args(width, height, fov, near, far) -> tuple[int, int, float, float | None, float]:
+    """Validate an onboard camera's settings; returns them as Python numbers.
+
+    Raises:
+        ValueError: width/height not an int in [1, 8192], fov not in (0, 180) degrees, far not finite and > 0, near
+            not None or finite with 0 < near < far.
+    """
+    width, height = check_image_size(width, height)
+    fov, far = real("fov", fov), real("far", far)
+    if not 0.0 < fov < 180.0:
+        raise ValueError(f"fov must be the vertical field of view in degrees, in (0, 180), got {fov}")
+    if not (math.isfinite(far) and far > 0.0):
+        raise ValueError(f"far must be a positive finite distance in m, got {far}")
+    if near is not None:
+        near = real("near", near)
+        if not (math.isfinite(near) and 0.0 < near < far):
+            raise ValueError(f"near must be None (the drone's arm) or a distance in m with 0 < near < far={far}, "
+                             f"got {near}")
+    return width, height, fov, near, far
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraSpec:
+    """A drone's onboard camera (static: part of a compiled program's shape).
+
+    The defaults are the PyBullet backend's onboard camera (`jaxdrones.backends.camera`): the paper's 64 × 48
+    image and 60° vertical field of view (gym-pybullet-drones BaseAviary: IMG_RES, fov=60), near plane the drone's
+    arm, far plane 100 m.
+
+    Attributes:
+        width, height: pixels, in [1, 8192].
+        fov: vertical field of view, degrees, in (0, 180).
+        near: near plane, m; None: the drone's arm (``DroneParams.arm``), as the original.
+        far: far plane, m, > near.
+        mount_pos: the eye in the body frame, m; None: (collision_radius + `EYE_MARGIN`, 0, 0).
+        mount_rpy: the camera's rotation in the body frame (roll, pitch, yaw; rad, the URDF convention): the
+            optical axis is R_mount e_x, the image's up R_mount e_z.
+        level: keep world +z as the image's up (the original's camera; the optical axis still follows the body)
+            instead of rolling and pitching with the body.
+
+    Raises:
+        ValueError: a size, field of view or plane out of range, or a mount of the wrong length.
+    """
+
+    width: int = 64
+    height: int = 48
+    fov: float = 60.0
+    near: float | None = None
+    far: float = 100.0
+    mount_pos: tuple[float, float, float] | None = None
+    mount_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    level: bool = False
+
+    def __post_init__(self):
+        _, _, fov, near, far = check_camera_args(self.width, self.height, self.fov, self.near, self.far)
+        object.__setattr__(self, "fov", fov)
+        object.__setattr__(self, "far", far)
+        object.__setattr__(self, "near", near)
+        for name in ("mount_pos", "mount_rpy"):
+            value = getattr(self, name)
+            if value is None and name == "mount_pos":
+                continue
+            try:
+                value = tuple(float(v) for v in value)
+            except (TypeError, ValueError):
+                value = ()
+            if len(value) != 3 or not all(math.isfinite(v) for v in value):
+                raise ValueError(f"CameraSpec.{name} must be 3 finite numbers, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, value)
+
+    @property
+    def focal(self) -> float:
+        """The focal length in pixels, f = (H / 2) / tan(fov / 2)."""
+        return (self.height / 2) / math.tan(math.radians(self.fov) / 2)
+
+    def pixel_rays(self) -> np.ndarray:
+        """f32[H, W, 3]: each pixel's ray in camera coordinates (forward, left, up), forward component 1, so
+        that a hit at ray parameter t lies at depth t along the optical axis."""
+        f = self.focal
+        right = (np.arange(self.width) + 0.5 - self.width / 2) / f
+        up = (self.height / 2 - np.arange(self.height) - 0.5) / f
+        up, right = np.meshgrid(up, right, indexing="ij")
+        return np.stack([np.ones_like(up), -right, up], -1).astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------------- the scene
+@struct.dataclass
+class Primitives:
+    """N primitives of one shape, padded: arrays f[..., N, ...] (leading axes: worlds, if drawn per world).
+
+    Attributes:
+        pos: f[..., N, 3] m, world frame, the shape's centre.
+        rot: f[..., N, 3, 3], shape frame → world frame (columns: the shape's axes).
+        size: f[..., N, 3] m: box half extents (x, y, z); sphere (radius, 0, 0); cylinder and capsule (radius, half
+            length of the axis segment along the shape's z, 0).
+        seg: i32[..., N], the segmentation id.
+        rgb: f[..., N, 3] in [0, 1].
+        valid: bool[..., N]; False for padding, never hit.
+    """
+
+    pos: jax.Array
+    rot: jax.Array
+    size: jax.Array
+    seg: jax.Array
+    rgb: jax.Array
+    valid: jax.Array
+
+
+@struct.dataclass
+class Scene:
+    """What the cameras see besides the drones: the ground plane z = 0 (seg id 0) and padded primitives per shape.
+
+    Build it with `make_scene` (from `jaxdrones.backends.scene.Obstacle` descriptions, as the PyBullet backend
+    takes them); the capacity of each shape is its arrays' N, so scenes of one capacity share a compiled program.
+    """
+
+    box: Primitives
+    sphere: Primitives
+    cylinder: Primitives
+    capsule: Primitives
+    ground: jax.Array  #: bool[...], whether the ground plane is there.
+    drone_seg: jax.Array  #: i32[...], the segmentation id of drone 0 (K + 1 for K obstacles).
+
+    def n_obstacles(self) -> int:
+        """The capacity: the number of primitive slots of all shapes."""
+        return sum(getattr(self, s).seg.shape[-1] for s in SHAPES)
+
+
+def _rotmat_from_rpy(rpy) -> np.ndarray:
+    """R(roll, pitch, yaw) = Rz(yaw) Ry(pitch) Rx(roll), in NumPy (host-side scene building): the URDF's and
+    PyBullet's convention, as `jaxdrones.rotations.quat_from_euler`."""
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
+
+
+def make_scene(obstacles=(), capacity: dict | int | None = None, ground: bool = True,
+               dtype=jnp.float32) -> Scene:
+    """A `Scene` from static obstacles, as the PyBullet backend takes them.
+
+    Args:
+        obstacles: a sequence of `jaxdrones.backends.scene.Obstacle` (``"box"``, ``"sphere"``, ``"cylinder"`` or
+            ``"capsule"``); obstacle k gets the segmentation id k + 1 (the ground is 0), as in a PyBullet world.
+        capacity: slots per shape, ``{"box": 8, ...}`` or one int for every shape; default: as many as the
+            obstacles of each shape. Unused slots are padding (never hit).
+        ground: include the ground plane z = 0.
+        dtype: float dtype of the arrays.
+
+    Raises:
+        ValueError: a URDF obstacle (only Bullet draws meshes: use ``backend="pybullet"``), an unknown shape, or more
+            obstacles of a shape than its capacity.
+    """
+    obstacles = tuple(obstacles)
+    by_shape = {s: [] for s in SHAPES}
+    for k, o in enumerate(obstacles):
+        shape = getattr(o, "shape", None)
+        if shape == "urdf":
+            raise ValueError(f"obstacle {k} is a URDF mesh ({o.urdf!r}): the JAX cameras draw only boxes, spheres, "
+                             f"cylinders and capsules; use backend='pybullet' for meshes")
+        if shape not in by_shape:
+            raise ValueError(f"obstacle {k}: shape must be one of {SHAPES}, got {shape!r}")
+        by_shape[shape].append((k + 1, o))
+    if capacity is None:
+        capacity = {s: len(v) for s, v in by_shape.items()}
+    elif isinstance(capacity, numbers.Integral) and not isinstance(capacity, bool):
+        capacity = dict.fromkeys(SHAPES, int(capacity))
+    if not isinstance(capacity, dict) or set(capacity) - set(SHAPES):
+        raise ValueError(f"capacity must be an int or a dict with keys in {SHAPES}, got {capacity!r}")
+    parts = {}
+    for shape in SHAPES:
+        n = capacity.get(shape, len(by_shape[shape]))
+        if not isinstance(n, numbers.Integral) or n < len(by_shape[shape]):
+            raise ValueError(f"the scene holds {len(by_shape[shape])} {shape} obstacles, more than its capacity "
+                             f"of {n}: raise capacity[{shape!r}]")
+        pos, rot, size = np.zeros((n, 3)), np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
+        seg, rgb, valid = np.full(n, -1, np.int32), np.zeros((n, 3)), np.zeros(n, bool)
+        for i, (sid, o) in enumerate(by_shape[shape]):
+            pos[i], rot[i], seg[i], rgb[i], valid[i] = o.pos, _rotmat_from_rpy(o.rpy), sid, o.rgba[:3], True
+            s = o.size
+            size[i] = {"box": lambda: np.asarray(s) / 2, "sphere": lambda: (s[0], 0.0, 0.0)}.get(
+                shape, lambda: (s[0], s[1] / 2, 0.0))()
+        parts[shape] = Primitives(pos=jnp.asarray(pos, dtype), rot=jnp.asarray(rot, dtype),
+                                  size=jnp.asarray(size, dtype), seg=jnp.asarray(seg), rgb=jnp.asarray(rgb, dtype),
+                                  valid=jnp.asarray(valid))
+    return Scene(**parts, ground=jnp.asarray(ground), drone_seg=jnp.asarray(len(obstacles) + 1, jnp.int32))
+
+
+# --------------------------------------------------------------------------------------------- ray intersections
+def _safe_sqrt(x, ok):
+    return jnp.sqrt(jnp.where(ok, x, 1.0))
+
+
+def _slab(o, d, half):
+    """Entry and exit t of the ray o + t d through |x| ≤ half (one axis)."""
+    inv = 1.0 / jnp.where(d == 0, 1e-30, d)
+    t0, t1 = (-half - o) * inv, (half - o) * inv
+    return jnp.minimum(t0, t1), jnp.maximum(t0, t1)
+
+
+def _hit_box(o, d, size):
+    lo, hi = zip(*(_slab(o[i], d[i], size[..., i]) for i in range(3)))
+    t_in = jnp.maximum(jnp.maximum(lo[0], lo[1]), lo[2])
+    t_out = jnp.minimum(jnp.minimum(hi[0], hi[1]), hi[2])
+    return t_in, t_out
+
+
+def _hit_sphere_at(o, d, radius):
+    a = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    b = o[0] * d[0] + o[1] * d[1] + o[2] * d[2]
+    c = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - radius * radius
+    disc = b * b - a * c
+    ok = disc >= 0
+    root = _safe_sqrt(disc, ok)
+    return jnp.where(ok, (-b - root) / a, jnp.inf), jnp.where(ok, (-b + root) / a, -jnp.inf)
+
+
+def _hit_sphere(o, d, size):
+    return _hit_sphere_at(o, d, size[..., 0])
+
+
+def _hit_cylinder(o, d, size):
+    radius, half = size[..., 0], size[..., 1]
+    a = d[0] * d[0] + d[1] * d[1]
+    b = o[0] * d[0] + o[1] * d[1]
+    c = o[0] * o[0] + o[1] * o[1] - radius * radius
+    disc = b * b - a * c
+    parallel = a < 1e-12
+    ok = (disc >= 0) & ~parallel
+    root = _safe_sqrt(disc, ok)
+    a_safe = jnp.where(parallel, 1.0, a)
+    side_in = jnp.where(ok, (-b - root) / a_safe, jnp.where(parallel & (c <= 0), -jnp.inf, jnp.inf))
+    side_out = jnp.where(ok, (-b + root) / a_safe, jnp.where(parallel & (c <= 0), jnp.inf, -jnp.inf))
+    cap_in, cap_out = _slab(o[2], d[2], half)
+    return jnp.maximum(side_in, cap_in), jnp.minimum(side_out, cap_out)
+
+
+def _hit_capsule(o, d, size):
+    """The union of the cylinder and its two end spheres: the first entry and last exit among the pieces hit."""
+    radius, half = size[..., 0], size[..., 1]
+    pieces = [_hit_cylinder(o, d, size)] + [_hit_sphere_at((o[0], o[1], o[2] - end), d, radius)
+                                            for end in (half, -half)]
+    t_in = functools.reduce(jnp.minimum, [jnp.where(a <= b, a, jnp.inf) for a, b in pieces])
+    t_out = functools.reduce(jnp.maximum, [jnp.where(a <= b, b, -jnp.inf) for a, b in pieces])
+    return t_in, t_out
+
+
+_HIT = {"box": _hit_box, "sphere": _hit_sphere, "cylinder": _hit_cylinder, "capsule": _hit_capsule}
+
+
+def _normal(shape, p, size):
+    """The outward normal (shape frame, not normalised) at the surface point p of the shape."""
+    x, y, z = p
+    if shape == "box":
+        rel = [jnp.abs(c) / jnp.maximum(size[..., i], 1e-12) for i, c in enumerate(p)]
+        face = [(rel[i] >= rel[(i + 1) % 3]) & (rel[i] >= rel[(i + 2) % 3]) for i in range(3)]
+        return tuple(jnp.where(face[i], jnp.sign(c), 0.0) for i, c in enumerate(p))
+    if shape == "sphere":
+        return x, y, z
+    radius, half = size[..., 0], size[..., 1]
+    if shape == "cylinder":
+        cap = jnp.abs(z) >= half - 1e-5 * jnp.maximum(radius, half)
+        return jnp.where(cap, 0.0, x), jnp.where(cap, 0.0, y), jnp.where(cap, jnp.sign(z), 0.0)
+    axis_z = jnp.clip(z, -half, half)  # capsule: from the nearest point of the axis segment
+    return x, y, z - axis_z
+
+
+def drone_primitives(params, pos: jax.Array, quat: jax.Array, first_seg: int | jax.Array) -> dict:
+    """The drones' visual shapes as primitives: per drone a box (the plate) and four cylinders (the propeller
+    disks), with the drone's segmentation id ``first_seg + d``.
+
+    Args:
+        params: `jaxdrones.params.DroneParams` broadcastable to [..., D] (arm, prop_pos, prop_radius).
+        pos: f[..., D, 3] m; quat: f[..., D, 4] (x, y, z, w), body → world.
+        first_seg: the id of drone 0.
+
+    Returns:
+        ``{"box": Primitives [..., D], "cylinder": Primitives [..., 4D]}``.
+    """
+    from jaxdrones.rotations import quat_to_rotmat
+
+    dtype = pos.dtype
+    rot = quat_to_rotmat(quat / jnp.linalg.norm(quat, axis=-1, keepdims=True))  # [..., D, 3, 3]
+    n = pos.shape[-2]
+    arm = jnp.broadcast_to(jnp.asarray(params.arm, dtype), pos.shape[:-1])
+    seg = jnp.broadcast_to(first_seg + jnp.arange(n, dtype=jnp.int32), pos.shape[:-1])
+    side = BODY_SIDE_PER_ARM * arm / 2
+    plate = Primitives(pos=pos, rot=rot, size=jnp.stack([side, side, jnp.full_like(side, BODY_THICKNESS / 2)], -1),
+                       seg=seg, rgb=jnp.broadcast_to(jnp.asarray(BODY_RGBA[:3], dtype), pos.shape),
+                       valid=jnp.ones(pos.shape[:-1], bool))
+    prop_pos = jnp.broadcast_to(jnp.asarray(params.prop_pos, dtype), pos.shape[:-1] + (4, 3))
+    prop_pos = prop_pos + jnp.asarray([0.0, 0.0, PROP_Z], dtype)
+    centres = pos[..., None, :] + jnp.einsum("...ij,...kj->...ki", rot, prop_pos)  # [..., D, 4, 3]
+    radius = jnp.broadcast_to(jnp.asarray(params.prop_radius, dtype), pos.shape[:-1])
+    lead = pos.shape[:-2]
+    props = Primitives(
+        pos=centres.reshape(lead + (4 * n, 3)),
+        rot=jnp.repeat(rot, 4, axis=-3),
+        size=jnp.repeat(jnp.stack([radius, jnp.full_like(radius, PROP_THICKNESS / 2), jnp.zeros_like(radius)],
+                                  -1), 4, axis=-2),
+        seg=jnp.repeat(seg, 4, axis=-1), rgb=jnp.broadcast_to(jnp.asarray(PROP_RGBA[:3], dtype), lead + (4 * n, 3)),
+        valid=jnp.ones(lead + (4 * n,), bool))
+    return {"box": plate, "cylinder": props}
+
+
+def camera_frames(spec: CameraSpec, params, pos: jax.Array, quat: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Each drone's eye f[..., D, 3] (m, world) and camera axes f[..., D, 3, 3] (world; columns forward, left, up),
+    from its pose and ``spec`` (see the module docstring)."""
+    from jaxdrones.rotations import quat_to_rotmat
+
+    dtype = pos.dtype
+    rot = quat_to_rotmat(quat / jnp.linalg.norm(quat, axis=-1, keepdims=True))
+    if spec.mount_pos is None:
+        ahead = jnp.broadcast_to(jnp.asarray(params.collision_radius, dtype), pos.shape[:-1]) + EYE_MARGIN
+        mount = jnp.stack([ahead, jnp.zeros_like(ahead), jnp.zeros_like(ahead)], -1)
+    else:
+        mount = jnp.broadcast_to(jnp.asarray(spec.mount_pos, dtype), pos.shape)
+    eye = pos + jnp.einsum("...ij,...j->...i", rot, mount)
+    axes = rot @ jnp.asarray(_rotmat_from_rpy(spec.mount_rpy), dtype)
+    if spec.level:
+        forward = axes[..., 0]
+        left = jnp.cross(jnp.asarray([0.0, 0.0, 1.0], dtype), forward)
+        left = left / jnp.maximum(jnp.linalg.norm(left, axis=-1, keepdims=True), 1e-12)
+        axes = jnp.stack([forward, left, jnp.cross(forward, left)], -1)
+    return eye, axes
+
+
+def render(spec: CameraSpec, scene: Scene, params, pos: jax.Array, quat: jax.Array,
+           kinds: tuple[str, ...] = ("rgb", "depth", "seg")) -> dict:
+    """Every drone's onboard camera images (see the module docstring for the camera model and the images).
+
+    Args:
+        spec: the `CameraSpec`.
+        scene: a `Scene` (`make_scene`), unbatched or with the state's leading world axes.
+        params: `jaxdrones.params.DroneParams` broadcastable to [..., D] (collision_radius, arm, prop_pos,
+            prop_radius).
+        pos: f[..., D, 3] m, world frame; quat: f[..., D, 4] (x, y, z, w), body → world.
+        kinds: which images to return, a subset of ``("rgb", "depth", "seg")``.
+
+    Returns:
+        dict of the ``kinds``: ``depth`` f[..., D, H, W] m (the poses' dtype), ``seg`` i32[..., D, H, W], ``rgb`` u8[..., D, H, W, 3].
+
+    Raises:
+        ValueError: an unknown image kind, or pos/quat not f[..., D, 3] / f[..., D, 4].
+    """
+    unknown = set(kinds) - set(IMAGE_KINDS)
+    if unknown or not kinds:
+        raise ValueError(f"kinds must be a non-empty subset of {tuple(IMAGE_KINDS)}, got {kinds!r}")
+    if pos.ndim < 2 or pos.shape[-1] != 3 or quat.shape != pos.shape[:-1] + (4,):
+        raise ValueError(f"render needs pos f[..., D, 3] and quat f[..., D, 4], got {pos.shape} and {quat.shape}")
+    dtype = pos.dtype if jnp.issubdtype(pos.dtype, jnp.floating) else jnp.float32
+    pos, quat = pos.astype(dtype), quat.astype(dtype)
+    n_drones = pos.shape[-2]
+    eye, axes = camera_frames(spec, params, pos, quat)
+    rays = jnp.asarray(spec.pixel_rays(), dtype)  # [H, W, 3] (forward, left, up)
+    dirs = tuple(jnp.einsum("hwk,...k->...hw", rays, axes[..., i, :]) for i in range(3))  # world, [..., D, H, W]
+    near = jnp.broadcast_to(jnp.asarray(params.arm if spec.near is None else spec.near, dtype), pos.shape[:-1])
+    near = near[..., None, None]
+    far = jnp.asarray(spec.far, dtype)
+    own = jnp.arange(n_drones)
+
+    best_t = jnp.full(pos.shape[:-1] + (spec.height, spec.width), far, dtype)
+    best = {"seg": jnp.full(best_t.shape, -1, jnp.int32), "rgb": jnp.zeros(best_t.shape + (3,), dtype),
+            "normal": jnp.zeros(best_t.shape + (3,), dtype)}
+
+    def take(t, seg, rgb, normal):
+        nonlocal best_t
+        closer = (t >= near) & (t < best_t)
+        best_t = jnp.where(closer, t, best_t)
+        best["seg"] = jnp.where(closer, seg, best["seg"])
+        best["rgb"] = jnp.where(closer[..., None], rgb, best["rgb"])
+        best["normal"] = jnp.where(closer[..., None], normal, best["normal"])
+
+    # the ground plane z = 0, seen from above
+    t_ground = -eye[..., 2, None, None] / jnp.where(dirs[2] < 0, dirs[2], -1.0)
+    t_ground = jnp.where((dirs[2] < 0) & (eye[..., 2, None, None] > 0) & jnp.asarray(scene.ground), t_ground,
+                         jnp.inf)
+    take(t_ground, 0, jnp.asarray(GROUND_RGB, dtype), jnp.asarray([0.0, 0.0, 1.0], dtype))
+
+    drones = drone_primitives(params, pos, quat, jnp.asarray(scene.drone_seg)[..., None])
+    for shape in SHAPES:
+        sets = [(getattr(scene, shape), None)]
+        if shape in drones:
+            sets.append((drones[shape], jnp.repeat(own, drones[shape].seg.shape[-1] // n_drones)))
+        for prims, owner in sets:
+            if prims.seg.shape[-1]:
+                _closest(shape, prims, owner, eye, dirs, near, take, n_drones)
+
+    out = {}
+    if "depth" in kinds:
+        out["depth"] = best_t
+    if "seg" in kinds:
+        out["seg"] = best["seg"]
+    if "rgb" in kinds:
+        normal = best["normal"]
+        normal = normal / jnp.maximum(jnp.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+        shade = AMBIENT + (1 - AMBIENT) * jnp.maximum(0.0, normal @ jnp.asarray(LIGHT, dtype))
+        out["rgb"] = jnp.clip(jnp.round(255 * best["rgb"] * shade[..., None]), 0, 255).astype(jnp.uint8)
+    return out
+
+
+def _closest(shape, prims, owner, eye, dirs, near, take, n_drones):
+    """The nearest hit of each pixel's ray with the primitives of one shape, handed to ``take``.
+
+    Shapes: eye f[L, D, 3]; dirs 3-tuple f[L, D, H, W] (world); near f[L, D, 1, 1]; the primitives' fields
+    [L?, N, ...] (per world or shared); owner i[N], the drone each primitive belongs to (its camera skips it),
+    or None. Every ray-primitive quantity is f[L, D, N, H, W].
+    """
+    rel = eye[..., :, None, :] - prims.pos[..., None, :, :]  # [L, D, N, 3]
+    rot = prims.rot[..., None, :, :, :]  # [L?, 1, N, 3, 3], columns the shape's axes
+    o = tuple(jnp.sum(rel * rot[..., i], -1)[..., None, None] for i in range(3))  # Rᵀ (eye - c)
+    d = tuple(sum(dirs[k][..., None, :, :] * rot[..., k, i, None, None] for k in range(3)) for i in range(3))
+    t_in, t_out = _HIT[shape](o, d, prims.size[..., None, :, None, None, :])
+    hit = (t_in <= t_out) & (t_in >= near[..., None, :, :]) & prims.valid[..., None, :, None, None]
+    if owner is not None:  # a drone does not see itself
+        hit = hit & (owner[:, None, None] != jnp.arange(n_drones)[:, None, None, None])
+    t = jnp.where(hit, t_in, jnp.inf)
+    t_best = jnp.min(t, axis=-3)  # [L, D, H, W]
+    sel = jax.nn.one_hot(jnp.argmin(t, axis=-3), prims.seg.shape[-1], dtype=t.dtype, axis=-3)
+    seg = jnp.sum(jnp.where(sel > 0, prims.seg[..., None, :, None, None], 0), axis=-3)
+    rgb = jnp.einsum("...dnhw,...nc->...dhwc", sel, prims.rgb)
+    p_local = tuple(jnp.sum(sel * (oc + t_best[..., None, :, :] * dc), axis=-3) for oc, dc in zip(o, d))
+    normal_local = _normal(shape, p_local, jnp.einsum("...dnhw,...nc->...dhwc", sel, prims.size))
+    normal = jnp.einsum("...dnhw,...nij,...dhwj->...dhwi", sel, prims.rot, jnp.stack(normal_local, -1))
+    take(t_best, seg, rgb, normal)
