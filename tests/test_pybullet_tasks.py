@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 import jaxdrones as jd
-from jaxdrones.backends.camera import EYE_MARGIN
+from jaxdrones.backends.scene import Obstacle
+from jaxdrones.cameras import EYE_MARGIN
 from jaxdrones.cli import main
 from jaxdrones.envs.observations import kinematic_obs
 from jaxdrones.examples import circle
@@ -245,10 +246,12 @@ def test_depth_and_segmentation_see_the_ground_and_obstacles(vision_env):
 
 
 def test_vision_options_are_checked():
-    with pytest.raises(ValueError, match="vision needs backend='pybullet'"):
-        jd.make("hover", vision=("rgb",))
-    with pytest.raises(ValueError, match="obstacles needs backend='pybullet'"):
-        jd.make("hover", obstacles=True)
+    with pytest.raises(ValueError, match="only seen by its cameras"):
+        jd.make("hover", obstacles=[Obstacle("box")])  # the jax backend: obstacles without cameras do nothing
+    with pytest.raises(ValueError, match="URDF mesh"):
+        jd.make("hover", obstacles=True, vision=("depth",))  # the paper's scene has a duck mesh
+    with pytest.raises(ValueError, match="renderer needs backend='pybullet'"):
+        jd.make("hover", vision=("depth",), renderer="egl")
     with pytest.raises(ValueError, match="vision must hold distinct names"):
         jd.make("hover", backend="pybullet", vision=("rgb", "dep"))
     with pytest.raises(ValueError, match="vision must be a tuple"):

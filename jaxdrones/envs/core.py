@@ -194,10 +194,14 @@ class TaskConfig:
             pair of drones, the original).
         backend: ``"jax"`` (differentiable) or ``"pybullet"`` (collisions, obstacles, cameras; not differentiable;
             call ``close``).
-        obstacles: ``"pybullet"`` only: None, True or ``"paper"``, or a sequence of `Obstacle` / URDF paths.
-        vision: ``"pybullet"`` only: camera images to add to the observation, any of ``"rgb"``, ``"depth"``,
-            ``"seg"``; the observation is then a dict ``{"state": f[D, n_obs], "rgb": u8[D, H, W, 4], "depth":
-            f32[D, H, W] m, "seg": i32[D, H, W]}``, the images rendered every `camera_period` steps and held.
+        obstacles: None, True or ``"paper"``, or a sequence of `Obstacle` / URDF paths. On the PyBullet backend
+            drones collide with them; on the JAX backend (with ``vision`` only) the cameras see them but the physics
+            does not collide with them, and URDF meshes are refused.
+        vision: camera images to add to the observation, any of ``"rgb"``, ``"depth"``, ``"seg"``; the observation
+            is then a dict ``{"state": f[D, n_obs], "rgb": u8[D, H, W, 4], "depth": f32[D, H, W] m, "seg":
+            i32[D, H, W]}``, the images rendered every `camera_period` steps and held. On the JAX backend they come
+            from `jaxdrones.cameras` (pure JAX, batched, depth differentiable; RGBA with alpha 255), on the PyBullet
+            backend from Bullet's renderer; both use the same camera and segmentation ids.
         camera_freq: camera rate asked for, Hz (the paper: 24).
         image_size: (width, height) of the camera images, pixels.
         renderer: ``"pybullet"`` only: ``"tiny"`` (CPU) or ``"egl"``.
@@ -306,16 +310,19 @@ class TaskConfig:
         self._set("vision", tuple(vision))
         if isinstance(self.obstacles, list):
             self._set("obstacles", tuple(self.obstacles))
-        if self.backend == "jax":
-            for name, value, default in (("vision", self.vision, ()), ("obstacles", self.obstacles, None),
-                                         ("renderer", self.renderer, "tiny")):
-                if value not in (default, False):
-                    raise ValueError(f"{name} needs backend='pybullet' (the jax backend models the ground only "
-                                     f"and does not render)")
-        else:
-            from jaxdrones.backends.scene import resolve_obstacles
+        from jaxdrones.backends.scene import resolve_obstacles
 
-            resolve_obstacles(self.obstacles)
+        obstacles = resolve_obstacles(self.obstacles)
+        if self.backend == "jax":
+            if self.renderer != "tiny":
+                raise ValueError("renderer needs backend='pybullet' (the jax backend renders with "
+                                 "jaxdrones.cameras)")
+            if obstacles and not self.vision:
+                raise ValueError("obstacles on backend='jax' are only seen by its cameras (its physics models the "
+                                 "ground only): pass vision=(...), or use backend='pybullet' for collisions")
+            from jaxdrones.cameras import make_scene
+
+            make_scene(obstacles)  # a mesh obstacle: a clear error now rather than at the first render
         if not (_is_number(self.camera_freq) and math.isfinite(self.camera_freq) and self.camera_freq > 0):
             raise ValueError(f"camera_freq must be a finite rate > 0 Hz, got {self.camera_freq!r}")
         size = self.image_size
@@ -534,6 +541,12 @@ class TaskEnv(Env):
                    else {})
         self._step = make_step(self.sim_config, backend=config.backend, **options)
         self._default_task = None
+        self._scene = None
+        if config.vision and config.backend == "jax":
+            from jaxdrones.backends.scene import resolve_obstacles
+            from jaxdrones.cameras import make_scene
+
+            self._scene = make_scene(resolve_obstacles(config.obstacles))
 
     def __reduce__(self):
         return type(self), (self.task, self.config)
@@ -728,7 +741,7 @@ class TaskEnv(Env):
             raise ValueError(f"{self.task.name}: action must be a float array, got dtype {action.dtype}")
         return action
 
-    # -- cameras (PyBullet backend) --------------------------------------------------------------------------------
+    # -- cameras -------------------------------------------------------------------------------------------------------
 
     def _image_spec(self) -> dict:
         width, height = self.config.image_size
@@ -744,6 +757,16 @@ class TaskEnv(Env):
         """
         spec = self._image_spec()
         width, height = self.config.image_size
+        if self._scene is not None:  # the JAX backend: the images of every world, kept where a render is not due
+            from jaxdrones.cameras import CameraSpec, render
+
+            images = render(CameraSpec(width=width, height=height), jax.tree.map(jnp.asarray, self._scene), params,
+                            sim.pos, sim.quat, kinds=self.config.vision)
+            if "rgb" in images:  # RGBA, as Bullet's
+                rgb = images["rgb"]
+                images["rgb"] = jnp.concatenate([rgb, jnp.full(rgb.shape[:-1] + (1,), 255, rgb.dtype)], -1)
+            return {k: jnp.where(jnp.reshape(due, due.shape + (1,) * (v.ndim - due.ndim)), v, held[k])
+                    for k, v in images.items()}
         blank = {"rgb": 0, "depth": np.nan, "seg": -1}
         step = self._step
 

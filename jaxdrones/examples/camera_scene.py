@@ -43,7 +43,7 @@ _SEG_COLOURS = ((0, 0, 0), (128, 128, 128), (230, 90, 50), (60, 180, 80), (70, 1
 
 def eye_position(params) -> np.ndarray:
     """The camera's eye, f[3] m, world frame: `DRONE_POS` + (collision_radius + EYE_MARGIN, 0, 0)."""
-    from jaxdrones.backends.camera import EYE_MARGIN  # imports pybullet, which prints on import: only when used
+    from jaxdrones.cameras import EYE_MARGIN
 
     return np.asarray(DRONE_POS) + np.array([float(params.collision_radius) + EYE_MARGIN, 0.0, 0.0])
 

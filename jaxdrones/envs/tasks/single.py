@@ -427,12 +427,13 @@ def gate_obstacles() -> tuple:
 
 @dataclasses.dataclass(frozen=True)
 class GateConfig(TaskConfig):
-    """Settings of `FlyThruGate`. On the PyBullet backend ``obstacles`` defaults to the gate (`gate_obstacles`)."""
+    """Settings of `FlyThruGate`. On the PyBullet backend, and with ``vision`` on the JAX backend (the cameras see
+    it), ``obstacles`` defaults to the gate (`gate_obstacles`)."""
 
     arena_xy: float = 3.0
 
     def __post_init__(self):
-        if self.backend == "pybullet" and self.obstacles is None:
+        if (self.backend == "pybullet" or self.vision) and self.obstacles is None:
             object.__setattr__(self, "obstacles", gate_obstacles())
         super().__post_init__()
 
