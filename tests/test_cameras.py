@@ -231,3 +231,23 @@ def test_env_vision_on_the_jax_backend_is_batched_and_held_between_captures():
         return jnp.mean(env._render(state.params, sim, jnp.ones((4,), bool), state.obs)["depth"])
 
     assert np.isfinite(jax.grad(mean_depth)(0.0)) and jax.grad(mean_depth)(0.0) != 0.0
+
+
+def test_scenes_larger_than_one_step_trace_as_unrolled(monkeypatch):
+    """A scene of 40 primitives (scanned `SLOTS_PER_STEP` slots at a time, padded) and two drones per world gives
+    the images of every slot traced at once; the drones see each other (ids 41 and 42) but not themselves."""
+    rng = np.random.default_rng(0)
+    obstacles = [Obstacle(("box", "sphere", "cylinder", "capsule")[k % 4],
+                          size=(0.2, 0.3, 0.4) if k % 4 == 0 else (0.2,) if k % 4 == 1 else (0.1, 0.5),
+                          pos=(float(rng.uniform(0.8, 3)), float(rng.uniform(-2, 2)), float(rng.uniform(0.2, 1.5))),
+                          rpy=tuple(float(a) for a in rng.uniform(-0.5, 0.5, 3))) for k in range(40)]
+    scene = cameras.make_scene(obstacles)
+    p, q = pose([[0.0, 0.0, 1.0], [0.6, 0.05, 0.92]], [[0.0, 0.0, 0.0], [0.0, 0.0, np.pi]])
+    spec = cameras.CameraSpec(width=32, height=24)
+    scanned = cameras.render(spec, scene, PARAMS, p, q)
+    monkeypatch.setattr(cameras, "SLOTS_PER_STEP", 100)
+    unrolled = cameras.render(spec, scene, PARAMS, p, q)
+    for k in scanned:
+        np.testing.assert_array_equal(np.asarray(scanned[k]), np.asarray(unrolled[k]))
+    seg = np.asarray(scanned["seg"])
+    assert 42 in seg[0] and 41 in seg[1] and 41 not in seg[0] and 42 not in seg[1]
