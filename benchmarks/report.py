@@ -20,6 +20,8 @@ envs           its defaults: 1, 64, 1024, 4096 (native also        1 ... 2**20 w
                16384), crazyflow, step profile at 1 and 4096
 gradients      its defaults: T 10, 100, 1000 × W 1, 1024, 16384    T 10, 100, 1000 × W 1 ... 65536
 backends       its defaults (PyBullet is CPU only)                 the same
+cameras        worlds 1, 64, 1024, 4096 × primitives 4, 16, 64,    worlds 1 ... 65536, the same scenes
+               PyBullet's TinyRenderer and EGL at 16 worlds
 train_algos    hover, ppo, brax_ppo, apg, shac at each trainer's   the same
                own budget, empty and warm compilation cache
 sysid_noise    seeds 0, 1, 2                                       the same
@@ -30,7 +32,7 @@ worker, a second JAX process on the same GPU, while it holds its own arrays, and
 GPU's memory at start would leave the worker too little.
 
 The default run is the benchmarks that finish in minutes each on a 2-core CPU (throughput, envs, gradients,
-backends, train_algos, sysid_noise; about an hour in all there, most of it train_algos' eight training runs and the
+backends, cameras, train_algos, sysid_noise; about an hour in all there, most of it train_algos' eight training runs and the
 gradients at 1000 steps × 16384 worlds). The others run only when named (``--only NAME``) or with ``--all``:
 
 - ``multi_agent``: teams up to 256 drones (CPU; 1024 on a GPU) with MAPPO updates timed, tens of minutes on a CPU;
@@ -135,6 +137,13 @@ def gradients_args(ctx: Context) -> list[str]:
     return ["--worlds", "1", "1024", "16384", "65536"] if ctx.gpu else []
 
 
+def cameras_args(ctx: Context) -> list[str]:
+    if ctx.quick:
+        return ["--worlds", "1", "1024", *(["65536"] if ctx.gpu else []), "--primitives", "16", "--repeats", "3"]
+    worlds = ("1", "64", "1024", "16384", "65536") if ctx.gpu else ("1", "64", "1024", "4096")
+    return ["--worlds", *worlds, "--primitives", "4", "16", "64"]
+
+
 def train_algos_args(ctx: Context) -> list[str]:
     if ctx.quick:
         return ["--algos", "ppo", "apg", "--budgets", "100000", "--env-repeats", "2"]
@@ -170,6 +179,8 @@ BENCHMARKS = {b.name: b for b in (
               _json("gradients.json"), NO_PREALLOCATION),
     Benchmark("backends", True, lambda ctx: (["--quick", "--drones", "1", "10"] if ctx.quick else [])
               + ["--out", _json("backends.json")(ctx)], _json("backends.json")),
+    Benchmark("cameras", True, lambda ctx: cameras_args(ctx) + ["--out", _json("cameras.json")(ctx)],
+              _json("cameras.json"), NO_PREALLOCATION),
     Benchmark("train_algos", True, lambda ctx: train_algos_args(ctx) + ["--out", _json("train_algos_hover.json")(ctx)],
               _json("train_algos_hover.json")),
     Benchmark("sysid_noise", True, lambda ctx: ["--seeds", "0"] if ctx.quick else ["--seeds", "0", "1", "2"],
@@ -589,6 +600,30 @@ def render_backends(data: dict, out: str) -> str:
     return "\n\n".join(sections)
 
 
+def render_cameras(data: dict, out: str) -> str:
+    rows = data["results"]
+    cams = [r for r in rows if r["sim"] != "jaxdrones-env"]
+    env = [r for r in rows if r["sim"] == "jaxdrones-env"]
+    sections = ["Onboard cameras, 64 × 48, frames/s (median), by scene size P (primitives besides the ground):\n\n"
+                + table(["renderer", "images", "P", "worlds", "frames/s", "ms per call"],
+                        [[r["sim"], "+".join(r["kinds"]), r["primitives"], r["worlds"], num(r["frames_per_s"]),
+                          num(1e3 * r["s"], 1)] for r in cams], "llrrrr")]
+    if env:
+        sections.append("`fly_thru_gate` with depth and segmentation cameras at every 30 Hz control step, JAX "
+                        "backend:\n\n" + table(["worlds", "env steps/s"],
+                                               [[r["worlds"], num(r["frames_per_s"])] for r in env]))
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for sim in sorted({r["sim"] for r in cams}):
+        for p in sorted({r["primitives"] for r in cams if r["sim"] == sim}):
+            pts = sorted((r["worlds"], r["frames_per_s"]) for r in cams if r["sim"] == sim and r["primitives"] == p)
+            ax.plot(*zip(*pts), marker="o", label=f"{sim}, P={p}")
+    ax.set(xscale="log", yscale="log", xlabel="worlds", ylabel="frames/s", title="Onboard cameras, 64 × 48")
+    ax.legend(fontsize=8)
+    sections.append(_save(fig, out, "cameras.png"))
+    return "\n\n".join(sections)
+
+
 def render_train_algos(data: dict, out: str) -> str:
     rows = data["results"]
     algos = list(dict.fromkeys(r["algo"] for r in rows))
@@ -745,7 +780,8 @@ def render_jaxmarl_ippo(data: dict, out: str) -> str:
 
 
 RENDERERS = {"throughput": render_throughput, "envs": render_envs, "gradients": render_gradients,
-             "backends": render_backends, "train_algos": render_train_algos, "multi_agent": render_multi_agent,
+             "backends": render_backends, "cameras": render_cameras, "train_algos": render_train_algos,
+             "multi_agent": render_multi_agent,
              "downwash_policies": render_downwash_policies, "sb3_hover": render_sb3_hover,
              "jaxmarl_ippo": render_jaxmarl_ippo}
 
