@@ -212,10 +212,6 @@ class Scene:
     ground: jax.Array  #: bool[...], whether the ground plane is there.
     drone_seg: jax.Array  #: i32[...], the segmentation id of drone 0 (K + 1 for K obstacles).
 
-    def n_obstacles(self) -> int:
-        """The capacity: the number of primitive slots of all shapes."""
-        return sum(getattr(self, s).seg.shape[-1] for s in SHAPES)
-
 
 def _rotmat_from_rpy(rpy) -> np.ndarray:
     """R(roll, pitch, yaw) = Rz(yaw) Ry(pitch) Rx(roll), in NumPy (host-side scene building): the URDF's and
