@@ -32,8 +32,8 @@ worker, a second JAX process on the same GPU, while it holds its own arrays, and
 GPU's memory at start would leave the worker too little.
 
 The default run is the benchmarks that finish in minutes each on a 2-core CPU (throughput, envs, gradients,
-backends, cameras, train_algos, sysid_noise; about an hour in all there, most of it train_algos' eight training runs and the
-gradients at 1000 steps × 16384 worlds). The others run only when named (``--only NAME``) or with ``--all``:
+backends, cameras, train_algos, sysid_noise; about an hour in all there, most of it train_algos' eight training runs
+and the gradients at 1000 steps × 16384 worlds). The others run only when named (``--only NAME``) or with ``--all``:
 
 - ``multi_agent``: teams up to 256 drones (CPU; 1024 on a GPU) with MAPPO updates timed, tens of minutes on a CPU;
 - ``downwash_policies``: trains MAPPO on ``crossing`` twice (3 M env steps each by default);

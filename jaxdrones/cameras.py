@@ -20,8 +20,8 @@ give the same images of the same scene:
 
 Images, for a state with leading axes [..., D]:
 
-* ``depth``: f[..., D, H, W] in the dtype of the poses (float32 normally), metres along the optical axis (OpenGL's eye-space depth, what the PyBullet backend
-  reports), ``far`` where nothing is hit;
+* ``depth``: f[..., D, H, W] in the dtype of the poses (float32 normally), metres along the optical axis (OpenGL's
+  eye-space depth, what the PyBullet backend reports), ``far`` where nothing is hit;
 * ``seg``: i32[..., D, H, W], the id of what each pixel sees, numbered as in a PyBullet world built from scratch
   (`jaxdrones.backends.pybullet.PyBulletStep.body_ids`): the ground 0, the obstacles 1..K in scene order, the drones
   K+1..K+D in state order; -1 where nothing is within ``far``;
@@ -223,6 +223,20 @@ def _rotmat_from_rpy(rpy) -> np.ndarray:
                      [-sp, cp * sr, cp * cr]])
 
 
+def check_obstacles(obstacles) -> tuple:
+    """The obstacles as a tuple, or ValueError if one is not a primitive the JAX cameras draw (a URDF mesh: only
+    Bullet draws those)."""
+    obstacles = tuple(obstacles)
+    for k, o in enumerate(obstacles):
+        shape = getattr(o, "shape", None)
+        if shape == "urdf":
+            raise ValueError(f"obstacle {k} is a URDF mesh ({o.urdf!r}): the JAX cameras draw only boxes, spheres, "
+                             f"cylinders and capsules; use backend='pybullet' for meshes")
+        if shape not in SHAPES:
+            raise ValueError(f"obstacle {k}: shape must be one of {SHAPES}, got {shape!r}")
+    return obstacles
+
+
 def make_scene(obstacles=(), capacity: dict | int | None = None, ground: bool = True,
                dtype=jnp.float32) -> Scene:
     """A `Scene` from static obstacles, as the PyBullet backend takes them.
@@ -239,16 +253,10 @@ def make_scene(obstacles=(), capacity: dict | int | None = None, ground: bool = 
         ValueError: a URDF obstacle (only Bullet draws meshes: use ``backend="pybullet"``), an unknown shape, or more
             obstacles of a shape than its capacity.
     """
-    obstacles = tuple(obstacles)
+    obstacles = check_obstacles(obstacles)
     by_shape = {s: [] for s in SHAPES}
     for k, o in enumerate(obstacles):
-        shape = getattr(o, "shape", None)
-        if shape == "urdf":
-            raise ValueError(f"obstacle {k} is a URDF mesh ({o.urdf!r}): the JAX cameras draw only boxes, spheres, "
-                             f"cylinders and capsules; use backend='pybullet' for meshes")
-        if shape not in by_shape:
-            raise ValueError(f"obstacle {k}: shape must be one of {SHAPES}, got {shape!r}")
-        by_shape[shape].append((k + 1, o))
+        by_shape[o.shape].append((k + 1, o))
     if capacity is None:
         capacity = {s: len(v) for s, v in by_shape.items()}
     elif isinstance(capacity, numbers.Integral) and not isinstance(capacity, bool):

@@ -320,9 +320,9 @@ class TaskConfig:
             if obstacles and not self.vision:
                 raise ValueError("obstacles on backend='jax' are only seen by its cameras (its physics models the "
                                  "ground only): pass vision=(...), or use backend='pybullet' for collisions")
-            from jaxdrones.cameras import make_scene
+            from jaxdrones.cameras import check_obstacles
 
-            make_scene(obstacles)  # a mesh obstacle: a clear error now rather than at the first render
+            check_obstacles(obstacles)  # a mesh: a clear error now rather than at the first render
         if not (_is_number(self.camera_freq) and math.isfinite(self.camera_freq) and self.camera_freq > 0):
             raise ValueError(f"camera_freq must be a finite rate > 0 Hz, got {self.camera_freq!r}")
         size = self.image_size
@@ -751,9 +751,9 @@ class TaskEnv(Env):
     def _render(self, params: DroneParams, sim: DroneState, due: jax.Array, held: dict) -> dict:
         """The camera images of ``sim`` where ``due`` (bool[...]), ``held`` elsewhere.
 
-        One host callback: under ``vmap`` (where `jax.lax.cond` runs both branches) only the worlds whose render is
-        due are rendered. A world whose pose is not finite reads rgb 0, depth NaN and seg -1, as in
-        `PyBulletStep.camera_images`.
+        On the JAX backend, `jaxdrones.cameras.render` of every world. On the PyBullet backend, one host callback:
+        under ``vmap`` (where `jax.lax.cond` runs both branches) only the worlds whose render is due are rendered,
+        and a world whose pose is not finite reads rgb 0, depth NaN and seg -1, as in `PyBulletStep.camera_images`.
         """
         spec = self._image_spec()
         width, height = self.config.image_size
