@@ -237,6 +237,13 @@ def check_obstacles(obstacles) -> tuple:
     return obstacles
 
 
+def _size(shape: str, size) -> tuple:
+    """An `Obstacle`'s size as `Primitives.size`: box half extents; (radius, 0, 0); (radius, half length, 0)."""
+    if shape == "box":
+        return tuple(x / 2 for x in size)
+    return (size[0], 0.0, 0.0) if shape == "sphere" else (size[0], size[1] / 2, 0.0)
+
+
 def make_scene(obstacles=(), capacity: dict | int | None = None, ground: bool = True,
                dtype=jnp.float32) -> Scene:
     """A `Scene` from static obstacles, as the PyBullet backend takes them.
@@ -273,9 +280,7 @@ def make_scene(obstacles=(), capacity: dict | int | None = None, ground: bool = 
         seg, rgb, valid = np.full(n, -1, np.int32), np.zeros((n, 3)), np.zeros(n, bool)
         for i, (sid, o) in enumerate(by_shape[shape]):
             pos[i], rot[i], seg[i], rgb[i], valid[i] = o.pos, _rotmat_from_rpy(o.rpy), sid, o.rgba[:3], True
-            s = o.size
-            size[i] = {"box": lambda: np.asarray(s) / 2, "sphere": lambda: (s[0], 0.0, 0.0)}.get(
-                shape, lambda: (s[0], s[1] / 2, 0.0))()
+            size[i] = _size(shape, o.size)
         parts[shape] = Primitives(pos=jnp.asarray(pos, dtype), rot=jnp.asarray(rot, dtype),
                                   size=jnp.asarray(size, dtype), seg=jnp.asarray(seg), rgb=jnp.asarray(rgb, dtype),
                                   valid=jnp.asarray(valid))
