@@ -20,8 +20,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import time
+
+from backends import timed  # a sibling script: best and median wall time of repeated calls
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_OUT = os.path.join(HERE, "results", "cameras.json")
@@ -87,15 +88,9 @@ def time_jax(worlds: int, n_primitives: int, kinds, repeats: int) -> dict:
     start = time.perf_counter()
     compiled = fn.lower(scene, state.pos, state.quat).compile()
     compile_s = time.perf_counter() - start
-    jax.block_until_ready(compiled(scene, state.pos, state.quat))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(scene, state.pos, state.quat))
-        times.append(time.perf_counter() - t0)
-    s = statistics.median(times)
+    best, s = timed(lambda: jax.block_until_ready(compiled(scene, state.pos, state.quat)), repeats)
     return {"sim": "jaxdrones", "worlds": worlds, "primitives": n_primitives, "kinds": list(kinds), "s": s,
-            "times_s": times, "compile_s": compile_s, "frames_per_s": worlds / s}
+            "best_s": best, "compile_s": compile_s, "frames_per_s": worlds / s}
 
 
 def time_env(worlds: int, repeats: int, steps: int = 30) -> dict:
@@ -115,40 +110,24 @@ def time_env(worlds: int, repeats: int, steps: int = 30) -> dict:
     def run(state):
         return jax.lax.scan(lambda s, _: (jax.vmap(env.step)(s, actions), None), state, None, length=steps)[0]
 
-    jax.block_until_ready(run(state))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(run(state))
-        times.append(time.perf_counter() - t0)
-    s = statistics.median(times)
+    best, s = timed(lambda: jax.block_until_ready(run(state)), repeats)
     return {"sim": "jaxdrones-env", "task": "fly_thru_gate", "worlds": worlds, "primitives": 3,
-            "kinds": ["depth", "seg"], "s": s / steps, "times_s": times, "frames_per_s": worlds * steps / s}
+            "kinds": ["depth", "seg"], "s": s / steps, "best_s": best / steps, "frames_per_s": worlds * steps / s}
 
 
 def time_pybullet(worlds: int, n_primitives: int, renderer: str, repeats: int) -> dict:
-    import jaxdrones as jd
-
-    params = jd.load_params("cf2x")
-    state = jax_to_numpy(poses(worlds))
-    config = jd.SimConfig(n_drones=1)
-    with jd.make_step(config, backend="pybullet", obstacles=scene_obstacles(n_primitives), renderer=renderer) as step:
-        step.camera_images(params, state)
-        times = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            step.camera_images(params, state)
-            times.append(time.perf_counter() - t0)
-    s = statistics.median(times)
-    return {"sim": f"pybullet-{renderer}", "worlds": worlds, "primitives": n_primitives,
-            "kinds": ["rgb", "depth", "seg"], "s": s, "times_s": times, "frames_per_s": worlds / s}
-
-
-def jax_to_numpy(tree):
     import jax
     import numpy as np
 
-    return jax.tree.map(np.asarray, tree)
+    import jaxdrones as jd
+
+    params = jd.load_params("cf2x")
+    state = jax.tree.map(np.asarray, poses(worlds))
+    config = jd.SimConfig(n_drones=1)
+    with jd.make_step(config, backend="pybullet", obstacles=scene_obstacles(n_primitives), renderer=renderer) as step:
+        best, s = timed(lambda: step.camera_images(params, state), repeats)
+    return {"sim": f"pybullet-{renderer}", "worlds": worlds, "primitives": n_primitives,
+            "kinds": ["rgb", "depth", "seg"], "s": s, "best_s": best, "frames_per_s": worlds / s}
 
 
 def main(argv=None) -> int:

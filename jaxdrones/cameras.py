@@ -47,6 +47,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxdrones.rotations import quat_to_rotmat
+
 #: Gap between the front of a drone's collision cylinder and its camera's eye, m.
 EYE_MARGIN = 0.005
 #: Direction towards the light (world frame, unit) and the ambient share of the shading of `render`'s RGB.
@@ -69,8 +71,8 @@ ROWS_PER_BLOCK = 4
 SLOTS_PER_STEP = 4
 #: The primitive types of a `Scene`, in the order `render` numbers them.
 SHAPES = ("box", "sphere", "cylinder", "capsule")
-#: What an image kind is and holds per pixel: (dtype, channels or None).
-IMAGE_KINDS = {"rgb": (jnp.uint8, 3), "depth": (jnp.float32, None), "seg": (jnp.int32, None)}
+#: The images `render` gives.
+IMAGE_KINDS = ("rgb", "depth", "seg")
 
 
 # --------------------------------------------------------------------------------------------- the camera spec
@@ -210,7 +212,12 @@ class Scene:
     cylinder: Primitives
     capsule: Primitives
     ground: jax.Array  #: bool[...], whether the ground plane is there.
-    drone_seg: jax.Array  #: i32[...], the segmentation id of drone 0 (K + 1 for K obstacles).
+
+    def drone_seg(self) -> jax.Array:
+        """i32[...]: the segmentation id of drone 0, one more than the largest obstacle id (K + 1 for the K
+        obstacles of `make_scene`, numbered 1..K), 1 with no obstacle."""
+        ids = [jnp.where(p.valid, p.seg, 0) for p in (self.box, self.sphere, self.cylinder, self.capsule)]
+        return jnp.max(jnp.concatenate(ids, axis=-1), axis=-1, initial=0) + 1
 
 
 def _rotmat_from_rpy(rpy) -> np.ndarray:
@@ -284,7 +291,7 @@ def make_scene(obstacles=(), capacity: dict | int | None = None, ground: bool = 
         parts[shape] = Primitives(pos=jnp.asarray(pos, dtype), rot=jnp.asarray(rot, dtype),
                                   size=jnp.asarray(size, dtype), seg=jnp.asarray(seg), rgb=jnp.asarray(rgb, dtype),
                                   valid=jnp.asarray(valid))
-    return Scene(**parts, ground=jnp.asarray(ground), drone_seg=jnp.asarray(len(obstacles) + 1, jnp.int32))
+    return Scene(**parts, ground=jnp.asarray(ground))
 
 
 # --------------------------------------------------------------------------------------------- ray intersections
@@ -366,22 +373,19 @@ def _normal(shape, p, size):
     return x, y, z - axis_z
 
 
-def drone_primitives(params, pos: jax.Array, quat: jax.Array, first_seg: int | jax.Array) -> dict:
+def drone_primitives(params, pos: jax.Array, rot: jax.Array, first_seg: int | jax.Array) -> dict:
     """The drones' visual shapes as primitives: per drone a box (the plate) and four cylinders (the propeller
     disks), with the drone's segmentation id ``first_seg + d``.
 
     Args:
         params: `jaxdrones.params.DroneParams` broadcastable to [..., D] (arm, prop_pos, prop_radius).
-        pos: f[..., D, 3] m; quat: f[..., D, 4] (x, y, z, w), body → world.
+        pos: f[..., D, 3] m; rot: f[..., D, 3, 3], body → world (`jaxdrones.rotations.quat_to_rotmat`).
         first_seg: the id of drone 0.
 
     Returns:
         ``{"box": Primitives [..., D], "cylinder": Primitives [..., 4D]}``.
     """
-    from jaxdrones.rotations import quat_to_rotmat
-
     dtype = pos.dtype
-    rot = quat_to_rotmat(quat / jnp.linalg.norm(quat, axis=-1, keepdims=True))  # [..., D, 3, 3]
     n = pos.shape[-2]
     arm = jnp.broadcast_to(jnp.asarray(params.arm, dtype), pos.shape[:-1])
     seg = jnp.broadcast_to(first_seg + jnp.arange(n, dtype=jnp.int32), pos.shape[:-1])
@@ -404,13 +408,10 @@ def drone_primitives(params, pos: jax.Array, quat: jax.Array, first_seg: int | j
     return {"box": plate, "cylinder": props}
 
 
-def camera_frames(spec: CameraSpec, params, pos: jax.Array, quat: jax.Array) -> tuple[jax.Array, jax.Array]:
+def camera_frames(spec: CameraSpec, params, pos: jax.Array, rot: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Each drone's eye f[..., D, 3] (m, world) and camera axes f[..., D, 3, 3] (world; columns forward, left, up),
-    from its pose and ``spec`` (see the module docstring)."""
-    from jaxdrones.rotations import quat_to_rotmat
-
+    from its position, body → world rotation f[..., D, 3, 3] and ``spec`` (see the module docstring)."""
     dtype = pos.dtype
-    rot = quat_to_rotmat(quat / jnp.linalg.norm(quat, axis=-1, keepdims=True))
     if spec.mount_pos is None:
         ahead = jnp.broadcast_to(jnp.asarray(params.collision_radius, dtype), pos.shape[:-1]) + EYE_MARGIN
         mount = jnp.stack([ahead, jnp.zeros_like(ahead), jnp.zeros_like(ahead)], -1)
@@ -449,18 +450,18 @@ def render(spec: CameraSpec, scene: Scene, params, pos: jax.Array, quat: jax.Arr
     Raises:
         ValueError: an unknown image kind, or pos/quat not f[..., D, 3] / f[..., D, 4].
     """
-    unknown = set(kinds) - set(IMAGE_KINDS)
-    if unknown or not kinds:
-        raise ValueError(f"kinds must be a non-empty subset of {tuple(IMAGE_KINDS)}, got {kinds!r}")
+    if not kinds or set(kinds) - set(IMAGE_KINDS):
+        raise ValueError(f"kinds must be a non-empty subset of {IMAGE_KINDS}, got {kinds!r}")
     if pos.ndim < 2 or pos.shape[-1] != 3 or quat.shape != pos.shape[:-1] + (4,):
         raise ValueError(f"render needs pos f[..., D, 3] and quat f[..., D, 4], got {pos.shape} and {quat.shape}")
     dtype = pos.dtype if jnp.issubdtype(pos.dtype, jnp.floating) else jnp.float32
     pos, quat = pos.astype(dtype), quat.astype(dtype)
     n_drones = pos.shape[-2]
-    eye, axes = camera_frames(spec, params, pos, quat)
+    rot = quat_to_rotmat(quat)  # normalised, as the PyBullet backend's getMatrixFromQuaternion
+    eye, axes = camera_frames(spec, params, pos, rot)
     near = jnp.broadcast_to(jnp.asarray(params.arm if spec.near is None else spec.near, dtype), pos.shape[:-1])
     near = near[..., None, None]
-    drones = drone_primitives(params, pos, quat, jnp.asarray(scene.drone_seg)[..., None])
+    drones = drone_primitives(params, pos, rot, scene.drone_seg()[..., None])
     shading = "rgb" in kinds
 
     def rows(rays):  # the images' rows of rays f[h, W, 3] (camera frame): dict of [..., D, h, W(, 3)]
@@ -479,7 +480,7 @@ def render(spec: CameraSpec, scene: Scene, params, pos: jax.Array, quat: jax.Arr
     def image(x):  # [B, ..., D, h, W, *C] -> [..., D, H, W, *C]
         x = jnp.moveaxis(x, 0, n_lead + 1)
         x = x.reshape(x.shape[:n_lead + 1] + (blocks * ROWS_PER_BLOCK,) + x.shape[n_lead + 3:])
-        return x[..., :spec.height, :, :] if x.ndim > n_lead + 3 else x[..., :spec.height, :]
+        return jax.lax.slice_in_dim(x, 0, spec.height, axis=n_lead + 1)
 
     best = {k: image(v) for k, v in best.items()}
 
@@ -497,7 +498,7 @@ def render(spec: CameraSpec, scene: Scene, params, pos: jax.Array, quat: jax.Arr
 
 
 def _trace(spec, scene, drones, n_drones, eye, ray, near, shading) -> dict:
-    """The nearest hit of each ray ray (3-tuple f[..., D, h, W], world frame) from the eyes f[..., D, 3]: dict of
+    """The nearest hit of each ray (3-tuple f[..., D, h, W], world frame) from the eyes f[..., D, 3]: dict of
     t, seg and, with ``shading``, rgb and the world normal, per pixel (see `render`)."""
     dtype = eye.dtype
     far = jnp.asarray(spec.far, dtype)
@@ -512,46 +513,51 @@ def _trace(spec, scene, drones, n_drones, eye, ray, near, shading) -> dict:
         best["rgb"] = jnp.where(seen[..., None], jnp.asarray(GROUND_RGB, dtype), 0.0)
         best["normal"] = jnp.where(seen[..., None], jnp.asarray([0.0, 0.0, 1.0], dtype), 0.0)
 
-    own = jnp.arange(n_drones)
     for shape in SHAPES:
-        sets = [(getattr(scene, shape), None)]
-        if shape in drones:
-            sets.append((drones[shape], np.repeat(np.arange(n_drones), drones[shape].seg.shape[-1] // n_drones)))
-        for prims, owner in sets:
-            n_slots = prims.seg.shape[-1]
-            if not n_slots:
-                continue
-            # A scan over the slots, `SLOTS_PER_STEP` at a time: each step a few fused passes over the block's
-            # pixels. (All slots unrolled, XLA fuses the chain of nearest hits so that its cost grows faster than
-            # the number of primitives: 64 primitives ran 20 times slower than 16; one slot a step, the chain of
-            # passes runs about 3 times slower per primitive than a few unrolled.)
-            unroll = min(n_slots, SLOTS_PER_STEP)
-            steps = -(-n_slots // unroll)
-            pad = steps * unroll - n_slots  # padding slots: valid False, never hit
-
-            def blocks(x, k):  # [..., N, *F] -> [steps, unroll, ..., *F]
-                x = jnp.moveaxis(x, x.ndim - 1 - k, 0)
-                x = jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)]) if pad else x
-                return x.reshape((steps, unroll) + x.shape[1:])
-
-            slots = jax.tree.map(blocks, prims, Primitives(**_TRAILING))
-            # The drone each slot belongs to, for the drones' own shapes (NumPy when unrolled: XLA folds the test).
-            owners = None if owner is None else np.concatenate([owner, np.full(pad, -1)]).reshape(steps, unroll)
-
-            def update(best, block, shape=shape, unroll=unroll):
-                best = dict(best)
-                prims, owners = block
-                for u in range(unroll):
-                    seen_by = None if owners is None else own != owners[u]  # a drone does not see itself
-                    _nearer(shape, jax.tree.map(lambda x: x[u], prims), seen_by, eye, ray, near, best, shading)
-                return best, None
-
-            if steps == 1:
-                best = update(best, (jax.tree.map(lambda x: x[0], slots), None if owners is None else owners[0]))[0]
-            else:
-                best = jax.lax.scan(update, best, (slots, None if owners is None else jnp.asarray(owners)))[0]
-
+        best = _nearest(shape, getattr(scene, shape), None, eye, ray, near, best, shading)
+        if shape in drones:  # the drones' own shapes: a drone does not see itself
+            owner = np.repeat(np.arange(n_drones), drones[shape].seg.shape[-1] // n_drones)
+            best = _nearest(shape, drones[shape], owner, eye, ray, near, best, shading)
     return best
+
+
+def _nearest(shape, prims, owner, eye, ray, near, best, shading) -> dict:
+    """``best`` updated with the padded primitives ``prims`` of one shape (fields [..., N, ...]); ``owner`` i[N]
+    gives the drone each belongs to (its camera skips it), or is None (a scene's, seen by every drone).
+
+    A scan over the slots, `SLOTS_PER_STEP` at a time: each step a few fused passes over the block's pixels. (All
+    slots unrolled, XLA fuses the chain of nearest hits so that its cost grows faster than the number of
+    primitives: 64 primitives ran 20 times slower than 16; one slot a step, the chain of passes runs about 3 times
+    slower per primitive than a few unrolled.)
+    """
+    n_slots = prims.seg.shape[-1]
+    if not n_slots:
+        return best
+    unroll = min(n_slots, SLOTS_PER_STEP)
+    steps = -(-n_slots // unroll)
+    pad = steps * unroll - n_slots  # padding slots: valid False, never hit
+
+    def blocks(x, k):  # [..., N, *F] -> [steps, unroll, ..., *F]
+        x = jnp.moveaxis(x, x.ndim - 1 - k, 0)
+        x = jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)]) if pad else x
+        return x.reshape((steps, unroll) + x.shape[1:])
+
+    slots = jax.tree.map(blocks, prims, Primitives(**_TRAILING))
+    # NumPy when unrolled, so that XLA folds the test of a drone's own body.
+    owners = None if owner is None else np.concatenate([owner, np.full(pad, -1)]).reshape(steps, unroll)
+    own = jnp.arange(eye.shape[-2])
+
+    def update(best, block):
+        best = dict(best)
+        prims, owners = block
+        for u in range(unroll):
+            seen_by = None if owners is None else own != owners[u]
+            _nearer(shape, jax.tree.map(lambda x: x[u], prims), seen_by, eye, ray, near, best, shading)
+        return best, None
+
+    if steps == 1:
+        return update(best, (jax.tree.map(lambda x: x[0], slots), None if owners is None else owners[0]))[0]
+    return jax.lax.scan(update, best, (slots, None if owners is None else jnp.asarray(owners)))[0]
 
 
 #: The trailing axes of each `Primitives` field after its slot axis.

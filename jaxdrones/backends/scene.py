@@ -14,9 +14,7 @@ import pybullet
 import pybullet_data
 
 # The drones' visual shape (a plate and four propeller disks), shared with the JAX cameras.
-from jaxdrones.cameras import (BODY_RGBA as _BODY_RGBA, BODY_SIDE_PER_ARM as _BODY_SIDE_PER_ARM,
-                               BODY_THICKNESS as _BODY_THICKNESS, PROP_RGBA as _PROP_RGBA,
-                               PROP_THICKNESS as _PROP_THICKNESS, PROP_Z as _PROP_Z)
+from jaxdrones.cameras import BODY_RGBA, BODY_SIDE_PER_ARM, BODY_THICKNESS, PROP_RGBA, PROP_THICKNESS, PROP_Z
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,14 +175,14 @@ def create_drone(client: int, geometry: dict, damping: bool) -> int:
     """
     col = pybullet.createCollisionShape(pybullet.GEOM_CYLINDER, radius=geometry["collision_radius"],
                                         height=geometry["collision_height"], physicsClientId=client)
-    side = _BODY_SIDE_PER_ARM * geometry["arm"]
-    props = [(x, y, z + _PROP_Z) for x, y, z in geometry["prop_pos"]]
+    side = BODY_SIDE_PER_ARM * geometry["arm"]
+    props = [(x, y, z + PROP_Z) for x, y, z in geometry["prop_pos"]]
     vis = pybullet.createVisualShapeArray(
         shapeTypes=[pybullet.GEOM_BOX] + [pybullet.GEOM_CYLINDER] * 4,
-        halfExtents=[[side / 2, side / 2, _BODY_THICKNESS / 2]] + [[0, 0, 0]] * 4,
+        halfExtents=[[side / 2, side / 2, BODY_THICKNESS / 2]] + [[0, 0, 0]] * 4,
         radii=[0.0] + [geometry["prop_radius"]] * 4,
-        lengths=[0.0] + [_PROP_THICKNESS] * 4,
-        rgbaColors=[_BODY_RGBA] + [_PROP_RGBA] * 4,
+        lengths=[0.0] + [PROP_THICKNESS] * 4,
+        rgbaColors=[BODY_RGBA] + [PROP_RGBA] * 4,
         visualFramePositions=[[0.0, 0.0, 0.0]] + props,
         physicsClientId=client)
     body = pybullet.createMultiBody(geometry["mass"], col, vis, physicsClientId=client)

@@ -760,8 +760,8 @@ class TaskEnv(Env):
         if self._scene is not None:  # the JAX backend: the images of every world, kept where a render is not due
             from jaxdrones.cameras import CameraSpec, render
 
-            images = render(CameraSpec(width=width, height=height), jax.tree.map(jnp.asarray, self._scene), params,
-                            sim.pos, sim.quat, kinds=self.config.vision)
+            images = render(CameraSpec(width=width, height=height), self._scene, params, sim.pos, sim.quat,
+                            kinds=self.config.vision)
             if "rgb" in images:  # RGBA, as Bullet's
                 rgb = images["rgb"]
                 images["rgb"] = jnp.concatenate([rgb, jnp.full(rgb.shape[:-1] + (1,), 255, rgb.dtype)], -1)
