@@ -6,8 +6,10 @@ What is measured (all on one host process, wall clock, best and median of ``--re
   formation), effects off, no rendering. The PyBullet backend is called from a Python loop on NumPy state, one
   call per control step; ``ctrl_freq`` 240 (one Bullet step per call) and 48 (five). The JAX core does the same
   work (same config, same number of steps) two ways: called from the same Python loop, and as one jitted
-  ``jd.rollout`` (``lax.scan``). Reported: physics steps/s (Bullet steps, i.e. 1/240 s of one world), drone-steps/s
-  and the real-time factor (physics steps/s ÷ 240).
+  ``jd.rollout`` (``lax.scan``). The PyBullet backend is also called on JAX arrays (``loop`` ``python-jax``: from the
+  state `jd.init_state` returns, with a JAX RPM array at every call, as a jitted controller gives), and, with
+  ``--original``, the original's ``CtrlAviary.step`` at hover RPM (``benchmarks/original.py``). Reported: physics
+  steps/s (Bullet steps, i.e. 1/240 s of one world), drone-steps/s and the real-time factor (physics steps/s ÷ 240).
 - ``pid_loop``: the original's speed test setup (docs/physics.md §13, §15): 240 Hz physics, 48 Hz DSL PID control
   of each drone toward a target 0.5 m above its start, the PID (`jaxdrones.control.pid_control`, jitted with params,
   gains and target closed over) called once per control step from the same Python loop as the backend, with and
@@ -21,11 +23,13 @@ Usage::
 
     python benchmarks/backends.py            # writes benchmarks/results/backends.json
     python benchmarks/backends.py --quick    # fewer steps and repeats
+    python benchmarks/backends.py --original /path/to/gym-pybullet-drones   # the original in the same run
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import statistics
 import sys
@@ -36,6 +40,7 @@ import numpy as np
 
 import jaxdrones as jd
 from jaxdrones.control import PIDGains, pid_control, pid_init
+import original
 from throughput import machine_info, write_report
 
 DEFAULT_OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "backends.json")
@@ -51,6 +56,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--seconds", type=float, default=None, help="simulated seconds per timed run (default 5)")
     parser.add_argument("--repeats", type=int, default=None, help="timed runs per measurement (default 5)")
     parser.add_argument("--out", default=DEFAULT_OUT, help="JSON output path (default: %(default)s)")
+    original.add_argument(parser)
     args = parser.parse_args(argv)
     args.seconds = args.seconds or (1.0 if args.quick else 5.0)
     args.repeats = args.repeats or (3 if args.quick else 5)
@@ -66,6 +72,20 @@ def timed(run, repeats: int) -> tuple[float, float]:
         run()
         times.append(time.perf_counter() - start)
     return min(times), statistics.median(times)
+
+
+def timed_together(runs: dict, repeats: int) -> dict:
+    """Best and median wall time of each of ``runs`` (name → callable), timed in turn within each of ``repeats``
+    rounds after one warm-up call each, so that a change of the machine's load reaches every run alike."""
+    for run in runs.values():
+        run()
+    times = {name: [] for name in runs}
+    for _ in range(repeats):
+        for name, run in runs.items():
+            start = time.perf_counter()
+            run()
+            times[name].append(time.perf_counter() - start)
+    return {name: (min(t), statistics.median(t)) for name, t in times.items()}
 
 
 def hover_setup(n_drones: int, ctrl_freq: int):
@@ -86,37 +106,34 @@ def bench_physics(args, n_drones: int, ctrl_freq: int) -> list[dict]:
     config, params, state, rpm = hover_setup(n_drones, ctrl_freq)
     n_steps = int(args.seconds * ctrl_freq)
     np_state = jax.tree.map(np.asarray, state)
-    rows = []
-
-    with jd.make_step(config, backend="pybullet") as step:
-        def bullet_loop():
-            s = np_state
-            for _ in range(n_steps):
-                s = step(params, s, rpm)
-            return s
-
-        best, median = timed(bullet_loop, args.repeats)
-    rows.append({"backend": "pybullet", "loop": "python", "best_s": best, "median_s": median})
-
-    jax_step = jd.make_step(config)
     rpm_jax = jax.numpy.asarray(rpm)
+    jax_step = jd.make_step(config)
+    rpms = jax.numpy.broadcast_to(rpm_jax, (n_steps,) + rpm.shape)
 
-    def jax_loop():
-        s = state
+    def loop(call, s):
         for _ in range(n_steps):
-            s = jax_step(params, s, rpm_jax)
+            s = call(s)
         return jax.block_until_ready(s)
 
-    best, median = timed(jax_loop, args.repeats)
-    rows.append({"backend": "jax", "loop": "python", "best_s": best, "median_s": median})
-
-    rpms = jax.numpy.broadcast_to(rpm_jax, (n_steps,) + rpm.shape)
-    best, median = timed(lambda: jax.block_until_ready(jd.rollout(jax_step, params, state, rpms)), args.repeats)
-    rows.append({"backend": "jax", "loop": "lax.scan", "best_s": best, "median_s": median})
-
-    for row in rows:
-        row.update({"measure": "physics", "drones": n_drones, "ctrl_freq": ctrl_freq, "ctrl_steps": n_steps,
-                    "best": rates(n_steps, config, row["best_s"]), "median": rates(n_steps, config, row["median_s"])})
+    with contextlib.ExitStack() as stack:
+        step = stack.enter_context(jd.make_step(config, backend="pybullet"))
+        loops = {  # python-jax: from jd.init_state's JAX arrays, with a JAX RPM array (a jitted policy's) at every call
+            ("pybullet", "python"): lambda: loop(lambda s: step(params, s, rpm), np_state),
+            ("pybullet", "python-jax"): lambda: loop(lambda s: step(params, s, rpm_jax), state),
+            ("jax", "python"): lambda: loop(lambda s: jax_step(params, s, rpm_jax), state),
+            ("jax", "lax.scan"): lambda: jax.block_until_ready(jd.rollout(jax_step, params, state, rpms)),
+        }
+        if args.original_module is not None:
+            env = original.ctrl_aviary(n_drones, ctrl_freq)
+            stack.callback(env.close)
+            action = original.hover_action(env)
+            loops["original", "env.step"] = lambda: loop(lambda _: env.step(action), None)
+        times = timed_together(loops, args.repeats)
+    rows = []
+    for (backend, kind), (best, median) in times.items():
+        rows.append({"measure": "physics", "backend": backend, "loop": kind, "drones": n_drones,
+                     "ctrl_freq": ctrl_freq, "ctrl_steps": n_steps, "best_s": best, "median_s": median,
+                     "best": rates(n_steps, config, best), "median": rates(n_steps, config, median)})
     return rows
 
 
@@ -168,35 +185,36 @@ def bench_camera(args, n_drones: int) -> dict:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    args.original_module = original.load(args.original)
     info = machine_info(jax)
     print(f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, load {os.getloadavg()}")
     results = []
-    print(f"{'measure':<9} {'backend':<9} {'loop':<9} {'drones':>6} {'ctrl Hz':>7} {'physics steps/s':>16} "
-          f"{'drone-steps/s':>14} {'x real time':>11}")
+    print(f"{'measure':<9} {'backend':<9} {'loop':<10} {'drones':>6} {'ctrl Hz':>7} {'physics steps/s':>16} "
+          f"{'median':>9} {'drone-steps/s':>14} {'x real time':>11}")
     for n_drones in args.drones:
         for ctrl_freq in (240, 48):
             for row in bench_physics(args, n_drones, ctrl_freq):
                 results.append(row)
                 best = row["best"]
-                print(f"{'physics':<9} {row['backend']:<9} {row['loop']:<9} {n_drones:>6} {ctrl_freq:>7} "
-                      f"{best['physics_steps_per_s']:>16,.0f} {best['drone_steps_per_s']:>14,.0f} "
-                      f"{best['real_time_factor']:>11,.1f}")
+                print(f"{'physics':<9} {row['backend']:<9} {row['loop']:<10} {n_drones:>6} {ctrl_freq:>7} "
+                      f"{best['physics_steps_per_s']:>16,.0f} {row['median']['physics_steps_per_s']:>9,.0f} "
+                      f"{best['drone_steps_per_s']:>14,.0f} {best['real_time_factor']:>11,.1f}")
     for n_drones in (1, 10):
         for obstacles in (False, True):
             row = bench_pid_loop(args, n_drones, obstacles)
             results.append(row)
             best = row["best"]
             loop = "pid+obst" if obstacles else "pid"
-            print(f"{'pid_loop':<9} {'pybullet':<9} {loop:<9} {n_drones:>6} {48:>7} "
-                  f"{best['physics_steps_per_s']:>16,.0f} {best['drone_steps_per_s']:>14,.0f} "
-                  f"{best['real_time_factor']:>11,.1f}")
+            print(f"{'pid_loop':<9} {'pybullet':<9} {loop:<10} {n_drones:>6} {48:>7} "
+                  f"{best['physics_steps_per_s']:>16,.0f} {row['median']['physics_steps_per_s']:>9,.0f} "
+                  f"{best['drone_steps_per_s']:>14,.0f} {best['real_time_factor']:>11,.1f}")
     for n_drones in (1, 10):
         row = bench_camera(args, n_drones)
         results.append(row)
         print(f"camera    tiny      64x48     {n_drones:>6}: {row['frames_per_s_best']:,.0f} frames/s per process, "
               f"{row['rgba_kB_per_s_best']:,.0f} kB/s RGBA (median {row['rgba_kB_per_s_median']:,.0f})")
     write_report(args.out, "jaxdrones PyBullet backend vs JAX core", info,
-                 {k: v for k, v in vars(args).items() if k != "out"}, results)
+                 {k: v for k, v in vars(args).items() if k not in ("out", "original_module")}, results)
     return 0
 
 

@@ -164,10 +164,7 @@ def camera_images(step, params: DroneParams, state: DroneState, *, width: int = 
         raise ValueError("state.pos or state.quat contains NaN or inf")
     if np.any(np.sum(quat * quat, -1) == 0.0):
         raise ValueError("state.quat has a zero quaternion")
-    out = _host_images(step, step.host_params(params, state.pos), pos, quat, settings)
-    if not isinstance(state.pos, np.ndarray):
-        out = {k: jnp.asarray(v) for k, v in out.items()}
-    return out
+    return _host_images(step, step.host_params(params, state.pos), pos, quat, settings)
 
 
 def _image_shapes(lead: tuple[int, ...], width: int, height: int) -> dict:

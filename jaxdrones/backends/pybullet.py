@@ -53,6 +53,8 @@ OPTIONS = ("obstacles", "damping", "gui", "renderer")
 _STATE_FIELDS = ("pos", "quat", "vel", "ang_vel", "rpm", "contact")
 #: Where `_traced` splits the packed kinematics (pos 3, quat 4, vel 3, ang_vel 3, rpm 4).
 _KINEMATIC_SPLITS = (3, 7, 10, 13)
+#: Where pos, quat, vel, ang_vel and rpm lie in a drone's 17 packed floats.
+_FIELD_SLICES = ((0, 3), (3, 7), (7, 10), (10, 13), (13, 17))
 #: What a drone of a failed world reads: NaN kinematics and command, no contact.
 _NAN_DRONE = ([math.nan] * 3, [math.nan] * 4, [math.nan] * 3, [math.nan] * 3, [math.nan] * 4, 0)
 
@@ -91,8 +93,10 @@ class PyBulletStep:
 
     Call it as ``step(params, state, rpm) -> state``, like the JAX backend: ``state`` is a `DroneState` with leading
     world axes ``[..., D, ...]`` (one Bullet world per world), ``rpm`` f[..., D, 4] in RPM, clipped to
-    [0, max_rpm]. NumPy inputs give NumPy outputs (the fastest path), JAX arrays give JAX arrays; inside ``jit``,
-    ``vmap`` or ``lax.scan`` (e.g. `jd.rollout`, the envs) the step runs as a host callback
+    [0, max_rpm]. Called on concrete arrays, NumPy or JAX, it returns NumPy arrays: Bullet runs on the host, a JAX
+    array on the CPU is read without a copy, and building JAX arrays of the result would cost about 50 µs per field
+    on the CPU (as much as the step itself), while every JAX function takes NumPy arrays as they are. Inside
+    ``jit``, ``vmap`` or ``lax.scan`` (e.g. `jd.rollout`, the envs) the step runs as a host callback
     (`jax.pure_callback`). It is not differentiable. ``state.contact`` reports what each drone touched (ground,
     obstacle, drone). Bullet worlds are created on first use and released by `close` (or a ``with`` block, or
     garbage collection).
@@ -126,6 +130,7 @@ class PyBulletStep:
         if gui:
             require_display()
         self.config = config
+        self._effects = config.effects
         self.obstacles = scene.resolve_obstacles(obstacles)
         self.damping = bool(damping)
         self.gui = bool(gui)
@@ -166,8 +171,14 @@ class PyBulletStep:
 
     def __call__(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
         self.check_open()
-        if any(isinstance(x, jax.core.Tracer) for x in (state.pos, state.quat, rpm, params.mass, params.kf)):
+        tracer = jax.core.Tracer
+        if (isinstance(state.pos, tracer) or isinstance(state.quat, tracer) or isinstance(rpm, tracer)
+                or isinstance(params.mass, tracer) or isinstance(params.kf, tracer)):
             return self._traced(params, state, rpm)
+        if isinstance(state.pos, jax.Array):  # read once (no copy on the CPU), then the NumPy path
+            state = DroneState(*(np.asarray(getattr(state, f)) for f in _STATE_FIELDS))
+        if isinstance(rpm, jax.Array):
+            rpm = np.asarray(rpm)
         n = self.config.n_drones
         if not (isinstance(rpm, np.ndarray) and rpm.dtype.kind in "fiu" and rpm.shape == state.rpm.shape
                 and state.pos.shape[-2:] == (n, 3) and state.quat.shape[-2:] == (n, 4)):
@@ -175,10 +186,8 @@ class PyBulletStep:
             check_rpm_shape(self.config, state, np.shape(rpm), dtype)  # raises the error, or passes for lists
             rpm = np.asarray(rpm, dtype=np.float64)
         host = self.host_params(params, state.pos)
-        out = self._host_step(host, [np.asarray(getattr(state, f)) for f in _STATE_FIELDS], rpm, strict=True)
-        if not isinstance(state.pos, np.ndarray):
-            out = [jnp.asarray(x) for x in out]
-        return DroneState(*out)
+        return DroneState(*self._host_step(host, [np.asarray(getattr(state, f)) for f in _STATE_FIELDS], rpm,
+                                           strict=True))
 
     def _traced(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
         rpm = check_rpm(self.config, state, rpm)
@@ -230,23 +239,30 @@ class PyBulletStep:
         lists = [np.asarray(f).reshape(n_worlds, n_drones, -1).tolist() for f in fields[:5]]
         rpm = rpm.reshape(n_worlds, n_drones, 4).tolist()
         self._ensure_worlds(n_worlds, host)
-        out = ([], [], [], [], [], [])  # flat pos, quat, vel, ang_vel, rpm, contact
+        flat, contact = [], []  # per drone: pos, quat, vel, ang_vel, rpm (17 floats); the contact bits
         for w, world in enumerate(self._worlds[:n_worlds]):
             inputs = [x[w] for x in lists] + [rpm[w]]
             result = None
-            if strict and not math.isfinite(sum(sum(row) for row in inputs[-1])):
+            finite = math.isfinite(sum(sum(row) for x in inputs for row in x))
+            if strict and not finite and not math.isfinite(sum(sum(row) for row in inputs[-1])):
                 raise ValueError("rpm contains NaN or inf")
-            if math.isfinite(sum(sum(row) for x in inputs for row in x)):
+            if finite:
                 try:
                     result = self._step_world(world, w, host, *inputs)
                 except pybullet.error:
                     self._rebuild_world(w, host)
-            for drone in result or [_NAN_DRONE] * n_drones:
-                for flat, value in zip(out[:5], drone[:5]):
-                    flat.extend(value)
-                out[5].append(drone[5])
-        shapes = (lead + (3,), lead + (4,), lead + (3,), lead + (3,), lead + (4,), lead)
-        return [np.array(flat, dtype=field.dtype).reshape(shape) for flat, field, shape in zip(out, fields, shapes)]
+            for pos_d, quat_d, vel_d, ang_vel_d, rpm_d, contact_d in result or [_NAN_DRONE] * n_drones:
+                flat.extend(pos_d)
+                flat.extend(quat_d)
+                flat.extend(vel_d)
+                flat.extend(ang_vel_d)
+                flat.extend(rpm_d)
+                contact.append(contact_d)
+        # One array, and a view of it per field: for a few drones NumPy's per-call cost is most of a step's.
+        packed = np.array(flat, dtype=fields[0].dtype).reshape(lead + (17,))
+        out = [packed[..., a:b] if field.dtype == packed.dtype else packed[..., a:b].astype(field.dtype)
+               for (a, b), field in zip(_FIELD_SLICES, fields)]
+        return out + [np.array(contact, dtype=fields[5].dtype).reshape(lead)]
 
     def _step_world(self, world: _World, w: int, host: dict, pos, quat, vel, ang_vel, rpm_prev, rpm):
         """One control step of world ``w``; every argument is a per-drone list of floats [D][k].
@@ -254,7 +270,7 @@ class PyBulletStep:
         Returns per drone (pos, quat, vel, ang_vel, rpm, contact), ang_vel in the body frame and rpm clipped.
         """
         client, bodies = world.client, world.drones
-        kf, km, spin, max_rpm = (host[k][w] for k in ("kf", "km", "prop_spin", "max_rpm"))
+        kf, km, spin, max_rpm = host["kf"][w], host["km"][w], host["prop_spin"][w], host["max_rpm"][w]
         rpm = [[min(max(r, 0.0), max_rpm[d]) for r in rpm_d] for d, rpm_d in enumerate(rpm)]
         # The motor model (docs/physics.md §3): f_i = kf rpm_i², yaw torque -Σ spin_i km rpm_i², as `dynamics.motors_c`.
         thrust = [[kf[d] * r * r for r in rpm_d] for d, rpm_d in enumerate(rpm)]
@@ -263,7 +279,7 @@ class PyBulletStep:
             q = _normalized(quat[d])
             pybullet.resetBasePositionAndOrientation(body, pos[d], q, physicsClientId=client)
             pybullet.resetBaseVelocity(body, vel[d], _rotate(q, ang_vel[d]), physicsClientId=client)
-        effects = self.config.effects
+        effects = self._effects
         any_effect = effects.drag or effects.ground_effect or (effects.downwash and len(bodies) > 1)
         points = host["thrust_points"][w]
         contact = [0] * len(bodies)
@@ -379,7 +395,7 @@ class PyBulletStep:
         aspect 1.0 (docs/physics.md §8.5): a camera fixed to the frame that does not see its own drone is what a real
         onboard camera is. Renderer: TinyRenderer for ``renderer="tiny"``, OpenGL through EGL for ``"egl"``.
 
-        Inputs follow the step's conventions: NumPy arrays give NumPy images, JAX arrays JAX images, and inside
+        Inputs follow the step's conventions: concrete arrays (NumPy or JAX) give NumPy images, and inside
         ``jit``/``vmap``/``scan`` the rendering runs as a host callback (`jax.pure_callback`); leading world
         axes ``[..., D]`` map to one Bullet world each (created here if no step has run yet).
 
