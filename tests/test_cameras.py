@@ -228,7 +228,7 @@ def test_env_vision_on_the_jax_backend_is_batched_and_held_between_captures():
 
     def mean_depth(z):
         sim = state.sim.replace(pos=state.sim.pos.at[..., 2].add(z))
-        return jnp.mean(env._render(state.params, sim, jnp.ones((4,), bool), state.obs)["depth"])
+        return jnp.mean(env._render(state.task.scene, state.params, sim, jnp.ones((4,), bool), state.obs)["depth"])
 
     assert np.isfinite(jax.grad(mean_depth)(0.0)) and jax.grad(mean_depth)(0.0) != 0.0
 

@@ -49,8 +49,9 @@ def test_contract(task, action_type, obs_type, buffer):
     """Reset and 1,000 random steps under jit and vmap over 64 worlds: observations inside their bounds, no NaN,
     episodes ending and auto-resetting with fresh starts."""
     n = 3 if task in MULTI_AGENT else 1
+    cameras = {"vision": ()} if task == "avoid" else {}  # the state contract (images: tests/test_cameras.py)
     env = jd.make(task, n_drones=n, action_type=action_type, obs_type=obs_type, action_buffer=buffer,
-                  episode_len_s=2.0, ctrl_freq=30)
+                  episode_len_s=2.0, ctrl_freq=30, **cameras)
     auto = AutoReset(env)
     low, high = env.observation_bounds()
     a_low, a_high = env.action_bounds()
@@ -436,7 +437,7 @@ def test_non_float_action_rejected(hover):
 
 def test_registry_lists_every_task():
     assert set(registered()) == set(SINGLE_AGENT) | set(MULTI_AGENT)
-    assert {"hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune"} == set(SINGLE_AGENT)
+    assert {"hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune", "avoid"} == set(SINGLE_AGENT)
     assert {"multi_hover", "leader_follower", "flock", "meetup", "crossing"} == set(MULTI_AGENT)
     assert set(ACTION_SIZES) == set(ACTION_TYPES)
     for name in registered():

@@ -32,6 +32,7 @@ with contextlib.redirect_stdout(io.StringIO()):
     from brax.training.agents.ppo import networks, train  # noqa: F401  (imported here, quietly, for patch_brax)
 
 from jaxdrones.envs.base import Env
+from jaxdrones.envs.observations import policy_input
 from jaxdrones.wrappers.autoreset import AutoReset
 
 #: brax's modules that call ``jax.device_put_replicated`` (brax 0.14.2): `patch_brax` gives them a stand-in.
@@ -95,7 +96,9 @@ patch_brax()
 class BraxEnv(BraxBaseEnv):
     """A jaxdrones env seen as a brax env with flat observation and action vectors.
 
-    The observation is ``obs`` f[D, n_obs] flattened (D·n_obs), the action f[D·n_act] is reshaped to f[D, n_act],
+    The observation is ``obs`` f[D, n_obs] flattened (D·n_obs), or with cameras the dict of brax's vision trainers
+    (``"state"`` and ``"pixels/depth"``, ``"pixels/rgb"``: `jaxdrones.envs.observations.policy_input`; train with
+    ``vision=True`` and brax's ``networks_vision``); the action f[D·n_act] is reshaped to f[D, n_act],
     the reward is the sum over drones (a team reward; the drone's own for D = 1). The jaxdrones `EnvState` travels
     as brax's ``pipeline_state``. ``done`` is ``terminated | truncated`` and ``info["truncation"]`` marks the time
     limit, so that PPO bootstraps there; ``info["steps"]`` is the episode's length so far (brax's evaluator
@@ -136,13 +139,16 @@ class BraxEnv(BraxBaseEnv):
 
     @staticmethod
     def _flat(obs):
-        if isinstance(obs, dict):
-            raise ValueError("the brax adapter takes flat observations; camera images (vision) are not supported")
-        return jnp.reshape(obs, (-1,))
+        return policy_input(obs)
 
     @property
-    def observation_size(self) -> int:
-        return self.env.n_drones * self.env.observation_size
+    def observation_size(self) -> int | dict[str, tuple[int, ...]]:
+        """D·n_obs, or with cameras the shape of each key of the observation dict (brax's vision convention)."""
+        spec = self.env.observation_spec
+        if not isinstance(spec, dict):
+            return self.env.n_drones * self.env.observation_size
+        zeros = {k: jnp.zeros(v.shape, v.dtype) for k, v in spec.items()}
+        return {k: v.shape for k, v in jax.eval_shape(policy_input, zeros).items()}
 
     @property
     def action_size(self) -> int:

@@ -49,7 +49,7 @@ GYMNASIUM_VERSION = tuple(int(part) for part in gym.__version__.split(".")[:2])
 #: gymnasium id of every task.
 GYM_IDS = {"hover": "jaxdrones/Hover-v0", "takeoff": "jaxdrones/Takeoff-v0", "velocity": "jaxdrones/Velocity-v0",
            "waypoints": "jaxdrones/Waypoints-v0", "fly_thru_gate": "jaxdrones/FlyThruGate-v0",
-           "tune": "jaxdrones/Tune-v0", "multi_hover": "jaxdrones/MultiHover-v0",
+           "tune": "jaxdrones/Tune-v0", "avoid": "jaxdrones/Avoid-v0", "multi_hover": "jaxdrones/MultiHover-v0",
            "leader_follower": "jaxdrones/LeaderFollower-v0", "flock": "jaxdrones/Flock-v0",
            "meetup": "jaxdrones/Meetup-v0", "crossing": "jaxdrones/Crossing-v0"}
 #: ``"human"``: a window shows every step (`HumanView`); ``"rgb_array"``: ``render()`` returns the frame.

@@ -1,6 +1,7 @@
 """Tasks of the paper as functional environments, and the registry behind `jaxdrones.make`.
 
-Single-agent: ``hover``, ``takeoff``, ``velocity``, ``waypoints``, ``fly_thru_gate``, ``tune``.
+Single-agent: ``hover``, ``takeoff``, ``velocity``, ``waypoints``, ``fly_thru_gate``, ``tune``, and ``avoid`` (a
+vision task: obstacles drawn per episode, seen only through the depth camera).
 Multi-agent: ``multi_hover``, ``leader_follower``, ``flock``, ``meetup``, ``crossing``.
 """
 
@@ -12,12 +13,13 @@ from jaxdrones.envs.actions import ACTION_TYPES
 from jaxdrones.envs.base import Env, EnvState
 from jaxdrones.envs.core import DomainRandomization, Task, TaskConfig, TaskEnv, TaskParams
 from jaxdrones.envs.observations import OBS_TYPES, kinematic_obs
+from jaxdrones.envs.tasks.avoid import AVOID
 from jaxdrones.envs.tasks.multi import MULTI_AGENT_TASKS
 from jaxdrones.envs.tasks.single import SINGLE_AGENT_TASKS, HoverConfig
 
-_REGISTRY: dict[str, Task] = {task.name: task for task in SINGLE_AGENT_TASKS + MULTI_AGENT_TASKS}
+_REGISTRY: dict[str, Task] = {task.name: task for task in SINGLE_AGENT_TASKS + (AVOID,) + MULTI_AGENT_TASKS}
 #: Names of the single-agent tasks (D = 1) and of the multi-agent tasks (D ≥ 2).
-SINGLE_AGENT = tuple(t.name for t in SINGLE_AGENT_TASKS)
+SINGLE_AGENT = tuple(t.name for t in SINGLE_AGENT_TASKS + (AVOID,))
 MULTI_AGENT = tuple(t.name for t in MULTI_AGENT_TASKS)
 
 

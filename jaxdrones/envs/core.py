@@ -139,6 +139,9 @@ class TaskParams:
         bounds: `Bounds`.
         weights: reward weight by term name, f[].
         data: task-specific arrays (e.g. ``"target_vel"`` f[D, 3], ``"waypoints"`` f[K, D, 3]).
+        scene: what the JAX backend's cameras see besides the drones, a `jaxdrones.cameras.Scene` (`Task.scene`;
+            a task may draw it per episode in `Task.sample`, e.g. the ``avoid`` task's obstacles), or None without
+            cameras.
     """
 
     target: jax.Array
@@ -146,6 +149,7 @@ class TaskParams:
     bounds: Bounds
     weights: dict[str, jax.Array]
     data: dict[str, jax.Array] = struct.field(default_factory=dict)
+    scene: Any = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -415,6 +419,11 @@ class Task(abc.ABC):
     min_drones: int = 1
     max_drones: int | None = 1
     nonnegative_reward: bool = False
+    #: The task reads `TaskParams.scene` itself (e.g. for collisions), so it is built even without cameras.
+    uses_scene: bool = False
+    #: The success metric already counts the episodes that terminate (``avoid``'s collisions are failures): a run
+    #: can succeed with some terminated; otherwise success also needs no terminated episode.
+    success_counts_terminations: bool = False
 
     def __init_subclass__(cls, **kwargs):
         """Check the class attributes when a task class is defined.
@@ -459,6 +468,14 @@ class Task(abc.ABC):
     def sample(self, key: jax.Array, task: TaskParams, config: TaskConfig) -> TaskParams:
         """Per-episode randomness of the task params (default: none)."""
         return task
+
+    def scene(self, config: TaskConfig):
+        """What the JAX backend's cameras see (`TaskParams.scene`), built once per env: by default the config's
+        ``obstacles`` (`jaxdrones.cameras.make_scene`)."""
+        from jaxdrones.backends.scene import resolve_obstacles
+        from jaxdrones.cameras import make_scene
+
+        return make_scene(resolve_obstacles(config.obstacles))
 
     #: Entries per drone of the task's own observation, appended after the observation type's (e.g. a commanded
     #: velocity, the offset to a waypoint); 0 for none.
@@ -541,12 +558,6 @@ class TaskEnv(Env):
                    else {})
         self._step = make_step(self.sim_config, backend=config.backend, **options)
         self._default_task = None
-        self._scene = None
-        if config.vision and config.backend == "jax":
-            from jaxdrones.backends.scene import resolve_obstacles
-            from jaxdrones.cameras import make_scene
-
-            self._scene = make_scene(resolve_obstacles(config.obstacles))
 
     def __reduce__(self):
         return type(self), (self.task, self.config)
@@ -614,7 +625,8 @@ class TaskEnv(Env):
     def default_task_params(self) -> TaskParams:
         """The task params the config describes (before per-episode sampling), in the env's dtype."""
         if self._default_task is None:  # kept as NumPy arrays, so that it can be built inside a trace
-            self._default_task = self._build_task_params()
+            with jax.ensure_compile_time_eval():  # what the task computes with JAX is concrete there too
+                self._default_task = self._build_task_params()
         return jax.tree.map(jnp.asarray, self._default_task)
 
     def _build_task_params(self) -> TaskParams:
@@ -641,9 +653,13 @@ class TaskEnv(Env):
                              vel=arr(start["vel"], (3,)), ang_vel=arr(start["ang_vel"], (3,)))
         bounds = Bounds(pos_low=arr([-cfg.arena_xy, -cfg.arena_xy, -1.0]),
                         pos_high=arr([cfg.arena_xy, cfg.arena_xy, cfg.arena_z]), max_tilt=arr(cfg.max_tilt))
+        scene = None
+        if (cfg.vision and cfg.backend == "jax") or task.uses_scene:
+            scene = jax.tree.map(lambda x: np.asarray(x, dt) if jnp.issubdtype(x.dtype, jnp.floating)
+                                 else np.asarray(x), task.scene(cfg))
         return TaskParams(target=arr(task.target(cfg), (cfg.n_drones, 3)), start=ranges, bounds=bounds,
                           weights={k: arr(v) for k, v in task.weights(cfg).items()},
-                          data={k: arr(v) for k, v in task.data(cfg).items()})
+                          data={k: arr(v) for k, v in task.data(cfg).items()}, scene=scene)
 
     # -- reset and step --------------------------------------------------------------------------------------------
 
@@ -669,7 +685,7 @@ class TaskEnv(Env):
         obs = self._observe(task, sim, history, steps)
         if cfg.vision:
             blank = {k: jnp.zeros(v.shape, v.dtype) for k, v in self._image_spec().items()}
-            obs = {"state": obs, **self._render(params, sim, jnp.ones((), bool), blank)}
+            obs = {"state": obs, **self._render(task.scene, params, sim, jnp.ones((), bool), blank)}
         zeros = jnp.zeros((cfg.n_drones,), self.dtype)
         terms = self.task.reward_terms(cfg, task, sim, jnp.zeros((cfg.n_drones, self.action_size), self.dtype),
                                        steps)
@@ -705,7 +721,7 @@ class TaskEnv(Env):
         if cfg.vision:
             held = {k: v for k, v in state.obs.items() if k != "state"}
             due = steps % cfg.camera_period == 0
-            images = jax.lax.cond(due, lambda: self._render(state.params, sim, due, held), lambda: held)
+            images = jax.lax.cond(due, lambda: self._render(task.scene, state.params, sim, due, held), lambda: held)
             obs = {"state": obs, **images}
         terms = self.task.reward_terms(cfg, task, sim, action, steps)
         nonneg = self.task.nonnegative_reward and cfg.reward == "shaped"
@@ -748,19 +764,20 @@ class TaskEnv(Env):
         return {name: jax.ShapeDtypeStruct((self.n_drones, height, width) + VISION[name][1], VISION[name][0])
                 for name in self.config.vision}
 
-    def _render(self, params: DroneParams, sim: DroneState, due: jax.Array, held: dict) -> dict:
+    def _render(self, scene, params: DroneParams, sim: DroneState, due: jax.Array, held: dict) -> dict:
         """The camera images of ``sim`` where ``due`` (bool[...]), ``held`` elsewhere.
 
-        On the JAX backend, `jaxdrones.cameras.render` of every world. On the PyBullet backend, one host callback:
+        On the JAX backend, `jaxdrones.cameras.render` of every world in ``scene`` (the task params').
+        On the PyBullet backend (``scene`` None), one host callback:
         under ``vmap`` (where `jax.lax.cond` runs both branches) only the worlds whose render is due are rendered,
         and a world whose pose is not finite reads rgb 0, depth NaN and seg -1, as in `PyBulletStep.camera_images`.
         """
         spec = self._image_spec()
         width, height = self.config.image_size
-        if self._scene is not None:  # the JAX backend: the images of every world, kept where a render is not due
+        if scene is not None:  # the JAX backend: the images of every world, kept where a render is not due
             from jaxdrones.cameras import CameraSpec, render
 
-            images = render(CameraSpec(width=width, height=height), self._scene, params, sim.pos, sim.quat,
+            images = render(CameraSpec(width=width, height=height), scene, params, sim.pos, sim.quat,
                             kinds=self.config.vision)
             if "rgb" in images:  # RGBA, as Bullet's
                 rgb = images["rgb"]

@@ -215,3 +215,34 @@ class ObsType:
         obs = jnp.concatenate(parts, axis=-1)
         low, high = self.bounds()
         return jnp.clip(obs, low.astype(obs.dtype), high.astype(obs.dtype))
+
+
+#: Depth in a policy's image input: metres / DEPTH_SCALE, clipped to [0, 1] (nearer than 5 m is what a drone at a
+#: few m/s must see; beyond, one value).
+DEPTH_SCALE = 5.0
+
+
+def policy_input(obs):
+    """A world's observation as a policy takes it (brax's conventions; what `jaxdrones.adapters.brax.BraxEnv`
+    gives its trainers and `jaxdrones.training.evaluation.act` gives a policy).
+
+    Args:
+        obs: f[D, n_obs], or with cameras the env's dict ``{"state": f[D, n], "depth": f[D, H, W], "rgb":
+            u8[D, H, W, 4], "seg": i32[D, H, W]}``.
+
+    Returns:
+        f[D·n_obs]; with cameras a dict: ``"state"`` f[D·n], and per image ``"pixels/depth"`` f32[H, W, D]
+        (depth / `DEPTH_SCALE` clipped to [0, 1]) and ``"pixels/rgb"`` f32[H, W, 3D] (RGB / 255, no alpha), the
+        drones along the channels (brax's vision networks take keys starting ``pixels/``). Segmentation ids are not
+        an image a network should read as magnitudes: they are left out.
+    """
+    if not isinstance(obs, dict):
+        return jnp.reshape(obs, (-1,))
+    out = {"state": jnp.reshape(obs["state"], (-1,))}
+    if "depth" in obs:
+        depth = jnp.clip(obs["depth"].astype(jnp.float32) / DEPTH_SCALE, 0.0, 1.0)
+        out["pixels/depth"] = jnp.moveaxis(depth, -3, -1)
+    if "rgb" in obs:
+        rgb = obs["rgb"][..., :3].astype(jnp.float32) / 255.0  # [D, H, W, 3]
+        out["pixels/rgb"] = jnp.concatenate(list(rgb), axis=-1)
+    return out

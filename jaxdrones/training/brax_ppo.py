@@ -48,6 +48,17 @@ class BraxPPOConfig:
     policy_hidden_layer_sizes: tuple[int, ...] = (32, 32)
     value_hidden_layer_sizes: tuple[int, ...] = (64, 64)
     seed: int = 0
+    #: The image encoder of envs with cameras (brax's ``networks_vision``: convolutions, then the state appended,
+    #: then the MLP): filters, square kernel sizes and strides per layer, and the pooling of its last feature map
+    #: (``"none"``: flattened, which keeps where in the image a feature is). The default is the Nature-DQN encoder
+    #: (Mnih et al., "Human-level control through deep reinforcement learning", Nature 2015: three convolutions with
+    #: ReLU, 32-64-64 filters, 8×8/4, 4×4/2, 3×3/1) scaled to 24×32 depth images and to the CPU: 8-16-16 filters,
+    #: 4×4/2, 3×3/2, 3×3/2, a 3×4×16 feature map (its gradient costs about 130 µs per sample on 2 CPU cores, the
+    #: full-size one's 185 µs).
+    cnn_output_channels: tuple[int, ...] = (8, 16, 16)
+    cnn_kernel_size: tuple[int, ...] = (4, 3, 3)
+    cnn_stride: tuple[int, ...] = (2, 2, 2)
+    cnn_global_pool: str = "none"
 
     @property
     def total_steps(self) -> int:
@@ -66,12 +77,24 @@ class BraxPPOConfig:
                              f"must be a multiple of num_envs ({self.num_envs}), as brax's PPO requires")
 
 
-def _network_factory(config: BraxPPOConfig):
+#: The config fields that shape the networks (`_network_factory`), not arguments of brax's ``ppo.train``.
+NETWORK_FIELDS = ("policy_hidden_layer_sizes", "value_hidden_layer_sizes", "cnn_output_channels", "cnn_kernel_size",
+                  "cnn_stride", "cnn_global_pool")
+
+
+def _network_factory(config: BraxPPOConfig, vision: bool = False):
     from brax.training.agents.ppo import networks as ppo_networks
 
-    return functools.partial(ppo_networks.make_ppo_networks,
-                             policy_hidden_layer_sizes=tuple(config.policy_hidden_layer_sizes),
-                             value_hidden_layer_sizes=tuple(config.value_hidden_layer_sizes))
+    layers = dict(policy_hidden_layer_sizes=tuple(config.policy_hidden_layer_sizes),
+                  value_hidden_layer_sizes=tuple(config.value_hidden_layer_sizes))
+    if not vision:
+        return functools.partial(ppo_networks.make_ppo_networks, **layers)
+    from brax.training.agents.ppo import networks_vision
+
+    return functools.partial(networks_vision.make_ppo_networks_vision, **layers, policy_obs_key="state",
+                             value_obs_key="state", cnn_output_channels=tuple(config.cnn_output_channels),
+                             cnn_kernel_size=tuple(config.cnn_kernel_size), cnn_stride=tuple(config.cnn_stride),
+                             cnn_global_pool=config.cnn_global_pool)
 
 
 def default_config(task: str) -> BraxPPOConfig:
@@ -83,19 +106,23 @@ def default_config(task: str) -> BraxPPOConfig:
                          unroll_length=10, discounting=0.97),
         "waypoints": dict(num_timesteps=6_000_000, num_envs=1024, batch_size=1024, num_minibatches=8,
                           unroll_length=10, discounting=0.97),
+        "avoid": dict(num_timesteps=2_000_000, num_envs=256, batch_size=256, num_minibatches=4, unroll_length=16,
+                      learning_rate=1e-3, entropy_cost=1e-3, discounting=0.98, num_updates_per_batch=2,
+                      policy_hidden_layer_sizes=(64, 64), value_hidden_layer_sizes=(64, 64), num_evals=9),
     }
     return BraxPPOConfig(**tuned.get(task, tuned["hover"]))
 
 
 def make_network(config: BraxPPOConfig, env: Env):
     """brax's PPO networks for ``env`` (on the world's flat observation and action, normalised observations when
-    ``config.normalize_observations``)."""
-    _import_brax()
+    ``config.normalize_observations``; with cameras, brax's vision networks on
+    `jaxdrones.envs.observations.policy_input`, the images not normalised)."""
+    adapter = _import_brax()
     from brax.training.acme import running_statistics
 
     preprocess = running_statistics.normalize if config.normalize_observations else (lambda x, _: x)
-    return _network_factory(config)(env.n_drones * env.observation_size, env.n_drones * env.action_size,
-                                    preprocess_observations_fn=preprocess)
+    return _network_factory(config, bool(env.config.vision))(
+        adapter.BraxEnv(env).observation_size, env.n_drones * env.action_size, preprocess_observations_fn=preprocess)
 
 
 def make_policy(networks, params, deterministic: bool = True) -> Callable:
@@ -110,7 +137,8 @@ def train(env: Env, config: BraxPPOConfig = BraxPPOConfig(), progress: Callable[
     """Train a policy on ``env`` with brax's PPO.
 
     Args:
-        env: a jaxdrones `Env` without camera images (the brax adapter flattens its f[D, n] observation and action).
+        env: a jaxdrones `Env` (the brax adapter flattens its f[D, n] observation and action; with cameras, brax's
+            vision PPO on `jaxdrones.envs.observations.policy_input` with the CNN of ``config``).
         config: PPO hyperparameters.
         progress: called as ``progress(env_steps, metrics)`` at each of brax's evaluations after the first, with
             brax's training metrics and, under ``"eval"``, what ``evaluate`` returns (NumPy arrays).
@@ -130,9 +158,7 @@ def train(env: Env, config: BraxPPOConfig = BraxPPOConfig(), progress: Callable[
     from brax.training.agents.ppo import train as ppo
 
     networks = make_network(config, env)
-    kwargs = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
-    for key in ("policy_hidden_layer_sizes", "value_hidden_layer_sizes"):
-        kwargs.pop(key)
+    kwargs = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name not in NETWORK_FIELDS}
     latest = {"params": None, "steps": 0}
     run_eval = None if evaluate is None else jax.jit(lambda params: evaluate(networks, params))
 
@@ -147,7 +173,8 @@ def train(env: Env, config: BraxPPOConfig = BraxPPOConfig(), progress: Callable[
     try:
         _, params, _ = ppo.train(
             adapter.BraxEnv(env), episode_length=env.episode_length, wrap_env_fn=adapter.wrap_for_brax_training,
-            network_factory=_network_factory(config), deterministic_eval=True, progress_fn=report,
+            network_factory=_network_factory(config, bool(env.config.vision)), vision=bool(env.config.vision),
+            deterministic_eval=True, progress_fn=report,
             policy_params_fn=keep, eval_env=None if eval_env is None else adapter.BraxEnv(eval_env),
             run_evals=eval_env is not None, **kwargs)
     except KeyboardInterrupt:

@@ -13,11 +13,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs.base import Env, EnvState
+from jaxdrones.envs.observations import policy_input
 
 
-def act(env: Env, policy, obs: jax.Array, key: jax.Array) -> jax.Array:
-    """The policy's action f[D, n_act] for an observation f[D, n_obs] (policies see flat vectors)."""
-    action, _ = policy(jnp.reshape(obs, (-1,)), key)
+def act(env: Env, policy, obs, key: jax.Array) -> jax.Array:
+    """The policy's action f[D, n_act] for an observation f[D, n_obs] or a dict with camera images (policies see
+    `jaxdrones.envs.observations.policy_input`: flat vectors, or brax's vision dict)."""
+    action, _ = policy(policy_input(obs), key)
     return jnp.reshape(action, (env.n_drones, env.action_size))
 
 
@@ -95,6 +97,8 @@ def episode_statistics(env: Env, outcomes) -> dict:
     if task is not None and task.success_metric in final:
         source = {"final": final, "mean": mean, "max": maximum}[success_at]
         stats["success_value"] = float(source[task.success_metric].mean())
+    if "failure" in final:  # tasks judged per episode (``avoid``): the share of episodes that succeeded
+        stats["success_rate"] = 1.0 - float(final["failure"].mean())
     if "distance" in final:
         dist = final["distance"]
         stats.update(final_pos_error_m=float(dist.mean()), final_pos_error_max_m=float(dist.max()),

@@ -17,7 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 #: Single-agent tasks ``jaxdrones train`` trains (default algorithm: `default_algo`).
-SINGLE_AGENT = ("hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune")
+SINGLE_AGENT = ("hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune", "avoid")
 #: Multi-agent tasks ``jaxdrones train`` trains (default algorithm: MAPPO).
 MULTI_AGENT = ("leader_follower", "multi_hover", "flock", "meetup", "crossing")
 TRAINABLE = SINGLE_AGENT + MULTI_AGENT

@@ -1,0 +1,227 @@
+"""``avoid``: fly to a goal through a field of obstacles drawn per episode, seen only through the depth camera.
+
+Not a task of the paper: the vision task that needs its camera. The paper's vision workflow (§III-D: per-drone
+64×48 images along the body x axis) has no task whose solution depends on the image; here the obstacles are in
+no part of the kinematic observation, so a policy that avoids them reads them from the depth image.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrones.envs import rewards, terminations
+from jaxdrones.envs.core import Task, TaskConfig
+from jaxdrones.envs.observations import POS_BOUND
+from jaxdrones.state import DroneState
+
+#: Obstacle colours, cycled (RGB in [0, 1]): greys and muted tones, distinct in the RGB image.
+COLOURS = ((0.55, 0.35, 0.25), (0.35, 0.45, 0.55), (0.5, 0.5, 0.45), (0.3, 0.5, 0.35))
+
+
+@dataclasses.dataclass(frozen=True)
+class AvoidConfig(TaskConfig):
+    """Settings of `Avoid`.
+
+    Attributes:
+        n_cylinders: vertical cylinders per episode (radius in ``cylinder_radius``).
+        n_boxes: upright boxes per episode, at a random yaw (half extents in x and y in ``box_half``).
+        cylinder_radius: (low, high) of the cylinders' radii, m.
+        box_half: (low, high) of the boxes' horizontal half extents, m.
+        obstacle_height: the obstacles' height, m, from the ground (above ``arena_z``: they cannot be flown over).
+        field_x: (low, high) of the obstacles' centres along x, m.
+        field_y: the obstacles' centres within |y| ≤ field_y, m; a drone beyond |y| > field_y + 0.5 m has left the
+            field (terminated).
+        goal_x: the goal's x, m; its y is drawn per episode within ±``goal_y``, its z is ``flight_z``.
+        goal_y: half-width of the goal's y, m.
+        goal_radius: the goal is reached within this distance, m.
+        flight_z: start and goal altitude, m.
+        start_y: half-width of the start's y, m (the start is at x = 0, facing +x).
+
+    The defaults: 12 cylinders and 4 boxes (16 primitives) over 2.2 × 3 m, the goal 3.8 m ahead, ``pid`` actions
+    with relative targets (the paper's PID action: a target up to 0.1 m away per axis, which the DSL PID flies at
+    0.3-0.5 m/s), the depth camera at 15 Hz of a 30 Hz control, episodes of 12 s.
+
+    Raises:
+        ValueError: a count that is not a non-negative integer, a range out of order, the field overlapping the
+            start or the goal, or ``backend="pybullet"`` (the obstacles are drawn per episode, in the task params).
+    """
+
+    n_cylinders: int = 12
+    n_boxes: int = 4
+    cylinder_radius: tuple[float, float] = (0.05, 0.12)
+    box_half: tuple[float, float] = (0.05, 0.15)
+    obstacle_height: float = 4.0
+    field_x: tuple[float, float] = (0.8, 3.0)
+    field_y: float = 1.5
+    goal_x: float = 3.8
+    goal_y: float = 0.5
+    goal_radius: float = 0.3
+    flight_z: float = 1.0
+    start_y: float = 0.5
+    action_type: str = "pid"
+    pid_target: str = "relative"
+    vision: tuple[str, ...] = ("depth",)
+    camera_freq: float = 15.0
+    episode_len_s: float = 12.0
+    arena_xy: float = 5.0
+    terminate_on_ground: bool = True
+
+    def __post_init__(self):
+        for name in ("n_cylinders", "n_boxes"):
+            n = getattr(self, name)
+            if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 0:
+                raise ValueError(f"avoid: {name} must be an integer >= 0, got {n!r}")
+        for name in ("cylinder_radius", "box_half", "field_x"):
+            lo, hi = _range(name, getattr(self, name))
+            object.__setattr__(self, name, (lo, hi))
+        for name in ("obstacle_height", "field_y", "goal_x", "goal_y", "goal_radius", "flight_z", "start_y"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"avoid: {name} must be a finite number >= 0 m, got {value!r}")
+        reach = max(self.cylinder_radius[1], math.sqrt(2) * self.box_half[1])
+        if self.field_x[0] - reach <= 0.2 or self.field_x[1] + reach >= self.goal_x - self.goal_radius:
+            raise ValueError(f"avoid: the obstacles (centres in x {self.field_x}, up to {reach:.2f} m wide) must "
+                             f"leave the start (x = 0) and the goal (x = {self.goal_x}) clear")
+        if self.backend != "jax":
+            raise ValueError("avoid runs on backend='jax': its obstacles are drawn per episode in the task params, "
+                             "which the PyBullet backend's fixed worlds cannot follow")
+        super().__post_init__()
+
+
+def _range(name: str, value) -> tuple[float, float]:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (2,) or not np.all(np.isfinite(arr)) or arr[0] < 0 or arr[0] > arr[1]:
+        raise ValueError(f"avoid: {name} must be (low, high) with 0 <= low <= high, got {value!r}")
+    return float(arr[0]), float(arr[1])
+
+
+class Avoid(Task):
+    """Reach a goal 3.8 m ahead through 16 obstacles placed per episode, seen only through the depth camera.
+
+    Each episode draws the obstacles' positions, sizes and (boxes) yaws uniformly within the config's ranges and
+    the goal's y; they are in `TaskParams.scene` (the cameras draw them) and nowhere in the kinematic observation,
+    which appends only the offset to the goal (3 entries). A drone whose centre comes within its collision radius
+    of an obstacle (`jaxdrones.cameras.distance`) has collided: the episode terminates, as it does when the drone
+    touches the ground, leaves the field (|y| > field_y + 0.5 m) or the arena.
+
+    Reward (both ``reward`` settings): ``progress``, the velocity towards the goal (m/s, clipped to ±1), weight 1;
+    ``at_goal``, 1 within ``goal_radius`` of the goal, weight 2; ``crash``, 1 on a collision or any other
+    termination, weight −10.
+    Success metric: ``failure``, 0 when the episode ends within ``goal_radius`` of the goal without a collision,
+    else 1, read at the episode's end; solved when at most 10 % of the evaluation episodes fail (``success_rate``
+    ≥ 0.9 in the evaluation's statistics).
+    """
+
+    name = "avoid"
+    config_cls = AvoidConfig
+    uses_scene = True
+    success_counts_terminations = True
+    success_metric = "failure"
+    success_at = "final"
+    success_threshold = 0.1
+    success_unit = "share"
+    obs_size = 3
+
+    def obs_bound(self, config):
+        return np.array([POS_BOUND] * 3, np.float32)
+
+    def start_defaults(self, config):
+        return dict(pos=[[0.0, 0.0, config.flight_z]], pos_range=(0.0, config.start_y, 0.0), tilt=0.0, yaw=0.0,
+                    vel=0.0, ang_vel=0.0)
+
+    def target(self, config):
+        return np.array([[config.goal_x, 0.0, config.flight_z]])
+
+    def data(self, config):
+        from jaxdrones.params import load_params
+
+        models = config.model if isinstance(config.model, tuple) else (config.model,)
+        return {"collision_radius": np.array([float(load_params(m).collision_radius) for m in models])}
+
+    def weights(self, config):
+        return {"progress": 1.0, "at_goal": 2.0, "crash": -10.0}
+
+    def scene(self, config):
+        from jaxdrones.cameras import make_scene
+
+        return make_scene((), capacity={"cylinder": config.n_cylinders, "box": config.n_boxes})
+
+    def sample(self, key, task, config):
+        k_goal, k_cyl, k_box = jax.random.split(key, 3)
+        dtype = task.target.dtype
+        goal_y = jax.random.uniform(k_goal, (), dtype, -config.goal_y, config.goal_y)
+        scene = task.scene
+        half_z = config.obstacle_height / 2
+        n_cyl, n_box = config.n_cylinders, config.n_boxes
+        u = jax.random.uniform(k_cyl, (n_cyl, 3), dtype)
+        cyl = scene.cylinder.replace(
+            pos=_field_points(config, u, half_z),
+            size=jnp.stack([_between(config.cylinder_radius, u[:, 2]), jnp.full((n_cyl,), half_z, dtype),
+                            jnp.zeros((n_cyl,), dtype)], -1),
+            seg=1 + jnp.arange(n_cyl, dtype=jnp.int32), valid=jnp.ones((n_cyl,), bool),
+            rgb=jnp.asarray(np.resize(np.asarray(COLOURS), (n_cyl, 3)), dtype))
+        u = jax.random.uniform(k_box, (n_box, 5), dtype)
+        yaw = 2 * jnp.pi * u[:, 4]
+        c, s, zero, one = jnp.cos(yaw), jnp.sin(yaw), jnp.zeros_like(yaw), jnp.ones_like(yaw)
+        rot = jnp.stack([jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1),
+                         jnp.stack([zero, zero, one], -1)], -2)
+        box = scene.box.replace(
+            pos=_field_points(config, u, half_z), rot=rot,
+            size=jnp.stack([_between(config.box_half, u[:, 2]), _between(config.box_half, u[:, 3]),
+                            jnp.full((n_box,), half_z, dtype)], -1),
+            seg=1 + n_cyl + jnp.arange(n_box, dtype=jnp.int32), valid=jnp.ones((n_box,), bool),
+            rgb=jnp.asarray(np.resize(np.asarray(COLOURS[::-1]), (n_box, 3)), dtype))
+        return task.replace(target=task.target.at[..., 1].set(goal_y), scene=scene.replace(cylinder=cyl, box=box))
+
+    def observe(self, config, task, sim, steps):
+        return task.target - sim.pos
+
+    def reward_terms(self, config, task, sim, action, steps):
+        to_goal = task.target - sim.pos
+        dist = rewards.distance(sim.pos, task.target)
+        heading = to_goal / jnp.maximum(dist, 1e-6)[..., None]
+        progress = jnp.clip(jnp.sum(sim.vel * heading, axis=-1), -1.0, 1.0)
+        crash = self._collided(task, sim) | self._lost(config, task, sim)
+        return {"progress": progress, "at_goal": (dist < config.goal_radius).astype(dist.dtype),
+                "crash": crash.astype(dist.dtype)}
+
+    def terminated(self, config, task, sim):
+        return jnp.any(self._collided(task, sim) | self._lost(config, task, sim))
+
+    def metrics(self, config, task, sim, steps):
+        dist = rewards.distance(sim.pos, task.target)
+        collided = jnp.any(self._collided(task, sim))
+        reached = jnp.all(dist < config.goal_radius)
+        return {"distance": jnp.mean(dist), "collision": collided.astype(dist.dtype),
+                "failure": (collided | ~reached).astype(dist.dtype)}
+
+    @staticmethod
+    def _collided(task, sim: DroneState) -> jax.Array:
+        """bool[D]: the drone's centre is within its collision radius of an obstacle."""
+        from jaxdrones.cameras import distance
+
+        return distance(task.scene, sim.pos) < task.data["collision_radius"]
+
+    @staticmethod
+    def _lost(config, task, sim: DroneState) -> jax.Array:
+        """bool[D]: the drone crashed (`terminations.crashed`) or left the field's sides."""
+        side = jnp.abs(sim.pos[..., 1]) > config.field_y + 0.5
+        return terminations.crashed(sim, task.bounds, config.terminate_on_ground) | side
+
+
+def _between(bounds: tuple[float, float], u: jax.Array) -> jax.Array:
+    return bounds[0] + (bounds[1] - bounds[0]) * u
+
+
+def _field_points(config: AvoidConfig, u: jax.Array, z: float) -> jax.Array:
+    """Centres f[N, 3] uniform in the field (x in field_x, |y| ≤ field_y) at height z, from u f[N, ≥2] in [0, 1)."""
+    return jnp.stack([_between(config.field_x, u[:, 0]), config.field_y * (2 * u[:, 1] - 1),
+                      jnp.full(u.shape[:1], z, u.dtype)], -1)
+
+
+AVOID = Avoid()

@@ -1,0 +1,128 @@
+"""The ``avoid`` task: obstacles drawn per episode in the task params, collisions from the scene's distance
+function, its success metric, its policy input and bad settings."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdrones as jd
+from jaxdrones import cameras
+from jaxdrones.backends.scene import Obstacle
+from jaxdrones.envs.observations import DEPTH_SCALE, policy_input
+
+
+def test_distance_is_each_shapes_signed_distance():
+    """Hand-derived distances to a box, a sphere, a cylinder and a lying capsule, outside and inside."""
+    scene = cameras.make_scene([
+        Obstacle("box", size=(1.0, 2.0, 3.0), pos=(5.0, 0.0, 0.0)),
+        Obstacle("sphere", size=(0.5,), pos=(0.0, 5.0, 0.0)),
+        Obstacle("cylinder", size=(0.2, 2.0), pos=(0.0, 0.0, 5.0)),
+        Obstacle("capsule", size=(0.1, 1.0), pos=(-5.0, 0.0, 0.0), rpy=(np.pi / 2, 0.0, 0.0))])
+    points = jnp.array([[3.0, 0, 0], [5, 0, 0], [0, 6, 0], [0, 0.5, 5], [0, 0, 7], [-5, 0, 1.0], [-5, 0.2, 0],
+                        [4.0, 2.0, 0.0]])
+    expected = [1.5,  # to the box's x face at 4.5
+                -0.5,  # its centre, 0.5 inside its nearest face
+                0.5, 0.3,  # sphere of radius 0.5; cylinder side, radius 0.2
+                1.0,  # above the cylinder's top at z = 6
+                0.9,  # 1 m from the capsule's axis (along y after the roll), radius 0.1
+                -0.1,  # on its axis
+                np.hypot(0.5, 1.0)]  # to the box's edge at (4.5, 1)
+    np.testing.assert_allclose(np.asarray(cameras.distance(scene, points)), expected, atol=1e-6)
+    empty = cameras.make_scene([], capacity=2)
+    assert np.all(np.isinf(np.asarray(cameras.distance(empty, points))))
+
+
+@pytest.fixture(scope="module")
+def env():
+    return jd.make("avoid", image_size=(32, 24))
+
+
+def test_avoid_draws_a_field_per_episode_that_only_the_camera_sees(env):
+    reset = jax.jit(jax.vmap(env.reset))
+    states = reset(jax.random.split(jax.random.key(0), 4))
+    scene = states.task.scene
+    assert scene.cylinder.pos.shape == (4, 12, 3) and scene.box.pos.shape == (4, 4, 3)
+    assert np.all(np.asarray(scene.cylinder.valid)) and np.all(np.asarray(scene.box.valid))
+    pos = np.asarray(scene.cylinder.pos)
+    assert not np.allclose(pos[0], pos[1])  # every world its own field
+    (x_low, x_high), side = env.config.field_x, env.config.field_y
+    assert np.all((pos[..., 0] >= x_low) & (pos[..., 0] <= x_high) & (np.abs(pos[..., 1]) <= side))
+    again = reset(jax.random.split(jax.random.key(1), 4)).task.scene.cylinder.pos
+    assert not np.allclose(np.asarray(again), pos)  # and every episode
+    # The state observation is the kinematics and the goal offset only: 21 + 3 entries; the depth image sees the
+    # obstacles (ids 1..16; the ground is 0).
+    assert states.obs["state"].shape == (4, 1, 24) and states.obs["depth"].shape == (4, 1, 24, 32)
+    np.testing.assert_allclose(np.asarray(states.obs["state"][:, 0, 21:]),
+                               np.asarray(states.task.target[:, 0] - states.sim.pos[:, 0]), atol=1e-6)
+    seg = cameras.render(cameras.CameraSpec(width=32, height=24), scene, env.params, states.sim.pos,
+                         states.sim.quat, kinds=("seg",))["seg"]
+    assert np.any(np.asarray(seg) >= 1)
+
+
+def test_collision_terminates_and_the_goal_succeeds(env):
+    state = jax.jit(env.reset)(jax.random.key(3))
+    step = jax.jit(env.step)
+    hold = jnp.zeros((1, 3))
+    centre = state.task.scene.cylinder.pos[0]
+    inside = state.replace(sim=state.sim.replace(pos=jnp.asarray([[centre[0], centre[1], 1.0]])))
+    hit = step(inside, hold)
+    assert bool(hit.terminated) and float(hit.metrics["collision"]) == 1.0 and float(hit.metrics["failure"]) == 1.0
+    assert float(hit.reward[0]) < -5.0  # the crash term, weight −10
+    goal = state.replace(sim=state.sim.replace(pos=state.task.target))
+    there = step(goal, hold)
+    assert not bool(there.terminated) and float(there.metrics["failure"]) == 0.0
+    assert float(there.metrics["collision"]) == 0.0 and float(there.reward[0]) > 1.0  # at_goal, weight 2
+    side = state.replace(sim=state.sim.replace(pos=jnp.asarray([[0.5, env.config.field_y + 0.7, 1.0]])))
+    assert bool(step(side, hold).terminated)  # left the field's side
+
+
+def test_policy_input_and_the_brax_view(env):
+    state = jax.jit(env.reset)(jax.random.key(0))
+    seen = policy_input(state.obs)
+    assert set(seen) == {"state", "pixels/depth"} and seen["pixels/depth"].shape == (24, 32, 1)
+    np.testing.assert_allclose(np.asarray(seen["pixels/depth"][..., 0]),
+                               np.clip(np.asarray(state.obs["depth"][0]) / DEPTH_SCALE, 0, 1), rtol=1e-6)
+    from jaxdrones.adapters.brax import BraxEnv
+
+    assert BraxEnv(env).observation_size == {"state": (24,), "pixels/depth": (24, 32, 1)}
+    rgb = jd.make("avoid", image_size=(32, 24), vision=("rgb", "depth", "seg"))
+    seen = policy_input(jax.jit(rgb.reset)(jax.random.key(0)).obs)
+    assert set(seen) == {"state", "pixels/depth", "pixels/rgb"} and seen["pixels/rgb"].shape == (24, 32, 3)
+    assert float(seen["pixels/rgb"].max()) <= 1.0
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(backend="pybullet"), "backend='jax'"),
+    (dict(field_x=(0.1, 3.0)), "clear"),
+    (dict(field_x=(4.0, 1.0)), "low <= high"),
+    (dict(n_cylinders=-1), "n_cylinders"),
+    (dict(goal_radius=float("nan")), "goal_radius"),
+])
+def test_bad_settings(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        jd.make("avoid", **kwargs)
+
+
+def test_brax_vision_networks_act_on_the_camera_observation(env):
+    """The trainer's networks for an env with cameras (brax's vision PPO networks with the config's CNN): a policy
+    of freshly initialised parameters acts on `policy_input` of the env's dict observation, as the evaluation
+    runs it (`jaxdrones.training.evaluation.act`)."""
+    from brax.training.acme import running_statistics
+
+    from jaxdrones.training import brax_ppo
+    from jaxdrones.training.evaluation import act
+
+    config = brax_ppo.default_config("avoid")
+    networks = brax_ppo.make_network(config, env)
+    state = jax.jit(env.reset)(jax.random.key(0))
+    seen = policy_input(state.obs)
+    normalizer = running_statistics.init_state({"state": jax.ShapeDtypeStruct(seen["state"].shape, jnp.float32)})
+    params = (normalizer, networks.policy_network.init(jax.random.key(1)), networks.value_network.init(
+        jax.random.key(2)))
+    conv = [k for k in params[1]["params"] if "CNN" in k or "Conv" in k]
+    assert conv, sorted(params[1]["params"])  # the image goes through convolutions
+    policy = brax_ppo.make_policy(networks, params)
+    action = jax.jit(lambda o, k: act(env, policy, o, k))(state.obs, jax.random.key(3))
+    assert action.shape == (1, 3) and np.all(np.isfinite(np.asarray(action)))
+    assert np.all(np.abs(np.asarray(action)) <= 1.0)
