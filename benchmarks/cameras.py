@@ -6,8 +6,9 @@ its onboard camera (64 × 48, 60° vertical field of view; depth and segmentatio
 segmentation) of a scene of P primitives (boxes, spheres, cylinders and capsules in equal shares, placed
 uniformly within 3 m) plus the ground. The JAX cameras run as one ``jit(vmap)`` call over the worlds, the poses
 already on the device; the time is the median of ``--repeats`` calls after compilation. The PyBullet backend
-renders the same scene for 16 worlds, one ``getCameraImage`` per drone. Last, the env: ``fly_thru_gate`` with depth
-and segmentation cameras at every 30 Hz control step, env steps/s of ``jit(vmap(step))`` in a ``lax.scan``.
+renders the same scene for 16 worlds, one ``getCameraImage`` per drone. Last, the envs: ``fly_thru_gate`` (3 boxes)
+and ``avoid`` (16 primitives drawn per episode) with depth and segmentation cameras at every 30 Hz control step,
+env steps/s of ``jit(vmap(step))`` in a ``lax.scan``.
 
 Usage::
 
@@ -93,16 +94,21 @@ def time_jax(worlds: int, n_primitives: int, kinds, repeats: int) -> dict:
             "best_s": best, "compile_s": compile_s, "frames_per_s": worlds / s}
 
 
-def time_env(worlds: int, repeats: int, steps: int = 30) -> dict:
-    """Env steps/s of ``fly_thru_gate`` with depth and segmentation cameras rendered at every control step
+#: The envs timed with their cameras, and their primitives (besides the ground): the paper's gate (3 boxes) and the
+#: ``avoid`` field (12 cylinders and 4 boxes, drawn per episode).
+ENV_TASKS = {"fly_thru_gate": 3, "avoid": 16}
+
+
+def time_env(task: str, worlds: int, repeats: int, steps: int = 30) -> dict:
+    """Env steps/s of ``task`` with 64×48 depth and segmentation cameras rendered at every control step
     (``camera_freq = ctrl_freq = 30``) on the JAX backend: ``steps`` steps of ``jit(vmap(step))`` in one
-    ``lax.scan``, zero actions."""
+    ``lax.scan``, zero actions (a drone holding its start)."""
     import jax
     import jax.numpy as jnp
 
     import jaxdrones as jd
 
-    env = jd.make("fly_thru_gate", vision=("depth", "seg"), ctrl_freq=30, camera_freq=30)
+    env = jd.make(task, vision=("depth", "seg"), ctrl_freq=30, camera_freq=30)
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(0), worlds))
     actions = jnp.zeros((worlds, env.n_drones, env.action_size))
 
@@ -111,7 +117,7 @@ def time_env(worlds: int, repeats: int, steps: int = 30) -> dict:
         return jax.lax.scan(lambda s, _: (jax.vmap(env.step)(s, actions), None), state, None, length=steps)[0]
 
     best, s = timed(lambda: jax.block_until_ready(run(state)), repeats)
-    return {"sim": "jaxdrones-env", "task": "fly_thru_gate", "worlds": worlds, "primitives": 3,
+    return {"sim": "jaxdrones-env", "task": task, "worlds": worlds, "primitives": ENV_TASKS[task],
             "kinds": ["depth", "seg"], "s": s / steps, "best_s": best / steps, "frames_per_s": worlds * steps / s}
 
 
@@ -153,10 +159,11 @@ def main(argv=None) -> int:
                     continue
                 results.append(r)
                 print(f"pybullet {renderer:4s} P={p:3d} W={16:6d}: {r['frames_per_s']:12,.0f} frames/s", flush=True)
-    for w in args.worlds:
-        r = time_env(w, args.repeats)
-        results.append(r)
-        print(f"env fly_thru_gate, depth+seg every step, W={w:6d}: {r['frames_per_s']:12,.0f} env-steps/s", flush=True)
+    for task in ENV_TASKS:
+        for w in args.worlds:
+            r = time_env(task, w, args.repeats)
+            results.append(r)
+            print(f"env {task}, depth+seg every step, W={w:6d}: {r['frames_per_s']:12,.0f} env-steps/s", flush=True)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
         json.dump({"jax": jax.__version__, "device": str(jax.devices()[0]), "load_start": load,

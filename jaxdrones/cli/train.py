@@ -57,6 +57,12 @@ def register(subparsers) -> None:
                      help="downwash cut-off in m, with a neighbour list: a cost linear in the team size (default: "
                           "every pair of drones within 10 m, the original)")
     env.add_argument("--backend", choices=("jax", "pybullet"), default=None, help="physics backend (default jax)")
+    env.add_argument("--vision", nargs="+", choices=("rgb", "depth", "seg"), default=None, metavar="IMAGE",
+                     help="camera images in the observation (rgb, depth, seg; default: the task's, avoid: depth): "
+                          "trained with brax's vision PPO")
+    env.add_argument("--image-size", type=int, nargs=2, default=None, metavar=("W", "H"),
+                     help="camera image size, pixels (default: the task's; avoid trains on 32 x 24)")
+    env.add_argument("--camera-freq", type=float, default=None, help="camera rate, Hz")
     env.add_argument("--target", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                      help="hover/takeoff target, m")
     env.add_argument("--start-pos-range", type=float, nargs=3, default=None, metavar=("DX", "DY", "DZ"),
@@ -98,7 +104,8 @@ _ENV_OPTIONS = {"action_type": "action_type", "obs_type": "obs_type", "model": "
                 "target": "target", "start_pos_range": "start_pos_range", "start_tilt": "start_tilt",
                 "start_yaw": "start_yaw", "start_vel": "start_vel", "start_ang_vel": "start_ang_vel",
                 "max_neighbors": "max_neighbors", "downwash_radius": "downwash_radius", "drag": "drag",
-                "ground_effect": "ground_effect", "downwash": "downwash"}
+                "ground_effect": "ground_effect", "downwash": "downwash", "vision": "vision",
+                "image_size": "image_size", "camera_freq": "camera_freq"}
 
 
 def _positive(name: str, value) -> None:
@@ -119,7 +126,8 @@ def run_cli(args: argparse.Namespace) -> int:
                       process_id=args.process_id, auto=args.distributed, timeout_s=args.distributed_timeout)
         if not args.no_compile_cache:
             enable_compilation_cache()
-        trainer = trainers.get(default_algo(args.task, args.backend or "jax") if args.algo is None else args.algo)
+        algo = default_algo(args.task, args.backend or "jax", bool(args.vision)) if args.algo is None else args.algo
+        trainer = trainers.get(algo)
         overrides = {"seed": args.seed}
         if args.steps is not None:
             overrides["num_timesteps"] = args.steps

@@ -768,13 +768,13 @@ class TaskEnv(Env):
         """The camera images of ``sim`` where ``due`` (bool[...]), ``held`` elsewhere.
 
         On the JAX backend, `jaxdrones.cameras.render` of every world in ``scene`` (the task params').
-        On the PyBullet backend (``scene`` None), one host callback:
+        On the PyBullet backend, one host callback (``scene`` unused):
         under ``vmap`` (where `jax.lax.cond` runs both branches) only the worlds whose render is due are rendered,
         and a world whose pose is not finite reads rgb 0, depth NaN and seg -1, as in `PyBulletStep.camera_images`.
         """
         spec = self._image_spec()
         width, height = self.config.image_size
-        if scene is not None:  # the JAX backend: the images of every world, kept where a render is not due
+        if self.config.backend == "jax":  # the images of every world, kept where a render is not due
             from jaxdrones.cameras import CameraSpec, render
 
             images = render(CameraSpec(width=width, height=height), scene, params, sim.pos, sim.quat,

@@ -112,7 +112,8 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
 
     if task not in TRAINABLE:
         raise ValueError(f"train: task must be one of {TRAINABLE}, got {task!r}")
-    algo = default_algo(task, (env_overrides or {}).get("backend", "jax")) if algo is None else algo
+    requested = {**DEFAULT_ENV.get(task, {}), **(env_overrides or {})}
+    algo = default_algo(task, requested.get("backend", "jax"), bool(requested.get("vision"))) if algo is None else algo
     trainer = trainers.get(algo)
     if n_eval_episodes < 64:
         raise ValueError(f"n_eval_episodes must be >= 64, got {n_eval_episodes}")

@@ -138,10 +138,10 @@ def get(algo: str) -> Trainer:
 DEFAULT_ALGO = {"hover": "apg"}
 
 
-def default_algo(task: str, backend: str = "jax") -> str:
-    """``"mappo"`` for a multi-agent task; for a single-agent one `DEFAULT_ALGO`'s (``"brax_ppo"`` if none, and
-    on the PyBullet backend, which APG cannot differentiate)."""
+def default_algo(task: str, backend: str = "jax", vision: bool = False) -> str:
+    """``"mappo"`` for a multi-agent task; for a single-agent one `DEFAULT_ALGO`'s (``"brax_ppo"`` if none, on the
+    PyBullet backend, which APG cannot differentiate, and with camera images, which brax's vision PPO takes)."""
     if task in MULTI_AGENT:
         return "mappo"
     algo = DEFAULT_ALGO.get(task, "brax_ppo")
-    return "brax_ppo" if backend != "jax" and algo in ("apg", "shac") else algo
+    return "brax_ppo" if (backend != "jax" or vision) and algo in ("apg", "shac") else algo
