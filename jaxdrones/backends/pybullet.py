@@ -94,7 +94,7 @@ class PyBulletStep:
     Call it as ``step(params, state, rpm) -> state``, like the JAX backend: ``state`` is a `DroneState` with leading
     world axes ``[..., D, ...]`` (one Bullet world per world), ``rpm`` f[..., D, 4] in RPM, clipped to
     [0, max_rpm]. Called on concrete arrays, NumPy or JAX, it returns NumPy arrays: Bullet runs on the host, a JAX
-    array on the CPU is read without a copy, and building JAX arrays of the result would cost about 50 µs per field
+    array is read into NumPy once (about 2 µs), and building JAX arrays of the result would cost about 50 µs per field
     on the CPU (as much as the step itself), while every JAX function takes NumPy arrays as they are. Inside
     ``jit``, ``vmap`` or ``lax.scan`` (e.g. `jd.rollout`, the envs) the step runs as a host callback
     (`jax.pure_callback`). It is not differentiable. ``state.contact`` reports what each drone touched (ground,
@@ -175,7 +175,7 @@ class PyBulletStep:
         if (isinstance(state.pos, tracer) or isinstance(state.quat, tracer) or isinstance(rpm, tracer)
                 or isinstance(params.mass, tracer) or isinstance(params.kf, tracer)):
             return self._traced(params, state, rpm)
-        if isinstance(state.pos, jax.Array):  # read once (no copy on the CPU), then the NumPy path
+        if isinstance(state.pos, jax.Array):  # read into NumPy once, then the NumPy path
             state = DroneState(*(np.asarray(getattr(state, f)) for f in _STATE_FIELDS))
         if isinstance(rpm, jax.Array):
             rpm = np.asarray(rpm)
