@@ -42,6 +42,7 @@ import numpy as np
 
 import jaxdrones as jd
 import original
+from backends import timed
 from jaxdrones import cameras
 from jaxdrones.backends.scene import PAPER_OBSTACLES
 from jaxdrones.control import PIDGains, pid_control, pid_init
@@ -70,13 +71,8 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def median_time(run, repeats: int) -> float:
-    run()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    """Median wall seconds of ``run()`` over ``repeats`` calls after a warm-up (`backends.timed`)."""
+    return timed(run, repeats)[1]
 
 
 def setup(n_drones: int, n_envs: int):
