@@ -48,17 +48,15 @@ class BraxPPOConfig:
     policy_hidden_layer_sizes: tuple[int, ...] = (32, 32)
     value_hidden_layer_sizes: tuple[int, ...] = (64, 64)
     seed: int = 0
-    #: The image encoder of envs with cameras (brax's ``networks_vision``: convolutions, then the state appended,
-    #: then the MLP): filters, square kernel sizes and strides per layer, and the pooling of its last feature map
-    #: (``"none"``: flattened, which keeps where in the image a feature is). The default is the Nature-DQN encoder
-    #: (Mnih et al., "Human-level control through deep reinforcement learning", Nature 2015: three convolutions with
-    #: ReLU, 32-64-64 filters, 8×8/4, 4×4/2, 3×3/1) scaled to 24×32 depth images and to the CPU: 8-16-16 filters,
-    #: 4×4/2, 3×3/2, 3×3/2, a 3×4×16 feature map (its gradient costs about 130 µs per sample on 2 CPU cores, the
-    #: full-size one's 185 µs).
+    #: The image encoder of envs with cameras (`jaxdrones.training.encoders`: convolutions with ReLU, the last feature
+    #: map flattened, which keeps where in the image a feature is, then the state appended and the MLP): filters,
+    #: square kernel sizes and strides per layer. The default is the Nature-DQN encoder (Mnih et al., "Human-level
+    #: control through deep reinforcement learning", Nature 2015: three convolutions with ReLU, 32-64-64 filters,
+    #: 8×8/4, 4×4/2, 3×3/1) scaled to 24×32 depth images and to the CPU: 8-16-16 filters, 4×4/2, 3×3/2, 3×3/2, a
+    #: 3×4×16 feature map.
     cnn_output_channels: tuple[int, ...] = (8, 16, 16)
     cnn_kernel_size: tuple[int, ...] = (4, 3, 3)
     cnn_stride: tuple[int, ...] = (2, 2, 2)
-    cnn_global_pool: str = "none"
 
     @property
     def total_steps(self) -> int:
@@ -79,7 +77,7 @@ class BraxPPOConfig:
 
 #: The config fields that shape the networks (`_network_factory`), not arguments of brax's ``ppo.train``.
 NETWORK_FIELDS = ("policy_hidden_layer_sizes", "value_hidden_layer_sizes", "cnn_output_channels", "cnn_kernel_size",
-                  "cnn_stride", "cnn_global_pool")
+                  "cnn_stride")
 
 
 def _network_factory(config: BraxPPOConfig, vision: bool = False):
@@ -89,12 +87,10 @@ def _network_factory(config: BraxPPOConfig, vision: bool = False):
                   value_hidden_layer_sizes=tuple(config.value_hidden_layer_sizes))
     if not vision:
         return functools.partial(ppo_networks.make_ppo_networks, **layers)
-    from brax.training.agents.ppo import networks_vision
+    from jaxdrones.training.encoders import make_ppo_networks_vision
 
-    return functools.partial(networks_vision.make_ppo_networks_vision, **layers, policy_obs_key="state",
-                             value_obs_key="state", cnn_output_channels=tuple(config.cnn_output_channels),
-                             cnn_kernel_size=tuple(config.cnn_kernel_size), cnn_stride=tuple(config.cnn_stride),
-                             cnn_global_pool=config.cnn_global_pool)
+    return functools.partial(make_ppo_networks_vision, **layers, cnn_output_channels=tuple(config.cnn_output_channels),
+                             cnn_kernel_size=tuple(config.cnn_kernel_size), cnn_stride=tuple(config.cnn_stride))
 
 
 def default_config(task: str) -> BraxPPOConfig:
@@ -115,8 +111,9 @@ def default_config(task: str) -> BraxPPOConfig:
 
 def make_network(config: BraxPPOConfig, env: Env):
     """brax's PPO networks for ``env`` (on the world's flat observation and action, normalised observations when
-    ``config.normalize_observations``; with cameras, brax's vision networks on
-    `jaxdrones.envs.observations.policy_input`, the images not normalised)."""
+    ``config.normalize_observations``; with cameras, brax's vision PPO networks on our encoder
+    (`jaxdrones.training.encoders.make_ppo_networks_vision`) reading `jaxdrones.envs.observations.policy_input`, the
+    images not normalised)."""
     adapter = _import_brax()
     from brax.training.acme import running_statistics
 
@@ -138,7 +135,8 @@ def train(env: Env, config: BraxPPOConfig = BraxPPOConfig(), progress: Callable[
 
     Args:
         env: a jaxdrones `Env` (the brax adapter flattens its f[D, n] observation and action; with cameras, brax's
-            vision PPO on `jaxdrones.envs.observations.policy_input` with the CNN of ``config``).
+            vision PPO on `jaxdrones.envs.observations.policy_input` with the CNN of ``config``,
+            `jaxdrones.training.encoders`).
         config: PPO hyperparameters.
         progress: called as ``progress(env_steps, metrics)`` at each of brax's evaluations after the first, with
             brax's training metrics and, under ``"eval"``, what ``evaluate`` returns (NumPy arrays).
