@@ -181,6 +181,8 @@ BENCHMARKS = {b.name: b for b in (
               + ["--out", _json("backends.json")(ctx)], _json("backends.json")),
     Benchmark("cameras", True, lambda ctx: cameras_args(ctx) + ["--out", _json("cameras.json")(ctx)],
               _json("cameras.json"), NO_PREALLOCATION),
+    Benchmark("encoders", True, lambda ctx: (["--batch", "1024", "--repeats", "3"] if ctx.quick else [])
+              + ["--out", _json("encoders.json")(ctx)], _json("encoders.json")),
     Benchmark("table2", True, lambda ctx: (["--seconds", "1", "--repeats", "1"] if ctx.quick else [])
               + ["--out", _json("table2.json")(ctx)], _json("table2.json")),
     Benchmark("train_algos", True, lambda ctx: train_algos_args(ctx) + ["--out", _json("train_algos_hover.json")(ctx)],
@@ -637,6 +639,13 @@ def render_cameras(data: dict, out: str) -> str:
     return "\n\n".join(sections)
 
 
+def render_encoders(data: dict, out: str) -> str:
+    return (f"The vision encoder's gradient, {data['minibatches']} minibatches of {data['batch']} 24 × 32 images, "
+            f"µs per sample (median), on {data['device']}:\n\n"
+            + table(["convolution", "program", "µs per sample"],
+                    [[r["encoder"], r["program"], num(r["us_per_sample"], 1)] for r in data["rows"]], "llr"))
+
+
 def render_train_algos(data: dict, out: str) -> str:
     rows = data["results"]
     algos = list(dict.fromkeys(r["algo"] for r in rows))
@@ -793,7 +802,8 @@ def render_jaxmarl_ippo(data: dict, out: str) -> str:
 
 
 RENDERERS = {"throughput": render_throughput, "envs": render_envs, "gradients": render_gradients,
-             "backends": render_backends, "cameras": render_cameras, "table2": render_table2,
+             "backends": render_backends, "cameras": render_cameras, "encoders": render_encoders,
+             "table2": render_table2,
              "train_algos": render_train_algos,
              "multi_agent": render_multi_agent,
              "downwash_policies": render_downwash_policies, "sb3_hover": render_sb3_hover,

@@ -99,3 +99,27 @@ def test_bad_options_name_what_was_expected():
         gym.make("jaxdrones/Hover-v0", action_type="warp")
     with pytest.raises(ValueError, match="num_envs must be a positive integer"):
         gym.make_vec("jaxdrones/Hover-v0", num_envs=0, vectorization_mode="vector_entry_point")
+
+
+def test_image_observation_gives_policy_input_images():
+    """`ImageObservation`: `policy_input`'s images (depth / 5 m clipped to [0, 1]) with the drone axis along the
+    channels, last or first, in a Box of [0, 1] that holds them; segmentation left out; no camera: a ValueError."""
+    from jaxdrones.adapters.gymnasium import ImageObservation
+    from jaxdrones.envs.observations import DEPTH_SCALE
+
+    raw = gym.make("jaxdrones/Avoid-v0", image_size=(16, 12), vision=("depth", "seg"))
+    obs, _ = raw.reset(seed=3)
+    for channels_first, shape in ((False, (12, 16, 1)), (True, (1, 12, 16))):
+        env = ImageObservation(gym.make("jaxdrones/Avoid-v0", image_size=(16, 12), vision=("depth", "seg")),
+                               channels_first=channels_first)
+        assert set(env.observation_space.spaces) == {"state", "depth"}
+        assert env.observation_space["depth"].shape == shape
+        seen, _ = env.reset(seed=3)
+        assert env.observation_space.contains(seen)
+        depth = np.moveaxis(seen["depth"], 0, -1) if channels_first else seen["depth"]
+        np.testing.assert_allclose(depth[..., 0], np.clip(obs["depth"] / DEPTH_SCALE, 0, 1), rtol=1e-6)
+        np.testing.assert_array_equal(seen["state"], obs["state"])
+        env.close()
+    raw.close()
+    with pytest.raises(ValueError, match="depth or RGB camera"):
+        ImageObservation(gym.make("jaxdrones/Hover-v0"))

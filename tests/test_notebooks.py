@@ -49,17 +49,25 @@ EXPECTED_OUTPUT = {
         r"leader altitude error [\d.]+ cm, followers' mean altitude error [\d.]+ cm, largest [\d.]+ cm",
         r"final altitudes: \[",
     ],
+    "05_vision.ipynb": [
+        r"TOTAL_STEPS = 2,048 ",
+        r"SB3 check_env: passed",
+        r"trained 2,048 env steps in [\d.]+ s",
+        r"success rate over 10 episodes: [\d.]+",
+    ],
 }
 EXPECTED_FIGURES = {"01_quickstart.ipynb": 2, "02_stable_baselines3.ipynb": 1, "03_gradients.ipynb": 2,
-                    "04_multi_agent.ipynb": 1}
+                    "04_multi_agent.ipynb": 1, "05_vision.ipynb": 1}
 #: Per notebook: environment variables of its kernel (tiny training budgets for the training notebooks).
 NOTEBOOK_ENV = {"02_stable_baselines3.ipynb": {"JAXDRONES_NB_STEPS": "2000"},
                 "03_gradients.ipynb": {"JAXDRONES_NB_STEPS": "60000"},
-                "04_multi_agent.ipynb": {"JAXDRONES_NB_STEPS": "60000"}}
+                "04_multi_agent.ipynb": {"JAXDRONES_NB_STEPS": "60000"},
+                "05_vision.ipynb": {"JAXDRONES_NB_STEPS": "2048"}}
 #: Per notebook: modules it needs beyond the test extras, and the reason to give when one cannot be imported.
 SB3_REASON = ('needs stable-baselines3: install the sb3 extra, `pip install torch==2.13.0 && pip install -e ".[sb3]"` '
               "(the CPU torch first)")
-REQUIRES = {"02_stable_baselines3.ipynb": (("stable_baselines3",), SB3_REASON)}
+REQUIRES = {"02_stable_baselines3.ipynb": (("stable_baselines3",), SB3_REASON),
+            "05_vision.ipynb": (("stable_baselines3",), SB3_REASON)}
 
 
 @pytest.fixture

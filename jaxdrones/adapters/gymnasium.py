@@ -197,6 +197,52 @@ class GymnasiumEnv(gym.Env):
         return info
 
 
+class ImageObservation(gym.ObservationWrapper):
+    """A `GymnasiumEnv` with cameras, its observation as image policies take it (SB3's ``MultiInputPolicy``, whose
+    ``CombinedExtractor`` runs a CNN on every image space): `jaxdrones.envs.observations.policy_input`, the one
+    transform our trainers use, with its ``pixels/`` prefix dropped.
+
+    Observation: ``{"state": f32[D·n], "depth": f32[H, W, D] in [0, 1] (depth / `DEPTH_SCALE` m, clipped),
+    "rgb": f32[H, W, 3D] in [0, 1]}`` (the images the env renders; segmentation ids are left out), channels last,
+    or with ``channels_first`` f32[D, H, W] and f32[3D, H, W]. For SB3 pass ``channels_first=True`` (SB3 moves
+    only ``uint8`` images' channels first itself) and ``policy_kwargs=dict(normalize_images=False)`` (the images
+    are already in [0, 1]).
+
+    Raises:
+        ValueError: the env has no depth or RGB camera.
+    """
+
+    def __init__(self, env: gym.Env, channels_first: bool = False):
+        super().__init__(env)
+        from jaxdrones.envs.observations import policy_input
+
+        inner = env.unwrapped.env
+        spec = inner.observation_spec
+        if not isinstance(spec, dict) or not {"depth", "rgb"} & set(spec):
+            raise ValueError(f"ImageObservation needs an env with a depth or RGB camera (vision=('depth',) or "
+                             f"('rgb',)), got observations {sorted(spec) if isinstance(spec, dict) else 'f[D, n]'}")
+        self._n_drones = inner.n_drones
+
+        def transform(obs):
+            out = policy_input(obs)
+            return {k.removeprefix("pixels/"): jnp.moveaxis(v, -1, 0) if channels_first and k != "state" else v
+                    for k, v in out.items()}
+
+        self._transform = jax.jit(transform)
+        shapes = jax.eval_shape(transform, {k: jax.ShapeDtypeStruct(v.shape, v.dtype) for k, v in spec.items()
+                                            if k != "seg"})
+        state = env.observation_space["state"]
+        self.observation_space = gym.spaces.Dict({
+            "state": gym.spaces.Box(state.low.reshape(-1), state.high.reshape(-1), dtype=np.float32),
+            **{k: gym.spaces.Box(0.0, 1.0, v.shape, np.float32) for k, v in shapes.items() if k != "state"}})
+
+    def observation(self, observation):
+        if self._n_drones == 1:  # the gymnasium env drops the drone axis of one drone
+            observation = {k: np.expand_dims(v, 0) for k, v in observation.items()}
+        out = self._transform({k: v for k, v in observation.items() if k != "seg"})
+        return {k: np.asarray(v, np.float32) for k, v in out.items()}
+
+
 def render_frame(env: Env, state, world: int = 0, shared_params: bool = False) -> np.ndarray:
     """An RGB frame u8[H, W, 3] of one world of ``state``: PyBullet's renderer on that backend, else matplotlib.
     ``shared_params``: ``state.params`` are those of every world (batch shape [D]), not per world."""
