@@ -44,21 +44,17 @@ def encoders():
     config = BraxPPOConfig()
     layers = list(zip(config.cnn_output_channels, config.cnn_kernel_size, config.cnn_stride))
 
-    class FlaxConv(linen.Module):
+    class Convolutions(linen.Module):  # the layers, each made by ``conv(features, kernel, stride)``, with ReLU
+        conv: object
+
         @linen.compact
         def __call__(self, x):
             for f, k, s in layers:
-                x = linen.relu(linen.Conv(f, (k, k), strides=(s, s), padding="SAME")(x))
+                x = linen.relu(self.conv(f, k, s)(x))
             return x
 
-    class Patches(linen.Module):
-        @linen.compact
-        def __call__(self, x):
-            for f, k, s in layers:
-                x = linen.relu(Conv(f, k, s)(x))
-            return x
-
-    return {"linen.Conv": FlaxConv(), "encoders.Conv": Patches()}
+    return {"linen.Conv": Convolutions(lambda f, k, s: linen.Conv(f, (k, k), strides=(s, s), padding="SAME")),
+            "encoders.Conv": Convolutions(Conv)}
 
 
 def programs(module, images):
