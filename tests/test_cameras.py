@@ -235,7 +235,8 @@ def test_env_vision_on_the_jax_backend_is_batched_and_held_between_captures():
 
 def test_scenes_larger_than_one_step_trace_as_unrolled(monkeypatch):
     """A scene of 22 primitives (scanned `SLOTS_PER_STEP` slots at a time, padded) and two drones per world gives
-    the images of every slot traced at once; the drones see each other (ids 23 and 24) but not themselves."""
+    the images of every slot traced at once, and without RGB (packed keys) the same; the drones see each other
+    (ids 23 and 24) but not themselves."""
     monkeypatch.setattr(cameras, "SLOTS_PER_STEP", 2)
     rng = np.random.default_rng(0)
     obstacles = [Obstacle(("box", "sphere", "cylinder", "capsule")[k % 4],
@@ -253,3 +254,9 @@ def test_scenes_larger_than_one_step_trace_as_unrolled(monkeypatch):
         np.testing.assert_array_equal(np.asarray(scanned[k]), np.asarray(unrolled[k]))
     seg = np.asarray(scanned["seg"])
     assert 24 in seg[0] and 23 in seg[1] and 23 not in seg[0] and 24 not in seg[1]
+    # Without RGB, the nearest hits as packed keys: the same ids, depth rounded by less than 2^(b − 24) of itself
+    # for 22 + 2 × 5 primitives (b = 6 bits for the slots).
+    packed = jax.jit(lambda p, q: cameras.render(spec, scene, PARAMS, p, q, kinds=("depth", "seg")))(p, q)
+    np.testing.assert_array_equal(np.asarray(packed["seg"]), seg)
+    np.testing.assert_allclose(np.asarray(packed["depth"]), np.asarray(unrolled["depth"]), rtol=2.0 ** (6 - 24))
+    assert np.any(np.asarray(packed["depth"]) != np.asarray(unrolled["depth"]))  # it is the packed path
