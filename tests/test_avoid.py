@@ -70,9 +70,12 @@ def test_collision_terminates_and_the_goal_succeeds(env):
     assert bool(hit.terminated) and float(hit.metrics["collision"]) == 1.0 and float(hit.metrics["failure"]) == 1.0
     assert float(hit.reward[0]) < -5.0  # the crash term, weight −10
     goal = state.replace(sim=state.sim.replace(pos=state.task.target))
-    there = step(goal, hold)
-    assert not bool(there.terminated) and float(there.metrics["failure"]) == 0.0
-    assert float(there.metrics["collision"]) == 0.0 and float(there.reward[0]) > 1.0  # at_goal, weight 2
+    there = step(goal, hold)  # the episode ends at its goal: terminated, a success, not a crash
+    assert bool(there.terminated) and float(there.metrics["failure"]) == 0.0
+    assert float(there.metrics["crash"]) == 0.0 and float(there.metrics["collision"]) == 0.0
+    assert float(there.reward[0]) > 5.0  # the reached term, weight 10
+    near = state.replace(sim=state.sim.replace(pos=state.task.target - jnp.asarray([0.5, 0.0, 0.0])))
+    assert not bool(step(near, hold).terminated)  # 0.5 m short of the goal (radius 0.3 m): flying on
     side = state.replace(sim=state.sim.replace(pos=jnp.asarray([[0.5, env.config.field_y + 0.7, 1.0]])))
     assert bool(step(side, hold).terminated)  # left the field's side
 

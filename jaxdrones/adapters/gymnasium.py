@@ -46,7 +46,7 @@ from jaxdrones.wrappers.autoreset import reset_where
 MIN_GYMNASIUM, MIN_GYMNASIUM_VECTOR = (0, 26), (1, 1)
 #: The installed gymnasium's (major, minor).
 GYMNASIUM_VERSION = tuple(int(part) for part in gym.__version__.split(".")[:2])
-#: gymnasium id of every task.
+#: gymnasium id of every task (a task of your own gets one from `jaxdrones.envs.register`).
 GYM_IDS = {"hover": "jaxdrones/Hover-v0", "takeoff": "jaxdrones/Takeoff-v0", "velocity": "jaxdrones/Velocity-v0",
            "waypoints": "jaxdrones/Waypoints-v0", "fly_thru_gate": "jaxdrones/FlyThruGate-v0",
            "tune": "jaxdrones/Tune-v0", "avoid": "jaxdrones/Avoid-v0", "multi_hover": "jaxdrones/MultiHover-v0",
@@ -425,6 +425,12 @@ def make_vector_env(task: str, num_envs: int = 1, render_mode: str | None = None
     return GymnasiumVectorEnv(make(task, **overrides), num_envs, render_mode=render_mode)
 
 
+def gym_id(task: str) -> str:
+    """A task's gymnasium id: ``jaxdrones/`` and its name in CamelCase, version 0 (``"my_hover"`` →
+    ``"jaxdrones/MyHover-v0"``), as `GYM_IDS` names the built-in tasks."""
+    return GYM_IDS.get(task, "jaxdrones/" + "".join(part.capitalize() for part in task.split("_")) + "-v0")
+
+
 def register() -> None:
     """Register every task's id (`GYM_IDS`) with gymnasium (done on ``import jaxdrones``).
 
@@ -436,8 +442,17 @@ def register() -> None:
                       f"(the reset/step API of 0.26); gymnasium {gym.__version__} is installed, so none were "
                       f"registered: pip install 'gymnasium>=0.29.1'", UserWarning, stacklevel=2)
         return
-    for task, env_id in GYM_IDS.items():
-        if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point="jaxdrones.adapters.gymnasium:make_env",
-                         vector_entry_point="jaxdrones.adapters.gymnasium:make_vector_env", kwargs={"task": task},
-                         disable_env_checker=True)
+    for task in GYM_IDS:
+        register_task(task)
+
+
+def register_task(task: str) -> str:
+    """Register the gymnasium id (`gym_id`) of the task ``task`` of `jaxdrones.envs.registered` (what
+    `jaxdrones.envs.register` does for a task of your own); returns the id. Nothing is registered with gymnasium
+    older than `MIN_GYMNASIUM`."""
+    env_id = GYM_IDS.setdefault(task, gym_id(task))
+    if GYMNASIUM_VERSION >= MIN_GYMNASIUM and env_id not in gym.registry:
+        gym.register(id=env_id, entry_point="jaxdrones.adapters.gymnasium:make_env",
+                     vector_entry_point="jaxdrones.adapters.gymnasium:make_vector_env", kwargs={"task": task},
+                     disable_env_checker=True)
+    return env_id

@@ -9,7 +9,7 @@ import sys
 from jaxdrones import devices
 from jaxdrones.runs import enable_compilation_cache
 from jaxdrones.training import trainers
-from jaxdrones.training.run import train_task
+from jaxdrones.training.run import default_env, train_task
 from jaxdrones.training.trainers import ALGOS, TRAINABLE, default_algo
 
 
@@ -22,7 +22,11 @@ def register(subparsers) -> None:
                     "device (and across processes with --coordinator); then evaluate it and save the policy, a "
                     "learning curve, an evaluation flight plot and summary.json in a new run folder. Ctrl-C stops "
                     "the run and saves the policy so far.")
-    parser.add_argument("task", choices=TRAINABLE, help="task to train")
+    parser.add_argument("task", help=f"task to train: {', '.join(TRAINABLE)}, or one of your own that a module "
+                                     f"given by --import registers (jaxdrones.envs.register)")
+    parser.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE",
+                        help="import MODULE first (from the current folder or the installed packages), e.g. one "
+                             "that registers a task of your own; repeatable")
     ppo = parser.add_argument_group("training")
     ppo.add_argument("--algo", choices=ALGOS, default=None,
                      help="apg (analytic policy gradients through the simulator, the default for hover), ppo (our "
@@ -113,10 +117,25 @@ def _positive(name: str, value) -> None:
         raise ValueError(f"{name} must be a positive integer, got {value}")
 
 
+def _import_modules(modules) -> None:
+    """Import ``--import``'s modules, the current folder first on the path (as ``python -m`` has it)."""
+    import importlib
+    import os
+
+    if modules and os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())
+    for module in modules:
+        try:
+            importlib.import_module(module)
+        except ImportError as err:
+            raise ValueError(f"--import {module}: {err}") from err
+
+
 def run_cli(args: argparse.Namespace) -> int:
     """Run ``jaxdrones train``; returns the exit status (0 also when the run did not reach the threshold; 130 when
     stopped by Ctrl-C, after saving the policy so far)."""
     try:
+        _import_modules(args.imports)
         _positive("--steps", args.steps)
         _positive("--num-envs", args.num_envs)
         _positive("--eval-episodes", args.eval_episodes)
@@ -126,7 +145,13 @@ def run_cli(args: argparse.Namespace) -> int:
                       process_id=args.process_id, auto=args.distributed, timeout_s=args.distributed_timeout)
         if not args.no_compile_cache:
             enable_compilation_cache()
-        algo = default_algo(args.task, args.backend or "jax", bool(args.vision)) if args.algo is None else args.algo
+        env = {field: getattr(args, arg) for arg, field in _ENV_OPTIONS.items() if getattr(args, arg) is not None}
+        if "target" in env and args.task not in ("hover", "takeoff"):
+            raise ValueError(f"--target applies to hover and takeoff, not {args.task}")
+        from jaxdrones.envs import make_config
+
+        vision = bool(make_config(args.task, **default_env(args.task, env)).vision)
+        algo = default_algo(args.task, args.backend or "jax", vision) if args.algo is None else args.algo
         trainer = trainers.get(algo)
         overrides = {"seed": args.seed}
         if args.steps is not None:
@@ -138,10 +163,7 @@ def run_cli(args: argparse.Namespace) -> int:
             overrides["num_envs"] = args.num_envs
             if trainer.name == "brax_ppo":
                 overrides["batch_size"] = args.num_envs
-        env = {field: getattr(args, arg) for arg, field in _ENV_OPTIONS.items() if getattr(args, arg) is not None}
-        if "target" in env and args.task not in ("hover", "takeoff"):
-            raise ValueError(f"--target applies to hover and takeoff, not {args.task}")
-        config = dataclasses.replace(trainer.default_config(args.task), **overrides)
+        config = dataclasses.replace(trainer.default_config(args.task, vision), **overrides)
         summary = train_task(args.task, args.out, overwrite=args.overwrite, env_overrides=env, config=config,
                              n_eval_episodes=args.eval_episodes, progress=not args.no_progress,
                              t_start=getattr(args, "t_start", None), algo=trainer.name)

@@ -3,6 +3,7 @@
 Single-agent: ``hover``, ``takeoff``, ``velocity``, ``waypoints``, ``fly_thru_gate``, ``tune``, and ``avoid`` (a
 vision task: obstacles drawn per episode, seen only through the depth camera).
 Multi-agent: ``multi_hover``, ``leader_follower``, ``flock``, ``meetup``, ``crossing``.
+Your own: a `Task` subclass, added with `register`.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ _REGISTRY: dict[str, Task] = {task.name: task for task in SINGLE_AGENT_TASKS + (
 #: Names of the single-agent tasks (D = 1) and of the multi-agent tasks (D ≥ 2).
 SINGLE_AGENT = tuple(t.name for t in SINGLE_AGENT_TASKS + (AVOID,))
 MULTI_AGENT = tuple(t.name for t in MULTI_AGENT_TASKS)
+_BUILT_IN = frozenset(_REGISTRY)
 
 
 def get_task(name: str) -> Task:
@@ -64,10 +66,56 @@ def make(name: str, **overrides) -> TaskEnv:
 
 
 def registered() -> tuple[str, ...]:
-    """Names accepted by `make`."""
+    """Names accepted by `make`: the built-in tasks and those added by `register`."""
     return tuple(_REGISTRY)
 
 
+def is_multi_agent(name: str) -> bool:
+    """Whether the registered task ``name`` is multi-agent (it allows more than one drone; `Task.max_drones`)."""
+    task = get_task(name)
+    return task.max_drones is None or task.max_drones > 1
+
+
+def register(task: Task, *, overwrite: bool = False) -> Task:
+    """Add a task of your own to the registry, by its ``name``: then ``jd.make(name, ...)`` builds it, its gymnasium
+    id (`jaxdrones.adapters.gymnasium.gym_id`, e.g. ``"my_hover"`` → ``jaxdrones/MyHover-v0``) is registered when
+    gymnasium is installed, and ``jaxdrones.training.train_task(name)`` or ``jaxdrones train name --import MODULE``
+    (MODULE registers it) trains it.
+
+    A task is an instance of a `Task` subclass (see `Task` for the hooks and class attributes, and
+    ``jaxdrones/envs/tasks`` for the built-in ones); its settings are a `TaskConfig` subclass (``config_cls``).
+
+    Returns:
+        ``task``, so that ``MY_TASK = register(MyTask())`` defines and registers it.
+
+    Raises:
+        ValueError: ``task`` not a `Task` instance, a ``name`` that is not a Python identifier, a ``config_cls`` that
+            is not a `TaskConfig` subclass, or a name already registered (a built-in task's, or another task's
+            unless ``overwrite``; re-registering the same task is allowed).
+    """
+    if not isinstance(task, Task):
+        raise ValueError(f"register takes an instance of a jaxdrones.envs.Task subclass, got {task!r}")
+    name = task.name
+    if not isinstance(name, str) or not name.isidentifier():
+        raise ValueError(f"a task's name must be a Python identifier (e.g. 'my_hover'), got {name!r}")
+    if not (isinstance(task.config_cls, type) and issubclass(task.config_cls, TaskConfig)):
+        raise ValueError(f"{name}: config_cls must be a subclass of jaxdrones.envs.TaskConfig, got "
+                         f"{task.config_cls!r}")
+    known = _REGISTRY.get(name)
+    if known is not None and known is not task and (name in _BUILT_IN or not overwrite):
+        raise ValueError(f"a task named {name!r} is already registered ({type(known).__name__})"
+                         + ("" if name in _BUILT_IN else ": pass overwrite=True to replace it"))
+    _REGISTRY[name] = task
+    try:
+        from jaxdrones.adapters import gymnasium as gym_adapter
+    except ModuleNotFoundError as e:  # gymnasium is a dependency, but the registry works without it
+        if e.name != "gymnasium":
+            raise
+    else:
+        gym_adapter.register_task(name)
+    return task
+
+
 __all__ = ["ACTION_TYPES", "MULTI_AGENT", "OBS_TYPES", "SINGLE_AGENT", "DomainRandomization", "Env", "EnvState",
-           "HoverConfig", "Task", "TaskConfig", "TaskEnv", "TaskParams", "get_task", "kinematic_obs", "make",
-           "make_config", "registered"]
+           "HoverConfig", "Task", "TaskConfig", "TaskEnv", "TaskParams", "get_task", "is_multi_agent", "kinematic_obs",
+           "make", "make_config", "register", "registered"]

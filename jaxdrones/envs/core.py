@@ -435,6 +435,11 @@ class Task(abc.ABC):
         if cls.success_at not in Task.SUCCESS_AT:
             raise ValueError(f"{cls.__name__}: success_at must be one of {Task.SUCCESS_AT}, got {cls.success_at!r}")
 
+    def variant(self, config: TaskConfig) -> Task:
+        """The task that runs ``config`` (default: this one; a setting that changes what a task observes, rewards
+        and is judged by gives another, e.g. ``fly_thru_gate`` with ``gate_pose="random"``)."""
+        return self
+
     def check(self, config: TaskConfig) -> None:
         """Validate the config against what the task allows.
 
@@ -502,6 +507,11 @@ class Task(abc.ABC):
         """bool[]: the world's episode ends (default: any drone crashed, see `terminations.crashed`)."""
         return jnp.any(terminations.crashed(sim, task.bounds, config.terminate_on_ground))
 
+    def reached(self, config: TaskConfig, task: TaskParams, sim: DroneState) -> jax.Array:
+        """bool[]: the world's episode ends at its goal (terminated, but not a crash; default: never, the episode
+        runs to its time limit)."""
+        return jnp.zeros((), bool)
+
     def loss_weights(self, config: TaskConfig) -> dict[str, float]:
         """Weights of `loss_terms` in the differentiable training loss (default: distance² 1, velocity error² 0.1,
         body rate² 0.01), kept apart from the RL reward's weights."""
@@ -544,6 +554,7 @@ class TaskEnv(Env):
         check_not_forked()
         if not isinstance(config, task.config_cls):
             raise ValueError(f"{task.name}: expected a {task.config_cls.__name__}, got {type(config).__name__}")
+        task = task.variant(config)
         task.check(config)
         self.task, self.config = task, config
         self.sim_config = config.sim_config()
@@ -727,7 +738,7 @@ class TaskEnv(Env):
         nonneg = self.task.nonnegative_reward and cfg.reward == "shaped"
         reward, weighted = rewards.combine(terms, task.weights, nonneg)
         crashed = self.task.terminated(cfg, task, sim)
-        terminated = crashed | ~finite
+        terminated = crashed | self.task.reached(cfg, task, sim) | ~finite
         truncated = (steps >= self.episode_length) & ~terminated
         metrics = self._metrics(task, sim, steps, weighted, crashed, ~finite)
         return state.replace(sim=sim, ctrl=ctrl, history=history, obs=obs, reward=reward, terminated=terminated,

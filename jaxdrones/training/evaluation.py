@@ -56,7 +56,8 @@ def evaluate(env: Env, policy, key: jax.Array, n_episodes: int = 256) -> dict:
         a task judged at the maximum (`Task.success_at` ``"max"``) ``max_<metric>`` (mean over episodes of its
         largest value over the episode's steps); ``success_value`` (the task's success metric,
         `Task.success_metric`, read as `Task.success_at`: final, mean or max, averaged over the episodes),
-        ``terminated_rate`` (crashed or left the arena), ``episode_reward`` (mean return, summed over drones),
+        ``terminated_rate`` (crashed, left the arena or an invalid action; not an episode that ends at its goal,
+        `Task.reached`), ``episode_reward`` (mean return, summed over drones),
         ``n_episodes``; and for tasks measured by a distance, ``final_pos_error_m`` with its max and 90th percentile.
     """
     return episode_statistics(env, jax.jit(lambda keys: episode_outcomes(env, policy, keys))(
@@ -103,6 +104,8 @@ def episode_statistics(env: Env, outcomes) -> dict:
         dist = final["distance"]
         stats.update(final_pos_error_m=float(dist.mean()), final_pos_error_max_m=float(dist.max()),
                      final_pos_error_p90_m=float(np.percentile(dist, 90)))
+    if "crash" in final and "invalid_action" in final:  # a `TaskEnv`: not the episodes that end at their goal
+        terminated = np.maximum(final["crash"], final["invalid_action"])
     stats.update(terminated_rate=float(terminated.mean()), episode_reward=float(returns.mean()),
                  n_episodes=int(terminated.shape[0]))
     return stats

@@ -17,6 +17,12 @@ DEFAULT_ENV = {"leader_follower": {"action_type": "one_d_rpm"},
                # 24×32 depth images: a quarter of the rays of 48×64 (the cameras' cost is per pixel), enough to see
                # 0.2 m wide obstacles 4 m ahead (about 1.5 pixels).
                "avoid": {"image_size": (32, 24)}}
+#: What ``jaxdrones train`` adds to `DEFAULT_ENV` when a run asks for camera images: ``fly_thru_gate`` with
+#: ``--vision`` flies through a gate drawn per episode (`jaxdrones.envs.tasks.gate.GatePass`) with ``avoid``'s
+#: actions and camera rate, on the paper's 64 × 48 images (at 32 × 24 the gate's 5 cm columns and architrave fall
+#: between the pixels' rays from 2 m); its flights through take about 7 s.
+VISION_ENV = {"fly_thru_gate": {"gate_pose": "random", "action_type": "pid", "pid_target": "relative",
+                                "camera_freq": 15.0, "episode_len_s": 10.0}}
 #: Random starts ``jaxdrones train`` trains from in place of the task's own, for the fields a run does not set and
 #: actions of more than one entry (a 1-D action cannot level a drone); the evaluation and the saved policy's env keep
 #: the task's starts. In ``multi_hover`` the drone that climbs 1 m does so with its four RPM actions near their +5 %
@@ -27,6 +33,15 @@ DEFAULT_ENV = {"leader_follower": {"action_type": "one_d_rpm"},
 #: speeds up to 0.3 rad and 0.3 m/s as well slowed the 1 m climb's learning: 31 and 15 cm short after 3 and 6 M
 #: steps with seed 1.)
 TRAIN_STARTS = {"multi_hover": {"start_ang_vel": 1.0}}
+
+
+def default_env(task: str, env_overrides: dict | None = None) -> dict:
+    """The task settings of a ``jaxdrones train`` run: ``env_overrides`` over `DEFAULT_ENV`'s and, when they ask
+    for camera images, `VISION_ENV`'s."""
+    requested = {**DEFAULT_ENV.get(task, {}), **(env_overrides or {})}
+    if requested.get("vision"):
+        requested = {**VISION_ENV.get(task, {}), **requested}
+    return requested
 
 
 def _eval_program(env, trainer, n_episodes: int, seed: int):
@@ -70,7 +85,8 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     running, and the policy so far, its learning curve and a summary marked ``"interrupted": true`` are saved.
 
     Args:
-        task: a task name (`TRAINABLE`).
+        task: a registered task's name (`jaxdrones.envs.registered`: `TRAINABLE` and those added by
+            `jaxdrones.envs.register`).
         out: output folder (default ``runs/<task>``).
         overwrite: replace an existing ``out``.
         algo: one of `ALGOS` (default `default_algo`).
@@ -110,18 +126,21 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     from jaxdrones.training.evaluation import episode_statistics
     from jaxdrones.training.progress import AGGREGATES, ProgressLog
 
-    if task not in TRAINABLE:
-        raise ValueError(f"train: task must be one of {TRAINABLE}, got {task!r}")
-    requested = {**DEFAULT_ENV.get(task, {}), **(env_overrides or {})}
-    algo = default_algo(task, requested.get("backend", "jax"), bool(requested.get("vision"))) if algo is None else algo
+    from jaxdrones.envs import registered
+
+    if task not in registered():
+        raise ValueError(f"train: task must be one of {registered()} (a task of your own: register it with "
+                         f"jaxdrones.envs.register), got {task!r}")
+    env_overrides = default_env(task, env_overrides)
+    env = make(task, **env_overrides)
+    vision = bool(env.config.vision)
+    algo = default_algo(task, env.config.backend, vision) if algo is None else algo
     trainer = trainers.get(algo)
     if n_eval_episodes < 64:
         raise ValueError(f"n_eval_episodes must be >= 64, got {n_eval_episodes}")
-    config = trainer.default_config(task) if config is None else config
+    config = trainer.default_config(task, vision) if config is None else config
     if type(config) is not trainer.config_cls or getattr(config, "algo", algo) not in (algo, "ippo"):
         raise ValueError(f"train: algo {algo!r} takes a {trainer.config_cls.__name__}, got {config!r}")
-    env_overrides = {**DEFAULT_ENV.get(task, {}), **(env_overrides or {})}
-    env = make(task, **env_overrides)
     if train_env_overrides is None:
         train_env_overrides = TRAIN_STARTS.get(task, {}) if env.action_size > 1 else {}
     train_env_overrides = {k: v for k, v in train_env_overrides.items() if k not in env_overrides}

@@ -16,9 +16,10 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any
 
-#: Single-agent tasks ``jaxdrones train`` trains (default algorithm: `default_algo`).
+#: The built-in single-agent tasks ``jaxdrones train`` trains (default algorithm: `default_algo`); it trains a task
+#: of your own too (`jaxdrones.envs.register`).
 SINGLE_AGENT = ("hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune", "avoid")
-#: Multi-agent tasks ``jaxdrones train`` trains (default algorithm: MAPPO).
+#: The built-in multi-agent tasks ``jaxdrones train`` trains (default algorithm: MAPPO).
 MULTI_AGENT = ("leader_follower", "multi_hover", "flock", "meetup", "crossing")
 TRAINABLE = SINGLE_AGENT + MULTI_AGENT
 
@@ -30,13 +31,14 @@ class Trainer:
     name: str
     description: str
     config_cls: type
-    default_config: Callable[[str], Any]
+    #: (task, vision) → the trainer's config for the task (with camera images if vision).
+    default_config: Callable[[str, bool], Any]
     train: Callable
     make_network: Callable
     make_policy: Callable
 
 
-def _ppo_config(task: str):
+def _ppo_config(task: str, vision: bool = False):
     """Our PPO's settings: a local critic (PPO is MAPPO's independent-critic form at one drone), tuned for the
     fewest seconds to a solved 3-D hover on 2 CPU cores (γ = 0.99 over 32-step unrolls of 512 worlds, 4 epochs of 4
     minibatches, learning rate 3e-3; 1.3 M env steps; see the README's training table)."""
@@ -46,14 +48,14 @@ def _ppo_config(task: str):
                        epochs=4, learning_rate=3e-3, discounting=0.99)
 
 
-def _brax_ppo_config(task: str):
+def _brax_ppo_config(task: str, vision: bool = False):
     from jaxdrones.training.brax_ppo import default_config
 
-    return default_config(task)
+    return default_config(task, vision)
 
 
 def _mappo_config(critic: str):
-    def config(task: str):
+    def config(task: str, vision: bool = False):
         from jaxdrones.training.mappo import MAPPOConfig
 
         return MAPPOConfig(critic=critic)
@@ -61,7 +63,7 @@ def _mappo_config(critic: str):
     return config
 
 
-def _apg_config(task: str):
+def _apg_config(task: str, vision: bool = False):
     """APG's defaults; for hover, the settings that solved it fastest on 2 CPU cores: 0.6 M env steps, a step size
     of 3e-3 decayed to 0 along a half cosine (seeds 0-2 all solved, 1.4-2.5 cm; without the decay 0.8 M steps at
     2e-3 ended 2.2-4.2 cm, and 0.5 M steps with it lost a drone in 0.8 % of the episodes of seed 1)."""
@@ -72,7 +74,7 @@ def _apg_config(task: str):
     return APGConfig()
 
 
-def _shac_config(task: str):
+def _shac_config(task: str, vision: bool = False):
     from jaxdrones.training.shac import SHACConfig
 
     return SHACConfig()
@@ -141,7 +143,9 @@ DEFAULT_ALGO = {"hover": "apg"}
 def default_algo(task: str, backend: str = "jax", vision: bool = False) -> str:
     """``"mappo"`` for a multi-agent task; for a single-agent one `DEFAULT_ALGO`'s (``"brax_ppo"`` if none, on the
     PyBullet backend, which APG cannot differentiate, and with camera images, which brax's vision PPO takes)."""
-    if task in MULTI_AGENT:
+    from jaxdrones.envs import is_multi_agent
+
+    if is_multi_agent(task):
         return "mappo"
     algo = DEFAULT_ALGO.get(task, "brax_ppo")
     return "brax_ppo" if (backend != "jax" or vision) and algo in ("apg", "shac") else algo

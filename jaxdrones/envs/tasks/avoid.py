@@ -107,14 +107,15 @@ class Avoid(Task):
     the goal's y; they are in `TaskParams.scene` (the cameras draw them) and nowhere in the kinematic observation,
     which appends only the offset to the goal (3 entries). A drone whose centre comes within its collision radius
     of an obstacle (`jaxdrones.cameras.distance`) has collided: the episode terminates, as it does when the drone
-    touches the ground, leaves the field (|y| > field_y + 0.5 m) or the arena.
+    touches the ground, leaves the field (|y| > field_y + 0.5 m) or the arena. The episode also ends, at its goal
+    (`reached`, not a crash), when the drone comes within ``goal_radius`` of the goal.
 
     Reward (both ``reward`` settings): ``progress``, the velocity towards the goal (m/s, clipped to ±1), weight 1;
-    ``at_goal``, 1 within ``goal_radius`` of the goal, weight 2; ``crash``, 1 on a collision or any other
+    ``reached``, 1 at the step the goal is reached, weight 10; ``crash``, 1 on a collision or any other
     termination, weight −10.
-    Success metric: ``failure``, 0 when the episode ends within ``goal_radius`` of the goal without a collision,
-    else 1, read at the episode's end; solved when at most 10 % of the evaluation episodes fail (``success_rate``
-    ≥ 0.9 in the evaluation's statistics).
+    Success metric: ``failure``, 0 when the episode ends within ``goal_radius`` of the goal without a collision
+    (it ended there), else 1 (a collision, or the time ran out), read at the episode's end; solved when at most
+    10 % of the evaluation episodes fail (``success_rate`` ≥ 0.9 in the evaluation's statistics).
     """
 
     name = "avoid"
@@ -138,13 +139,10 @@ class Avoid(Task):
         return np.array([[config.goal_x, 0.0, config.flight_z]])
 
     def data(self, config):
-        from jaxdrones.params import load_params
-
-        models = config.model if isinstance(config.model, tuple) else (config.model,)
-        return {"collision_radius": np.array([float(load_params(m).collision_radius) for m in models])}
+        return collision_data(config)
 
     def weights(self, config):
-        return {"progress": 1.0, "at_goal": 2.0, "crash": -10.0}
+        return {"progress": 1.0, "reached": 10.0, "crash": -10.0}
 
     def scene(self, config):
         from jaxdrones.cameras import make_scene
@@ -182,36 +180,53 @@ class Avoid(Task):
         return task.target - sim.pos
 
     def reward_terms(self, config, task, sim, action, steps):
-        to_goal = task.target - sim.pos
         dist = rewards.distance(sim.pos, task.target)
-        heading = to_goal / jnp.maximum(dist, 1e-6)[..., None]
-        progress = jnp.clip(jnp.sum(sim.vel * heading, axis=-1), -1.0, 1.0)
-        crash = self._collided(task, sim) | self._lost(config, task, sim)
-        return {"progress": progress, "at_goal": (dist < config.goal_radius).astype(dist.dtype),
+        crash = collided(task, sim) | self._lost(config, task, sim)
+        return {"progress": progress(sim, task.target), "reached": (dist < config.goal_radius).astype(dist.dtype),
                 "crash": crash.astype(dist.dtype)}
 
     def terminated(self, config, task, sim):
-        return jnp.any(self._collided(task, sim) | self._lost(config, task, sim))
+        return jnp.any(collided(task, sim) | self._lost(config, task, sim))
+
+    def reached(self, config, task, sim):
+        near = rewards.distance(sim.pos, task.target) < config.goal_radius
+        return jnp.all(near) & ~self.terminated(config, task, sim)
 
     def metrics(self, config, task, sim, steps):
         dist = rewards.distance(sim.pos, task.target)
-        collided = jnp.any(self._collided(task, sim))
+        hit = jnp.any(collided(task, sim))
         reached = jnp.all(dist < config.goal_radius)
-        return {"distance": jnp.mean(dist), "collision": collided.astype(dist.dtype),
-                "failure": (collided | ~reached).astype(dist.dtype)}
-
-    @staticmethod
-    def _collided(task, sim: DroneState) -> jax.Array:
-        """bool[D]: the drone's centre is within its collision radius of an obstacle."""
-        from jaxdrones.cameras import distance
-
-        return distance(task.scene, sim.pos) < task.data["collision_radius"]
+        return {"distance": jnp.mean(dist), "collision": hit.astype(dist.dtype),
+                "failure": (hit | ~reached).astype(dist.dtype)}
 
     @staticmethod
     def _lost(config, task, sim: DroneState) -> jax.Array:
         """bool[D]: the drone crashed (`terminations.crashed`) or left the field's sides."""
         side = jnp.abs(sim.pos[..., 1]) > config.field_y + 0.5
         return terminations.crashed(sim, task.bounds, config.terminate_on_ground) | side
+
+
+def collision_data(config) -> dict:
+    """`Task.data` of a task that detects collisions with its scene: each drone's collision radius (the URDF's),
+    ``collision_radius`` f[D] m."""
+    from jaxdrones.params import load_params
+
+    models = config.model if isinstance(config.model, tuple) else (config.model,)
+    return {"collision_radius": np.array([float(load_params(m).collision_radius) for m in models])}
+
+
+def collided(task, sim: DroneState) -> jax.Array:
+    """bool[D]: the drone's centre is within its collision radius of an obstacle of ``task.scene``
+    (`jaxdrones.cameras.distance`; ``task.data["collision_radius"]``, `collision_data`)."""
+    from jaxdrones.cameras import distance
+
+    return distance(task.scene, sim.pos) < task.data["collision_radius"]
+
+
+def progress(sim: DroneState, target: jax.Array) -> jax.Array:
+    """f[D]: the velocity towards ``target`` f[D, 3] (m/s, clipped to ±1), a reward for closing in."""
+    heading = (target - sim.pos) / jnp.maximum(rewards.distance(sim.pos, target), 1e-6)[..., None]
+    return jnp.clip(jnp.sum(sim.vel * heading, axis=-1), -1.0, 1.0)
 
 
 def _between(bounds: tuple[float, float], u: jax.Array) -> jax.Array:

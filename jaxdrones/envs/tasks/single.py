@@ -407,9 +407,15 @@ class Tune(Waypoints):
 # ---------------------------------------------------------------------------------------------------------------
 
 #: The paper's gate (FlyThruGateAviary): at y = −1 m, two 0.05 m columns 0.5 m tall at x = ±0.3 m and a
-#: 0.8 × 0.05 × 0.05 m architrave at z = 0.55 m, on the ground.
+#: 0.8 × 0.05 × 0.05 m architrave at z = 0.55 m, on the ground: its boxes as (centre, size) in the gate's frame
+#: (origin on the ground below the architrave's centre, x along it, y across the gate).
 GATE_Y = -1.0
 GATE_COLUMN_X = 0.3
+GATE_PARTS = (((-GATE_COLUMN_X, 0.0, 0.245), (0.05, 0.05, 0.5)), ((GATE_COLUMN_X, 0.0, 0.245), (0.05, 0.05, 0.5)),
+              ((0.0, 0.0, 0.55), (0.8, 0.05, 0.05)))
+#: The gate's opening in its frame: |x| < 0.275 m between the columns, below z = 0.525 m (the architrave).
+GATE_OPENING_HALF_X = GATE_COLUMN_X - 0.025
+GATE_OPENING_TOP = 0.525
 #: The gate's reference: a point moving from (0, 0, 0.75) to (0, −2, 0.75) m over the episode.
 GATE_REF_Z = 0.75
 GATE_REF_DY = -2.0
@@ -420,22 +426,58 @@ def gate_obstacles() -> tuple:
     from jaxdrones.backends.scene import Obstacle
 
     colour = (0.6, 0.6, 0.6, 1.0)
-    columns = tuple(Obstacle("box", size=(0.05, 0.05, 0.5), pos=(x, GATE_Y, 0.245), rgba=colour)
-                    for x in (-GATE_COLUMN_X, GATE_COLUMN_X))
-    return columns + (Obstacle("box", size=(0.8, 0.05, 0.05), pos=(0.0, GATE_Y, 0.55), rgba=colour),)
+    return tuple(Obstacle("box", size=size, pos=(x, GATE_Y + y, z), rgba=colour) for (x, y, z), size in GATE_PARTS)
 
 
 @dataclasses.dataclass(frozen=True)
 class GateConfig(TaskConfig):
-    """Settings of `FlyThruGate`. On the PyBullet backend, and with ``vision`` on the JAX backend (the cameras see
-    it), ``obstacles`` defaults to the gate (`gate_obstacles`)."""
+    """Settings of `FlyThruGate`.
+
+    Attributes:
+        gate_pose: ``"fixed"``, the paper's gate at y = −1 m, a reference to follow through it (`FlyThruGate`);
+            ``"random"``, the gate drawn per episode ahead of the drone and seen only through its camera, with no
+            reference (`jaxdrones.envs.tasks.gate.GatePass`; JAX backend).
+        gate_distance: ``"random"``: (low, high) of the gate's distance ahead of the start (along +x), m.
+        gate_offset: ``"random"``: the gate's centre within ±gate_offset m across (y).
+        gate_yaw: ``"random"``: the gate's yaw within ±gate_yaw rad.
+
+    With ``"fixed"``, on the PyBullet backend and with ``vision`` on the JAX backend (the cameras see it),
+    ``obstacles`` defaults to the gate (`gate_obstacles`).
+
+    Raises:
+        ValueError: an unknown ``gate_pose``, a range out of order or negative, or ``"random"`` with
+            ``backend="pybullet"`` or with ``obstacles``.
+    """
 
     arena_xy: float = 3.0
+    gate_pose: str = "fixed"
+    gate_distance: tuple[float, float] = (1.5, 2.5)
+    gate_offset: float = 0.4
+    gate_yaw: float = 0.5
 
     def __post_init__(self):
-        if (self.backend == "pybullet" or self.vision) and self.obstacles is None:
+        if self.gate_pose not in GATE_POSES:
+            raise ValueError(f"fly_thru_gate: gate_pose must be one of {GATE_POSES}, got {self.gate_pose!r}")
+        lo, hi = (float(v) for v in self.gate_distance)
+        if not (math.isfinite(hi) and 1.0 <= lo <= hi):
+            raise ValueError(f"fly_thru_gate: gate_distance must be (low, high) m with 1 <= low <= high, got "
+                             f"{self.gate_distance!r}")
+        object.__setattr__(self, "gate_distance", (lo, hi))
+        for name in ("gate_offset", "gate_yaw"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"fly_thru_gate: {name} must be a finite number >= 0, got {value!r}")
+        if self.gate_pose == "random":
+            if self.backend != "jax" or self.obstacles is not None:
+                raise ValueError("fly_thru_gate: gate_pose='random' draws the gate per episode in the task params: "
+                                 "backend='jax' and no obstacles")
+        elif (self.backend == "pybullet" or self.vision) and self.obstacles is None:
             object.__setattr__(self, "obstacles", gate_obstacles())
         super().__post_init__()
+
+
+#: The values of `GateConfig.gate_pose`.
+GATE_POSES = ("fixed", "random")
 
 
 class FlyThruGate(ReferenceTask):
@@ -443,7 +485,8 @@ class FlyThruGate(ReferenceTask):
     (0, −2, 0.75) m over the episode, through the gate at y = −1 m.
 
     On the JAX backend the gate is only the reference; on the PyBullet backend its columns and architrave are
-    obstacles (contacts reported in ``state.sim.contact``). The observation appends the offset to the reference
+    obstacles (contacts reported in ``state.sim.contact``). With ``gate_pose="random"`` the env runs
+    `jaxdrones.envs.tasks.gate.GatePass` instead (the gate drawn per episode, seen only through the camera). The observation appends the offset to the reference
     point and its velocity (6 entries). Starts: the paper's default start (0, 0, 0.1125) m, within ±0.05 m in x and
     y, any yaw.
     Reward ``"shaped"``: as `Hover`'s, towards the moving reference; ``"paper"``: −10 ‖p* − p‖².
@@ -454,6 +497,13 @@ class FlyThruGate(ReferenceTask):
     config_cls = GateConfig
     success_at = "mean"
     success_threshold = 0.1
+
+    def variant(self, config):
+        if config.gate_pose == "random":
+            from jaxdrones.envs.tasks.gate import GATE_PASS
+
+            return GATE_PASS
+        return self
 
     def start_defaults(self, config):
         return dict(pos=[[0.0, 0.0, DEFAULT_START_Z]], pos_range=(0.05, 0.05, 0.0), tilt=0.0, yaw=math.pi,
