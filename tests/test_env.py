@@ -416,6 +416,8 @@ def test_brax_rejects_randomization_fn():
     ("tune", {"action_type": "rpm"}, "tune: action_type must be 'tun'"),
     ("hover", {"start_tilt": -1.0}, "start_tilt"),
     ("hover", {"episode_len_s": 0.0}, "episode_len_s"),
+    ("hover", {"action_type": "pid", "pid_target": "relative", "pid_scale": 0.0}, r"pid_scale .* \(0, 1.0\]"),
+    ("hover", {"pid_scale": "far"}, "pid_scale"),
 ])
 def test_make_bad_input(name, overrides, message):
     with pytest.raises(ValueError, match=message):
@@ -467,6 +469,7 @@ def _pid_case(action_type, action, pos=(0.2, -0.1, 0.8), **options):
     ("pid", [0.5, 0.3, 0.9], (0.2, -0.1, 0.8), [0.5, 0.3, 0.9], {}),  # within 1 m: the target itself
     ("pid", [-1.0, 0.0, 1.0], (2.0, 0.0, 1.0), [1.0, 0.0, 1.0], {}),  # 3 m away: 1 m towards it
     ("pid", [0.5, -1.0, 1.0], (0.2, -0.1, 0.8), [0.25, -0.2, 0.9], {"pid_target": "relative"}),  # pos + 0.1 a
+    ("pid", [0.5, -1.0, 1.0], (0.2, -0.1, 0.8), [0.35, -0.4, 1.1], {"pid_target": "relative", "pid_scale": 0.3}),
     ("one_d_pid", [0.6], (0.2, -0.1, 0.8), [0.2, -0.1, 0.86], {}),  # pos + (0, 0, 0.1 a)
 ])
 def test_pid_actions_follow_the_original_target_rules(action_type, action, pos, target, options):

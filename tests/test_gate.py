@@ -14,8 +14,12 @@ from jaxdrones.envs.tasks.single import GATE_OPENING_HALF_X
 
 @pytest.fixture(scope="module")
 def env():
-    return jd.make("fly_thru_gate", gate_pose="random", vision=("depth",), camera_freq=15.0, action_type="pid",
-                   pid_target="relative", episode_len_s=10.0)
+    """The env ``jaxdrones train fly_thru_gate --vision depth`` trains in."""
+    from jaxdrones.training.run import default_env
+
+    env = jd.make("fly_thru_gate", **default_env("fly_thru_gate", {"vision": ("depth",)}))
+    assert env.config.gate_pose == "random" and env.config.image_size == (64, 48)
+    return env
 
 
 def at(state, local):

@@ -11,7 +11,7 @@ name               size  mapping (source)
 ``rpm``            4     rpm_i = hover_rpm · (1 + 0.05 a_i)  (gym-pybullet-drones RPM)
 ``one_d_rpm``      1     the same value for all four motors  (ONE_D_RPM)
 ``pid``            3     DSL PID to an absolute target a (m), at most 1 m from the drone per step (main's PID);
-                         ``pid_target="relative"``: target = pos + 0.1 a (the paper's PID)
+                         ``pid_target="relative"``: target = pos + 0.1 a (the paper's PID; ``pid_scale``)
 ``one_d_pid``      1     DSL PID to pos + (0, 0, 0.1 a)  (ONE_D_PID)
 ``vel``            4     DSL PID with target velocity speed_limit·|a_3|·unit(a_0:3), target pos = pos, target yaw
                          = current yaw  (VEL; 0.25 m/s for the Crazyflies)
@@ -31,6 +31,7 @@ types use the airframe's own mixer (the original's RL envs always build the cf2x
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
@@ -77,11 +78,14 @@ class ActionType:
         name: the registered name (`ACTION_TYPES`).
         size: action entries per drone.
         pid_target: ``"absolute"`` or ``"relative"``, for ``pid`` only (see `PID_TARGETS`).
+        pid_scale: ``pid`` with relative targets: target = pos + pid_scale · a, m (default the paper's
+            `PID_RELATIVE_SCALE`).
     """
 
     name: str
     size: int
     pid_target: str = "absolute"
+    pid_scale: float = PID_RELATIVE_SCALE
 
     @property
     def low(self) -> np.ndarray:
@@ -96,7 +100,7 @@ class ActionType:
     @property
     def uses_pid(self) -> bool:
         """Whether the mapping runs the DSL PID (whose state is the carry)."""
-        return self.name in ("pid", "one_d_pid", "vel", "tun")
+        return _TABLE[self.name].uses_pid
 
     def init(self, params: DroneParams, sim: DroneState) -> Any:
         """The carry at reset: a zeroed `PIDState` f[..., D, 3] for the PID-based types, else ``()``."""
@@ -117,7 +121,7 @@ class ActionType:
         Returns:
             (rpm f[..., D, 4] in RPM, new carry).
         """
-        return _MAPPINGS[self.name](self, params, sim, carry, action, ref, ctrl_dt)
+        return _TABLE[self.name].to_rpm(self, params, sim, carry, action, ref, ctrl_dt)
 
 
 def _hover_rpm(params: DroneParams, action: jax.Array) -> jax.Array:
@@ -135,7 +139,7 @@ def _pid_to(params, sim, carry, target_pos, ctrl_dt, gains=None, **targets):
 
 def _pid(kind, params, sim, carry, action, ref, ctrl_dt):
     if kind.pid_target == "relative":
-        target = sim.pos + PID_RELATIVE_SCALE * action
+        target = sim.pos + kind.pid_scale * action
     else:  # move towards the absolute target by at most PID_MAX_STEP (main's _calculateNextStep)
         delta = action - sim.pos
         dist2 = jnp.sum(delta**2, axis=-1, keepdims=True)
@@ -187,23 +191,31 @@ def _ctbr(kind, params, sim, carry, action, ref, ctrl_dt):
     return body_rate_control(params, sim.ang_vel, CTBR_MAX_RATE * action[..., 1:], thrust), carry
 
 
-_MAPPINGS = {"rpm": _rpm, "one_d_rpm": _rpm, "pid": _pid, "one_d_pid": _one_d_pid, "vel": _vel,
-             "thrust_torque": _thrust_torque, "one_d_thrust": _one_d_thrust, "tun": _tun, "ctbr": _ctbr}
+class _Entry(NamedTuple):
+    size: int  # action entries per drone
+    uses_pid: bool  # the mapping runs the DSL PID, whose state is the carry
+    to_rpm: Callable  # (ActionType, params, sim, carry, action, ref, ctrl_dt) -> (rpm, carry)
+
+
+#: Every action type (see the module docstring): its size, whether it runs the PID, its mapping.
+_TABLE = {"rpm": _Entry(4, False, _rpm), "one_d_rpm": _Entry(1, False, _rpm), "pid": _Entry(3, True, _pid),
+          "one_d_pid": _Entry(1, True, _one_d_pid), "vel": _Entry(4, True, _vel),
+          "thrust_torque": _Entry(4, False, _thrust_torque), "one_d_thrust": _Entry(1, False, _one_d_thrust),
+          "tun": _Entry(6, True, _tun), "ctbr": _Entry(4, False, _ctbr)}
 #: Action entries per drone of every action type.
-ACTION_SIZES = {"rpm": 4, "one_d_rpm": 1, "pid": 3, "one_d_pid": 1, "vel": 4, "thrust_torque": 4,
-                "one_d_thrust": 1, "tun": 6, "ctbr": 4}
+ACTION_SIZES = {name: entry.size for name, entry in _TABLE.items()}
 #: The registered action type names.
 ACTION_TYPES = tuple(ACTION_SIZES)
 
 
-def make_action(name: str, pid_target: str = "absolute") -> ActionType:
-    """The `ActionType` called ``name``.
+def make_action(name: str, pid_target: str = "absolute", pid_scale: float = PID_RELATIVE_SCALE) -> ActionType:
+    """The `ActionType` called ``name`` (``pid_target`` and ``pid_scale``: see `ActionType`).
 
     Raises:
-        ValueError: unknown name or ``pid_target``.
+        ValueError: unknown name or ``pid_target`` (``pid_scale`` is checked by `TaskConfig`).
     """
     if name not in ACTION_SIZES:
         raise ValueError(f"unknown action_type {name!r}: expected one of {ACTION_TYPES}")
     if pid_target not in PID_TARGETS:
         raise ValueError(f"pid_target must be one of {PID_TARGETS}, got {pid_target!r}")
-    return ActionType(name, ACTION_SIZES[name], pid_target)
+    return ActionType(name, ACTION_SIZES[name], pid_target, float(pid_scale))

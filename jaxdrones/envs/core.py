@@ -30,7 +30,7 @@ from flax import struct
 from jaxdrones._fork import check_not_forked
 from jaxdrones.backends import BACKENDS, RENDERERS
 from jaxdrones.envs import rewards, terminations
-from jaxdrones.envs.actions import ACTION_TYPES, PID_TARGETS, Reference, make_action
+from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS, Reference, make_action
 from jaxdrones.envs.base import Env, EnvState
 from jaxdrones.envs.observations import OBS_TYPES, ObsType
 from jaxdrones.params import MODELS, DroneParams, broadcast_params, load_params, stack_params, with_derived
@@ -168,6 +168,8 @@ class TaskConfig:
             steps); ``"kin"`` is the paper's.
         action_buffer: append the last ``ctrl_freq // 2`` actions to the observation (the original's KIN).
         pid_target: ``pid`` action: ``"absolute"`` (main) or ``"relative"`` (the paper).
+        pid_scale: ``pid`` with relative targets: target = pos + pid_scale · a, m, in (0, 1]; the paper's 0.1 m,
+            which the DSL PID flies at up to about 0.5 m/s (0.3 m: about 1 m/s).
         sim_freq: physics rate, Hz.
         ctrl_freq: control (env step) rate, Hz.
         episode_len_s: episode length, s.
@@ -220,6 +222,7 @@ class TaskConfig:
     obs_type: str = "kin_rotmat"
     action_buffer: bool = False
     pid_target: str = "absolute"
+    pid_scale: float = 0.1
     sim_freq: int = 240
     ctrl_freq: int = 30
     episode_len_s: float = 5.0
@@ -256,6 +259,8 @@ class TaskConfig:
         _check_choice("obs_type", self.obs_type, OBS_TYPES)
         _check_choice("reward", self.reward, REWARDS)
         _check_choice("pid_target", self.pid_target, PID_TARGETS)
+        if not (_is_number(self.pid_scale) and 0.0 < self.pid_scale <= PID_MAX_STEP):
+            raise ValueError(f"pid_scale must be a distance in m in (0, {PID_MAX_STEP}], got {self.pid_scale!r}")
         n = self.n_drones
         if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
             raise ValueError(f"n_drones must be a positive integer, got {n!r}")
@@ -561,7 +566,7 @@ class TaskEnv(Env):
         model = config.model
         params = stack_params(model) if isinstance(model, tuple) else load_params(model)
         self.params = broadcast_params(params, (config.n_drones,))
-        self.action_type = make_action(config.action_type, config.pid_target)
+        self.action_type = make_action(config.action_type, config.pid_target, config.pid_scale)
         self.obs_type = ObsType(config.obs_type, config.n_drones, config.neighbor_radius,
                                 config.ctrl_freq // 2 if config.action_buffer else 0, self.action_type.size,
                                 config.max_neighbors)

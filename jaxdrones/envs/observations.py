@@ -31,6 +31,8 @@ task reaches before it terminates; the unclipped state is ``EnvState.sim``.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -46,7 +48,7 @@ VEL_BOUND = 30.0
 ANG_VEL_BOUND = 200.0
 #: The paper's normalisation limits (HoverAviary._clipAndNormalizeState): xy m, z m, vxy m/s, vz m/s.
 NORM_XY, NORM_Z, NORM_VXY, NORM_VZ = 15.0, 5.0, 3.0, 1.0
-#: The registered observation type names.
+#: The registered observation type names (`_LAYOUTS`' keys).
 OBS_TYPES = ("kin", "kin_norm", "kin_rotmat", "neighbors")
 
 
@@ -170,26 +172,11 @@ class ObsType:
     @property
     def size(self) -> int:
         """Entries per drone."""
-        n, k = self.n_drones, self.n_nearest
-        neighbors = n + 3 * (n - 1) if k is None else 4 * k
-        extra = {"neighbors": neighbors, "kin_rotmat": 9}.get(self.name, 0)
-        return 12 + extra + self.buffer_len * self.action_size
+        return _LAYOUTS[self.name].size(self) + self.buffer_len * self.action_size
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(low, high), each f32[D, size]: the observation box."""
-        if self.name == "kin_norm":
-            low, high = -np.ones(12, np.float32), np.ones(12, np.float32)
-            low[2] = 0.0
-        else:
-            low, high = _kin_bounds()
-        if self.name == "kin_rotmat":
-            low, high = np.concatenate([low, -np.ones(9, np.float32)]), np.concatenate([high, np.ones(9, np.float32)])
-        if self.name == "neighbors":
-            n, k = self.n_drones, self.n_nearest
-            flags, others = (n, n - 1) if k is None else (k, k)
-            rel = np.full(3 * others, POS_BOUND, np.float32)
-            low = np.concatenate([low, np.zeros(flags, np.float32), -rel])
-            high = np.concatenate([high, np.ones(flags, np.float32), rel])
+        low, high = _LAYOUTS[self.name].bounds(self)
         ones = np.ones(self.buffer_len * self.action_size, np.float32)
         low, high = np.concatenate([low, -ones]), np.concatenate([high, ones])
         return np.tile(low, (self.n_drones, 1)), np.tile(high, (self.n_drones, 1))
@@ -199,23 +186,63 @@ class ObsType:
 
         Clipped to `bounds` (see the module docstring).
         """
-        if self.name == "kin_norm":
-            parts = [kin_normalized(sim)]
-        else:
-            parts = [kinematic_obs(sim)]
-            if self.name == "kin_rotmat":
-                parts.append(quat_to_rotmat(sim.quat).reshape(sim.quat.shape[:-1] + (9,)))
-            if self.name == "neighbors" and self.n_nearest is None:
-                adj = adjacency(sim.pos, self.neighbor_radius)
-                parts += [adj, relative_positions(sim.pos, adj)]
-            elif self.name == "neighbors":
-                parts += list(nearest_neighbors(sim.pos, self.neighbor_radius, self.n_nearest))
+        parts = _LAYOUTS[self.name].observe(self, sim)
         if self.buffer_len:
             parts.append(buffer.reshape(buffer.shape[:-2] + (-1,)))
         obs = jnp.concatenate(parts, axis=-1)
         low, high = self.bounds()
         return jnp.clip(obs, low.astype(obs.dtype), high.astype(obs.dtype))
 
+
+def _norm_bounds(obs_type: ObsType) -> tuple[np.ndarray, np.ndarray]:
+    low, high = -np.ones(12, np.float32), np.ones(12, np.float32)
+    low[2] = 0.0
+    return low, high
+
+
+def _rotmat_bounds(obs_type: ObsType) -> tuple[np.ndarray, np.ndarray]:
+    low, high = _kin_bounds()
+    return np.concatenate([low, -np.ones(9, np.float32)]), np.concatenate([high, np.ones(9, np.float32)])
+
+
+def _rotmat_obs(obs_type: ObsType, sim: DroneState) -> list:
+    return [kinematic_obs(sim), quat_to_rotmat(sim.quat).reshape(sim.quat.shape[:-1] + (9,))]
+
+
+def _neighbors_size(obs_type: ObsType) -> int:
+    n, k = obs_type.n_drones, obs_type.n_nearest
+    return 12 + (n + 3 * (n - 1) if k is None else 4 * k)
+
+
+def _neighbors_bounds(obs_type: ObsType) -> tuple[np.ndarray, np.ndarray]:
+    low, high = _kin_bounds()
+    n, k = obs_type.n_drones, obs_type.n_nearest
+    flags, others = (n, n - 1) if k is None else (k, k)
+    rel = np.full(3 * others, POS_BOUND, np.float32)
+    return (np.concatenate([low, np.zeros(flags, np.float32), -rel]),
+            np.concatenate([high, np.ones(flags, np.float32), rel]))
+
+
+def _neighbors_obs(obs_type: ObsType, sim: DroneState) -> list:
+    if obs_type.n_nearest is None:
+        adj = adjacency(sim.pos, obs_type.neighbor_radius)
+        return [kinematic_obs(sim), adj, relative_positions(sim.pos, adj)]
+    return [kinematic_obs(sim), *nearest_neighbors(sim.pos, obs_type.neighbor_radius, obs_type.n_nearest)]
+
+
+class _Layout(NamedTuple):
+    size: Callable  # ObsType -> entries per drone before the action buffer
+    bounds: Callable  # ObsType -> (low, high) f32[size]
+    observe: Callable  # (ObsType, DroneState) -> the parts f[..., D, *] to concatenate
+
+
+#: Every observation type (see the module docstring): its size, its box and its parts.
+_LAYOUTS = {
+    "kin": _Layout(lambda o: 12, lambda o: _kin_bounds(), lambda o, sim: [kinematic_obs(sim)]),
+    "kin_norm": _Layout(lambda o: 12, _norm_bounds, lambda o, sim: [kin_normalized(sim)]),
+    "kin_rotmat": _Layout(lambda o: 21, _rotmat_bounds, _rotmat_obs),
+    "neighbors": _Layout(_neighbors_size, _neighbors_bounds, _neighbors_obs),
+}
 
 #: Depth in a policy's image input: metres / DEPTH_SCALE, clipped to [0, 1] (nearer than 5 m is what a drone at a
 #: few m/s must see; beyond, one value).

@@ -20,9 +20,9 @@ DEFAULT_ENV = {"leader_follower": {"action_type": "one_d_rpm"},
 #: What ``jaxdrones train`` adds to `DEFAULT_ENV` when a run asks for camera images: ``fly_thru_gate`` with
 #: ``--vision`` flies through a gate drawn per episode (`jaxdrones.envs.tasks.gate.GatePass`) with ``avoid``'s
 #: actions and camera rate, on the paper's 64 × 48 images (at 32 × 24 the gate's 5 cm columns and architrave fall
-#: between the pixels' rays from 2 m); its flights through take about 7 s.
+#: between the pixels' rays from 2 m).
 VISION_ENV = {"fly_thru_gate": {"gate_pose": "random", "action_type": "pid", "pid_target": "relative",
-                                "camera_freq": 15.0, "episode_len_s": 10.0}}
+                                "pid_scale": 0.3, "camera_freq": 15.0, "episode_len_s": 6.0}}
 #: Random starts ``jaxdrones train`` trains from in place of the task's own, for the fields a run does not set and
 #: actions of more than one entry (a 1-D action cannot level a drone); the evaluation and the saved policy's env keep
 #: the task's starts. In ``multi_hover`` the drone that climbs 1 m does so with its four RPM actions near their +5 %

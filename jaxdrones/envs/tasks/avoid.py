@@ -43,8 +43,9 @@ class AvoidConfig(TaskConfig):
         start_y: half-width of the start's y, m (the start is at x = 0, facing +x).
 
     The defaults: 12 cylinders and 4 boxes (16 primitives) over 2.2 × 3 m, the goal 3.8 m ahead, ``pid`` actions
-    with relative targets (the paper's PID action: a target up to 0.1 m away per axis, which the DSL PID flies at
-    0.3-0.5 m/s), the depth camera at 15 Hz of a 30 Hz control, episodes of 12 s.
+    with relative targets up to 0.3 m away per axis (``pid_scale``; the DSL PID flies them at up to 1 m/s, the goal
+    4.7 s away in a straight line; at the paper's 0.1 m, 0.5 m/s and 10.6 s of the 12), the depth camera at 15 Hz
+    of a 30 Hz control, episodes of 12 s.
 
     Raises:
         ValueError: a count that is not a non-negative integer, a range out of order, the field overlapping the
@@ -65,6 +66,7 @@ class AvoidConfig(TaskConfig):
     start_y: float = 0.5
     action_type: str = "pid"
     pid_target: str = "relative"
+    pid_scale: float = 0.3
     vision: tuple[str, ...] = ("depth",)
     camera_freq: float = 15.0
     episode_len_s: float = 12.0
