@@ -76,6 +76,36 @@ SHAPES = ("box", "sphere", "cylinder", "capsule")
 IMAGE_KINDS = ("rgb", "depth", "seg")
 
 
+@dataclasses.dataclass(frozen=True)
+class ImageKind:
+    """How an env (either backend) and the PyBullet backend's `camera_images` hold one kind of camera image.
+
+    Attributes:
+        dtype: the pixels' dtype.
+        channels: the per-pixel shape (RGBA for rgb, as Bullet's; none for depth and seg).
+        blank: a pixel of a drone whose pose is not finite (nothing rendered).
+        low, high: the pixels' range (gymnasium's Box).
+    """
+
+    dtype: type
+    channels: tuple[int, ...]
+    blank: float
+    low: float
+    high: float
+
+
+#: The camera images of the envs' observations and of the PyBullet backend, by name (see `TaskConfig.vision`).
+ENV_IMAGES = {"rgb": ImageKind(np.uint8, (4,), 0, 0, 255),
+              "depth": ImageKind(np.float32, (), np.nan, 0.0, np.inf),  # m along the optical axis
+              "seg": ImageKind(np.int32, (), -1, -1, np.iinfo(np.int32).max)}  # body ids, -1: nothing seen
+
+
+def image_shapes(lead: tuple[int, ...], width: int, height: int, kinds=tuple(ENV_IMAGES)) -> dict:
+    """``{kind: jax.ShapeDtypeStruct(lead + (height, width) + channels, dtype)}`` of `ENV_IMAGES`' ``kinds``."""
+    return {k: jax.ShapeDtypeStruct(tuple(lead) + (height, width) + ENV_IMAGES[k].channels, ENV_IMAGES[k].dtype)
+            for k in kinds}
+
+
 # --------------------------------------------------------------------------------------------- the camera spec
 def check_image_size(width, height) -> tuple[int, int]:
     """Width and height as positive ints (pixels), or ValueError."""

@@ -19,7 +19,7 @@ from jaxdrones.training.evaluation import episode_outcomes, episode_statistics, 
 
 
 def _reference(env, steps):
-    ref = env.task.reference(env.default_task_params(), jnp.asarray(steps), env.config)
+    ref = env.task.reference(env.config, env.default_task_params(), jnp.asarray(steps))
     return np.asarray(ref.pos), np.asarray(ref.vel)
 
 
@@ -73,7 +73,7 @@ def test_reference_of_a_flight_under_vmap():
     """As the training flight plot computes it: vmapped over the steps, f[T, D, 3]."""
     env = jd.make("crossing")
     task = env.reset(jax.random.key(0)).task
-    ref = jax.vmap(lambda s: env.task.reference(task, s, env.config))(np.arange(env.episode_length + 1))
+    ref = jax.vmap(lambda s: env.task.reference(env.config, task, s))(np.arange(env.episode_length + 1))
     assert ref.pos.shape == ref.vel.shape == (env.episode_length + 1, 2, 3)
     np.testing.assert_allclose(ref.pos[-1], ref.pos[0], atol=1e-5)  # one full 5 s period
 

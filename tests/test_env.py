@@ -459,7 +459,7 @@ def _pid_case(action_type, action, pos=(0.2, -0.1, 0.8), **options):
     s = env.reset(jax.random.key(0))
     s = s.replace(sim=s.sim.replace(vel=jnp.asarray([[0.1, 0.2, -0.1]], jnp.float32)))
     action = jnp.asarray([action], jnp.float32)
-    ref = env.task.reference(s.task, s.steps, env.config)
+    ref = env.task.reference(env.config, s.task, s.steps)
     rpm, carry = env.action_type.to_rpm(s.params, s.sim, s.ctrl, action, ref, 1 / 30)
     assert isinstance(ref, Reference)
     return env, s, rpm, carry

@@ -38,6 +38,7 @@ except ImportError:  # gymnasium < 1.1, where `GymnasiumVectorEnv` refuses to ru
     _NEXT_STEP = "next_step"
 
 from jaxdrones._fork import check_not_forked
+from jaxdrones.cameras import ENV_IMAGES
 from jaxdrones.envs.base import Env, world_axes
 from jaxdrones.wrappers.autoreset import reset_where
 
@@ -96,11 +97,8 @@ def spaces(env: Env) -> tuple[gym.Space, gym.Space]:
 
 
 def _image_box(name: str, shape) -> gym.spaces.Box:
-    if name == "rgb":
-        return gym.spaces.Box(0, 255, shape, np.uint8)
-    if name == "seg":  # Bullet body ids, -1 where nothing is seen
-        return gym.spaces.Box(-1, np.iinfo(np.int32).max, shape, np.int32)
-    return gym.spaces.Box(0.0, np.inf, shape, np.float32)  # depth, m along the optical axis
+    kind = ENV_IMAGES[name]  # rgb 0-255, depth in m along the optical axis, seg body ids (-1: nothing seen)
+    return gym.spaces.Box(kind.low, kind.high, shape, kind.dtype)
 
 
 def _to_numpy(obs, space: gym.Space, squeeze: bool):

@@ -47,11 +47,10 @@ import math
 import numbers
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pybullet
 
-from jaxdrones.cameras import EYE_MARGIN, check_camera_args, check_image_size
+from jaxdrones.cameras import ENV_IMAGES, EYE_MARGIN, check_camera_args, check_image_size, image_shapes
 from jaxdrones.cameras import real as _real
 from jaxdrones.params import DroneParams, broadcast_params, pack_params
 from jaxdrones.checks import check_params_batch, check_state_shape
@@ -167,12 +166,6 @@ def camera_images(step, params: DroneParams, state: DroneState, *, width: int = 
     return _host_images(step, step.host_params(params, state.pos), pos, quat, settings)
 
 
-def _image_shapes(lead: tuple[int, ...], width: int, height: int) -> dict:
-    return {"rgb": jax.ShapeDtypeStruct(lead + (height, width, 4), jnp.uint8),
-            "depth": jax.ShapeDtypeStruct(lead + (height, width), jnp.float32),
-            "seg": jax.ShapeDtypeStruct(lead + (height, width), jnp.int32)}
-
-
 def _traced_images(step, params: DroneParams, state: DroneState, lead: tuple[int, ...], settings) -> dict:
     """`camera_images` inside jit/vmap/scan: a host callback; drones with a non-finite pose read nothing there."""
     packed_params, unpack_params = pack_params(broadcast_params(params, lead), lead)
@@ -181,7 +174,7 @@ def _traced_images(step, params: DroneParams, state: DroneState, lead: tuple[int
         host = step.host_params(unpack_params(packed_params), pos, by_value=True)
         return _host_images(step, host, np.asarray(pos, np.float64), np.asarray(quat, np.float64), settings)
 
-    return jax.pure_callback(callback, _image_shapes(lead, settings[0], settings[1]), packed_params, state.pos,
+    return jax.pure_callback(callback, image_shapes(lead, settings[0], settings[1]), packed_params, state.pos,
                              state.quat, vmap_method="broadcast_all")
 
 
@@ -202,9 +195,8 @@ def _host_images(step, host: dict, pos: np.ndarray, quat: np.ndarray, settings) 
     views = onboard_view_matrices(np.where(ok[..., None], pos, 0.0), np.where(ok[..., None], quat, 1.0),
                                   arrays["collision_radius"] + EYE_MARGIN).tolist()
     projections = projection_matrix(fov, width / height, near_d, far).tolist()
-    rgb = np.zeros((n_worlds, n_drones, height, width, 4), np.uint8)
-    zbuf = np.full((n_worlds, n_drones, height, width), np.nan, np.float32)
-    seg = np.full((n_worlds, n_drones, height, width), -1, np.int32)
+    rgb, zbuf, seg = (np.full(s.shape, ENV_IMAGES[k].blank, s.dtype)
+                      for k, s in image_shapes((n_worlds, n_drones), width, height).items())
     step._ensure_worlds(n_worlds, host)
     renderer = _BULLET_RENDERER[step.renderer]
     pos_l, quat_l, ok_l = pos.tolist(), quat.tolist(), ok.tolist()
@@ -287,3 +279,36 @@ def render(step, params: DroneParams, state: DroneState, *, world: int = 0, widt
         width, height, viewMatrix=view, projectionMatrix=projection, renderer=_BULLET_RENDERER[step.renderer],
         shadow=0, flags=pybullet.ER_NO_SEGMENTATION_MASK, physicsClientId=client)
     return np.ascontiguousarray(np.reshape(pixels, (height, width, 4))[:, :, :3], dtype=np.uint8)
+
+
+def held_images(step, params: DroneParams, sim: DroneState, due: jax.Array, held: dict, width: int,
+                height: int) -> dict:
+    """One world's camera images on the PyBullet backend, as an env holds them (`jaxdrones.envs.core.TaskEnv`):
+    `camera_images` if the render is ``due`` (bool[]), else ``held`` (the last images, [D, H, W(, 4)]), in one host
+    callback. Under ``vmap`` (where `jax.lax.cond` runs both branches) only the due worlds are rendered, and a world
+    whose pose is not finite reads the blank images of `ENV_IMAGES` (rgb 0, depth NaN, seg -1)."""
+    spec = image_shapes(np.shape(sim.pos)[:-1], width, height, tuple(held))
+
+    def render(params, sim, due, held):
+        lead = np.shape(due)
+
+        def flat(x):
+            x = np.asarray(x)
+            return x.reshape((-1,) + x.shape[len(lead):])
+
+        out = {k: flat(v).copy() for k, v in held.items()}
+        pos, quat = flat(sim.pos), flat(sim.quat)
+        finite = (np.all(np.isfinite(pos), axis=(-2, -1)) & np.all(np.isfinite(quat), axis=(-2, -1))
+                  & np.all(np.sum(quat * quat, -1) > 0, axis=-1))
+        due = flat(due)
+        for k in out:
+            out[k][due & ~finite] = ENV_IMAGES[k].blank
+        index = np.flatnonzero(due & finite)
+        if index.size:
+            images = step.camera_images(jax.tree.map(lambda x: flat(x)[index], params),
+                                        jax.tree.map(lambda x: flat(x)[index], sim), width=width, height=height)
+            for k in out:
+                out[k][index] = images[k]
+        return {k: v.reshape(lead + spec[k].shape) for k, v in out.items()}
+
+    return jax.pure_callback(render, spec, params, sim, due, held, vmap_method="broadcast_all")

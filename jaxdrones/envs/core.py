@@ -29,6 +29,7 @@ from flax import struct
 
 from jaxdrones._fork import check_not_forked
 from jaxdrones.backends import BACKENDS, RENDERERS
+from jaxdrones.cameras import ENV_IMAGES, image_shapes
 from jaxdrones.envs import rewards, terminations
 from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS, Reference, make_action
 from jaxdrones.envs.base import Env, EnvState
@@ -38,8 +39,9 @@ from jaxdrones.rotations import quat_from_euler
 from jaxdrones.sim import SimConfig, make_step
 from jaxdrones.state import DroneState
 
-#: Camera images a vision observation can hold, with their dtypes and per-pixel shapes (see `TaskConfig.vision`).
-VISION = {"rgb": (np.uint8, (4,)), "depth": (np.float32, ()), "seg": (np.int32, ())}
+#: Camera images a vision observation can hold (see `TaskConfig.vision`; their dtypes and per-pixel shapes in
+#: `jaxdrones.cameras.ENV_IMAGES`).
+VISION = tuple(ENV_IMAGES)
 #: Reward variants: ``"shaped"`` (ours, for fast RL) and ``"paper"`` (the original's).
 REWARDS = ("shaped", "paper")
 
@@ -313,9 +315,9 @@ class TaskConfig:
         _check_choice("renderer", self.renderer, RENDERERS)
         vision = self.vision
         if isinstance(vision, str) or not isinstance(vision, (tuple, list)):
-            raise ValueError(f"vision must be a tuple of image names from {tuple(VISION)}, got {vision!r}")
+            raise ValueError(f"vision must be a tuple of image names from {VISION}, got {vision!r}")
         if any(v not in VISION for v in vision) or len(set(vision)) != len(vision):
-            raise ValueError(f"vision must hold distinct names from {tuple(VISION)}, got {tuple(vision)!r}")
+            raise ValueError(f"vision must hold distinct names from {VISION}, got {tuple(vision)!r}")
         self._set("vision", tuple(vision))
         if isinstance(self.obstacles, list):
             self._set("obstacles", tuple(self.obstacles))
@@ -475,7 +477,7 @@ class Task(abc.ABC):
         """Task-specific arrays of the task params (default: none)."""
         return {}
 
-    def sample(self, key: jax.Array, task: TaskParams, config: TaskConfig) -> TaskParams:
+    def sample(self, config: TaskConfig, task: TaskParams, key: jax.Array) -> TaskParams:
         """Per-episode randomness of the task params (default: none)."""
         return task
 
@@ -499,7 +501,7 @@ class Task(abc.ABC):
         """The task observation f[D, obs_size] (what the policy must know of the task: targets, commands)."""
         return jnp.zeros(sim.pos.shape[:-1] + (0,), sim.pos.dtype)
 
-    def reference(self, task: TaskParams, steps: jax.Array, config: TaskConfig) -> Reference:
+    def reference(self, config: TaskConfig, task: TaskParams, steps: jax.Array) -> Reference:
         """Where the drones should be at control step ``steps`` (default: at the target, at rest)."""
         return Reference(task.target, jnp.zeros_like(task.target))
 
@@ -527,14 +529,14 @@ class Task(abc.ABC):
         to the reference position (m²), the squared velocity error to the reference velocity ((m/s)²) and the
         squared body rate ((rad/s)²). Smooth everywhere, unlike shaped RL rewards such as max(0, ...), which have
         no gradient far from the target."""
-        ref = self.reference(task, steps, config)
+        ref = self.reference(config, task, steps)
         return {"distance_sq": rewards.distance_sq(sim.pos, ref.pos),
                 "velocity_error_sq": rewards.velocity_error_sq(sim.vel, ref.vel),
                 "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel)}
 
     def metrics(self, config: TaskConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> dict:
         """Success metrics, f[] per world (default: ``distance``, the mean distance to the reference, m)."""
-        ref = self.reference(task, steps, config)
+        ref = self.reference(config, task, steps)
         return {"distance": jnp.mean(rewards.distance(sim.pos, ref.pos))}
 
 
@@ -693,7 +695,7 @@ class TaskEnv(Env):
         """
         cfg = self.config
         k_task, k_start, k_params, key = jax.random.split(key, 4)
-        task = self.task.sample(k_task, self.default_task_params() if task is None else task, cfg)
+        task = self.task.sample(cfg, self.default_task_params() if task is None else task, k_task)
         params = cfg.randomize.sample(k_params, self.params) if cfg.randomize is not None else self.params
         sim = sample_start(k_start, task.start, self.dtype)
         history = jnp.zeros((cfg.n_drones, self.obs_type.buffer_len, self.action_size), self.dtype)
@@ -726,7 +728,7 @@ class TaskEnv(Env):
         finite = jnp.all(jnp.isfinite(action))
         low, high = (jnp.asarray(b, self.dtype) for b in self.action_bounds())
         action = jnp.where(finite, jnp.clip(action.astype(self.dtype), low, high), 0.0)
-        ref = self.task.reference(task, state.steps, cfg)
+        ref = self.task.reference(cfg, task, state.steps)
         rpm, ctrl = self.action_type.to_rpm(state.params, state.sim, state.ctrl, action, ref, self.sim_config.ctrl_dt)
         sim = self._step(state.params, state.sim, rpm)
         steps = state.steps + 1
@@ -776,56 +778,28 @@ class TaskEnv(Env):
     # -- cameras -------------------------------------------------------------------------------------------------------
 
     def _image_spec(self) -> dict:
-        width, height = self.config.image_size
-        return {name: jax.ShapeDtypeStruct((self.n_drones, height, width) + VISION[name][1], VISION[name][0])
-                for name in self.config.vision}
+        return image_shapes((self.n_drones,), *self.config.image_size, self.config.vision)
 
     def _render(self, scene, params: DroneParams, sim: DroneState, due: jax.Array, held: dict) -> dict:
         """The camera images of ``sim`` where ``due`` (bool[...]), ``held`` elsewhere.
 
-        On the JAX backend, `jaxdrones.cameras.render` of every world in ``scene`` (the task params').
-        On the PyBullet backend, one host callback (``scene`` unused):
-        under ``vmap`` (where `jax.lax.cond` runs both branches) only the worlds whose render is due are rendered,
-        and a world whose pose is not finite reads rgb 0, depth NaN and seg -1, as in `PyBulletStep.camera_images`.
+        On the JAX backend, `jaxdrones.cameras.render` of every world in ``scene`` (the task params'); on the
+        PyBullet backend, `jaxdrones.backends.camera.held_images` (``scene`` unused).
         """
-        spec = self._image_spec()
         width, height = self.config.image_size
-        if self.config.backend == "jax":  # the images of every world, kept where a render is not due
-            from jaxdrones.cameras import CameraSpec, render
+        if self.config.backend == "pybullet":
+            from jaxdrones.backends.camera import held_images
 
-            images = render(CameraSpec(width=width, height=height), scene, params, sim.pos, sim.quat,
-                            kinds=self.config.vision)
-            if "rgb" in images:  # RGBA, as Bullet's
-                rgb = images["rgb"]
-                images["rgb"] = jnp.concatenate([rgb, jnp.full(rgb.shape[:-1] + (1,), 255, rgb.dtype)], -1)
-            return {k: jnp.where(jnp.reshape(due, due.shape + (1,) * (v.ndim - due.ndim)), v, held[k])
-                    for k, v in images.items()}
-        blank = {"rgb": 0, "depth": np.nan, "seg": -1}
-        step = self._step
+            return held_images(self._step, params, sim, due, held, width, height)
+        from jaxdrones.cameras import CameraSpec, render
 
-        def render(params, sim, due, held):
-            lead = np.shape(due)
-
-            def flat(x, core=0):
-                x = np.asarray(x)
-                return x.reshape((-1,) + x.shape[len(lead):])
-
-            out = {k: flat(v).copy() for k, v in held.items()}
-            pos, quat = flat(sim.pos), flat(sim.quat)
-            finite = (np.all(np.isfinite(pos), axis=(-2, -1)) & np.all(np.isfinite(quat), axis=(-2, -1))
-                      & np.all(np.sum(quat * quat, -1) > 0, axis=-1))
-            due = flat(due)
-            for k in out:
-                out[k][due & ~finite] = blank[k]
-            index = np.flatnonzero(due & finite)
-            if index.size:
-                images = step.camera_images(jax.tree.map(lambda x: flat(x)[index], params),
-                                            jax.tree.map(lambda x: flat(x)[index], sim), width=width, height=height)
-                for k in out:
-                    out[k][index] = images[k]
-            return {k: v.reshape(lead + spec[k].shape) for k, v in out.items()}
-
-        return jax.pure_callback(render, spec, params, sim, due, held, vmap_method="broadcast_all")
+        images = render(CameraSpec(width=width, height=height), scene, params, sim.pos, sim.quat,
+                        kinds=self.config.vision)
+        if "rgb" in images:  # RGBA, as Bullet's
+            rgb = images["rgb"]
+            images["rgb"] = jnp.concatenate([rgb, jnp.full(rgb.shape[:-1] + (1,), 255, rgb.dtype)], -1)
+        return {k: jnp.where(jnp.reshape(due, due.shape + (1,) * (v.ndim - due.ndim)), v, held[k])
+                for k, v in images.items()}
 
 
 def sample_start(key: jax.Array, start: StartRanges, dtype) -> DroneState:

@@ -59,7 +59,7 @@ def _eval_program(env, trainer, n_episodes: int, seed: int):
         states = jax.vmap(lambda k: rollout_policy(env, policy, k))(keys)
         flight = jax.tree.map(lambda x: x[0], states)  # the first episode, for the flight plot
         steps = jax.numpy.arange(env.episode_length + 1)
-        ref = jax.vmap(lambda s: env.task.reference(jax.tree.map(lambda x: x[0], flight.task), s, env.config))(steps)
+        ref = jax.vmap(lambda s: env.task.reference(env.config, jax.tree.map(lambda x: x[0], flight.task), s))(steps)
         return {"outcomes": outcomes_of(states),
                 "flight": {"pos": flight.sim.pos, "ref": ref.pos, "vel": flight.sim.vel, "rpm": flight.sim.rpm}}
 

@@ -151,7 +151,7 @@ class Avoid(Task):
 
         return make_scene((), capacity={"cylinder": config.n_cylinders, "box": config.n_boxes})
 
-    def sample(self, key, task, config):
+    def sample(self, config, task, key):
         k_goal, k_cyl, k_box = jax.random.split(key, 3)
         dtype = task.target.dtype
         goal_y = jax.random.uniform(k_goal, (), dtype, -config.goal_y, config.goal_y)

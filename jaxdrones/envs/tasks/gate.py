@@ -81,7 +81,7 @@ class GatePass(Task):
 
         return make_scene((), capacity={"box": len(GATE_PARTS)})
 
-    def sample(self, key, task, config):
+    def sample(self, config, task, key):
         u = jax.random.uniform(key, (3,), task.target.dtype)
         lo, hi = config.gate_distance
         centre = jnp.stack([lo + (hi - lo) * u[1], config.gate_offset * (2 * u[0] - 1), jnp.zeros_like(u[0])])

@@ -260,7 +260,7 @@ class Meetup(MultiTask):
             partner = partner.at[n // 2].set(jnp.mean(sim.pos, axis=0))
         return partner
 
-    def reference(self, task, steps, config):
+    def reference(self, config, task, steps):
         return Reference(task.target, jnp.zeros_like(task.target))
 
     def paper_reward(self, config, task, sim):
@@ -369,7 +369,7 @@ class Crossing(MultiTask):
         start["pos"] = self.target(config) + np.stack([config.amplitude * np.cos(phase), 0 * phase, 0 * phase], -1)
         return start
 
-    def reference(self, task, steps, config):
+    def reference(self, config, task, steps):
         """Reference(pos f[D, 3] m, vel f[D, 3] m/s) at control step ``steps`` (see the class docstring)."""
         amplitude, period, phase = task.data["amplitude"], task.data["period"], task.data["phase"]
         omega = 2 * jnp.pi / period
@@ -380,7 +380,7 @@ class Crossing(MultiTask):
         return Reference(task.target + offset.astype(task.target.dtype), vel.astype(task.target.dtype))
 
     def observe(self, config, task, sim, steps):
-        ref = self.reference(task, steps, config)
+        ref = self.reference(config, task, steps)
         return jnp.concatenate([ref.pos - sim.pos, ref.vel], axis=-1)
 
     def weights(self, config):
@@ -389,7 +389,7 @@ class Crossing(MultiTask):
         return {"closeness": 1.0, "velocity_error_sq": -SPEED_WEIGHT, "ang_speed_sq": -ANG_SPEED_WEIGHT}
 
     def reward_terms(self, config, task, sim, action, steps):
-        ref = self.reference(task, steps, config)
+        ref = self.reference(config, task, steps)
         if config.reward == "paper":
             return {"paper": jnp.maximum(0.0, 2.0 - rewards.distance_sq(sim.pos, ref.pos) ** 2)}
         return {"closeness": rewards.closeness(sim.pos, ref.pos),
@@ -397,7 +397,7 @@ class Crossing(MultiTask):
                 "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel)}
 
     def metrics(self, config, task, sim, steps):
-        ref = self.reference(task, steps, config)
+        ref = self.reference(config, task, steps)
         altitude = jnp.abs(sim.pos[..., 2] - ref.pos[..., 2])
         return {"tracking_error": jnp.mean(rewards.distance(sim.pos, ref.pos)), "altitude_error": jnp.mean(altitude),
                 "max_altitude_error": jnp.max(altitude)}

@@ -213,14 +213,14 @@ class Velocity(Task):
             return {"velocity_error_sq": -1.0}
         return {"velocity_tracking": 1.0, "altitude": 0.2, "ang_speed_sq": -ANG_SPEED_WEIGHT}
 
-    def sample(self, key, task, config):
+    def sample(self, config, task, key):
         cmd = task.data["max_command"] * jax.random.uniform(key, task.target.shape, task.target.dtype, -1.0, 1.0)
         return task.replace(data={**task.data, "target_vel": cmd})
 
     def observe(self, config, task, sim, steps):
         return task.data["target_vel"]
 
-    def reference(self, task, steps, config):
+    def reference(self, config, task, steps):
         vel = task.data["target_vel"]
         return Reference(task.start.pos + vel * (steps / config.ctrl_freq), vel)
 
@@ -233,7 +233,7 @@ class Velocity(Task):
         vel = task.data["target_vel"]
         if config.reward == "paper":
             return {"velocity_error_sq": rewards.velocity_error_sq(sim.vel, vel)}
-        z_ref = self.reference(task, steps, config).pos[..., 2]
+        z_ref = self.reference(config, task, steps).pos[..., 2]
         return {"velocity_tracking": rewards.velocity_tracking(sim.vel, vel),
                 "altitude": jnp.exp(-jnp.abs(sim.pos[..., 2] - z_ref) / rewards.BROAD_SCALE_M),
                 "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel)}
@@ -314,11 +314,11 @@ class ReferenceTask(Task):
         return np.array([POS_BOUND] * 3 + [VEL_BOUND] * 3, np.float32)
 
     def observe(self, config, task, sim, steps):
-        ref = self.reference(task, steps, config)
+        ref = self.reference(config, task, steps)
         return jnp.concatenate([ref.pos - sim.pos, ref.vel], axis=-1)
 
     def reward_terms(self, config, task, sim, action, steps):
-        return _tracking_terms(config, self.reference(task, steps, config).pos, sim)
+        return _tracking_terms(config, self.reference(config, task, steps).pos, sim)
 
 
 class Waypoints(ReferenceTask):
@@ -352,7 +352,7 @@ class Waypoints(ReferenceTask):
     def weights(self, config):
         return _hover_weights(config, {"distance_sq": -1.0})
 
-    def sample(self, key, task, config):
+    def sample(self, config, task, key):
         k_kind, k_r, k_phase, k_dir = jax.random.split(key, 4)
         dtype = task.target.dtype
         kind = jnp.where(task.data["path"] < 0, jax.random.bernoulli(k_kind).astype(jnp.int32),
@@ -366,14 +366,14 @@ class Waypoints(ReferenceTask):
         start = task.start.replace(pos=points[0])
         return task.replace(start=start, data={**task.data, "waypoints": points})
 
-    def reference(self, task, steps, config):
+    def reference(self, config, task, steps):
         points = task.data["waypoints"]
         k = jnp.minimum(steps, points.shape[0] - 2)
         pos, nxt = points[k], points[k + 1]
         return Reference(pos, (nxt - pos) * config.ctrl_freq)
 
     def metrics(self, config, task, sim, steps):
-        return {"waypoint_distance": jnp.mean(rewards.distance(sim.pos, self.reference(task, steps, config).pos))}
+        return {"waypoint_distance": jnp.mean(rewards.distance(sim.pos, self.reference(config, task, steps).pos))}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -515,7 +515,7 @@ class FlyThruGate(ReferenceTask):
     def weights(self, config):
         return _hover_weights(config, {"distance_sq": -10.0})
 
-    def reference(self, task, steps, config):
+    def reference(self, config, task, steps):
         duration = config.episode_len_s
         tau = jnp.minimum(steps / config.ctrl_freq, duration) / duration
         start = task.target.at[..., 1].set(0.0)
