@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jaxdrones as jd
-from jaxdrones.envs.core import Task
+from jaxdrones.envs.task import Task
 from jaxdrones.envs.tasks.multi import Crossing, CrossingConfig
 from jaxdrones.training.evaluation import episode_outcomes, episode_statistics, rollout_policy
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
 from jaxdrones.envs.base import EnvState
-from jaxdrones.envs.core import TaskEnv
+from jaxdrones.envs.env import TaskEnv
 from jaxdrones.wrappers.autoreset import AutoReset
 
 

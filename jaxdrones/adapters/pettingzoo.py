@@ -36,7 +36,7 @@ from pettingzoo.utils.conversions import parallel_to_aec
 from jaxdrones._fork import check_not_forked
 from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
 from jaxdrones.adapters.gymnasium import RENDER_MODES, HumanView, compiled, render_frame, spaces
-from jaxdrones.envs.core import TaskEnv
+from jaxdrones.envs.env import TaskEnv
 
 #: Tolerance of the action-box check (float32 round-off of actions computed at the bounds).
 _BOX_TOL = 1e-6

@@ -283,7 +283,7 @@ def render(step, params: DroneParams, state: DroneState, *, world: int = 0, widt
 
 def held_images(step, params: DroneParams, sim: DroneState, due: jax.Array, held: dict, width: int,
                 height: int) -> dict:
-    """One world's camera images on the PyBullet backend, as an env holds them (`jaxdrones.envs.core.TaskEnv`):
+    """One world's camera images on the PyBullet backend, as an env holds them (`jaxdrones.envs.env.TaskEnv`):
     `camera_images` if the render is ``due`` (bool[]), else ``held`` (the last images, [D, H, W(, 4)]), in one host
     callback. Under ``vmap`` (where `jax.lax.cond` runs both branches) only the due worlds are rendered, and a world
     whose pose is not finite reads the blank images of `ENV_IMAGES` (rgb 0, depth NaN, seg -1)."""

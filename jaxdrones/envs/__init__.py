@@ -12,8 +12,10 @@ import dataclasses
 
 from jaxdrones.envs.actions import ACTION_TYPES
 from jaxdrones.envs.base import Env, EnvState
-from jaxdrones.envs.core import DomainRandomization, Task, TaskConfig, TaskEnv, TaskParams
+from jaxdrones.envs.config import DomainRandomization, TaskConfig
+from jaxdrones.envs.env import TaskEnv
 from jaxdrones.envs.observations import OBS_TYPES, kinematic_obs
+from jaxdrones.envs.task import Task, TaskParams
 from jaxdrones.envs.tasks.avoid import AVOID
 from jaxdrones.envs.tasks.multi import MULTI_AGENT_TASKS
 from jaxdrones.envs.tasks.single import SINGLE_AGENT_TASKS, HoverConfig

@@ -20,7 +20,7 @@ class EnvState:
         sim: DroneState of the drones, f[..., D, ...].
         params: DroneParams of this episode, batch shape [..., D] (sampled at reset with domain randomisation;
             differentiable).
-        task: the task's params of this episode (`jaxdrones.envs.core.TaskParams`: targets, references, start
+        task: the task's params of this episode (`jaxdrones.envs.task.TaskParams`: targets, references, start
             ranges, termination bounds, reward weights), sampled at reset.
         ctrl: the action type's carry (the DSL PID's state for the PID-based actions, else ``()``).
         history: f[..., D, K, n_act] the last K actions, oldest first (K = 0 without an action buffer).

@@ -31,7 +31,7 @@ def crashed(sim: DroneState, bounds, terminate_on_ground: bool) -> jax.Array:
 
     Args:
         sim: the drones' state.
-        bounds: `jaxdrones.envs.core.Bounds` (pos_low, pos_high f[3] m; max_tilt f[] rad).
+        bounds: `jaxdrones.envs.task.Bounds` (pos_low, pos_high f[3] m; max_tilt f[] rad).
         terminate_on_ground: count ground contact as a crash.
     """
     out = out_of_bounds(sim.pos, bounds.pos_low, bounds.pos_high) | tilted(sim.quat, bounds.max_tilt)

@@ -1,6 +1,6 @@
 """Analytic policy gradients (APG): a policy trained by backpropagation through batched rollouts of the simulator.
 
-Each update differentiates the task's smooth training loss (`jaxdrones.envs.core.Task.loss_terms`, weighted by
+Each update differentiates the task's smooth training loss (`jaxdrones.envs.task.Task.loss_terms`, weighted by
 `Task.loss_weights`, averaged over ``horizon`` control steps and ``num_envs`` worlds) w.r.t. the policy's
 parameters through the env's dynamics, and takes an Adam step. The worlds' states carry over from one window to
 the next with the gradient stopped (truncated backpropagation through time, as in brax's APG and in short-horizon

@@ -21,7 +21,7 @@ class ProgressLog:
 
     Args:
         total_steps: env steps of the run.
-        task: the `jaxdrones.envs.core.Task` whose ``success_metric``, ``success_at``, ``success_unit`` and
+        task: the `jaxdrones.envs.task.Task` whose ``success_metric``, ``success_at``, ``success_unit`` and
             ``success_threshold`` the display shows.
         enabled: show the bar.
     """

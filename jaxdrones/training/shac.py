@@ -4,7 +4,7 @@ at the window's end.
 
 Each update rolls ``num_envs`` worlds ``horizon`` control steps under the current policy and differentiates, w.r.t.
 the policy's parameters and through the simulator, the discounted return of the window plus the discounted value
-of where it ends. The reward is the task's smooth training loss, negated (`jaxdrones.envs.core.Task.loss_terms`
+of where it ends. The reward is the task's smooth training loss, negated (`jaxdrones.envs.task.Task.loss_terms`
 weighted by `Task.loss_weights`), as for `jaxdrones.training.apg`. An episode that ends inside the window adds its
 return there, bootstrapped with the value of its last observation when it was cut by the time limit and with 0
 when it terminated; the world is reset and no gradient crosses the reset. The critic V(obs) then regresses the

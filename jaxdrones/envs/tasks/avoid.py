@@ -15,8 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs import rewards, terminations
-from jaxdrones.envs.core import Task, TaskConfig
+from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import POS_BOUND
+from jaxdrones.envs.task import Task
 from jaxdrones.state import DroneState
 
 #: Obstacle colours, cycled (RGB in [0, 1]): greys and muted tones, distinct in the RGB image.

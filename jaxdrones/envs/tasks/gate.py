@@ -15,9 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs import terminations
-from jaxdrones.envs.core import Task
+from jaxdrones.envs.task import Task
 from jaxdrones.envs.tasks.avoid import collided, collision_data, progress
-from jaxdrones.envs.tasks.single import (GATE_OPENING_HALF_X, GATE_OPENING_TOP, GATE_PARTS, GateConfig)
+from jaxdrones.envs.tasks.single import GATE_OPENING_HALF_X, GATE_OPENING_TOP, GATE_PARTS, GateConfig
 from jaxdrones.state import DroneState
 
 #: The start's height, m: the opening's mid height (the drone starts at the origin facing +x, towards the gate).

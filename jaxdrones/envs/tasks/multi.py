@@ -18,8 +18,9 @@ import numpy as np
 
 from jaxdrones.envs import rewards
 from jaxdrones.envs.actions import ACTION_SIZES, Reference
-from jaxdrones.envs.core import Task, TaskConfig, _is_number
+from jaxdrones.envs.config import TaskConfig, _is_number
 from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
+from jaxdrones.envs.task import Task
 from jaxdrones.envs.tasks.single import ANG_SPEED_WEIGHT, SPEED_WEIGHT
 from jaxdrones.state import default_start_pos
 

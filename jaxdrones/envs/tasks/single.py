@@ -17,8 +17,9 @@ import numpy as np
 
 from jaxdrones.envs import rewards
 from jaxdrones.envs.actions import ACTION_SIZES, Reference
-from jaxdrones.envs.core import Task, TaskConfig
+from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
+from jaxdrones.envs.task import Task
 from jaxdrones.state import DEFAULT_START_Z, DroneState
 
 #: Shaped hover-type rewards: r = max(0, closeness − SPEED_WEIGHT ‖v‖² − ANG_SPEED_WEIGHT ‖ω‖²) (see

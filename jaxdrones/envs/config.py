@@ -1,0 +1,318 @@
+"""The static side of a task: `TaskConfig` (frozen, hashable; a change recompiles) with its validation, and
+`DomainRandomization` (the ranges of the drones' params drawn per episode).
+
+The env layer has three tiers (docs/physics.md §11): the config here; the traced task params
+(`jaxdrones.envs.task.TaskParams`, sampled at ``reset``); the drones' params (`DroneParams`, in `EnvState.params`).
+A `jaxdrones.envs.task.Task` supplies what differs between tasks; `jaxdrones.envs.env.TaskEnv` runs any of them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+import numpy as np
+
+from jaxdrones.backends import BACKENDS, RENDERERS
+from jaxdrones.cameras import ENV_IMAGES
+from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS
+from jaxdrones.envs.observations import OBS_TYPES
+from jaxdrones.params import MODELS, DroneParams, with_derived
+from jaxdrones.sim import SimConfig
+
+#: Camera images a vision observation can hold (see `TaskConfig.vision`; their dtypes and per-pixel shapes in
+#: `jaxdrones.cameras.ENV_IMAGES`).
+VISION = tuple(ENV_IMAGES)
+#: Reward variants: ``"shaped"`` (ours, for fast RL) and ``"paper"`` (the original's).
+REWARDS = ("shaped", "paper")
+
+
+@dataclasses.dataclass(frozen=True)
+class DomainRandomization:
+    """Relative half-widths of per-drone parameter randomisation, drawn anew at every reset (per world, episode
+    and drone): each field's value is multiplied by a factor uniform in [1 − r, 1 + r].
+
+    The derived quantities (hover and max RPM, max thrust and torques, J⁻¹) are recomputed from the sampled values
+    by `jaxdrones.params.with_derived`.
+
+    Attributes:
+        mass: of ``mass``.
+        inertia: of the inertia matrix (one factor for the whole matrix, which stays positive definite).
+        kf: of the thrust coefficient.
+        km: of the torque coefficient.
+        drag: of the drag coefficients.
+
+    Raises:
+        ValueError: a range that is not finite or not in [0, 1) (1 or more would allow a non-positive value).
+    """
+
+    mass: float = 0.0
+    inertia: float = 0.0
+    kf: float = 0.0
+    km: float = 0.0
+    drag: float = 0.0
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value < 1):
+                raise ValueError(f"randomize.{f.name} must be a relative half-width in [0, 1) (a factor in "
+                                 f"[1 - r, 1 + r]; r >= 1 allows a non-positive {f.name}), got {value!r}")
+
+    def sample(self, key: jax.Array, params: DroneParams) -> DroneParams:
+        """Randomised ``params`` (batch shape [..., D]), with the derived fields recomputed."""
+        fields = {"mass": "mass", "inertia": "inertia", "kf": "kf", "km": "km", "drag": "drag_coeff"}
+        lead = params.mass.shape
+        new = {}
+        for k, (name, attr) in zip(jax.random.split(key, len(fields)), fields.items(), strict=False):
+            r = getattr(self, name)
+            if r == 0:
+                continue
+            factor = jax.random.uniform(k, lead, params.mass.dtype, 1.0 - r, 1.0 + r)
+            value = getattr(params, attr)
+            new[attr] = value * factor.reshape(lead + (1,) * (value.ndim - len(lead)))
+        return with_derived(params.replace(**new)) if new else params
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskConfig:
+    """Static settings shared by every task (hashable; a change recompiles). Tasks subclass it with their own
+    fields and defaults.
+
+    Attributes:
+        n_drones: drones per world, D (the task says which D it allows).
+        model: drone model name or URDF path for all drones, or a tuple with one per drone (heterogeneous team,
+            e.g. ``("cf2x", "racer")``).
+        action_type: one of `jaxdrones.envs.actions.ACTION_TYPES`.
+        obs_type: one of `jaxdrones.envs.observations.OBS_TYPES`; default ``"kin_rotmat"`` (the paper's KIN followed
+            by the rotation matrix: with random headings, the Euler angles' wrap at ±π makes learning much slower
+            — PPO on 3-D hover reached 14 cm with ``"kin"`` and 1.2 cm with ``"kin_rotmat"`` in the same 4.4 M
+            steps); ``"kin"`` is the paper's.
+        action_buffer: append the last ``ctrl_freq // 2`` actions to the observation (the original's KIN).
+        pid_target: ``pid`` action: ``"absolute"`` (main) or ``"relative"`` (the paper).
+        pid_scale: ``pid`` with relative targets: target = pos + pid_scale · a, m, in (0, 1]; the paper's 0.1 m,
+            which the DSL PID flies at up to about 0.5 m/s (0.3 m: about 1 m/s).
+        sim_freq: physics rate, Hz.
+        ctrl_freq: control (env step) rate, Hz.
+        episode_len_s: episode length, s.
+        drag, ground_effect, downwash: aerodynamic effects of the physics (docs/physics.md §6).
+        kinks: the treatment of the physics' kinks for gradients (`SimConfig.kinks`, `jaxdrones.kinks`):
+            ``"exact"`` (default), ``"smooth"`` or ``"straight_through"``, or a `jaxdrones.kinks.Kinks`.
+        adjoint: reverse-mode derivatives of the physics through its hand-written adjoint (`SimConfig.adjoint`;
+            default True); False for forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``) through ``step``.
+        reward: ``"shaped"`` (the task's shaped reward) or ``"paper"`` (the original's reward).
+        init_pos: f[D, 3] m, fixed start positions (the original's ``initial_xyzs``): they override the random
+            start ranges; the drones start at rest and level (unless ``init_rpy`` is given).
+        init_rpy: f[D, 3] rad, fixed start attitudes (``initial_rpys``), overriding the random attitude.
+        start_pos_range: (x, y, z) half-widths of random start positions around the task's start centre, m
+            (None: the task's default).
+        start_tilt: largest random start tilt, rad (None: the task's default).
+        start_yaw: half-width of the random start yaw, rad (None: the task's default).
+        start_vel: half-width of each random start velocity component, m/s (None: the task's default).
+        start_ang_vel: half-width of each random start body-rate component, rad/s (None: the task's default).
+        arena_xy: an episode terminates when a drone's |x| or |y| exceeds this, m.
+        arena_z: ... or its z exceeds this, m.
+        max_tilt: ... or its tilt exceeds this, rad.
+        terminate_on_ground: a touch of the ground terminates the episode as a crash.
+        randomize: `DomainRandomization` (or a dict of its fields) applied at every reset; None for none.
+        neighbor_radius: ``neighbors`` observation: radius of the adjacency, m.
+        max_neighbors: ``neighbors`` observation: None (every drone) or K ≥ 1: the min(K, D - 1) nearest drones
+            only, 12 + 4·min(K, D - 1) entries whatever the team's size (`jaxdrones.envs.observations`).
+        downwash_radius: the downwash's cut-off with a neighbour list for large teams, m (`SimConfig`; None: every
+            pair of drones, the original).
+        backend: ``"jax"`` (differentiable) or ``"pybullet"`` (collisions, obstacles, cameras; not differentiable;
+            call ``close``).
+        obstacles: None, True or ``"paper"``, or a sequence of `Obstacle` / URDF paths. On the PyBullet backend
+            drones collide with them; on the JAX backend (with ``vision`` only) the cameras see them but the physics
+            does not collide with them, and URDF meshes are refused.
+        vision: camera images to add to the observation, any of ``"rgb"``, ``"depth"``, ``"seg"``; the observation
+            is then a dict ``{"state": f[D, n_obs], "rgb": u8[D, H, W, 4], "depth": f32[D, H, W] m, "seg":
+            i32[D, H, W]}``, the images rendered every `camera_period` steps and held. On the JAX backend they come
+            from `jaxdrones.cameras` (pure JAX, batched, depth differentiable; RGBA with alpha 255), on the PyBullet
+            backend from Bullet's renderer; both use the same camera and segmentation ids.
+        camera_freq: camera rate asked for, Hz (the paper: 24).
+        image_size: (width, height) of the camera images, pixels.
+        renderer: ``"pybullet"`` only: ``"tiny"`` (CPU) or ``"egl"``.
+
+    Raises:
+        ValueError: on any invalid value, naming the field and the valid range.
+    """
+
+    n_drones: int = 1
+    model: str | tuple[str, ...] = "cf2x"
+    action_type: str = "rpm"
+    obs_type: str = "kin_rotmat"
+    action_buffer: bool = False
+    pid_target: str = "absolute"
+    pid_scale: float = 0.1
+    sim_freq: int = 240
+    ctrl_freq: int = 30
+    episode_len_s: float = 5.0
+    drag: bool = False
+    ground_effect: bool = False
+    downwash: bool = False
+    kinks: Any = "exact"
+    adjoint: bool = True
+    reward: str = "shaped"
+    init_pos: Any = None
+    init_rpy: Any = None
+    start_pos_range: Any = None
+    start_tilt: float | None = None
+    start_yaw: float | None = None
+    start_vel: float | None = None
+    start_ang_vel: float | None = None
+    arena_xy: float = 1.5
+    arena_z: float = 2.5
+    max_tilt: float = math.pi / 2
+    terminate_on_ground: bool = False
+    randomize: Any = None
+    neighbor_radius: float = math.inf
+    max_neighbors: int | None = None
+    downwash_radius: float | None = None
+    backend: str = "jax"
+    obstacles: Any = None
+    vision: tuple[str, ...] = ()
+    camera_freq: float = 24.0
+    image_size: tuple[int, int] = (64, 48)
+    renderer: str = "tiny"
+
+    def __post_init__(self):
+        _check_choice("action_type", self.action_type, ACTION_TYPES)
+        _check_choice("obs_type", self.obs_type, OBS_TYPES)
+        _check_choice("reward", self.reward, REWARDS)
+        _check_choice("pid_target", self.pid_target, PID_TARGETS)
+        if not (_is_number(self.pid_scale) and 0.0 < self.pid_scale <= PID_MAX_STEP):
+            raise ValueError(f"pid_scale must be a distance in m in (0, {PID_MAX_STEP}], got {self.pid_scale!r}")
+        n = self.n_drones
+        if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
+            raise ValueError(f"n_drones must be a positive integer, got {n!r}")
+        self._check_model()
+        self._set("kinks", SimConfig(kinks=self.kinks, adjoint=self.adjoint).kinks)
+        for name in ("init_pos", "init_rpy"):
+            self._set(name, _fixed_array(name, getattr(self, name), n))
+        if self.start_pos_range is not None:
+            self._set("start_pos_range", _finite_tuple("start_pos_range", self.start_pos_range, 3, nonneg=True))
+        for name in ("start_tilt", "start_yaw", "start_vel", "start_ang_vel"):
+            value = getattr(self, name)
+            if value is not None and not (_is_number(value) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite half-width >= 0, got {value!r}")
+        k = self.max_neighbors
+        if k is not None and (not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1):
+            raise ValueError(f"max_neighbors must be None (every drone) or a positive integer, got {k!r}")
+        for name in ("arena_xy", "arena_z", "max_tilt", "neighbor_radius"):
+            value = getattr(self, name)
+            if not (_is_number(value) and value > 0):
+                raise ValueError(f"{name} must be a number > 0, got {value!r}")
+        if not (_is_number(self.episode_len_s) and math.isfinite(self.episode_len_s)
+                and self.episode_len_s * self.ctrl_freq >= 1):
+            raise ValueError(f"episode_len_s·ctrl_freq must give at least one control step, got "
+                             f"{self.episode_len_s!r} s at {self.ctrl_freq!r} Hz")
+        if isinstance(self.randomize, dict):
+            self._set("randomize", DomainRandomization(**self.randomize))
+        elif self.randomize is not None and not isinstance(self.randomize, DomainRandomization):
+            raise ValueError(f"randomize must be None, a DomainRandomization or a dict of its fields "
+                             f"{[f.name for f in dataclasses.fields(DomainRandomization)]}, got {self.randomize!r}")
+        self.sim_config()  # validates the rates
+        self._check_backend()
+
+    def _set(self, name: str, value) -> None:
+        object.__setattr__(self, name, value)
+
+    def _check_model(self) -> None:
+        model = self.model
+        if isinstance(model, list):
+            model = tuple(model)
+            self._set("model", model)
+        if isinstance(model, tuple) and len(model) != self.n_drones:
+            raise ValueError(f"model: give one model for all drones or one per drone ({self.n_drones}), "
+                             f"got {len(model)}: {model}")
+        for m in (model if isinstance(model, tuple) else (model,)):
+            if not isinstance(m, str) or (m not in MODELS and not m.endswith(".urdf")):
+                raise ValueError(f"unknown drone model {m!r}: expected one of {MODELS} or a path to a .urdf file")
+
+    def _check_backend(self) -> None:
+        _check_choice("backend", self.backend, BACKENDS)
+        _check_choice("renderer", self.renderer, RENDERERS)
+        vision = self.vision
+        if isinstance(vision, str) or not isinstance(vision, (tuple, list)):
+            raise ValueError(f"vision must be a tuple of image names from {VISION}, got {vision!r}")
+        if any(v not in VISION for v in vision) or len(set(vision)) != len(vision):
+            raise ValueError(f"vision must hold distinct names from {VISION}, got {tuple(vision)!r}")
+        self._set("vision", tuple(vision))
+        if isinstance(self.obstacles, list):
+            self._set("obstacles", tuple(self.obstacles))
+        from jaxdrones.backends.scene import resolve_obstacles
+
+        obstacles = resolve_obstacles(self.obstacles)
+        if self.backend == "jax":
+            if self.renderer != "tiny":
+                raise ValueError("renderer needs backend='pybullet' (the jax backend renders with "
+                                 "jaxdrones.cameras)")
+            if obstacles and not self.vision:
+                raise ValueError("obstacles on backend='jax' are only seen by its cameras (its physics models the "
+                                 "ground only): pass vision=(...), or use backend='pybullet' for collisions")
+            from jaxdrones.cameras import check_obstacles
+
+            check_obstacles(obstacles)  # a mesh: a clear error now rather than at the first render
+        if not (_is_number(self.camera_freq) and math.isfinite(self.camera_freq) and self.camera_freq > 0):
+            raise ValueError(f"camera_freq must be a finite rate > 0 Hz, got {self.camera_freq!r}")
+        size = self.image_size
+        if (not isinstance(size, (tuple, list)) or len(size) != 2
+                or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in size)):
+            raise ValueError(f"image_size must be two positive integers (width, height) in pixels, got {size!r}")
+        self._set("image_size", (int(size[0]), int(size[1])))
+
+    def sim_config(self) -> SimConfig:
+        """The `SimConfig` of the physics."""
+        return SimConfig(n_drones=self.n_drones, sim_freq=self.sim_freq, ctrl_freq=self.ctrl_freq, drag=self.drag,
+                         ground_effect=self.ground_effect, downwash=self.downwash, kinks=self.kinks,
+                         downwash_radius=self.downwash_radius, adjoint=self.adjoint)
+
+    @property
+    def camera_period(self) -> int:
+        """Control steps between two camera renders, k = max(1, round(ctrl_freq / camera_freq))."""
+        return max(1, int(round(self.ctrl_freq / self.camera_freq)))
+
+    @property
+    def camera_rate(self) -> float:
+        """Effective camera rate, Hz: ctrl_freq / `camera_period`."""
+        return self.ctrl_freq / self.camera_period
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
+def _check_choice(name: str, value, choices) -> None:
+    if value not in choices:
+        raise ValueError(f"unknown {name} {value!r}: expected one of {tuple(choices)}")
+
+
+def _finite_tuple(name: str, value, n: int, nonneg: bool = False) -> tuple[float, ...]:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be {n} numbers, got {value!r}") from None
+    if arr.shape != (n,) or not np.all(np.isfinite(arr)) or (nonneg and np.any(arr < 0)):
+        raise ValueError(f"{name} must be {n} finite numbers{' >= 0' if nonneg else ''}, got {value!r}")
+    return tuple(float(v) for v in arr)
+
+
+def _fixed_array(name: str, value, n: int):
+    """A fixed start as a hashable tuple of D triples, or None."""
+    if value is None:
+        return None
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be f[{n}, 3] (one (x, y, z) per drone), got {value!r}") from None
+    if arr.shape == (3,) and n == 1:
+        arr = arr[None]
+    if arr.shape != (n, 3) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be f[{n}, 3] finite numbers (one triple per drone, n_drones={n}), "
+                         f"got shape {arr.shape}")
+    if name == "init_pos" and np.any(arr[:, 2] < 0):
+        raise ValueError(f"init_pos must be above the ground (z >= 0 m), got {arr.tolist()}")
+    return tuple(tuple(float(v) for v in row) for row in arr)
