@@ -438,7 +438,7 @@ def test_non_float_action_rejected(hover):
 
 
 def test_registry_lists_every_task():
-    assert set(registered()) == set(SINGLE_AGENT) | set(MULTI_AGENT)
+    assert set(SINGLE_AGENT) | set(MULTI_AGENT) <= set(registered())  # and any registered by the README's example
     assert {"hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune", "avoid"} == set(SINGLE_AGENT)
     assert {"multi_hover", "leader_follower", "flock", "meetup", "crossing"} == set(MULTI_AGENT)
     assert set(ACTION_SIZES) == set(ACTION_TYPES)
