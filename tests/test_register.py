@@ -22,16 +22,16 @@ USER_MODULE = textwrap.dedent('''
 
 
     @dataclasses.dataclass(frozen=True)
-    class HighConfig(HoverConfig):
+    class TallConfig(HoverConfig):
         target: tuple = (0.0, 0.0, 1.5)
 
 
-    class HighHover(Hover):
-        name = "high_hover"
-        config_cls = HighConfig
+    class TallHover(Hover):
+        name = "tall_hover"
+        config_cls = TallConfig
 
 
-    HIGH_HOVER = register(HighHover())
+    HIGH_HOVER = register(TallHover())
 ''')
 
 
@@ -91,19 +91,19 @@ def test_bad_registrations():
 
 @pytest.mark.slow
 def test_train_cli_trains_a_task_of_your_own(tmp_path, monkeypatch, capsys):
-    """``jaxdrones train high_hover --import my_tasks`` from the folder holding ``my_tasks.py``: a short run of a task
+    """``jaxdrones train tall_hover --import my_tasks`` from the folder holding ``my_tasks.py``: a short run of a task
     the module registers, saved and judged on its own target."""
     (tmp_path / "my_tasks.py").write_text(USER_MODULE)
     monkeypatch.chdir(tmp_path)
     monkeypatch.syspath_prepend(str(tmp_path))  # removed again after the test, as the folder --import adds
-    assert main(["train", "high_hover", "--no-progress"]) == 2  # not registered without the module
-    assert "high_hover" in capsys.readouterr().err
+    assert main(["train", "tall_hover", "--no-progress"]) == 2  # not registered without the module
+    assert "tall_hover" in capsys.readouterr().err
     run = tmp_path / "run"
-    assert main(["train", "high_hover", "--import", "my_tasks", "--algo", "ppo", "--steps", "20000", "--num-envs",
+    assert main(["train", "tall_hover", "--import", "my_tasks", "--algo", "ppo", "--steps", "20000", "--num-envs",
                  "16", "--num-evals", "1", "--out", str(run), "--no-progress", "--eval-episodes", "64"]) == 0
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["task"] == "high_hover" and summary["env_steps"] >= 20_000
+    assert summary["task"] == "tall_hover" and summary["env_steps"] >= 20_000
     env, _ = jd.training.load_policy(run)
-    assert env.task.name == "high_hover" and env.config.target == (0.0, 0.0, 1.5)
+    assert env.task.name == "tall_hover" and env.config.target == (0.0, 0.0, 1.5)
     assert main(["train", "hover", "--import", "no_such_module", "--no-progress"]) == 2
     assert "no_such_module" in capsys.readouterr().err
