@@ -4,8 +4,8 @@ The work: ``brax.training.agents.ppo.train`` on the training env of ``jaxdrones 
 (`jaxdrones.training.run.default_env`: for ``avoid`` 32 × 24 depth, for ``fly_thru_gate`` the gate drawn per
 episode on 64 × 48 depth) with the trainer's default config (`jaxdrones.training.brax_ppo.default_config`: 256
 worlds × 16-step unrolls × 4 minibatches, 16,384 env steps an iteration) for ``--epochs`` epochs of ``--iterations``
-iterations. The time of each epoch is that between brax's progress calls; brax compiles its epoch at the first two
-calls, so the first two epochs carry the compilation and the rest are the steady iteration time. Iterations of
+iterations. The time of each epoch is that between brax's progress calls; brax compiles its epoch at the first call
+(at times again at the second), so the steady iteration time is taken from the third epoch on. Iterations of
 ``jaxdrones train`` are the same program, so the run's wall time is about (2 M / 16,384) × the steady time plus
 the compilations and evaluations.
 
