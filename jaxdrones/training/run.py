@@ -119,14 +119,12 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     phases = {"startup": t_phase - t_start}  # from t_start: Python, imports, the command line's parsing and devices
     import jax
 
-    from jaxdrones.envs import make
+    from jaxdrones.envs import make, registered
     from jaxdrones.runs import new_run_dir, provenance
     from jaxdrones.training import checkpoint, trainers
     from jaxdrones.training.common import Interrupted
     from jaxdrones.training.evaluation import episode_statistics
     from jaxdrones.training.progress import AGGREGATES, ProgressLog
-
-    from jaxdrones.envs import registered
 
     if task not in registered():
         raise ValueError(f"train: task must be one of {registered()} (a task of your own: register it with "

@@ -104,7 +104,27 @@ def _range(name: str, value) -> tuple[float, float]:
     return float(arr[0]), float(arr[1])
 
 
-class Avoid(Task):
+class GoalTask(Task):
+    """A task judged per episode through a scene of obstacles (``avoid``, the gate drawn per episode): success is
+    ending at its goal (`Task.reached`) without a collision; the scene is the task params' (collisions from
+    `collided`, each drone's radius in `collision_data`); reward terms ``progress`` (weight 1), ``reached`` (10) and
+    ``crash`` (−10)."""
+
+    uses_scene = True
+    success_counts_terminations = True
+    success_metric = "failure"
+    success_at = "final"
+    success_threshold = 0.1
+    success_unit = "share"
+
+    def data(self, config):
+        return collision_data(config)
+
+    def weights(self, config):
+        return {"progress": 1.0, "reached": 10.0, "crash": -10.0}
+
+
+class Avoid(GoalTask):
     """Reach a goal 3.8 m ahead through 16 obstacles placed per episode, seen only through the depth camera.
 
     Each episode draws the obstacles' positions, sizes and (boxes) yaws uniformly within the config's ranges and
@@ -124,12 +144,6 @@ class Avoid(Task):
 
     name = "avoid"
     config_cls = AvoidConfig
-    uses_scene = True
-    success_counts_terminations = True
-    success_metric = "failure"
-    success_at = "final"
-    success_threshold = 0.1
-    success_unit = "share"
     obs_size = 3
 
     def obs_bound(self, config):
@@ -141,12 +155,6 @@ class Avoid(Task):
 
     def target(self, config):
         return np.array([[config.goal_x, 0.0, config.flight_z]])
-
-    def data(self, config):
-        return collision_data(config)
-
-    def weights(self, config):
-        return {"progress": 1.0, "reached": 10.0, "crash": -10.0}
 
     def scene(self, config):
         from jaxdrones.cameras import make_scene

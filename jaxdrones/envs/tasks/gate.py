@@ -15,8 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs import terminations
-from jaxdrones.envs.task import Task
-from jaxdrones.envs.tasks.avoid import collided, collision_data, progress
+from jaxdrones.envs.tasks.avoid import GoalTask, collided, progress
 from jaxdrones.envs.tasks.single import GATE_OPENING_HALF_X, GATE_OPENING_TOP, GATE_PARTS, GateConfig
 from jaxdrones.state import DroneState
 
@@ -26,7 +25,7 @@ START_Z = 0.25
 AIM = (0.0, -0.5, 0.25)
 
 
-class GatePass(Task):
+class GatePass(GoalTask):
     """Fly through the paper's gate (its two columns and architrave, `GATE_PARTS`), drawn per episode: its centre
     ``gate_distance`` m ahead along +x, within ±``gate_offset`` m across (y), facing the start (its frame's −y
     along +x) yawed within ±``gate_yaw`` rad.
@@ -47,12 +46,6 @@ class GatePass(Task):
 
     name = "fly_thru_gate"
     config_cls = GateConfig
-    uses_scene = True
-    success_counts_terminations = True
-    success_metric = "failure"
-    success_at = "final"
-    success_threshold = 0.1
-    success_unit = "share"
     obs_size = 0
 
     def check(self, config):
@@ -71,10 +64,7 @@ class GatePass(Task):
         return np.array([[config.gate_distance[0] - AIM[1], AIM[0], AIM[2]]])
 
     def data(self, config):
-        return {**collision_data(config), "gate_pos": np.zeros(3), "gate_rot": np.eye(3)}
-
-    def weights(self, config):
-        return {"progress": 1.0, "reached": 10.0, "crash": -10.0}
+        return {**super().data(config), "gate_pos": np.zeros(3), "gate_rot": np.eye(3)}
 
     def scene(self, config):
         from jaxdrones.cameras import make_scene
