@@ -1,13 +1,20 @@
-"""Shared fixtures: seeded keys and generators, and a scoped float64 switch."""
+"""Shared fixtures: seeded keys and generators, and a scoped float64 switch; the XLA flags the suite compiles with."""
 
 from __future__ import annotations
 
 import os
 import sys
 
-import jax
-import numpy as np
-import pytest
+from jaxdrones import _xla
+
+# The suite compiles several hundred programs, most of them run for a few steps: it compiles them as the
+# ``jaxdrones`` command line does (`jaxdrones._xla.CLI_FLAGS`: LLVM's cheaper passes, about a third less compile
+# time for the suite, results within float rounding). ``JAXDRONES_XLA_FLAGS=0`` runs it with XLA's defaults.
+_xla.add_flags(_xla.CLI_FLAGS)
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 # Make `tests/reference_dyn.py` importable as `reference_dyn` however pytest is invoked.
 sys.path.insert(0, os.path.dirname(__file__))

@@ -102,21 +102,19 @@ def test_circle_backend_options_are_checked():
 
 @pytest.mark.slow
 def test_trained_hover_policy_flies_alike_on_both_backends():
-    """PPO on the JAX env (the paper's 1-D hover, 1.5 M env steps, about 80 s on 2 cores), then the same policy
-    from the same 16 start states on the JAX and PyBullet envs.
+    """APG through the JAX env (the paper's 1-D hover, the trainer's hover settings: 0.6 M env steps, about 20 s on
+    2 cores), then the same policy from the same 16 start states on the JAX and PyBullet envs.
 
-    Measured: mean distance to the target over the last second 3.8 mm (JAX) and 3.0 mm (PyBullet); at the last
-    step 4.3 and 2.9 mm. The first control step agrees to 1e-7 m, but the trained policy amplifies any difference
-    (on the JAX env alone, moving the start by 1e-6 m changes positions by centimetres within the episode), so the
-    backends are compared on the statistics, not episode by episode.
+    Measured: mean distance to the target over the last second 0.42 mm on both backends, at the last step 0.42 mm
+    on both. The first control step agrees to 1e-7 m, but a trained policy amplifies any difference (on the JAX env
+    alone, moving the start by 1e-6 m can change positions by centimetres within an episode), so the backends are
+    compared on the statistics, not episode by episode.
     """
-    from jaxdrones.training import rollout_policy
-    from jaxdrones.training.brax_ppo import BraxPPOConfig, make_policy, train
+    from jaxdrones.training import rollout_policy, trainers
 
     env_jax = jd.make("hover", action_type="one_d_rpm", obs_type="kin")  # the paper's 1-D setting
-    networks, params = train(env_jax, BraxPPOConfig(num_timesteps=1_500_000, num_evals=2, num_envs=1024,
-                                                    batch_size=1024, learning_rate=2e-3, discounting=0.97))
-    policy = make_policy(networks, params)
+    apg = trainers.get("apg")
+    policy = apg.make_policy(*apg.train(env_jax, apg.default_config("hover")))
     keys = jax.random.split(jax.random.key(1), 16)
     runs = {}
     with jd.make("hover", action_type="one_d_rpm", obs_type="kin", backend="pybullet") as env_pb:

@@ -23,7 +23,7 @@ from jaxdrones.cli import main
 #: values on fixed observations (the result a user sees), and the devices its parameters were spread over.
 _TRAIN_ON_DEVICES = """
 import dataclasses, os, sys
-os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=" + sys.argv[1]
+os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=" + sys.argv[1]
 import jax, numpy as np
 import jaxdrones as jd
 from jaxdrones.training import trainers
