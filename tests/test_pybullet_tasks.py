@@ -258,6 +258,9 @@ def test_vision_options_are_checked():
         jd.make("hover", backend="pybullet", vision=("rgb",), camera_freq=0.0)
     with pytest.raises(ValueError, match="image_size"):
         jd.make("hover", backend="pybullet", vision=("rgb",), image_size=(64,))
+    for fov in (0.0, 180.0, float("nan"), "60"):
+        with pytest.raises(ValueError, match=r"camera_fov .* in \(0, 180\)"):
+            jd.make("hover", vision=("depth",), camera_fov=fov)
     with pytest.raises(ValueError, match="unknown backend 'bullet'"):
         jd.make("hover", backend="bullet")
     with pytest.raises(ValueError, match="unknown renderer 'gl'"):

@@ -282,11 +282,12 @@ def render(step, params: DroneParams, state: DroneState, *, world: int = 0, widt
 
 
 def held_images(step, params: DroneParams, sim: DroneState, due: jax.Array, held: dict, width: int,
-                height: int) -> dict:
+                height: int, fov: float = 60.0) -> dict:
     """One world's camera images on the PyBullet backend, as an env holds them (`jaxdrones.envs.env.TaskEnv`):
     `camera_images` if the render is ``due`` (bool[]), else ``held`` (the last images, [D, H, W(, 4)]), in one host
-    callback. Under ``vmap`` (where `jax.lax.cond` runs both branches) only the due worlds are rendered, and a world
-    whose pose is not finite reads the blank images of `ENV_IMAGES` (rgb 0, depth NaN, seg -1)."""
+    callback, with vertical field of view ``fov`` (degrees). Under ``vmap`` (where `jax.lax.cond` runs both branches)
+    only the due worlds are rendered, and a world whose pose is not finite reads the blank images of `ENV_IMAGES`
+    (rgb 0, depth NaN, seg -1)."""
     spec = image_shapes(np.shape(sim.pos)[:-1], width, height, tuple(held))
 
     def render(params, sim, due, held):
@@ -306,7 +307,8 @@ def held_images(step, params: DroneParams, sim: DroneState, due: jax.Array, held
         index = np.flatnonzero(due & finite)
         if index.size:
             images = step.camera_images(jax.tree.map(lambda x: flat(x)[index], params),
-                                        jax.tree.map(lambda x: flat(x)[index], sim), width=width, height=height)
+                                        jax.tree.map(lambda x: flat(x)[index], sim), width=width, height=height,
+                                        fov=fov)
             for k in out:
                 out[k][index] = images[k]
         return {k: v.reshape(lead + spec[k].shape) for k, v in out.items()}

@@ -134,6 +134,8 @@ class TaskConfig:
             backend from Bullet's renderer; both use the same camera and segmentation ids.
         camera_freq: camera rate asked for, Hz (the paper: 24).
         image_size: (width, height) of the camera images, pixels.
+        camera_fov: the cameras' vertical field of view, degrees, in (0, 180) (the paper's 60; the horizontal one
+            follows from the image's aspect: 75° at 4:3).
         renderer: ``"pybullet"`` only: ``"tiny"`` (CPU) or ``"egl"``.
 
     Raises:
@@ -176,6 +178,7 @@ class TaskConfig:
     vision: tuple[str, ...] = ()
     camera_freq: float = 24.0
     image_size: tuple[int, int] = (64, 48)
+    camera_fov: float = 60.0
     renderer: str = "tiny"
 
     def __post_init__(self):
@@ -263,6 +266,9 @@ class TaskConfig:
                 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in size)):
             raise ValueError(f"image_size must be two positive integers (width, height) in pixels, got {size!r}")
         self._set("image_size", (int(size[0]), int(size[1])))
+        if not (_is_number(self.camera_fov) and 0 < self.camera_fov < 180):
+            raise ValueError(f"camera_fov must be the vertical field of view in degrees, in (0, 180), got "
+                             f"{self.camera_fov!r}")
 
     def sim_config(self) -> SimConfig:
         """The `SimConfig` of the physics."""

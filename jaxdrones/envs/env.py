@@ -274,10 +274,10 @@ class TaskEnv(Env):
         if self.config.backend == "pybullet":
             from jaxdrones.backends.camera import held_images
 
-            return held_images(self._step, params, sim, due, held, width, height)
+            return held_images(self._step, params, sim, due, held, width, height, self.config.camera_fov)
         from jaxdrones.cameras import CameraSpec, render
 
-        images = render(CameraSpec(width=width, height=height), scene, params, sim.pos, sim.quat,
+        images = render(CameraSpec(width=width, height=height, fov=self.config.camera_fov), scene, params, sim.pos, sim.quat,
                         kinds=self.config.vision)
         if "rgb" in images:  # RGBA, as Bullet's
             rgb = images["rgb"]

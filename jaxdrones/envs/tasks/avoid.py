@@ -136,7 +136,8 @@ class Avoid(GoalTask):
 
     Reward (both ``reward`` settings): ``progress``, the velocity towards the goal (m/s), weight 1;
     ``reached``, 1 at the step the goal is reached, weight 10; ``crash``, 1 on a collision or any other
-    termination, weight −10.
+    termination, weight −10; ``proximity``, 1 − clearance / 0.25 m within 0.25 m of an obstacle (`proximity`),
+    weight −1.
     Success metric: ``failure``, 0 when the episode ends within ``goal_radius`` of the goal without a collision
     (it ended there), else 1 (a collision, or the time ran out), read at the episode's end; solved when at most
     10 % of the evaluation episodes fail (``success_rate`` ≥ 0.9 in the evaluation's statistics).
