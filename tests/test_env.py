@@ -66,7 +66,8 @@ def test_contract(task, action_type, obs_type, buffer):
     keys = jax.random.split(jax.random.key(0), N_WORLDS)
     actions = jax.random.uniform(jax.random.key(1), (CONTRACT_STEPS, N_WORLDS, n, env.action_size),
                                  minval=a_low, maxval=a_high)
-    first, (obs, reward, done, steps, pos, final_obs, terminated) = jax.tree.map(np.asarray, jax.jit(run)(keys, actions))
+    outputs = jax.tree.map(np.asarray, jax.jit(run)(keys, actions))
+    first, (obs, reward, done, steps, pos, final_obs, terminated) = outputs
     assert first.shape == (N_WORLDS, n, env.observation_size)
     assert reward.shape == (CONTRACT_STEPS, N_WORLDS, n)
     for o in (first, obs, final_obs):

@@ -277,8 +277,8 @@ class TaskEnv(Env):
             return held_images(self._step, params, sim, due, held, width, height, self.config.camera_fov)
         from jaxdrones.cameras import CameraSpec, render
 
-        images = render(CameraSpec(width=width, height=height, fov=self.config.camera_fov), scene, params, sim.pos, sim.quat,
-                        kinds=self.config.vision)
+        spec = CameraSpec(width=width, height=height, fov=self.config.camera_fov)
+        images = render(spec, scene, params, sim.pos, sim.quat, kinds=self.config.vision)
         if "rgb" in images:  # RGBA, as Bullet's
             rgb = images["rgb"]
             images["rgb"] = jnp.concatenate([rgb, jnp.full(rgb.shape[:-1] + (1,), 255, rgb.dtype)], -1)
