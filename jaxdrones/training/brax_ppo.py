@@ -41,6 +41,11 @@ class BraxPPOConfig:
     gae_lambda: float = 0.95
     clipping_epsilon: float = 0.2
     max_grad_norm: float = 1.0
+    #: None: a constant ``learning_rate``; ``"ADAPTIVE_KL"``: brax's adaptive schedule (the learning rate divided by
+    #: 1.5 after an update whose KL divergence exceeds 2·``desired_kl``, multiplied by 1.5 below ``desired_kl``/2, as
+    #: in RSL-RL's PPO, Rudin et al., "Learning to Walk in Minutes Using Massively Parallel Deep RL", CoRL 2021).
+    learning_rate_schedule: str | None = None
+    desired_kl: float = 0.01
     reward_scaling: float = 1.0
     normalize_observations: bool = True
     num_evals: int = 10
@@ -95,7 +100,9 @@ def _network_factory(config: BraxPPOConfig, vision: bool = False):
 
 def default_config(task: str, vision: bool = False) -> BraxPPOConfig:
     """The settings brax's PPO was tuned with per task (the hover settings for tasks without their own); with
-    camera images (``vision``), those tuned on ``avoid`` for every task (256 worlds of 16-step unrolls)."""
+    camera images (``vision``), those tuned on ``avoid`` for every task (256 worlds of 16-step unrolls, the adaptive
+    KL learning rate: on ``avoid``, 2.1 M steps, consecutive evaluations from 1 M steps on differed by up to 31
+    points of success with a constant 1e-3, ending at 63 %, and by up to 7 with the schedule, ending at 69 %)."""
     tuned = {
         "hover": dict(num_timesteps=2_500_000, num_envs=1024, batch_size=1024, num_minibatches=8, unroll_length=10,
                       learning_rate=2e-3, entropy_cost=1e-3, discounting=0.97),
@@ -105,7 +112,8 @@ def default_config(task: str, vision: bool = False) -> BraxPPOConfig:
                           unroll_length=10, discounting=0.97),
         "avoid": dict(num_timesteps=2_000_000, num_envs=256, batch_size=256, num_minibatches=4, unroll_length=16,
                       learning_rate=1e-3, entropy_cost=1e-3, discounting=0.98, num_updates_per_batch=2,
-                      policy_hidden_layer_sizes=(64, 64), value_hidden_layer_sizes=(64, 64), num_evals=9),
+                      policy_hidden_layer_sizes=(64, 64), value_hidden_layer_sizes=(64, 64), num_evals=9,
+                      learning_rate_schedule="ADAPTIVE_KL"),
     }
     return BraxPPOConfig(**tuned["avoid" if vision else task if task in tuned else "hover"])
 
