@@ -254,3 +254,16 @@ def test_init_state_valid_batched_input_broadcasts():
     state = jd.init_state(jd.SimConfig(n_drones=2), pos=np.zeros((5, 2, 3)), quat=[[0, 0, 0, 2.0], [0, 0, 1, 1]])
     assert state.pos.shape == (5, 2, 3) and state.quat.shape == (5, 2, 4) and state.ground_contact.shape == (5, 2)
     np.testing.assert_allclose(jnp.linalg.norm(state.quat, axis=-1), 1.0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(num_envs=0), "num_envs must be an integer >= 1"),
+    (dict(num_envs=3), "multiple of num_envs"),
+    (dict(learning_rate_schedule="cosine"), "learning_rate_schedule must be None, 'NONE' or 'ADAPTIVE_KL'"),
+    (dict(desired_kl=0.0), "desired_kl must be a finite number > 0"),
+])
+def test_brax_ppo_config_out_of_range(kwargs, match):
+    from jaxdrones.training.brax_ppo import BraxPPOConfig
+
+    with pytest.raises(ValueError, match=match):
+        BraxPPOConfig(**kwargs)

@@ -75,6 +75,11 @@ class BraxPPOConfig:
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"BraxPPOConfig: {name} must be an integer >= 1, got {value!r}")
+        if self.learning_rate_schedule not in (None, "NONE", "ADAPTIVE_KL"):
+            raise ValueError(f"BraxPPOConfig: learning_rate_schedule must be None, 'NONE' or 'ADAPTIVE_KL' (brax's "
+                             f"LRSchedule), got {self.learning_rate_schedule!r}")
+        if not (isinstance(self.desired_kl, (int, float)) and math.isfinite(self.desired_kl) and self.desired_kl > 0):
+            raise ValueError(f"BraxPPOConfig: desired_kl must be a finite number > 0, got {self.desired_kl!r}")
         if (self.batch_size * self.num_minibatches) % self.num_envs:
             raise ValueError(f"BraxPPOConfig: batch_size·num_minibatches ({self.batch_size}·{self.num_minibatches}) "
                              f"must be a multiple of num_envs ({self.num_envs}), as brax's PPO requires")
