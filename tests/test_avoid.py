@@ -147,3 +147,61 @@ def test_brax_vision_networks_act_on_the_camera_observation(env):
     action = jax.jit(lambda o, k: act(env, policy, o, k))(state.obs, jax.random.key(3))
     assert action.shape == (1, 3) and np.all(np.isfinite(np.asarray(action)))
     assert np.all(np.abs(np.asarray(action)) <= 1.0)
+
+
+def test_scene_clearances_map_the_obstacles_around_the_drone(env):
+    """The privileged observation: the clearance at the drone and at 16 bearings × 5 distances around it,
+    hand-derived for one cylinder 1 m ahead."""
+    from jaxdrones.envs.tasks.avoid import SAMPLE_BEARINGS, SAMPLE_RANGES, scene_clearances
+
+    state = jax.jit(env.reset)(jax.random.key(0))
+    scene = cameras.make_scene([Obstacle("cylinder", size=(0.1, 4.0), pos=(1.0, 0.0, 2.0))],
+                               capacity={"cylinder": 12, "box": 4})
+    task = state.task.replace(scene=scene)
+    sim = state.sim.replace(pos=jnp.asarray([[0.0, 0.0, 1.0]]))
+    radius = float(task.data["collision_radius"][0])
+    got = np.asarray(scene_clearances(task, sim))
+    assert got.shape == (1, 1 + len(SAMPLE_BEARINGS) * len(SAMPLE_RANGES))
+    np.testing.assert_allclose(got[0, 0], 1.0 - 0.1 - radius, atol=1e-6)  # at the drone: 0.9 m to the surface
+    ahead = got[0, 1:].reshape(len(SAMPLE_BEARINGS), len(SAMPLE_RANGES))[0]  # bearing 0, along +x
+    expected = np.clip([abs(1.0 - r) - 0.1 - radius for r in SAMPLE_RANGES], -1, 1)
+    np.testing.assert_allclose(ahead, expected, atol=1e-6)
+    behind = got[0, 1:].reshape(len(SAMPLE_BEARINGS), len(SAMPLE_RANGES))[8]  # bearing π: 1 + r from the axis
+    np.testing.assert_allclose(behind, np.clip([1.0 + r - 0.1 - radius for r in SAMPLE_RANGES], -1, 1), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(env.privileged(state.replace(task=task, sim=sim))), got, atol=1e-6)
+
+
+def test_the_brax_view_with_a_privileged_critic(env):
+    """``BraxEnv(privileged=True)`` adds the task's privileged observation; the asymmetric critic reads it and the
+    state, not the image, and the policy reads the image and the state, not it."""
+    from brax.training.acme import running_statistics
+
+    from jaxdrones.adapters.brax import BraxEnv
+    from jaxdrones.training.encoders import make_ppo_networks_vision
+
+    brax_env = BraxEnv(env, privileged=True)
+    assert brax_env.observation_size == {"state": (24,), "pixels/depth": (24, 32, 1), "privileged_state": (81,)}
+    state = jax.jit(brax_env.reset)(jax.random.key(0))
+    np.testing.assert_allclose(np.asarray(state.obs["privileged_state"]),
+                               np.asarray(env.privileged(state.pipeline_state)).reshape(-1))
+    stepped = jax.jit(brax_env.step)(state, jnp.zeros(3))
+    np.testing.assert_allclose(np.asarray(stepped.obs["privileged_state"]),
+                               np.asarray(env.privileged(stepped.pipeline_state)).reshape(-1))
+    nets = make_ppo_networks_vision(brax_env.observation_size, 3, running_statistics.normalize,
+                                    value_obs_key="privileged_state")
+    stats = running_statistics.init_state({k: jax.ShapeDtypeStruct(v, jnp.float32)
+                                           for k, v in brax_env.observation_size.items() if k[:7] != "pixels/"})
+    value = nets.value_network.init(jax.random.key(1))
+    assert not [k for k in value["params"] if "CNN" in k]  # no convolutions in the critic
+    policy = nets.policy_network.init(jax.random.key(2))
+    obs = state.obs
+    blank = {**obs, "pixels/depth": jnp.zeros_like(obs["pixels/depth"])}
+    moved = {**obs, "privileged_state": obs["privileged_state"] + 1.0}
+    v = lambda o: float(nets.value_network.apply(stats, value, o))
+    p = lambda o: np.asarray(nets.policy_network.apply(stats, policy, o))
+    assert v(blank) == v(obs) and v(moved) != v(obs)
+    assert not np.allclose(p(blank), p(obs)) and np.array_equal(p(moved), p(obs))
+    with pytest.raises(ValueError, match="privileged"):
+        BraxEnv(jd.make("hover"), privileged=True)  # no camera
+    with pytest.raises(ValueError, match="privileged"):
+        BraxEnv(jd.make("hover", vision=("depth",), image_size=(32, 24)), privileged=True)  # no privileged obs

@@ -261,6 +261,7 @@ def test_init_state_valid_batched_input_broadcasts():
     (dict(num_envs=3), "multiple of num_envs"),
     (dict(learning_rate_schedule="cosine"), "learning_rate_schedule must be None, 'NONE' or 'ADAPTIVE_KL'"),
     (dict(desired_kl=0.0), "desired_kl must be a finite number > 0"),
+    (dict(privileged_critic="yes"), "privileged_critic must be True or False"),
 ])
 def test_brax_ppo_config_out_of_range(kwargs, match):
     from jaxdrones.training.brax_ppo import BraxPPOConfig

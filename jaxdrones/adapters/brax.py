@@ -23,6 +23,7 @@ import io
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 # brax imports MuJoCo, whose optional GPU plugins print "Failed to import warp" on a machine without them.
 with contextlib.redirect_stdout(io.StringIO()):
@@ -106,11 +107,23 @@ class BraxEnv(BraxBaseEnv):
     trainer logs. Episodes are reset by `AutoReset` (a fresh start per episode), not by
     brax's wrappers.
 
+    With ``privileged=True`` the observation dict also holds ``"privileged_state"`` f[D·k], the env's privileged
+    observation (`jaxdrones.envs.base.Env.privileged`), for a critic that reads it (MuJoCo Playground's key and
+    convention; brax's networks take it as ``value_obs_key``).
+
     Keys: brax passes raw uint32 keys; typed ``jax.random.key`` keys work too.
+
+    Raises:
+        ValueError: ``privileged=True`` on an env without camera images or without a privileged observation.
     """
 
-    def __init__(self, env: Env, auto_reset: bool = True):
+    def __init__(self, env: Env, auto_reset: bool = True, privileged: bool = False):
+        if privileged and not (isinstance(env.observation_spec, dict)
+                               and jax.eval_shape(env.privileged, jax.eval_shape(env.reset, jax.random.key(0)))):
+            raise ValueError("privileged=True needs an env with camera images (vision=...) and a privileged "
+                             "observation (Task.privileged: e.g. avoid, fly_thru_gate)")
         self.env = env
+        self.privileged = privileged
         self._inner = AutoReset(env) if auto_reset else env
 
     def reset(self, rng: jax.Array) -> BraxState:
@@ -118,7 +131,7 @@ class BraxEnv(BraxBaseEnv):
         zero = jnp.zeros((), state.reward.dtype)
         episode = {k: zero for k in ("sum_reward", "length", *state.metrics)}
         info = {"truncation": zero, "steps": zero, "episode_done": zero, "episode_metrics": episode}
-        return BraxState(pipeline_state=state, obs=self._flat(state.obs), reward=zero, done=zero,
+        return BraxState(pipeline_state=state, obs=self._flat(state), reward=zero, done=zero,
                          metrics=dict(state.metrics), info=info)
 
     def step(self, state: BraxState, action: jax.Array) -> BraxState:
@@ -134,12 +147,14 @@ class BraxEnv(BraxBaseEnv):
         episode = {k: v * keep + values[k] for k, v in state.info["episode_metrics"].items()}
         info = {**state.info, "truncation": new.truncated.astype(dtype), "steps": steps.astype(dtype),
                 "episode_done": done, "episode_metrics": episode}
-        return BraxState(pipeline_state=new, obs=self._flat(new.obs), reward=reward, done=done, metrics=metrics,
+        return BraxState(pipeline_state=new, obs=self._flat(new), reward=reward, done=done, metrics=metrics,
                          info=info)
 
-    @staticmethod
-    def _flat(obs):
-        return policy_input(obs)
+    def _flat(self, state):
+        obs = policy_input(state.obs)
+        if self.privileged:
+            obs["privileged_state"] = jnp.reshape(self.env.privileged(state), (-1,))
+        return obs
 
     @property
     def observation_size(self) -> int | dict[str, tuple[int, ...]]:
@@ -148,7 +163,11 @@ class BraxEnv(BraxBaseEnv):
         if not isinstance(spec, dict):
             return self.env.n_drones * self.env.observation_size
         zeros = {k: jnp.zeros(v.shape, v.dtype) for k, v in spec.items()}
-        return {k: v.shape for k, v in jax.eval_shape(policy_input, zeros).items()}
+        sizes = {k: v.shape for k, v in jax.eval_shape(policy_input, zeros).items()}
+        if self.privileged:
+            state = jax.eval_shape(self.env.reset, jax.random.key(0))
+            sizes["privileged_state"] = (int(np.prod(jax.eval_shape(self.env.privileged, state).shape)),)
+        return sizes
 
     @property
     def action_size(self) -> int:

@@ -84,6 +84,11 @@ class Env(abc.ABC):
         reads them per world is about a fifth slower on CPU."""
         return None
 
+    def privileged(self, state: EnvState) -> jax.Array | None:
+        """f[D, k]: what a critic may read of ``state`` and the policy does not (`jaxdrones.envs.task.Task.privileged`),
+        or None when the env has nothing of the kind (the default)."""
+        return None
+
     @abc.abstractmethod
     def reset(self, key: jax.Array, task=None) -> EnvState:
         """Start an episode from a PRNG key (typed ``jax.random.key`` or raw uint32)."""

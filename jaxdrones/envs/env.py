@@ -113,6 +113,12 @@ class TaskEnv(Env):
         extra = jnp.clip(self.task.observe(self.config, task, sim, steps), -bound, bound)
         return jnp.concatenate([obs, extra.astype(obs.dtype)], axis=-1)
 
+    def privileged(self, state: EnvState) -> jax.Array | None:
+        """f[D, k] of the env's dtype: the task's privileged observation of ``state`` (`Task.privileged`, e.g. the
+        obstacles around each drone for ``avoid``), or None for a task without one."""
+        out = self.task.privileged(self.config, state.task, state.sim)
+        return None if out is None else out.astype(self.dtype)
+
     def action_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(low, high) f32[D, n_act]."""
         a = self.action_type

@@ -189,6 +189,12 @@ class Task(abc.ABC):
         """The task observation f[D, obs_size] (what the policy must know of the task: targets, commands)."""
         return jnp.zeros(sim.pos.shape[:-1] + (0,), sim.pos.dtype)
 
+    def privileged(self, config: TaskConfig, task: TaskParams, sim: DroneState) -> jax.Array | None:
+        """f[D, k]: what a critic may read and the policy does not (an asymmetric actor-critic: Pinto et al.,
+        "Asymmetric Actor Critic for Image-Based Robot Learning", RSS 2018), e.g. the obstacles a camera sees;
+        ``None`` (the default) when the task has none."""
+        return None
+
     def reference(self, config: TaskConfig, task: TaskParams, steps: jax.Array) -> Reference:
         """Where the drones should be at control step ``steps`` (default: at the target, at rest)."""
         return Reference(task.target, jnp.zeros_like(task.target))

@@ -62,6 +62,11 @@ class BraxPPOConfig:
     cnn_output_channels: tuple[int, ...] = (8, 16, 16)
     cnn_kernel_size: tuple[int, ...] = (4, 3, 3)
     cnn_stride: tuple[int, ...] = (2, 2, 2)
+    #: With cameras: an asymmetric critic (Pinto et al., "Asymmetric Actor Critic for Image-Based Robot Learning", RSS
+    #: 2018), the value network an MLP on the state and the task's privileged observation (`jaxdrones.envs.task.Task.
+    #: privileged`: for ``avoid`` and the gate, the obstacles around the drone) instead of a CNN on the images. The
+    #: policy still reads only the state and the images; only the policy is needed to fly.
+    privileged_critic: bool = False
 
     @property
     def total_steps(self) -> int:
@@ -75,6 +80,8 @@ class BraxPPOConfig:
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"BraxPPOConfig: {name} must be an integer >= 1, got {value!r}")
+        if not isinstance(self.privileged_critic, (bool, np.bool_)):
+            raise ValueError(f"BraxPPOConfig: privileged_critic must be True or False, got {self.privileged_critic!r}")
         if self.learning_rate_schedule not in (None, "NONE", "ADAPTIVE_KL"):
             raise ValueError(f"BraxPPOConfig: learning_rate_schedule must be None, 'NONE' or 'ADAPTIVE_KL' (brax's "
                              f"LRSchedule), got {self.learning_rate_schedule!r}")
@@ -87,7 +94,7 @@ class BraxPPOConfig:
 
 #: The config fields that shape the networks (`_network_factory`), not arguments of brax's ``ppo.train``.
 NETWORK_FIELDS = ("policy_hidden_layer_sizes", "value_hidden_layer_sizes", "cnn_output_channels", "cnn_kernel_size",
-                  "cnn_stride")
+                  "cnn_stride", "privileged_critic")
 
 
 def _network_factory(config: BraxPPOConfig, vision: bool = False):
@@ -100,7 +107,8 @@ def _network_factory(config: BraxPPOConfig, vision: bool = False):
     from jaxdrones.training.encoders import make_ppo_networks_vision
 
     return functools.partial(make_ppo_networks_vision, **layers, cnn_output_channels=tuple(config.cnn_output_channels),
-                             cnn_kernel_size=tuple(config.cnn_kernel_size), cnn_stride=tuple(config.cnn_stride))
+                             cnn_kernel_size=tuple(config.cnn_kernel_size), cnn_stride=tuple(config.cnn_stride),
+                             value_obs_key="privileged_state" if config.privileged_critic else None)
 
 
 def default_config(task: str, vision: bool = False) -> BraxPPOConfig:
@@ -134,7 +142,13 @@ def make_network(config: BraxPPOConfig, env: Env):
 
     preprocess = running_statistics.normalize if config.normalize_observations else (lambda x, _: x)
     return _network_factory(config, bool(env.config.vision))(
-        adapter.BraxEnv(env).observation_size, env.n_drones * env.action_size, preprocess_observations_fn=preprocess)
+        _brax_env(adapter, config, env).observation_size, env.n_drones * env.action_size,
+        preprocess_observations_fn=preprocess)
+
+
+def _brax_env(adapter, config: BraxPPOConfig, env: Env):
+    """``env`` as brax sees it, with the privileged observation for ``config.privileged_critic``."""
+    return adapter.BraxEnv(env, privileged=config.privileged_critic)
 
 
 def make_policy(networks, params, deterministic: bool = True) -> Callable:
@@ -185,10 +199,10 @@ def train(env: Env, config: BraxPPOConfig = BraxPPOConfig(), progress: Callable[
 
     try:
         _, params, _ = ppo.train(
-            adapter.BraxEnv(env), episode_length=env.episode_length, wrap_env_fn=adapter.wrap_for_brax_training,
+            _brax_env(adapter, config, env), episode_length=env.episode_length, wrap_env_fn=adapter.wrap_for_brax_training,
             network_factory=_network_factory(config, bool(env.config.vision)), vision=bool(env.config.vision),
             deterministic_eval=True, progress_fn=report,
-            policy_params_fn=keep, eval_env=None if eval_env is None else adapter.BraxEnv(eval_env),
+            policy_params_fn=keep, eval_env=None if eval_env is None else _brax_env(adapter, config, eval_env),
             run_evals=eval_env is not None, **kwargs)
     except KeyboardInterrupt:
         if latest["params"] is None:

@@ -93,12 +93,28 @@ class VisionMLP(linen.Module):
                             kernel_init=jax.nn.initializers.lecun_uniform())(hidden)
 
 
+class StateMLP(linen.Module):
+    """brax's MLP (swish, LeCun-uniform kernels) on the vectors ``obs[k]`` of ``keys`` joined, no images."""
+
+    layer_sizes: Sequence[int]
+    keys: Sequence[str]
+
+    @linen.compact
+    def __call__(self, obs: Mapping[str, jax.Array]) -> jax.Array:
+        from brax.training import networks
+
+        hidden = jnp.concatenate([obs[k] for k in self.keys], axis=-1)
+        return networks.MLP(layer_sizes=self.layer_sizes, activation=linen.swish,
+                            kernel_init=jax.nn.initializers.lecun_uniform())(hidden)
+
+
 def make_ppo_networks_vision(observation_size: Mapping[str, tuple[int, ...]], action_size: int,
                              preprocess_observations_fn: Callable = lambda x, _: x,
                              policy_hidden_layer_sizes: Sequence[int] = (64, 64),
                              value_hidden_layer_sizes: Sequence[int] = (64, 64), state_key: str = "state",
                              cnn_output_channels: Sequence[int] = (8, 16, 16),
-                             cnn_kernel_size: Sequence[int] = (4, 3, 3), cnn_stride: Sequence[int] = (2, 2, 2)):
+                             cnn_kernel_size: Sequence[int] = (4, 3, 3), cnn_stride: Sequence[int] = (2, 2, 2),
+                             value_obs_key: str | None = None):
     """brax's PPO networks (``networks_vision.PPONetworks``: policy, value, tanh-normal action distribution) on
     `VisionMLP`: what brax's ``make_ppo_networks_vision`` builds with ``cnn_global_pool="none"`` and
     ``policy_obs_key = value_obs_key = state_key``, on `Conv`.
@@ -111,6 +127,10 @@ def make_ppo_networks_vision(observation_size: Mapping[str, tuple[int, ...]], ac
         policy_hidden_layer_sizes, value_hidden_layer_sizes: the MLPs' hidden units.
         state_key: the state vector's key.
         cnn_output_channels, cnn_kernel_size, cnn_stride: per convolution, its filters, square kernel and stride.
+        value_obs_key: None: the value network is the policy's architecture (a CNN per image, the state, an MLP);
+            a key of the observation (e.g. ``"privileged_state"``, `jaxdrones.adapters.brax.BraxEnv`): an
+            asymmetric critic (Pinto et al., "Asymmetric Actor Critic for Image-Based Robot Learning", RSS 2018), an
+            MLP on the normalised state and that entry, normalised, without images.
     """
     from brax.training import distribution, networks
     from brax.training.agents.ppo import networks_vision
@@ -120,16 +140,24 @@ def make_ppo_networks_vision(observation_size: Mapping[str, tuple[int, ...]], ac
     cnn = dict(state_key=state_key, cnn_features=tuple(cnn_output_channels),
                cnn_kernel_sizes=tuple(cnn_kernel_size), cnn_strides=tuple(cnn_stride))
 
-    def network(module, squeeze):
+    def network(module, squeeze, keys=(state_key,)):
         def apply(processor_params, params, obs):
-            state = preprocess_observations_fn(obs[state_key], networks.normalizer_select(processor_params,
-                                                                                          state_key))
-            out = module.apply(params, {**obs, state_key: state})
+            normed = {k: preprocess_observations_fn(obs[k], networks.normalizer_select(processor_params, k))
+                      for k in keys}
+            out = module.apply(params, {**obs, **normed})
             return jnp.squeeze(out, -1) if squeeze else out
 
         return networks.FeedForwardNetwork(init=lambda key: module.init(key, dummy), apply=apply)
 
     policy = VisionMLP(layer_sizes=tuple(policy_hidden_layer_sizes) + (action_dist.param_size,), **cnn)
+    if value_obs_key is not None:
+        if value_obs_key not in observation_size:
+            raise ValueError(f"value_obs_key {value_obs_key!r} is not a key of the observation "
+                             f"({sorted(observation_size)})")
+        value = StateMLP(layer_sizes=tuple(value_hidden_layer_sizes) + (1,), keys=(state_key, value_obs_key))
+        return networks_vision.PPONetworks(
+            policy_network=network(policy, False), value_network=network(value, True, (state_key, value_obs_key)),
+            parametric_action_distribution=action_dist)
     value = VisionMLP(layer_sizes=tuple(value_hidden_layer_sizes) + (1,), **cnn)
     return networks_vision.PPONetworks(policy_network=network(policy, False), value_network=network(value, True),
                                        parametric_action_distribution=action_dist)

@@ -108,7 +108,8 @@ class GoalTask(Task):
     """A task judged per episode through a scene of obstacles (``avoid``, the gate drawn per episode): success is
     ending at its goal (`Task.reached`) without a collision; the scene is the task params' (collisions from
     `collided`, each drone's radius in `collision_data`); reward terms ``progress`` (weight 1), ``reached`` (10) and
-    ``crash`` (−10)."""
+    ``crash`` (−10). Its privileged observation (`Task.privileged`, for a critic) is the scene around each drone,
+    `scene_clearances`."""
 
     uses_scene = True
     success_counts_terminations = True
@@ -119,6 +120,9 @@ class GoalTask(Task):
 
     def data(self, config):
         return collision_data(config)
+
+    def privileged(self, config, task, sim):
+        return scene_clearances(task, sim)
 
     def weights(self, config):
         return {"progress": 1.0, "reached": 10.0, "crash": -10.0}
@@ -239,6 +243,28 @@ def clearance(task, sim: DroneState) -> jax.Array:
     from jaxdrones.cameras import distance
 
     return distance(task.scene, sim.pos) - task.data["collision_radius"]
+
+
+#: Where `scene_clearances` samples the scene around a drone: bearings (rad, from world +x, in the horizontal plane)
+#: and distances (m) from the drone's centre, and the largest clearance it reports (m).
+SAMPLE_BEARINGS = tuple(2 * math.pi * k / 16 for k in range(16))
+SAMPLE_RANGES = (0.25, 0.5, 0.75, 1.0, 1.5)
+SAMPLE_CLIP_M = 1.0
+
+
+def scene_clearances(task, sim: DroneState) -> jax.Array:
+    """f[D, 1 + 16·5] m: `clearance` at the drone's centre, then at 16 bearings × 5 distances around it in the
+    horizontal plane at its altitude (`SAMPLE_BEARINGS`, `SAMPLE_RANGES`; bearing-major), clipped to
+    [−`SAMPLE_CLIP_M`, `SAMPLE_CLIP_M`]: a map of the obstacles near the drone, in every direction, which its camera
+    sees only in part. Privileged: for a critic (`Task.privileged`), not the policy."""
+    from jaxdrones.cameras import distance
+
+    bearing = np.asarray(SAMPLE_BEARINGS)[:, None]
+    ranges = np.asarray(SAMPLE_RANGES)[None, :]
+    offsets = np.stack([np.cos(bearing) * ranges, np.sin(bearing) * ranges, 0 * bearing * ranges], -1)
+    points = jnp.concatenate([sim.pos[..., None, :], sim.pos[..., None, :] + offsets.reshape(-1, 3)], axis=-2)
+    clear = distance(task.scene, points) - task.data["collision_radius"][..., None]
+    return jnp.clip(clear, -SAMPLE_CLIP_M, SAMPLE_CLIP_M)
 
 
 def collided(task, sim: DroneState) -> jax.Array:
