@@ -6,8 +6,12 @@ episode on 64 × 48 depth) with the trainer's default config (`jaxdrones.trainin
 worlds × 16-step unrolls × 4 minibatches, 16,384 env steps an iteration) for ``--epochs`` epochs of ``--iterations``
 iterations. The time of each epoch is that between brax's progress calls; brax compiles its epoch at the first call
 (at times again at the second), so the steady iteration time is taken from the third epoch on. Iterations of
-``jaxdrones train`` are the same program, so the run's wall time is about (2 M / 16,384) × the steady time plus
+``jaxdrones train`` are the same program, so the run's wall time is about (steps / 16,384) × the steady time plus
 the compilations and evaluations.
+
+Both critics are timed in the same run, one after the other: the asymmetric one of the defaults
+(``privileged_critic``: an MLP on the state and the task's privileged observation) and one with the policy's
+architecture (a CNN on the images too); ``--critic`` times one.
 
 Usage::
 
@@ -32,6 +36,8 @@ def parse_args(argv=None):
     parser.add_argument("--task", default="avoid", choices=("avoid", "fly_thru_gate"))
     parser.add_argument("--epochs", type=int, default=4, help="epochs timed (the first two compile)")
     parser.add_argument("--iterations", type=int, default=2, help="PPO iterations per epoch")
+    parser.add_argument("--critic", choices=("both", "privileged", "images"), default="both",
+                        help="the critic(s) to time (default both)")
     parser.add_argument("--out", default=DEFAULT_OUT)
     return parser.parse_args(argv)
 
@@ -48,34 +54,48 @@ def main(argv=None) -> int:
     from jaxdrones.training.run import default_env
 
     env = jd.make(args.task, **default_env(args.task, {"vision": ("depth",)}))
-    config = brax_ppo.default_config(args.task, vision=True)
-    per_iteration = config.batch_size * config.unroll_length * config.num_minibatches
-    config = dataclasses.replace(config, num_timesteps=per_iteration * args.iterations * args.epochs,
-                                 num_evals=args.epochs + 1)
-    kwargs = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
+    base = brax_ppo.default_config(args.task, vision=True)
+    per_iteration = base.batch_size * base.unroll_length * base.num_minibatches
+    base = dataclasses.replace(base, num_timesteps=per_iteration * args.iterations * args.epochs,
+                               num_evals=args.epochs + 1)
+    kwargs = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)
               if f.name not in brax_ppo.NETWORK_FIELDS}
-    stamps = []
+
+    def time_training(privileged: bool):
+        config = dataclasses.replace(base, privileged_critic=privileged)
+        stamps = []
+        start = time.perf_counter()
+        ppo.train(brax_ppo._brax_env(adapter, config, env), episode_length=env.episode_length,
+                  wrap_env_fn=adapter.wrap_for_brax_training, vision=True, run_evals=False,
+                  network_factory=brax_ppo._network_factory(config, True, brax_ppo._privileged(config, env)),
+                  progress_fn=lambda steps, metrics: stamps.append((int(steps), time.perf_counter())), **kwargs)
+        epochs = np.diff([start] + [t for _, t in stamps])[1:]  # the first call comes before any training
+        return epochs, epochs[2:] / args.iterations
+
+    critics = ("privileged", "images") if args.critic == "both" else (args.critic,)
     load = os.getloadavg()
-    start = time.perf_counter()
-    ppo.train(adapter.BraxEnv(env), episode_length=env.episode_length, wrap_env_fn=adapter.wrap_for_brax_training,
-              network_factory=brax_ppo._network_factory(config, True), vision=True, run_evals=False,
-              progress_fn=lambda steps, metrics: stamps.append((int(steps), time.perf_counter())), **kwargs)
-    times = np.diff([start] + [t for _, t in stamps])
-    epochs = times[1:]  # the first call comes before any training (brax's initial progress)
-    steady = epochs[2:] / args.iterations
+    results = {critic: time_training(critic == "privileged") for critic in critics}
     print(f"jax {jax.__version__} on {jax.devices()[0].device_kind}, load {load}; {args.task}, image "
           f"{env.config.image_size}, {per_iteration:,} env steps an iteration")
-    for k, t in enumerate(epochs):
-        print(f"epoch {k + 1}: {t:.1f} s ({t / args.iterations:.1f} s an iteration){' (compiles)' if k < 2 else ''}")
-    if steady.size:
-        print(f"steady: median {np.median(steady):.2f} s an iteration, {per_iteration / np.median(steady):,.0f} env "
-              f"steps/s")
+    out = {"task": args.task, "image_size": list(env.config.image_size), "per_iteration": per_iteration,
+           "iterations_per_epoch": args.iterations, "jax": jax.__version__, "load_start": load, "critics": {}}
+    for critic, (epochs, steady) in results.items():
+        print(f"critic: {critic}")
+        for k, t in enumerate(epochs):
+            print(f"  epoch {k + 1}: {t:.1f} s ({t / args.iterations:.1f} s an iteration)"
+                  f"{' (compiles)' if k < 2 else ''}")
+        median = float(np.median(steady)) if steady.size else None
+        if median:
+            print(f"  steady: median {median:.2f} s an iteration, {per_iteration / median:,.0f} env steps/s")
+        out["critics"][critic] = {"epoch_s": epochs.tolist(), "steady_iteration_s": median}
+    if len(results) == 2 and all(v["steady_iteration_s"] for v in out["critics"].values()):
+        ratio = out["critics"]["images"]["steady_iteration_s"] / out["critics"]["privileged"]["steady_iteration_s"]
+        out["images_over_privileged"] = ratio
+        print(f"an iteration with the images' critic takes {ratio:.2f}x the asymmetric critic's")
+    out["load_end"] = os.getloadavg()
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
-        json.dump({"task": args.task, "image_size": list(env.config.image_size), "per_iteration": per_iteration,
-                   "iterations_per_epoch": args.iterations, "epoch_s": epochs.tolist(),
-                   "steady_iteration_s": float(np.median(steady)) if steady.size else None,
-                   "jax": jax.__version__, "load_start": load, "load_end": os.getloadavg()}, f, indent=1)
+        json.dump(out, f, indent=1)
     return 0
 
 

@@ -201,6 +201,16 @@ def test_the_brax_view_with_a_privileged_critic(env):
     p = lambda o: np.asarray(nets.policy_network.apply(stats, policy, o))
     assert v(blank) == v(obs) and v(moved) != v(obs)
     assert not np.allclose(p(blank), p(obs)) and np.array_equal(p(moved), p(obs))
+    # The trainer's config: the asymmetric critic where the env has a privileged observation, the usual one elsewhere.
+    from jaxdrones.training import brax_ppo
+
+    config = brax_ppo.default_config("avoid", vision=True)
+    assert config.privileged_critic
+    value = brax_ppo.make_network(config, env).value_network.init(jax.random.key(0))
+    assert not [k for k in value["params"] if "CNN" in k]
+    hover = jd.make("hover", vision=("depth",), image_size=(32, 24))
+    value = brax_ppo.make_network(config, hover).value_network.init(jax.random.key(0))
+    assert [k for k in value["params"] if "CNN" in k]
     with pytest.raises(ValueError, match="privileged"):
         BraxEnv(jd.make("hover"), privileged=True)  # no camera
     with pytest.raises(ValueError, match="privileged"):

@@ -38,7 +38,7 @@ class GatePass(GoalTask):
     touching the ground or leaving the arena.
 
     Reward (both ``reward`` settings): ``progress``, the velocity towards a point 0.5 m beyond the opening's centre
-    (m/s), weight 1; ``reached``, 1 on passing, weight 10; ``crash``, 1 on any termination but passing, weight −10.
+    (m/s), weight 1; ``reached``, 1 on passing, weight 10; ``crash``, 1 on any termination but passing, weight −50.
     Success metric: ``failure``, 0 when the episode ends through the opening, else 1; solved when at most 10 % of the
     evaluation episodes fail (``success_rate`` ≥ 0.9).
     """
