@@ -22,10 +22,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
+import pathlib
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-DEFAULT_OUT = os.path.join(HERE, "results", "avoid_planner.json")
+DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "avoid_planner.json"
 GRID_M = 0.05
 LOOK_M = 0.3
 
@@ -120,9 +119,9 @@ def main(argv=None) -> int:
           f"{100 * connected:.0f} %; the planner reached the goal in {100 * out['planner']['success']:.1f} % "
           f"(collisions {100 * out['planner']['collision']:.1f} %); straight at the goal "
           f"{100 * out['straight']['success']:.1f} % (collisions {100 * out['straight']['collision']:.1f} %)")
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(out, f, indent=1)
+    path = pathlib.Path(args.out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=1))
     return 0
 
 

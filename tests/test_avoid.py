@@ -211,6 +211,8 @@ def test_the_brax_view_with_a_privileged_critic(env):
     hover = jd.make("hover", vision=("depth",), image_size=(32, 24))
     value = brax_ppo.make_network(config, hover).value_network.init(jax.random.key(0))
     assert [k for k in value["params"] if "CNN" in k]
+    with pytest.raises(ValueError, match="value_obs_key 'privileged_state' is not a key"):
+        make_ppo_networks_vision(BraxEnv(env).observation_size, 3, value_obs_key="privileged_state")
     with pytest.raises(ValueError, match="privileged"):
         BraxEnv(jd.make("hover"), privileged=True)  # no camera
     with pytest.raises(ValueError, match="privileged"):

@@ -131,6 +131,9 @@ def make_ppo_networks_vision(observation_size: Mapping[str, tuple[int, ...]], ac
             a key of the observation (e.g. ``"privileged_state"``, `jaxdrones.adapters.brax.BraxEnv`): an
             asymmetric critic (Pinto et al., "Asymmetric Actor Critic for Image-Based Robot Learning", RSS 2018), an
             MLP on the normalised state and that entry, normalised, without images.
+
+    Raises:
+        ValueError: a ``value_obs_key`` that is not a key of ``observation_size``.
     """
     from brax.training import distribution, networks
     from brax.training.agents.ppo import networks_vision
@@ -150,14 +153,15 @@ def make_ppo_networks_vision(observation_size: Mapping[str, tuple[int, ...]], ac
         return networks.FeedForwardNetwork(init=lambda key: module.init(key, dummy), apply=apply)
 
     policy = VisionMLP(layer_sizes=tuple(policy_hidden_layer_sizes) + (action_dist.param_size,), **cnn)
-    if value_obs_key is not None:
-        if value_obs_key not in observation_size:
-            raise ValueError(f"value_obs_key {value_obs_key!r} is not a key of the observation "
-                             f"({sorted(observation_size)})")
-        value = StateMLP(layer_sizes=tuple(value_hidden_layer_sizes) + (1,), keys=(state_key, value_obs_key))
-        return networks_vision.PPONetworks(
-            policy_network=network(policy, False), value_network=network(value, True, (state_key, value_obs_key)),
-            parametric_action_distribution=action_dist)
-    value = VisionMLP(layer_sizes=tuple(value_hidden_layer_sizes) + (1,), **cnn)
-    return networks_vision.PPONetworks(policy_network=network(policy, False), value_network=network(value, True),
+    value_layers = tuple(value_hidden_layer_sizes) + (1,)
+    if value_obs_key is None:
+        value_keys, value = (state_key,), VisionMLP(layer_sizes=value_layers, **cnn)
+    elif value_obs_key not in observation_size:
+        raise ValueError(f"value_obs_key {value_obs_key!r} is not a key of the observation "
+                         f"({sorted(observation_size)})")
+    else:
+        value_keys = (state_key, value_obs_key)
+        value = StateMLP(layer_sizes=value_layers, keys=value_keys)
+    return networks_vision.PPONetworks(policy_network=network(policy, False),
+                                       value_network=network(value, True, value_keys),
                                        parametric_action_distribution=action_dist)
