@@ -94,6 +94,13 @@ def patch_brax() -> list[str]:
 patch_brax()
 
 
+def privileged_shape(env: Env) -> tuple[int, ...] | None:
+    """The shape of ``env.privileged`` of a state (f[D, k]; `jaxdrones.envs.base.Env.privileged`), or None when the
+    env has no privileged observation. Traced abstractly: nothing runs."""
+    out = jax.eval_shape(env.privileged, jax.eval_shape(env.reset, jax.random.key(0)))
+    return None if out is None else tuple(out.shape)
+
+
 class BraxEnv(BraxBaseEnv):
     """A jaxdrones env seen as a brax env with flat observation and action vectors.
 
@@ -118,8 +125,7 @@ class BraxEnv(BraxBaseEnv):
     """
 
     def __init__(self, env: Env, auto_reset: bool = True, privileged: bool = False):
-        if privileged and not (isinstance(env.observation_spec, dict)
-                               and jax.eval_shape(env.privileged, jax.eval_shape(env.reset, jax.random.key(0)))):
+        if privileged and not (isinstance(env.observation_spec, dict) and privileged_shape(env)):
             raise ValueError("privileged=True needs an env with camera images (vision=...) and a privileged "
                              "observation (Task.privileged: e.g. avoid, fly_thru_gate)")
         self.env = env
@@ -165,8 +171,7 @@ class BraxEnv(BraxBaseEnv):
         zeros = {k: jnp.zeros(v.shape, v.dtype) for k, v in spec.items()}
         sizes = {k: v.shape for k, v in jax.eval_shape(policy_input, zeros).items()}
         if self.privileged:
-            state = jax.eval_shape(self.env.reset, jax.random.key(0))
-            sizes["privileged_state"] = (int(np.prod(jax.eval_shape(self.env.privileged, state).shape)),)
+            sizes["privileged_state"] = (int(np.prod(privileged_shape(self.env))),)
         return sizes
 
     @property

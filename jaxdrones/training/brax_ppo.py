@@ -158,7 +158,9 @@ def _privileged(config: BraxPPOConfig, env: Env) -> bool:
     cameras and a privileged observation."""
     if not (config.privileged_critic and env.config.vision):
         return False
-    return jax.eval_shape(env.privileged, jax.eval_shape(env.reset, jax.random.key(0))) is not None
+    from jaxdrones.adapters.brax import privileged_shape
+
+    return privileged_shape(env) is not None
 
 
 def _brax_env(adapter, config: BraxPPOConfig, env: Env):
