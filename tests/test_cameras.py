@@ -10,6 +10,7 @@ from scipy.ndimage import maximum_filter, minimum_filter
 import jaxdrones as jd
 from jaxdrones import cameras
 from jaxdrones.backends.scene import Obstacle
+from jaxdrones.envs.observations import DEPTH_SCALE, policy_input
 
 PARAMS = jd.load_params("cf2x")
 LEVEL = [[0.0, 0.0, 0.0]]
@@ -233,6 +234,43 @@ def test_env_vision_on_the_jax_backend_is_batched_and_held_between_captures():
         return jnp.mean(env._render(state.task.scene, state.params, sim, jnp.ones((4,), bool), state.obs)["depth"])
 
     assert np.isfinite(jax.grad(mean_depth)(0.0)) and jax.grad(mean_depth)(0.0) != 0.0
+
+
+def test_frame_stack_holds_the_last_captures_oldest_first():
+    """``frame_stack=3``: each image gains a frame axis holding the last 3 captures, oldest first, the reset's
+    capture repeated until 3 have been taken: the frames are those of the same env without a stack, one capture
+    period apart; `policy_input` puts the drones then their frames along the channels; the gymnasium space has the
+    frame axis."""
+    kwargs = dict(vision=("rgb", "depth"), ctrl_freq=30, camera_freq=15, image_size=(16, 12), n_drones=2)
+    plain, stacked = jd.make("multi_hover", **kwargs), jd.make("multi_hover", frame_stack=3, **kwargs)
+    assert stacked.observation_spec["depth"].shape == (2, 3, 12, 16)
+    assert stacked.observation_spec["rgb"].shape == (2, 3, 12, 16, 4)
+    key = jax.random.key(0)
+    a, b = jax.jit(plain.reset)(key), jax.jit(stacked.reset)(key)
+    for k in range(3):  # the reset's capture, three times
+        np.testing.assert_array_equal(np.asarray(b.obs["depth"][:, k]), np.asarray(a.obs["depth"]))
+    captures = [a.obs]
+    step_a, step_b = jax.jit(plain.step), jax.jit(stacked.step)
+    turn = jnp.tile(jnp.asarray([[0.2, 0.1, 0.3, -0.5]]), (2, 1))
+    for t in range(1, 7):
+        a, b = step_a(a, turn), step_b(b, turn)
+        if t % 2 == 0:
+            captures.append(a.obs)
+        expected = ([captures[0]] * 3 + captures[1:])[-3:]  # the last three captures, oldest first
+        for name in ("depth", "rgb"):
+            np.testing.assert_array_equal(np.asarray(b.obs[name]),
+                                          np.stack([np.asarray(c[name]) for c in expected], axis=1))
+    assert len({np.asarray(c["depth"]).tobytes() for c in captures}) == len(captures)  # every capture new
+    seen = policy_input(b.obs)
+    assert seen["pixels/depth"].shape == (12, 16, 6) and seen["pixels/rgb"].shape == (12, 16, 18)
+    np.testing.assert_allclose(np.asarray(seen["pixels/depth"][..., 4]),  # drone 1, frame 1
+                               np.clip(np.asarray(b.obs["depth"][1, 1]) / DEPTH_SCALE, 0, 1), rtol=1e-6)
+    import gymnasium as gym
+
+    env = gym.make("jaxdrones/Hover-v0", vision=("depth",), frame_stack=4, image_size=(16, 12))
+    obs, _ = env.reset(seed=0)
+    assert obs["depth"].shape == (4, 12, 16) and env.observation_space.contains(obs)
+    env.close()
 
 
 def test_scenes_larger_than_one_step_trace_as_unrolled(monkeypatch):

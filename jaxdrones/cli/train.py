@@ -69,6 +69,9 @@ def register(subparsers) -> None:
     env.add_argument("--camera-freq", type=float, default=None, help="camera rate, Hz")
     env.add_argument("--camera-fov", type=float, default=None, metavar="DEG",
                      help="the cameras' vertical field of view, degrees (default: the task's; the paper's 60)")
+    env.add_argument("--frame-stack", type=int, default=None, metavar="K",
+                     help="the last K camera frames in the observation, a memory for the policy (default: the "
+                          "task's, 1)")
     env.add_argument("--target", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                      help="hover/takeoff target, m")
     env.add_argument("--start-pos-range", type=float, nargs=3, default=None, metavar=("DX", "DY", "DZ"),
@@ -111,7 +114,8 @@ _ENV_OPTIONS = {"action_type": "action_type", "obs_type": "obs_type", "model": "
                 "start_yaw": "start_yaw", "start_vel": "start_vel", "start_ang_vel": "start_ang_vel",
                 "max_neighbors": "max_neighbors", "downwash_radius": "downwash_radius", "drag": "drag",
                 "ground_effect": "ground_effect", "downwash": "downwash", "vision": "vision",
-                "image_size": "image_size", "camera_freq": "camera_freq", "camera_fov": "camera_fov"}
+                "image_size": "image_size", "camera_freq": "camera_freq", "camera_fov": "camera_fov",
+                "frame_stack": "frame_stack"}
 
 
 def _positive(name: str, value) -> None:

@@ -137,6 +137,12 @@ class TaskConfig:
         camera_fov: the cameras' vertical field of view, degrees, in (0, 180) (the paper's 60; the horizontal one
             follows from the image's aspect: 75° at 4:3).
         renderer: ``"pybullet"`` only: ``"tiny"`` (CPU) or ``"egl"``.
+        frame_stack: camera frames per image in the observation, K ≥ 1 (needs ``vision`` when K > 1). With K > 1
+            each image gains a frame axis after the drone axis (``depth`` f32[D, K, H, W], ``rgb`` u8[D, K, H, W, 4],
+            ``seg`` i32[D, K, H, W]): the last K captures, oldest first, the reset's capture repeated until K have
+            been taken (gymnasium's ``FrameStackObservation`` with ``padding_type="reset"``; the frame stack of
+            Mnih et al. 2015, "Human-level control through deep reinforcement learning"). A memory for a policy
+            without one: what it passed and no longer sees, and its motion relative to the scene.
 
     Raises:
         ValueError: on any invalid value, naming the field and the valid range.
@@ -180,6 +186,7 @@ class TaskConfig:
     image_size: tuple[int, int] = (64, 48)
     camera_fov: float = 60.0
     renderer: str = "tiny"
+    frame_stack: int = 1
 
     def __post_init__(self):
         _check_choice("action_type", self.action_type, ACTION_TYPES)
@@ -269,6 +276,13 @@ class TaskConfig:
         if not (_is_number(self.camera_fov) and 0 < self.camera_fov < 180):
             raise ValueError(f"camera_fov must be the vertical field of view in degrees, in (0, 180), got "
                              f"{self.camera_fov!r}")
+        k = self.frame_stack
+        if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
+            raise ValueError(f"frame_stack must be an integer ≥ 1 (camera frames per image), got {k!r}")
+        if k > 1 and not self.vision:
+            raise ValueError(f"frame_stack={k} stacks camera frames: it needs vision=('depth',), ('rgb',) or "
+                             f"('seg',)")
+        self._set("frame_stack", int(k))
 
     def sim_config(self) -> SimConfig:
         """The `SimConfig` of the physics."""

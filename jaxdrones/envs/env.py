@@ -192,8 +192,9 @@ class TaskEnv(Env):
         steps = jnp.zeros((), jnp.int32)
         obs = self._observe(task, sim, history, steps)
         if cfg.vision:
-            blank = {k: jnp.zeros(v.shape, v.dtype) for k, v in self._image_spec().items()}
-            obs = {"state": obs, **self._render(task.scene, params, sim, jnp.ones((), bool), blank)}
+            blank = {k: jnp.zeros(v.shape, v.dtype) for k, v in self._image_spec(frames=False).items()}
+            first = self._render(task.scene, params, sim, jnp.ones((), bool), blank)
+            obs = {"state": obs, **self._stack(first)}
         zeros = jnp.zeros((cfg.n_drones,), self.dtype)
         terms = self.task.reward_terms(cfg, task, sim, jnp.zeros((cfg.n_drones, self.action_size), self.dtype),
                                        steps)
@@ -229,7 +230,7 @@ class TaskEnv(Env):
         if cfg.vision:
             held = {k: v for k, v in state.obs.items() if k != "state"}
             due = steps % cfg.camera_period == 0
-            images = jax.lax.cond(due, lambda: self._render(task.scene, state.params, sim, due, held), lambda: held)
+            images = jax.lax.cond(due, lambda: self._capture(task.scene, state.params, sim, due, held), lambda: held)
             obs = {"state": obs, **images}
         terms = self.task.reward_terms(cfg, task, sim, action, steps)
         nonneg = self.task.nonnegative_reward and cfg.reward == "shaped"
@@ -267,8 +268,29 @@ class TaskEnv(Env):
 
     # -- cameras -------------------------------------------------------------------------------------------------------
 
-    def _image_spec(self) -> dict:
-        return image_shapes((self.n_drones,), *self.config.image_size, self.config.vision)
+    def _image_spec(self, frames: bool = True) -> dict:
+        """Shapes of the observation's images: [D, (K,) H, W(, C)], with the frame axis when ``config.frame_stack``
+        > 1 and ``frames``."""
+        k = self.config.frame_stack
+        lead = (self.n_drones, k) if frames and k > 1 else (self.n_drones,)
+        return image_shapes(lead, *self.config.image_size, self.config.vision)
+
+    def _stack(self, images: dict) -> dict:
+        """The observation's images from one capture (``images`` [D, H, W(, C)]): repeated along the frame axis
+        when ``config.frame_stack`` > 1 (the reset's padding)."""
+        k = self.config.frame_stack
+        return images if k == 1 else {name: jnp.repeat(v[:, None], k, axis=1) for name, v in images.items()}
+
+    def _capture(self, scene, params: DroneParams, sim: DroneState, due: jax.Array, held: dict) -> dict:
+        """The observation's images after a capture of ``sim`` where ``due``: the new frame, or with a frame
+        stack the held frames shifted by one and the new frame last; ``held`` elsewhere."""
+        if self.config.frame_stack == 1:
+            return self._render(scene, params, sim, due, held)
+        last = {name: v[:, -1] for name, v in held.items()}
+        new = self._render(scene, params, sim, due, last)
+        shifted = {name: jnp.concatenate([v[:, 1:], new[name][:, None]], axis=1) for name, v in held.items()}
+        return {name: jnp.where(jnp.reshape(due, due.shape + (1,) * (v.ndim - due.ndim)), v, held[name])
+                for name, v in shifted.items()}
 
     def _render(self, scene, params: DroneParams, sim: DroneState, due: jax.Array, held: dict) -> dict:
         """The camera images of ``sim`` where ``due`` (bool[...]), ``held`` elsewhere.

@@ -255,21 +255,24 @@ def policy_input(obs):
 
     Args:
         obs: f[D, n_obs], or with cameras the env's dict ``{"state": f[D, n], "depth": f[D, H, W], "rgb":
-            u8[D, H, W, 4], "seg": i32[D, H, W]}``.
+            u8[D, H, W, 4], "seg": i32[D, H, W]}`` (with a frame stack of K, ``f[D, K, H, W]`` and
+            ``u8[D, K, H, W, 4]``: `jaxdrones.envs.config.TaskConfig.frame_stack`).
 
     Returns:
-        f[D·n_obs]; with cameras a dict: ``"state"`` f[D·n], and per image ``"pixels/depth"`` f32[H, W, D]
-        (depth / `DEPTH_SCALE` clipped to [0, 1]) and ``"pixels/rgb"`` f32[H, W, 3D] (RGB / 255, no alpha), the
-        drones along the channels (brax's vision networks take keys starting ``pixels/``). Segmentation ids are not
-        an image a network should read as magnitudes: they are left out.
+        f[D·n_obs]; with cameras a dict: ``"state"`` f[D·n], and per image ``"pixels/depth"`` f32[H, W, D·K]
+        (depth / `DEPTH_SCALE` clipped to [0, 1]) and ``"pixels/rgb"`` f32[H, W, 3·D·K] (RGB / 255, no alpha), the
+        drones and then their frames (oldest first) along the channels (brax's vision networks take keys starting
+        ``pixels/``). Segmentation ids are not an image a network should read as magnitudes: they are left out.
     """
     if not isinstance(obs, dict):
         return jnp.reshape(obs, (-1,))
     out = {"state": jnp.reshape(obs["state"], (-1,))}
     if "depth" in obs:
         depth = jnp.clip(obs["depth"].astype(jnp.float32) / DEPTH_SCALE, 0.0, 1.0)
-        out["pixels/depth"] = jnp.moveaxis(depth, -3, -1)
+        depth = jnp.reshape(depth, (-1,) + depth.shape[-2:])  # [D·K, H, W]
+        out["pixels/depth"] = jnp.moveaxis(depth, 0, -1)
     if "rgb" in obs:
-        rgb = obs["rgb"][..., :3].astype(jnp.float32) / 255.0  # [D, H, W, 3]
+        rgb = obs["rgb"][..., :3].astype(jnp.float32) / 255.0
+        rgb = jnp.reshape(rgb, (-1,) + rgb.shape[-3:])  # [D·K, H, W, 3]
         out["pixels/rgb"] = jnp.concatenate(list(rgb), axis=-1)
     return out
