@@ -272,6 +272,22 @@ def test_vision_options_are_checked():
         jd.make("hover", backend="pybullet", renderer="gl")
 
 
+def test_frame_stack_on_pybullet():
+    """``frame_stack=2`` on the PyBullet backend: the reset's capture twice, then after one camera period the reset's
+    capture first and the new one last."""
+    env = jd.make("hover", backend="pybullet", vision=("depth", "seg"), frame_stack=2, image_size=(16, 12),
+                  ctrl_freq=30, camera_freq=15)
+    state = env.reset(jax.random.key(0))
+    first = np.asarray(state.obs["depth"][0, 1])
+    assert state.obs["depth"].shape == (1, 2, 12, 16) and state.obs["seg"].shape == (1, 2, 12, 16)
+    np.testing.assert_array_equal(np.asarray(state.obs["depth"][0, 0]), first)
+    for _ in range(2):
+        state = env.step(state, jnp.full((1, 4), 0.5))
+    np.testing.assert_array_equal(np.asarray(state.obs["depth"][0, 0]), first)
+    assert not np.array_equal(np.asarray(state.obs["depth"][0, 1]), first)  # climbing: the ground further away
+    env.close()
+
+
 def test_gymnasium_on_pybullet_with_vision():
     import gymnasium as gym
 
