@@ -116,7 +116,7 @@ def time_env(task: str, worlds: int, repeats: int, steps: int = 30) -> dict:
 
     import jaxdrones as jd
 
-    env = jd.make(task, vision=("depth", "seg"), ctrl_freq=30, camera_freq=30)
+    env = jd.make(task, vision=("depth", "seg"), ctrl_freq=30, camera_freq=30, image_size=(64, 48))
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.key(0), worlds))
     actions = jnp.zeros((worlds, env.n_drones, env.action_size))
 

@@ -1,13 +1,14 @@
 """Seconds per iteration of brax's vision PPO on a task with cameras, as ``jaxdrones train TASK`` runs it.
 
 The work: ``brax.training.agents.ppo.train`` on the training env of ``jaxdrones train TASK --vision depth``
-(`jaxdrones.training.run.default_env`: for ``avoid`` 32 × 24 depth, for ``fly_thru_gate`` the gate drawn per
-episode on 64 × 48 depth) with the trainer's default config (`jaxdrones.training.brax_ppo.default_config`: 256
-worlds × 16-step unrolls × 4 minibatches, 16,384 env steps an iteration) for ``--epochs`` epochs of ``--iterations``
-iterations. The time of each epoch is that between brax's progress calls; brax compiles its epoch at the first call
-(at times again at the second), so the steady iteration time is taken from the third epoch on. Iterations of
-``jaxdrones train`` are the same program, so the run's wall time is about (steps / 16,384) × the steady time plus
-the compilations and evaluations.
+(`jaxdrones.training.run.default_env`: for ``avoid`` its own 64 × 16 depth, for ``fly_thru_gate`` the gate drawn
+per episode on 64 × 48 depth) with the trainer's default config (`jaxdrones.training.brax_ppo.default_config`:
+16-step unrolls × 4 minibatches of 512 worlds for ``avoid``, 32,768 env steps an iteration, and of 256 worlds,
+16,384 steps, for the gate) for ``--epochs`` epochs of ``--iterations`` iterations. The time of each epoch is
+that between brax's progress calls; brax compiles its epoch at the first call (at times again at the second), so
+the steady iteration time is taken from the third epoch on. Iterations of ``jaxdrones train`` are the same program,
+so the run's wall time is about (steps / steps an iteration) × the steady time plus the compilations and
+evaluations.
 
 Both critics are timed in the same run, one after the other: the asymmetric one of the defaults
 (``privileged_critic``: an MLP on the state and the task's privileged observation) and one with the policy's

@@ -35,7 +35,7 @@ def test_distance_is_each_shapes_signed_distance():
 
 @pytest.fixture(scope="module")
 def env():
-    return jd.make("avoid", image_size=(32, 24))
+    return jd.make("avoid")  # its own camera: a 64 × 16 depth strip, 144° across
 
 
 def test_avoid_draws_a_field_per_episode_that_only_the_camera_sees(env):
@@ -52,10 +52,10 @@ def test_avoid_draws_a_field_per_episode_that_only_the_camera_sees(env):
     assert not np.allclose(np.asarray(again), pos)  # and every episode
     # The state observation is the kinematics and the goal offset only: 21 + 3 entries; the depth image sees the
     # obstacles (ids 1..16; the ground is 0).
-    assert states.obs["state"].shape == (4, 1, 24) and states.obs["depth"].shape == (4, 1, 24, 32)
+    assert states.obs["state"].shape == (4, 1, 24) and states.obs["depth"].shape == (4, 1, 16, 64)
     np.testing.assert_allclose(np.asarray(states.obs["state"][:, 0, 21:]),
                                np.asarray(states.task.target[:, 0] - states.sim.pos[:, 0]), atol=1e-6)
-    seg = cameras.render(cameras.CameraSpec(width=32, height=24), scene, env.params, states.sim.pos,
+    seg = cameras.render(cameras.CameraSpec(width=64, height=16, fov=75.0), scene, env.params, states.sim.pos,
                          states.sim.quat, kinds=("seg",))["seg"]
     assert np.any(np.asarray(seg) >= 1)
 
@@ -83,12 +83,12 @@ def test_collision_terminates_and_the_goal_succeeds(env):
 def test_policy_input_and_the_brax_view(env):
     state = jax.jit(env.reset)(jax.random.key(0))
     seen = policy_input(state.obs)
-    assert set(seen) == {"state", "pixels/depth"} and seen["pixels/depth"].shape == (24, 32, 1)
+    assert set(seen) == {"state", "pixels/depth"} and seen["pixels/depth"].shape == (16, 64, 1)
     np.testing.assert_allclose(np.asarray(seen["pixels/depth"][..., 0]),
                                np.clip(np.asarray(state.obs["depth"][0]) / DEPTH_SCALE, 0, 1), rtol=1e-6)
     from jaxdrones.adapters.brax import BraxEnv
 
-    assert BraxEnv(env).observation_size == {"state": (24,), "pixels/depth": (24, 32, 1)}
+    assert BraxEnv(env).observation_size == {"state": (24,), "pixels/depth": (16, 64, 1)}
     rgb = jd.make("avoid", image_size=(32, 24), vision=("rgb", "depth", "seg"))
     seen = policy_input(jax.jit(rgb.reset)(jax.random.key(0)).obs)
     assert set(seen) == {"state", "pixels/depth", "pixels/rgb"} and seen["pixels/rgb"].shape == (24, 32, 3)
@@ -180,7 +180,7 @@ def test_the_brax_view_with_a_privileged_critic(env):
     from jaxdrones.training.encoders import make_ppo_networks_vision
 
     brax_env = BraxEnv(env, privileged=True)
-    assert brax_env.observation_size == {"state": (24,), "pixels/depth": (24, 32, 1), "privileged_state": (81,)}
+    assert brax_env.observation_size == {"state": (24,), "pixels/depth": (16, 64, 1), "privileged_state": (81,)}
     state = jax.jit(brax_env.reset)(jax.random.key(0))
     np.testing.assert_allclose(np.asarray(state.obs["privileged_state"]),
                                np.asarray(env.privileged(state.pipeline_state)).reshape(-1))

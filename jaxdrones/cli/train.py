@@ -65,7 +65,7 @@ def register(subparsers) -> None:
                      help="camera images in the observation (rgb, depth, seg; default: the task's, avoid: depth): "
                           "trained with brax's vision PPO")
     env.add_argument("--image-size", type=int, nargs=2, default=None, metavar=("W", "H"),
-                     help="camera image size, pixels (default: the task's; avoid trains on 32 x 24)")
+                     help="camera image size, pixels (default: the task's; avoid: 64 x 16)")
     env.add_argument("--camera-freq", type=float, default=None, help="camera rate, Hz")
     env.add_argument("--camera-fov", type=float, default=None, metavar="DEG",
                      help="the cameras' vertical field of view, degrees (default: the task's; the paper's 60)")

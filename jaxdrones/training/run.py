@@ -13,10 +13,7 @@ from jaxdrones.training.trainers import ALGOS, MULTI_AGENT, SINGLE_AGENT, TRAINA
 
 #: Task settings ``jaxdrones train`` uses unless told otherwise: the paper's multi-agent example trains
 #: leader-follower with one_d_rpm actions (docs: reference facts §11.4).
-DEFAULT_ENV = {"leader_follower": {"action_type": "one_d_rpm"},
-               # 24×32 depth images: a quarter of the rays of 48×64 (the cameras' cost is per pixel), enough to see
-               # 0.2 m wide obstacles 4 m ahead (about 1.5 pixels).
-               "avoid": {"image_size": (32, 24)}}
+DEFAULT_ENV = {"leader_follower": {"action_type": "one_d_rpm"}}
 #: What ``jaxdrones train`` adds to `DEFAULT_ENV` when a run asks for camera images: ``fly_thru_gate`` with
 #: ``--vision`` flies through a gate drawn per episode (`jaxdrones.envs.tasks.gate.GatePass`) with ``avoid``'s
 #: actions and camera rate, on the paper's 64 × 48 images (at 32 × 24 the gate's 5 cm columns and architrave fall
