@@ -55,8 +55,8 @@ def test_avoid_draws_a_field_per_episode_that_only_the_camera_sees(env):
     assert states.obs["state"].shape == (4, 1, 24) and states.obs["depth"].shape == (4, 1, 16, 64)
     np.testing.assert_allclose(np.asarray(states.obs["state"][:, 0, 21:]),
                                np.asarray(states.task.target[:, 0] - states.sim.pos[:, 0]), atol=1e-6)
-    seg = cameras.render(cameras.CameraSpec(width=64, height=16, fov=75.0), scene, env.params, states.sim.pos,
-                         states.sim.quat, kinds=("seg",))["seg"]
+    spec = cameras.CameraSpec(*env.config.image_size, fov=env.config.camera_fov)  # the env's own camera
+    seg = cameras.render(spec, scene, env.params, states.sim.pos, states.sim.quat, kinds=("seg",))["seg"]
     assert np.any(np.asarray(seg) >= 1)
 
 
