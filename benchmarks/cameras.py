@@ -46,7 +46,7 @@ def scene_obstacles(n: int, seed: int = 0):
     """``n`` primitives, the four shapes in turn, within 3 m of the origin (none within 0.5 m of the drone)."""
     import numpy as np
 
-    from jaxdrones.backends.scene import Obstacle
+    from jaxdrones.scene import Obstacle
 
     rng = np.random.default_rng(seed)
     out = []

@@ -44,7 +44,7 @@ import jaxdrones as jd
 import original
 from backends import timed
 from jaxdrones import cameras
-from jaxdrones.backends.scene import PAPER_OBSTACLES
+from jaxdrones.scene import PAPER_OBSTACLES
 from jaxdrones.control import PIDGains, pid_control, pid_init
 from throughput import machine_info, write_report
 

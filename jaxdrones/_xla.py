@@ -1,24 +1,23 @@
-"""XLA settings that jaxdrones applies before JAX starts a backend, each only where the running XLA knows it.
+"""XLA flags for the ``jaxdrones`` command line and the test suite, each set only where the running XLA accepts it.
+
+``import jaxdrones`` sets no XLA flag: a library does not change how the rest of its user's process compiles.
+The ``jaxdrones`` command line, which owns its process, adds `CLI_FLAGS` to ``XLA_FLAGS`` before JAX starts a
+backend (`add_flags`), and so does the test suite (``tests/conftest.py``).
 
 XLA reads ``XLA_FLAGS`` when JAX starts a backend and aborts the process on a flag it does not know (``Unknown flag
-in XLA_FLAGS``): flags come and go between jaxlib releases (jax 0.11 removed ``--xla_cpu_use_fusion_emitters``).
-So every flag jaxdrones adds is first looked up in the XLA libraries installed (jaxlib's ``libjax_common.so`` and
-any PJRT plugin's, e.g. the CUDA plugin), where XLA keeps the names of the flags it parses, and is added only if
-each of them names it. A flag the user already set in ``XLA_FLAGS`` is left alone, whatever its value.
+in XLA_FLAGS``), and flags come and go between jaxlib releases (jaxlib 0.11 removed
+``--xla_cpu_use_fusion_emitters``, whose name still stands in its library as a reserved field). So each flag is
+first given to XLA itself, in a subprocess that starts JAX's backends with it (`accepted`); the answer is kept in a
+file in the command line's cache folder (`cache_file`), keyed by the XLA libraries installed (jaxlib's and any PJRT
+plugin's, e.g. CUDA), so the check runs once per installation (0.5 s on a CPU). A flag the user already set in
+``XLA_FLAGS`` is left alone, whatever its value. ``JAXDRONES_XLA_FLAGS=0`` (set before the ``jaxdrones`` command or
+the test run) turns every flag off.
 
-Opt out of every flag jaxdrones sets with the environment variable ``JAXDRONES_XLA_FLAGS=0`` (set before
-``import jaxdrones`` or the ``jaxdrones`` command).
-
-The flags, by who sets them:
-
-- `IMPORT_FLAGS`, on ``import jaxdrones``: ``--xla_cpu_use_fusion_emitters=false``. XLA:CPU's MLIR fusion
-  emitters (the default since jaxlib 0.9) compiled the backward pass of a control step with ground effect into a
-  fused loop that recomputes shared cotangents per element: the gradient of a 100-step rollout over 1024 worlds
-  with drag and ground effect cost 180 times its forward pass on 2 cores, against 6 times with the classic emitters,
-  which run the forward pass, the envs and training as fast or faster. jax 0.11 has no classic emitters and no flag:
-  there it is not set.
-- `CLI_FLAGS`, by the ``jaxdrones`` command line (`jaxdrones.cli`): they halve the compile time of the training and
-  simulation programs on CPU with no measured change in their run time.
+`CLI_FLAGS` halve the compile time of the training and simulation programs on CPU with no measured change in their
+run time. XLA:CPU's classic emitters (``--xla_cpu_use_fusion_emitters=false``, up to jaxlib 0.10; later releases
+have only the fusion emitters) are not among them: with them the hover env's step over 1024 worlds ran 1.7 times
+faster on 2 cores, but ``jaxdrones train hover`` trained no faster (``benchmarks/train_algos.py``; README,
+"Benchmarks").
 """
 
 from __future__ import annotations
@@ -26,18 +25,21 @@ from __future__ import annotations
 import functools
 import glob
 import importlib.util
-import mmap
+import json
 import os
+import subprocess
+import sys
 import warnings
 
 #: Environment variable that, set to 0 (or false/no/off), stops jaxdrones from setting any XLA flag.
 OPT_OUT_VAR = "JAXDRONES_XLA_FLAGS"
-#: Flags added on ``import jaxdrones``.
-IMPORT_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
-#: Flags added by the ``jaxdrones`` command line, before it imports JAX.
+#: Flags added by the ``jaxdrones`` command line (and the test suite), before JAX starts a backend.
 CLI_FLAGS = ("--xla_backend_optimization_level=1", "--xla_llvm_disable_expensive_passes=true")
-#: Libraries below this size are Python bindings, not XLA: they hold no flag names.
+#: Libraries below this size are Python bindings, not XLA.
 _MIN_XLA_LIBRARY_BYTES = 10 * 2**20
+#: What the probe runs: start every backend JAX finds, which parses ``XLA_FLAGS`` (and aborts on an unknown flag).
+_PROBE = "import jax; jax.devices()"
+_PROBE_TIMEOUT_S = 300
 
 
 def opted_out() -> bool:
@@ -60,49 +62,97 @@ def xla_libraries() -> tuple[str, ...]:
     return tuple(sorted(p for p in set(paths) if os.path.getsize(p) >= _MIN_XLA_LIBRARY_BYTES))
 
 
-def known(flag: str) -> bool:
-    """Whether every installed XLA library (`xla_libraries`) names ``flag`` (e.g. ``"--xla_foo=1"``), i.e. XLA
-    will parse it rather than abort. False if no library is found."""
-    libraries = xla_libraries()
-    return bool(libraries) and all(_names(path, _flag_name(flag)) for path in libraries)
+def _installation() -> str:
+    """A key of the XLA installed: each library's path, size and modification time (a reinstall changes it)."""
+    parts = []
+    for path in xla_libraries():
+        stat = os.stat(path)
+        parts.append(f"{path}:{stat.st_size}:{stat.st_mtime_ns}")
+    return "|".join(parts)
 
 
-@functools.cache
-def _names(path: str, name: str) -> bool:
+def cache_file() -> str:
+    """Where `accepted` keeps XLA's answers: ``xla_flags.json`` in the command line's cache folder
+    (`jaxdrones.runs.default_cache_dir`)."""
+    from jaxdrones.runs import default_cache_dir
+
+    return os.path.join(default_cache_dir(), "xla_flags.json")
+
+
+def _read_cache() -> dict:
     try:
-        with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
-            return data.find(name.encode()) >= 0
+        with open(cache_file()) as f:
+            cache = json.load(f)
     except (OSError, ValueError):
+        return {}
+    return cache if isinstance(cache, dict) else {}
+
+
+def _write_cache(cache: dict) -> None:
+    path = cache_file()
+    tmp = f"{path}.{os.getpid()}.tmp"
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(tmp, "w") as f:
+            json.dump(cache, f, indent=1)
+        os.replace(tmp, path)  # atomic: concurrent processes (pytest's workers) never read half a file
+    except OSError:  # a read-only home: probe again next time
+        pass
+
+
+def _probe(flags: tuple[str, ...]) -> bool:
+    """Whether JAX starts its backends in a fresh interpreter with ``XLA_FLAGS`` set to ``flags`` (and nothing else)."""
+    env = dict(os.environ, XLA_FLAGS=" ".join(flags), XLA_PYTHON_CLIENT_PREALLOCATE="false")
+    try:
+        result = subprocess.run([sys.executable, "-c", _PROBE], env=env, stdin=subprocess.DEVNULL,
+                                capture_output=True, timeout=_PROBE_TIMEOUT_S)
+    except (OSError, subprocess.SubprocessError):
         return False
+    return result.returncode == 0
+
+
+def accepted(flags: tuple[str, ...]) -> tuple[str, ...]:
+    """The ``flags`` (e.g. ``("--xla_foo=1",)``) that the installed XLA accepts, asked of XLA itself.
+
+    All of them are tried at once in a subprocess, then one by one if XLA refused them together; the answers are
+    cached per installation (`cache_file`), so later calls start no process. Where no XLA library is found, or the
+    subprocess cannot run, no flag is accepted.
+    """
+    installation = _installation()
+    if not installation:
+        return ()
+    cache = _read_cache()
+    known = cache.get(installation, {})
+    unknown = tuple(f for f in flags if f not in known)
+    if unknown:
+        if len(unknown) > 1 and _probe(unknown):
+            known.update(dict.fromkeys(unknown, True))
+        else:
+            known.update({f: _probe((f,)) for f in unknown})
+        cache = _read_cache()  # another process may have written meanwhile: keep its answers
+        cache[installation] = {**cache.get(installation, {}), **known}
+        _write_cache(cache)
+    return tuple(f for f in flags if known[f])
 
 
 def add_flags(flags: tuple[str, ...]) -> list[str]:
-    """Add to ``XLA_FLAGS`` each of ``flags`` that the user did not set and the running XLA knows, unless the user
-    opted out (`opted_out`); returns the flags added.
+    """Add to ``XLA_FLAGS`` each of ``flags`` that the user did not set and the running XLA accepts (`accepted`),
+    unless the user opted out (`opted_out`); returns the flags added.
 
     XLA reads ``XLA_FLAGS`` when JAX starts a backend: if one is already running (JAX computed something before),
     the flags cannot take effect and a `RuntimeWarning` says so.
     """
-    current = os.environ.get("XLA_FLAGS", "")
     if opted_out():
         return []
-    added = [f for f in flags if _flag_name(f) not in current and known(f)]
+    current = os.environ.get("XLA_FLAGS", "")
+    set_by_user = {_flag_name(f) for f in current.split()}
+    added = list(accepted(tuple(f for f in flags if _flag_name(f) not in set_by_user)))
     if not added:
         return []
     os.environ["XLA_FLAGS"] = " ".join([current, *added]).strip()
-    try:
-        from jax._src import xla_bridge
-
-        started = xla_bridge.backends_are_initialized()
-    except (ImportError, AttributeError):  # a JAX without this check: nothing to warn about
-        started = False
-    if started:
-        warnings.warn(f"jaxdrones was imported after JAX started its backends, so the XLA flags {added} cannot take "
-                      f"effect: import jaxdrones before running JAX code, or set XLA_FLAGS yourself",
-                      RuntimeWarning, stacklevel=3)
+    bridge = sys.modules.get("jax._src.xla_bridge")
+    started = getattr(bridge, "backends_are_initialized", None)
+    if started is not None and started():
+        warnings.warn(f"JAX started its backends before jaxdrones set the XLA flags {added}, so they cannot take "
+                      f"effect: set them before running JAX code", RuntimeWarning, stacklevel=2)
     return added
-
-
-def configure() -> list[str]:
-    """Add `IMPORT_FLAGS` (see `add_flags`); called on ``import jaxdrones``."""
-    return add_flags(IMPORT_FLAGS)

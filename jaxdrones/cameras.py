@@ -234,7 +234,7 @@ class Primitives:
 class Scene:
     """What the cameras see besides the drones: the ground plane z = 0 (seg id 0) and padded primitives per shape.
 
-    Build it with `make_scene` (from `jaxdrones.backends.scene.Obstacle` descriptions, as the PyBullet backend
+    Build it with `make_scene` (from `jaxdrones.scene.Obstacle` descriptions, as the PyBullet backend
     takes them); the capacity of each shape is its arrays' N, so scenes of one capacity share a compiled program.
     """
 
@@ -287,7 +287,7 @@ def make_scene(obstacles=(), capacity: dict | int | None = None, ground: bool = 
     """A `Scene` from static obstacles, as the PyBullet backend takes them.
 
     Args:
-        obstacles: a sequence of `jaxdrones.backends.scene.Obstacle` (``"box"``, ``"sphere"``, ``"cylinder"`` or
+        obstacles: a sequence of `jaxdrones.scene.Obstacle` (``"box"``, ``"sphere"``, ``"cylinder"`` or
             ``"capsule"``); obstacle k gets the segmentation id k + 1 (the ground is 0), as in a PyBullet world.
         capacity: slots per shape, ``{"box": 8, ...}`` or one int for every shape; default: as many as the
             obstacles of each shape. Unused slots are padding (never hit).

@@ -74,7 +74,7 @@ def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
         backend: ``"jax"`` (this pure-JAX core) or ``"pybullet"`` (`jaxdrones.backends.pybullet.PyBulletStep`:
             collisions with the ground, obstacles and other drones, cameras; not differentiable).
         **options: PyBullet backend options: ``obstacles`` (None, True/"paper", or a sequence of
-            `jaxdrones.backends.scene.Obstacle` / URDF paths), ``damping`` (keep Bullet's velocity damping,
+            `jaxdrones.scene.Obstacle` / URDF paths), ``damping`` (keep Bullet's velocity damping,
             default False), ``gui`` (show world 0 in PyBullet's GUI), ``renderer`` ("tiny" or "egl").
 
     Returns:
@@ -86,6 +86,7 @@ def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
         ValueError: unknown backend or option; and, when ``step`` is called, an ``rpm`` or ``state`` of the wrong shape or a
             non-numeric dtype. Called on concrete arrays (outside ``jit``), a non-finite ``rpm`` raises too; inside
             ``jit`` NaN propagates into the state (the envs detect and report it).
+        ModuleNotFoundError: ``backend="pybullet"`` without pybullet installed (`jaxdrones.backends.require_pybullet`).
     """
     if not isinstance(config, SimConfig):
         raise ValueError(f"make_step expects a SimConfig, got {type(config).__name__}")

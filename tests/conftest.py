@@ -1,4 +1,5 @@
-"""Shared fixtures: seeded keys and generators, and a scoped float64 switch; the XLA flags the suite compiles with."""
+"""Shared fixtures: seeded keys and generators, and a scoped float64 switch; the XLA flags the suite compiles with;
+the skips of tests whose optional packages are not installed (markers ``pybullet`` and ``torch``)."""
 
 from __future__ import annotations
 
@@ -8,8 +9,9 @@ import sys
 from jaxdrones import _xla
 
 # The suite compiles several hundred programs, most of them run for a few steps: it compiles them as the
-# ``jaxdrones`` command line does (`jaxdrones._xla.CLI_FLAGS`: LLVM's cheaper passes; tests/test_avoid.py and
-# tests/test_gate.py in 45-50 s instead of 65-67 s). ``JAXDRONES_XLA_FLAGS=0`` runs it with XLA's defaults.
+# ``jaxdrones`` command line does (`jaxdrones._xla.CLI_FLAGS`, where the installed XLA accepts them: LLVM's cheaper
+# passes; tests/test_avoid.py and tests/test_gate.py in 45-50 s instead of 65-67 s). ``JAXDRONES_XLA_FLAGS=0`` runs
+# it with XLA's defaults.
 _xla.add_flags(_xla.CLI_FLAGS)
 
 import jax  # noqa: E402
@@ -18,6 +20,17 @@ import pytest  # noqa: E402
 
 # Make `tests/reference_dyn.py` importable as `reference_dyn` however pytest is invoked.
 sys.path.insert(0, os.path.dirname(__file__))
+
+from optional import MISSING, installed  # noqa: E402
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip the tests marked ``pybullet`` or ``torch`` where that package is missing, with `MISSING`'s reason."""
+    for name, reason in MISSING.items():
+        if not installed(name):
+            for item in items:
+                if name in item.keywords:
+                    item.add_marker(pytest.mark.skip(reason=reason))
 
 
 @pytest.fixture(autouse=True, scope="session")

@@ -8,7 +8,7 @@ import pytest
 
 import jaxdrones as jd
 from jaxdrones import cameras
-from jaxdrones.backends.scene import Obstacle
+from jaxdrones.scene import Obstacle
 from jaxdrones.envs.observations import DEPTH_SCALE, policy_input
 
 

@@ -9,7 +9,7 @@ from scipy.ndimage import maximum_filter, minimum_filter
 
 import jaxdrones as jd
 from jaxdrones import cameras
-from jaxdrones.backends.scene import Obstacle
+from jaxdrones.scene import Obstacle
 from jaxdrones.envs.observations import DEPTH_SCALE, policy_input
 
 PARAMS = jd.load_params("cf2x")
@@ -86,6 +86,7 @@ def _cross_scenes():
 
 
 @pytest.mark.slow
+@pytest.mark.pybullet
 @pytest.mark.parametrize("name", list(_cross_scenes()))
 def test_matches_the_pybullet_backend(name):
     """Against the PyBullet backend's onboard cameras (EGL renderer, which samples pixel centres as the pinhole
@@ -194,6 +195,7 @@ def test_bad_scene_and_input():
 
 
 @pytest.mark.slow
+@pytest.mark.pybullet
 @pytest.mark.parametrize("fov", [60.0, 100.0])
 def test_env_images_match_across_backends(fov):
     """The same task and options on both backends (the gate of fly_thru_gate, a tilted start; the paper's field of

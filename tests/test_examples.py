@@ -23,7 +23,7 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 EXAMPLES = ("velocity", "ground-effect", "downwash")
 #: The PyBullet flights add about 12 s of CPU time to the 30 s of the rest (mostly compilation): marked slow, so
 #: ``-m "not slow"`` leaves them out (they are part of the default run).
-BACKENDS = ("jax", pytest.param("pybullet", marks=pytest.mark.slow))
+BACKENDS = ("jax", pytest.param("pybullet", marks=[pytest.mark.slow, pytest.mark.pybullet]))
 
 
 @pytest.fixture(scope="module")

@@ -179,6 +179,10 @@ def test_kinks_bad_input():
         Kinks("smooth", height=0.0)
     with pytest.raises(ValueError, match="SimConfig.kinks must be a jaxdrones.kinks.Kinks"):
         jd.SimConfig(kinks=3)
+    assert jd.SimConfig(kinks="smooth") == jd.SimConfig(kinks=Kinks("smooth"))
+
+
+@pytest.mark.pybullet
+def test_pybullet_backend_steps_exact_kinks_only():
     with pytest.raises(ValueError, match="kinks must be 'exact'"):
         jd.make_step(jd.SimConfig(kinks="smooth"), backend="pybullet")
-    assert jd.SimConfig(kinks="smooth") == jd.SimConfig(kinks=Kinks("smooth"))

@@ -6,14 +6,18 @@ import os
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pybullet
 import pytest
 
-import jaxdrones as jd
-from jaxdrones.backends.pybullet import PyBulletStep
-from jaxdrones.backends.scene import PAPER_OBSTACLES, Obstacle
-from jaxdrones.rotations import quat_to_rotmat
-from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE
+from optional import needs
+
+needs("pybullet")
+
+import pybullet  # noqa: E402
+import jaxdrones as jd  # noqa: E402
+from jaxdrones.backends.pybullet import PyBulletStep  # noqa: E402
+from jaxdrones.scene import PAPER_OBSTACLES, Obstacle  # noqa: E402
+from jaxdrones.rotations import quat_to_rotmat  # noqa: E402
+from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE  # noqa: E402
 
 MODELS = ("cf2x", "cf2p", "racer")
 

@@ -8,15 +8,19 @@ import textwrap
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pybullet
 import pytest
 from PIL import Image
 
-import jaxdrones as jd
-from jaxdrones.backends import camera
-from jaxdrones.backends.scene import Obstacle
-from jaxdrones.examples import camera_scene as cs
-from jaxdrones.video import VideoWriter
+from optional import needs
+
+needs("pybullet")
+
+import pybullet  # noqa: E402
+import jaxdrones as jd  # noqa: E402
+from jaxdrones.backends import camera  # noqa: E402
+from jaxdrones.scene import Obstacle  # noqa: E402
+from jaxdrones.examples import camera_scene as cs  # noqa: E402
+from jaxdrones.video import VideoWriter  # noqa: E402
 
 W, H = 320, 240
 

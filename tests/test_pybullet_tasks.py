@@ -19,12 +19,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import jaxdrones as jd
-from jaxdrones.backends.scene import Obstacle
-from jaxdrones.cameras import EYE_MARGIN
-from jaxdrones.cli import main
-from jaxdrones.envs.observations import kinematic_obs
-from jaxdrones.examples import circle
+from optional import needs
+
+needs("pybullet")
+
+import jaxdrones as jd  # noqa: E402
+from jaxdrones.scene import Obstacle  # noqa: E402
+from jaxdrones.cameras import EYE_MARGIN  # noqa: E402
+from jaxdrones.cli import main  # noqa: E402
+from jaxdrones.envs.observations import kinematic_obs  # noqa: E402
+from jaxdrones.examples import circle  # noqa: E402
 
 #: How far apart the RMS tracking errors of the two backends may be, overall and per drone, m. The two float32
 #: flights agree to 1e-6 m for their first 10 steps, then the closed loop amplifies the engines' different round-off
@@ -73,7 +77,7 @@ def test_circle_tracks_alike_on_both_backends(circles):
 
 def test_circle_reports_collisions():
     """A post on drone 0's path (it passes (-0.145, -0.038) m at t ≈ 0.8 s) is hit, and the contact reported."""
-    from jaxdrones.backends.scene import Obstacle
+    from jaxdrones.scene import Obstacle
 
     post = Obstacle("box", size=(0.05, 0.05, 0.2), pos=(-0.145, -0.038, 0.1))
     result = circle.fly_circle(num_drones=2, duration_s=1.5, settle_s=0.0, backend="pybullet", obstacles=[post])

@@ -17,7 +17,8 @@ def test_readme_has_examples():
     assert len(python_blocks()) >= 2
 
 
-@pytest.mark.parametrize("index", range(len(python_blocks())))
+@pytest.mark.parametrize("index", [pytest.param(i, marks=[pytest.mark.pybullet] * ('backend="pybullet"' in code))
+                                   for i, code in enumerate(python_blocks())])
 def test_readme_example_runs(index, capsys):
     code = python_blocks()[index]
     exec(compile(code, f"README.md python block {index}", "exec"), {})

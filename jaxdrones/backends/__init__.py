@@ -9,3 +9,23 @@ Both are called as ``step(params, state, rpm) -> state`` and declare what else t
 BACKENDS = ("jax", "pybullet")
 #: Renderers of the PyBullet backend: TinyRenderer (CPU) or OpenGL through EGL (headless GPU).
 RENDERERS = ("tiny", "egl")
+
+#: How to install pybullet, in every error that asks for it.
+PYBULLET_INSTALL = ('pip install "jaxdrones[pybullet]" (a wheel on Python 3.11; on Python >= 3.12 pip builds '
+                    "pybullet from source, about 5 minutes)")
+
+
+def require_pybullet():
+    """Import and return the ``pybullet`` module, which only ``backend="pybullet"`` and the PyBullet examples use.
+
+    Raises:
+        ModuleNotFoundError: if pybullet is not installed, in one line naming the extra that installs it.
+    """
+    try:
+        import pybullet
+    except ModuleNotFoundError as e:
+        if e.name != "pybullet":
+            raise
+        raise ModuleNotFoundError(f"the PyBullet backend needs pybullet, which is not installed: {PYBULLET_INSTALL}",
+                                  name="pybullet") from None
+    return pybullet

@@ -48,13 +48,15 @@ import numbers
 
 import jax
 import numpy as np
-import pybullet
 
+from jaxdrones.backends import require_pybullet
 from jaxdrones.cameras import ENV_IMAGES, EYE_MARGIN, check_camera_args, check_image_size, image_shapes
 from jaxdrones.cameras import real as _real
 from jaxdrones.params import DroneParams, broadcast_params, pack_params
 from jaxdrones.checks import check_params_batch, check_state_shape
 from jaxdrones.state import DroneState
+
+pybullet = require_pybullet()
 
 #: Vertical field of view (deg), near and far planes (m) of the third-person view `render`.
 RENDER_FOV = 60.0

@@ -35,17 +35,18 @@ import weakref
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pybullet
 
 from jaxdrones import aerodynamics
 from jaxdrones.backends import camera, scene
 from jaxdrones.dynamics import Effects
 from jaxdrones.params import DroneParams, broadcast_params, pack_params, params_batch_shape
 from jaxdrones.rotations import join, quat_to_rotmat_c, split
-from jaxdrones.backends import RENDERERS
+from jaxdrones.backends import RENDERERS, require_pybullet
 from jaxdrones.checks import check_params_batch, check_rpm, check_rpm_shape
 from jaxdrones.config import SimConfig
 from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, DroneState
+
+pybullet = require_pybullet()
 
 #: Renderers of the cameras: TinyRenderer (CPU, always there) or Bullet's OpenGL through EGL (headless GPU).
 #: The keyword options of `PyBulletStep` (and of ``make_step(..., backend="pybullet")``).

@@ -6,114 +6,19 @@ mass, inertia, propeller and collision geometry, including params batched per wo
 
 from __future__ import annotations
 
-import dataclasses
 import os
 
 import numpy as np
-import pybullet
-import pybullet_data
+
+from jaxdrones.backends import require_pybullet
 
 # The drones' visual shape (a plate and four propeller disks), shared with the JAX cameras.
 from jaxdrones.cameras import BODY_RGBA, BODY_SIDE_PER_ARM, BODY_THICKNESS, PROP_RGBA, PROP_THICKNESS, PROP_Z
+# The obstacles are backend-neutral (jaxdrones.scene), re-exported for `from jaxdrones.backends.scene import Obstacle`.
+from jaxdrones.scene.obstacles import PAPER_OBSTACLES, Obstacle, resolve_obstacles, urdf_path  # noqa: F401
 
-
-@dataclasses.dataclass(frozen=True)
-class Obstacle:
-    """A static obstacle: a primitive shape, or a URDF file.
-
-    Obstacles are fixed in the world (they do not move when hit), so a world's state is fully carried by the
-    drones' `DroneState`.
-
-    Attributes:
-        shape: ``"box"``, ``"sphere"``, ``"cylinder"``, ``"capsule"`` or ``"urdf"``.
-        size: box: full extents (x, y, z) m; sphere: (radius,); cylinder: (radius, length) m; capsule: (radius,
-            length of the axis segment between the centres of its hemispherical ends) m, as Bullet's capsule. The
-            cylinder's and capsule's axis is their local z.
-        pos: (x, y, z) m, world frame, of the shape's centre (box, sphere, cylinder) or the URDF's base.
-        rpy: (roll, pitch, yaw) rad.
-        urdf: for ``shape="urdf"``: a file path, or a file name in ``pybullet_data`` (e.g. ``"duck_vhacd.urdf"``).
-        scale: uniform scale of a URDF.
-        rgba: colour of a primitive shape.
-
-    Raises:
-        ValueError: on an unknown shape, a size of the wrong length or not positive, or a URDF not found.
-    """
-
-    shape: str = "box"
-    size: tuple[float, ...] = (0.2, 0.2, 0.2)
-    pos: tuple[float, float, float] = (0.0, 0.0, 0.1)
-    rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    urdf: str | None = None
-    scale: float = 1.0
-    rgba: tuple[float, float, float, float] = (0.8, 0.3, 0.2, 1.0)
-
-    def __post_init__(self):
-        n_size = {"box": 3, "sphere": 1, "cylinder": 2, "capsule": 2, "urdf": None}
-        if self.shape not in n_size:
-            raise ValueError(f"Obstacle.shape must be one of {tuple(n_size)}, got {self.shape!r}")
-        if self.shape == "urdf":
-            if self.urdf is None:
-                raise ValueError("Obstacle(shape='urdf') needs urdf=<path or pybullet_data file name>")
-            urdf_path(self.urdf)
-        elif len(self.size) != n_size[self.shape] or min(self.size) <= 0:
-            raise ValueError(f"Obstacle {self.shape}: size must be {n_size[self.shape]} positive numbers (m), "
-                             f"got {self.size}")
-        if len(self.pos) != 3 or len(self.rpy) != 3:
-            raise ValueError(f"Obstacle: pos and rpy must have 3 values, got {self.pos} and {self.rpy}")
-        if not self.scale > 0:
-            raise ValueError(f"Obstacle: scale must be positive, got {self.scale}")
-
-
-def urdf_path(name: str | os.PathLike) -> str:
-    """Resolve an obstacle URDF: an existing path, or a file name in ``pybullet_data``.
-
-    Raises:
-        ValueError: if neither exists.
-    """
-    name = os.fspath(name)
-    for candidate in (name, os.path.join(pybullet_data.getDataPath(), name)):
-        if os.path.isfile(candidate):
-            return candidate
-    raise ValueError(f"obstacle URDF {name!r} not found (give a path, or a file of pybullet_data such as "
-                     f"'duck_vhacd.urdf')")
-
-
-#: The obstacle scene of the examples, modelled on the paper's (a few boxes, a sphere and a duck mesh): placed
-#: around, not on, the circle flown by `jaxdrones fly` (centre (0, -0.3), radius 0.3 m).
-PAPER_OBSTACLES = (
-    Obstacle("box", size=(0.15, 0.15, 0.6), pos=(0.7, -0.3, 0.3), rgba=(0.8, 0.3, 0.2, 1.0)),
-    Obstacle("box", size=(0.2, 0.2, 0.2), pos=(-0.4, 0.4, 0.1), rgba=(0.2, 0.5, 0.8, 1.0)),
-    Obstacle("sphere", size=(0.12,), pos=(-0.75, -0.4, 0.12), rgba=(0.3, 0.7, 0.3, 1.0)),
-    Obstacle("urdf", urdf="duck_vhacd.urdf", pos=(0.3, 0.45, 0.0), rpy=(np.pi / 2, 0.0, np.pi), scale=3.0),
-)
-
-
-def resolve_obstacles(obstacles) -> tuple[Obstacle, ...]:
-    """Normalise the ``obstacles`` argument of the PyBullet backend.
-
-    Args:
-        obstacles: ``None``/``False`` (none), ``True`` or ``"paper"`` (`PAPER_OBSTACLES`), or a sequence of
-            `Obstacle`s and URDF paths (a path is loaded at the origin).
-
-    Raises:
-        ValueError: on anything else, or a URDF that does not exist.
-    """
-    if obstacles is None or obstacles is False:
-        return ()
-    if obstacles is True or (isinstance(obstacles, str) and obstacles == "paper"):
-        return PAPER_OBSTACLES
-    if isinstance(obstacles, (str, os.PathLike, Obstacle)):
-        obstacles = [obstacles]
-    out = []
-    for item in obstacles:
-        if isinstance(item, Obstacle):
-            out.append(item)
-        elif isinstance(item, (str, os.PathLike)):
-            out.append(Obstacle("urdf", urdf=os.fspath(item), pos=(0.0, 0.0, 0.0)))
-        else:
-            raise ValueError(f"obstacles: expected None, True, 'paper', or a sequence of Obstacle or URDF paths; "
-                             f"got an item {item!r}")
-    return tuple(out)
+pybullet = require_pybullet()
+import pybullet_data  # noqa: E402  (installed with pybullet)
 
 
 def load_ground(client: int) -> int:

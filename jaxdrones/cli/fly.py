@@ -130,7 +130,7 @@ def run_cli(args: argparse.Namespace) -> int:
         # Validate before creating the run folder (a relative video path is inside the new folder, so it is new).
         check_flight(**kwargs, video=video if video is not None and os.path.isabs(video) else None)
         out = new_run_dir("runs/fly" if args.out is None else args.out, overwrite=args.overwrite)
-    except (ValueError, RuntimeError) as err:
+    except (ValueError, RuntimeError, ImportError) as err:
         print(f"jaxdrones fly: error: {err}", file=sys.stderr)
         return 2
     if video is not None:

@@ -173,7 +173,7 @@ def run_cli(args: argparse.Namespace) -> int:
         summary = train_task(args.task, args.out, overwrite=args.overwrite, env_overrides=env, config=config,
                              n_eval_episodes=args.eval_episodes, progress=not args.no_progress,
                              t_start=getattr(args, "t_start", None), algo=trainer.name)
-    except (ValueError, OSError, devices.DeviceError) as err:
+    except (ValueError, OSError, ImportError, devices.DeviceError) as err:
         print(f"jaxdrones train: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # before training started (during training, the policy so far is saved)

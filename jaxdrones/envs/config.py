@@ -15,11 +15,12 @@ from typing import Any
 import jax
 import numpy as np
 
-from jaxdrones.backends import BACKENDS, RENDERERS
+from jaxdrones.backends import BACKENDS, RENDERERS, require_pybullet
 from jaxdrones.cameras import ENV_IMAGES
 from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS
 from jaxdrones.envs.observations import OBS_TYPES
 from jaxdrones.params import MODELS, DroneParams, with_derived
+from jaxdrones.scene import resolve_obstacles
 from jaxdrones.sim import SimConfig
 
 #: Camera images a vision observation can hold (see `TaskConfig.vision`; their dtypes and per-pixel shapes in
@@ -146,6 +147,7 @@ class TaskConfig:
 
     Raises:
         ValueError: on any invalid value, naming the field and the valid range.
+        ModuleNotFoundError: ``backend="pybullet"`` without pybullet installed, naming the extra that installs it.
     """
 
     n_drones: int = 1
@@ -245,6 +247,8 @@ class TaskConfig:
     def _check_backend(self) -> None:
         _check_choice("backend", self.backend, BACKENDS)
         _check_choice("renderer", self.renderer, RENDERERS)
+        if self.backend == "pybullet":
+            require_pybullet()  # here, not at the first step: a missing pybullet is named before any work
         vision = self.vision
         if isinstance(vision, str) or not isinstance(vision, (tuple, list)):
             raise ValueError(f"vision must be a tuple of image names from {VISION}, got {vision!r}")
@@ -253,8 +257,6 @@ class TaskConfig:
         self._set("vision", tuple(vision))
         if isinstance(self.obstacles, list):
             self._set("obstacles", tuple(self.obstacles))
-        from jaxdrones.backends.scene import resolve_obstacles
-
         obstacles = resolve_obstacles(self.obstacles)
         if self.backend == "jax":
             if self.renderer != "tiny":

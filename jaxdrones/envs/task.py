@@ -20,6 +20,7 @@ from flax import struct
 from jaxdrones.envs import rewards, terminations
 from jaxdrones.envs.actions import Reference
 from jaxdrones.envs.config import TaskConfig
+from jaxdrones.scene import resolve_obstacles
 from jaxdrones.state import DroneState
 
 
@@ -172,7 +173,6 @@ class Task(abc.ABC):
     def scene(self, config: TaskConfig):
         """What the JAX backend's cameras see (`TaskParams.scene`), built once per env: by default the config's
         ``obstacles`` (`jaxdrones.cameras.make_scene`)."""
-        from jaxdrones.backends.scene import resolve_obstacles
         from jaxdrones.cameras import make_scene
 
         return make_scene(resolve_obstacles(config.obstacles))

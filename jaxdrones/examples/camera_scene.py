@@ -23,6 +23,8 @@ import os
 
 import numpy as np
 
+from jaxdrones.scene import Obstacle
+
 
 #: The drone's position, m, world frame (level, yaw 0: the camera looks along world +x).
 DRONE_POS = (0.0, 0.0, 0.5)
@@ -54,8 +56,6 @@ def scene_obstacles(params, distance: float = BOX_DISTANCE) -> tuple:
     Raises:
         ValueError: if ``distance`` is not a positive finite number.
     """
-    from jaxdrones.backends.scene import Obstacle
-
     if isinstance(distance, bool) or not isinstance(distance, numbers.Real) or not 0 < distance < math.inf:
         raise ValueError(f"distance must be a positive number of metres, got {distance!r}")
     eye = eye_position(params)

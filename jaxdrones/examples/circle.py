@@ -13,7 +13,7 @@ model, optionally with drag, ground effect and downwash):
 
 The whole flight is one jitted ``lax.scan`` (`jaxdrones.examples.closed_loop`, shared with the other examples of
 ``jaxdrones fly --example``), on either physics backend: the JAX core (default) or PyBullet
-(``backend="pybullet"``, optionally among the obstacles of `jaxdrones.backends.scene.PAPER_OBSTACLES`, placed
+(``backend="pybullet"``, optionally among the obstacles of `jaxdrones.scene.PAPER_OBSTACLES`, placed
 around the circle), where the same scan calls Bullet through a host callback. With a video (PyBullet only) or the
 PyBullet GUI the scan runs in chunks of a few control steps, and a third-person frame is rendered after each
 chunk; the chunks give the same flight as one scan.
@@ -45,6 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrones.backends import require_pybullet
 from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import (
     check_backend,
@@ -56,6 +57,7 @@ from jaxdrones.examples.closed_loop import (
     track_position,
 )
 from jaxdrones.params import load_params
+from jaxdrones.scene import resolve_obstacles
 from jaxdrones.sim import SimConfig, make_step
 from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, init_state
 from jaxdrones.video import VideoWriter, video_format
@@ -125,11 +127,12 @@ def check_flight(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf
 
     Returns:
         dict with ``config`` (`SimConfig`), ``n_steps``, ``params`` (`DroneParams`), ``obstacles`` (the resolved
-        tuple of `jaxdrones.backends.scene.Obstacle`) and ``video_size`` (width, height).
+        tuple of `jaxdrones.scene.Obstacle`) and ``video_size`` (width, height).
 
     Raises:
         ValueError: see `fly_circle`.
         RuntimeError: ``gui`` without a display.
+        ModuleNotFoundError: ``backend="pybullet"`` without pybullet installed.
     """
     if isinstance(num_drones, bool) or not isinstance(num_drones, (int, np.integer)) or num_drones < 1:
         raise ValueError(f"num_drones must be a positive integer, got {num_drones!r}")
@@ -146,8 +149,7 @@ def check_flight(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf
                 raise ValueError(f"{name} needs backend='pybullet' (the jax backend has no obstacles, GUI or "
                                  f"renderer)")
     else:
-        from jaxdrones.backends.scene import resolve_obstacles
-
+        require_pybullet()
         resolved = resolve_obstacles(obstacles)
     if video is not None:
         video = os.fspath(video)
@@ -189,8 +191,8 @@ def fly_circle(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x
         ctrl_freq: control rate, Hz (48); a divisor of ``sim_freq``.
         gains: PID gains; default `PIDGains.dsl`.
         backend: ``"jax"`` or ``"pybullet"`` (see `jaxdrones.sim.make_step`).
-        obstacles: PyBullet only: None, True or ``"paper"`` (`jaxdrones.backends.scene.PAPER_OBSTACLES`), or a
-            sequence of `jaxdrones.backends.scene.Obstacle` / URDF paths.
+        obstacles: PyBullet only: None, True or ``"paper"`` (`jaxdrones.scene.PAPER_OBSTACLES`), or a
+            sequence of `jaxdrones.scene.Obstacle` / URDF paths.
         gui: PyBullet only: show the flight in PyBullet's GUI, paced to real time (needs a display).
         video: PyBullet only: write a third-person video of the flight to this new ``.mp4`` or ``.gif`` file (see
             `jaxdrones.video.VideoWriter`); an existing file is never replaced.
@@ -299,8 +301,7 @@ def _fly_in_chunks(step, simulate, params, gains, carry, inputs, fixed, setup, *
                 pieces.append(piece)
                 frame(carry[0])
                 if gui and begin == 0:  # the GUI's world exists from the first step on: aim its camera
-                    import pybullet
-
+                    pybullet = require_pybullet()
                     camera = VIDEO_CAMERA
                     pybullet.resetDebugVisualizerCamera(camera["distance"], camera["yaw"], camera["pitch"],
                                                         center.tolist(), physicsClientId=step.clients[0])

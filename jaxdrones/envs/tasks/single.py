@@ -20,6 +20,7 @@ from jaxdrones.envs.actions import ACTION_SIZES, Reference
 from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
 from jaxdrones.envs.task import Task
+from jaxdrones.scene import Obstacle
 from jaxdrones.state import DEFAULT_START_Z, DroneState
 
 #: Shaped hover-type rewards: r = max(0, closeness − SPEED_WEIGHT ‖v‖² − ANG_SPEED_WEIGHT ‖ω‖²) (see
@@ -423,9 +424,7 @@ GATE_REF_DY = -2.0
 
 
 def gate_obstacles() -> tuple:
-    """The paper's gate as PyBullet obstacles (`jaxdrones.backends.scene.Obstacle` boxes)."""
-    from jaxdrones.backends.scene import Obstacle
-
+    """The paper's gate as obstacles (`jaxdrones.scene.Obstacle` boxes)."""
     colour = (0.6, 0.6, 0.6, 1.0)
     return tuple(Obstacle("box", size=size, pos=(x, GATE_Y + y, z), rgba=colour) for (x, y, z), size in GATE_PARTS)
 

@@ -1,0 +1,5 @@
+"""World geometry shared by both backends, with no pybullet import: the static obstacles (`Obstacle`)."""
+
+from jaxdrones.scene.obstacles import PAPER_OBSTACLES, Obstacle, resolve_obstacles, urdf_path
+
+__all__ = ["PAPER_OBSTACLES", "Obstacle", "resolve_obstacles", "urdf_path"]

@@ -1,0 +1,33 @@
+"""Optional packages of the suite: pybullet and torch, which the test extra installs on Python 3.11 only.
+
+Tests that need one are marked ``pybullet`` or ``torch`` (skipped by ``conftest.py`` where it is missing); a test
+module that imports one at its top calls `needs` first.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+
+import pytest
+
+from jaxdrones.backends import PYBULLET_INSTALL
+
+#: Why a test marked ``pybullet`` or ``torch`` is skipped where that package is missing: the test extra installs
+#: both on Python 3.11 only, where PyPI has wheels that fit (pyproject.toml, the test extra).
+MISSING = {
+    "pybullet": "pybullet is not installed: PyPI has no pybullet wheel for Python >= 3.12, so the test extra installs "
+                f"it on 3.11 only; {PYBULLET_INSTALL}",
+    "torch": "torch is not installed: PyPI's torch for Python >= 3.12 on Linux is a CUDA build of several GB, so "
+             "the test extra installs torch and stable-baselines3 on 3.11 only (the CPU build)",
+}
+
+
+def installed(name: str) -> bool:
+    """Whether the package ``name`` can be imported (without importing it)."""
+    return importlib.util.find_spec(name) is not None
+
+
+def needs(name: str):
+    """Skip the calling test module (at its top) where ``name`` (a key of `MISSING`) is not installed."""
+    if not installed(name):
+        pytest.skip(MISSING[name], allow_module_level=True)

@@ -1,0 +1,87 @@
+"""XLA flags: ``import jaxdrones`` sets none; the command line's are asked of the installed XLA itself, cached, and
+never set over the user's own."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jaxlib
+import pytest
+
+from jaxdrones import _xla
+
+UNKNOWN = "--xla_jaxdrones_no_such_flag=1"
+FUSION = "--xla_cpu_use_fusion_emitters=false"
+
+
+def run_python(code: str, **env) -> subprocess.CompletedProcess:
+    environ = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env={**environ, **env},
+                          capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture
+def cache_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("JAXDRONES_CACHE_DIR", str(tmp_path))
+    return tmp_path
+
+
+def test_import_sets_no_flag_and_keeps_the_users():
+    """A user's own XLA_FLAGS (here an unrelated one) are all XLA sees, and every computation runs."""
+    code = """
+        import os, jax, jax.numpy as jnp
+        import jaxdrones as jd
+        env = jd.make("hover")
+        state = env.reset(jax.random.key(0))
+        grad = jax.grad(lambda a: env.step(state, a).reward.sum())(jnp.zeros((1, env.action_size)))
+        print(repr(os.environ.get("XLA_FLAGS")), jax.device_count(), bool(jnp.isfinite(grad).all()))
+    """
+    default = run_python(code)
+    assert default.returncode == 0, default.stderr
+    assert default.stdout.split() == ["None", "1", "True"]
+    user = run_python(code, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    assert user.returncode == 0, user.stderr
+    assert user.stdout.split() == ["'--xla_force_host_platform_device_count=2'", "2", "True"]
+
+
+def test_accepted_asks_xla_and_caches_the_answer(cache_dir, monkeypatch):
+    flags = (_xla.CLI_FLAGS[0], UNKNOWN, FUSION)
+    accepted = _xla.accepted(flags)
+    # jaxlib 0.11 removed the classic emitters and their flag (its name stays in the library, as a reserved field).
+    has_fusion_flag = tuple(map(int, jaxlib.__version__.split(".")[:2])) < (0, 11)
+    assert accepted == (_xla.CLI_FLAGS[0],) + ((FUSION,) if has_fusion_flag else ())
+    with open(_xla.cache_file()) as f:
+        answers = json.load(f)
+    assert list(answers.values()) == [{_xla.CLI_FLAGS[0]: True, UNKNOWN: False, FUSION: has_fusion_flag}]
+    monkeypatch.setattr(_xla, "_probe", lambda flags: pytest.fail("asked XLA again"))
+    assert _xla.accepted(flags) == accepted
+
+
+def test_every_cli_flag_starts_xla():
+    """What the command line sets (where XLA accepts it) lets JAX start and compute."""
+    added = run_python("""
+        from jaxdrones import _xla
+        print(" ".join(_xla.add_flags(_xla.CLI_FLAGS)))
+        import jax.numpy as jnp
+        print(float(jnp.ones(3).sum()))
+    """)
+    assert added.returncode == 0, added.stderr
+    flags, total = added.stdout.split("\n")[:2]
+    assert set(flags.split()) <= set(_xla.CLI_FLAGS) and "--xla_backend_optimization_level=1" in flags
+    assert total == "3.0"
+
+
+def test_add_flags_never_overrides_the_user(cache_dir, monkeypatch):
+    jax.numpy.zeros(1).block_until_ready()  # JAX has started: flags set now come too late, and add_flags says so
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=3")
+    with pytest.warns(RuntimeWarning, match="before jaxdrones set the XLA flags"):
+        added = _xla.add_flags(_xla.CLI_FLAGS)
+    assert "--xla_backend_optimization_level=1" not in added and "--xla_llvm_disable_expensive_passes=true" in added
+    assert os.environ["XLA_FLAGS"].split()[0] == "--xla_backend_optimization_level=3"
+    assert os.environ["XLA_FLAGS"].count("optimization_level") == 1
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setenv(_xla.OPT_OUT_VAR, "0")
+    assert _xla.add_flags(_xla.CLI_FLAGS) == [] and os.environ["XLA_FLAGS"] == ""
