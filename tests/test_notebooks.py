@@ -63,11 +63,8 @@ NOTEBOOK_ENV = {"02_stable_baselines3.ipynb": {"JAXDRONES_NB_STEPS": "2000"},
                 "03_gradients.ipynb": {"JAXDRONES_NB_STEPS": "60000"},
                 "04_multi_agent.ipynb": {"JAXDRONES_NB_STEPS": "60000"},
                 "05_vision.ipynb": {"JAXDRONES_NB_STEPS": "2048"}}
-#: Per notebook: modules it needs beyond the test extras, and the reason to give when one cannot be imported.
-SB3_REASON = ('needs stable-baselines3: install the sb3 extra, `pip install torch==2.13.0 && pip install -e ".[sb3]"` '
-              "(the CPU torch first)")
-REQUIRES = {"02_stable_baselines3.ipynb": (("stable_baselines3",), SB3_REASON),
-            "05_vision.ipynb": (("stable_baselines3",), SB3_REASON)}
+#: The notebooks that train with Stable-Baselines3, which needs torch (the test extra installs it on Python 3.11).
+SB3_NOTEBOOKS = ("02_stable_baselines3.ipynb", "05_vision.ipynb")
 
 
 @pytest.fixture
@@ -111,11 +108,9 @@ def test_committed_without_outputs(path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
+@pytest.mark.parametrize("path", [pytest.param(p, marks=[pytest.mark.torch] * (p.name in SB3_NOTEBOOKS))
+                                  for p in NOTEBOOKS], ids=[p.name for p in NOTEBOOKS])
 def test_notebook_runs(path, tmp_path, monkeypatch, kernel_for_this_interpreter):
-    modules, reason = REQUIRES.get(path.name, ((), ""))
-    for module in modules:
-        pytest.importorskip(module, reason=f"{path.name} {reason}")
     for name, value in NOTEBOOK_ENV.get(path.name, {}).items():
         monkeypatch.setenv(name, value)  # the kernel inherits this process's environment
     nb = nbformat.read(path, as_version=4)

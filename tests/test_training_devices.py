@@ -56,7 +56,7 @@ np.savez(sys.argv[2], **out)
 @pytest.mark.slow
 def test_every_trainer_gives_one_devices_result_on_two_devices(tmp_path):
     """PPO, MAPPO, APG and SHAC spread their worlds over 2 forced CPU devices (parameters replicated on both) and
-    train the policy of one device: its actions on 64 observations agree to 1e-5 and the evaluation after the last
+    train the policy of one device: its actions on 64 observations agree to 1e-4 and the evaluation after the last
     chunk (final distances of 8 episodes, flown in closed loop) to 1e-3 relative."""
     results, runs = {}, {}
     for devices in ("1", "2"):  # both at once (each mostly compiles, on one core)
@@ -71,8 +71,9 @@ def test_every_trainer_gives_one_devices_result_on_two_devices(tmp_path):
         assert int(results["1"][algo + "_devices"]) == 1 and int(results["2"][algo + "_devices"]) == 2
         assert np.abs(results["1"][algo]).max() > 1e-3  # the policy acts (its outputs are not all zero)
         # Float32 rounding of the world means taken in two halves, amplified by 3 chunks of updates: seen up to 2e-6
-        # for MAPPO's actions with the command line's XLA flags (which the suite compiles with), 1e-6 without.
-        np.testing.assert_allclose(results["2"][algo], results["1"][algo], rtol=1e-5, atol=1e-5, err_msg=algo)
+        # for MAPPO's actions on jax 0.10.2 and 1.7e-5 on jax 0.12.0.1 (with the suite's XLA flags), of actions of
+        # about 0.5; a device that trained on its own half only would differ by far more.
+        np.testing.assert_allclose(results["2"][algo], results["1"][algo], rtol=1e-4, atol=1e-4, err_msg=algo)
         # The evaluation flies each policy 150 steps in closed loop, which amplifies float32 rounding: seen 2e-6
         # relative for one drone, 1.4e-4 for MAPPO's 3 drones following a leader (jax 0.10.2): 1e-3 relative.
         np.testing.assert_allclose(results["2"][algo + "_eval"], results["1"][algo + "_eval"], rtol=1e-3, atol=1e-6,

@@ -83,8 +83,8 @@ SB3_TUTORIAL = """
 
 
 @pytest.mark.slow
+@pytest.mark.torch
 def test_pettingzoo_sb3_tutorial_with_supersuit_workers(tmp_path):
-    pytest.importorskip("stable_baselines3")
     # multiprocessing's default start method on Linux (Python < 3.14) forks after JAX started: a clear error, fast.
     forked = run_script(tmp_path, SB3_TUTORIAL, "fork", timeout=120)
     assert forked.returncode != 0
