@@ -115,20 +115,22 @@ def accepted(flags: tuple[str, ...]) -> tuple[str, ...]:
     """The ``flags`` (e.g. ``("--xla_foo=1",)``) that the installed XLA accepts, asked of XLA itself.
 
     All of them are tried at once in a subprocess, then one by one if XLA refused them together; the answers are
-    cached per installation (`cache_file`), so later calls start no process. Where no XLA library is found, or the
-    subprocess cannot run, no flag is accepted.
+    cached per installation (`cache_file`), so later calls start no process. Where no XLA library is found, or JAX
+    does not start in a subprocess even without flags, no flag is accepted and nothing is cached.
     """
     installation = _installation()
     if not installation:
         return ()
     cache = _read_cache()
     known = cache.get(installation, {})
-    unknown = tuple(f for f in flags if f not in known)
+    unknown = tuple(dict.fromkeys(f for f in flags if f not in known))
     if unknown:
-        if len(unknown) > 1 and _probe(unknown):
+        if _probe(unknown):
             known.update(dict.fromkeys(unknown, True))
+        elif not _probe(()):  # the refusal was not the flags': ask again next time
+            return tuple(f for f in flags if known.get(f))
         else:
-            known.update({f: _probe((f,)) for f in unknown})
+            known.update({f: len(unknown) > 1 and _probe((f,)) for f in unknown})
         cache = _read_cache()  # another process may have written meanwhile: keep its answers
         cache[installation] = {**cache.get(installation, {}), **known}
         _write_cache(cache)

@@ -85,3 +85,10 @@ def test_add_flags_never_overrides_the_user(cache_dir, monkeypatch):
     monkeypatch.setenv("XLA_FLAGS", "")
     monkeypatch.setenv(_xla.OPT_OUT_VAR, "0")
     assert _xla.add_flags(_xla.CLI_FLAGS) == [] and os.environ["XLA_FLAGS"] == ""
+
+
+def test_nothing_is_cached_where_jax_does_not_start_at_all(cache_dir, monkeypatch):
+    """A probe that fails even without flags (say, a broken GPU driver) says nothing of the flags: asked again."""
+    monkeypatch.setattr(_xla, "_probe", lambda flags: False)
+    assert _xla.accepted(_xla.CLI_FLAGS) == ()
+    assert not os.path.exists(_xla.cache_file())

@@ -37,7 +37,7 @@ def run_cli(args: argparse.Namespace) -> int:
         scene = camera_scene(args.model, args.width, args.height, args.fov, args.distance, args.renderer)
         out = new_run_dir(args.out, overwrite=args.overwrite)
         paths = save_camera_images(scene, out, overwrite=args.overwrite)
-    except (ValueError, RuntimeError, OSError) as err:
+    except (ValueError, RuntimeError, OSError, ImportError) as err:
         print(f"jaxdrones camera: error: {err}", file=sys.stderr)
         return 2
     box = scene["seg"] == scene["body_ids"]["obstacles"][0]

@@ -84,6 +84,7 @@ def camera_scene(model: str = "cf2x", width: int = 320, height: int = 240, fov: 
     Raises:
         ValueError: on a bad model, image size, fov, distance or renderer.
         RuntimeError: if the renderer cannot be used on this machine (``"egl"`` without the EGL plugin).
+        ModuleNotFoundError: without pybullet installed (the ``pybullet`` extra).
     """
     import jax
 
