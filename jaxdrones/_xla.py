@@ -8,16 +8,19 @@ XLA reads ``XLA_FLAGS`` when JAX starts a backend and aborts the process on a fl
 in XLA_FLAGS``), and flags come and go between jaxlib releases (jaxlib 0.11 removed
 ``--xla_cpu_use_fusion_emitters``, whose name still stands in its library as a reserved field). So each flag is
 first given to XLA itself, in a subprocess that starts JAX's backends with it (`accepted`); the answer is kept in a
-file in the command line's cache folder (`cache_file`), keyed by the XLA libraries installed (jaxlib's and any PJRT
-plugin's, e.g. CUDA), so the check runs once per installation (0.5 s on a CPU). A flag the user already set in
+file in the user's cache folder (`cache_file`), keyed by the XLA libraries installed (jaxlib's and any PJRT
+plugin's, e.g. CUDA), so the check runs once per installation (0.5 to 1.5 s on a CPU). A flag the user already set in
 ``XLA_FLAGS`` is left alone, whatever its value. ``JAXDRONES_XLA_FLAGS=0`` (set before the ``jaxdrones`` command or
 the test run) turns every flag off.
 
-`CLI_FLAGS` halve the compile time of the training and simulation programs on CPU with no measured change in their
-run time. XLA:CPU's classic emitters (``--xla_cpu_use_fusion_emitters=false``, up to jaxlib 0.10; later releases
-have only the fusion emitters) are not among them: with them the hover env's step over 1024 worlds ran 1.7 times
-faster on 2 cores, but ``jaxdrones train hover`` trained no faster (``benchmarks/train_algos.py``; README,
-"Benchmarks").
+`CLI_FLAGS`, measured on 2 cores (README, "Benchmarks"):
+
+- ``--xla_backend_optimization_level=1`` and ``--xla_llvm_disable_expensive_passes=true`` halve the compile time
+  of the training and simulation programs on CPU with no measured change in their run time;
+- ``--xla_cpu_use_fusion_emitters=false`` (XLA:CPU's classic emitters, up to jaxlib 0.10; later releases have only
+  the fusion emitters and refuse the flag) compiles faster: ``jaxdrones train hover`` with an empty compilation
+  cache took 11.7 s instead of 14.1 s on jax 0.10.2, and trained as fast (``benchmarks/train_algos.py``, 3 runs
+  each, medians).
 """
 
 from __future__ import annotations
@@ -34,7 +37,8 @@ import warnings
 #: Environment variable that, set to 0 (or false/no/off), stops jaxdrones from setting any XLA flag.
 OPT_OUT_VAR = "JAXDRONES_XLA_FLAGS"
 #: Flags added by the ``jaxdrones`` command line (and the test suite), before JAX starts a backend.
-CLI_FLAGS = ("--xla_backend_optimization_level=1", "--xla_llvm_disable_expensive_passes=true")
+CLI_FLAGS = ("--xla_backend_optimization_level=1", "--xla_llvm_disable_expensive_passes=true",
+             "--xla_cpu_use_fusion_emitters=false")
 #: Libraries below this size are Python bindings, not XLA.
 _MIN_XLA_LIBRARY_BYTES = 10 * 2**20
 #: What the probe runs: start every backend JAX finds, which parses ``XLA_FLAGS`` (and aborts on an unknown flag).
@@ -72,11 +76,10 @@ def _installation() -> str:
 
 
 def cache_file() -> str:
-    """Where `accepted` keeps XLA's answers: ``xla_flags.json`` in the command line's cache folder
-    (`jaxdrones.runs.default_cache_dir`)."""
-    from jaxdrones.runs import default_cache_dir
-
-    return os.path.join(default_cache_dir(), "xla_flags.json")
+    """Where `accepted` keeps XLA's answers: ``$XDG_CACHE_HOME/jaxdrones/xla_flags.json``
+    (``~/.cache/jaxdrones/xla_flags.json``)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "jaxdrones", "xla_flags.json")
 
 
 def _read_cache() -> dict:
@@ -100,37 +103,48 @@ def _write_cache(cache: dict) -> None:
         pass
 
 
-def _probe(flags: tuple[str, ...]) -> bool:
-    """Whether JAX starts its backends in a fresh interpreter with ``XLA_FLAGS`` set to ``flags`` (and nothing else)."""
-    env = dict(os.environ, XLA_FLAGS=" ".join(flags), XLA_PYTHON_CLIENT_PREALLOCATE="false")
-    try:
-        result = subprocess.run([sys.executable, "-c", _PROBE], env=env, stdin=subprocess.DEVNULL,
-                                capture_output=True, timeout=_PROBE_TIMEOUT_S)
-    except (OSError, subprocess.SubprocessError):
-        return False
-    return result.returncode == 0
+def _probe(*flag_sets: tuple[str, ...]) -> list[bool]:
+    """Per set of flags, whether JAX starts its backends in a fresh interpreter with ``XLA_FLAGS`` set to those flags
+    (and nothing else); the interpreters run at once."""
+    runs = []
+    for flags in flag_sets:
+        env = dict(os.environ, XLA_FLAGS=" ".join(flags), XLA_PYTHON_CLIENT_PREALLOCATE="false")
+        try:
+            runs.append(subprocess.Popen([sys.executable, "-c", _PROBE], env=env, stdin=subprocess.DEVNULL,
+                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        except OSError:
+            runs.append(None)
+    answers = []
+    for run in runs:
+        try:
+            answers.append(run is not None and run.wait(timeout=_PROBE_TIMEOUT_S) == 0)
+        except subprocess.TimeoutExpired:
+            run.kill()
+            answers.append(False)
+    return answers
 
 
 def accepted(flags: tuple[str, ...]) -> tuple[str, ...]:
     """The ``flags`` (e.g. ``("--xla_foo=1",)``) that the installed XLA accepts, asked of XLA itself.
 
-    All of them are tried at once in a subprocess, then one by one if XLA refused them together; the answers are
-    cached per installation (`cache_file`), so later calls start no process. Where no XLA library is found, or JAX
-    does not start in a subprocess even without flags, no flag is accepted and nothing is cached.
+    All of them are tried at once in a subprocess; if XLA refuses them together, each alone and none at all, in
+    subprocesses running side by side. The answers are cached per installation (`cache_file`), so later calls start
+    no process. Where no XLA library is found, or JAX does not start in a subprocess even without flags, no flag is
+    accepted and nothing is cached.
     """
     installation = _installation()
     if not installation:
         return ()
-    cache = _read_cache()
-    known = cache.get(installation, {})
+    known = _read_cache().get(installation, {})
     unknown = tuple(dict.fromkeys(f for f in flags if f not in known))
     if unknown:
-        if _probe(unknown):
+        if _probe(unknown)[0]:
             known.update(dict.fromkeys(unknown, True))
-        elif not _probe(()):  # the refusal was not the flags': ask again next time
-            return tuple(f for f in flags if known.get(f))
         else:
-            known.update({f: len(unknown) > 1 and _probe((f,)) for f in unknown})
+            alone = _probe((), *[(f,) for f in unknown]) if len(unknown) > 1 else [_probe(())[0], False]
+            if not alone[0]:  # the refusal was not the flags': ask again next time
+                return tuple(f for f in flags if known.get(f))
+            known.update(zip(unknown, alone[1:]))
         cache = _read_cache()  # another process may have written meanwhile: keep its answers
         cache[installation] = {**cache.get(installation, {}), **known}
         _write_cache(cache)

@@ -10,8 +10,8 @@ from jaxdrones import _xla
 
 # The suite compiles several hundred programs, most of them run for a few steps: it compiles them as the
 # ``jaxdrones`` command line does (`jaxdrones._xla.CLI_FLAGS`, where the installed XLA accepts them: LLVM's cheaper
-# passes; tests/test_avoid.py and tests/test_gate.py in 45-50 s instead of 65-67 s). ``JAXDRONES_XLA_FLAGS=0`` runs
-# it with XLA's defaults.
+# passes, and XLA:CPU's classic emitters up to jaxlib 0.10; tests/test_avoid.py and tests/test_gate.py in 45-50 s
+# instead of 65-67 s). ``JAXDRONES_XLA_FLAGS=0`` runs it with XLA's defaults.
 _xla.add_flags(_xla.CLI_FLAGS)
 
 import jax  # noqa: E402

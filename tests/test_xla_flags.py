@@ -23,9 +23,14 @@ def run_python(code: str, **env) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=300)
 
 
+def has_fusion_flag() -> bool:
+    """jaxlib 0.11 removed the classic emitters and their flag (its name stays in the library, as a reserved field)."""
+    return tuple(map(int, jaxlib.__version__.split(".")[:2])) < (0, 11)
+
+
 @pytest.fixture
 def cache_dir(tmp_path, monkeypatch):
-    monkeypatch.setenv("JAXDRONES_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     return tmp_path
 
 
@@ -50,13 +55,11 @@ def test_import_sets_no_flag_and_keeps_the_users():
 def test_accepted_asks_xla_and_caches_the_answer(cache_dir, monkeypatch):
     flags = (_xla.CLI_FLAGS[0], UNKNOWN, FUSION)
     accepted = _xla.accepted(flags)
-    # jaxlib 0.11 removed the classic emitters and their flag (its name stays in the library, as a reserved field).
-    has_fusion_flag = tuple(map(int, jaxlib.__version__.split(".")[:2])) < (0, 11)
-    assert accepted == (_xla.CLI_FLAGS[0],) + ((FUSION,) if has_fusion_flag else ())
+    assert accepted == (_xla.CLI_FLAGS[0],) + ((FUSION,) if has_fusion_flag() else ())
     with open(_xla.cache_file()) as f:
         answers = json.load(f)
-    assert list(answers.values()) == [{_xla.CLI_FLAGS[0]: True, UNKNOWN: False, FUSION: has_fusion_flag}]
-    monkeypatch.setattr(_xla, "_probe", lambda flags: pytest.fail("asked XLA again"))
+    assert list(answers.values()) == [{_xla.CLI_FLAGS[0]: True, UNKNOWN: False, FUSION: has_fusion_flag()}]
+    monkeypatch.setattr(_xla, "_probe", lambda *flag_sets: pytest.fail("asked XLA again"))
     assert _xla.accepted(flags) == accepted
 
 
@@ -80,6 +83,7 @@ def test_add_flags_never_overrides_the_user(cache_dir, monkeypatch):
     with pytest.warns(RuntimeWarning, match="before jaxdrones set the XLA flags"):
         added = _xla.add_flags(_xla.CLI_FLAGS)
     assert "--xla_backend_optimization_level=1" not in added and "--xla_llvm_disable_expensive_passes=true" in added
+    assert (FUSION in added) == has_fusion_flag()
     assert os.environ["XLA_FLAGS"].split()[0] == "--xla_backend_optimization_level=3"
     assert os.environ["XLA_FLAGS"].count("optimization_level") == 1
     monkeypatch.setenv("XLA_FLAGS", "")
@@ -89,6 +93,6 @@ def test_add_flags_never_overrides_the_user(cache_dir, monkeypatch):
 
 def test_nothing_is_cached_where_jax_does_not_start_at_all(cache_dir, monkeypatch):
     """A probe that fails even without flags (say, a broken GPU driver) says nothing of the flags: asked again."""
-    monkeypatch.setattr(_xla, "_probe", lambda flags: False)
+    monkeypatch.setattr(_xla, "_probe", lambda *flag_sets: [False] * len(flag_sets))
     assert _xla.accepted(_xla.CLI_FLAGS) == ()
     assert not os.path.exists(_xla.cache_file())
