@@ -11,8 +11,8 @@ BACKENDS = ("jax", "pybullet")
 RENDERERS = ("tiny", "egl")
 
 #: How to install pybullet, in every error that asks for it.
-PYBULLET_INSTALL = ('pip install "jaxdrones[pybullet]" (a wheel on Python 3.11; on Python >= 3.12 pip builds '
-                    "pybullet from source, about 5 minutes)")
+PYBULLET_INSTALL = ('pip install pybullet, or the pybullet extra (pip install ".[pybullet]" from a clone): a wheel '
+                    "on Python 3.11; on Python >= 3.12 pip builds it from source (a C++ build of several minutes)")
 
 
 def require_pybullet():
