@@ -43,7 +43,7 @@ CLI_FLAGS = ("--xla_backend_optimization_level=1", "--xla_llvm_disable_expensive
 _MIN_XLA_LIBRARY_BYTES = 10 * 2**20
 #: What the probe runs: start every backend JAX finds, which parses ``XLA_FLAGS`` (and aborts on an unknown flag).
 _PROBE = "import jax; jax.devices()"
-_PROBE_TIMEOUT_S = 300
+_PROBE_TIMEOUT_S = 120
 
 
 def opted_out() -> bool:
@@ -120,6 +120,7 @@ def _probe(*flag_sets: tuple[str, ...]) -> list[bool]:
             answers.append(run is not None and run.wait(timeout=_PROBE_TIMEOUT_S) == 0)
         except subprocess.TimeoutExpired:
             run.kill()
+            run.wait()
             answers.append(False)
     return answers
 

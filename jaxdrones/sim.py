@@ -195,7 +195,9 @@ def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Arra
     Differentiated, each control step is rematerialised (``jax.checkpoint``): the backward pass recomputes a step
     from its input state rather than storing all its intermediates. Measured with `benchmarks/gradients.py` (100
     steps, 1024 worlds, drag and ground effect, 2 CPU cores) this made the gradient about 1.5 times faster and
-    used a third of the memory; the forward pass is unchanged.
+    used a third of the memory; the forward pass is unchanged. With the hand-written adjoint (the default config)
+    it still used about half the memory (13 against 23 MiB) and, on jax 0.12, was faster: 2.6 against 3.7 times
+    the forward pass for the gradient w.r.t. the commands (equal on jax 0.10).
 
     Args:
         step: a step function from `make_step`.
