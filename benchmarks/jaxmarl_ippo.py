@@ -22,7 +22,7 @@ from __future__ import annotations
 import time
 
 T0 = time.perf_counter()
-import jaxdrones  # noqa: E402,F401  (before JAX computes anything: see jaxdrones/_xla.py)
+import jaxdrones  # noqa: E402,F401  (first, so that the wall time counts its import, as a user's run does)
 
 import argparse  # noqa: E402
 import json  # noqa: E402

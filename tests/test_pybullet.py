@@ -11,6 +11,7 @@ import pytest
 from optional import needs
 
 needs("pybullet")
+pytestmark = pytest.mark.pybullet
 
 import pybullet  # noqa: E402
 import jaxdrones as jd  # noqa: E402

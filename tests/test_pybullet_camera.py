@@ -14,6 +14,7 @@ from PIL import Image
 from optional import needs
 
 needs("pybullet")
+pytestmark = pytest.mark.pybullet
 
 import pybullet  # noqa: E402
 import jaxdrones as jd  # noqa: E402

@@ -22,6 +22,7 @@ import pytest
 from optional import needs
 
 needs("pybullet")
+pytestmark = pytest.mark.pybullet
 
 import jaxdrones as jd  # noqa: E402
 from jaxdrones.scene import Obstacle  # noqa: E402
