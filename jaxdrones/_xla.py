@@ -9,9 +9,9 @@ in XLA_FLAGS``), and flags come and go between jaxlib releases (jaxlib 0.11 remo
 ``--xla_cpu_use_fusion_emitters``, whose name still stands in its library as a reserved field). So each flag is
 first given to XLA itself, in a subprocess that starts JAX's backends with it (`accepted`); the answer is kept in a
 file in the user's cache folder (`cache_file`), keyed by the XLA libraries installed (jaxlib's and any PJRT
-plugin's, e.g. CUDA), so the check runs once per installation (0.5 to 1.5 s on a CPU). A flag the user already set in
-``XLA_FLAGS`` is left alone, whatever its value. ``JAXDRONES_XLA_FLAGS=0`` (set before the ``jaxdrones`` command or
-the test run) turns every flag off.
+plugin's, e.g. CUDA), so the check runs once per installation (1.1 s on jax 0.10.2, 2.2 s on jax 0.12 on 2 cores:
+``benchmarks/xla_flags.py``). A flag the user already set in ``XLA_FLAGS`` is left alone, whatever its value.
+``JAXDRONES_XLA_FLAGS=0`` (set before the ``jaxdrones`` command or the test run) turns every flag off.
 
 `CLI_FLAGS`, measured on 2 cores (README, "Benchmarks"):
 
@@ -76,10 +76,11 @@ def _installation() -> str:
 
 
 def cache_file() -> str:
-    """Where `accepted` keeps XLA's answers: ``$XDG_CACHE_HOME/jaxdrones/xla_flags.json``
+    """Where `accepted` keeps XLA's answers: ``xla_flags.json`` in `jaxdrones.runs.user_cache_dir`
     (``~/.cache/jaxdrones/xla_flags.json``)."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "jaxdrones", "xla_flags.json")
+    from jaxdrones.runs import user_cache_dir
+
+    return os.path.join(user_cache_dir(), "xla_flags.json")
 
 
 def _read_cache() -> dict:

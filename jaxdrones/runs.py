@@ -48,13 +48,16 @@ def new_run_dir(path: str | os.PathLike, overwrite: bool = False) -> str:
 CACHE_DIR_VAR = "JAXDRONES_CACHE_DIR"
 
 
+def user_cache_dir() -> str:
+    """jaxdrones' folder in the user's cache: ``$XDG_CACHE_HOME/jaxdrones`` (``~/.cache/jaxdrones``)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "jaxdrones")
+
+
 def default_cache_dir() -> str:
     """The folder of the command line's compilation cache: ``$JAXDRONES_CACHE_DIR``, else
     ``$XDG_CACHE_HOME/jaxdrones/xla`` (``~/.cache/jaxdrones/xla``)."""
-    if os.environ.get(CACHE_DIR_VAR):
-        return os.environ[CACHE_DIR_VAR]
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "jaxdrones", "xla")
+    return os.environ.get(CACHE_DIR_VAR) or os.path.join(user_cache_dir(), "xla")
 
 
 def enable_compilation_cache(path: str | None = None) -> str | None:

@@ -17,12 +17,12 @@ def test_readme_has_examples():
     assert len(python_blocks()) >= 2
 
 
-def needs(code: str) -> list:
+def markers(code: str) -> list:
     """The markers of the optional packages that a README example uses."""
     return [pytest.mark.pybullet] * ('backend="pybullet"' in code) + [pytest.mark.torch] * ("stable_baselines3" in code)
 
 
-@pytest.mark.parametrize("index", [pytest.param(i, marks=needs(code)) for i, code in enumerate(python_blocks())])
+@pytest.mark.parametrize("index", [pytest.param(i, marks=markers(code)) for i, code in enumerate(python_blocks())])
 def test_readme_example_runs(index, capsys):
     code = python_blocks()[index]
     exec(compile(code, f"README.md python block {index}", "exec"), {})
