@@ -24,11 +24,16 @@ def check_rpm(config: SimConfig, state: DroneState, rpm) -> jax.Array:
     """
     dtype = rpm.dtype if hasattr(rpm, "dtype") else np.asarray(rpm).dtype
     check_rpm_shape(config, state, np.shape(rpm), dtype)
-    rpm = jnp.asarray(rpm, dtype=state.pos.dtype)
-    # On the host: inside a jit trace, jnp would turn even a constant command into a tracer.
-    if not isinstance(rpm, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(rpm))):
+    if isinstance(rpm, jax.core.Tracer):
+        return rpm.astype(state.pos.dtype)
+    # On the host, in NumPy (a JAX array on the CPU is read without a copy): an eager jnp conversion would cost a
+    # dispatch per call, several times the jitted step itself in a Python control loop.
+    host = np.asarray(rpm)
+    if not np.all(np.isfinite(host)):
         raise ValueError("rpm contains NaN or inf")
-    return rpm
+    if isinstance(rpm, jax.Array):
+        return rpm if rpm.dtype == state.pos.dtype else rpm.astype(state.pos.dtype)
+    return host.astype(state.pos.dtype, copy=False)
 
 
 def check_state_shape(config: SimConfig, state: DroneState) -> tuple[int, ...]:

@@ -9,6 +9,9 @@ f[..., D]) rather than on f[..., D, 3] arrays; `split` and `join` convert. Every
 contiguous world and drone axes, which XLA vectorises on CPU, where a trailing axis of 3 or 4 gives strided loops,
 stacks and small dot products. Matrices stay arrays (f[..., 3, 3]) and `matvec` reads their entries. The
 array-form functions (``quat_mul``, ``quat_integrate``, ``quat_to_rotmat``) wrap the component form (``*_c``).
+
+The array-form conversions users call from Python loops (`quat_to_euler`, `quat_from_euler`, `quat_to_rotmat`,
+`quat_mul`) are jitted: one call is one dispatch (about 10 µs) rather than a few dozen eager operations (ms).
 """
 
 from __future__ import annotations
@@ -145,6 +148,7 @@ def normalize_c(v: Components) -> Components:
     return tuple(vi / norm for vi in v)
 
 
+@jax.jit
 def quat_to_rotmat(quat: jax.Array) -> jax.Array:
     """Rotation matrix of a quaternion, normalising it first as ``getMatrixFromQuaternion`` does.
 
@@ -170,6 +174,7 @@ def quat_to_rotmat_c(quat: Components, unit: bool = False) -> tuple[Components, 
     )
 
 
+@jax.jit
 def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
     """Hamilton product a ⊗ b of (x, y, z, w) quaternions, f[..., 4]."""
     return join(quat_mul_c(split(a), split(b)))
@@ -187,6 +192,7 @@ def quat_mul_c(a: Components, b: Components) -> Components:
     )
 
 
+@jax.jit
 def quat_from_euler(rpy: jax.Array) -> jax.Array:
     """Quaternion (x, y, z, w) of roll, pitch, yaw in rad (``getQuaternionFromEuler``), f[..., 3] -> f[..., 4]."""
     half = 0.5 * jnp.asarray(rpy)
@@ -248,6 +254,7 @@ def asin(x: jax.Array) -> jax.Array:
     return atan2(x, jnp.sqrt((1.0 - x) * (1.0 + x)))
 
 
+@jax.jit
 def quat_to_euler(quat: jax.Array) -> jax.Array:
     """Roll, pitch, yaw in rad of a unit quaternion, exactly as ``getEulerFromQuaternion`` (docs/physics.md §0.4).
 

@@ -133,8 +133,6 @@ def test_bad_input_to_parallel_env(pz):
         pz.step(np.zeros((3, 4), np.float32))
     with pytest.raises(ValueError, match=r"action of drone_1 must have shape \(4,\), got \(3,\)"):
         pz.step({**ok, "drone_1": np.zeros(3, np.float32)})
-    with pytest.raises(ValueError, match=r"action of drone_2 must be finite and lie in its box \[-1, 1\]"):
-        pz.step({**ok, "drone_2": np.full(4, 1.5, np.float32)})
     with pytest.raises(ValueError, match="action of drone_0 must be finite"):
         pz.step({**ok, "drone_0": np.array([0.0, np.nan, 0.0, 0.0], np.float32)})
     with pytest.raises(ValueError, match="action of drone_0 must be a float array"):

@@ -8,6 +8,11 @@ config fields are keyword arguments of ``gymnasium.make`` (``action_type``, ``ob
 backend, a matplotlib view of the drones on the JAX backend) and ``render_mode="human"`` shows it in a window at
 every ``reset`` and ``step`` (`HumanView`).
 
+Actions outside the action space are clipped to it and counted in ``info["clipped_actions"]`` (what many
+training libraries expect: they sample unclipped Gaussian actions and leave the clipping to the env);
+``gymnasium.make(id, strict_actions=True)`` refuses them with a ``ValueError`` instead. NaN or inf actions are always
+refused.
+
 ``gymnasium.make_vec(id, num_envs=N, vectorization_mode="vector_entry_point")`` gives a `GymnasiumVectorEnv`:
 all N worlds in one jitted, vmapped call, with gymnasium's default next-step autoreset. The ``"sync"`` mode works
 but compiles every sub-env separately; the ``"async"`` mode needs ``vector_kwargs={"context": "spawn"}``: JAX
@@ -40,6 +45,7 @@ except ImportError:  # gymnasium < 1.1, where `GymnasiumVectorEnv` refuses to ru
 from jaxdrones._fork import check_not_forked
 from jaxdrones.cameras import ENV_IMAGES
 from jaxdrones.envs.base import Env, world_axes
+from jaxdrones.envs.env import CLIP_TOLERANCE
 from jaxdrones.wrappers.autoreset import reset_where
 
 #: The gymnasium releases the adapters need: `GymnasiumEnv` the reset/step API of 0.26 (tested with 0.29.1, the
@@ -109,15 +115,31 @@ def _to_numpy(obs, space: gym.Space, squeeze: bool):
     return np.take(obs, 0, axis=obs.ndim - len(space.shape) - 1) if squeeze else obs
 
 
-def _check_action(action, space: gym.spaces.Box, batch: tuple[int, ...] = ()) -> np.ndarray:
-    action = np.asarray(action, dtype=np.float32)
+def check_action(action, space: gym.spaces.Box, batch: tuple[int, ...] = (), strict: bool = False,
+                 name: str = "action") -> np.ndarray:
+    """``action`` as f32 of shape ``batch + space.shape``, checked at the adapters' boundary.
+
+    Entries outside the box are passed on (the env clips them and counts them in ``clipped_actions``), unless
+    ``strict``; non-finite entries are always refused.
+
+    Raises:
+        ValueError: not a float array of the expected shape; NaN or inf entries; with ``strict``, entries outside
+            the box by more than `jaxdrones.envs.env.CLIP_TOLERANCE`. The message names ``name``.
+    """
     expected = batch + space.shape
+    try:
+        action = np.asarray(action, dtype=np.float32)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{name} must be a float array of shape {expected}, got {action!r}") from e
     if action.shape != expected:
-        raise ValueError(f"action must have shape {expected}, got {action.shape}")
-    # One pass: NaN fails both comparisons, so this also refuses non-finite actions.
-    if not np.all((action >= space.low - 1e-6) & (action <= space.high + 1e-6)):
-        raise ValueError(f"action must lie in the action space [{space.low.min():g}, {space.high.max():g}], "
-                         f"got values in [{np.nanmin(action):g}, {np.nanmax(action):g}]")
+        raise ValueError(f"{name} must have shape {expected}, got {action.shape}")
+    if not np.all(np.isfinite(action)):
+        raise ValueError(f"{name} must be finite, got {np.sum(~np.isfinite(action))} NaN or inf entries: "
+                         f"{action.tolist() if action.size <= 16 else action}")
+    if strict and np.any((action < space.low - CLIP_TOLERANCE) | (action > space.high + CLIP_TOLERANCE)):
+        raise ValueError(f"{name} must lie in the action space [{space.low.min():g}, {space.high.max():g}] "
+                         f"(strict_actions=True), got values in [{action.min():g}, {action.max():g}]; without "
+                         f"strict_actions the env clips them and counts them in info['clipped_actions']")
     return action
 
 
@@ -126,21 +148,29 @@ class GymnasiumEnv(gym.Env):
 
     The wrapper owns the env state and the PRNG key: ``reset(seed=...)`` makes the episode sequence reproducible,
     ``reset()`` without a seed continues it. ``reset`` and ``step`` are jitted once. Observations are float32 in
-    the env's bounded Box; actions must lie in the action space (otherwise a ``ValueError``).
-    ``step`` returns ``(obs, reward, terminated, truncated, info)``; ``info`` holds the env's metrics (floats) and,
-    for D ≥ 2, the per-drone rewards (``"rewards"``); the reward is the sum over drones. ``render()`` returns an
+    the env's bounded Box.
+
+    Actions outside the action space are clipped to it, as gymnasium's ``ClipAction`` would (policies that sample
+    unclipped Gaussians, as skrl's and many others do, run unchanged), and ``info["clipped_actions"]`` counts the
+    entries that were clipped at this step; ``strict_actions=True`` raises a ``ValueError`` instead. A NaN or inf
+    action always raises a ``ValueError``.
+
+    ``step`` returns ``(obs, reward, terminated, truncated, info)``; ``info`` holds the env's metrics (floats;
+    ``clipped_actions`` an int) and, for D ≥ 2, the per-drone rewards (``"rewards"``); the reward is the sum over
+    drones. ``render()`` returns an
     RGB frame when ``render_mode="rgb_array"``; ``render_mode="human"`` shows every step in a window (`HumanView`).
     `close` releases the backend. Pickled as its task env and render mode (see the module docstring).
     """
 
     metadata = {"render_modes": list(RENDER_MODES), "render_fps": 30}
 
-    def __init__(self, env: Env, render_mode: str | None = None):
+    def __init__(self, env: Env, render_mode: str | None = None, strict_actions: bool = False):
         _check_render_mode(render_mode)
         check_not_forked()
-        self._init_args = (env, render_mode)
+        self._init_args = (env, render_mode, strict_actions)
         self.env = env
         self.render_mode = render_mode
+        self.strict_actions = bool(strict_actions)
         self.metadata = {**self.metadata, "render_fps": env.config.ctrl_freq}
         self.observation_space, self.action_space = spaces(env)
         self._reset, self._step = compiled(env)
@@ -162,7 +192,7 @@ class GymnasiumEnv(gym.Env):
         check_not_forked()
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        action = _check_action(action, self.action_space)
+        action = check_action(action, self.action_space, strict=self.strict_actions)
         self._state = self._step(self._state, action.reshape(self.env.n_drones, self.env.action_size))
         self._show()
         s = self._state
@@ -190,6 +220,7 @@ class GymnasiumEnv(gym.Env):
 
     def _info(self) -> dict:
         info = {k: float(v) for k, v in self._state.metrics.items()}
+        info["clipped_actions"] = int(info["clipped_actions"])
         if self.env.n_drones > 1:
             info["rewards"] = np.asarray(self._state.reward, np.float32)
         return info
@@ -307,15 +338,17 @@ class HumanView:
 class GymnasiumVectorEnv(VectorEnv):
     """N worlds of a jaxdrones env as a gymnasium ``VectorEnv``: one jitted, vmapped call per ``step``.
 
-    NumPy in and out: observations f32[N, ...] (the single space batched), actions f32[N, ...] within the action
-    space. Autoreset follows gymnasium's default (``AutoresetMode.NEXT_STEP``): the step after a world's episode
-    ended resets it and returns its first observation with reward 0. Each reset draws a fresh start, task params
-    and (with ``randomize``) drone params from the world's key. ``infos`` holds the metrics, arrays f[N].
+    NumPy in and out: observations f32[N, ...] (the single space batched), actions f32[N, ...]; actions outside
+    the action space are clipped as in `GymnasiumEnv` (``infos["clipped_actions"]`` i64[N] counts them per world;
+    ``strict_actions=True`` raises instead), NaN or inf ones raise a ``ValueError``. Autoreset follows gymnasium's
+    default (``AutoresetMode.NEXT_STEP``): the step after a world's episode ended resets it and returns its first
+    observation with reward 0. Each reset draws a fresh start, task params and (with ``randomize``) drone params
+    from the world's key. ``infos`` holds the metrics, arrays f[N].
     """
 
     metadata = {"autoreset_mode": _NEXT_STEP, "render_modes": list(RENDER_MODES)}
 
-    def __init__(self, env: Env, num_envs: int, render_mode: str | None = None):
+    def __init__(self, env: Env, num_envs: int, render_mode: str | None = None, strict_actions: bool = False):
         if GYMNASIUM_VERSION < MIN_GYMNASIUM_VECTOR:
             raise RuntimeError(f"jaxdrones' vector env needs gymnasium >= {'.'.join(map(str, MIN_GYMNASIUM_VECTOR))} "
                                f"(its VectorEnv API); gymnasium {gym.__version__} is installed. With this gymnasium, "
@@ -325,10 +358,11 @@ class GymnasiumVectorEnv(VectorEnv):
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         check_not_forked()
-        self._init_args = (env, num_envs, render_mode)
+        self._init_args = (env, num_envs, render_mode, strict_actions)
         self.env = env
         self.num_envs = int(num_envs)
         self.render_mode = render_mode
+        self.strict_actions = bool(strict_actions)
         self.single_observation_space, self.single_action_space = spaces(env)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
@@ -368,7 +402,7 @@ class GymnasiumVectorEnv(VectorEnv):
         check_not_forked()
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        actions = _check_action(actions, self.single_action_space, (self.num_envs,))
+        actions = check_action(actions, self.single_action_space, (self.num_envs,), strict=self.strict_actions)
         was_reset = self._needs_reset
         self._state, self._needs_reset = self._step(self._state, actions, self._needs_reset)
         self._show()
@@ -402,25 +436,30 @@ class GymnasiumVectorEnv(VectorEnv):
         return _to_numpy(self._state.obs, self.single_observation_space, self.env.n_drones == 1)
 
     def _infos(self) -> dict:
-        return {k: np.asarray(v) for k, v in self._state.metrics.items()}
+        infos = {k: np.asarray(v) for k, v in self._state.metrics.items()}
+        infos["clipped_actions"] = infos["clipped_actions"].astype(np.int64)
+        return infos
 
 
-def make_env(task: str, render_mode: str | None = None, **overrides) -> GymnasiumEnv:
-    """Entry point of ``gymnasium.make(GYM_IDS[task], **overrides)``; overrides are the task's config fields."""
+def make_env(task: str, render_mode: str | None = None, strict_actions: bool = False,
+             **overrides) -> GymnasiumEnv:
+    """Entry point of ``gymnasium.make(GYM_IDS[task], **overrides)``; overrides are the task's config fields,
+    ``strict_actions`` that of `GymnasiumEnv`."""
     from jaxdrones.envs import make
 
     _check_render_mode(render_mode)
-    return GymnasiumEnv(make(task, **overrides), render_mode=render_mode)
+    return GymnasiumEnv(make(task, **overrides), render_mode=render_mode, strict_actions=strict_actions)
 
 
-def make_vector_env(task: str, num_envs: int = 1, render_mode: str | None = None,
+def make_vector_env(task: str, num_envs: int = 1, render_mode: str | None = None, strict_actions: bool = False,
                     **overrides) -> GymnasiumVectorEnv:
     """Vector entry point of ``gymnasium.make_vec(GYM_IDS[task], num_envs, vectorization_mode="vector_entry_point",
     **overrides)``."""
     from jaxdrones.envs import make
 
     _check_render_mode(render_mode)
-    return GymnasiumVectorEnv(make(task, **overrides), num_envs, render_mode=render_mode)
+    return GymnasiumVectorEnv(make(task, **overrides), num_envs, render_mode=render_mode,
+                              strict_actions=strict_actions)
 
 
 def gym_id(task: str) -> str:

@@ -26,7 +26,7 @@ import numpy as np
 
 from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
 from jaxdrones.envs.base import EnvState
-from jaxdrones.envs.env import TaskEnv
+from jaxdrones.envs.env import CLIP_TOLERANCE, TaskEnv
 from jaxdrones.wrappers.autoreset import AutoReset
 
 
@@ -72,19 +72,22 @@ class JaxMARLEnv:
         observation_spaces, action_spaces: `Box` by agent: the agent's row of ``env.observation_bounds()`` and
             ``env.action_bounds()``.
 
-    The state is the env's `EnvState` (with the auto-reset's ``info``). Actions are clipped to their box by the env;
-    a non-finite action terminates the episode (``infos["invalid_action"]``), as in `TaskEnv.step`.
+    The state is the env's `EnvState` (with the auto-reset's ``info``). Actions outside their box are clipped to it
+    by the env and counted per agent in ``infos["clipped_actions"]`` (f[D]); with ``strict_actions=True`` such an
+    action is treated as invalid instead. An invalid action (non-finite, or out of the box when strict) terminates
+    the episode with ``infos["invalid_action"]`` set, as in `TaskEnv.step` (a jitted step cannot raise).
 
     Raises:
         ValueError: an env with camera images in its observation (``vision``; use the PettingZoo or gymnasium
             adapter for those).
     """
 
-    def __init__(self, env: TaskEnv):
+    def __init__(self, env: TaskEnv, strict_actions: bool = False):
         if env.config.vision:
             raise ValueError(f"the JaxMARL view takes state observations only, got vision={env.config.vision}; "
                              "the PettingZoo and gymnasium adapters take camera images")
         self.env = env
+        self.strict_actions = bool(strict_actions)
         self._auto = AutoReset(env)
         self.num_agents = env.n_drones
         self.agents = agent_names(env.n_drones)
@@ -118,7 +121,8 @@ class JaxMARLEnv:
             ``rewards[agent]`` f[] and ``dones[agent]``, ``dones["__all__"]`` bool[] of the step that ended it;
             ``infos``: one entry per agent in every leaf, as JaxMARL's baselines expect (they reshape each leaf of a
             batch of W worlds to ``W × num_agents``): the env's metrics (f[D], the world's value for each agent),
-            ``terminated`` and ``truncated`` (bool[D]) and ``final_steps`` (i32[D], the ended episode's length).
+            ``terminated`` and ``truncated`` (bool[D]), ``final_steps`` (i32[D], the ended episode's length) and
+            ``clipped_actions`` (f[D], the agent's action entries outside its box at this step).
             The step's observation before a reset is ``state.info["final_obs"]`` (f[D, n_obs]).
 
         Raises:
@@ -126,13 +130,19 @@ class JaxMARLEnv:
                 a non-float dtype.
         """
         del key
-        state = self._auto.step(state, self._stack(actions))
+        action = self._stack(actions)
+        low, high = (jnp.asarray(b, action.dtype) for b in self.env.action_bounds())
+        outside = (action < low - CLIP_TOLERANCE) | (action > high + CLIP_TOLERANCE)
+        if self.strict_actions:
+            action = jnp.where(outside, jnp.nan, action)
+        state = self._auto.step(state, action)
         done = state.done
         rewards = {a: state.reward[i] for i, a in enumerate(self.agents)}
         dones = {**dict.fromkeys(self.agents, done), "__all__": done}
         per_world = {**state.metrics, "terminated": state.terminated, "truncated": state.truncated,
                      "final_steps": state.info["final_steps"]}
         infos = {k: jnp.broadcast_to(v[..., None], v.shape + (self.num_agents,)) for k, v in per_world.items()}
+        infos["clipped_actions"] = jnp.sum(outside, axis=-1).astype(infos["clipped_actions"].dtype)
         return self.get_obs(state), state, rewards, dones, infos
 
     def get_obs(self, state: EnvState) -> dict[str, jax.Array]:
@@ -168,16 +178,18 @@ class JaxMARLEnv:
         return jnp.stack(rows)
 
 
-def make(task: str, **options) -> JaxMARLEnv:
+def make(task: str, strict_actions: bool = False, **options) -> JaxMARLEnv:
     """A multi-agent task as a `JaxMARLEnv`, e.g. ``make("flock", n_drones=5)``.
 
     Args:
         task: one of `jaxdrones.envs.MULTI_AGENT` (``multi_hover``, ``leader_follower``, ``flock``, ``meetup``,
             ``crossing``).
+        strict_actions: an action outside its box ends the episode as invalid (default: clipped and counted; see
+            `JaxMARLEnv`).
         **options: fields of the task's config, as for `jaxdrones.make`.
 
     Raises:
         ValueError: a single-agent or unknown task (the message names the multi-agent tasks), an invalid option or
             value, an ``n_drones`` the task does not allow, or camera images in the observation.
     """
-    return JaxMARLEnv(make_multi_agent(task, **options))
+    return JaxMARLEnv(make_multi_agent(task, **options), strict_actions=strict_actions)

@@ -35,12 +35,8 @@ from pettingzoo.utils.conversions import parallel_to_aec
 
 from jaxdrones._fork import check_not_forked
 from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
-from jaxdrones.adapters.gymnasium import RENDER_MODES, HumanView, compiled, render_frame, spaces
-from jaxdrones.envs.env import TaskEnv
-
-#: Tolerance of the action-box check (float32 round-off of actions computed at the bounds).
-_BOX_TOL = 1e-6
-
+from jaxdrones.adapters.gymnasium import RENDER_MODES, HumanView, check_action, compiled, render_frame, spaces
+from jaxdrones.envs.env import CLIP_TOLERANCE, TaskEnv
 
 class PettingZooEnv(ParallelEnv):
     """A `TaskEnv` of D drones as a PettingZoo ``ParallelEnv``; the adapter owns the env state and the PRNG key.
@@ -51,8 +47,10 @@ class PettingZooEnv(ParallelEnv):
     * ``reset(seed=..., options=None) -> (observations, infos)``: a seed makes the episode sequence reproducible,
       ``reset()`` without one continues it; ``options`` is accepted and ignored.
     * ``step(actions) -> (observations, rewards, terminations, truncations, infos)``: ``actions`` holds one action
-      f32[n_act] per live agent, inside its box (else a ``ValueError``). Rewards are floats, the drone's
-      ``reward[i]``; ``infos[agent]`` holds the world's metrics (floats, means over the drones).
+      f32[n_act] per live agent. Entries outside its box are clipped to it, and ``infos[agent]["clipped_actions"]``
+      counts those of that agent at this step; ``strict_actions=True`` raises a ``ValueError`` instead. NaN or inf
+      entries always raise a ``ValueError``. Rewards are floats, the drone's ``reward[i]``; ``infos[agent]`` holds
+      the world's metrics (floats, means over the drones).
     * ``render()`` returns an RGB frame u8[H, W, 3] with ``render_mode="rgb_array"`` (else None); with
       ``render_mode="human"`` every ``reset`` and ``step`` shows the frame in a window
       (`jaxdrones.adapters.gymnasium.HumanView`). `close` releases the backend.
@@ -61,13 +59,14 @@ class PettingZooEnv(ParallelEnv):
     metadata = {"render_modes": list(RENDER_MODES), "name": "jaxdrones", "is_parallelizable": True,
                 "render_fps": 30}
 
-    def __init__(self, env: TaskEnv, render_mode: str | None = None):
+    def __init__(self, env: TaskEnv, render_mode: str | None = None, strict_actions: bool = False):
         if render_mode is not None and render_mode not in RENDER_MODES:
             raise ValueError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
         check_not_forked()
-        self._init_args = (env, render_mode)
+        self._init_args = (env, render_mode, strict_actions)
         self.env = env
         self.render_mode = render_mode
+        self.strict_actions = bool(strict_actions)
         self.metadata = {**self.metadata, "name": f"jaxdrones_{env.task.name}_v0",
                          "render_fps": env.config.ctrl_freq}
         self.possible_agents = agent_names(env.n_drones)
@@ -112,8 +111,8 @@ class PettingZooEnv(ParallelEnv):
             episode's last step.
 
         Raises:
-            ValueError: unknown, missing or extra agent names, or an action of the wrong shape, not finite or
-                outside its box.
+            ValueError: unknown, missing or extra agent names, or an action of the wrong shape or not finite (or,
+                with ``strict_actions``, outside its box).
             RuntimeError: no episode is running (``reset`` not called, or the episode has ended), or a process
                 forked after JAX started (`jaxdrones._fork`).
         """
@@ -122,14 +121,17 @@ class PettingZooEnv(ParallelEnv):
             raise RuntimeError("no episode is running: call reset() first (agents is empty after an episode ends)")
         agents = self.agents
         check_agent_keys(actions, agents)
-        action = np.stack([self._check_action(a, actions[a]) for a in agents])
+        action = np.stack([check_action(actions[a], self.action_spaces[a], strict=self.strict_actions,
+                                        name=f"action of {a}") for a in agents])
+        space = self.action_spaces[agents[0]]
+        clipped = np.sum((action < space.low - CLIP_TOLERANCE) | (action > space.high + CLIP_TOLERANCE), axis=-1)
         self._state = self._step(self._state, action)
         self._show()
         s = self._state
         reward = np.asarray(s.reward, np.float32)
         terminated, truncated = bool(s.terminated), bool(s.truncated)
         out = (self._observations(agents), {a: float(reward[i]) for i, a in enumerate(agents)},
-               dict.fromkeys(agents, terminated), dict.fromkeys(agents, truncated), self._infos(agents))
+               dict.fromkeys(agents, terminated), dict.fromkeys(agents, truncated), self._infos(agents, clipped))
         if terminated or truncated:
             self.agents = []
         return out
@@ -155,27 +157,15 @@ class PettingZooEnv(ParallelEnv):
             raise ValueError(f"unknown agent {agent!r}: expected one of {self.possible_agents}")
         return agent
 
-    def _check_action(self, agent: str, action) -> np.ndarray:
-        space = self.action_spaces[agent]
-        try:
-            action = np.asarray(action, dtype=np.float32)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"action of {agent} must be a float array of shape {space.shape}, got {action!r}") from e
-        if action.shape != space.shape:
-            raise ValueError(f"action of {agent} must have shape {space.shape}, got {action.shape}")
-        if (not np.all(np.isfinite(action)) or np.any(action < space.low - _BOX_TOL)
-                or np.any(action > space.high + _BOX_TOL)):
-            raise ValueError(f"action of {agent} must be finite and lie in its box [{space.low.min():g}, "
-                             f"{space.high.max():g}], got {action.tolist()}")
-        return action
-
     def _observations(self, agents: list[str]) -> dict:
         obs = jax.tree.map(np.asarray, self._state.obs)
         return {a: _agent_obs(obs, self.observation_spaces[a], i) for i, a in enumerate(agents)}
 
-    def _infos(self, agents: list[str]) -> dict:
+    def _infos(self, agents: list[str], clipped: np.ndarray | None = None) -> dict:
+        """The world's metrics for each agent, with ``clipped_actions`` that agent's own count (0 at a reset)."""
         metrics = {k: float(v) for k, v in self._state.metrics.items()}
-        return {a: dict(metrics) for a in agents}
+        return {a: {**metrics, "clipped_actions": 0 if clipped is None else int(clipped[i])}
+                for i, a in enumerate(agents)}
 
 
 def _agent_space(space: gym.Space, i: int, stacked: bool) -> gym.Space:
@@ -193,13 +183,16 @@ def _agent_obs(obs, space: gym.Space, i: int):
     return np.asarray(obs[i], space.dtype)
 
 
-def parallel_env(task: str, render_mode: str | None = None, **options) -> PettingZooEnv:
+def parallel_env(task: str, render_mode: str | None = None, strict_actions: bool = False,
+                 **options) -> PettingZooEnv:
     """A multi-agent task as a PettingZoo ``ParallelEnv``, e.g. ``parallel_env("flock", n_drones=5)``.
 
     Args:
         task: one of `jaxdrones.envs.MULTI_AGENT` (``multi_hover``, ``leader_follower``, ``flock``, ``meetup``,
             ``crossing``).
         render_mode: None, ``"human"`` or ``"rgb_array"``.
+        strict_actions: refuse actions outside their box with a ``ValueError`` (default: clip and count them in
+            ``infos[agent]["clipped_actions"]``).
         **options: fields of the task's config (``n_drones``, ``action_type``, ``obs_type``, ``episode_len_s``,
             ``backend``, ...), as for `jaxdrones.make`.
 
@@ -210,12 +203,12 @@ def parallel_env(task: str, render_mode: str | None = None, **options) -> Pettin
     """
     if render_mode is not None and render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
-    return PettingZooEnv(make_multi_agent(task, **options), render_mode=render_mode)
+    return PettingZooEnv(make_multi_agent(task, **options), render_mode=render_mode, strict_actions=strict_actions)
 
 
-def env(task: str, render_mode: str | None = None, **options) -> AECEnv:
+def env(task: str, render_mode: str | None = None, strict_actions: bool = False, **options) -> AECEnv:
     """A multi-agent task as a PettingZoo ``AECEnv`` (agents act in turn): PettingZoo's ``parallel_to_aec`` of
     `parallel_env` (same arguments and errors). The world steps once every live agent has acted; ``last()`` gives
     each agent its observation and the reward of the last world step.
     """
-    return parallel_to_aec(parallel_env(task, render_mode=render_mode, **options))
+    return parallel_to_aec(parallel_env(task, render_mode=render_mode, strict_actions=strict_actions, **options))

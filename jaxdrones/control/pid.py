@@ -267,21 +267,34 @@ def pid_compute(params: DroneParams, gains: PIDGains, pid_state: PIDState, state
             [..., D, 3]/[..., D, 4] with the same leading shape, if a target or the PID state does not broadcast to
             ``state.pos``'s shape, or if a concrete ``ctrl_dt`` is not positive.
     """
-    shape, dtype = _check_state(state)
+    _check_state(state)
     if not isinstance(pid_state, PIDState) or not isinstance(gains, PIDGains):
         raise ValueError(f"expected a PIDGains and a PIDState (see PIDGains.dsl() and pid_init()), got "
                          f"{type(gains).__name__} and {type(pid_state).__name__}")
+    targets = tuple(_host_array(t) for t in (target_pos, target_vel, target_rpy, target_rpy_rates))
+    return _pid_checked(params, gains, pid_state, state, *targets, _check_dt(ctrl_dt, state.pos.dtype))
+
+
+@jax.jit
+def _pid_checked(params, gains, pid_state, state, target_pos, target_vel, target_rpy, target_rpy_rates, ctrl_dt):
+    """`pid_compute` after its host checks: the shape checks run once per compilation (a ValueError at trace time),
+    so that a call from a Python loop costs one dispatch."""
+    shape, dtype = state.pos.shape, state.pos.dtype
     pid_state = jax.tree_util.tree_map(lambda x: _as_shape("pid_state", x, shape, dtype), pid_state)
     target_pos = _as_shape("target_pos", target_pos, shape, dtype)
     target_vel = _as_shape("target_vel", target_vel, shape, dtype)
     target_rpy = _as_shape("target_rpy", target_rpy, shape, dtype)
     target_rpy_rates = _as_shape("target_rpy_rates", target_rpy_rates, shape, dtype)
-    ctrl_dt = _check_dt(ctrl_dt, dtype)
     return _pid_compute(params, gains, pid_state, state, target_pos, target_vel, target_rpy, target_rpy_rates,
                         ctrl_dt)
 
 
-@jax.jit
+def _host_array(value):
+    """A target as a jit argument: None (0) and JAX arrays as they are, anything else (lists, NumPy, floats) as
+    NumPy, so that a Python list is one argument and not one per element."""
+    return value if value is None or isinstance(value, jax.Array) else np.asarray(value)
+
+
 def _pid_compute(params, gains, pid_state, state, target_pos, target_vel, target_rpy, target_rpy_rates, ctrl_dt):
     """`pid_compute` on validated, broadcast inputs."""
     rotmat = quat_to_rotmat(state.quat)
@@ -430,9 +443,11 @@ def _as_shape(name: str, value, shape: tuple[int, ...], dtype) -> jax.Array:
     return jnp.broadcast_to(value, shape)
 
 
-def _check_dt(ctrl_dt, dtype) -> jax.Array:
-    if not isinstance(ctrl_dt, jax.core.Tracer):
-        values = np.asarray(ctrl_dt, dtype=np.float64)
-        if values.ndim != 0 or not math.isfinite(float(values)) or float(values) <= 0:
-            raise ValueError(f"ctrl_dt must be a positive finite scalar in seconds (e.g. 1/48), got {ctrl_dt!r}")
-    return jnp.asarray(ctrl_dt, dtype=dtype)
+def _check_dt(ctrl_dt, dtype):
+    """``ctrl_dt`` checked (when concrete) and as a scalar of ``dtype``: NumPy on the host, a tracer under a trace."""
+    if isinstance(ctrl_dt, jax.core.Tracer):
+        return ctrl_dt.astype(dtype)
+    values = np.asarray(ctrl_dt, dtype=np.float64)
+    if values.ndim != 0 or not math.isfinite(float(values)) or float(values) <= 0:
+        raise ValueError(f"ctrl_dt must be a positive finite scalar in seconds (e.g. 1/48), got {ctrl_dt!r}")
+    return np.asarray(values, dtype=dtype)

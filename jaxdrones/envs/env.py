@@ -23,12 +23,17 @@ from jaxdrones.rotations import quat_from_euler
 from jaxdrones.sim import make_step
 from jaxdrones.state import DroneState
 
+#: How far (in action units) an entry may lie outside its box before ``metrics["clipped_actions"]`` counts it:
+#: float32 round-off of actions computed at the bounds (e.g. ``tanh`` saturating to 1 + 1 ulp) is not a clip.
+CLIP_TOLERANCE = 1e-6
+
 
 class TaskEnv(Env):
     """Any `Task` on the jaxdrones physics, as a brax-protocol env (``reset``/``step``, jit and vmap).
 
     Observation ``f[D, n_obs]`` (`observation_spec`; a dict with camera images under ``config.vision``), action
-    ``f[D, n_act]`` in the action type's box, clipped to it; a non-finite action is replaced by 0 for the physics,
+    ``f[D, n_act]`` in the action type's box, clipped to it (``metrics["clipped_actions"]`` counts the entries that
+    were outside it, by more than `CLIP_TOLERANCE`); a non-finite action is replaced by 0 for the physics,
     terminates the episode and sets ``metrics["invalid_action"]``. Reward ``f[D]``; ``terminated``/``truncated``
     per world. `reset` draws the start, the task params (from ``task`` or the config's defaults) and, with
     ``config.randomize``, the drones' params.
@@ -198,8 +203,8 @@ class TaskEnv(Env):
         zeros = jnp.zeros((cfg.n_drones,), self.dtype)
         terms = self.task.reward_terms(cfg, task, sim, jnp.zeros((cfg.n_drones, self.action_size), self.dtype),
                                        steps)
-        metrics = self._metrics(task, sim, steps, {k: zeros for k in terms}, jnp.zeros((), bool),
-                                jnp.zeros((), bool))
+        false = jnp.zeros((), bool)
+        metrics = self._metrics(task, sim, steps, {k: zeros for k in terms}, false, false, jnp.zeros((), jnp.int32))
         return EnvState(sim=sim, params=params, task=task, ctrl=self.action_type.init(params, sim), history=history,
                         key=key, obs=obs, reward=zeros, terminated=jnp.zeros((), bool),
                         truncated=jnp.zeros((), bool), steps=steps, metrics=metrics)
@@ -218,7 +223,10 @@ class TaskEnv(Env):
         action = self._check_action(action)
         finite = jnp.all(jnp.isfinite(action))
         low, high = (jnp.asarray(b, self.dtype) for b in self.action_bounds())
-        action = jnp.where(finite, jnp.clip(action.astype(self.dtype), low, high), 0.0)
+        action = action.astype(self.dtype)
+        outside = (action < low - CLIP_TOLERANCE) | (action > high + CLIP_TOLERANCE)
+        clipped = jnp.where(finite, jnp.sum(outside), 0)
+        action = jnp.where(finite, jnp.clip(action, low, high), 0.0)
         ref = self.task.reference(cfg, task, state.steps)
         rpm, ctrl = self.action_type.to_rpm(state.params, state.sim, state.ctrl, action, ref, self.sim_config.ctrl_dt)
         sim = self._step(state.params, state.sim, rpm)
@@ -238,7 +246,7 @@ class TaskEnv(Env):
         crashed = self.task.terminated(cfg, task, sim)
         terminated = crashed | self.task.reached(cfg, task, sim) | ~finite
         truncated = (steps >= self.episode_length) & ~terminated
-        metrics = self._metrics(task, sim, steps, weighted, crashed, ~finite)
+        metrics = self._metrics(task, sim, steps, weighted, crashed, ~finite, clipped)
         return state.replace(sim=sim, ctrl=ctrl, history=history, obs=obs, reward=reward, terminated=terminated,
                              truncated=truncated, steps=steps, metrics=metrics)
 
@@ -249,11 +257,12 @@ class TaskEnv(Env):
         weights = self.task.loss_weights(self.config)
         return sum(weights[k] * v for k, v in terms.items() if weights.get(k, 0.0))
 
-    def _metrics(self, task, sim, steps, weighted, crashed, invalid) -> dict:
+    def _metrics(self, task, sim, steps, weighted, crashed, invalid, clipped) -> dict:
         dtype = self.dtype
         metrics = {k: jnp.asarray(v, dtype) for k, v in self.task.metrics(self.config, task, sim, steps).items()}
         metrics.update({f"reward/{k}": jnp.mean(v) for k, v in weighted.items()})
-        metrics.update(crash=crashed.astype(dtype), invalid_action=invalid.astype(dtype))
+        metrics.update(crash=crashed.astype(dtype), invalid_action=invalid.astype(dtype),
+                       clipped_actions=clipped.astype(dtype))
         return metrics
 
     def _check_action(self, action) -> jax.Array:
