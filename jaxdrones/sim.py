@@ -153,6 +153,14 @@ def _core_step(core_c, remat: bool):
     return jax.jit(jax.checkpoint(core) if remat else core)
 
 
+@functools.lru_cache(maxsize=None)
+def _compiled_step(config: SimConfig):
+    """(`_core_step_c`, `_core_step`) of ``config``, shared by every `JaxStep` of an equal config: an env built
+    again (an evaluation env beside the training env, a second run in a notebook) compiles nothing again."""
+    core_c = _core_step_c(config)
+    return core_c, _core_step(core_c, remat=not adjoint.supported(config))
+
+
 class JaxStep:
     """The JAX core's control step ``step(params, state, rpm) -> state`` (see `make_step`).
 
@@ -165,8 +173,7 @@ class JaxStep:
 
     def __init__(self, config: SimConfig):
         self.config = config
-        self._core_c = _core_step_c(config)
-        self._core = _core_step(self._core_c, remat=not adjoint.supported(config))
+        self._core_c, self._core = _compiled_step(config)
 
     def __call__(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
         rpm = check_rpm(self.config, state, rpm)

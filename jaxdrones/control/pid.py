@@ -56,6 +56,14 @@ ATT_INTEGRAL_LIMIT = (1.0, 1.0, 1500.0)
 _XYZ_GIMBAL_EPS = 1e-7
 
 
+#: The DSL gains of the paper's controller by `PIDGains` field (docs/physics.md §12.1; DSLPIDControl.py's
+#: ``P_COEFF_FOR`` ... ``D_COEFF_TOR``).
+DSL_GAINS = dict(
+    p_pos=(0.4, 0.4, 1.25), i_pos=(0.05, 0.05, 0.05), d_pos=(0.2, 0.2, 0.5),
+    p_att=(70000.0, 70000.0, 60000.0), i_att=(0.0, 0.0, 500.0), d_att=(20000.0, 20000.0, 12000.0),
+)
+
+
 @struct.dataclass
 class PIDGains:
     """Gains of DSLPIDControl, per axis (x, y, z) or (roll, pitch, yaw), as arrays.
@@ -83,11 +91,7 @@ class PIDGains:
     def dsl(cls, dtype=None) -> "PIDGains":
         """The DSL gains of the paper's controller (docs/physics.md §12.1), in JAX's default float or ``dtype``."""
         dtype = jnp.result_type(float) if dtype is None else dtype
-        values = dict(
-            p_pos=(0.4, 0.4, 1.25), i_pos=(0.05, 0.05, 0.05), d_pos=(0.2, 0.2, 0.5),
-            p_att=(70000.0, 70000.0, 60000.0), i_att=(0.0, 0.0, 500.0), d_att=(20000.0, 20000.0, 12000.0),
-        )
-        return cls(**{k: jnp.asarray(v, dtype=dtype) for k, v in values.items()})
+        return cls(**{k: jnp.asarray(v, dtype=dtype) for k, v in DSL_GAINS.items()})
 
 
 @struct.dataclass

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from jaxdrones._hints import unknown_option
 from jaxdrones.envs.actions import ACTION_TYPES
 from jaxdrones.envs.base import Env, EnvState
 from jaxdrones.envs.config import DomainRandomization, TaskConfig
@@ -48,7 +49,7 @@ def make_config(name: str, **overrides) -> TaskConfig:
     fields = {f.name for f in dataclasses.fields(task.config_cls)}
     unknown = sorted(set(overrides) - fields)
     if unknown:
-        raise ValueError(f"{name}: unknown option(s) {unknown}; valid options are {sorted(fields)}")
+        raise ValueError(unknown_option(name, unknown[0], fields))
     return task.config_cls(**overrides)
 
 

@@ -15,6 +15,7 @@ from typing import Any
 import jax
 import numpy as np
 
+from jaxdrones._hints import did_you_mean
 from jaxdrones.backends import BACKENDS, RENDERERS, require_pybullet
 from jaxdrones.cameras import ENV_IMAGES
 from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS
@@ -309,7 +310,8 @@ def _is_number(value) -> bool:
 
 def _check_choice(name: str, value, choices) -> None:
     if value not in choices:
-        raise ValueError(f"unknown {name} {value!r}: expected one of {tuple(choices)}")
+        hint = did_you_mean(value, choices) if isinstance(value, str) else ""
+        raise ValueError(f"unknown {name} {value!r}{hint}: expected one of {tuple(choices)}")
 
 
 def _finite_tuple(name: str, value, n: int, nonneg: bool = False) -> tuple[float, ...]:

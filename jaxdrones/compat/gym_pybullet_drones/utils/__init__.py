@@ -1,0 +1,1 @@
+"""gym-pybullet-drones' utilities: enums, ``Logger``, ``sync`` and ``str2bool``."""
