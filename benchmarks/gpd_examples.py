@@ -8,7 +8,7 @@ script's ``run()`` with ``gui=False, plot=False`` (the scripts' own command-line
 
     python benchmarks/gpd_examples.py --original /path/to/gym-pybullet-drones                 # pid.py, both
     python benchmarks/gpd_examples.py --original DIR --original-python /venv-with-pybullet/bin/python
-    python benchmarks/gpd_examples.py --original DIR --learn                                  # + learn.py (ours)
+    python benchmarks/gpd_examples.py --original DIR --learn                                  # + learn.py
 
 pid.py (3 drones, 12 s at 48 Hz: 576 control steps, each a step of the aviary, three DSL PID calls, three log
 entries and a text render): control steps per second over ``run()``, the first call (what a user waits for) and a
@@ -16,7 +16,9 @@ second call in the same process; medians over ``--repeats`` processes. The compa
 persistent compilation cache: ``jaxdrones`` runs with a cache that a previous run filled (a script run again),
 ``jaxdrones_new_cache`` with an empty one (the first run ever, compiling everything).
 learn.py (SB3 PPO on ``HoverAviary``, ONE_D_RPM, stop at a mean evaluation return of 474 or 1e7 steps): the steps
-at which training stopped, the final evaluation return and the wall time of ``run()``. ``OMP_NUM_THREADS=1``.
+at which training stopped, the final evaluation return and the wall time of ``run()`` (which after training also
+evaluates and replays the policy for 10 s of wall-clock time), for both; ``OMP_NUM_THREADS=1``. The original's
+interpreter then needs stable-baselines3 and torch too.
 
 The original's interpreter needs pybullet, gymnasium, scipy, pillow, transforms3d and setuptools<81; see
 benchmarks/original.py. ``--out FILE`` writes the figures as JSON.
@@ -119,10 +121,15 @@ def main(argv=None) -> dict:
             print(f"pid.py {impl:>19}: {first:7.0f} control steps/s (first call), {warm:7.0f} (second call); "
                   f"median of {len(rs)} processes")
         if args.learn:
-            r = run_script(sys.executable, ported["learn"], 1, kwargs={"local": True}, env={"OMP_NUM_THREADS": "1"})
-            results["learn_jaxdrones"] = r
-            print(f"learn.py jaxdrones: stopped={r['stopped']} at {r['last_eval_step']} steps, last evaluation "
-                  f"return {r['last_eval_return']}, run() {r['times'][0]:.0f} s")
+            scripts = {"jaxdrones": (sys.executable, ported["learn"], None),
+                       "original": (args.original_python, os.path.join(examples, "learn.py"),
+                                    os.path.abspath(args.original))}
+            for impl, (python, path, extra) in scripts.items():
+                r = run_script(python, path, 1, extra_path=extra, kwargs={"local": True},
+                               env={"OMP_NUM_THREADS": "1"})
+                results[f"learn_{impl}"] = r
+                print(f"learn.py {impl:>9}: stopped={r['stopped']} at {r['last_eval_step']} steps, last evaluation "
+                      f"return {r['last_eval_return']}, run() {r['times'][0]:.0f} s")
     if args.out:
         with open(args.out, "w") as f:
             json.dump(results, f, indent=2)

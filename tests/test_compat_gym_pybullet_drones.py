@@ -203,3 +203,44 @@ def test_gymnasium_ids_of_the_original():
     obs, _ = env.reset(seed=0)
     assert obs.shape == (1, 27)
     assert env.step(np.zeros((1, 1), np.float32))[0].shape == (1, 27)
+
+
+def test_an_aviary_subclassed_as_for_the_original_runs():
+    """A user's aviary written against the original's hooks: its reward and truncation read
+    `_getDroneStateVector`, as the original's do."""
+    from jaxdrones.compat.gym_pybullet_drones.envs.BaseRLAviary import BaseRLAviary
+
+    class LandAviary(BaseRLAviary):
+        def __init__(self, **kwargs):
+            self.EPISODE_LEN_SEC = 1
+            super().__init__(initial_xyzs=np.array([[0.0, 0.0, 0.5]]), ctrl_freq=30, **kwargs)
+
+        def _computeReward(self):
+            return -float(self._getDroneStateVector(0)[2])
+
+        def _computeTerminated(self):
+            return bool(self._getDroneStateVector(0)[2] < 0.05)
+
+        def _computeTruncated(self):
+            return self.step_counter / self.PYB_FREQ > self.EPISODE_LEN_SEC
+
+        def _computeInfo(self):
+            return {"z": float(self.pos[0, 2])}
+
+    env = LandAviary(act=ActionType.ONE_D_RPM)
+    obs, info = env.reset()
+    assert obs.shape == (1, 27) and info == {"z": 0.5}
+    _, reward, _, _, info = env.step(np.array([[-1.0]], np.float32))  # 95 % of the hover RPM: it sinks
+    assert reward == -info["z"] and info["z"] < 0.5
+
+
+def test_float64_with_x64():
+    code = ("import jax; jax.config.update('jax_enable_x64', True)\n"
+            "import numpy as np\n"
+            "from jaxdrones.compat.gym_pybullet_drones import CtrlAviary, DSLPIDControl\n"
+            "env = CtrlAviary(); obs, _ = env.reset(); ctrl = DSLPIDControl()\n"
+            "rpm, _, _ = ctrl.computeControlFromState(env.CTRL_TIMESTEP, obs[0], [0, 0, 0.5])\n"
+            "obs, *_ = env.step(rpm[None]); print(env._state.pos.dtype, obs.dtype)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["float64", "float64"]

@@ -10,21 +10,19 @@ imports changed from ``gym_pybullet_drones`` to ``jaxdrones.compat.gym_pybullet_
 Provided: `HoverAviary`, `MultiHoverAviary`, `CtrlAviary` (with `BaseAviary` and `BaseRLAviary` to subclass),
 `DSLPIDControl`, `Logger`, `sync`, `str2bool`, and the enums `DroneModel`, `Physics`, `ActionType`,
 `ObservationType`, `ImageType`. Importing this package registers the original's gymnasium ids
-``hover-aviary-v0``, ``multihover-aviary-v0`` and ``ctrl-aviary-v0``, and, unless one is set, turns on JAX's
-persistent compilation cache (`jaxdrones.runs.enable_compilation_cache`: ``~/.cache/jaxdrones/xla``, or
-``$JAXDRONES_CACHE_DIR``), so that a script run again reads its compiled steps from disk rather than compiling them
-(about 1 s). docs/migrating.md lists the differences, and how to move to `jaxdrones.make`'s batched envs.
+``hover-aviary-v0``, ``multihover-aviary-v0`` and ``ctrl-aviary-v0``. The first aviary or controller built turns
+on JAX's persistent compilation cache unless one is set (`jaxdrones.runs.enable_compilation_cache`:
+``~/.cache/jaxdrones/xla``, or ``$JAXDRONES_CACHE_DIR``), so that a script run again reads its compiled steps from
+disk rather than compiling them (about 1 s). docs/migrating.md lists the differences, and how to move to `jaxdrones.make`'s batched envs.
 """
 
 import gymnasium as gym
-import jax
 
 from jaxdrones.compat.gym_pybullet_drones.control import BaseControl, DSLPIDControl
 from jaxdrones.compat.gym_pybullet_drones.envs import BaseAviary, BaseRLAviary, CtrlAviary, HoverAviary, MultiHoverAviary
 from jaxdrones.compat.gym_pybullet_drones.utils.enums import ActionType, DroneModel, ImageType, ObservationType, Physics
 from jaxdrones.compat.gym_pybullet_drones.utils.Logger import Logger
 from jaxdrones.compat.gym_pybullet_drones.utils.utils import str2bool, sync
-from jaxdrones.runs import enable_compilation_cache
 
 __all__ = [
     "ActionType", "BaseAviary", "BaseControl", "BaseRLAviary", "CtrlAviary", "DSLPIDControl", "DroneModel",
@@ -35,6 +33,3 @@ for _id, _cls in (("ctrl-aviary-v0", "CtrlAviary"), ("hover-aviary-v0", "HoverAv
                   ("multihover-aviary-v0", "MultiHoverAviary")):
     if _id not in gym.registry:
         gym.register(id=_id, entry_point=f"jaxdrones.compat.gym_pybullet_drones.envs:{_cls}")
-
-if jax.config.jax_compilation_cache_dir is None:
-    enable_compilation_cache()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxdrones.compat.gym_pybullet_drones._keywords import KeywordHints
+from jaxdrones.compat.gym_pybullet_drones._common import KeywordHints
 from jaxdrones.compat.gym_pybullet_drones.utils.enums import DroneModel
 from jaxdrones.params import load_params
 

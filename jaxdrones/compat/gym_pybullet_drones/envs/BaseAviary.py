@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrones.compat.gym_pybullet_drones._keywords import KeywordHints
+from jaxdrones.compat.gym_pybullet_drones._common import KeywordHints
 from jaxdrones.compat.gym_pybullet_drones.utils.enums import PHYSICS_EFFECTS, DroneModel, Physics
 from jaxdrones.config import SimConfig
 from jaxdrones.params import load_params
@@ -170,8 +170,10 @@ class BaseAviary(KeywordHints, gym.Env):
         self._sim_step.close()
 
     def getPyBulletClient(self) -> int:
-        """PyBullet's client id with ``backend="pybullet"``; -1 on the JAX backend (no PyBullet world)."""
-        return int(getattr(self._sim_step, "client", -1))
+        """PyBullet's client id with ``backend="pybullet"`` (once the world exists: after the first step); -1 on the
+        JAX backend (no PyBullet world)."""
+        clients = getattr(self._sim_step, "clients", ())  # the PyBullet backend's worlds (one here, after a step)
+        return int(clients[0]) if clients else -1
 
     def getDroneIds(self) -> np.ndarray:
         """i64[D]: the drones' body ids as in the original (1 to D; 0 is the ground plane)."""
