@@ -60,7 +60,7 @@ def test_gaussian_policy_on_the_vector_env():
     for _ in range(20):  # two episodes of 9 steps and their autoresets
         action = rng.normal(0.0, SIGMA, (4, 4)).astype(np.float32)
         obs, reward, terminated, truncated, infos = env.step(action)
-        ref_obs, ref_reward, ref_terminated, ref_truncated, _ = ref.step(np.clip(action, -1, 1))
+        ref_obs, ref_reward, _, ref_truncated, _ = ref.step(np.clip(action, -1, 1))
         np.testing.assert_array_equal(obs, ref_obs)
         np.testing.assert_array_equal(reward, ref_reward)
         np.testing.assert_array_equal(truncated, ref_truncated)

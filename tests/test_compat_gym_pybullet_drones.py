@@ -244,3 +244,24 @@ def test_float64_with_x64():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["float64", "float64"]
+
+
+@pytest.mark.pybullet
+def test_pybullet_backend():
+    """``backend="pybullet"``: PyBullet's integrator under the same aviary; a PID climb ends where the JAX core's
+    does, to a centimetre."""
+    finals = {}
+    for backend in ("jax", "pybullet"):
+        env = CtrlAviary(num_drones=2, ctrl_freq=48, backend=backend)
+        obs, _ = env.reset()
+        ctrls = [DSLPIDControl() for _ in range(2)]
+        action = np.zeros((2, 4))
+        for _ in range(96):
+            obs, *_ = env.step(action)
+            for j in range(2):
+                action[j], _, _ = ctrls[j].computeControlFromState(env.CTRL_TIMESTEP, obs[j],
+                                                                    env.INIT_XYZS[j] + [0, 0, 0.4])
+        finals[backend] = obs[:, :3]
+        assert (env.getPyBulletClient() >= 0) == (backend == "pybullet")
+        env.close()
+    np.testing.assert_allclose(finals["pybullet"], finals["jax"], atol=0.01)

@@ -38,6 +38,7 @@ from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_
 from jaxdrones.adapters.gymnasium import RENDER_MODES, HumanView, check_action, compiled, render_frame, spaces
 from jaxdrones.envs.env import CLIP_TOLERANCE, TaskEnv
 
+
 class PettingZooEnv(ParallelEnv):
     """A `TaskEnv` of D drones as a PettingZoo ``ParallelEnv``; the adapter owns the env state and the PRNG key.
 

@@ -13,13 +13,20 @@ Provided: `HoverAviary`, `MultiHoverAviary`, `CtrlAviary` (with `BaseAviary` and
 ``hover-aviary-v0``, ``multihover-aviary-v0`` and ``ctrl-aviary-v0``. The first aviary or controller built turns
 on JAX's persistent compilation cache unless one is set (`jaxdrones.runs.enable_compilation_cache`:
 ``~/.cache/jaxdrones/xla``, or ``$JAXDRONES_CACHE_DIR``), so that a script run again reads its compiled steps from
-disk rather than compiling them (about 1 s). docs/migrating.md lists the differences, and how to move to `jaxdrones.make`'s batched envs.
+disk rather than compiling them (about 1 s). docs/migrating.md lists the differences, and how to move to
+`jaxdrones.make`'s batched envs.
 """
 
 import gymnasium as gym
 
 from jaxdrones.compat.gym_pybullet_drones.control import BaseControl, DSLPIDControl
-from jaxdrones.compat.gym_pybullet_drones.envs import BaseAviary, BaseRLAviary, CtrlAviary, HoverAviary, MultiHoverAviary
+from jaxdrones.compat.gym_pybullet_drones.envs import (
+    BaseAviary,
+    BaseRLAviary,
+    CtrlAviary,
+    HoverAviary,
+    MultiHoverAviary,
+)
 from jaxdrones.compat.gym_pybullet_drones.utils.enums import ActionType, DroneModel, ImageType, ObservationType, Physics
 from jaxdrones.compat.gym_pybullet_drones.utils.Logger import Logger
 from jaxdrones.compat.gym_pybullet_drones.utils.utils import str2bool, sync

@@ -55,7 +55,7 @@ class DSLPIDControl(BaseControl):
         super().__init__(drone_model=drone_model, g=g)
 
     @property
-    def MIXER_MATRIX(self) -> np.ndarray:  # noqa: N802  (the original's name)
+    def MIXER_MATRIX(self) -> np.ndarray:
         """f64[4, 3]: pwm = thrust + MIXER_MATRIX @ (τ_roll, τ_pitch, τ_yaw), derived from the airframe
         (`jaxdrones.control.pid.mixer_matrix`)."""
         return np.asarray(jax.jit(mixer_matrix)(self._params), np.float64)
