@@ -23,12 +23,15 @@ def test_jax_backend_and_everything_above_it(tmp_path):
         modules = ["jaxdrones.cameras", "jaxdrones.training", "jaxdrones.training.apg", "jaxdrones.training.shac",
                    "jaxdrones.training.brax_ppo", "jaxdrones.training.mappo", "jaxdrones.adapters.gymnasium",
                    "jaxdrones.adapters.pettingzoo", "jaxdrones.adapters.jaxmarl", "jaxdrones.adapters.brax",
-                   "jaxdrones.cli", "jaxdrones.cli.train", "jaxdrones.cli.fly", "jaxdrones.examples.circle"]
+                   "jaxdrones.cli", "jaxdrones.cli.train", "jaxdrones.cli.fly", "jaxdrones.examples.circle",
+                   "jaxdrones.compat.gym_pybullet_drones"]
         for name in modules:
             importlib.import_module(name)
         env = jd.make("avoid")  # the JAX backend's cameras and obstacles
         state = jax.jit(env.step)(jax.jit(env.reset)(jax.random.key(0)), jnp.zeros((1, env.action_size)))
         assert state.obs["depth"].shape == (1, 16, 64)
+        from jaxdrones.compat.gym_pybullet_drones import HoverAviary  # the original's scripts, on Python 3.12 too
+        assert HoverAviary().reset()[0].shape == (1, 72)
         print("ok")
     """, tmp_path)
     assert result.returncode == 0, result.stderr  # any import of pybullet would have raised
