@@ -233,6 +233,12 @@ def test_an_aviary_subclassed_as_for_the_original_runs():
     _, reward, _, _, info = env.step(np.array([[-1.0]], np.float32))  # 95 % of the hover RPM: it sinks
     assert reward == -info["z"] and info["z"] < 0.5
 
+    class Incomplete(BaseRLAviary):  # no reward, termination, truncation or info
+        pass
+
+    with pytest.raises(TypeError, match="abstract method"):
+        Incomplete()
+
 
 def test_float64_with_x64():
     code = ("import jax; jax.config.update('jax_enable_x64', True)\n"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import abc
+
 import numpy as np
 
 from jaxdrones.compat.gym_pybullet_drones._common import KeywordHints
@@ -9,7 +11,7 @@ from jaxdrones.compat.gym_pybullet_drones.utils.enums import DroneModel
 from jaxdrones.params import load_params
 
 
-class BaseControl(KeywordHints):
+class BaseControl(KeywordHints, metaclass=abc.ABCMeta):
     """A controller of one drone of ``drone_model``: `computeControl` (per subclass) maps the drone's state and a
     target to four motor speeds, RPM.
 
@@ -41,7 +43,7 @@ class BaseControl(KeywordHints):
                                    cur_vel=state[10:13], cur_ang_vel=state[13:16], target_pos=target_pos,
                                    target_rpy=target_rpy, target_vel=target_vel, target_rpy_rates=target_rpy_rates)
 
+    @abc.abstractmethod
     def computeControl(self, control_timestep, cur_pos, cur_quat, cur_vel, cur_ang_vel, target_pos,
                        target_rpy=np.zeros(3), target_vel=np.zeros(3), target_rpy_rates=np.zeros(3)):  # noqa: B008
-        """(rpm f[4], ...) for one drone; implemented by each controller."""
-        raise NotImplementedError
+        """(rpm f[4], ...) for one drone; each controller defines it."""

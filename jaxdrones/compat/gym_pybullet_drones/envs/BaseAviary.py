@@ -9,6 +9,7 @@ runs here unchanged. docs/migrating.md lists what differs.
 
 from __future__ import annotations
 
+import abc
 import time
 import warnings
 
@@ -29,7 +30,7 @@ from jaxdrones.state import DEFAULT_START_Z, init_state
 BACKENDS = ("jax", "pybullet")
 
 
-class BaseAviary(KeywordHints, gym.Env):
+class BaseAviary(KeywordHints, gym.Env, metaclass=abc.ABCMeta):
     """The base of the aviaries: D drones of one model, stepped at ``ctrl_freq`` with ``pyb_freq // ctrl_freq``
     physics substeps per step.
 
@@ -201,31 +202,39 @@ class BaseAviary(KeywordHints, gym.Env):
         return np.concatenate([self.pos[i], self.quat[i], self.rpy[i], self.vel[i], self.ang_v[i],
                                self.last_clipped_action[i]])
 
-    # -- hooks ------------------------------------------------------------------------------------------------------
+    # -- hooks: each aviary defines them (the original's) ----------------------------------------------------------
 
+    @abc.abstractmethod
     def _actionSpace(self):
-        raise NotImplementedError
+        """The action space (a gymnasium ``Box``)."""
 
+    @abc.abstractmethod
     def _observationSpace(self):
-        raise NotImplementedError
+        """The observation space."""
 
+    @abc.abstractmethod
     def _preprocessAction(self, action):
-        raise NotImplementedError
+        """``action`` as RPM commands f[D, 4]."""
 
+    @abc.abstractmethod
     def _computeObs(self):
-        raise NotImplementedError
+        """The observation of the current state."""
 
+    @abc.abstractmethod
     def _computeReward(self):
-        raise NotImplementedError
+        """The reward of the step."""
 
+    @abc.abstractmethod
     def _computeTerminated(self):
-        raise NotImplementedError
+        """Whether the episode ended (a goal or a failure)."""
 
+    @abc.abstractmethod
     def _computeTruncated(self):
-        raise NotImplementedError
+        """Whether the episode was cut short (time, bounds)."""
 
+    @abc.abstractmethod
     def _computeInfo(self):
-        raise NotImplementedError
+        """The ``info`` dict."""
 
 
 @jax.jit
