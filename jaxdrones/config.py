@@ -47,7 +47,8 @@ class SimConfig:
     Raises:
         ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, an unknown
             integrator or kink treatment, a ``downwash_radius`` neither None nor > 0, a ``cell_capacity`` below 1,
-            or an ``adjoint`` that is not a bool.
+            or a ``drag``, ``ground_effect``, ``downwash`` or ``adjoint`` that is not a bool (a string such as
+            ``downwash="per_rotor"`` would otherwise be truthy).
     """
 
     n_drones: int = 1
@@ -82,8 +83,11 @@ class SimConfig:
         capacity = self.cell_capacity
         if not isinstance(capacity, (int, np.integer)) or isinstance(capacity, bool) or capacity < 1:
             raise ValueError(f"SimConfig.cell_capacity must be a positive integer, got {capacity!r}")
-        if not isinstance(self.adjoint, (bool, np.bool_)):
-            raise ValueError(f"SimConfig.adjoint must be True or False, got {self.adjoint!r}")
+        for name in ("drag", "ground_effect", "downwash", "adjoint"):
+            value = getattr(self, name)
+            if not isinstance(value, (bool, np.bool_)):
+                raise ValueError(f"SimConfig.{name} must be True or False, got {value!r}")
+            object.__setattr__(self, name, bool(value))
         if self.integrator not in dynamics.INTEGRATORS:
             raise ValueError(f"SimConfig.integrator must be one of {tuple(dynamics.INTEGRATORS)}, "
                              f"got {self.integrator!r}")

@@ -268,3 +268,20 @@ def test_brax_ppo_config_out_of_range(kwargs, match):
 
     with pytest.raises(ValueError, match=match):
         BraxPPOConfig(**kwargs)
+
+
+@pytest.mark.parametrize("field, value", [("downwash", "per_rotor"), ("drag", 1), ("ground_effect", "yes"),
+                                          ("downwash", None)])
+def test_effect_flags_must_be_bools(field, value):
+    """A string or number is not taken as a switch (``downwash="per_rotor"`` would run the paper's model)."""
+    with pytest.raises(ValueError, match=rf"SimConfig.{field} must be True or False, got {value!r}"):
+        jd.SimConfig(**{field: value})
+    with pytest.raises(ValueError, match=rf"{field} must be True or False"):
+        jd.make("multi_hover", n_drones=2, **{field: value})
+    assert getattr(jd.SimConfig(**{field: np.bool_(True)}), field) is True
+
+
+@pytest.mark.parametrize("field", ["action_buffer", "terminate_on_ground"])
+def test_task_switches_must_be_bools(field):
+    with pytest.raises(ValueError, match=rf"{field} must be True or False, got 'no'"):
+        jd.make("hover", **{field: "no"})

@@ -196,6 +196,9 @@ class TaskConfig:
         _check_choice("obs_type", self.obs_type, OBS_TYPES)
         _check_choice("reward", self.reward, REWARDS)
         _check_choice("pid_target", self.pid_target, PID_TARGETS)
+        for name in ("action_buffer", "terminate_on_ground"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if not (_is_number(self.pid_scale) and 0.0 < self.pid_scale <= PID_MAX_STEP):
             raise ValueError(f"pid_scale must be a distance in m in (0, {PID_MAX_STEP}], got {self.pid_scale!r}")
         n = self.n_drones
