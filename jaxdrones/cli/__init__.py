@@ -1,4 +1,4 @@
-"""Command line: ``jaxdrones train TASK``, ``jaxdrones fly``, ``jaxdrones camera``."""
+"""Command line: ``jaxdrones train TASK``, ``jaxdrones fly``, ``jaxdrones camera``, ``jaxdrones export RUN``."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import time
 
 def build_parser() -> argparse.ArgumentParser:
     from jaxdrones import __version__
-    from jaxdrones.cli import camera, fly, train
+    from jaxdrones.cli import camera, export, fly, train
 
     parser = argparse.ArgumentParser(prog="jaxdrones", description=__doc__)
     parser.add_argument("--version", action="version", version=f"jaxdrones {__version__}")
@@ -18,6 +18,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.register(sub)
     fly.register(sub)
     camera.register(sub)
+    export.register(sub)
     return parser
 
 

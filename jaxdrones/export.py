@@ -1,0 +1,201 @@
+"""A trained policy as one dependency-free C file, for a microcontroller (a Crazyflie's STM32F405: 1 MB flash,
+192 KB RAM) or any C program.
+
+`export_c` writes the MLP of a policy saved by ``jaxdrones train`` (``policy.pkl``) as float32 weight arrays and one
+function ``void NAME(const float obs[N_OBS], float action[N_ACT])``. The header comment states the observation's
+layout (entry by entry, with units and frames), the clip the env applies to it, and how the action becomes motor
+commands. The function clips the observation to the env's box, as the env does, then runs the network: tanh hidden
+layers and a tanh output (the policies of ``apg`` and ``shac``, `jaxdrones.training.common.mlp`). It needs only
+``<math.h>`` (``tanhf``); `benchmarks` and ``tests/test_export.py`` compile it with the system's C compiler and
+compare it with the JAX policy.
+
+Policies of the other trainers (brax's PPO with its observation normaliser, MAPPO, camera policies) are refused with
+a `ValueError` naming the ones supported.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import re
+import textwrap
+
+import numpy as np
+
+#: The trainers whose saved policy `export_c` writes: an MLP with tanh hidden layers and a tanh output.
+SUPPORTED = ("apg", "shac")
+
+#: Entry labels of the state observation types (`jaxdrones.envs.observations`), one per entry.
+_KIN = ["x (m, world)", "y (m, world)", "z (m, world)", "roll (rad, PyBullet Euler)", "pitch (rad)", "yaw (rad)",
+        "vx (m/s, world)", "vy (m/s, world)", "vz (m/s, world)", "wx (rad/s, body)", "wy (rad/s, body)",
+        "wz (rad/s, body)"]
+_ROTMAT = [f"R{i}{j} (rotation body->world, row-major)" for i in range(3) for j in range(3)]
+_KIN_NORM = ["x / 15 m", "y / 15 m", "z / 5 m", "roll / pi", "pitch / pi", "yaw / pi", "vx / 3 m/s", "vy / 3 m/s",
+             "vz / 1 m/s", "body rate unit vector x", "body rate unit vector y", "body rate unit vector z"]
+_BASE_LABELS = {"kin": _KIN, "kin_rotmat": _KIN + _ROTMAT, "kin_norm": _KIN_NORM}
+
+
+def load_payload(run: str | os.PathLike) -> dict:
+    """The saved policy of a run folder (or a ``policy.pkl``).
+
+    Raises:
+        ValueError: no policy file there, or not one of jaxdrones.
+    """
+    path = os.fspath(run)
+    if os.path.isdir(path):
+        path = os.path.join(path, "policy.pkl")
+    if not os.path.isfile(path):
+        raise ValueError(f"no saved policy at {path!r} (a run folder of jaxdrones train, or its policy.pkl)")
+    with open(path, "rb") as f:
+        payload = pickle.load(f)
+    if not isinstance(payload, dict) or not {"params", "env_name", "algo"} <= set(payload):
+        raise ValueError(f"{path!r} is not a jaxdrones policy file")
+    return payload
+
+
+def mlp_layers(payload: dict) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The (kernel f32[in, out], bias f32[out]) of each layer of a saved MLP policy, input first.
+
+    Raises:
+        ValueError: a policy of a trainer not in `SUPPORTED`, or parameters that are not flax ``Dense_0 ...``.
+    """
+    if payload["algo"] not in SUPPORTED:
+        raise ValueError(f"export: policies of {payload['algo']!r} are not supported yet; it writes those of "
+                         f"{SUPPORTED} (an MLP with tanh layers)")
+    params = payload["params"].get("params", payload["params"])
+    names = sorted((k for k in params if re.fullmatch(r"Dense_\d+", k)), key=lambda k: int(k.split("_")[1]))
+    if not names or len(names) != len(params):
+        raise ValueError(f"export: expected flax Dense_0 ... Dense_n parameters, got {sorted(params)}")
+    layers = [(np.asarray(params[k]["kernel"], np.float32), np.asarray(params[k]["bias"], np.float32))
+              for k in names]
+    for (w, b), (w_next, _) in zip(layers, layers[1:] + [(None, None)], strict=True):
+        if w.ndim != 2 or b.shape != (w.shape[1],) or (w_next is not None and w_next.shape[0] != w.shape[1]):
+            raise ValueError("export: the layers' shapes do not chain")
+    return layers
+
+
+def _obs_labels(env) -> list[str]:
+    obs_type = env.obs_type
+    base = _BASE_LABELS.get(obs_type.name)
+    n_base = obs_type.size - obs_type.buffer_len * obs_type.action_size
+    if base is None or len(base) != n_base:
+        base = [f"{obs_type.name} entry {i} (jaxdrones.envs.observations)" for i in range(n_base)]
+    buffer = [f"action buffer: action {-(obs_type.buffer_len - k)} step(s) ago, entry {j}"
+              for k in range(obs_type.buffer_len) for j in range(obs_type.action_size)]
+    task = [f"task observation {i} ({env.task.name}: jaxdrones.envs.tasks)" for i in range(env.task.obs_size)]
+    return base + buffer + task
+
+
+def _action_text(env) -> str:
+    from jaxdrones.envs import actions
+
+    name = env.action_type.name
+    rows = [line for line in actions.__doc__.splitlines() if line.startswith(f"``{name}``")]
+    mapping = " ".join(rows[0].split()[2:]) if rows else f"see jaxdrones.envs.actions ({name})"
+    hover = float(np.asarray(env.params.hover_rpm).reshape(-1)[0])
+    return (f"action_type {name!r}, each entry in [-1, 1]: {mapping}. Model {env.config.model!r}: hover_rpm = "
+            f"{hover:.2f} RPM, motor order as in its URDF (docs/physics.md).")
+
+
+def _array(name: str, values: np.ndarray) -> str:
+    flat = np.asarray(values, np.float32).reshape(-1)
+    body = ",\n".join("  " + ", ".join(f"{v!r}f" if np.isfinite(v) else ("3.4e38f" if v > 0 else "-3.4e38f")
+                                        for v in map(float, flat[i:i + 8])) for i in range(0, flat.size, 8))
+    return f"static const float {name}[{flat.size}] = {{\n{body}\n}};\n"
+
+
+def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
+    """The C file of a saved policy and its sizes: ``(source, {"n_obs", "n_act", "weight_bytes",
+    "multiply_adds"})``.
+
+    Raises:
+        ValueError: an unsupported policy (see `mlp_layers`), a multi-drone or camera env, or a ``name`` that is not
+            a C identifier.
+    """
+    from jaxdrones.envs import make
+
+    if not re.fullmatch(r"[A-Za-z_]\w*", name):
+        raise ValueError(f"export: the function name must be a C identifier, got {name!r}")
+    layers = mlp_layers(payload)
+    env = make(payload["env_name"], **payload["env_overrides"])
+    if env.n_drones != 1 or env.config.vision:
+        raise ValueError("export: single-drone state policies only (this one flies "
+                         f"{env.n_drones} drones{' with cameras' if env.config.vision else ''})")
+    n_obs, n_act = layers[0][0].shape[0], layers[-1][0].shape[1]
+    if (n_obs, n_act) != (env.observation_size, env.action_size):
+        raise ValueError(f"export: the network maps {n_obs} -> {n_act}, the env {env.observation_size} -> "
+                         f"{env.action_size}")
+    low, high = (b[0] for b in env.observation_bounds())
+    labels = _obs_labels(env)
+    macs = sum(w.size for w, _ in layers)
+    weight_bytes = 4 * (sum(w.size + b.size for w, b in layers) + 2 * n_obs)
+    width = max(w.shape[1] for w, _ in layers)
+    upper = name.upper()
+    lines = [
+        f"/* {name}: a policy trained by jaxdrones ({payload['algo']}) on the task {payload['env_name']!r}",
+        f" * with options {payload['env_overrides'] or '(defaults)'}, exported by `jaxdrones export`.",
+        " *",
+        f" * void {name}(const float obs[{n_obs}], float action[{n_act}]);",
+        f" * {len(layers)} dense layers {' -> '.join(str(w.shape[0]) for w, _ in layers)} -> {n_act}, tanh after each;",
+        f" * {macs} multiply-adds per call; {weight_bytes} bytes of float32 constants. Needs <math.h> (tanhf) only.",
+        " *",
+        f" * Observation (one drone, float32, control rate {env.config.ctrl_freq} Hz; clipped here to the env's box",
+        f" * {upper}_OBS_LOW/HIGH, as the env does):",
+        *[f" *   [{i:2d}] {label}" for i, label in enumerate(labels)],
+        " *",
+        *textwrap.wrap(f"Action: {_action_text(env)}", 112, initial_indent=" * ", subsequent_indent=" *   "),
+        " */",
+        "#include <math.h>",
+        "",
+        f"#define {upper}_N_OBS {n_obs}",
+        f"#define {upper}_N_ACT {n_act}",
+        "",
+        _array(f"{name}_obs_low", low),
+        _array(f"{name}_obs_high", high),
+    ]
+    for k, (w, b) in enumerate(layers):
+        lines += [_array(f"{name}_w{k}", w.T), _array(f"{name}_b{k}", b)]  # row per output: a contiguous dot
+    lines += [
+        f"static void {name}_dense(const float *w, const float *b, const float *x, int n_in, int n_out, float *y)",
+        "{",
+        "  for (int o = 0; o < n_out; ++o) {",
+        "    float s = b[o];",
+        "    for (int i = 0; i < n_in; ++i) s += w[o * n_in + i] * x[i];",
+        "    y[o] = tanhf(s);",
+        "  }",
+        "}",
+        "",
+        f"void {name}(const float obs[{n_obs}], float action[{n_act}])",
+        "{",
+        f"  float a[{max(width, n_obs)}], h[{width}];",
+        f"  for (int i = 0; i < {n_obs}; ++i) {{",
+        "    float v = obs[i];",
+        f"    a[i] = v < {name}_obs_low[i] ? {name}_obs_low[i] : (v > {name}_obs_high[i] ? {name}_obs_high[i] : v);",
+        "  }",
+    ]
+    src = "a"
+    for k, (w, _) in enumerate(layers):
+        dst = "action" if k == len(layers) - 1 else ("h" if src == "a" else "a")
+        lines.append(f"  {name}_dense({name}_w{k}, {name}_b{k}, {src}, {w.shape[0]}, {w.shape[1]}, {dst});")
+        src = dst
+    lines += ["}", ""]
+    sizes = {"n_obs": n_obs, "n_act": n_act, "weight_bytes": weight_bytes, "multiply_adds": macs}
+    return "\n".join(lines), sizes
+
+
+def export_c(run: str | os.PathLike, out: str | os.PathLike | None = None, name: str = "jaxdrones_policy",
+             overwrite: bool = False) -> tuple[str, dict]:
+    """Write the policy of ``run`` (a run folder or its ``policy.pkl``) as a C file; returns ``(path, sizes)``
+    (see `c_source`). ``out`` defaults to ``<run>/<name>.c``.
+
+    Raises:
+        ValueError: see `c_source`; FileExistsError: ``out`` exists and not ``overwrite``.
+    """
+    source, sizes = c_source(load_payload(run), name)
+    if out is None:
+        folder = run if os.path.isdir(run) else os.path.dirname(os.fspath(run))
+        out = os.path.join(folder, f"{name}.c")
+    out = os.fspath(out)
+    with open(out, "w" if overwrite else "x") as f:
+        f.write(source)
+    return out, sizes
