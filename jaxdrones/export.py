@@ -1,13 +1,14 @@
 """A trained policy as one dependency-free C file, for a microcontroller (a Crazyflie's STM32F405: 1 MB flash,
 192 KB RAM) or any C program.
 
-`export_c` writes the MLP of a policy saved by ``jaxdrones train`` (``policy.pkl``) as float32 weight arrays and one
+`export` writes the MLP of a policy saved by ``jaxdrones train`` (``policy.pkl``) as float32 weight arrays and one
 function ``void NAME(const float obs[N_OBS], float action[N_ACT])``. The header comment states the observation's
 layout (entry by entry, with units and frames), the clip the env applies to it, and how the action becomes motor
 commands. The function clips the observation to the env's box, as the env does, then runs the network: tanh hidden
 layers and a tanh output (the policies of ``apg`` and ``shac``, `jaxdrones.training.common.mlp`). It needs only
-``<math.h>`` (``tanhf``); `benchmarks` and ``tests/test_export.py`` compile it with the system's C compiler and
-compare it with the JAX policy.
+``<math.h>`` (``tanhf``); ``tests/test_export.py`` compiles it with the system's C compiler and compares it with the
+JAX policy. The same network is also written as an ONNX model (`onnx_model`, with the ``onnx`` package: the
+``export`` extra), for ONNX runtimes and converters to microcontroller toolchains (e.g. STM32Cube.AI).
 
 Policies of the other trainers (brax's PPO with its observation normaliser, MAPPO, camera policies) are refused with
 a `ValueError` naming the ones supported.
@@ -22,7 +23,7 @@ import textwrap
 
 import numpy as np
 
-#: The trainers whose saved policy `export_c` writes: an MLP with tanh hidden layers and a tanh output.
+#: The trainers whose saved policy `export` writes: an MLP with tanh hidden layers and a tanh output.
 SUPPORTED = ("apg", "shac")
 
 #: Entry labels of the state observation types (`jaxdrones.envs.observations`), one per entry.
@@ -104,18 +105,10 @@ def _array(name: str, values: np.ndarray) -> str:
     return f"static const float {name}[{flat.size}] = {{\n{body}\n}};\n"
 
 
-def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
-    """The C file of a saved policy and its sizes: ``(source, {"n_obs", "n_act", "weight_bytes",
-    "multiply_adds"})``.
-
-    Raises:
-        ValueError: an unsupported policy (see `mlp_layers`), a multi-drone or camera env, or a ``name`` that is not
-            a C identifier.
-    """
+def _policy_env(payload: dict):
+    """(layers, env) of a saved policy, checked: a single-drone state env whose sizes the network maps."""
     from jaxdrones.envs import make
 
-    if not re.fullmatch(r"[A-Za-z_]\w*", name):
-        raise ValueError(f"export: the function name must be a C identifier, got {name!r}")
     layers = mlp_layers(payload)
     env = make(payload["env_name"], **payload["env_overrides"])
     if env.n_drones != 1 or env.config.vision:
@@ -125,25 +118,54 @@ def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
     if (n_obs, n_act) != (env.observation_size, env.action_size):
         raise ValueError(f"export: the network maps {n_obs} -> {n_act}, the env {env.observation_size} -> "
                          f"{env.action_size}")
+    return layers, env
+
+
+def sizes_of(layers) -> dict:
+    """``{"n_obs", "n_act", "weight_bytes", "multiply_adds"}`` of an exported network (the bytes count the weights,
+    the biases and the observation box's two bounds, float32)."""
+    n_obs, n_act = layers[0][0].shape[0], layers[-1][0].shape[1]
+    return {"n_obs": n_obs, "n_act": n_act, "weight_bytes": 4 * (sum(w.size + b.size for w, b in layers) + 2 * n_obs),
+            "multiply_adds": sum(w.size for w, _ in layers)}
+
+
+def describe(payload: dict, env, layers) -> list[str]:
+    """What an exported policy computes and expects, as lines of text: its origin, its layers and sizes, the
+    observation entry by entry (units, frames, the clip) and the action's mapping to motor commands."""
+    sizes = sizes_of(layers)
+    return [
+        f"A policy trained by jaxdrones ({payload['algo']}) on the task {payload['env_name']!r} with options "
+        f"{payload['env_overrides'] or '(defaults)'}, exported by `jaxdrones export`.",
+        f"{len(layers)} dense layers {' -> '.join(str(w.shape[0]) for w, _ in layers)} -> {sizes['n_act']}, tanh "
+        f"after each; {sizes['multiply_adds']} multiply-adds per call; {sizes['weight_bytes']} bytes of float32 "
+        "constants.",
+        f"Observation (one drone, float32, control rate {env.config.ctrl_freq} Hz; clipped to the env's box, as the "
+        "env does):",
+        *[f"  [{i:2d}] {label}" for i, label in enumerate(_obs_labels(env))],
+        *textwrap.wrap(f"Action: {_action_text(env)}", 110, subsequent_indent="  "),
+    ]
+
+
+def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
+    """The C file of a saved policy and its sizes (`sizes_of`): ``(source, sizes)``.
+
+    Raises:
+        ValueError: an unsupported policy (see `mlp_layers`), a multi-drone or camera env, or a ``name`` that is not
+            a C identifier.
+    """
+    if not re.fullmatch(r"[A-Za-z_]\w*", name):
+        raise ValueError(f"export: the function name must be a C identifier, got {name!r}")
+    layers, env = _policy_env(payload)
+    sizes = sizes_of(layers)
+    n_obs, n_act = sizes["n_obs"], sizes["n_act"]
     low, high = (b[0] for b in env.observation_bounds())
-    labels = _obs_labels(env)
-    macs = sum(w.size for w, _ in layers)
-    weight_bytes = 4 * (sum(w.size + b.size for w, b in layers) + 2 * n_obs)
     width = max(w.shape[1] for w, _ in layers)
     upper = name.upper()
     lines = [
-        f"/* {name}: a policy trained by jaxdrones ({payload['algo']}) on the task {payload['env_name']!r}",
-        f" * with options {payload['env_overrides'] or '(defaults)'}, exported by `jaxdrones export`.",
+        f"/* {name}: void {name}(const float obs[{n_obs}], float action[{n_act}]); needs <math.h> (tanhf) only.",
+        " * The observation is clipped to {0}_obs_low/high before the network.".format(name),
         " *",
-        f" * void {name}(const float obs[{n_obs}], float action[{n_act}]);",
-        f" * {len(layers)} dense layers {' -> '.join(str(w.shape[0]) for w, _ in layers)} -> {n_act}, tanh after each;",
-        f" * {macs} multiply-adds per call; {weight_bytes} bytes of float32 constants. Needs <math.h> (tanhf) only.",
-        " *",
-        f" * Observation (one drone, float32, control rate {env.config.ctrl_freq} Hz; clipped here to the env's box",
-        f" * {upper}_OBS_LOW/HIGH, as the env does):",
-        *[f" *   [{i:2d}] {label}" for i, label in enumerate(labels)],
-        " *",
-        *textwrap.wrap(f"Action: {_action_text(env)}", 112, initial_indent=" * ", subsequent_indent=" *   "),
+        *[f" * {line}".rstrip() for line in describe(payload, env, layers)],
         " */",
         "#include <math.h>",
         "",
@@ -179,23 +201,69 @@ def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
         lines.append(f"  {name}_dense({name}_w{k}, {name}_b{k}, {src}, {w.shape[0]}, {w.shape[1]}, {dst});")
         src = dst
     lines += ["}", ""]
-    sizes = {"n_obs": n_obs, "n_act": n_act, "weight_bytes": weight_bytes, "multiply_adds": macs}
     return "\n".join(lines), sizes
 
 
-def export_c(run: str | os.PathLike, out: str | os.PathLike | None = None, name: str = "jaxdrones_policy",
-             overwrite: bool = False) -> tuple[str, dict]:
-    """Write the policy of ``run`` (a run folder or its ``policy.pkl``) as a C file; returns ``(path, sizes)``
-    (see `c_source`). ``out`` defaults to ``<run>/<name>.c``.
+def onnx_model(payload: dict):
+    """The ONNX model (``onnx.ModelProto``, opset 17) of a saved policy: input ``obs`` f32[N, n_obs], output
+    ``action`` f32[N, n_act]; Max/Min with the env's box, then Gemm and Tanh per layer. `describe`'s text is its
+    ``doc_string``. Needs the ``onnx`` package (the ``export`` extra).
 
     Raises:
-        ValueError: see `c_source`; FileExistsError: ``out`` exists and not ``overwrite``.
+        ValueError: as `c_source`; ModuleNotFoundError: no ``onnx``, naming the extra.
     """
-    source, sizes = c_source(load_payload(run), name)
+    try:
+        import onnx
+        from onnx import TensorProto, helper, numpy_helper
+    except ModuleNotFoundError as e:
+        raise ModuleNotFoundError("export --format onnx needs the onnx package: pip install onnx, or the export "
+                                  "extra (pip install \"jaxdrones[export]\")") from e
+    layers, env = _policy_env(payload)
+    sizes = sizes_of(layers)
+    low, high = (np.asarray(b[0], np.float32) for b in env.observation_bounds())
+    inits = [numpy_helper.from_array(low[None], "obs_low"), numpy_helper.from_array(high[None], "obs_high")]
+    nodes = [helper.make_node("Max", ["obs", "obs_low"], ["obs_above"]),
+             helper.make_node("Min", ["obs_above", "obs_high"], ["x0"])]
+    for k, (w, b) in enumerate(layers):
+        inits += [numpy_helper.from_array(w, f"w{k}"), numpy_helper.from_array(b, f"b{k}")]
+        out = "action" if k == len(layers) - 1 else f"x{k + 1}"
+        nodes += [helper.make_node("Gemm", [f"x{k}", f"w{k}", f"b{k}"], [f"z{k}"]),
+                  helper.make_node("Tanh", [f"z{k}"], [out])]
+    graph = helper.make_graph(nodes, "jaxdrones_policy",
+                              [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["N", sizes["n_obs"]])],
+                              [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["N", sizes["n_act"]])],
+                              initializer=inits)
+    model = helper.make_model(graph, producer_name="jaxdrones", opset_imports=[helper.make_opsetid("", 17)],
+                              doc_string="\n".join(describe(payload, env, layers)))
+    onnx.checker.check_model(model)
+    return model, sizes
+
+
+FORMATS = ("c", "onnx")
+
+
+def export(run: str | os.PathLike, fmt: str = "c", out: str | os.PathLike | None = None,
+           name: str = "jaxdrones_policy", overwrite: bool = False) -> tuple[str, dict]:
+    """Write the policy of ``run`` (a run folder or its ``policy.pkl``) as a C file (`c_source`) or an ONNX model
+    (`onnx_model`); returns ``(path, sizes)``. ``out`` defaults to ``<run>/<name>.c`` or ``.onnx``.
+
+    Raises:
+        ValueError: an unknown format, or see `c_source`; FileExistsError: ``out`` exists and not ``overwrite``;
+        ModuleNotFoundError: ``onnx`` without the onnx package.
+    """
+    if fmt not in FORMATS:
+        raise ValueError(f"export: format must be one of {FORMATS}, got {fmt!r}")
+    payload = load_payload(run)
+    if fmt == "c":
+        data, sizes = c_source(payload, name)
+        data = data.encode()
+    else:
+        model, sizes = onnx_model(payload)
+        data = model.SerializeToString()
     if out is None:
         folder = run if os.path.isdir(run) else os.path.dirname(os.fspath(run))
-        out = os.path.join(folder, f"{name}.c")
+        out = os.path.join(folder, f"{name}.{fmt}")
     out = os.fspath(out)
-    with open(out, "w" if overwrite else "x") as f:
-        f.write(source)
+    with open(out, "wb" if overwrite else "xb") as f:
+        f.write(data)
     return out, sizes

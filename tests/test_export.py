@@ -91,3 +91,21 @@ def test_export_header_sizes_and_bad_input(tmp_path, capsys):
     payload = {**load_payload(run), "algo": "brax_ppo"}
     with pytest.raises(ValueError, match=r"'brax_ppo' are not supported yet.*\('apg', 'shac'\)"):
         c_source(payload)
+
+
+def test_onnx_model_matches_jax(tmp_path):
+    """``--format onnx``: onnx's checker passes and its reference evaluator gives the JAX policy's actions."""
+    onnx = pytest.importorskip("onnx", reason="the onnx package (the export extra) is not installed")
+    from onnx.reference import ReferenceEvaluator
+
+    run = _saved_policy(str(tmp_path / "run"))
+    assert main(["export", run, "--format", "onnx"]) == 0
+    model = onnx.load(os.path.join(run, "jaxdrones_policy.onnx"))
+    assert "[ 9] wx (rad/s, body)" in model.doc_string
+    env, policy = checkpoint.load_policy(run)
+    obs = _observations(env, 1000)
+    obs[:3, 2] = [50.0, -1.0, 1e9]
+    low, high = env.observation_bounds()
+    expected = np.asarray(jax.vmap(lambda o: policy(o, None)[0])(np.clip(obs, low[0], high[0])))
+    (actions,) = ReferenceEvaluator(model).run(None, {"obs": obs})
+    np.testing.assert_allclose(actions, expected, rtol=0, atol=1e-5)

@@ -1,4 +1,5 @@
-"""``jaxdrones export RUN --format c``: a trained policy as one dependency-free C file (`jaxdrones.export`)."""
+"""``jaxdrones export RUN --format c|onnx``: a trained policy as one dependency-free C file, or an ONNX model
+(`jaxdrones.export`)."""
 
 from __future__ import annotations
 
@@ -9,28 +10,29 @@ import sys
 def register(subparsers) -> None:
     """Add the ``export`` subcommand to an argparse subparsers object."""
     parser = subparsers.add_parser(
-        "export", help="write a trained policy as one dependency-free C file",
+        "export", help="write a trained policy as one dependency-free C file (or an ONNX model)",
         description="Write the policy of a run of `jaxdrones train` (an MLP of apg or shac) as one C file: float32 "
                     "weights and `void NAME(const float obs[N_OBS], float action[N_ACT])`, with the observation's "
                     "layout, units, frames and clip and the action's mapping to motor commands in its header "
                     "comment. Prints its path, its bytes of constants and its multiply-adds per call.")
     parser.add_argument("run", help="a run folder of `jaxdrones train` (or its policy.pkl)")
-    parser.add_argument("--format", choices=("c",), default="c", help="output format (default c)")
-    parser.add_argument("--out", default=None, help="output file (default RUN/NAME.c)")
+    parser.add_argument("--format", choices=("c", "onnx"), default="c",
+                        help="c (default), or onnx (an ONNX model of the same network; needs the onnx package)")
+    parser.add_argument("--out", default=None, help="output file (default RUN/NAME.c or .onnx)")
     parser.add_argument("--name", default="jaxdrones_policy", help="the C function's name (default jaxdrones_policy)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     parser.set_defaults(func=run_cli)
 
 
 def run_cli(args: argparse.Namespace) -> int:
-    from jaxdrones.export import export_c
+    from jaxdrones.export import export
 
     try:
-        path, sizes = export_c(args.run, args.out, name=args.name, overwrite=args.overwrite)
+        path, sizes = export(args.run, args.format, args.out, name=args.name, overwrite=args.overwrite)
     except FileExistsError as e:
         print(f"jaxdrones export: {e.filename} exists; pass --overwrite to replace it", file=sys.stderr)
         return 2
-    except ValueError as e:
+    except (ValueError, ModuleNotFoundError) as e:
         print(f"jaxdrones export: {e}", file=sys.stderr)
         return 2
     print(f"wrote {path}: {sizes['n_obs']} observations -> {sizes['n_act']} actions, {sizes['weight_bytes']} bytes "
