@@ -17,7 +17,6 @@ a `ValueError` naming the ones supported.
 from __future__ import annotations
 
 import os
-import pickle
 import re
 import textwrap
 
@@ -37,21 +36,14 @@ _BASE_LABELS = {"kin": _KIN, "kin_rotmat": _KIN + _ROTMAT, "kin_norm": _KIN_NORM
 
 
 def load_payload(run: str | os.PathLike) -> dict:
-    """The saved policy of a run folder (or a ``policy.pkl``).
+    """The saved policy of a run folder (or a ``policy.pkl``): `jaxdrones.training.checkpoint.read_payload`'s.
 
     Raises:
         ValueError: no policy file there, or not one of jaxdrones.
     """
-    path = os.fspath(run)
-    if os.path.isdir(path):
-        path = os.path.join(path, "policy.pkl")
-    if not os.path.isfile(path):
-        raise ValueError(f"no saved policy at {path!r} (a run folder of jaxdrones train, or its policy.pkl)")
-    with open(path, "rb") as f:
-        payload = pickle.load(f)
-    if not isinstance(payload, dict) or not {"params", "env_name", "algo"} <= set(payload):
-        raise ValueError(f"{path!r} is not a jaxdrones policy file")
-    return payload
+    from jaxdrones.training.checkpoint import read_payload
+
+    return read_payload(run)[1]
 
 
 def mlp_layers(payload: dict) -> list[tuple[np.ndarray, np.ndarray]]:

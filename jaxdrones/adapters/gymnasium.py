@@ -45,7 +45,7 @@ except ImportError:  # gymnasium < 1.1, where `GymnasiumVectorEnv` refuses to ru
 from jaxdrones._fork import check_not_forked
 from jaxdrones.cameras import ENV_IMAGES
 from jaxdrones.envs.base import Env, world_axes
-from jaxdrones.envs.env import CLIP_TOLERANCE
+from jaxdrones.envs.env import outside_box
 from jaxdrones.wrappers.autoreset import reset_where
 
 #: The gymnasium releases the adapters need: `GymnasiumEnv` the reset/step API of 0.26 (tested with 0.29.1, the
@@ -136,7 +136,7 @@ def check_action(action, space: gym.spaces.Box, batch: tuple[int, ...] = (), str
     if not np.all(np.isfinite(action)):
         raise ValueError(f"{name} must be finite, got {np.sum(~np.isfinite(action))} NaN or inf entries: "
                          f"{action.tolist() if action.size <= 16 else action}")
-    if strict and np.any((action < space.low - CLIP_TOLERANCE) | (action > space.high + CLIP_TOLERANCE)):
+    if strict and np.any(outside_box(action, space.low, space.high)):
         raise ValueError(f"{name} must lie in the action space [{space.low.min():g}, {space.high.max():g}] "
                          f"(strict_actions=True), got values in [{action.min():g}, {action.max():g}]; without "
                          f"strict_actions the env clips them and counts them in info['clipped_actions']")

@@ -26,7 +26,7 @@ import numpy as np
 
 from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
 from jaxdrones.envs.base import EnvState
-from jaxdrones.envs.env import CLIP_TOLERANCE, TaskEnv
+from jaxdrones.envs.env import TaskEnv, outside_box
 from jaxdrones.wrappers.autoreset import AutoReset
 
 
@@ -132,7 +132,7 @@ class JaxMARLEnv:
         del key
         action = self._stack(actions)
         low, high = (jnp.asarray(b, action.dtype) for b in self.env.action_bounds())
-        outside = (action < low - CLIP_TOLERANCE) | (action > high + CLIP_TOLERANCE)
+        outside = outside_box(action, low, high)
         if self.strict_actions:
             action = jnp.where(outside, jnp.nan, action)
         state = self._auto.step(state, action)

@@ -36,7 +36,7 @@ from pettingzoo.utils.conversions import parallel_to_aec
 from jaxdrones._fork import check_not_forked
 from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
 from jaxdrones.adapters.gymnasium import RENDER_MODES, HumanView, check_action, compiled, render_frame, spaces
-from jaxdrones.envs.env import CLIP_TOLERANCE, TaskEnv
+from jaxdrones.envs.env import TaskEnv, outside_box
 
 
 class PettingZooEnv(ParallelEnv):
@@ -125,7 +125,7 @@ class PettingZooEnv(ParallelEnv):
         action = np.stack([check_action(actions[a], self.action_spaces[a], strict=self.strict_actions,
                                         name=f"action of {a}") for a in agents])
         space = self.action_spaces[agents[0]]
-        clipped = np.sum((action < space.low - CLIP_TOLERANCE) | (action > space.high + CLIP_TOLERANCE), axis=-1)
+        clipped = np.sum(outside_box(action, space.low, space.high), axis=-1)
         self._state = self._step(self._state, action)
         self._show()
         s = self._state

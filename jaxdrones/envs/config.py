@@ -207,7 +207,7 @@ class TaskConfig:
         self._check_model()
         self._set("kinks", SimConfig(kinks=self.kinks, adjoint=self.adjoint).kinks)
         for name in ("init_pos", "init_rpy"):
-            self._set(name, _fixed_array(name, getattr(self, name), n))
+            self._set(name, fixed_triples(name, getattr(self, name), n))
         if self.start_pos_range is not None:
             self._set("start_pos_range", _finite_tuple("start_pos_range", self.start_pos_range, 3, nonneg=True))
         for name in ("start_tilt", "start_yaw", "start_vel", "start_ang_vel"):
@@ -327,8 +327,13 @@ def _finite_tuple(name: str, value, n: int, nonneg: bool = False) -> tuple[float
     return tuple(float(v) for v in arr)
 
 
-def _fixed_array(name: str, value, n: int):
-    """A fixed start as a hashable tuple of D triples, or None."""
+def fixed_triples(name: str, value, n: int):
+    """A fixed start (``init_pos``, ``init_rpy``, or the compat aviaries' ``initial_xyzs``) as a hashable tuple of
+    D triples, or None; a single triple is taken for D = 1.
+
+    Raises:
+        ValueError: not f[n, 3] finite numbers, or an ``init_pos`` below the ground.
+    """
     if value is None:
         return None
     try:

@@ -28,6 +28,12 @@ from jaxdrones.state import DroneState
 CLIP_TOLERANCE = 1e-6
 
 
+def outside_box(action, low, high):
+    """bool[...]: the entries of ``action`` below ``low`` or above ``high`` by more than `CLIP_TOLERANCE` (NumPy or
+    JAX arrays): those the env clips and counts, and ``strict_actions`` refuses."""
+    return (action < low - CLIP_TOLERANCE) | (action > high + CLIP_TOLERANCE)
+
+
 class TaskEnv(Env):
     """Any `Task` on the jaxdrones physics, as a brax-protocol env (``reset``/``step``, jit and vmap).
 
@@ -224,8 +230,7 @@ class TaskEnv(Env):
         finite = jnp.all(jnp.isfinite(action))
         low, high = (jnp.asarray(b, self.dtype) for b in self.action_bounds())
         action = action.astype(self.dtype)
-        outside = (action < low - CLIP_TOLERANCE) | (action > high + CLIP_TOLERANCE)
-        clipped = jnp.where(finite, jnp.sum(outside), 0)
+        clipped = jnp.where(finite, jnp.sum(outside_box(action, low, high)), 0)
         action = jnp.where(finite, jnp.clip(action, low, high), 0.0)
         ref = self.task.reference(cfg, task, state.steps)
         rpm, ctrl = self.action_type.to_rpm(state.params, state.sim, state.ctrl, action, ref, self.sim_config.ctrl_dt)

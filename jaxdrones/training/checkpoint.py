@@ -35,6 +35,31 @@ def _config_fields(payload: dict) -> dict:
     raise KeyError("config")
 
 
+def read_payload(path: str | os.PathLike) -> tuple[str, dict]:
+    """``(file, payload)`` of a saved policy: ``path`` is a run folder or its ``policy.pkl``; the payload's ``algo``
+    is set for the files from before `FORMAT` too.
+
+    Raises:
+        ValueError: no policy file there, or not one of jaxdrones (or of an unknown algorithm).
+    """
+    from jaxdrones.training import trainers
+
+    path = os.fspath(path)
+    if os.path.isdir(path):
+        path = os.path.join(path, "policy.pkl")
+    if not os.path.isfile(path):
+        raise ValueError(f"no saved policy at {path!r}")
+    with open(path, "rb") as f:
+        payload = pickle.load(f)
+    if not isinstance(payload, dict) or not {"params", "env_name"} <= set(payload):
+        raise ValueError(f"{path!r} is not a jaxdrones policy file")
+    # Files from before FORMAT 1: brax's PPO wrote no "algo", and MAPPO's independent critic was "ippo".
+    algo = payload.get("algo") or ("brax_ppo" if "ppo_config" in payload else None)
+    if algo not in trainers.ALGOS:
+        raise ValueError(f"{path!r} is not a jaxdrones policy file (algorithm {algo!r})")
+    return path, {**payload, "algo": algo}
+
+
 def load_policy(path: str | os.PathLike, deterministic: bool = True, env: Env | None = None):
     """Load a policy saved by ``jaxdrones train`` (any algorithm of `jaxdrones.training.trainers`).
 
@@ -56,21 +81,10 @@ def load_policy(path: str | os.PathLike, deterministic: bool = True, env: Env | 
     from jaxdrones.envs import make
     from jaxdrones.training import trainers
 
-    path = os.fspath(path)
-    if os.path.isdir(path):
-        path = os.path.join(path, "policy.pkl")
-    if not os.path.isfile(path):
-        raise ValueError(f"no saved policy at {path!r}")
-    with open(path, "rb") as f:
-        payload = pickle.load(f)
-    if not isinstance(payload, dict) or not {"params", "env_name"} <= set(payload):
-        raise ValueError(f"{path!r} is not a jaxdrones policy file")
-    # Files from before FORMAT 1: brax's PPO wrote no "algo", and MAPPO's independent critic was "ippo".
-    algo = payload.get("algo") or ("brax_ppo" if "ppo_config" in payload else None)
-    if algo not in trainers.ALGOS:
-        raise ValueError(f"{path!r} is not a jaxdrones policy file (algorithm {algo!r})")
+    path, payload = read_payload(path)
+    algo = payload["algo"]
     try:
-        fields = _config_fields({**payload, "algo": algo})
+        fields = _config_fields(payload)
     except KeyError:
         raise ValueError(f"{path!r} is not a jaxdrones policy file (no trainer config)") from None
     trained_on = make(payload["env_name"], **payload["env_overrides"])

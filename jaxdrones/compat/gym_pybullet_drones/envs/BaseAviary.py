@@ -21,6 +21,7 @@ import numpy as np
 from jaxdrones.compat.gym_pybullet_drones._common import KeywordHints
 from jaxdrones.compat.gym_pybullet_drones.utils.enums import PHYSICS_EFFECTS, DroneModel, Physics
 from jaxdrones.config import SimConfig
+from jaxdrones.envs.config import fixed_triples
 from jaxdrones.params import load_params
 from jaxdrones.rotations import quat_to_euler, quat_to_rotmat
 from jaxdrones.sim import make_step
@@ -102,8 +103,10 @@ class BaseAviary(KeywordHints, gym.Env, metaclass=abc.ABCMeta):
         n = self.NUM_DRONES
         i = np.arange(n)
         default = np.stack([4 * i * self.L, 4 * i * self.L, np.full(n, DEFAULT_START_Z)], axis=-1)
-        self.INIT_XYZS = _triples("initial_xyzs", default if initial_xyzs is None else initial_xyzs, n)
-        self.INIT_RPYS = _triples("initial_rpys", np.zeros((n, 3)) if initial_rpys is None else initial_rpys, n)
+        xyzs = default if initial_xyzs is None else initial_xyzs
+        rpys = np.zeros((n, 3)) if initial_rpys is None else initial_rpys
+        self.INIT_XYZS = np.asarray(fixed_triples("initial_xyzs", xyzs, n))
+        self.INIT_RPYS = np.asarray(fixed_triples("initial_rpys", rpys, n))
         drag, ground_effect, downwash = PHYSICS_EFFECTS[self.PHYSICS]
         self._config = SimConfig(n_drones=n, sim_freq=pyb_freq, ctrl_freq=ctrl_freq, drag=drag,
                                  ground_effect=ground_effect, downwash=downwash)
@@ -237,19 +240,26 @@ class BaseAviary(KeywordHints, gym.Env, metaclass=abc.ABCMeta):
         """The ``info`` dict."""
 
 
+def action_array(action, n: int, size: int, what: str, dtype=np.float64) -> np.ndarray:
+    """``action`` as ``dtype[n, size]`` for the hooks' ``_preprocessAction``.
+
+    Raises:
+        ValueError: not ``n × size`` numbers (``what`` says what they are), or NaN or inf among them.
+    """
+    try:
+        action = np.asarray(action, dtype)
+    except (TypeError, ValueError):
+        raise ValueError(f"action must be f[{n}, {size}] {what}, got {action!r}") from None
+    if action.size != n * size:
+        raise ValueError(f"action must be f[{n}, {size}] {what} (num_drones={n}), got shape {action.shape}")
+    if not np.all(np.isfinite(action)):
+        raise ValueError(f"action must be finite, got {action.tolist()}")
+    return action.reshape(n, size)
+
+
 @jax.jit
 def _kinematics(pos, quat, vel, ang_vel):
     """f[D, 16]: pos, quat, PyBullet roll/pitch/yaw, vel and the world-frame angular velocity R ω (the original reads
     ``getBaseVelocity``'s, in the world frame; the core's is in the body frame)."""
     ang_v = (quat_to_rotmat(quat) @ ang_vel[..., None])[..., 0]
     return jnp.concatenate([pos, quat, quat_to_euler(quat), vel, ang_v], axis=-1)
-
-
-def _triples(name: str, value, n: int) -> np.ndarray:
-    try:
-        arr = np.asarray(value, np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be f[{n}, 3] (one triple per drone), got {value!r}") from None
-    if arr.shape != (n, 3) or not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be f[{n}, 3] finite numbers (num_drones={n}), got shape {arr.shape}")
-    return arr

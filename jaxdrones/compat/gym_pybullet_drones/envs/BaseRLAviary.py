@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from gymnasium import spaces
 
-from jaxdrones.compat.gym_pybullet_drones.envs.BaseAviary import BaseAviary
+from jaxdrones.compat.gym_pybullet_drones.envs.BaseAviary import BaseAviary, action_array
 from jaxdrones.compat.gym_pybullet_drones.utils.enums import ActionType, DroneModel, ObservationType, Physics
 from jaxdrones.envs.actions import Reference, make_action
 from jaxdrones.params import broadcast_params
@@ -56,9 +56,12 @@ class BaseRLAviary(BaseAviary):
         if self.ACT_TYPE is ActionType.VEL:
             self.SPEED_LIMIT = 0.03 * self.MAX_SPEED_KMH * (1000 / 3600)
 
+    def _set_constants(self, params) -> None:
+        super()._set_constants(params)
+        self._drone_params = broadcast_params(params, (self.NUM_DRONES,))
+
     def _housekeeping(self) -> None:
         super()._housekeeping()
-        self._drone_params = broadcast_params(self._params, (self.NUM_DRONES,))
         self._carry = self._action.init(self._drone_params, self._state)
 
     def _actionSpace(self):
@@ -76,17 +79,7 @@ class BaseRLAviary(BaseAviary):
         return spaces.Box(low=low.astype(np.float32), high=high.astype(np.float32), dtype=np.float32)
 
     def _preprocessAction(self, action):
-        n, size = self.NUM_DRONES, self._action.size
-        try:
-            action = np.asarray(action, np.float32)
-        except (TypeError, ValueError):
-            raise ValueError(f"action must be f[{n}, {size}] for {self.ACT_TYPE}, got {action!r}") from None
-        if action.size != n * size:
-            raise ValueError(f"action must be f[{n}, {size}] for {self.ACT_TYPE} (num_drones={n}), got shape "
-                             f"{action.shape}")
-        if not np.all(np.isfinite(action)):
-            raise ValueError(f"action must be finite, got {action.tolist()}")
-        action = action.reshape(n, size)
+        action = action_array(action, self.NUM_DRONES, self._action.size, f"for {self.ACT_TYPE}", np.float32)
         self.action_buffer.append(action)
         rpm, self._carry = _to_rpm(self._action, self._drone_params, self._state, self._carry,
                                    np.clip(action, -1.0, 1.0), self.CTRL_TIMESTEP)

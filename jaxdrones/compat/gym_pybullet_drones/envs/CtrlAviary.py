@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from gymnasium import spaces
 
-from jaxdrones.compat.gym_pybullet_drones.envs.BaseAviary import BaseAviary
+from jaxdrones.compat.gym_pybullet_drones.envs.BaseAviary import BaseAviary, action_array
 from jaxdrones.compat.gym_pybullet_drones.utils.enums import DroneModel, Physics
 
 
@@ -43,8 +43,7 @@ class CtrlAviary(BaseAviary):
         return np.stack([self._getDroneStateVector(i) for i in range(self.NUM_DRONES)])
 
     def _preprocessAction(self, action):
-        action = _rpm_array(action, self.NUM_DRONES)
-        return np.clip(action, 0.0, self.MAX_RPM)
+        return np.clip(action_array(action, self.NUM_DRONES, 4, "motor speeds in RPM"), 0.0, self.MAX_RPM)
 
     def _computeReward(self):
         return -1
@@ -58,14 +57,3 @@ class CtrlAviary(BaseAviary):
     def _computeInfo(self):
         return {"answer": 42}
 
-
-def _rpm_array(action, n: int) -> np.ndarray:
-    try:
-        action = np.asarray(action, np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"action must be f[{n}, 4] motor speeds in RPM, got {action!r}") from None
-    if action.size != 4 * n:
-        raise ValueError(f"action must be f[{n}, 4] motor speeds in RPM (num_drones={n}), got shape {action.shape}")
-    if not np.all(np.isfinite(action)):
-        raise ValueError(f"action must be finite RPMs, got {action.tolist()}")
-    return action.reshape(n, 4)
