@@ -3,13 +3,14 @@
 from jaxdrones import _fork  # noqa: F401  (refuse forked processes instead of hanging)
 from jaxdrones.envs import make
 from jaxdrones.params import MODELS, DroneParams, load_params
+from jaxdrones.realism import Realism
 from jaxdrones.scene import Obstacle
 from jaxdrones.sim import SimConfig, make_step, rollout
-from jaxdrones.state import DroneState, init_state
+from jaxdrones.state import Disturbance, DroneState, init_state
 
 __all__ = [
-    "MODELS", "make", "DroneParams", "DroneState", "Obstacle", "SimConfig", "init_state", "load_params", "make_step",
-    "rollout",
+    "MODELS", "make", "Disturbance", "DroneParams", "DroneState", "Obstacle", "Realism", "SimConfig", "init_state",
+    "load_params", "make_step", "rollout",
 ]
 __version__ = "0.1.0"
 

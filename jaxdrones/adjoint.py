@@ -36,6 +36,7 @@ from jaxdrones.dynamics import Effects, Kinematics, Motors
 from jaxdrones.params import DroneParams
 from jaxdrones.rotations import (GIMBAL_SNAP, OMEGA_EPS, Components, cross, dot, matvec, quat_mul_c, quat_to_rotmat_c,
                                  split)
+from jaxdrones.state import Disturbance
 
 
 def supported(config) -> bool:
@@ -46,10 +47,12 @@ def supported(config) -> bool:
 
 
 def euler_substep_c(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors, rpm_prev: Components,
-                    dt: float, neighbors: jax.Array | None = None) -> tuple[Kinematics, jax.Array]:
+                    dt: float, neighbors: jax.Array | None = None,
+                    disturbance: Disturbance | None = None) -> tuple[Kinematics, jax.Array]:
     """One Euler physics substep of ``dt`` s and the ground contact, in component form, as
     ``dynamics.ground_contact_c(params, dynamics.euler_step_c(params, effects, kin, motors, rpm_prev, dt, True,
-    neighbors))`` (``kin.quat`` of unit norm), with the reverse-mode derivative of `substep_vjp`.
+    neighbors, None, disturbance))`` (``kin.quat`` of unit norm), with the reverse-mode derivative of
+    `substep_vjp`.
 
     Args:
         params: DroneParams.
@@ -59,43 +62,45 @@ def euler_substep_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
         rpm_prev: 4-tuple of f[..., D] RPM, the previous substep's command (drag).
         dt: the substep, s.
         neighbors: the downwash's neighbour list (`dynamics.Effects.downwash_neighbors`), or None.
+        disturbance: a `jaxdrones.state.Disturbance` in component form (its given fields 3-tuples of f[..., D]),
+            or None.
 
     Returns:
         The kinematics after the substep and bool[..., D], True where the drone touched the ground.
     """
     downwash = dynamics.downwash_c(params, effects, kin.pos, neighbors)
-    return _substep(params, effects, kin, motors, rpm_prev, downwash, dt)
+    return _substep(params, effects, kin, motors, rpm_prev, downwash, disturbance, dt)
 
 
-def _reference(params, effects, kin, motors, rpm_prev, downwash, dt):
-    kin = dynamics.euler_step_c(params, effects, kin, motors, rpm_prev, dt, True, None, downwash)
+def _reference(params, effects, kin, motors, rpm_prev, downwash, disturbance, dt):
+    kin = dynamics.euler_step_c(params, effects, kin, motors, rpm_prev, dt, True, None, downwash, disturbance)
     return dynamics.ground_contact_c(params, kin, effects.kinks)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(1, 6))
-def _substep(params, effects, kin, motors, rpm_prev, downwash, dt):
-    return _reference(params, effects, kin, motors, rpm_prev, downwash, dt)
+@functools.partial(jax.custom_vjp, nondiff_argnums=(1, 7))
+def _substep(params, effects, kin, motors, rpm_prev, downwash, disturbance, dt):
+    return _reference(params, effects, kin, motors, rpm_prev, downwash, disturbance, dt)
 
 
-def _substep_fwd(params, effects, kin, motors, rpm_prev, downwash, dt):
+def _substep_fwd(params, effects, kin, motors, rpm_prev, downwash, disturbance, dt):
     is_primal = lambda x: isinstance(x, CustomVJPPrimal)  # noqa: E731
     params_perturbed = any(x.perturbed for x in jax.tree.leaves(params, is_leaf=is_primal))
-    params, kin, motors, rpm_prev, downwash = jax.tree.map(lambda x: x.value, (params, kin, motors, rpm_prev, downwash),
-                                                           is_leaf=is_primal)
-    out = _reference(params, effects, kin, motors, rpm_prev, downwash, dt)
+    inputs = jax.tree.map(lambda x: x.value, (params, kin, motors, rpm_prev, downwash, disturbance), is_leaf=is_primal)
+    out = _reference(inputs[0], effects, *inputs[1:], dt)
     # The residuals are the inputs; their structure tells the backward pass whether params need a cotangent.
-    return out, (params, kin, motors, rpm_prev, downwash, (None,) if params_perturbed else ())
+    return out, (*inputs, (None,) if params_perturbed else ())
 
 
 def _substep_bwd(effects, dt, residuals, cotangent):
-    params, kin, motors, rpm_prev, downwash, params_perturbed = residuals
+    params, kin, motors, rpm_prev, downwash, disturbance, params_perturbed = residuals
     ct_kin = jax.tree.map(_instantiate, cotangent[0], is_leaf=lambda x: isinstance(x, SymbolicZero))
     if params_perturbed:  # JAX's derived derivative, params included (system identification)
         _, vjp = jax.vjp(lambda *args: _reference(args[0], effects, *args[1:], dt)[0],
-                         params, kin, motors, rpm_prev, downwash)
+                         params, kin, motors, rpm_prev, downwash, disturbance)
         return vjp(ct_kin)
-    kin_b, motors_b, rpm_prev_b, downwash_b = substep_vjp(params, effects, kin, motors, rpm_prev, downwash, dt, ct_kin)
-    return None, kin_b, motors_b, rpm_prev_b, None if downwash is None else downwash_b
+    kin_b, motors_b, rpm_prev_b, downwash_b, disturbance_b = substep_vjp(
+        params, effects, kin, motors, rpm_prev, downwash, dt, ct_kin, disturbance)
+    return None, kin_b, motors_b, rpm_prev_b, None if downwash is None else downwash_b, disturbance_b
 
 
 def _instantiate(x):
@@ -120,10 +125,11 @@ def _matvec_t(m: jax.Array, v: Components) -> Components:
 
 
 def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors, rpm_prev: Components,
-                downwash: jax.Array | None, dt: float,
-                ct: Kinematics) -> tuple[Kinematics, Motors, Components, jax.Array]:
-    """The cotangents of the substep's inputs (``kin``, ``motors``, ``rpm_prev`` and ``downwash``, the downwash
-    force f[..., D] N or None) for the cotangent ``ct`` of its output kinematics; the others as in `euler_substep_c`.
+                downwash: jax.Array | None, dt: float, ct: Kinematics, disturbance: Disturbance | None = None
+                ) -> tuple[Kinematics, Motors, Components, jax.Array, Disturbance | None]:
+    """The cotangents of the substep's inputs (``kin``, ``motors``, ``rpm_prev``, ``downwash``, the downwash
+    force f[..., D] N or None, and ``disturbance``, None or a `Disturbance` in component form) for the cotangent
+    ``ct`` of its output kinematics; the others as in `euler_substep_c`.
 
     The forward quantities are recomputed from the inputs, then each equation of the substep is transposed in the
     reverse order (docs/physics.md: ground contact §5.6, position and exponential-map updates §4.5-4.6, Euler's
@@ -132,6 +138,8 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
     """
     p, q, v, w = kin
     thrust, yaw = motors
+    given = Disturbance() if disturbance is None else disturbance
+    wind = given.wind
     # The forward pass (dynamics.accelerations_c, euler_step_c, ground_contact_c), keeping what the reverse pass uses.
     rot = quat_to_rotmat_c(q, unit=True)
     lift = thrust
@@ -149,11 +157,16 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
     force[2] = force[2] + -params.mass * params.gravity
     if effects.drag:
         omega_sum = sum(rpm_prev[1:], rpm_prev[0]) * (2 * jnp.pi / 60)
-        force = [f - omega_sum * params.drag_coeff[..., k] * v[k] for k, f in enumerate(force)]
-    tau_x, tau_y = matvec(params.torque_arm, lift)
+        v_air = v if wind is None else tuple(vk - wk for vk, wk in zip(v, wind, strict=True))
+        force = [f - omega_sum * params.drag_coeff[..., k] * v_air[k] for k, f in enumerate(force)]
+    if given.force is not None:
+        force = [f + e for f, e in zip(force, given.force, strict=True)]
+    torque = (*matvec(params.torque_arm, lift), yaw)
+    if given.torque is not None:
+        torque = tuple(t + e for t, e in zip(torque, given.torque, strict=True))
     inertia_w = matvec(params.inertia, w)
     gyro = cross(w, inertia_w)
-    ang_acc = matvec(params.inertia_inv, (tau_x - gyro[0], tau_y - gyro[1], yaw - gyro[2]))
+    ang_acc = matvec(params.inertia_inv, tuple(t - g for t, g in zip(torque, gyro, strict=True)))
     vel = tuple(vk + dt * (f / params.mass) for vk, f in zip(v, force, strict=True))
     ang_vel = tuple(wk + dt * a for wk, a in zip(w, ang_acc, strict=True))
     sq = dot(ang_vel, ang_vel)
@@ -199,11 +212,17 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
     lift_b = tuple(params.torque_arm[..., 0, i] * tau_b[0] + params.torque_arm[..., 1, i] * tau_b[1]
                    for i in range(4))
     rpm_prev_b = tuple(jnp.zeros_like(r) for r in rpm_prev)
+    wind_b = None
     if effects.drag:
-        v_b = tuple(a - omega_sum * params.drag_coeff[..., k] * f
-                    for k, (a, f) in enumerate(zip(v_b, force_b, strict=True)))
-        omega_sum_b = -dot(tuple(params.drag_coeff[..., k] * v[k] for k in range(3)), force_b)
+        drag_b = tuple(omega_sum * params.drag_coeff[..., k] * f for k, f in enumerate(force_b))
+        v_b = tuple(a - b for a, b in zip(v_b, drag_b, strict=True))
+        wind_b = None if wind is None else drag_b
+        omega_sum_b = -dot(tuple(params.drag_coeff[..., k] * v_air[k] for k in range(3)), force_b)
         rpm_prev_b = tuple(jnp.broadcast_to(omega_sum_b * (2 * jnp.pi / 60), r.shape) for r in rpm_prev)
+    if wind is not None and wind_b is None:  # no drag: the wind does not act
+        wind_b = tuple(jnp.zeros_like(x) for x in wind)
+    disturbance_b = None if disturbance is None else Disturbance(
+        force=None if given.force is None else force_b, torque=None if given.torque is None else tau_b, wind=wind_b)
     body_z_force_b = dot(tuple(rot[k][2] for k in range(3)), force_b)
     lift_b = tuple(b + body_z_force_b for b in lift_b)
     rot_b = [[0.0] * 3 for _ in range(3)]  # the cotangents of R's entries that the substep reads
@@ -226,4 +245,4 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
            q_b[1] + 2 * (s * b02 + z * b12 - 2 * y * b22 - s * b20 + z * b21),
            q_b[2] + 2 * (x * b02 + y * b12 + x * b20 + y * b21),
            q_b[3] + 2 * (y * b02 - x * b12 - y * b20 + x * b21))
-    return Kinematics(pos_b, q_b, v_b, w_b), Motors(thrust_b, tau_b[2]), rpm_prev_b, body_z_force_b
+    return Kinematics(pos_b, q_b, v_b, w_b), Motors(thrust_b, tau_b[2]), rpm_prev_b, body_z_force_b, disturbance_b

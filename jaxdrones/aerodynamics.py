@@ -39,9 +39,14 @@ def drag_force(params: DroneParams, vel: jax.Array, rpm_prev: jax.Array) -> jax.
     return join(drag_force_c(params, split(vel), split(rpm_prev)))
 
 
-def drag_force_c(params: DroneParams, vel: Components, rpm_prev: Components) -> Components:
-    """`drag_force` in component form: vel (vx, vy, vz) and rpm_prev (4 motors), each f[..., D]."""
+def drag_force_c(params: DroneParams, vel: Components, rpm_prev: Components,
+                 wind: Components | None = None) -> Components:
+    """`drag_force` in component form: vel (vx, vy, vz) and rpm_prev (4 motors), each f[..., D]. With ``wind``
+    (the air's velocity, world frame, m/s, a 3-tuple of f[..., D]) the drag acts on the velocity relative to the
+    air, v - wind: the paper's drag model in moving air (docs/physics.md §6.2)."""
     omega_sum = sum(rpm_prev[1:], rpm_prev[0]) * (2 * jnp.pi / 60)
+    if wind is not None:
+        vel = tuple(v - w for v, w in zip(vel, wind, strict=True))
     return tuple(-omega_sum * params.drag_coeff[..., k] * vel[k] for k in range(3))
 
 

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.params import DroneParams, params_batch_shape
-from jaxdrones.state import DroneState
+from jaxdrones.state import Disturbance, DroneState
 
 if TYPE_CHECKING:
     from jaxdrones.config import SimConfig
@@ -85,3 +85,43 @@ def check_params_batch(params: DroneParams, state: DroneState) -> None:
         raise ValueError(f"params have batch shape {batch}, which does not line up with the state's [..., D] = "
                          f"{lead}: batched params are right-aligned with the drone axis, so per-drone params are "
                          f"[D] or [W, D] and per-world params [W, 1] (or vmap the step over worlds)")
+
+
+def check_disturbance(config: SimConfig, state: DroneState, disturbance) -> Disturbance | None:
+    """Validate a step's `Disturbance` (or None); returns it with each given field broadcast to the state's
+    ``[..., D, 3]`` in the state's dtype.
+
+    Raises:
+        ValueError: not a `Disturbance`; a field that is not a real array broadcasting to ``[..., D, 3]``; a
+            non-finite value (checked on concrete arrays); a ``wind`` without ``config.drag`` (the wind acts
+            through the drag model, so it would do nothing).
+    """
+    if disturbance is None:
+        return None
+    if not isinstance(disturbance, Disturbance):
+        raise ValueError(f"disturbance must be a jaxdrones.Disturbance(force=, torque=, wind=) or None, got "
+                         f"{type(disturbance).__name__}")
+    if disturbance.wind is not None and not config.drag:
+        raise ValueError("disturbance.wind acts through the drag model (paper eq. (drag) on the velocity relative "
+                         "to the air): it needs SimConfig(drag=True)")
+    shape = tuple(np.shape(state.pos))
+    fields = {}
+    for name, unit in (("force", "N, world frame"), ("torque", "N·m, body frame"), ("wind", "m/s, world frame")):
+        value = getattr(disturbance, name)
+        if value is None:
+            fields[name] = None
+            continue
+        dtype = value.dtype if hasattr(value, "dtype") else np.asarray(value).dtype
+        if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)) or dtype == np.bool_:
+            raise ValueError(f"disturbance.{name} must be a real array ({unit}), got dtype {dtype}")
+        try:
+            ok = np.broadcast_shapes(np.shape(value), shape) == shape
+        except ValueError:
+            ok = False
+        if not ok:
+            raise ValueError(f"disturbance.{name} must broadcast to the state's {shape} ([..., n_drones, 3], "
+                             f"{unit}), got {np.shape(value)}")
+        if not isinstance(value, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(value))):
+            raise ValueError(f"disturbance.{name} contains NaN or inf")
+        fields[name] = jnp.broadcast_to(jnp.asarray(value, state.pos.dtype), shape)
+    return Disturbance(**fields)

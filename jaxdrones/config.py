@@ -47,7 +47,7 @@ class SimConfig:
     Raises:
         ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, an unknown
             integrator or kink treatment, a ``downwash_radius`` neither None nor > 0, a ``cell_capacity`` below 1,
-            or a ``drag``, ``ground_effect``, ``downwash`` or ``adjoint`` that is not a bool (a string such as
+            or a ``drag``, ``ground_effect``, ``downwash``, ``adjoint`` or ``motor_dynamics`` that is not a bool (a string such as
             ``downwash="per_rotor"`` would otherwise be truthy).
     """
 
@@ -62,6 +62,7 @@ class SimConfig:
     downwash_radius: float | None = None
     cell_capacity: int = 8
     adjoint: bool = True
+    motor_dynamics: bool = False
 
     def __post_init__(self):
         if isinstance(self.kinks, str):
@@ -83,7 +84,7 @@ class SimConfig:
         capacity = self.cell_capacity
         if not isinstance(capacity, (int, np.integer)) or isinstance(capacity, bool) or capacity < 1:
             raise ValueError(f"SimConfig.cell_capacity must be a positive integer, got {capacity!r}")
-        for name in ("drag", "ground_effect", "downwash", "adjoint"):
+        for name in ("drag", "ground_effect", "downwash", "adjoint", "motor_dynamics"):
             value = getattr(self, name)
             if not isinstance(value, (bool, np.bool_)):
                 raise ValueError(f"SimConfig.{name} must be True or False, got {value!r}")

@@ -23,6 +23,7 @@ from jaxdrones.neighbors import cell_candidates
 from jaxdrones.params import DroneParams
 from jaxdrones.rotations import (Components, cross, dot, matvec, normalize_c, quat_derivative_c,
                                  quat_integrate_c, quat_to_rotmat_c, split)
+from jaxdrones.state import Disturbance
 
 
 class Effects(NamedTuple):
@@ -77,6 +78,33 @@ def motors_c(params: DroneParams, rpm: Components) -> Motors:
     return Motors(motor_thrust_c(params, rpm), yaw_torque_c(params, rpm))
 
 
+def motor_decay(tau: jax.Array, dt: float) -> jax.Array:
+    """exp(-dt/τ), the fraction of a motor's speed error left after ``dt`` s of first-order lag with time constant
+    τ s (f[...]); 0 for τ ≤ 0 (instant motors), with a zero derivative there rather than NaN."""
+    positive = tau > 0
+    return jnp.where(positive, jnp.exp(-dt / jnp.where(positive, tau, 1.0)), 0.0)
+
+
+def motor_response_c(params: DroneParams, rpm: Components, command: Components, dt: float) -> Components:
+    """The motors' speeds after ``dt`` s of first-order dynamics towards a held command (docs/physics.md §3.3).
+
+    ω(t + dt) = c + (ω(t) - c)·exp(-dt/τ): the exact solution of τ dω/dt = c - ω for a command c held over the
+    substep, with τ = ``params.motor_tau_up`` while the motor speeds up (c > ω) and ``motor_tau_down`` otherwise
+    (separate rising and falling constants as in L2F / RLtools, Eschmann et al. 2024).
+
+    Args:
+        params: DroneParams (``motor_tau_up``, ``motor_tau_down`` f[..., D] s; 0 = instant).
+        rpm: 4-tuple of f[..., D] RPM, the motors' speeds now.
+        command: 4-tuple of f[..., D] RPM, the (clipped) command.
+        dt: the substep, s.
+
+    Returns:
+        4-tuple of f[..., D] RPM.
+    """
+    up, down = motor_decay(params.motor_tau_up, dt), motor_decay(params.motor_tau_down, dt)
+    return tuple(c + (r - c) * jnp.where(c > r, up, down) for r, c in zip(rpm, command, strict=True))
+
+
 def motor_thrust_c(params: DroneParams, rpm: Components) -> Components:
     """Per-motor thrust kf·rpm² (docs/physics.md §3): 4-tuple of f[..., D] RPM -> 4-tuple of f[..., D] N."""
     return tuple(params.kf * r**2 for r in rpm)
@@ -101,7 +129,8 @@ def body_torque_c(params: DroneParams, lift: Components, yaw_torque: jax.Array) 
 
 
 def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors, rpm_prev: Components,
-                    unit_quat: bool = False, neighbors: jax.Array | None = None, downwash: jax.Array | None = None):
+                    unit_quat: bool = False, neighbors: jax.Array | None = None, downwash: jax.Array | None = None,
+                    disturbance: Disturbance | None = None):
     """Linear (world, m/s²) and angular (body, rad/s²) accelerations, with the motors' output for the applied RPM
     (`motors_c`) and ``rpm_prev`` (4-tuple of f[..., D], the RPM of the previous substep, for drag only).
 
@@ -109,6 +138,8 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
     again for the rotation matrix. ``neighbors`` i32[..., D, K]: the drones whose downwash acts on each drone
     (`Effects.downwash_neighbors`; default: chosen from ``kin.pos``). ``downwash`` f[..., D] N: the downwash force
     along body z (`aerodynamics.downwash_force_c`) when already computed (see `jaxdrones.adjoint`).
+    ``disturbance``: a `jaxdrones.state.Disturbance` in component form (each given field a 3-tuple of f[..., D]):
+    its force (world) adds to the force, its torque (body) to the torque, its wind to the drag's air velocity.
 
     Returns:
         (ax, ay, az) m/s², world frame, and (ω̇x, ω̇y, ω̇z) rad/s², body frame, each f[..., D].
@@ -126,9 +157,15 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
         body_z_force = body_z_force + downwash
     fx, fy, fz = (row[2] * body_z_force for row in rotmat)
     force = (fx, fy, fz + -params.mass * params.gravity)
+    disturbance = Disturbance() if disturbance is None else disturbance
     if effects.drag:
-        force = tuple(f + d for f, d in zip(force, aerodynamics.drag_force_c(params, kin.vel, rpm_prev)))
+        drag = aerodynamics.drag_force_c(params, kin.vel, rpm_prev, disturbance.wind)
+        force = tuple(f + d for f, d in zip(force, drag))
+    if disturbance.force is not None:
+        force = tuple(f + e for f, e in zip(force, disturbance.force, strict=True))
     torque = body_torque_c(params, lift, motors.yaw_torque)
+    if disturbance.torque is not None:
+        torque = tuple(t + e for t, e in zip(torque, disturbance.torque, strict=True))
     gyro = cross(kin.ang_vel, matvec(params.inertia, kin.ang_vel))
     torque = tuple(t - g for t, g in zip(torque, gyro))
     ang_acc = matvec(params.inertia_inv, torque)
@@ -149,14 +186,15 @@ def downwash_c(params: DroneParams, effects: Effects, pos: Components,
 
 def euler_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
                  unit_quat: bool = False, neighbors: jax.Array | None = None,
-                 downwash: jax.Array | None = None) -> Kinematics:
+                 downwash: jax.Array | None = None, disturbance: Disturbance | None = None) -> Kinematics:
     """The paper code's semi-implicit Euler update (docs/physics.md §4.5-4.6), one physics step of ``dt`` s.
 
     v ← v + dt·a; ω ← ω + dt·ω̇; p ← p + dt·v_new; q ← exp-map(q, ω_new, dt), then q is normalised as PyBullet
-    does when the state is written back. ``motors``, ``unit_quat``, ``neighbors`` and ``downwash`` as in
-    `accelerations_c`.
+    does when the state is written back. ``motors``, ``unit_quat``, ``neighbors``, ``downwash`` and ``disturbance``
+    as in `accelerations_c`.
     """
-    acc, ang_acc = accelerations_c(params, effects, kin, motors, rpm_prev, unit_quat, neighbors, downwash)
+    acc, ang_acc = accelerations_c(params, effects, kin, motors, rpm_prev, unit_quat, neighbors, downwash,
+                                   disturbance)
     vel = tuple(v + dt * a for v, a in zip(kin.vel, acc))
     ang_vel = tuple(w + dt * a for w, a in zip(kin.ang_vel, ang_acc))
     quat = quat_integrate_c(kin.quat, ang_vel, dt)
@@ -165,17 +203,19 @@ def euler_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Com
 
 
 def rk4_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
-               unit_quat: bool = False, neighbors: jax.Array | None = None) -> Kinematics:
+               unit_quat: bool = False, neighbors: jax.Array | None = None, downwash: None = None,
+               disturbance: Disturbance | None = None) -> Kinematics:
     """Classical 4th-order Runge-Kutta on (p, q, v, ω) with the motor inputs held over the step; q renormalised.
 
     See docs/physics.md §4.11. ``motors`` and ``unit_quat`` as in `accelerations_c` (``unit_quat`` concerns the first
-    stage only: the others are normalised for their rotation matrix); ``neighbors`` too, held over the stages.
+    stage only: the others are normalised for their rotation matrix); ``neighbors`` and ``disturbance`` too,
+    held over the stages (``downwash`` is recomputed at each stage: pass None).
     """
     if neighbors is None:
         neighbors = effects.downwash_neighbors(kin.pos)
 
     def deriv(k: Kinematics, unit: bool = False) -> Kinematics:
-        acc, ang_acc = accelerations_c(params, effects, k, motors, rpm_prev, unit, neighbors)
+        acc, ang_acc = accelerations_c(params, effects, k, motors, rpm_prev, unit, neighbors, None, disturbance)
         return Kinematics(k.vel, quat_derivative_c(k.quat, k.ang_vel), acc, ang_acc)
 
     def stage(carry, coeffs):

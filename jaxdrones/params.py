@@ -25,6 +25,8 @@ GRAVITY = 9.8
 #: Model names that ship with the package (`assets/<name>.urdf`).
 MODELS = ("cf2x", "cf2p", "racer")
 
+#: Optional ``<properties>`` attributes, 0 when absent: the motors' time constants, s (`DroneParams.motor_tau_up`).
+_OPTIONAL_KEYS = ("motor_tau_up", "motor_tau_down")
 _PROPERTY_KEYS = (
     "arm", "kf", "km", "thrust2weight", "max_speed_kmh", "gnd_eff_coeff", "prop_radius",
     "drag_coeff_xy", "drag_coeff_z", "dw_coeff_1", "dw_coeff_2", "dw_coeff_3", "frame", "prop_spin",
@@ -66,6 +68,10 @@ class DroneParams:
         max_xy_torque: f[] N·m, 2 L kf max_rpm²/√2 (x frame) or L kf max_rpm² (+ frame).
         max_z_torque: f[] N·m, 2 km max_rpm².
         gnd_eff_h_clip: f[] m, (R/4)·√(15 C_gnd / 4): below it the ground-effect height is clipped.
+        motor_tau_up: f[] s, the motors' time constant while speeding up, for first-order motor dynamics
+            (`jaxdrones.config.SimConfig.motor_dynamics`, docs/physics.md §3.3); 0 = the commanded speed at once.
+            URDF ``properties/@motor_tau_up`` when given, else 0 (the paper's instant motors).
+        motor_tau_down: f[] s, the same while slowing down (``properties/@motor_tau_down``, else 0).
     """
 
     mass: jax.Array
@@ -92,6 +98,8 @@ class DroneParams:
     max_xy_torque: jax.Array
     max_z_torque: jax.Array
     gnd_eff_h_clip: jax.Array
+    motor_tau_up: jax.Array
+    motor_tau_down: jax.Array
 
     @property
     def weight(self) -> jax.Array:
@@ -112,9 +120,9 @@ def params_batch_shape(params: DroneParams) -> tuple[int, ...]:
     """
     shapes = {}
     for field in dataclasses.fields(params):
-        leaf = getattr(params, field.name)
+        shape = np.shape(getattr(params, field.name))  # a Python number (params.replace(kf=...)) too
         core = _CORE_NDIM.get(field.name, 0)
-        shapes[field.name] = tuple(leaf.shape[:leaf.ndim - core])
+        shapes[field.name] = tuple(shape[:len(shape) - core])
     batch = shapes["mass"]
     odd = {k: v for k, v in shapes.items() if v != batch}
     if odd:
@@ -217,6 +225,8 @@ def _parse_urdf(path: str) -> dict:
     if raw["frame"] not in ("x", "+"):
         raise ValueError(f"{path}: properties/@frame must be 'x' or '+', got {raw['frame']!r}")
     raw["prop_spin"] = [_number(path, "properties/@prop_spin", s) for s in props.attrib["prop_spin"].split()]
+    for key in _OPTIONAL_KEYS:  # optional: the paper's models have instant motors
+        raw[key] = _number(path, f"properties/@{key}", props.attrib[key]) if key in props.attrib else 0.0
 
     links = {link.get("name"): link for link in root.findall("link")}
     base = links.get("base_link")
@@ -278,7 +288,7 @@ def _check_physical(raw: dict, path: str) -> None:
     if raw["thrust2weight"] <= 1:
         raise ValueError(f"{path}: thrust2weight must be > 1 (the drone must be able to hover), "
                          f"got {raw['thrust2weight']}")
-    for key in ("max_speed_kmh", "gnd_eff_coeff", "drag_coeff_xy", "drag_coeff_z", "dw_coeff_1"):
+    for key in ("max_speed_kmh", "gnd_eff_coeff", "drag_coeff_xy", "drag_coeff_z", "dw_coeff_1", *_OPTIONAL_KEYS):
         if raw[key] < 0:
             raise ValueError(f"{path}: {key} must be >= 0, got {raw[key]}")
     spin = raw["prop_spin"]
@@ -313,6 +323,7 @@ def _derive(raw: dict, path: str) -> DroneParams:
         dw_coeff=[raw["dw_coeff_1"], raw["dw_coeff_2"], raw["dw_coeff_3"]],
         prop_pos=prop_pos, prop_spin=raw["prop_spin"], torque_arm=_torque_arm(raw["frame"], raw["arm"], prop_pos),
         gravity=GRAVITY, collision_radius=raw["collision_radius"], collision_height=raw["collision_height"],
+        motor_tau_up=raw["motor_tau_up"], motor_tau_down=raw["motor_tau_down"],
     )
     values = {k: np.asarray(v, dtype=np.float64) for k, v in values.items()}
     derived = derive_params(_PrimaryParams(**values), xp=np)  # in float64, then cast once
@@ -345,6 +356,8 @@ class _PrimaryParams(NamedTuple):
     gravity: np.ndarray
     collision_radius: np.ndarray
     collision_height: np.ndarray
+    motor_tau_up: np.ndarray
+    motor_tau_down: np.ndarray
 
 
 def derive_params(params, xp=jnp) -> dict:

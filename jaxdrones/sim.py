@@ -16,24 +16,26 @@ import numpy as np
 
 from jaxdrones import adjoint, dynamics
 from jaxdrones.backends import BACKENDS
-from jaxdrones.checks import check_params_batch, check_rpm
+from jaxdrones.checks import check_disturbance, check_params_batch, check_rpm
 from jaxdrones.config import SimConfig
 from jaxdrones.params import DroneParams
 from jaxdrones.rotations import join, normalize_c, split
-from jaxdrones.state import CONTACT_GROUND, DroneState
+from jaxdrones.state import CONTACT_GROUND, Disturbance, DroneState
 
-StepFn = Callable[[DroneParams, DroneState, jax.Array], DroneState]
+StepFn = Callable[..., DroneState]  #: ``step(params, state, rpm, disturbance=None) -> state``
 
-__all__ = ["JaxStep", "SimConfig", "StepFn", "make_step", "physics_substep_c", "rollout", "shard_worlds"]
+__all__ = ["Disturbance", "JaxStep", "SimConfig", "StepFn", "make_step", "physics_substep_c", "rollout", "shard_worlds"]
 
 
 def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState, rpm: tuple,
                       motors: dynamics.Motors | None = None, unit_quat: bool = False,
-                      neighbors: jax.Array | None = None) -> DroneState:
+                      neighbors: jax.Array | None = None, disturbance: Disturbance | None = None) -> DroneState:
     """One physics step of ``config.dt`` with already-clipped RPM, pure and differentiable, in component form:
     ``state``'s vector fields and ``rpm`` are tuples of f[..., D] arrays (``contact`` stays i32[..., D]); ``motors``
     is ``dynamics.motors_c(params, rpm)`` when already known; ``unit_quat=True`` if ``state.quat`` is known to be of
-    unit norm; ``neighbors`` the downwash's neighbour list when already chosen (see `dynamics.accelerations_c`).
+    unit norm; ``neighbors`` the downwash's neighbour list when already chosen (see `dynamics.accelerations_c`);
+    ``disturbance`` a `Disturbance` in component form (each given field a 3-tuple of f[..., D]) or None.
+    ``state.rpm`` is the previous substep's (drag uses it); the result's is ``rpm``, the speeds applied.
 
     With ``config.adjoint`` (`SimConfig`), the Euler integrator and exact kinks (the defaults), and ``unit_quat``,
     the substep has the hand-written reverse-mode derivative of `jaxdrones.adjoint` and no forward-mode one; other
@@ -42,10 +44,12 @@ def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState,
         motors = dynamics.motors_c(params, rpm)
     kin = dynamics.Kinematics(state.pos, state.quat, state.vel, state.ang_vel)
     if unit_quat and adjoint.supported(config):
-        kin, touching = adjoint.euler_substep_c(params, config.effects, kin, motors, state.rpm, config.dt, neighbors)
+        kin, touching = adjoint.euler_substep_c(params, config.effects, kin, motors, state.rpm, config.dt, neighbors,
+                                                disturbance)
     else:
         integrate = dynamics.INTEGRATORS[config.integrator]
-        kin = integrate(params, config.effects, kin, motors, state.rpm, config.dt, unit_quat, neighbors)
+        kin = integrate(params, config.effects, kin, motors, state.rpm, config.dt, unit_quat, neighbors, None,
+                        disturbance)
         kin, touching = dynamics.ground_contact_c(params, kin, config.kinks)
     return DroneState(*kin, rpm=rpm, contact=state.contact | jnp.where(touching, CONTACT_GROUND, 0).astype(jnp.int32))
 
@@ -79,12 +83,15 @@ def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
 
     Returns:
         The backend's step (a `JaxStep` or a `jaxdrones.backends.pybullet.PyBulletStep`, both with ``config``,
-        ``has_cameras`` and ``close``), called as ``step(params, state, rpm)`` where ``rpm`` is f[..., D, 4] in RPM (ints are cast to the state's float
-        dtype) with the leading shape of ``state``. ``state.contact`` reports ground contact during this step.
+        ``has_cameras`` and ``close``), called as ``step(params, state, rpm, disturbance=None)`` where ``rpm`` is
+        f[..., D, 4] in RPM (ints are cast to the state's float dtype) with the leading shape of ``state``, and
+        ``disturbance`` an optional `jaxdrones.state.Disturbance` (external force, torque, wind) held over the
+        step. ``state.contact`` reports ground contact during this step. With ``config.motor_dynamics`` the
+        returned ``state.rpm`` is the motors' actual speeds at the end of the step.
 
     Raises:
-        ValueError: unknown backend or option; and, when ``step`` is called, an ``rpm`` or ``state`` of the wrong shape or a
-            non-numeric dtype. Called on concrete arrays (outside ``jit``), a non-finite ``rpm`` raises too; inside
+        ValueError: unknown backend or option; and, when ``step`` is called, an ``rpm``, ``state`` or ``disturbance``
+            of the wrong shape or a non-numeric dtype, or a wind without ``config.drag``. Called on concrete arrays (outside ``jit``), a non-finite ``rpm`` raises too; inside
             ``jit`` NaN propagates into the state (the envs detect and report it).
         ModuleNotFoundError: ``backend="pybullet"`` without pybullet installed (`jaxdrones.backends.require_pybullet`).
     """
@@ -105,24 +112,34 @@ def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
 
 
 def _core_step_c(config: SimConfig):
-    """The control step of the JAX core in component form: ``core_c(params, state_c, rpm_c) -> state_c`` with the
-    state's vectors and the RPM command as tuples of f[..., D] arrays (see `jaxdrones.rotations`)."""
+    """The control step of the JAX core in component form: ``core_c(params, state_c, rpm_c, disturbance_c) ->
+    state_c`` with the state's vectors, the RPM command and the disturbance's given fields as tuples of f[..., D]
+    arrays (see `jaxdrones.rotations`); ``disturbance_c`` may be None."""
 
-    def core_c(params: DroneParams, state: DroneState, rpm: tuple) -> DroneState:
+    def core_c(params: DroneParams, state: DroneState, rpm: tuple, disturbance: Disturbance | None = None
+               ) -> DroneState:
         rpm = tuple(config.kinks.clip(r, 0.0, params.max_rpm, config.kinks.rpm) for r in rpm)
         # The quaternion is normalised here once; every substep then leaves it of unit norm, so the substeps need
-        # not normalise it again for their rotation matrices. The motors' output is held over the substeps too.
+        # not normalise it again for their rotation matrices.
         state = state.replace(quat=normalize_c(state.quat), contact=jnp.zeros_like(state.contact))
-        motors = dynamics.motors_c(params, rpm)
-        # The RPM of the previous substep, which drag uses, is the state's in the first substep and the held
-        # command in the others: it is chosen per substep rather than carried (and copied) through the loop.
-        rpm_before = state.rpm
         # With config.downwash_radius, the neighbour list of the downwash is built once per control step.
         neighbors = config.effects.downwash_neighbors(state.pos)
+        if config.motor_dynamics:
+            # The motors' speeds are the state's: each substep moves them towards the command, then applies them.
+            def lagged(s, _):
+                speeds = dynamics.motor_response_c(params, s.rpm, rpm, config.dt)
+                return physics_substep_c(config, params, s, speeds, None, True, neighbors, disturbance), None
+
+            return jax.lax.scan(lagged, state, None, length=config.n_substeps)[0]
+        # Instant motors: their output is held over the substeps. The RPM of the previous substep, which drag
+        # uses, is the state's in the first substep and the held command in the others: it is chosen per substep
+        # rather than carried (and copied) through the loop.
+        motors = dynamics.motors_c(params, rpm)
+        rpm_before = state.rpm
 
         def substep(s, first):
             rpm_prev = tuple(jnp.where(first, before, now) for before, now in zip(rpm_before, rpm, strict=True))
-            s = physics_substep_c(config, params, s.replace(rpm=rpm_prev), rpm, motors, True, neighbors)
+            s = physics_substep_c(config, params, s.replace(rpm=rpm_prev), rpm, motors, True, neighbors, disturbance)
             return s.replace(rpm=()), None
 
         first = jnp.arange(config.n_substeps) == 0
@@ -130,6 +147,12 @@ def _core_step_c(config: SimConfig):
         return state.replace(rpm=rpm)
 
     return core_c
+
+
+def _split_disturbance(disturbance: Disturbance | None, contiguous: bool = False) -> Disturbance | None:
+    if disturbance is None:
+        return None
+    return jax.tree.map(lambda x: split(x, contiguous), disturbance)
 
 
 def _core_step(core_c, remat: bool):
@@ -146,8 +169,10 @@ def _core_step(core_c, remat: bool):
     torques differently, see `jaxdrones.rotations.dot`; sliced, it stays exactly level, as on PyBullet).
     """
 
-    def core(params: DroneParams, state: DroneState, rpm: jax.Array) -> DroneState:
-        state = core_c(params, _split_state(state, contiguous=True), split(rpm))
+    def core(params: DroneParams, state: DroneState, rpm: jax.Array, disturbance: Disturbance | None = None
+             ) -> DroneState:
+        state = core_c(params, _split_state(state, contiguous=True), split(rpm),
+                       _split_disturbance(disturbance, contiguous=True))
         return _join_state(state, contiguous=True)
 
     return jax.jit(jax.checkpoint(core) if remat else core)
@@ -175,10 +200,13 @@ class JaxStep:
         self.config = config
         self._core_c, self._core = _compiled_step(config)
 
-    def __call__(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
+    def __call__(self, params: DroneParams, state: DroneState, rpm, disturbance: Disturbance | None = None
+                 ) -> DroneState:
         rpm = check_rpm(self.config, state, rpm)
         check_params_batch(params, state)
-        return self._core(params, state, rpm)
+        if disturbance is None:
+            return self._core(params, state, rpm)
+        return self._core(params, state, rpm, check_disturbance(self.config, state, disturbance))
 
     def __hash__(self) -> int:
         return hash((JaxStep, self.config))

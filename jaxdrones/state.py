@@ -54,6 +54,24 @@ class DroneState:
         return (self.contact & (CONTACT_OBSTACLE | CONTACT_DRONE)) != 0
 
 
+@struct.dataclass
+class Disturbance:
+    """What acts on the drones from outside during a control step, held over its physics substeps: an input of
+    the step (``step(params, state, rpm, disturbance)``), not part of the state. Each field is None (nothing) or
+    an array with the state's leading shape ``[..., D, 3]``; `jaxdrones.realism` draws them for the envs.
+
+    Attributes:
+        force: f[..., D, 3] N, world frame, at the centre of mass (e.g. a random disturbance force).
+        torque: f[..., D, 3] N·m, body frame.
+        wind: f[..., D, 3] m/s, world frame, the air's velocity: it acts through the drag model (paper eq. (drag)
+            on the velocity relative to the air, docs/physics.md §6.2), so it needs ``SimConfig(drag=True)``.
+    """
+
+    force: jax.Array | None = None
+    torque: jax.Array | None = None
+    wind: jax.Array | None = None
+
+
 def default_start_pos(n_drones: int) -> np.ndarray:
     """The paper's default start: drone i at (4iL, 4iL, 0.1125) m with the Crazyflie's L (docs/physics.md §1.1)."""
     i = np.arange(n_drones, dtype=np.float64)

@@ -11,7 +11,10 @@ Forces, as in the paper's PyBullet update (docs/physics.md §3.2, §5, §6), re-
   the roll and pitch torques from the geometry; the yaw reaction torque -Σ spin_i km rpm_i² about body z;
 - drag (world frame, at the centre of mass) and downwash (body -z, at the centre of mass), computed by the same
   functions as the JAX core (`jaxdrones.aerodynamics`);
-- gravity 9.8 m/s² (params), the gyroscopic term by Bullet's rigid-body solver.
+- gravity 9.8 m/s² (params), the gyroscopic term by Bullet's rigid-body solver;
+- a step's `jaxdrones.state.Disturbance`: its force (world frame, at the centre of mass) and torque (body frame),
+  and its wind in the drag; with ``SimConfig.motor_dynamics`` the motors' speeds follow the command with the
+  params' time constants before each Bullet step, as in the JAX core (docs/physics.md §3.3).
 
 Differences from the original's PyBullet modes (docs/physics.md §14.3), so that both backends share one model:
 
@@ -42,9 +45,9 @@ from jaxdrones.dynamics import Effects
 from jaxdrones.params import DroneParams, broadcast_params, pack_params, params_batch_shape
 from jaxdrones.rotations import join, quat_to_rotmat_c, split
 from jaxdrones.backends import RENDERERS, require_pybullet
-from jaxdrones.checks import check_params_batch, check_rpm, check_rpm_shape
+from jaxdrones.checks import check_disturbance, check_params_batch, check_rpm, check_rpm_shape
 from jaxdrones.config import SimConfig
-from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, DroneState
+from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, Disturbance, DroneState
 
 pybullet = require_pybullet()
 
@@ -170,12 +173,22 @@ class PyBulletStep:
         if self._closed:
             raise RuntimeError("this PyBullet step was closed; build a new one with jd.make_step(...)")
 
-    def __call__(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
+    def __call__(self, params: DroneParams, state: DroneState, rpm, disturbance: Disturbance | None = None
+                 ) -> DroneState:
         self.check_open()
         tracer = jax.core.Tracer
+        if disturbance is not None:
+            # One array [..., D, 9] (force, torque, wind; zero where not given), as the host step reads it.
+            disturbance = check_disturbance(self.config, state, disturbance)
+            parts = [jnp.zeros_like(state.pos) if x is None else x
+                     for x in (disturbance.force, disturbance.torque, disturbance.wind)]
+            disturbance = jnp.concatenate(parts, axis=-1)
         if (isinstance(state.pos, tracer) or isinstance(state.quat, tracer) or isinstance(rpm, tracer)
-                or isinstance(params.mass, tracer) or isinstance(params.kf, tracer)):
-            return self._traced(params, state, rpm)
+                or isinstance(params.mass, tracer) or isinstance(params.kf, tracer)
+                or isinstance(disturbance, tracer)):
+            return self._traced(params, state, rpm, disturbance)
+        if disturbance is not None:
+            disturbance = np.asarray(disturbance, np.float64)
         if isinstance(state.pos, jax.Array):  # read into NumPy once, then the NumPy path
             state = DroneState(*(np.asarray(getattr(state, f)) for f in _STATE_FIELDS))
         if isinstance(rpm, jax.Array):
@@ -188,9 +201,9 @@ class PyBulletStep:
             rpm = np.asarray(rpm, dtype=np.float64)
         host = self.host_params(params, state.pos)
         return DroneState(*self._host_step(host, [np.asarray(getattr(state, f)) for f in _STATE_FIELDS], rpm,
-                                           strict=True))
+                                           strict=True, disturbance=disturbance))
 
-    def _traced(self, params: DroneParams, state: DroneState, rpm) -> DroneState:
+    def _traced(self, params: DroneParams, state: DroneState, rpm, disturbance=None) -> DroneState:
         rpm = check_rpm(self.config, state, rpm)
         check_params_batch(params, state)
         lead = state.pos.shape[:-1]
@@ -199,12 +212,14 @@ class PyBulletStep:
         packed_params, unpack_params = pack_params(broadcast_params(params, lead), lead)
         kinematics = jnp.concatenate([state.pos, state.quat, state.vel, state.ang_vel, state.rpm], axis=-1)
 
-        def callback(packed_params, kinematics, contact, rpm):
+        def callback(packed_params, kinematics, contact, rpm, *disturbance):
             fields = np.split(np.asarray(kinematics), _KINEMATIC_SPLITS, axis=-1) + [np.asarray(contact)]
             host = self.host_params(unpack_params(packed_params), fields[0], by_value=True)
-            return DroneState(*self._host_step(host, fields, np.asarray(rpm, np.float64)))
+            extra = np.asarray(disturbance[0], np.float64) if disturbance else None
+            return DroneState(*self._host_step(host, fields, np.asarray(rpm, np.float64), disturbance=extra))
 
-        return jax.pure_callback(callback, shapes, packed_params, kinematics, state.contact, rpm,
+        extra = () if disturbance is None else (disturbance,)
+        return jax.pure_callback(callback, shapes, packed_params, kinematics, state.contact, rpm, *extra,
                                  vmap_method="broadcast_all")
 
     def host_params(self, params: DroneParams, pos, by_value: bool = False) -> dict:
@@ -225,9 +240,11 @@ class PyBulletStep:
             self._host_cache = (params, lead, host)
         return host
 
-    def _host_step(self, host: dict, fields: list[np.ndarray], rpm: np.ndarray, strict: bool = False
-                   ) -> list[np.ndarray]:
+    def _host_step(self, host: dict, fields: list[np.ndarray], rpm: np.ndarray, strict: bool = False,
+                   disturbance: np.ndarray | None = None) -> list[np.ndarray]:
         """Step NumPy state fields [*L, D, k] with host params (see `_host_params`); returns the new fields.
+        ``disturbance``: None or f[*L, D, 9], each drone's force (world, N), torque (body, N·m) and wind (world,
+        m/s).
 
         A world whose inputs are not all finite gives NaN; with ``strict``, a non-finite ``rpm`` raises instead.
 
@@ -239,6 +256,7 @@ class PyBulletStep:
         n_worlds = math.prod(lead[:-1])
         lists = [np.asarray(f).reshape(n_worlds, n_drones, -1).tolist() for f in fields[:5]]
         rpm = rpm.reshape(n_worlds, n_drones, 4).tolist()
+        extra = None if disturbance is None else disturbance.reshape(n_worlds, n_drones, 9).tolist()
         self._ensure_worlds(n_worlds, host)
         flat, contact = [], []  # per drone: pos, quat, vel, ang_vel, rpm (17 floats); the contact bits
         for w, world in enumerate(self._worlds[:n_worlds]):
@@ -249,7 +267,7 @@ class PyBulletStep:
                 raise ValueError("rpm contains NaN or inf")
             if finite:
                 try:
-                    result = self._step_world(world, w, host, *inputs)
+                    result = self._step_world(world, w, host, *inputs, None if extra is None else extra[w])
                 except pybullet.error:
                     self._rebuild_world(w, host)
             for pos_d, quat_d, vel_d, ang_vel_d, rpm_d, contact_d in result or [_NAN_DRONE] * n_drones:
@@ -265,38 +283,52 @@ class PyBulletStep:
                for (a, b), field in zip(_FIELD_SLICES, fields)]
         return out + [np.array(contact, dtype=fields[5].dtype).reshape(lead)]
 
-    def _step_world(self, world: _World, w: int, host: dict, pos, quat, vel, ang_vel, rpm_prev, rpm):
-        """One control step of world ``w``; every argument is a per-drone list of floats [D][k].
+    def _step_world(self, world: _World, w: int, host: dict, pos, quat, vel, ang_vel, rpm_prev, rpm, extra=None):
+        """One control step of world ``w``; every argument is a per-drone list of floats [D][k]; ``extra`` None or
+        per drone (force world, torque body, wind world) as 9 floats.
 
-        Returns per drone (pos, quat, vel, ang_vel, rpm, contact), ang_vel in the body frame and rpm clipped.
+        Returns per drone (pos, quat, vel, ang_vel, rpm, contact), ang_vel in the body frame and rpm clipped (with
+        motor dynamics: the motors' speeds at the end of the step).
         """
         client, bodies = world.client, world.drones
         kf, km, spin, max_rpm = host["kf"][w], host["km"][w], host["prop_spin"][w], host["max_rpm"][w]
-        rpm = [[min(max(r, 0.0), max_rpm[d]) for r in rpm_d] for d, rpm_d in enumerate(rpm)]
-        # The motor model (docs/physics.md §3): f_i = kf rpm_i², yaw torque -Σ spin_i km rpm_i², as `dynamics.motors_c`.
-        thrust = [[kf[d] * r * r for r in rpm_d] for d, rpm_d in enumerate(rpm)]
-        yaw = [-km[d] * sum(s * r * r for s, r in zip(spin[d], rpm_d)) for d, rpm_d in enumerate(rpm)]
+        command = [[min(max(r, 0.0), max_rpm[d]) for r in rpm_d] for d, rpm_d in enumerate(rpm)]
+        lagged = self.config.motor_dynamics
+        if lagged:  # docs/physics.md §3.3, as `dynamics.motor_response_c`: exp(-dt/τ) of each drone, rising/falling
+            decay = [(_decay(up, self.config.dt), _decay(down, self.config.dt))
+                     for up, down in zip(host["motor_tau_up"][w], host["motor_tau_down"][w], strict=True)]
+        speeds, previous = command, rpm_prev
         for d, body in enumerate(bodies):
             q = _normalized(quat[d])
             pybullet.resetBasePositionAndOrientation(body, pos[d], q, physicsClientId=client)
             pybullet.resetBaseVelocity(body, vel[d], _rotate(q, ang_vel[d]), physicsClientId=client)
         effects = self._effects
+        wind = extra is not None and effects.drag
         any_effect = effects.drag or effects.ground_effect or (effects.downwash and len(bodies) > 1)
         points = host["thrust_points"][w]
         contact = [0] * len(bodies)
         link, world_frame = pybullet.LINK_FRAME, pybullet.WORLD_FRAME
-        if any_effect:
-            if world.jax_params is None:
-                world.jax_params = jax.tree.map(jnp.asarray, DroneParams(**_world_slice(host["arrays"], w)))
-            thrust_array, rpm_prev_array, rpm_array = np.asarray(thrust), np.asarray(rpm_prev), np.asarray(rpm)
+        if any_effect and world.jax_params is None:
+            world.jax_params = jax.tree.map(jnp.asarray, DroneParams(**_world_slice(host["arrays"], w)))
         for sub in range(self.config.n_substeps):
+            if lagged:
+                speeds = [[c + (r - c) * (up if c > r else down) for r, c in zip(r_d, c_d, strict=True)]
+                          for r_d, c_d, (up, down) in zip(previous, command, decay, strict=True)]
+            if sub == 0 or lagged:
+                # The motor model (docs/physics.md §3): f_i = kf rpm_i², yaw torque -Σ spin_i km rpm_i², as
+                # `dynamics.motors_c`.
+                thrust = [[kf[d] * r * r for r in rpm_d] for d, rpm_d in enumerate(speeds)]
+                yaw = [-km[d] * sum(s * r * r for s, r in zip(spin[d], rpm_d)) for d, rpm_d in enumerate(speeds)]
             lift, body_z, drag = thrust, None, None
             if any_effect:
                 if sub > 0:
                     pos, quat, vel, _ = _read_kinematics(client, bodies)
+                air = np.asarray([e[6:] for e in extra]) if wind else None
                 lift, body_z, drag = (np.asarray(x).tolist() for x in _effect_forces(
-                    effects, world.jax_params, np.asarray(pos), np.asarray(quat), np.asarray(vel), thrust_array,
-                    rpm_prev_array if sub == 0 else rpm_array))
+                    effects, world.jax_params, np.asarray(pos), np.asarray(quat), np.asarray(vel), np.asarray(thrust),
+                    np.asarray(previous), air))
+            elif sub > 0 and extra is not None:
+                pos = _read_kinematics(client, bodies)[0]
             for d, body in enumerate(bodies):
                 lift_d, points_d = lift[d], points[d]
                 for i in range(4):
@@ -308,6 +340,10 @@ class PyBulletStep:
                                                 physicsClientId=client)
                 if drag is not None and effects.drag:
                     pybullet.applyExternalForce(body, -1, drag[d], pos[d], world_frame, physicsClientId=client)
+                if extra is not None:  # the disturbance: a world force at the centre of mass, a body torque
+                    pybullet.applyExternalForce(body, -1, extra[d][0:3], pos[d], world_frame, physicsClientId=client)
+                    pybullet.applyExternalTorque(body, -1, extra[d][3:6], link, physicsClientId=client)
+            previous = speeds
             pybullet.stepSimulation(physicsClientId=client)
             for point in pybullet.getContactPoints(physicsClientId=client):
                 for me, other in ((point[1], point[2]), (point[2], point[1])):
@@ -318,7 +354,7 @@ class PyBulletStep:
         for d, body in enumerate(bodies):
             p, q = pybullet.getBasePositionAndOrientation(body, physicsClientId=client)
             v, omega = pybullet.getBaseVelocity(body, physicsClientId=client)
-            out.append((p, q, v, _rotate_inverse(q, omega), rpm[d], contact[d]))  # ω world → body: Rᵀ ω
+            out.append((p, q, v, _rotate_inverse(q, omega), speeds[d], contact[d]))  # ω world → body: Rᵀ ω
         return out
 
     # ----------------------------------------------------------------------------------------------- worlds
@@ -485,16 +521,22 @@ def _host_params(params: DroneParams, lead: tuple[int, ...]) -> dict:
     geometry = [[{**scene.drone_geometry({k: v[w, d] for k, v in arrays.items()}),
                   "gravity": float(arrays["gravity"][w, d])} for d in range(n_drones)] for w in range(n_worlds)]
     return {
-        **{k: arrays[k].tolist() for k in ("kf", "km", "prop_spin", "max_rpm")},
+        **{k: arrays[k].tolist() for k in ("kf", "km", "prop_spin", "max_rpm", "motor_tau_up", "motor_tau_down")},
         "thrust_points": points.tolist(), "geometry": geometry,
         "arrays": arrays,
     }
 
 
+def _decay(tau: float, dt: float) -> float:
+    """exp(-dt/τ), 0 for τ ≤ 0: as `jaxdrones.dynamics.motor_decay`."""
+    return math.exp(-dt / tau) if tau > 0 else 0.0
+
+
 @functools.partial(jax.jit, static_argnums=0)
-def _effect_forces(effects: Effects, params: DroneParams, pos, quat, vel, thrust, rpm_prev):
+def _effect_forces(effects: Effects, params: DroneParams, pos, quat, vel, thrust, rpm_prev, wind=None):
     """The aerodynamic effects of one world, by the JAX core's functions: per-motor lift (thrust + ground effect)
-    f[D, 4] N, downwash f[D] N along body z, and drag f[D, 3] N in the world frame."""
+    f[D, 4] N, downwash f[D] N along body z, and drag f[D, 3] N in the world frame (relative to ``wind`` f[D, 3]
+    m/s when given)."""
     rotmat = quat_to_rotmat_c(split(quat))
     lift = split(thrust)
     if effects.ground_effect:
@@ -505,7 +547,8 @@ def _effect_forces(effects: Effects, params: DroneParams, pos, quat, vel, thrust
     else:
         body_z = jnp.zeros(pos.shape[0], pos.dtype)
     if effects.drag:
-        drag = join(aerodynamics.drag_force_c(params, split(vel), split(rpm_prev)))
+        air = None if wind is None else split(wind)
+        drag = join(aerodynamics.drag_force_c(params, split(vel), split(rpm_prev), air))
     else:
         drag = jnp.zeros_like(vel)
     return join(lift), body_z, drag

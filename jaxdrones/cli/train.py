@@ -82,6 +82,14 @@ def register(subparsers) -> None:
     env.add_argument("--start-ang-vel", type=float, default=None,
                      help="half-width of random start body rates, rad/s (default: the task's; multi_hover trains from "
                           "1 rad/s and is evaluated from its own 0.1)")
+    env.add_argument("--realism", default=None, metavar="PRESET",
+                     help="sim-to-real preset: crazyflie (Learning to Fly in Seconds' Crazyflie: 0.15 s motor lag, "
+                          "observation noise, a random force and torque per episode) or crazyflie_harsh (twice its "
+                          "lag and noise, 1 m/s Dryden turbulence); default none, the paper's physics")
+    env.add_argument("--realism-set", action="append", default=[], metavar="NAME=VALUE",
+                     help="one sim-to-real option (a field of jaxdrones.Realism), over --realism's preset: a value or "
+                          "a range LOW,HIGH drawn per episode, e.g. action_delay=1, motor_tau_up=0.05,0.2, "
+                          "turbulence=0.5; repeatable")
     out = parser.add_argument_group("output")
     out.add_argument("--out", default=None, help="output folder (default runs/TASK; a numbered sibling is used if "
                                                  "it exists, unless --overwrite)")
@@ -118,6 +126,31 @@ _ENV_OPTIONS = {"action_type": "action_type", "obs_type": "obs_type", "model": "
                 "frame_stack": "frame_stack"}
 
 
+def realism_options(preset: str | None, settings: list[str]):
+    """``--realism`` and ``--realism-set``'s NAME=VALUE settings as a task config's ``realism`` (None, the preset's
+    name, or a dict of `jaxdrones.realism.Realism` fields with the preset under ``"preset"``), kept as plain data
+    so that the run's summary and checkpoint record it.
+
+    Raises:
+        ValueError: a setting that is not NAME=VALUE or NAME=LOW,HIGH with numbers (the names and values are
+            checked by `jaxdrones.realism.resolve`).
+    """
+    if not settings:
+        return preset
+    options = {} if preset is None else {"preset": preset}
+    for setting in settings:
+        name, sep, text = setting.partition("=")
+        try:
+            values = tuple(float(v) for v in text.split(","))
+        except ValueError:
+            values = ()
+        if not sep or not name or len(values) not in (1, 2):
+            raise ValueError(f"--realism-set takes NAME=VALUE or NAME=LOW,HIGH (numbers), got {setting!r}")
+        values = tuple(int(v) if name.endswith("_delay") and v.is_integer() else v for v in values)
+        options[name.strip()] = values[0] if len(values) == 1 else values
+    return options
+
+
 def _positive(name: str, value) -> None:
     if value is not None and value < 1:
         raise ValueError(f"{name} must be a positive integer, got {value}")
@@ -152,6 +185,9 @@ def run_cli(args: argparse.Namespace) -> int:
         if not args.no_compile_cache:
             enable_compilation_cache()
         env = {field: getattr(args, arg) for arg, field in _ENV_OPTIONS.items() if getattr(args, arg) is not None}
+        realism = realism_options(args.realism, args.realism_set)
+        if realism is not None:
+            env["realism"] = realism
         if "target" in env and args.task not in ("hover", "takeoff"):
             raise ValueError(f"--target applies to hover and takeoff, not {args.task}")
         from jaxdrones.envs import make_config

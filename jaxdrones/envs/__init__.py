@@ -20,6 +20,11 @@ from jaxdrones.envs.task import Task, TaskParams
 from jaxdrones.envs.tasks.avoid import AVOID
 from jaxdrones.envs.tasks.multi import MULTI_AGENT_TASKS
 from jaxdrones.envs.tasks.single import SINGLE_AGENT_TASKS, HoverConfig
+from jaxdrones.realism import Realism
+from jaxdrones.realism import resolve as resolve_realism
+
+#: The `Realism` fields that `make` and `make_config` take as keywords.
+REALISM_OPTIONS = frozenset(f.name for f in dataclasses.fields(Realism))
 
 _REGISTRY: dict[str, Task] = {task.name: task for task in SINGLE_AGENT_TASKS + (AVOID,) + MULTI_AGENT_TASKS}
 #: Names of the single-agent tasks (D = 1) and of the multi-agent tasks (D ≥ 2).
@@ -40,16 +45,20 @@ def get_task(name: str) -> Task:
 
 
 def make_config(name: str, **overrides) -> TaskConfig:
-    """The task's config with ``overrides`` (fields of its `TaskConfig` subclass).
+    """The task's config with ``overrides`` (fields of its `TaskConfig` subclass, and `Realism` fields: see `make`).
 
     Raises:
         ValueError: unknown task or option, or an invalid value.
     """
     task = get_task(name)
     fields = {f.name for f in dataclasses.fields(task.config_cls)}
+    options = {k: overrides.pop(k) for k in list(overrides) if k in REALISM_OPTIONS and k not in fields}
     unknown = sorted(set(overrides) - fields)
     if unknown:
-        raise ValueError(unknown_option(name, unknown[0], fields))
+        raise ValueError(unknown_option(name, unknown[0], fields | REALISM_OPTIONS))
+    if options:  # a realism option given alone: on top of the preset (or of none)
+        realism = resolve_realism(overrides.get("realism"))
+        overrides["realism"] = dataclasses.replace(realism or Realism(), **options)
     return task.config_cls(**overrides)
 
 
@@ -59,7 +68,10 @@ def make(name: str, **overrides) -> TaskEnv:
 
     Args:
         name: registered task name (see `registered`).
-        **overrides: fields of the task's config (`TaskConfig` and the task's subclass, e.g. `HoverConfig`).
+        **overrides: fields of the task's config (`TaskConfig` and the task's subclass, e.g. `HoverConfig`), and
+            the fields of `jaxdrones.realism.Realism` (e.g. ``action_delay=1``, ``motor_tau_up=(0.05, 0.2)``),
+            which set the config's ``realism`` on top of its preset: ``jd.make("hover", realism="crazyflie",
+            turbulence=0.5)``.
 
     Raises:
         ValueError: unknown task name or option, an invalid value, or a drone count the task does not allow.

@@ -33,6 +33,8 @@ class EnvState:
         steps: i32[...] control steps taken since reset.
         metrics: dict of f[...] per-step diagnostics (per world: means over the drones).
         info: dict of extra per-step data (wrappers add theirs, e.g. the auto-reset's final observation).
+        realism: the sim-to-real options' `jaxdrones.realism.RealismState` (drawn values, delay buffers, wind and
+            disturbance processes), or None when the config has no ``realism``.
     """
 
     sim: DroneState
@@ -48,6 +50,7 @@ class EnvState:
     steps: jax.Array
     metrics: dict[str, jax.Array] = struct.field(default_factory=dict)
     info: dict[str, Any] = struct.field(default_factory=dict)
+    realism: Any = None
 
     @property
     def done(self) -> jax.Array:
@@ -59,7 +62,7 @@ def world_axes(shared_params: bool) -> EnvState:
     """The ``vmap`` axes (``in_axes``/``out_axes``) of an `EnvState` batched over worlds: every field on axis 0,
     except ``params`` on none when every world shares them (``shared_params``; see `Env.shared_params`)."""
     return EnvState(sim=0, params=None if shared_params else 0, task=0, ctrl=0, history=0, key=0, obs=0, reward=0,
-                    terminated=0, truncated=0, steps=0, metrics=0, info=0)
+                    terminated=0, truncated=0, steps=0, metrics=0, info=0, realism=0)
 
 
 class Env(abc.ABC):

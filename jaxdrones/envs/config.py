@@ -21,6 +21,7 @@ from jaxdrones.cameras import ENV_IMAGES
 from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS
 from jaxdrones.envs.observations import OBS_TYPES
 from jaxdrones.params import MODELS, DroneParams, with_derived
+from jaxdrones.realism import resolve as resolve_realism
 from jaxdrones.scene import resolve_obstacles
 from jaxdrones.sim import SimConfig
 
@@ -145,6 +146,12 @@ class TaskConfig:
             been taken (gymnasium's ``FrameStackObservation`` with ``padding_type="reset"``; the frame stack of
             Mnih et al. 2015, "Human-level control through deep reinforcement learning"). A memory for a policy
             without one: what it passed and no longer sees, and its motion relative to the scene.
+        realism: sim-to-real options (`jaxdrones.realism`): None (the paper's physics, default), a preset name
+            (``"crazyflie"``: Learning to Fly in Seconds' Crazyflie values; ``"crazyflie_harsh"``), a
+            `jaxdrones.realism.Realism`, or a dict of its fields (with an optional ``"preset"`` they override).
+            `jaxdrones.make` also takes each `Realism` field as a keyword (``jd.make("hover", realism="crazyflie",
+            action_delay=1)``). Motor time constants turn on `SimConfig.motor_dynamics`; wind turns on ``drag``
+            (through which it acts). Stored as a `Realism` (or None).
 
     Raises:
         ValueError: on any invalid value, naming the field and the valid range.
@@ -190,6 +197,7 @@ class TaskConfig:
     camera_fov: float = 60.0
     renderer: str = "tiny"
     frame_stack: int = 1
+    realism: Any = None
 
     def __post_init__(self):
         _check_choice("action_type", self.action_type, ACTION_TYPES)
@@ -230,6 +238,7 @@ class TaskConfig:
         elif self.randomize is not None and not isinstance(self.randomize, DomainRandomization):
             raise ValueError(f"randomize must be None, a DomainRandomization or a dict of its fields "
                              f"{[f.name for f in dataclasses.fields(DomainRandomization)]}, got {self.randomize!r}")
+        self._set("realism", resolve_realism(self.realism))
         self.sim_config()  # validates the rates
         self._check_backend()
 
@@ -292,9 +301,11 @@ class TaskConfig:
 
     def sim_config(self) -> SimConfig:
         """The `SimConfig` of the physics."""
-        return SimConfig(n_drones=self.n_drones, sim_freq=self.sim_freq, ctrl_freq=self.ctrl_freq, drag=self.drag,
-                         ground_effect=self.ground_effect, downwash=self.downwash, kinks=self.kinks,
-                         downwash_radius=self.downwash_radius, adjoint=self.adjoint)
+        realism = self.realism
+        return SimConfig(n_drones=self.n_drones, sim_freq=self.sim_freq, ctrl_freq=self.ctrl_freq,
+                         drag=self.drag or (realism is not None and realism.wind), ground_effect=self.ground_effect,
+                         downwash=self.downwash, kinks=self.kinks, downwash_radius=self.downwash_radius,
+                         adjoint=self.adjoint, motor_dynamics=realism is not None and realism.motor_dynamics)
 
     @property
     def camera_period(self) -> int:

@@ -19,6 +19,7 @@ from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import ObsType
 from jaxdrones.envs.task import Bounds, StartRanges, Task, TaskParams
 from jaxdrones.params import DroneParams, broadcast_params, load_params, stack_params
+from jaxdrones.realism import RealismModel
 from jaxdrones.rotations import quat_from_euler
 from jaxdrones.sim import make_step
 from jaxdrones.state import DroneState
@@ -26,6 +27,8 @@ from jaxdrones.state import DroneState
 #: How far (in action units) an entry may lie outside its box before ``metrics["clipped_actions"]`` counts it:
 #: float32 round-off of actions computed at the bounds (e.g. ``tanh`` saturating to 1 + 1 ulp) is not a clip.
 CLIP_TOLERANCE = 1e-6
+#: The PRNG stream of the sim-to-real options' draws at reset (`jax.random.fold_in` of the reset's key).
+_REALISM_STREAM = 0x5EA1
 
 
 def outside_box(action, low, high):
@@ -71,6 +74,14 @@ class TaskEnv(Env):
                    else {})
         self._step = make_step(self.sim_config, backend=config.backend, **options)
         self._default_task = None
+        self.realism = None
+        if config.realism is not None:
+            self.realism = RealismModel(config.realism, config.n_drones, self.action_type.size,
+                                        self.sim_config.ctrl_dt)
+            if config.realism.motor_dynamics and not config.realism.randomizes_params:
+                self.params = self.params.replace(**{name: jnp.full((config.n_drones,), getattr(config.realism, name)[0],
+                                                                    self.params.mass.dtype)
+                                                     for name in ("motor_tau_up", "motor_tau_down")})
 
     def __reduce__(self):
         return type(self), (self.task, self.config)
@@ -99,8 +110,11 @@ class TaskEnv(Env):
 
     @property
     def shared_params(self) -> DroneParams | None:
-        """``params`` (batch shape [D]) when ``config.randomize`` is None (every episode uses them), else None."""
-        return self.params if self.config.randomize is None else None
+        """``params`` (batch shape [D]) when every episode uses them, else None: ``config.randomize`` or a range of
+        motor time constants in ``config.realism`` draws them per episode."""
+        realism = self.config.realism
+        drawn = self.config.randomize is not None or (realism is not None and realism.randomizes_params)
+        return None if drawn else self.params
 
     @property
     def observation_spec(self):
@@ -195,13 +209,21 @@ class TaskEnv(Env):
             EnvState with reward 0 and the first observation.
         """
         cfg = self.config
+        k_realism = jax.random.fold_in(key, _REALISM_STREAM)  # apart from the other draws, which stay as they were
         k_task, k_start, k_params, key = jax.random.split(key, 4)
         task = self.task.sample(cfg, self.default_task_params() if task is None else task, k_task)
         params = cfg.randomize.sample(k_params, self.params) if cfg.randomize is not None else self.params
         sim = sample_start(k_start, task.start, self.dtype)
         history = jnp.zeros((cfg.n_drones, self.obs_type.buffer_len, self.action_size), self.dtype)
         steps = jnp.zeros((), jnp.int32)
-        obs = self._observe(task, sim, history, steps)
+        realism, seen = None, sim
+        if self.realism is not None:
+            realism = self.realism.reset(k_realism, sim, self.dtype)
+            if cfg.realism.randomizes_params:
+                params = params.replace(motor_tau_up=realism.values["motor_tau_up"],
+                                        motor_tau_down=realism.values["motor_tau_down"])
+            seen = self.realism.initial(realism, sim)
+        obs = self._observe(task, seen, history, steps)
         if cfg.vision:
             blank = {k: jnp.zeros(v.shape, v.dtype) for k, v in self._image_spec(frames=False).items()}
             first = self._render(task.scene, params, sim, jnp.ones((), bool), blank)
@@ -213,7 +235,7 @@ class TaskEnv(Env):
         metrics = self._metrics(task, sim, steps, {k: zeros for k in terms}, false, false, jnp.zeros((), jnp.int32))
         return EnvState(sim=sim, params=params, task=task, ctrl=self.action_type.init(params, sim), history=history,
                         key=key, obs=obs, reward=zeros, terminated=jnp.zeros((), bool),
-                        truncated=jnp.zeros((), bool), steps=steps, metrics=metrics)
+                        truncated=jnp.zeros((), bool), steps=steps, metrics=metrics, realism=realism)
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Advance one control step.
@@ -233,13 +255,21 @@ class TaskEnv(Env):
         clipped = jnp.where(finite, jnp.sum(outside_box(action, low, high)), 0)
         action = jnp.where(finite, jnp.clip(action, low, high), 0.0)
         ref = self.task.reference(cfg, task, state.steps)
-        rpm, ctrl = self.action_type.to_rpm(state.params, state.sim, state.ctrl, action, ref, self.sim_config.ctrl_dt)
-        sim = self._step(state.params, state.sim, rpm)
+        realism, applied, disturbance = state.realism, action, None
+        if self.realism is not None:  # the delayed action, and the wind and disturbance of this step
+            applied, realism = self.realism.delay_action(realism, action)
+            disturbance, realism = self.realism.disturbance(realism, state.sim)
+        rpm, ctrl = self.action_type.to_rpm(state.params, state.sim, state.ctrl, applied, ref, self.sim_config.ctrl_dt)
+        sim = self._step(state.params, state.sim, rpm) if disturbance is None else \
+            self._step(state.params, state.sim, rpm, disturbance)
         steps = state.steps + 1
         history = state.history
         if self.obs_type.buffer_len:
             history = jnp.concatenate([history[:, 1:], action[:, None]], axis=1)
-        obs = self._observe(task, sim, history, steps)
+        seen = sim
+        if self.realism is not None:  # what the sensors report: delayed, biased, noisy
+            seen, realism = self.realism.observe(realism, sim)
+        obs = self._observe(task, seen, history, steps)
         if cfg.vision:
             held = {k: v for k, v in state.obs.items() if k != "state"}
             due = steps % cfg.camera_period == 0
@@ -253,7 +283,7 @@ class TaskEnv(Env):
         truncated = (steps >= self.episode_length) & ~terminated
         metrics = self._metrics(task, sim, steps, weighted, crashed, ~finite, clipped)
         return state.replace(sim=sim, ctrl=ctrl, history=history, obs=obs, reward=reward, terminated=terminated,
-                             truncated=truncated, steps=steps, metrics=metrics)
+                             truncated=truncated, steps=steps, metrics=metrics, realism=realism)
 
     def loss(self, state: EnvState) -> jax.Array:
         """The task's differentiable training loss of a (post-step) state, f[D]: `Task.loss_terms` weighted by
