@@ -18,9 +18,9 @@ over the step 2.9x / 5.0x before, 2.4x / 2.1x after; through the hover env's ``s
 3.0x / 2.3x after (README, "Benchmarks").
 
 tests/test_adjoint.py checks it against JAX's derived derivative to float64 rounding. Two parts keep JAX's
-derivative: the downwash force is computed outside the substep (an input of it, differentiated by JAX), and a
-gradient with respect to the drone's params (system identification) makes the rule fall back to JAX's derived pass
-for that substep.
+derivative: the downwash (the paper's force, or the per-rotor thrust changes, which enter the lifts) is computed
+outside the substep (an input of it, differentiated by JAX), and a gradient with respect to the drone's params
+(system identification) makes the rule fall back to JAX's derived pass for that substep.
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ def euler_substep_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
     Returns:
         The kinematics after the substep and bool[..., D], True where the drone touched the ground.
     """
-    downwash = dynamics.downwash_c(params, effects, kin.pos, neighbors)
+    downwash = dynamics.downwash_c(params, effects, kin, motors, neighbors, unit_quat=True)
     return _substep(params, effects, kin, motors, rpm_prev, downwash, disturbance, dt)
 
 
@@ -127,9 +127,10 @@ def _matvec_t(m: jax.Array, v: Components) -> Components:
 def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors, rpm_prev: Components,
                 downwash: jax.Array | None, dt: float, ct: Kinematics, disturbance: Disturbance | None = None
                 ) -> tuple[Kinematics, Motors, Components, jax.Array, Disturbance | None]:
-    """The cotangents of the substep's inputs (``kin``, ``motors``, ``rpm_prev``, ``downwash``, the downwash
-    force f[..., D] N or None, and ``disturbance``, None or a `Disturbance` in component form) for the cotangent
-    ``ct`` of its output kinematics; the others as in `euler_substep_c`.
+    """The cotangents of the substep's inputs (``kin``, ``motors``, ``rpm_prev``, ``downwash``: None, the paper's
+    force f[..., D] N along body z or the per-rotor thrust changes, a 4-tuple of f[..., D] N, as
+    `dynamics.downwash_c` returns them, and ``disturbance``, None or a `Disturbance` in component form) for the
+    cotangent ``ct`` of its output kinematics; the others as in `euler_substep_c`.
 
     The forward quantities are recomputed from the inputs, then each equation of the substep is transposed in the
     reverse order (docs/physics.md: ground contact §5.6, position and exponential-map updates §4.5-4.6, Euler's
@@ -150,9 +151,10 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
         clipped = [jnp.maximum(h, params.gnd_eff_h_clip) for h in height]
         gain = [params.gnd_eff_coeff * (params.prop_radius / (4 * c)) ** 2 for c in clipped]
         lift = tuple(t + jnp.where(upright, t * g, 0.0) for t, g in zip(thrust, gain, strict=True))
+    lift, body_z_downwash = dynamics.add_downwash_c(lift, downwash)
     body_z_force = sum(lift[1:], lift[0])
-    if downwash is not None:
-        body_z_force = body_z_force + downwash
+    if body_z_downwash is not None:
+        body_z_force = body_z_force + body_z_downwash
     force = [rot[k][2] * body_z_force for k in range(3)]
     force[2] = force[2] + -params.mass * params.gravity
     if effects.drag:
@@ -225,6 +227,7 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
         force=None if given.force is None else force_b, torque=None if given.torque is None else tau_b, wind=wind_b)
     body_z_force_b = dot(tuple(rot[k][2] for k in range(3)), force_b)
     lift_b = tuple(b + body_z_force_b for b in lift_b)
+    downwash_b = lift_b if isinstance(downwash, tuple) else body_z_force_b  # per-rotor changes add to the lifts
     rot_b = [[0.0] * 3 for _ in range(3)]  # the cotangents of R's entries that the substep reads
     for k in range(3):
         rot_b[k][2] = force_b[k] * body_z_force
@@ -245,4 +248,4 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
            q_b[1] + 2 * (s * b02 + z * b12 - 2 * y * b22 - s * b20 + z * b21),
            q_b[2] + 2 * (x * b02 + y * b12 + x * b20 + y * b21),
            q_b[3] + 2 * (y * b02 - x * b12 - y * b20 + x * b21))
-    return Kinematics(pos_b, q_b, v_b, w_b), Motors(thrust_b, tau_b[2]), rpm_prev_b, body_z_force_b, disturbance_b
+    return Kinematics(pos_b, q_b, v_b, w_b), Motors(thrust_b, tau_b[2]), rpm_prev_b, downwash_b, disturbance_b

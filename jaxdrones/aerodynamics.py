@@ -1,9 +1,12 @@
-"""The paper's aerodynamic effects: drag, per-propeller ground effect and inter-drone downwash.
+"""The paper's aerodynamic effects: drag, per-propeller ground effect and inter-drone downwash; and a per-rotor
+downwash model beside the paper's.
 
 Each function is pure, differentiable and broadcasts over leading (world) axes; downwash couples the ``D`` drones
 of one world along the drone axis. Equations are those of the paper (eqs. drag, ground, down) as the paper's code
-applies them in its PyBullet modes (docs/physics.md §6). Each is written once, in component form (``*_c``, see
-`jaxdrones.rotations`), which the simulation core runs on; the array-form functions wrap it.
+applies them in its PyBullet modes (docs/physics.md §6). The per-rotor downwash (`downwash_thrust`, docs/physics.md
+§6.4) samples the jet of Bauersfeld et al. at each rotor of the lower drone and turns it into a thrust change with the
+law of Su et al. Each is written once, in component form (``*_c``, see `jaxdrones.rotations`), which the simulation
+core runs on; the array-form functions wrap it.
 """
 
 from __future__ import annotations
@@ -16,8 +19,28 @@ from jaxdrones.neighbors import gather
 from jaxdrones.params import DroneParams
 from jaxdrones.rotations import GIMBAL_SNAP, Components, dot, join, split
 
+#: The downwash models of `jaxdrones.config.SimConfig.downwash`: the paper's one force at the lower drone's centre
+#: of mass (`downwash_force`, docs/physics.md §6.3) and the per-rotor thrust changes (`downwash_thrust`, §6.4).
+DOWNWASH_MODELS = ("paper", "per_rotor")
 #: Downwash acts only between drones closer than this horizontally, m (docs/physics.md §6.3; the original's).
 DOWNWASH_MAX_DIST = 10.0
+#: Air density, kg/m³ (ISA sea level), in the hover induced velocity of the per-rotor model's jet.
+AIR_DENSITY = 1.225
+#: The far-field fit of the jet below a hovering quadrotor (L. Bauersfeld, K. Muller, D. Ziegler, F. Coletti,
+#: D. Scaramuzza, "Robotics meets Fluid Dynamics: A Characterization of the Induced Airflow below a Quadrotor as a
+#: Turbulent Jet", IEEE RA-L 2025, arXiv:2403.13321, Eq. (9)): the centreline decay constant B_D, the spreading rate
+#: S of the half-width and the virtual origin s̃0, in units of the motor distance l (their Eq. (8)).
+JET_DECAY = 10.11
+JET_SPREAD = 0.07668
+JET_ORIGIN = -5.817
+#: Below the source's rotor plane the jet acts from s = 0.1 l on (crazyflow's examples/plugins/downwash.py, which
+#: keeps the fit from giving flow above the source); the fit itself was identified beyond 2.5 l (docs/physics.md §6.4).
+JET_ONSET = 0.1
+#: The per-rotor model's thrust decay coefficient b_v, s/m: each rotor loses the fraction b_v·U of its thrust in a
+#: downward inflow U (Y. Su et al., "Downwash-aware Control Allocation for Over-actuated UAV Platforms", IROS 2022,
+#: arXiv:2207.09645, Eq. (5)). The value, 0.07 s/m, is the one crazyflow's downwash example uses for the Crazyflie
+#: (learnsyslab/crazyflow, examples/plugins/downwash.py), which notes that it must be fitted to the propeller.
+THRUST_DECAY = 0.07
 #: Floor on the squared downwash width β², m², so that β → 0 (at Δz = -c3/c2) gives the d → 0 limit, not 0/0.
 _BETA2_FLOOR = 1e-12
 
@@ -153,3 +176,115 @@ def downwash_force_c(params: DroneParams, pos: Components, kinks: Kinks = Kinks(
         onset = kinks.step(dz - width, width) ** 2
         force = force * onset * kinks.step(cutoff**2 - dist2, 2 * cutoff * width)
     return -jnp.sum(jnp.where(active, force, 0.0), axis=-1)
+
+
+def hover_induced_velocity(params: DroneParams) -> jax.Array:
+    """The induced velocity of a hovering drone, U_H = √(m g / (2 ρ π r_P² n)) with n = 4 rotors, m/s
+    (momentum theory; Bauersfeld et al., arXiv:2403.13321, Eq. (1)); f[...] like ``params.mass``."""
+    disc_area = jnp.pi * params.prop_radius**2 * params.prop_pos.shape[-2]
+    return jnp.sqrt(params.mass * params.gravity / (2 * AIR_DENSITY * disc_area))
+
+
+def jet_speed(s: jax.Array, r2: jax.Array, u_hover: jax.Array, length: jax.Array) -> jax.Array:
+    """Mean downward air speed in the jet below a hovering quadrotor, m/s (Bauersfeld et al., arXiv:2403.13321).
+
+    With s̃ = s / l, r̃ = r / l (Eq. (8)), the centreline speed U_c = U_H B_D / (s̃ − s̃0) (Eq. (2)), the half-width
+    r̃½ = S (s̃ − s̃0) (Eq. (6)) and ξ = r̃ / r̃½ (Eq. (4)): U = U_c / (1 + (√2 − 1) ξ²)² (Eq. (3)), half the centreline
+    speed at ξ = 1; B_D, S, s̃0 are their Eq. (9)'s fit (`JET_DECAY`, `JET_SPREAD`, `JET_ORIGIN`). The caller keeps
+    s̃ > s̃0 (the fit diverges at the virtual origin); see `downwash_thrust` for where it is used.
+
+    Args:
+        s: f[...] m, distance below the source along its body −z axis.
+        r2: f[...] m², squared distance from the source's body z axis (r², so that r = 0 has a finite gradient).
+        u_hover: f[...] m/s, the source's `hover_induced_velocity`.
+        length: f[...] m, the source's motor distance l (between opposite motors).
+
+    Returns:
+        f[...] m/s, along the source's body −z axis.
+    """
+    axial = s / length - JET_ORIGIN
+    xi2 = r2 / (length * JET_SPREAD * axial) ** 2
+    return u_hover * JET_DECAY / axial / (1 + (jnp.sqrt(2.0) - 1) * xi2) ** 2
+
+
+def downwash_thrust(params: DroneParams, pos: jax.Array, rotmat: jax.Array, thrust: jax.Array,
+                    kinks: Kinks = Kinks(), neighbors: jax.Array | None = None,
+                    cutoff: float = DOWNWASH_MAX_DIST) -> jax.Array:
+    """Per-rotor downwash: the change of each rotor's thrust in the jets of the drones above (docs/physics.md §6.4).
+
+    Each drone i is a hovering source whose jet (`jet_speed`: Bauersfeld et al., "Robotics meets Fluid Dynamics",
+    arXiv:2403.13321, Eqs. (1)-(4), (6), (8), (9)) runs along its body −z axis from its centre of mass, with its own
+    U_H (`hover_induced_velocity`) and motor distance l = 2·arm. It is sampled at each rotor k of every other drone j,
+    at the lever-arm point where the rotor's thrust acts (``(−torque_arm[1, k], torque_arm[0, k], prop_pos[k, 2])``
+    in j's body frame), at the distance s below i along i's body z and r from that axis; the speed along j's rotor
+    axis is U cos θ (θ between the drones' body z axes), and the sources' contributions add up. Rotor k then changes
+    its thrust by ΔT_jk = −b_v U_jk f_jk (Su et al., "Downwash-aware Control Allocation for Over-actuated UAV
+    Platforms", arXiv:2207.09645, Eq. (5); b_v = `THRUST_DECAY`), f_jk its motor thrust kf·rpm². This is the model of
+    crazyflow's downwash example (learnsyslab/crazyflow, examples/plugins/downwash.py), without its drag of the wake.
+
+    A source acts where s > 0.1 l (`JET_ONSET`; the fit was identified beyond 2.5 l) and the centres are closer than
+    ``cutoff`` horizontally. ΔT acts like thrust, along the lower drone's body +z at the rotor, so that unequal losses
+    give a roll and pitch torque. ``kinks`` (`jaxdrones.kinks`) may smooth the onset (over 2·``kinks.downwash`` m
+    below 0.1 l) and the cut-off. ``neighbors`` (`jaxdrones.neighbors.cell_candidates`) bounds the pairs, as in
+    `downwash_force`.
+
+    Args:
+        params: DroneParams (the source's mass, gravity, prop_radius and arm; the lower drone's lever arms).
+        pos: f[..., D, 3] m, world frame.
+        rotmat: f[..., D, 3, 3] body→world.
+        thrust: f[..., D, 4] N, kf·rpm² of each motor.
+        kinks: the kinks' treatment (default: exact).
+        neighbors: None (every drone) or i32[..., D, K], the drones that may act on each drone (entries equal to
+            the drone itself count for nothing).
+        cutoff: horizontal distance between the centres beyond which drones do not interact, m.
+
+    Returns:
+        f[..., D, 4] N, the change of each rotor's thrust along its drone's body +z (negative: a loss).
+    """
+    rows = tuple(split(rotmat[..., r, :]) for r in range(3))
+    return join(downwash_thrust_c(params, split(pos), rows, split(thrust), kinks, neighbors, cutoff))
+
+
+def downwash_thrust_c(params: DroneParams, pos: Components, rotmat: tuple[Components, Components, Components],
+                      thrust: Components, kinks: Kinks = Kinks(), neighbors: jax.Array | None = None,
+                      cutoff: float = DOWNWASH_MAX_DIST) -> Components:
+    """`downwash_thrust` in component form: pos (x, y, z), rotmat's rows and thrust (4 motors), each f[..., D];
+    returns the 4-tuple of thrust changes, each f[..., D] N."""
+    shape = pos[0].shape
+    own = lambda x: jnp.broadcast_to(x, shape)[..., :, None]  # noqa: E731  [..., j (lower), 1]
+    index = jnp.broadcast_to(jnp.arange(shape[-1]), shape)
+    if neighbors is None:  # every drone: [..., j (lower), i (source)]
+        source = lambda x: jnp.broadcast_to(x, shape)[..., None, :]  # noqa: E731
+        other = source(index) != own(index)
+    else:
+        source = lambda x: gather(jnp.broadcast_to(x, shape), neighbors)  # noqa: E731
+        other = neighbors != own(index)
+    src_pos = tuple(source(p) for p in pos)
+    src_axis = tuple(source(row[2]) for row in rotmat)  # the sources' body z axes, world frame
+    own_axis = tuple(own(row[2]) for row in rotmat)
+    cos_theta = dot(src_axis, own_axis)
+    u_hover = source(hover_induced_velocity(params))
+    length = source(2 * params.arm)
+    dist2 = (src_pos[0] - own(pos[0])) ** 2 + (src_pos[1] - own(pos[1])) ** 2
+    smooth = kinks.mode == "smooth"
+    reach = cutoff + (kinks.downwash if smooth else 0.0)
+    near = other & (dist2 < reach**2)
+    arm = params.torque_arm
+    changes = []
+    for k, thrust_k in enumerate(thrust):
+        lever = (-arm[..., 1, k], arm[..., 0, k], params.prop_pos[..., k, 2])  # the rotor's thrust point, body frame
+        rotor = tuple(p + dot(row, lever) for p, row in zip(pos, rotmat, strict=True))
+        d = tuple(own(q) - p for q, p in zip(rotor, src_pos, strict=True))  # source centre → rotor, world frame
+        s = -dot(src_axis, d)
+        across = tuple(dk + s * a for dk, a in zip(d, src_axis, strict=True))  # d's part normal to the axis
+        r2 = dot(across, across)
+        onset = JET_ONSET * length
+        active = near & (s > onset)
+        s_safe = jnp.where(active, s, length)
+        speed = jet_speed(s_safe, r2, u_hover, length) * cos_theta
+        if smooth:
+            width = kinks.downwash
+            speed = speed * kinks.step(s - onset - width, width) * kinks.step(cutoff**2 - dist2, 2 * cutoff * width)
+        inflow = jnp.sum(jnp.where(active, speed, 0.0), axis=-1)
+        changes.append(-THRUST_DECAY * inflow * thrust_k)
+    return tuple(changes)

@@ -7,6 +7,8 @@ import dataclasses
 import numpy as np
 
 from jaxdrones import dynamics
+from jaxdrones._hints import did_you_mean
+from jaxdrones.aerodynamics import DOWNWASH_MODELS
 from jaxdrones.kinks import Kinks
 
 
@@ -21,7 +23,10 @@ class SimConfig:
             same RPM command. ``sim_freq`` must be a multiple of ``ctrl_freq`` (as in the paper's code).
         drag: rotor drag, paper eq. (drag).
         ground_effect: per-propeller ground effect, paper eq. (ground).
-        downwash: downwash between the drones of a world, paper eq. (down).
+        downwash: downwash between the drones of a world: False (off), ``"paper"`` (paper eq. (down): one force at
+            the lower drone's centre of mass, docs/physics.md §6.3; True, as which it is stored) or
+            ``"per_rotor"`` (the upper drones' jet sampled at each rotor of the lower drone, a thrust change per rotor
+            and hence a torque, docs/physics.md §6.4).
         integrator: ``"euler"`` (the paper code's semi-implicit Euler with exact quaternion exponential map) or
             ``"rk4"``.
         kinks: how the JAX core treats the kinks of the physics (RPM clip, ground contact, ground effect's height
@@ -47,8 +52,8 @@ class SimConfig:
     Raises:
         ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, an unknown
             integrator or kink treatment, a ``downwash_radius`` neither None nor > 0, a ``cell_capacity`` below 1,
-            or a ``drag``, ``ground_effect``, ``downwash``, ``adjoint`` or ``motor_dynamics`` that is not a bool (a string such as
-            ``downwash="per_rotor"`` would otherwise be truthy).
+            a ``drag``, ``ground_effect``, ``adjoint`` or ``motor_dynamics`` that is not a bool (a string or number
+            would otherwise be truthy), or a ``downwash`` that is none of False, True, ``"paper"``, ``"per_rotor"``.
     """
 
     n_drones: int = 1
@@ -56,7 +61,7 @@ class SimConfig:
     ctrl_freq: int = 240
     drag: bool = False
     ground_effect: bool = False
-    downwash: bool = False
+    downwash: bool | str = False
     integrator: str = "euler"
     kinks: Kinks | str = "exact"
     downwash_radius: float | None = None
@@ -84,11 +89,12 @@ class SimConfig:
         capacity = self.cell_capacity
         if not isinstance(capacity, (int, np.integer)) or isinstance(capacity, bool) or capacity < 1:
             raise ValueError(f"SimConfig.cell_capacity must be a positive integer, got {capacity!r}")
-        for name in ("drag", "ground_effect", "downwash", "adjoint", "motor_dynamics"):
+        for name in ("drag", "ground_effect", "adjoint", "motor_dynamics"):
             value = getattr(self, name)
             if not isinstance(value, (bool, np.bool_)):
                 raise ValueError(f"SimConfig.{name} must be True or False, got {value!r}")
             object.__setattr__(self, name, bool(value))
+        object.__setattr__(self, "downwash", downwash_model(self.downwash, "SimConfig.downwash"))
         if self.integrator not in dynamics.INTEGRATORS:
             raise ValueError(f"SimConfig.integrator must be one of {tuple(dynamics.INTEGRATORS)}, "
                              f"got {self.integrator!r}")
@@ -112,3 +118,19 @@ class SimConfig:
     def effects(self) -> dynamics.Effects:
         return dynamics.Effects(self.drag, self.ground_effect, self.downwash, self.kinks, self.downwash_radius,
                                 self.cell_capacity)
+
+
+def downwash_model(value, name: str = "downwash") -> bool | str:
+    """A downwash setting (`SimConfig.downwash`, `jaxdrones.envs.config.TaskConfig.downwash`) normalised: False
+    (off), True (the paper's model, for True or ``"paper"``) or ``"per_rotor"``.
+
+    Raises:
+        ValueError: any other value, naming ``name`` and the valid choices (with a close one for a mistyped string).
+    """
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, str) and value in DOWNWASH_MODELS:
+        return True if value == "paper" else value
+    hint = did_you_mean(value, DOWNWASH_MODELS) if isinstance(value, str) else ""
+    raise ValueError(f"{name} must be False (off), True or 'paper' (the paper's model) or 'per_rotor' (thrust "
+                     f"changes per rotor), got {value!r}{hint}")

@@ -31,7 +31,7 @@ class Effects(NamedTuple):
 
     drag: bool = False
     ground_effect: bool = False
-    downwash: bool = False
+    downwash: bool | str = False  # False, True (the paper's model) or "per_rotor", as `SimConfig.downwash`
     kinks: Kinks = Kinks()
     downwash_radius: float | None = None
     cell_capacity: int = 8
@@ -136,8 +136,8 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
 
     ``unit_quat=True`` tells that ``kin.quat`` is of unit norm (as every step leaves it), which skips normalising it
     again for the rotation matrix. ``neighbors`` i32[..., D, K]: the drones whose downwash acts on each drone
-    (`Effects.downwash_neighbors`; default: chosen from ``kin.pos``). ``downwash`` f[..., D] N: the downwash force
-    along body z (`aerodynamics.downwash_force_c`) when already computed (see `jaxdrones.adjoint`).
+    (`Effects.downwash_neighbors`; default: chosen from ``kin.pos``). ``downwash``: `downwash_c`'s output when
+    already computed (see `jaxdrones.adjoint`).
     ``disturbance``: a `jaxdrones.state.Disturbance` in component form (each given field a 3-tuple of f[..., D]):
     its force (world) adds to the force, its torque (body) to the torque, its wind to the drag's air velocity.
 
@@ -150,9 +150,10 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
     if effects.ground_effect:
         extra = aerodynamics.ground_effect_thrust_c(params, kin.pos[2], rotmat[2], thrust, effects.kinks)
         lift = tuple(t + e for t, e in zip(thrust, extra))
-    body_z_force = sum(lift[1:], lift[0])
     if downwash is None:
-        downwash = downwash_c(params, effects, kin.pos, neighbors)
+        downwash = downwash_c(params, effects, kin, motors, neighbors, unit_quat)
+    lift, downwash = add_downwash_c(lift, downwash)
+    body_z_force = sum(lift[1:], lift[0])
     if downwash is not None:
         body_z_force = body_z_force + downwash
     fx, fy, fz = (row[2] * body_z_force for row in rotmat)
@@ -172,16 +173,37 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
     return tuple(f / params.mass for f in force), ang_acc
 
 
-def downwash_c(params: DroneParams, effects: Effects, pos: Components,
-               neighbors: jax.Array | None = None) -> jax.Array | None:
-    """The downwash force along each drone's body z, f[..., D] N (`aerodynamics.downwash_force_c` with the effects'
-    kinks and cut-off), from positions (x, y, z) each f[..., D]; ``neighbors`` as in `accelerations_c`. None where
-    no downwash acts: the effect is off, or the drone is alone in its world."""
+def downwash_c(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors,
+               neighbors: jax.Array | None = None, unit_quat: bool = False) -> jax.Array | Components | None:
+    """The downwash of ``effects.downwash``'s model with the effects' kinks and cut-off, in component form
+    (``kin``, ``motors``, ``neighbors`` and ``unit_quat`` as in `accelerations_c`).
+
+    Returns:
+        the paper's model (``effects.downwash`` True): the force along each drone's body z, f[..., D] N
+        (`aerodynamics.downwash_force_c`);
+        ``"per_rotor"``: the change of each rotor's thrust, a 4-tuple of f[..., D] N
+        (`aerodynamics.downwash_thrust_c`); None where no downwash acts: the effect is off, or the drone is alone in
+        its world. `add_downwash_c` applies either.
+    """
+    pos = kin.pos
     if not effects.downwash or pos[2].shape[-1] == 1:
         return None
     if neighbors is None:
         neighbors = effects.downwash_neighbors(pos)
+    if effects.downwash == "per_rotor":
+        rotmat = quat_to_rotmat_c(kin.quat, unit=unit_quat)
+        return aerodynamics.downwash_thrust_c(params, pos, rotmat, motors.thrust, effects.kinks, neighbors,
+                                              effects.downwash_cutoff)
     return aerodynamics.downwash_force_c(params, pos, effects.kinks, neighbors, effects.downwash_cutoff)
+
+
+def add_downwash_c(lift: Components, downwash: jax.Array | Components | None) -> tuple[Components, jax.Array | None]:
+    """The per-motor lift (4-tuple of f[..., D] N) with `downwash_c`'s output added where it acts: per-rotor thrust
+    changes (a 4-tuple) add to the lifts, at the rotors; the paper's force (f[..., D] N, or None) is returned as the
+    force along body z at the centre of mass, for the caller to add to the lifts' sum."""
+    if isinstance(downwash, tuple):
+        return tuple(f + d for f, d in zip(lift, downwash, strict=True)), None
+    return lift, downwash
 
 
 def euler_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,

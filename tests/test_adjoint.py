@@ -1,8 +1,8 @@
 """The hand-written adjoint of the Euler substep (`jaxdrones.adjoint`): the control step that uses it
 (``SimConfig(adjoint=True)``, the default) has the values and the reverse-mode derivatives of JAX's derived ones
-(``adjoint=False``), for the state, the command and the params, with and without drag, ground effect and downwash,
-over one or several substeps, across the RPM clip and the ground contact; forward mode is refused with JAX's own
-error and works with ``adjoint=False``."""
+(``adjoint=False``), for the state, the command and the params, with and without drag, ground effect and downwash
+(the paper's force and the per-rotor thrust changes), over one or several substeps, across the RPM clip and the
+ground contact; forward mode is refused with JAX's own error and works with ``adjoint=False``."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ EFFECTS = {
     "none": {},
     "drag_ground": {"drag": True, "ground_effect": True},
     "all": {"drag": True, "ground_effect": True, "downwash": True},
+    "all_per_rotor": {"drag": True, "ground_effect": True, "downwash": "per_rotor"},
 }
 
 

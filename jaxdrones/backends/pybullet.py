@@ -9,7 +9,8 @@ Forces, as in the paper's PyBullet update (docs/physics.md §3.2, §5, §6), re-
 
 - each motor's force kf·rpm² (plus its ground-effect thrust) along body +z at its lever-arm point, so Bullet derives
   the roll and pitch torques from the geometry; the yaw reaction torque -Σ spin_i km rpm_i² about body z;
-- drag (world frame, at the centre of mass) and downwash (body -z, at the centre of mass), computed by the same
+- drag (world frame, at the centre of mass) and downwash (the paper's: body -z, at the centre of mass; the
+  per-rotor model's: each rotor's thrust change, added to its force at its lever-arm point), computed by the same
   functions as the JAX core (`jaxdrones.aerodynamics`);
 - gravity 9.8 m/s² (params), the gyroscopic term by Bullet's rigid-body solver;
 - a step's `jaxdrones.state.Disturbance`: its force (world frame, at the centre of mass) and torque (body frame),
@@ -534,18 +535,20 @@ def _decay(tau: float, dt: float) -> float:
 
 @functools.partial(jax.jit, static_argnums=0)
 def _effect_forces(effects: Effects, params: DroneParams, pos, quat, vel, thrust, rpm_prev, wind=None):
-    """The aerodynamic effects of one world, by the JAX core's functions: per-motor lift (thrust + ground effect)
-    f[D, 4] N, downwash f[D] N along body z, and drag f[D, 3] N in the world frame (relative to ``wind`` f[D, 3]
-    m/s when given)."""
+    """The aerodynamic effects of one world, by the JAX core's functions: per-motor lift (thrust + ground effect +
+    per-rotor downwash) f[D, 4] N, the paper's downwash f[D] N along body z, and drag f[D, 3] N in the world frame
+    (relative to ``wind`` f[D, 3] m/s when given)."""
     rotmat = quat_to_rotmat_c(split(quat))
     lift = split(thrust)
     if effects.ground_effect:
         extra = aerodynamics.ground_effect_thrust_c(params, pos[:, 2], rotmat[2], lift)
         lift = tuple(t + e for t, e in zip(lift, extra))
-    if effects.downwash and pos.shape[0] > 1:
+    body_z = jnp.zeros(pos.shape[0], pos.dtype)
+    if effects.downwash == "per_rotor" and pos.shape[0] > 1:
+        change = aerodynamics.downwash_thrust_c(params, split(pos), rotmat, split(thrust))
+        lift = tuple(f + c for f, c in zip(lift, change, strict=True))
+    elif effects.downwash and pos.shape[0] > 1:
         body_z = aerodynamics.downwash_force_c(params, split(pos))
-    else:
-        body_z = jnp.zeros(pos.shape[0], pos.dtype)
     if effects.drag:
         air = None if wind is None else split(wind)
         drag = join(aerodynamics.drag_force_c(params, split(vel), split(rpm_prev), air))

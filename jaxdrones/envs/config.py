@@ -18,6 +18,7 @@ import numpy as np
 from jaxdrones._hints import did_you_mean
 from jaxdrones.backends import BACKENDS, RENDERERS, require_pybullet
 from jaxdrones.cameras import ENV_IMAGES
+from jaxdrones.config import downwash_model
 from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS
 from jaxdrones.envs.observations import OBS_TYPES
 from jaxdrones.params import MODELS, DroneParams, with_derived
@@ -100,7 +101,8 @@ class TaskConfig:
         sim_freq: physics rate, Hz.
         ctrl_freq: control (env step) rate, Hz.
         episode_len_s: episode length, s.
-        drag, ground_effect, downwash: aerodynamic effects of the physics (docs/physics.md §6).
+        drag, ground_effect, downwash: aerodynamic effects of the physics (docs/physics.md §6); ``downwash`` is False,
+            True or ``"paper"`` (the paper's model; stored as True) or ``"per_rotor"`` (`SimConfig.downwash`).
         kinks: the treatment of the physics' kinks for gradients (`SimConfig.kinks`, `jaxdrones.kinks`):
             ``"exact"`` (default), ``"smooth"`` or ``"straight_through"``, or a `jaxdrones.kinks.Kinks`.
         adjoint: reverse-mode derivatives of the physics through its hand-written adjoint (`SimConfig.adjoint`;
@@ -170,7 +172,7 @@ class TaskConfig:
     episode_len_s: float = 5.0
     drag: bool = False
     ground_effect: bool = False
-    downwash: bool = False
+    downwash: bool | str = False
     kinks: Any = "exact"
     adjoint: bool = True
     reward: str = "shaped"
@@ -207,6 +209,7 @@ class TaskConfig:
         for name in ("action_buffer", "terminate_on_ground"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        self._set("downwash", downwash_model(self.downwash))
         if not (_is_number(self.pid_scale) and 0.0 < self.pid_scale <= PID_MAX_STEP):
             raise ValueError(f"pid_scale must be a distance in m in (0, {PID_MAX_STEP}], got {self.pid_scale!r}")
         n = self.n_drones
