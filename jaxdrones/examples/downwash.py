@@ -3,7 +3,8 @@
 
 Reproduces gym-pybullet-drones ``examples/downwash.py`` (docs/physics.md §13; read at commit 0ff20a6: rates and duration
 lines 27-30, start positions 47, physics mode 52, way-points 61-67) on the jaxdrones physics, flown twice, once with
-``SimConfig(downwash=True)`` (the original's PYB_DW) and once without:
+``SimConfig(downwash=True)`` (the original's PYB_DW; or the per-rotor model, ``fly(downwash="per_rotor")``,
+docs/physics.md §6.4) and once without:
 
 * two cf2x start at rest at (0.5, 0, 1) m and (−0.5, 0, 0.5) m (`INIT_POS`);
 * each tracks x_k = 0.5·cos(2πk/NUM_WP), y = 0, at its own start altitude, with NUM_WP = `PERIOD_S`·ctrl_freq
@@ -118,7 +119,8 @@ def dip_metrics(times: np.ndarray, pos: np.ndarray, target_z: np.ndarray, *, rad
 
 
 def check(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq: int = SIM_FREQ,
-          ctrl_freq: int = CTRL_FREQ, backend: str = "jax", drag: bool = False, ground_effect: bool = False) -> dict:
+          ctrl_freq: int = CTRL_FREQ, backend: str = "jax", drag: bool = False, ground_effect: bool = False,
+          downwash: bool | str = True) -> dict:
     """Validate `fly`'s arguments without flying.
 
     Returns:
@@ -128,7 +130,8 @@ def check(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_fr
         ValueError: see `fly`.
     """
     configs = {label: SimConfig(n_drones=2, sim_freq=sim_freq, ctrl_freq=ctrl_freq, drag=drag,
-                                ground_effect=ground_effect, downwash=label == "on") for label in RUNS}
+                                ground_effect=ground_effect, downwash=downwash if label == "on" else False)
+               for label in RUNS}
     n_steps = check_steps(duration_s, ctrl_freq)
     check_backend(backend)
     return {"configs": configs, "n_steps": n_steps, "params": load_params(model)}
@@ -136,7 +139,7 @@ def check(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_fr
 
 def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq: int = SIM_FREQ,
         ctrl_freq: int = CTRL_FREQ, backend: str = "jax", drag: bool = False, ground_effect: bool = False,
-        gains: PIDGains | None = None) -> dict:
+        gains: PIDGains | None = None, downwash: bool | str = True) -> dict:
     """Fly the crossing twice, with and without downwash, and measure the lower drone's dips.
 
     Args:
@@ -147,6 +150,8 @@ def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq
         backend: ``"jax"`` or ``"pybullet"``.
         drag, ground_effect: further aerodynamic effects in both runs (the original has none).
         gains: PID gains; default `PIDGains.dsl`.
+        downwash: the downwash model of the ``"on"`` run (`SimConfig.downwash`): True or ``"paper"`` (the original's),
+            or ``"per_rotor"``.
 
     Returns:
         dict: ``times`` f[T] s; ``target_pos`` f[T, 2, 3] m, the way-points commanded after each step; ``runs``:
@@ -157,10 +162,10 @@ def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq
 
     Raises:
         ValueError: ``duration_s`` shorter than one control step, an unknown model, invalid rates, an unknown
-            backend.
+            backend or downwash model.
     """
     checked = check(duration_s, model, sim_freq=sim_freq, ctrl_freq=ctrl_freq, backend=backend, drag=drag,
-                    ground_effect=ground_effect)
+                    ground_effect=ground_effect, downwash=downwash)
     n_steps, params = checked["n_steps"], checked["params"]
     start = time.perf_counter()
     gains = PIDGains.dsl() if gains is None else gains
@@ -187,7 +192,8 @@ def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq
                                    f"{PASS_RADIUS_M:g} m apart horizontally and {RECOVERY_S:g} s after, m"),
                     **figures, "max_dip_m": {**dip, "difference": dip["on"] - dip["off"]}},
         "settings": {"example": "downwash", "num_drones": 2, "duration_s": n_steps / ctrl_freq, "model": str(model),
-                     "drag": drag, "ground_effect": ground_effect, "sim_freq": sim_freq, "ctrl_freq": ctrl_freq,
+                     "drag": drag, "ground_effect": ground_effect, "downwash": checked["configs"]["on"].downwash,
+                     "sim_freq": sim_freq, "ctrl_freq": ctrl_freq,
                      "dtype": str(dtype), "backend": backend},
     }
 
