@@ -28,8 +28,8 @@ DOWNWASH_MAX_DIST = 10.0
 AIR_DENSITY = 1.225
 #: The far-field fit of the jet below a hovering quadrotor (L. Bauersfeld, K. Muller, D. Ziegler, F. Coletti,
 #: D. Scaramuzza, "Robotics meets Fluid Dynamics: A Characterization of the Induced Airflow below a Quadrotor as a
-#: Turbulent Jet", IEEE RA-L 2025, arXiv:2403.13321, Eq. (9)): the centreline decay constant B_D, the spreading rate
-#: S of the half-width and the virtual origin s̃0, in units of the motor distance l (their Eq. (8)).
+#: Turbulent Jet", IEEE RA-L (accepted 2024), arXiv:2403.13321, Eq. (9)): the centreline decay constant B_D, the
+#: spreading rate S of the half-width and the virtual origin s̃0, in units of the motor distance l (their Eq. (8)).
 JET_DECAY = 10.11
 JET_SPREAD = 0.07668
 JET_ORIGIN = -5.817
