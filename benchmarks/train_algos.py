@@ -32,7 +32,8 @@ per algorithm, the smallest budget that solved it, with its cold and warm wall t
     python benchmarks/train_algos.py --budgets default                 # each trainer's own budget for the task
     python benchmarks/train_algos.py --task velocity --budgets 1e6 3e6 --algos apg shac --stop-at-solved
 
-Results go to ``benchmarks/results/train_algos_<task>.json`` (``--out``).
+Results go to ``benchmarks/results/train_algos_<task>.json`` (``--out``). ``--train-args`` adds arguments to every
+``jaxdrones train`` command (e.g. ``--train-args "--realism crazyflie --action-type ctbr"``).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ import argparse
 import json
 import math
 import os
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -75,6 +77,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="per algorithm, skip the budgets after the first one that solved the task")
     parser.add_argument("--env-repeats", type=int, default=5,
                         help="timed runs of the env-alone measurement (0 skips it; default 5)")
+    parser.add_argument("--train-args", default="", metavar="ARGS",
+                        help="more arguments for every jaxdrones train command, e.g. '--realism crazyflie "
+                             "--action-type ctbr'")
     parser.add_argument("--out", default=None, help="JSON output (default benchmarks/results/train_algos_TASK.json)")
     args = parser.parse_args(argv)
     args.out = args.out or os.path.join(HERE, "results", f"train_algos_{args.task}.json")
@@ -85,8 +90,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
-def run_once(task: str, algo: str, steps: int | None, seed: int, cache_dir: str) -> dict:
-    """One ``jaxdrones train`` process with ``JAXDRONES_CACHE_DIR=cache_dir``; a row of the results."""
+def run_once(task: str, algo: str, steps: int | None, seed: int, cache_dir: str, extra: str = "") -> dict:
+    """One ``jaxdrones train`` process with ``JAXDRONES_CACHE_DIR=cache_dir`` (and the arguments ``extra``); a row
+    of the results."""
     row = {"algo": algo, "budget": steps, "cache_dir_entries_before": _entries(cache_dir),
            "loadavg_before": list(os.getloadavg())}
     with tempfile.TemporaryDirectory() as out:
@@ -94,6 +100,7 @@ def run_once(task: str, algo: str, steps: int | None, seed: int, cache_dir: str)
                    "--out", os.path.join(out, "run"), "--no-progress"]
         if steps is not None:
             command += ["--steps", str(steps)]
+        command += shlex.split(extra)
         start = time.perf_counter()
         proc = subprocess.run(command, env=os.environ | {"JAXDRONES_CACHE_DIR": cache_dir}, capture_output=True,
                               text=True, check=False)
@@ -220,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
                 cache_dir = os.path.join(caches, f"{algo}-{steps or 'default'}")  # empty for the first run
                 pair = []
                 for cache in CACHES:
-                    row = {"cache": cache, **run_once(args.task, algo, steps, args.seed, cache_dir)}
+                    row = {"cache": cache, **run_once(args.task, algo, steps, args.seed, cache_dir, args.train_args)}
                     rows.append(row)
                     pair.append(row)
                     print_row(row)

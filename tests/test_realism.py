@@ -431,3 +431,23 @@ def test_presets_and_options():
 def test_realism_bad_input(options, match):
     with pytest.raises(ValueError, match=match):
         jd.make("hover", **options)
+
+
+def test_gymnasium_ids_and_command_line_take_the_options():
+    """The gymnasium ids pass the options to `jd.make`; ``jaxdrones train``'s --realism and --realism-set become the
+    config's realism (plain data, recorded with the run), and malformed settings are refused."""
+    import gymnasium as gym
+
+    from jaxdrones.cli.train import realism_options
+
+    env = gym.make("jaxdrones/Hover-v0", realism="crazyflie", action_delay=1)
+    assert env.unwrapped.env.config.realism.action_delay == (1, 1)
+    assert env.reset(seed=0)[0].shape == (21,)
+    assert realism_options(None, []) is None and realism_options("crazyflie", []) == "crazyflie"
+    options = realism_options("crazyflie", ["action_delay=1", "motor_tau_up=0.05,0.2", "disturbance_hold=inf"])
+    assert options == {"preset": "crazyflie", "action_delay": 1, "motor_tau_up": (0.05, 0.2),
+                       "disturbance_hold": math.inf}
+    assert jd.make("hover", realism=options).config.realism.motor_tau_up == (0.05, 0.2)
+    for bad in ("action_delay", "turbulence=strong", "wind_speed=1,2,3"):
+        with pytest.raises(ValueError, match="--realism-set takes NAME=VALUE"):
+            realism_options(None, [bad])
