@@ -201,41 +201,6 @@ def test_jit_vmap_and_the_derived_derivative_agree(x64):
     np.testing.assert_allclose(grads[0], grads[1], rtol=1e-10, atol=1e-12 * float(jnp.max(jnp.abs(grads[1]))))
 
 
-def test_adjoint_with_motor_dynamics_and_disturbance(x64):
-    """The hand-written adjoint with the per-rotor downwash and every other core option on (motor dynamics, a
-    force, torque and wind disturbance, drag, ground effect; 4 substeps) agrees with JAX's derived derivative for
-    the state, the command, the disturbance and the params within 1e-10 relative."""
-    n, worlds = 3, 4
-    config = jd.SimConfig(n_drones=n, sim_freq=960, ctrl_freq=240, drag=True, ground_effect=True,
-                          downwash="per_rotor", motor_dynamics=True)
-    base = jd.load_params("cf2x")
-    params = base.replace(motor_tau_up=jnp.asarray(0.04, base.mass.dtype),
-                          motor_tau_down=jnp.asarray(0.06, base.mass.dtype))
-    rng = np.random.default_rng(8)
-    hover = float(params.hover_rpm)
-    pos = np.concatenate([rng.uniform(-0.04, 0.04, (worlds, n, 2)), [[[0.1], [0.4], [0.7]]] * np.ones((worlds, 1, 1))],
-                         -1)
-    state = jd.init_state(config, pos=pos, vel=rng.normal(size=(worlds, n, 3)), ang_vel=rng.normal(size=(worlds, n, 3)),
-                          rpm=hover * (1 + 0.1 * rng.normal(size=(worlds, n, 4))))
-    rpm = jnp.asarray(hover * (1 + 0.2 * rng.normal(size=(worlds, n, 4))))
-    dist = jd.state.Disturbance(force=jnp.asarray(0.02 * rng.normal(size=(worlds, n, 3))),
-                                torque=jnp.asarray(3e-5 * rng.normal(size=(worlds, n, 3))),
-                                wind=jnp.asarray(rng.normal(size=(worlds, n, 3))))
-    results = []
-    for use in (False, True):
-        step = jd.make_step(dataclasses.replace(config, adjoint=use))
-        results.append(jax.vjp(lambda s, r, p, d, step=step: step(p, s, r, d), state, rpm, params, dist))
-    (out_ref, vjp_ref), (out, vjp) = results
-    for a, b in zip(jax.tree.leaves(out_ref), jax.tree.leaves(out), strict=True):
-        np.testing.assert_allclose(b, a, rtol=1e-13, atol=1e-14)
-    ct = jax.tree.map(lambda x: np.zeros(x.shape, jax.dtypes.float0) if x.dtype == jnp.int32
-                      else jnp.asarray(rng.normal(size=x.shape), x.dtype), out_ref)
-    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(vjp_ref(ct)), jax.tree.leaves(vjp(ct)), strict=True):
-        if a.dtype != jax.dtypes.float0:
-            scale = float(jnp.max(jnp.abs(a)))
-            np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-12 * scale, err_msg=jax.tree_util.keystr(path))
-
-
 def test_neighbor_list_matches_all_pairs(x64, rng):
     """With ``downwash_radius`` the cell list (shorter than the team) gives the all-pairs thrust changes of a
     256-drone swarm 0.12 m apart with that cut-off to 1e-12, and the step's state and gradient are those of the

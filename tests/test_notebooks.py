@@ -55,14 +55,22 @@ EXPECTED_OUTPUT = {
         r"trained 2,048 env steps in [\d.]+ s",
         r"success rate over 10 episodes: [\d.]+",
     ],
+    "06_sim_to_real.ipynb": [
+        r"training budget: 60,000 env steps per policy",
+        r"largest relative difference from the first-order solution: \d\.\de-0[5-9]",
+        r"longitudinal spectrum at 0\.\d+ Hz: [\d.]+ against Dryden's [\d.]+",
+        r"trained with crazyflie: [\d.]+ s",
+        r"final distance to the target \(cm\), terminated share",
+    ],
 }
 EXPECTED_FIGURES = {"01_quickstart.ipynb": 2, "02_stable_baselines3.ipynb": 1, "03_gradients.ipynb": 2,
-                    "04_multi_agent.ipynb": 1, "05_vision.ipynb": 1}
+                    "04_multi_agent.ipynb": 1, "05_vision.ipynb": 1, "06_sim_to_real.ipynb": 2}
 #: Per notebook: environment variables of its kernel (tiny training budgets for the training notebooks).
 NOTEBOOK_ENV = {"02_stable_baselines3.ipynb": {"JAXDRONES_NB_STEPS": "2000"},
                 "03_gradients.ipynb": {"JAXDRONES_NB_STEPS": "60000"},
                 "04_multi_agent.ipynb": {"JAXDRONES_NB_STEPS": "60000"},
-                "05_vision.ipynb": {"JAXDRONES_NB_STEPS": "2048"}}
+                "05_vision.ipynb": {"JAXDRONES_NB_STEPS": "2048"},
+                "06_sim_to_real.ipynb": {"JAXDRONES_NB_STEPS": "60000"}}
 #: The notebooks that train with Stable-Baselines3, which needs torch (the test extra installs it on Python 3.11).
 SB3_NOTEBOOKS = ("02_stable_baselines3.ipynb", "05_vision.ipynb")
 
@@ -131,3 +139,6 @@ def test_notebook_runs(path, tmp_path, monkeypatch, kernel_for_this_interpreter)
         # The gradient through the rollout agrees with the finite difference.
         rel = float(re.search(r"relative difference grad vs finite difference: (\S+)", text).group(1))
         assert rel < 1e-3
+    if path.name == "06_sim_to_real.ipynb":  # the sampled turbulence has Dryden's spectrum
+        sampled, model = map(float, re.search(r"Hz: ([\d.]+) against Dryden's ([\d.]+)", text).groups())
+        assert abs(sampled / model - 1) < 0.15

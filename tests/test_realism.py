@@ -101,18 +101,19 @@ def test_disturbance_force_torque_and_wind(x64):
                                atol=1e-15)
 
 
-@pytest.mark.parametrize("substeps", [1, 4])
-def test_adjoint_with_motor_dynamics_and_disturbance(x64, substeps):
+@pytest.mark.parametrize("downwash, substeps", [("paper", 1), ("per_rotor", 4)])
+def test_adjoint_with_motor_dynamics_and_disturbance(x64, downwash, substeps):
     """The hand-written adjoint with every core option on (motor dynamics, force, torque, wind, drag, ground
-    effect, downwash) agrees with JAX's derived derivative for the state, the command, the disturbance and the
-    params (the time constants included), within 1e-10 relative."""
-    n, worlds = 3, 8
+    effect, either downwash model) agrees with JAX's derived derivative for the state, the command, the
+    disturbance and the params (the time constants included), within 1e-10 relative."""
+    n, worlds = 3, 4
     config = jd.SimConfig(n_drones=n, sim_freq=240 * substeps, ctrl_freq=240, drag=True, ground_effect=True,
-                          downwash=True, motor_dynamics=True)
+                          downwash=downwash, motor_dynamics=True)
     params = _lagged()
     rng = np.random.default_rng(3)
     hover = float(params.hover_rpm)
-    pos = np.concatenate([rng.uniform(-0.05, 0.05, (worlds, n, 2)), rng.uniform(0.02, 0.3, (worlds, n, 1))], -1)
+    heights = np.array([0.1, 0.4, 0.7])[:, None] + rng.uniform(-0.02, 0.02, (worlds, n, 1))  # stacked: downwash acts
+    pos = np.concatenate([rng.uniform(-0.04, 0.04, (worlds, n, 2)), heights], -1)
     state = jd.init_state(config, pos=pos, vel=rng.normal(size=(worlds, n, 3)), ang_vel=rng.normal(size=(worlds, n, 3)),
                           rpm=hover * (1 + 0.1 * rng.normal(size=(worlds, n, 4))))
     rpm = jnp.asarray(hover * (1 + 0.2 * rng.normal(size=(worlds, n, 4))))

@@ -1,0 +1,164 @@
+"""What each robustness measure buys: policies trained under the paper's physics, under the ``crazyflie`` realism
+preset, and under the preset with domain randomisation, each evaluated under the paper's physics, the preset and a
+harsher setting.
+
+Every env flies the ``ctbr`` action (collective thrust from 0 to twice the weight and body rates, the Crazyflie
+firmware's own interface): the preset's random force (σ 5 % of the weight per axis, drawn per episode) exceeds the
+default ``rpm`` action's authority (±5 % of hover RPM, ±10 % of the thrust) in about one episode in twenty.
+
+Training settings (`TRAIN`), each ``jaxdrones.training.apg.train`` (APG, as ``jaxdrones train TASK --algo apg``)
+with the trainer's default config for the task (``--steps`` overrides its budget) and a seed:
+
+- ``paper``: the paper's physics (no realism);
+- ``crazyflie``: ``realism="crazyflie"`` (Learning to Fly in Seconds' Crazyflie: 0.15 s motor lag, observation
+  noise, a random force and torque per episode; docs/physics.md §16);
+- ``crazyflie_dr``: the preset with its values drawn per episode from ranges (motor time constants 0.075-0.3 s,
+  noise σ 0-2 times the preset's, force and torque σ 0-2 times the preset's, an observation delay of 0-1 steps) and
+  the drones' mass, inertia, kf and km within ±10 % (`jaxdrones.envs.DomainRandomization`).
+
+Evaluation settings (`EVAL`), each policy flown from 256 random starts (`jaxdrones.training.evaluation.evaluate`,
+the same keys for every policy): ``paper``; ``crazyflie``; ``harsh``: ``realism="crazyflie_harsh"`` (twice the lag
+and the noise, Dryden turbulence of σ 1 m/s at 2 m, drag on).
+
+Per policy and evaluation: the task's success metric (hover: the final distance to the target, m; velocity: the
+mean velocity error, m/s) and the share of episodes terminated early (crashes). A policy succeeds in a setting when
+the metric is below the task's threshold with no episode terminated. The table gives, per training setting and
+task, the metric's median over seeds (each seed's value beside it) and the terminated share.
+
+Usage::
+
+    python benchmarks/robustness.py                           # hover and velocity, seeds 0 1 2
+    python benchmarks/robustness.py --tasks hover --seeds 0 --steps 200000 --episodes 64   # a quick look
+
+Results go to ``benchmarks/results/robustness.json`` (``--out``) and the table to stdout (markdown).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import statistics
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+DEFAULT_OUT = os.path.join(HERE, "results", "robustness.json")
+TASKS = ("hover", "velocity")
+SEEDS = (0, 1, 2)
+
+#: What every env of the experiment shares.
+BASE = {"action_type": "ctbr"}
+_PRESET = {"preset": "crazyflie"}
+#: The training settings: env overrides for ``jd.make`` / ``train_task``.
+TRAIN = {
+    "paper": {},
+    "crazyflie": {"realism": "crazyflie"},
+    "crazyflie_dr": {
+        "realism": {**_PRESET, "motor_tau_up": (0.075, 0.3), "motor_tau_down": (0.075, 0.3),
+                    "obs_noise_pos": (0.0, 0.002), "obs_noise_att": (0.0, 0.002), "obs_noise_vel": (0.0, 0.004),
+                    "obs_noise_ang_vel": (0.0, 0.004), "disturbance_force": (0.0, 0.0265),
+                    "disturbance_torque": (0.0, 5.3e-5), "obs_delay": (0, 1)},
+        "randomize": {"mass": 0.1, "inertia": 0.1, "kf": 0.1, "km": 0.1},
+    },
+}
+#: The evaluation settings.
+EVAL = {"paper": {}, "crazyflie": {"realism": "crazyflie"}, "harsh": {"realism": "crazyflie_harsh"}}
+
+
+def train_and_evaluate(task: str, setting: str, seed: int, steps: int | None, evaluators: dict) -> dict:
+    """Train one policy (`jaxdrones.training.apg.train`, the trainer's default config for the task) and evaluate
+    it in every `EVAL` setting; returns its record. ``evaluators`` caches one compiled evaluation per task and
+    setting (the policy's weights are its argument)."""
+    import jax
+
+    import jaxdrones as jd
+    from jaxdrones.training import apg, trainers
+
+    config = trainers.get("apg").default_config(task, False)
+    config = dataclasses.replace(config, seed=seed, **({} if steps is None else {"num_timesteps": steps}))
+    env = jd.make(task, **BASE, **TRAIN[setting])
+    t0 = time.perf_counter()
+    network, weights = apg.train(env, config)
+    jax.block_until_ready(weights)
+    record = {"task": task, "train": setting, "seed": seed, "env_steps": config.num_timesteps,
+              "train_wall_s": time.perf_counter() - t0, "eval": {}}
+    threshold = jd.envs.get_task(task).success_threshold
+    for name in EVAL:
+        stats = evaluators[task, name](network, weights)
+        record["eval"][name] = {
+            "success_value": stats["success_value"], "terminated_rate": stats["terminated_rate"],
+            "success": bool(stats["success_value"] < threshold and stats["terminated_rate"] == 0.0)}
+    return record
+
+
+def make_evaluator(task: str, setting: str, episodes: int):
+    """``evaluate(network, weights) -> stats``: an APG policy flown from ``episodes`` random starts (the same keys
+    for every policy) in the `EVAL` setting, compiled once."""
+    import jax
+
+    import jaxdrones as jd
+    from jaxdrones.training import apg
+    from jaxdrones.training.evaluation import episode_outcomes, episode_statistics
+
+    env = jd.make(task, **BASE, **EVAL[setting])
+    keys = jax.random.split(jax.random.key(10_000), episodes)
+    compiled = {}
+
+    def evaluate(network, weights):
+        if network not in compiled:
+            compiled[network] = jax.jit(lambda w: episode_outcomes(env, apg.make_policy(network, w), keys))
+        return episode_statistics(env, compiled[network](weights))
+
+    return evaluate
+
+
+def table(records: list[dict]) -> str:
+    """The markdown table: one row per task and training setting, one column per evaluation setting."""
+    import jaxdrones as jd
+
+    lines = ["| task | trained with | " + " | ".join(f"evaluated: {e}" for e in EVAL) + " |",
+             "|---|---|" + "---|" * len(EVAL)]
+    for task in dict.fromkeys(r["task"] for r in records):
+        unit = "m" if task == "hover" else "m/s"
+        threshold = jd.envs.get_task(task).success_threshold
+        for setting in TRAIN:
+            rows = [r for r in records if r["task"] == task and r["train"] == setting]
+            if not rows:
+                continue
+            cells = []
+            for name in EVAL:
+                values = [r["eval"][name]["success_value"] for r in rows]
+                crashed = [r["eval"][name]["terminated_rate"] for r in rows]
+                solved = sum(r["eval"][name]["success"] for r in rows)
+                cells.append(f"{statistics.median(values):.3g} {unit} ({' / '.join(f'{v:.3g}' for v in values)}); "
+                             f"terminated {statistics.median(crashed):.1%}; solved {solved}/{len(rows)}")
+            lines.append(f"| {task} (< {threshold:g} {unit}) | {setting} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
+    parser.add_argument("--settings", nargs="+", default=list(TRAIN), choices=list(TRAIN))
+    parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+    parser.add_argument("--steps", type=int, default=None, help="env steps per training (default: apg's budget)")
+    parser.add_argument("--episodes", type=int, default=256, help="evaluation episodes per setting")
+    parser.add_argument("--out", default=DEFAULT_OUT)
+    args = parser.parse_args(argv)
+    records = []
+    evaluators = {(task, name): make_evaluator(task, name, args.episodes) for task in args.tasks for name in EVAL}
+    for task in args.tasks:
+        for setting in args.settings:
+            for seed in args.seeds:
+                record = train_and_evaluate(task, setting, seed, args.steps, evaluators)
+                records.append(record)
+                print(json.dumps(record), flush=True)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump({"base": BASE, "train": TRAIN, "eval": EVAL, "records": records, "args": vars(args)}, f, indent=1)
+    print(table(records))
+
+
+if __name__ == "__main__":
+    main()
