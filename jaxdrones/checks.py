@@ -125,3 +125,20 @@ def check_disturbance(config: SimConfig, state: DroneState, disturbance) -> Dist
             raise ValueError(f"disturbance.{name} contains NaN or inf")
         fields[name] = jnp.broadcast_to(jnp.asarray(value, state.pos.dtype), shape)
     return Disturbance(**fields)
+
+
+def check_motor_time_constants(params: DroneParams) -> None:
+    """With `SimConfig.motor_dynamics`: the params' ``motor_tau_up`` and ``motor_tau_down`` must be finite and
+    >= 0 s (checked on concrete arrays; traced ones pass).
+
+    Raises:
+        ValueError: a negative or non-finite time constant.
+    """
+    for name in ("motor_tau_up", "motor_tau_down"):
+        value = getattr(params, name)
+        if isinstance(value, jax.core.Tracer):
+            continue
+        host = np.asarray(value)
+        if not np.all(np.isfinite(host)) or np.any(host < 0):
+            raise ValueError(f"DroneParams.{name} must be finite time constants >= 0 s (0: instant motors), got "
+                             f"{host.tolist()}")

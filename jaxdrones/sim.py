@@ -16,7 +16,7 @@ import numpy as np
 
 from jaxdrones import adjoint, dynamics
 from jaxdrones.backends import BACKENDS
-from jaxdrones.checks import check_disturbance, check_params_batch, check_rpm
+from jaxdrones.checks import check_disturbance, check_motor_time_constants, check_params_batch, check_rpm
 from jaxdrones.config import SimConfig
 from jaxdrones.params import DroneParams
 from jaxdrones.rotations import join, normalize_c, split
@@ -91,7 +91,8 @@ def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
 
     Raises:
         ValueError: unknown backend or option; and, when ``step`` is called, an ``rpm``, ``state`` or ``disturbance``
-            of the wrong shape or a non-numeric dtype, or a wind without ``config.drag``. Called on concrete arrays (outside ``jit``), a non-finite ``rpm`` raises too; inside
+            of the wrong shape or a non-numeric dtype, a wind without ``config.drag``, or (with
+            ``config.motor_dynamics``, on concrete params) a negative or non-finite motor time constant. Called on concrete arrays (outside ``jit``), a non-finite ``rpm`` raises too; inside
             ``jit`` NaN propagates into the state (the envs detect and report it).
         ModuleNotFoundError: ``backend="pybullet"`` without pybullet installed (`jaxdrones.backends.require_pybullet`).
     """
@@ -204,6 +205,8 @@ class JaxStep:
                  ) -> DroneState:
         rpm = check_rpm(self.config, state, rpm)
         check_params_batch(params, state)
+        if self.config.motor_dynamics:
+            check_motor_time_constants(params)
         if disturbance is None:
             return self._core(params, state, rpm)
         return self._core(params, state, rpm, check_disturbance(self.config, state, disturbance))

@@ -157,6 +157,10 @@ def test_core_bad_input():
         step(params, state, rpm, Disturbance(torque=np.full((1, 3), np.nan)))
     with pytest.raises(ValueError, match="must be a jaxdrones.Disturbance"):
         step(params, state, rpm, {"force": np.zeros((1, 3))})
+    lagged = jd.make_step(jd.SimConfig(motor_dynamics=True))
+    for bad in (-0.1, np.nan, np.inf):
+        with pytest.raises(ValueError, match="motor_tau_down must be finite time constants >= 0"):
+            lagged(params.replace(motor_tau_down=jnp.asarray(bad)), state, rpm)
 
 
 @pytest.mark.parametrize("bad", ["-0.1", "nan", "fast"])
