@@ -37,11 +37,13 @@ Usage::
     python benchmarks/gradients.py                      # writes benchmarks/results/gradients.json
     python benchmarks/gradients.py --quick              # horizons 10, 100; worlds 1, 1024
     python benchmarks/gradients.py --horizons 100 --worlds 1024 --no-crazyflow
+    python benchmarks/gradients.py --horizons 100 --worlds 1024 --no-crazyflow --callers default_env
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import statistics
@@ -57,6 +59,7 @@ WORLDS = (1, 1024, 16384)
 QUICK_HORIZONS, QUICK_WORLDS = (10, 100), (1, 1024)
 SIM_FREQ = CTRL_FREQ = 240
 TARGET = (0.0, 0.0, 1.0)
+CALLERS = ("rollout", "user_scan", "env_step", "default_env", "default_env_crazyflie")
 CRAZYFLOW_WORKER = os.path.join(HERE, "_crazyflow_gradients.py")
 
 
@@ -69,6 +72,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--quick", action="store_true", help=f"horizons {QUICK_HORIZONS}, worlds {QUICK_WORLDS}")
     parser.add_argument("--crazyflow", action=argparse.BooleanOptionalAction, default=True,
                         help="also measure crazyflow 0.4.0 in its own venv (default on)")
+    parser.add_argument("--callers", nargs="+", choices=CALLERS, default=list(CALLERS),
+                        help="which callers to measure (default: all)")
     parser.add_argument("--out", default=DEFAULT_OUT, help="JSON output path (default: %(default)s)")
     args = parser.parse_args(argv)
     args.horizons = sorted(args.horizons or (QUICK_HORIZONS if args.quick else HORIZONS))
@@ -142,7 +147,7 @@ def jaxdrones_setup(jax, jd, np, horizon: int, worlds: int):
     return config, params, jd.make_step(config), init, state, commands, noise
 
 
-def jaxdrones_case(jax, jd, np, horizon: int, worlds: int, remat: bool, repeats: int) -> dict:
+def jaxdrones_case(jax, jd, np, horizon: int, worlds: int, repeats: int, remat: bool) -> dict:
     """``caller: rollout``: `jaxdrones.rollout` with ``remat``."""
     _, params, step, init, state, commands, _ = jaxdrones_setup(jax, jd, np, horizon, worlds)
 
@@ -197,6 +202,37 @@ def env_step_case(jax, jd, np, horizon: int, worlds: int, repeats: int) -> dict:
     return {"sim": "jaxdrones", "caller": "env_step", "remat": None, **result}
 
 
+def default_env_case(jax, jd, np, horizon: int, worlds: int, repeats: int, realism: str | None = None) -> dict:
+    """``caller: default_env`` / ``default_env_<realism>``: ``lax.scan`` over ``jd.make("hover", realism=realism)``'s
+    vmapped ``step`` at its defaults, a linear tanh policy, the env's loss (see above)."""
+    from jaxdrones.envs.base import world_axes
+
+    jnp = jax.numpy
+    env = jd.make("hover", realism=realism)
+    axes = world_axes(env.shared_params is not None)
+    start = jax.vmap(env.reset, out_axes=axes)(jax.random.split(jax.random.key(0), worlds))
+    step = jax.vmap(env.step, in_axes=(axes, 0), out_axes=axes)
+    env_loss = jax.vmap(env.loss, in_axes=(axes,))
+    rng = np.random.default_rng(2)
+    offsets = jnp.asarray(0.4 * rng.standard_normal((horizon, worlds, env.n_drones, env.action_size)), env.dtype)
+    policy = {"w": jnp.asarray(0.01 * rng.standard_normal((env.observation_size, env.action_size)), env.dtype),
+              "b": jnp.zeros(env.action_size, env.dtype)}
+    state = {k: getattr(start.sim, k) for k in ("pos", "quat", "vel", "ang_vel")}
+
+    def loss_of(policy, offsets, state):
+        def body(s, offset):
+            s = step(s, jnp.tanh(s.obs @ policy["w"] + policy["b"] + offset))
+            return s, jnp.mean(env_loss(s))
+
+        _, losses = jax.lax.scan(body, start.replace(sim=start.sim.replace(**state)), offsets)
+        return jnp.mean(losses)
+
+    result = measure(jax, lambda offsets, state: loss_of(policy, offsets, state), offsets, state, horizon, worlds,
+                     repeats, more={"grad_policy": (jax.value_and_grad(loss_of), (policy, offsets, state))})
+    caller = "default_env" if realism is None else f"default_env_{realism}"
+    return {"sim": "jaxdrones", "caller": caller, "remat": None, **result}
+
+
 def run_crazyflow(args) -> tuple[list[dict], dict, str | None]:
     """Run `_crazyflow_gradients.py` in crazyflow's venv (installed by `envs.crazyflow_python` when missing)."""
     from envs import CRAZYFLOW_VENV, crazyflow_python
@@ -247,14 +283,15 @@ def main(argv=None) -> int:
     print(f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, {info['cpus_available']} cores, "
           f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}, load {load_start}", flush=True)
     results = []
+    cases = {"rollout": [functools.partial(jaxdrones_case, remat=remat) for remat in (False, True)],
+             "user_scan": [user_scan_case], "env_step": [env_step_case], "default_env": [default_env_case],
+             "default_env_crazyflie": [functools.partial(default_env_case, realism="crazyflie")]}
     for horizon in args.horizons:
         for worlds in args.worlds:
-            for remat in (False, True):
-                results.append(jaxdrones_case(jax, jd, np, horizon, worlds, remat, args.repeats))
-                print_row(results[-1])
-            for case in (user_scan_case, env_step_case):
-                results.append(case(jax, jd, np, horizon, worlds, args.repeats))
-                print_row(results[-1])
+            for caller in args.callers:
+                for case in cases[caller]:
+                    results.append(case(jax, jd, np, horizon, worlds, repeats=args.repeats))
+                    print_row(results[-1])
     crazyflow = {"requested": args.crazyflow}
     if args.crazyflow:
         cf_results, crazyflow["info"], crazyflow["error"] = run_crazyflow(args)
