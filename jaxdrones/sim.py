@@ -119,10 +119,14 @@ def _core_step_c(config: SimConfig):
 
     def core_c(params: DroneParams, state: DroneState, rpm: tuple, disturbance: Disturbance | None = None
                ) -> DroneState:
-        rpm = tuple(config.kinks.clip(r, 0.0, params.max_rpm, config.kinks.rpm) for r in rpm)
         # The quaternion is normalised here once; every substep then leaves it of unit norm, so the substeps need
-        # not normalise it again for their rotation matrices.
-        state = state.replace(quat=normalize_c(state.quat), contact=jnp.zeros_like(state.contact))
+        # not normalise it again for their rotation matrices. The clip, the normalisation and the motors' output
+        # are recomputed in the backward pass (jax.checkpoint) rather than their intermediates stored at every
+        # control step of a differentiated rollout (see `_recomputed`).
+        rpm, quat = _recomputed(lambda rpm, quat: (
+            tuple(config.kinks.clip(r, 0.0, params.max_rpm, config.kinks.rpm) for r in rpm), normalize_c(quat)),
+            rpm, state.quat)
+        state = state.replace(quat=quat, contact=jnp.zeros_like(state.contact))
         # With config.downwash_radius, the neighbour list of the downwash is built once per control step.
         neighbors = config.effects.downwash_neighbors(state.pos)
         if config.motor_dynamics:
@@ -135,7 +139,7 @@ def _core_step_c(config: SimConfig):
         # Instant motors: their output is held over the substeps. The RPM of the previous substep, which drag
         # uses, is the state's in the first substep and the held command in the others: it is chosen per substep
         # rather than carried (and copied) through the loop.
-        motors = dynamics.motors_c(params, rpm)
+        motors = _recomputed(lambda rpm: dynamics.motors_c(params, rpm), rpm)
         rpm_before = state.rpm
 
         def substep(s, first):
@@ -148,6 +152,15 @@ def _core_step_c(config: SimConfig):
         return state.replace(rpm=rpm)
 
     return core_c
+
+
+def _recomputed(fn, *args):
+    """``fn(*args)``, recomputed from ``args`` in the backward pass (``jax.checkpoint``) instead of having its
+    intermediates stored: for the cheap element-wise work around the physics substeps. Under a differentiated
+    ``lax.scan`` every stored intermediate becomes an array stacked over the steps, with its own writes and reads;
+    the clip, the normalisation and the motors' output stored 14 of them per control step of the default
+    hover env (`benchmarks/gradients.py`, caller ``default_env``)."""
+    return jax.checkpoint(fn)(*args)
 
 
 def _split_disturbance(disturbance: Disturbance | None, contiguous: bool = False) -> Disturbance | None:
@@ -234,8 +247,8 @@ def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Arra
     from its input state rather than storing all its intermediates. Measured with `benchmarks/gradients.py` (100
     steps, 1024 worlds, drag and ground effect, 2 CPU cores) this made the gradient about 1.5 times faster and
     used a third of the memory; the forward pass is unchanged. With the hand-written adjoint (the default config)
-    it still used about half the memory (13 against 23 MiB) and, on jax 0.12, was faster: 2.6 against 3.7 times
-    the forward pass for the gradient w.r.t. the commands (equal on jax 0.10).
+    it still uses less memory (13 against 18 MiB) and, on jax 0.12, is faster: 2.6 against 3.1 times the forward
+    pass for the gradient w.r.t. the commands (equal on jax 0.10; README, "Benchmarks").
 
     Args:
         step: a step function from `make_step`.

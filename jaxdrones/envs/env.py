@@ -131,6 +131,13 @@ class TaskEnv(Env):
         return np.concatenate([low, -bound], axis=-1), np.concatenate([high, bound], axis=-1)
 
     def _observe(self, task: TaskParams, sim: DroneState, history: jax.Array, steps: jax.Array) -> jax.Array:
+        """The state observation, f[D, n_obs], recomputed from its inputs in the backward pass (``jax.checkpoint``)
+        rather than its intermediates stored: differentiated under a scan (APG, SHAC), the attitude's
+        trigonometry stored 35 arrays per control step of the default hover env, a third of all it stored
+        (`benchmarks/gradients.py`, caller ``default_env``)."""
+        return jax.checkpoint(self._observation)(task, sim, history, steps)
+
+    def _observation(self, task: TaskParams, sim: DroneState, history: jax.Array, steps: jax.Array) -> jax.Array:
         obs = self.obs_type.observe(sim, history)
         if not self.task.obs_size:
             return obs
