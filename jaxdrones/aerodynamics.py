@@ -270,6 +270,7 @@ def downwash_thrust_c(params: DroneParams, pos: Components, rotmat: tuple[Compon
     reach = cutoff + (kinks.downwash if smooth else 0.0)
     near = other & (dist2 < reach**2)
     arm = params.torque_arm
+    onset = JET_ONSET * length
     changes = []
     for k, thrust_k in enumerate(thrust):
         lever = (-arm[..., 1, k], arm[..., 0, k], params.prop_pos[..., k, 2])  # the rotor's thrust point, body frame
@@ -278,7 +279,6 @@ def downwash_thrust_c(params: DroneParams, pos: Components, rotmat: tuple[Compon
         s = -dot(src_axis, d)
         across = tuple(dk + s * a for dk, a in zip(d, src_axis, strict=True))  # d's part normal to the axis
         r2 = dot(across, across)
-        onset = JET_ONSET * length
         active = near & (s > onset)
         s_safe = jnp.where(active, s, length)
         speed = jet_speed(s_safe, r2, u_hover, length) * cos_theta

@@ -442,18 +442,21 @@ class RealismModel:
             sigma = jnp.stack([state.values[f"obs_noise_{k}"] for k in OBSERVED])
             error = error + jax.random.normal(k_noise, error.shape, error.dtype) * sigma[:, None]
             state = state.replace(key=key)
-        quat = normalize_c(quat_integrate_c(split(seen.quat), split(error[:, 1]), 1.0))
-        return seen.replace(pos=seen.pos + error[:, 0], quat=join(quat), vel=seen.vel + error[:, 2],
-                            ang_vel=seen.ang_vel + error[:, 3]), state
+        return _with_error(seen, error), state
 
     def initial(self, state: RealismState, sim: DroneState) -> DroneState:
         """The state the first observation shows: the start with the episode's bias (no noise)."""
         if not self.realism.obs_bias:
             return sim
-        error = state.bias
-        quat = normalize_c(quat_integrate_c(split(sim.quat), split(error[:, 1]), 1.0))
-        return sim.replace(pos=sim.pos + error[:, 0], quat=join(quat), vel=sim.vel + error[:, 2],
-                           ang_vel=sim.ang_vel + error[:, 3])
+        return _with_error(sim, state.bias)
+
+
+def _with_error(sim: DroneState, error: jax.Array) -> DroneState:
+    """``sim`` as a sensor with ``error`` f[D, 4, 3] reports it: position, velocity and body rates plus their rows;
+    the attitude rotated by the rotation vector of row 1 (body frame)."""
+    quat = normalize_c(quat_integrate_c(split(sim.quat), split(error[:, 1]), 1.0))
+    return sim.replace(pos=sim.pos + error[:, 0], quat=join(quat), vel=sim.vel + error[:, 2],
+                       ang_vel=sim.ang_vel + error[:, 3])
 
 
 def _pack(sim: DroneState) -> jax.Array:

@@ -92,8 +92,9 @@ def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
     Raises:
         ValueError: unknown backend or option; and, when ``step`` is called, an ``rpm``, ``state`` or ``disturbance``
             of the wrong shape or a non-numeric dtype, a wind without ``config.drag``, or (with
-            ``config.motor_dynamics``, on concrete params) a negative or non-finite motor time constant. Called on concrete arrays (outside ``jit``), a non-finite ``rpm`` raises too; inside
-            ``jit`` NaN propagates into the state (the envs detect and report it).
+            ``config.motor_dynamics``, on concrete params) a negative or non-finite motor time constant. Called on
+            concrete arrays (outside ``jit``), a non-finite ``rpm`` raises too; inside ``jit`` NaN propagates into
+            the state (the envs detect and report it).
         ModuleNotFoundError: ``backend="pybullet"`` without pybullet installed (`jaxdrones.backends.require_pybullet`).
     """
     if not isinstance(config, SimConfig):

@@ -79,9 +79,9 @@ class TaskEnv(Env):
             self.realism = RealismModel(config.realism, config.n_drones, self.action_type.size,
                                         self.sim_config.ctrl_dt)
             if config.realism.motor_dynamics and not config.realism.randomizes_params:
-                self.params = self.params.replace(**{name: jnp.full((config.n_drones,), getattr(config.realism, name)[0],
-                                                                    self.params.mass.dtype)
-                                                     for name in ("motor_tau_up", "motor_tau_down")})
+                taus = {name: jnp.full((config.n_drones,), getattr(config.realism, name)[0], self.params.mass.dtype)
+                        for name in ("motor_tau_up", "motor_tau_down")}
+                self.params = self.params.replace(**taus)
 
     def __reduce__(self):
         return type(self), (self.task, self.config)
@@ -267,8 +267,7 @@ class TaskEnv(Env):
             applied, realism = self.realism.delay_action(realism, action)
             disturbance, realism = self.realism.disturbance(realism, state.sim)
         rpm, ctrl = self.action_type.to_rpm(state.params, state.sim, state.ctrl, applied, ref, self.sim_config.ctrl_dt)
-        sim = self._step(state.params, state.sim, rpm) if disturbance is None else \
-            self._step(state.params, state.sim, rpm, disturbance)
+        sim = self._step(state.params, state.sim, rpm, disturbance)
         steps = state.steps + 1
         history = state.history
         if self.obs_type.buffer_len:
