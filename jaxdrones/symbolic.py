@@ -300,7 +300,8 @@ def _euler_angles(q):
     roll = cs.if_else(snap, 0.0, cs.atan2(2 * (y * z + w * x), w * w - x * x - y * y + z * z))
     pitch = cs.if_else(low, -math.pi / 2, cs.if_else(high, math.pi / 2,
                                                      cs.asin(cs.fmin(cs.fmax(s, -GIMBAL_SNAP), GIMBAL_SNAP))))
-    yaw = cs.if_else(snap, 2 * cs.atan2(sign * x, -sign * y), cs.atan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z))
+    yaw = cs.if_else(snap, 2 * cs.atan2(sign * x, -sign * y),
+                     cs.atan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z))
     return cs.vertcat(roll, pitch, yaw)
 
 

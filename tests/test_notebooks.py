@@ -62,9 +62,14 @@ EXPECTED_OUTPUT = {
         r"trained with crazyflie: [\d.]+ s",
         r"final distance to the target \(cm\), terminated share",
     ],
+    "07_mpc.ipynb": [
+        r"largest difference, symbolic step vs JAX step \(float32 simulator\): \d\.\de-0[6-9]",
+        r"MPC: RMS error [\d.]+ cm, solve time median [\d.]+ ms",
+        r"PID: RMS error [\d.]+ cm",
+    ],
 }
 EXPECTED_FIGURES = {"01_quickstart.ipynb": 2, "02_stable_baselines3.ipynb": 1, "03_gradients.ipynb": 2,
-                    "04_multi_agent.ipynb": 1, "05_vision.ipynb": 1, "06_sim_to_real.ipynb": 2}
+                    "04_multi_agent.ipynb": 1, "05_vision.ipynb": 1, "06_sim_to_real.ipynb": 2, "07_mpc.ipynb": 1}
 #: Per notebook: environment variables of its kernel (tiny training budgets for the training notebooks).
 NOTEBOOK_ENV = {"02_stable_baselines3.ipynb": {"JAXDRONES_NB_STEPS": "2000"},
                 "03_gradients.ipynb": {"JAXDRONES_NB_STEPS": "60000"},
@@ -142,3 +147,5 @@ def test_notebook_runs(path, tmp_path, monkeypatch, kernel_for_this_interpreter)
     if path.name == "06_sim_to_real.ipynb":  # the sampled turbulence has Dryden's spectrum
         sampled, model = map(float, re.search(r"Hz: ([\d.]+) against Dryden's ([\d.]+)", text).groups())
         assert abs(sampled / model - 1) < 0.15
+    if path.name == "07_mpc.ipynb":  # the MPC tracks the figure-8 within 5 cm RMS on the simulator
+        assert float(re.search(r"MPC: RMS error ([\d.]+) cm", text).group(1)) <= 5.0
