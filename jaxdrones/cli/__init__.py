@@ -1,4 +1,5 @@
-"""Command line: ``jaxdrones train TASK``, ``jaxdrones fly``, ``jaxdrones camera``, ``jaxdrones export RUN``."""
+"""Command line: ``jaxdrones train TASK``, ``jaxdrones fly``, ``jaxdrones camera``, ``jaxdrones export RUN``,
+``jaxdrones ros2 TASK``."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import time
 
 def build_parser() -> argparse.ArgumentParser:
     from jaxdrones import __version__
-    from jaxdrones.cli import camera, export, fly, train
+    from jaxdrones.cli import camera, export, fly, ros2, train
 
     parser = argparse.ArgumentParser(prog="jaxdrones", description=__doc__)
     parser.add_argument("--version", action="version", version=f"jaxdrones {__version__}")
@@ -19,6 +20,7 @@ def build_parser() -> argparse.ArgumentParser:
     fly.register(sub)
     camera.register(sub)
     export.register(sub)
+    ros2.register(sub)
     return parser
 
 
