@@ -233,6 +233,27 @@ def test_node_rejects_bad_input(ros_env):
         rclpy.shutdown()
 
 
+def serve_while(node, arguments: list[str], timeout_s: float = 120.0) -> str:
+    """Run ``jaxdrones ros2 ARGUMENTS`` in its own process while spinning ``node`` (an rclpy node of this process)
+    until it exits; then destroy the node and shut rclpy down. Returns the process's output; fails on an error."""
+    import rclpy
+
+    server = subprocess.Popen([sys.executable, "-m", "jaxdrones.cli", "ros2", *arguments], stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while server.poll() is None and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.01)
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+        if server.poll() is None:
+            server.kill()
+    output = server.communicate()[0]
+    assert server.returncode == 0, output
+    return output
+
+
 @pytest.mark.ros2
 @needs_rclpy
 def test_two_processes_close_the_loop_with_the_pid(ros_env):
@@ -249,9 +270,6 @@ def test_two_processes_close_the_loop_with_the_pid(ros_env):
     params = jd.make("hover").params
     start = jd.make("hover").reset(jax.random.key(0)).sim
     pid_control(params, PIDGains.dsl(), pid_init(start), start, start.pos, ctrl_dt=1 / freq)  # compiled first
-    server = subprocess.Popen([sys.executable, "-m", "jaxdrones.cli", "ros2", "hover", "--ctrl-freq", str(freq),
-                               "--duration", str(duration_s), "--fast", "--sync"],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()
     node = rclpy.create_node("pid_client")
     publisher = node.create_publisher(Float32MultiArray, "/cf0/action", 10)
@@ -272,17 +290,7 @@ def test_two_processes_close_the_loop_with_the_pid(ros_env):
         publisher.publish(out)
 
     node.create_subscription(Float32MultiArray, "/cf0/obs", on_obs, 10)
-    try:
-        deadline = time.monotonic() + 120
-        while server.poll() is None and time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.05)
-    finally:
-        node.destroy_node()
-        rclpy.shutdown()
-        if server.poll() is None:
-            server.kill()
-    output = server.communicate()[0]
-    assert server.returncode == 0, output
+    output = serve_while(node, ["hover", "--ctrl-freq", str(freq), "--duration", str(duration_s), "--fast", "--sync"])
     assert f"stopped after {int(duration_s * freq)} steps" in output
     positions = np.array([obs[0:3] for obs in received])
     assert len(positions) >= int(duration_s * freq) + 1  # the start's and every step's observation arrived
@@ -295,31 +303,20 @@ def test_two_processes_close_the_loop_with_the_pid(ros_env):
 @pytest.mark.ros2
 @needs_rclpy
 def test_real_time_node_publishes_at_its_rate(ros_env):
-    """``jaxdrones ros2 hover --ctrl-freq 48 --duration 2`` in real time, no commands: an observation every 1/48 s of
-    wall time, and the drone, its motors off, falls."""
+    """``jaxdrones ros2 hover --ctrl-freq 48 --duration 4`` in real time, no commands: an observation every 1/48 s of
+    wall time, and the drone, its motors off, falls from its start (1.08 m up) to rest on the ground."""
     import rclpy
     from std_msgs.msg import Float32MultiArray
 
-    server = subprocess.Popen([sys.executable, "-m", "jaxdrones.cli", "ros2", "hover", "--ctrl-freq", "48",
-                               "--duration", "2"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()
     node = rclpy.create_node("listener")
     arrivals = []
     node.create_subscription(Float32MultiArray, "/cf0/obs",
                              lambda msg: arrivals.append((time.monotonic(), float(msg.data[2]))), 10)
-    try:
-        deadline = time.monotonic() + 120
-        while server.poll() is None and time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.01)
-    finally:
-        node.destroy_node()
-        rclpy.shutdown()
-        if server.poll() is None:
-            server.kill()
-    output = server.communicate()[0]
-    assert server.returncode == 0 and "stopped after 96 steps" in output, output
+    output = serve_while(node, ["hover", "--ctrl-freq", "48", "--duration", "4"])
+    assert "stopped after 192 steps" in output, output
     times, heights = np.array(arrivals).T
-    assert len(times) >= 48  # the last second at least (the first messages may precede discovery)
+    assert len(times) >= 96  # the last 2 s at least (the first messages may precede discovery)
     period = np.median(np.diff(times))
     assert period == pytest.approx(1 / 48, rel=0.2), period
-    assert heights[-1] < heights[0] - 0.05
+    assert heights[-1] == pytest.approx(0.5 * float(jd.load_params("cf2x").collision_height))

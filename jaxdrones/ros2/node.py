@@ -137,12 +137,10 @@ class EnvNode:
                              for name in STATE_TOPICS} for i in range(n)]
         self._clock = None if self.realtime else self.node.create_publisher(Clock, "/clock", 10)
         for i in range(n):
-            self.node.create_subscription(Float32MultiArray, self.topic(i, "action"),
-                                          lambda msg, i=i: self._on_action(i, msg), 10)
-            self.node.create_subscription(Twist, self.topic(i, "cmd_vel"), lambda msg, i=i: self._on_velocity(i, msg),
-                                          10)
-            self.node.create_subscription(PoseStamped, self.topic(i, "cmd_position"),
-                                          lambda msg, i=i: self._on_position(i, msg), 10)
+            for topic, msg_type, mode in (("action", Float32MultiArray, "rpm"), ("cmd_vel", Twist, "velocity"),
+                                          ("cmd_position", PoseStamped, "position")):
+                self.node.create_subscription(msg_type, self.topic(i, topic),
+                                              lambda msg, i=i, mode=mode: self._on_command(i, mode, msg), 10)
         self._check_clash(discovery_s)
         self.errors: list[str] = []  # rejected command messages, newest last
         self._timer = self.node.create_timer(self.ctrl_dt, self.tick) if self.realtime else None
@@ -165,34 +163,23 @@ class EnvNode:
             if time.monotonic() >= deadline:
                 return
 
-    def _reject(self, drone: int, error: ValueError) -> None:
-        message = f"{self.topic(drone, '')}: {error}"
-        self.errors.append(message)
-        self.node.get_logger().error(message)
-
-    def _on_action(self, drone: int, msg) -> None:
+    def _on_command(self, drone: int, mode: str, msg) -> None:
+        """A command message for ``drone``: parsed and held (the drone then flies in ``mode``), or refused and
+        logged (the drone keeps its command)."""
         try:
-            self._rpm[drone] = messages.rpm_command(msg.data)
-            self.mode[drone] = MODES.index("rpm")
-            self._fresh[drone] = True
+            if mode == "rpm":
+                self._rpm[drone] = messages.rpm_command(msg.data)
+            elif mode == "velocity":
+                self._velocity[drone] = messages.velocity_command(msg.linear)
+            else:
+                self._position[drone], self._yaw[drone] = messages.position_command(msg.pose)
         except ValueError as error:
-            self._reject(drone, error)
-
-    def _on_velocity(self, drone: int, msg) -> None:
-        try:
-            self._velocity[drone] = messages.velocity_command(msg.linear)
-            self.mode[drone] = MODES.index("velocity")
-            self._fresh[drone] = True
-        except ValueError as error:
-            self._reject(drone, error)
-
-    def _on_position(self, drone: int, msg) -> None:
-        try:
-            self._position[drone], self._yaw[drone] = messages.position_command(msg.pose)
-            self.mode[drone] = MODES.index("position")
-            self._fresh[drone] = True
-        except ValueError as error:
-            self._reject(drone, error)
+            message = f"{self.topic(drone, '')}: {error}"
+            self.errors.append(message)
+            self.node.get_logger().error(message)
+            return
+        self.mode[drone] = MODES.index(mode)
+        self._fresh[drone] = True
 
     def tick(self) -> None:
         """One control step: the commands applied, the physics stepped, the states published (while waiting for a
