@@ -320,3 +320,19 @@ def test_real_time_node_publishes_at_its_rate(ros_env):
     period = np.median(np.diff(times))
     assert period == pytest.approx(1 / 48, rel=0.2), period
     assert heights[-1] == pytest.approx(0.5 * float(jd.load_params("cf2x").collision_height))
+
+
+@pytest.mark.ros2
+@needs_rclpy
+def test_ctrl_c_stops_the_node_cleanly(ros_env):
+    """SIGINT (Ctrl-C) while the node steps: exit status 0, no traceback, a last line saying how far it got."""
+    import signal
+
+    server = subprocess.Popen([sys.executable, "-m", "jaxdrones.cli", "ros2", "hover"], stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
+    assert "Ctrl-C stops" in server.stdout.readline()  # started: the node steps on its timer
+    time.sleep(1.0)
+    server.send_signal(signal.SIGINT)
+    output = server.communicate(timeout=60)[0]
+    assert server.returncode == 0, output
+    assert "Traceback" not in output and "jaxdrones ros2: stopped after" in output, output

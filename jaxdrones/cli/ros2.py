@@ -43,6 +43,9 @@ def run_cli(args: argparse.Namespace) -> int:
     except (ValueError, ModuleNotFoundError) as e:
         print(f"jaxdrones ros2: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C while starting
+        print("jaxdrones ros2: stopped before the first step", flush=True)
+        return 0
     print(f"jaxdrones ros2: {args.task}, {node.n_drones} drone(s) at {1 / node.ctrl_dt:g} Hz on "
           f"{node.topic(0, '{obs,pose,odom}')} ... {node.topic(node.n_drones - 1, '')}; Ctrl-C stops", flush=True)
     node.spin(args.duration)

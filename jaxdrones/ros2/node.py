@@ -131,7 +131,11 @@ class EnvNode:
         self._rclpy = rclpy
         self._owns_context = not rclpy.ok()  # shut rclpy down on close only if this node started it
         if self._owns_context:
-            rclpy.init()
+            # Ctrl-C raises KeyboardInterrupt (Python's own handler), which `spin` turns into a clean close, rather
+            # than rclpy's handler shutting the context down under a node that is still starting.
+            from rclpy.signals import SignalHandlerOptions
+
+            rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node(node_name)
         self._publishers = [{name: self.node.create_publisher(self._types[name], self.topic(i, name), 10)
                              for name in STATE_TOPICS} for i in range(n)]
