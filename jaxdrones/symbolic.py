@@ -408,7 +408,8 @@ class SymbolicModel:
             Jacobians; dg_func: ``dg(x, u) -> (dgdx, dgdu)``.
         loss: ``loss(x, u, Xr, Ur, Q, R) -> (l, l_x, l_xx, l_u, l_uu, l_xu)``, the quadratic cost
             ½ (x - Xr)ᵀ Q (x - Xr) + ½ (u - Ur)ᵀ R (u - Ur) and its derivatives, as safe-control-gym's.
-        x_eq, u_eq: hover at the origin (level, at rest, at the hover RPM), as NumPy arrays.
+        x_eq, u_eq: hover 1 m above the origin (level, at rest, at the hover RPM; out of ground effect and
+            contact), as NumPy arrays.
         rotor_state: whether the state ends with the rotor speeds; state_names: the state's entry names.
 
     Args:
@@ -450,7 +451,7 @@ class SymbolicModel:
                                 [cost, l_x, cs.jacobian(l_x, x), l_u, cs.jacobian(l_u, u), cs.jacobian(l_x, u)],
                                 ["x", "u", "Xr", "Ur", "Q", "R"], ["l", "l_x", "l_xx", "l_u", "l_uu", "l_xu"])
         self.u_eq = np.full(4, a.hover_rpm)
-        self.x_eq = np.concatenate([np.zeros(3), [0.0, 0.0, 0.0, 1.0], np.zeros(6)]
+        self.x_eq = np.concatenate([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0], np.zeros(6)]
                                    + ([self.u_eq] if self.rotor_state else []))
 
     def __repr__(self) -> str:

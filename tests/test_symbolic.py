@@ -134,7 +134,8 @@ def test_hover_is_an_equilibrium_and_the_model_has_safe_control_gyms_shape(x64):
     config = jd.SimConfig(ctrl_freq=30)
     model = symbolic.SymbolicModel(params, config)
     assert (model.nx, model.nu, model.ny, model.dt) == (13, 4, 16, 1 / 30)
-    x_eq = model.x_eq + np.r_[0, 0, 1.0, np.zeros(10)]  # 1 m up, out of ground contact
+    x_eq = model.x_eq
+    assert x_eq[2] == 1.0  # 1 m up, out of ground contact
     np.testing.assert_allclose(np.asarray(model.fc_func(x_eq, model.u_eq)), 0, atol=1e-12)
     np.testing.assert_allclose(np.asarray(model.fd_func(x0=x_eq, p=model.u_eq)["xf"]).ravel(), x_eq, atol=1e-12)
     dfdx, dfdu = (np.asarray(j) for j in model.df_func(x_eq, model.u_eq))
