@@ -233,6 +233,53 @@ def test_node_rejects_bad_input(ros_env):
         rclpy.shutdown()
 
 
+@pytest.mark.ros2
+@needs_rclpy
+def test_velocity_and_position_setpoints_fly_the_pid(ros_env):
+    """cmd_position and cmd_vel over topics (in one process): the drone climbs 0.3 m to the position setpoint and
+    holds it, then moves along +x at the commanded 0.2 m/s (within 5 cm/s on average)."""
+    import rclpy
+    from geometry_msgs.msg import PoseStamped, Twist
+
+    from jaxdrones.ros2.node import EnvNode
+
+    rclpy.init()
+    try:
+        env_node = EnvNode("hover", realtime=False, namespace="setpoint", node_name="env", ctrl_freq=48)
+        start = np.asarray(env_node.state.pos[0], np.float64)
+        sender = rclpy.create_node("sender")
+
+        def send(topic, msg, mode):
+            publisher = sender.create_publisher(type(msg), topic, 10)
+            deadline = time.monotonic() + 10
+            while env_node.mode[0] != mode and time.monotonic() < deadline:
+                publisher.publish(msg)
+                rclpy.spin_once(env_node.node, timeout_sec=0.05)
+            assert env_node.mode[0] == mode
+
+        goal = PoseStamped()
+        goal.pose.position.x, goal.pose.position.y, goal.pose.position.z = start + [0.0, 0.0, 0.3]
+        goal.pose.orientation.w = 1.0
+        send("/setpoint0/cmd_position", goal, 3)
+        for _ in range(4 * 48):
+            env_node.tick()
+        np.testing.assert_allclose(np.asarray(env_node.state.pos[0]), start + [0, 0, 0.3], atol=0.02)
+        command = Twist()
+        command.linear.x = 0.2
+        send("/setpoint0/cmd_vel", command, 2)
+        velocities = []
+        for _ in range(3 * 48):
+            env_node.tick()
+            velocities.append(np.asarray(env_node.state.vel[0]))
+        # the PID's velocity loop (the paper's VEL action) over the last 2 s: within 5 cm/s, on average
+        np.testing.assert_allclose(np.mean(velocities[48:], axis=0), [0.2, 0.0, 0.0], atol=0.05)
+        assert not env_node.errors
+        sender.destroy_node()
+        env_node.close()
+    finally:
+        rclpy.shutdown()
+
+
 def serve_while(node, arguments: list[str], timeout_s: float = 120.0) -> str:
     """Run ``jaxdrones ros2 ARGUMENTS`` in its own process while spinning ``node`` (an rclpy node of this process)
     until it exits; then destroy the node and shut rclpy down. Returns the process's output; fails on an error."""

@@ -127,6 +127,7 @@ class EnvNode:
         self.waiting = bool(wait_for_command)
         self.sync = bool(sync)
         self._fresh = np.zeros(n, bool)  # a command arrived since the last step (sync)
+        self.errors: list[str] = []  # rejected command messages, newest last
         self._types = {"obs": Float32MultiArray, "pose": PoseStamped, "odom": Odometry, "clock": Clock}
         self._rclpy = rclpy
         self._owns_context = not rclpy.ok()  # shut rclpy down on close only if this node started it
@@ -146,7 +147,6 @@ class EnvNode:
                 self.node.create_subscription(msg_type, self.topic(i, topic),
                                               lambda msg, i=i, mode=mode: self._on_command(i, mode, msg), 10)
         self._check_clash(discovery_s)
-        self.errors: list[str] = []  # rejected command messages, newest last
         self._timer = self.node.create_timer(self.ctrl_dt, self.tick) if self.realtime else None
         self.publish()
 
