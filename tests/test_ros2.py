@@ -50,10 +50,11 @@ def a_drone(rng):
 
 def test_obs_through_cdr(typestore, rng):
     pos, quat, vel, ang_vel, rpm = a_drone(rng)
-    obs = messages.obs_vector(pos, quat, vel, ang_vel, rpm)
+    rpy = np.asarray(quat_to_euler(jnp.asarray(quat)))
+    obs = messages.obs_vector(pos, quat, rpy, vel, ang_vel, rpm)
     msg, _ = cdr_round_trip(typestore, "std_msgs/msg/Float32MultiArray", messages.float_array_fields(obs))
     assert msg.data.dtype == np.float32 and msg.data.shape == (20,) and len(messages.OBS_NAMES) == 20
-    expected = np.r_[pos, quat, np.asarray(quat_to_euler(jnp.asarray(quat))), vel, ang_vel, rpm]
+    expected = np.r_[pos, quat, rpy, vel, ang_vel, rpm]
     np.testing.assert_allclose(msg.data, expected.astype(np.float32), rtol=1e-6, atol=1e-6)
 
 
@@ -193,7 +194,7 @@ def test_rclpy_messages_equal_rosbags(typestore, rng):
     pos, quat, vel, ang_vel, rpm = a_drone(rng)
     for cls, msgtype, fields in (
             (Float32MultiArray, "std_msgs/msg/Float32MultiArray",
-             messages.float_array_fields(messages.obs_vector(pos, quat, vel, ang_vel, rpm))),
+             messages.float_array_fields(messages.obs_vector(pos, quat, np.zeros(3), vel, ang_vel, rpm))),
             (PoseStamped, "geometry_msgs/msg/PoseStamped", messages.pose_fields(pos, quat, 3.25)),
             (Odometry, "nav_msgs/msg/Odometry", messages.odometry_fields(pos, quat, vel, ang_vel, 3.25))):
         _, raw = cdr_round_trip(typestore, msgtype, fields)

@@ -20,7 +20,6 @@ Messages (per drone, world frame ``world`` unless stated):
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -28,8 +27,6 @@ import numpy as np
 #: The entries of the paper's ``obs`` array, per drone.
 OBS_NAMES = ("x", "y", "z", "qx", "qy", "qz", "qw", "roll", "pitch", "yaw", "vx", "vy", "vz", "wx", "wy", "wz",
              "rpm0", "rpm1", "rpm2", "rpm3")
-#: PyBullet's gimbal-lock snap of ``getEulerFromQuaternion`` (docs/physics.md §0.4).
-_GIMBAL_SNAP = 0.99999
 
 
 def time_fields(t: float) -> dict:
@@ -38,25 +35,11 @@ def time_fields(t: float) -> dict:
     return {"sec": nanoseconds // 1_000_000_000, "nanosec": nanoseconds % 1_000_000_000}
 
 
-def euler_from_quat(quat) -> np.ndarray:
-    """Roll, pitch, yaw (rad) of a unit quaternion (x, y, z, w), as PyBullet's ``getEulerFromQuaternion`` (with its
-    snap to pitch ±π/2 within |sin pitch| >= 0.99999; `jaxdrones.rotations.quat_to_euler` in NumPy, f64[..., 3])."""
-    x, y, z, w = np.moveaxis(np.asarray(quat, np.float64), -1, 0)
-    s = -2.0 * (x * z - w * y)
-    low, high = s <= -_GIMBAL_SNAP, s >= _GIMBAL_SNAP
-    snap = low | high
-    sign = np.where(low, 1.0, -1.0)
-    roll = np.where(snap, 0.0, np.arctan2(2 * (y * z + w * x), w * w - x * x - y * y + z * z))
-    pitch = np.where(low, -math.pi / 2, np.where(high, math.pi / 2, np.arcsin(np.clip(s, -_GIMBAL_SNAP, _GIMBAL_SNAP))))
-    yaw = np.where(snap, 2 * np.arctan2(sign * x, -sign * y),
-                   np.arctan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z))
-    return np.stack([roll, pitch, yaw], -1)
-
-
-def obs_vector(pos, quat, vel, ang_vel, rpm) -> np.ndarray:
-    """The paper's observation of one drone, f32[20] (`OBS_NAMES`)."""
-    return np.concatenate([np.ravel(pos), np.ravel(quat), euler_from_quat(np.ravel(quat)), np.ravel(vel),
-                           np.ravel(ang_vel), np.ravel(rpm)]).astype(np.float32)
+def obs_vector(pos, quat, rpy, vel, ang_vel, rpm) -> np.ndarray:
+    """The paper's observation of one drone, f32[20] (`OBS_NAMES`); ``rpy`` from
+    `jaxdrones.rotations.quat_to_euler` (PyBullet's ``getEulerFromQuaternion``)."""
+    return np.concatenate([np.ravel(pos), np.ravel(quat), np.ravel(rpy), np.ravel(vel), np.ravel(ang_vel),
+                           np.ravel(rpm)]).astype(np.float32)
 
 
 def float_array_fields(data) -> dict:
@@ -128,8 +111,11 @@ def position_command(pose) -> tuple[np.ndarray, float]:
     pos = _finite([p.x, p.y, p.z], "a position setpoint", 3)
     quat = _finite([q.x, q.y, q.z, q.w], "a position setpoint's orientation", 4)
     norm = np.linalg.norm(quat)
-    yaw = 0.0 if norm == 0 else float(euler_from_quat(quat / norm)[2])  # an all-zero orientation: yaw 0
-    return pos, yaw
+    if norm == 0:  # an all-zero orientation (a message that leaves it unset): yaw 0
+        return pos, 0.0
+    from jaxdrones.rotations import quat_to_euler
+
+    return pos, float(quat_to_euler(quat / norm)[2])
 
 
 def fill_rclpy(message: Any, fields: dict) -> Any:

@@ -215,8 +215,9 @@ class EnvNode:
             self._clock.publish(fill(self._types["clock"](), messages.clock_fields(t)))
         pos, quat, vel, ang_vel, rpm = (np.asarray(getattr(self.state, k), np.float64)
                                         for k in ("pos", "quat", "vel", "ang_vel", "rpm"))
+        rpy = np.asarray(quat_to_euler(self.state.quat), np.float64)
         for i, publishers in enumerate(self._publishers):
-            obs = messages.obs_vector(pos[i], quat[i], vel[i], ang_vel[i], rpm[i])
+            obs = messages.obs_vector(pos[i], quat[i], rpy[i], vel[i], ang_vel[i], rpm[i])
             publishers["obs"].publish(fill(self._types["obs"](), messages.float_array_fields(obs)))
             publishers["pose"].publish(fill(self._types["pose"](), messages.pose_fields(pos[i], quat[i], t)))
             publishers["odom"].publish(fill(self._types["odom"](), messages.odometry_fields(
