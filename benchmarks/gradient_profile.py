@@ -1,0 +1,102 @@
+"""Where the time of a gradient through the default env's physics goes: an XLA:CPU trace, summed by operation.
+
+The work: a ``lax.scan`` of T control steps over ``jaxdrones.make_step(jd.make("hover").sim_config)`` (the hover
+env's physics at its defaults: 240 Hz physics, 30 Hz control, 8 substeps per step) for W worlds of one cf2x,
+starting 5-30 cm up, RPM commands within 2 % of hover; the loss is the mean squared distance to (0, 0, 1) m plus
+0.1 x the mean squared velocity. The forward pass and the value and gradient w.r.t. the commands are timed in
+rounds (medians, and their ratio); then ``jax.profiler`` traces ``--traced`` gradient calls and the trace's
+operations (XLA's thunks: fusions, loops, copies) are summed per call, by name with the numeric suffix dropped,
+and listed by the share of the time they take. On jax >= 0.11 each inner ``while`` loop (the substeps) runs as one
+``call``; on jax 0.10 the loops' own fusions appear (and the profiler's per-operation overhead inflates them).
+
+Usage::
+
+    python benchmarks/gradient_profile.py                    # W = 1024, T = 100
+    python benchmarks/gradient_profile.py --worlds 4096 --top 30
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import gzip
+import json
+import re
+import statistics
+import tempfile
+import time
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--worlds", type=int, default=1024)
+    parser.add_argument("--horizon", type=int, default=100)
+    parser.add_argument("--repeats", type=int, default=7, help="timed rounds (median)")
+    parser.add_argument("--traced", type=int, default=3, help="gradient calls traced by the profiler")
+    parser.add_argument("--top", type=int, default=20, help="operations listed")
+    args = parser.parse_args(argv)
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxdrones as jd
+
+    config = jd.make("hover").sim_config
+    params = jd.load_params("cf2x")
+    rng = np.random.default_rng(0)
+    w, t = args.worlds, args.horizon
+    pos = np.concatenate([rng.uniform(-1, 1, (w, 1, 2)), rng.uniform(0.05, 0.3, (w, 1, 1))], -1)
+    init = jd.init_state(config, pos=jnp.asarray(pos, jnp.float32))
+    step = jd.make_step(config)
+    commands = jnp.asarray(float(params.hover_rpm) * (1 + 0.02 * rng.standard_normal((t, w, 1, 4))), jnp.float32)
+
+    def loss(commands, init):
+        def body(s, rpm):
+            s = step(params, s, rpm)
+            return s, (s.pos, s.vel)
+
+        _, (p, v) = jax.lax.scan(body, init, commands)
+        return jnp.mean(jnp.sum((p - jnp.array([0.0, 0.0, 1.0])) ** 2, -1)) + 0.1 * jnp.mean(v**2)
+
+    compiled = {name: jax.jit(fn).lower(commands, init).compile()
+                for name, fn in (("forward", loss), ("gradient", jax.value_and_grad(loss)))}
+    for fn in compiled.values():
+        jax.block_until_ready(fn(commands, init))
+    times = {name: [] for name in compiled}
+    for _ in range(args.repeats):
+        for name, fn in compiled.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(commands, init))
+            times[name].append(time.perf_counter() - t0)
+    ratio = statistics.median(g / f for g, f in zip(times["gradient"], times["forward"]))
+    print(f"jax {jax.__version__}; {config.n_substeps} substeps per control step, W={w}, T={t}: forward "
+          f"{1e3 * statistics.median(times['forward']):.1f} ms, value and gradient "
+          f"{1e3 * statistics.median(times['gradient']):.1f} ms ({ratio:.2f}x)")
+
+    with tempfile.TemporaryDirectory() as trace_dir:
+        jax.profiler.start_trace(trace_dir, create_perfetto_trace=True)
+        for _ in range(args.traced):
+            jax.block_until_ready(compiled["gradient"](commands, init))
+        jax.profiler.stop_trace()
+        path = sorted(glob.glob(f"{trace_dir}/**/*.trace.json.gz", recursive=True))[-1]
+        events = json.load(gzip.open(path))["traceEvents"]
+    total, count = collections.Counter(), collections.Counter()
+    for event in events:
+        name = event.get("name", "")
+        if event.get("ph") != "X" or name.startswith(("$", "ThunkExecutor", "PjitFunction", "end:")):
+            continue
+        key = re.sub(r"\.\d+$", "", name)
+        total[key] += event.get("dur", 0) / args.traced / 1e3
+        count[key] += 1 / args.traced
+    overall = sum(total.values())
+    print(f"traced operations, per gradient call: {overall:.1f} ms in all")
+    print("| operation | ms per call | share | runs per call |\n|---|---|---|---|")
+    for key, ms in total.most_common(args.top):
+        print(f"| {key} | {ms:.2f} | {100 * ms / overall:.1f} % | {count[key]:.0f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
