@@ -2,8 +2,8 @@
 
 The work: a ``lax.scan`` of T control steps over ``jaxdrones.make_step(jd.make("hover").sim_config)`` (the hover
 env's physics at its defaults: 240 Hz physics, 30 Hz control, 8 substeps per step) for W worlds of one cf2x,
-starting 5-30 cm up, RPM commands within 2 % of hover; the loss is the mean squared distance to (0, 0, 1) m plus
-0.1 x the mean squared velocity. The forward pass and the value and gradient w.r.t. the commands are timed in
+starting 5-30 cm up, RPM commands within 2 % of hover, the loss of `benchmarks/gradients.py` (its start positions
+and ``trajectory_loss``). The forward pass and the value and gradient w.r.t. the commands are timed in
 rounds (medians, and their ratio); then ``jax.profiler`` traces ``--traced`` gradient calls and the trace's
 operations (XLA's thunks: fusions, loops, copies) are summed per call, by name with the numeric suffix dropped,
 and listed by the share of the time they take. On jax >= 0.11 each inner ``while`` loop (the substeps) runs as one
@@ -42,15 +42,15 @@ def main(argv=None) -> int:
     import numpy as np
 
     import jaxdrones as jd
+    from gradients import start_positions, trajectory_loss  # the work of benchmarks/gradients.py
 
     config = jd.make("hover").sim_config
     params = jd.load_params("cf2x")
-    rng = np.random.default_rng(0)
     w, t = args.worlds, args.horizon
-    pos = np.concatenate([rng.uniform(-1, 1, (w, 1, 2)), rng.uniform(0.05, 0.3, (w, 1, 1))], -1)
-    init = jd.init_state(config, pos=jnp.asarray(pos, jnp.float32))
+    init = jd.init_state(config, pos=jnp.asarray(start_positions(np, w)))
     step = jd.make_step(config)
-    commands = jnp.asarray(float(params.hover_rpm) * (1 + 0.02 * rng.standard_normal((t, w, 1, 4))), jnp.float32)
+    noise = np.random.default_rng(1).standard_normal((t, w, 1, 4))
+    commands = jnp.asarray(float(params.hover_rpm) * (1 + 0.02 * noise), jnp.float32)
 
     def loss(commands, init):
         def body(s, rpm):
@@ -58,7 +58,7 @@ def main(argv=None) -> int:
             return s, (s.pos, s.vel)
 
         _, (p, v) = jax.lax.scan(body, init, commands)
-        return jnp.mean(jnp.sum((p - jnp.array([0.0, 0.0, 1.0])) ** 2, -1)) + 0.1 * jnp.mean(v**2)
+        return trajectory_loss(jnp, p, v)
 
     compiled = {name: jax.jit(fn).lower(commands, init).compile()
                 for name, fn in (("forward", loss), ("gradient", jax.value_and_grad(loss)))}

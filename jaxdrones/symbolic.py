@@ -39,10 +39,11 @@ import numpy as np
 
 from jaxdrones.config import SimConfig
 from jaxdrones.params import DroneParams
-from jaxdrones.rotations import GIMBAL_SNAP, OMEGA_EPS
+from jaxdrones.rotations import GIMBAL_SNAP, OMEGA_EPS, quat_mul_c, quat_to_rotmat_c
+from jaxdrones.state import DroneState
 
 __all__ = ["STATE_NAMES", "ROTOR_NAMES", "INPUT_NAMES", "OBSERVATION_NAMES", "SymbolicModel", "continuous_dynamics",
-           "crazyflow_params", "discrete_step", "observation", "require_casadi", "symbolic_dynamics"]
+           "crazyflow_params", "discrete_step", "observation", "require_casadi", "state_vector", "symbolic_dynamics"]
 
 #: The kinematic state's entries, in order (crazyflow's order).
 STATE_NAMES = ("x", "y", "z", "qx", "qy", "qz", "qw", "vx", "vy", "vz", "wx", "wy", "wz")
@@ -119,22 +120,19 @@ def _check_config(config: SimConfig) -> SimConfig:
     return config
 
 
-def _needs_rotor_state(config: SimConfig) -> bool:
-    """Whether the step reads the state's RPM: drag acts on the previous substep's RPM, and motor dynamics start
-    from the motors' speeds."""
-    return bool(config.drag or config.motor_dynamics)
-
-
 # The equations, on CasADi column vectors (SX or MX), each as in the JAX core (jaxdrones.dynamics).
 
+# The component-form functions of `jaxdrones.rotations` that are plain arithmetic take CasADi entries as they
+# take arrays: the Hamilton product and the rotation matrix are written once, there.
+
+def _entries(v) -> tuple:
+    """A CasADi column vector as the tuple of its entries (the component form of `jaxdrones.rotations`)."""
+    return tuple(v[i] for i in range(v.shape[0]))
+
+
 def _quat_mul(a, b):
-    cs = require_casadi()
-    ax, ay, az, aw = a[0], a[1], a[2], a[3]
-    bx, by, bz, bw = b[0], b[1], b[2], b[3]
-    return cs.vertcat(aw * bx + ax * bw + ay * bz - az * by,
-                      aw * by - ax * bz + ay * bw + az * bx,
-                      aw * bz + ax * by - ay * bx + az * bw,
-                      aw * bw - ax * bx - ay * by - az * bz)
+    """a ⊗ b (`jaxdrones.rotations.quat_mul_c`) of CasADi 4-vectors (x, y, z, w)."""
+    return require_casadi().vertcat(*quat_mul_c(_entries(a), _entries(b)))
 
 
 def _normalize(v):
@@ -143,13 +141,9 @@ def _normalize(v):
 
 
 def _rotmat(q):
-    """R(q), body→world, of a unit quaternion (x, y, z, w) (docs/physics.md §0.3)."""
+    """R(q), body→world, of a unit quaternion (x, y, z, w) (`jaxdrones.rotations.quat_to_rotmat_c`), 3 x 3."""
     cs = require_casadi()
-    x, y, z, w = q[0], q[1], q[2], q[3]
-    return cs.vertcat(
-        cs.horzcat(1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)),
-        cs.horzcat(2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)),
-        cs.horzcat(2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)))
+    return cs.vertcat(*(cs.horzcat(*row) for row in quat_to_rotmat_c(_entries(q), unit=True)))
 
 
 def _accelerations(a: _Airframe, config: SimConfig, pos, quat, vel, ang_vel, rpm, rpm_prev):
@@ -227,7 +221,13 @@ def _ground_contact(a, pos, vel, ang_vel):
 
 
 def _motor_decay(tau: float, dt: float) -> float:
+    """`jaxdrones.dynamics.motor_decay` on a float, in float64 whatever JAX's precision: exp(-dt/τ), 0 for τ <= 0."""
     return math.exp(-dt / tau) if tau > 0 else 0.0
+
+
+def _motor_rate(tau: float) -> float:
+    """1/τ, the first-order motor model's rate (1/s); 0 for instant motors (τ <= 0)."""
+    return 1.0 / tau if tau > 0 else 0.0
 
 
 def _split_state(x, rotor_state: bool):
@@ -271,14 +271,12 @@ def _continuous_expression(a: _Airframe, config: SimConfig, x, u, rotor_state: b
     if config.motor_dynamics:
         if rotor is None:
             raise ValueError("motor dynamics need the rotor speeds in the state (rotor_state=True)")
-        rate_up = 1 / a.motor_tau_up if a.motor_tau_up > 0 else math.inf
-        rate_down = 1 / a.motor_tau_down if a.motor_tau_down > 0 else math.inf
-        if math.isinf(rate_up) or math.isinf(rate_down):
+        if not (a.motor_tau_up > 0 and a.motor_tau_down > 0):
             raise ValueError("the continuous model with motor dynamics needs positive motor time constants, got "
                              f"motor_tau_up={a.motor_tau_up}, motor_tau_down={a.motor_tau_down}")
         rpm = rotor
-        rotor_dot = (command - rotor) * cs.if_else(command > rotor, rate_up * cs.DM.ones(4),
-                                                   rate_down * cs.DM.ones(4))
+        rotor_dot = (command - rotor) * cs.if_else(command > rotor, _motor_rate(a.motor_tau_up) * cs.DM.ones(4),
+                                                   _motor_rate(a.motor_tau_down) * cs.DM.ones(4))
     else:
         rpm = command
         rotor_dot = None if rotor is None else cs.DM.zeros(4)
@@ -312,7 +310,9 @@ def _observation_expression(x, rotor_state: bool):
 
 
 def _rotor_state(config: SimConfig, rotor_state: bool | None) -> bool:
-    needed = _needs_rotor_state(config)
+    """Whether the state carries the rotor speeds: as asked, or (None) where the step reads them (drag acts on the
+    previous substep's RPM, motor dynamics start from the motors' speeds)."""
+    needed = bool(config.drag or config.motor_dynamics)
     if rotor_state is None:
         return needed
     if needed and not rotor_state:
@@ -323,6 +323,13 @@ def _rotor_state(config: SimConfig, rotor_state: bool | None) -> bool:
 
 def _names(rotor_state: bool) -> list[str]:
     return list(STATE_NAMES) + (list(ROTOR_NAMES) if rotor_state else [])
+
+
+def state_vector(state: DroneState, rotor_state: bool = True) -> np.ndarray:
+    """One drone's `jaxdrones.state.DroneState` (leading shape ``[1]`` or none) as this module's state vector
+    f64[17] (pos, quat, vel, ang_vel, rpm; `STATE_NAMES`, `ROTOR_NAMES`), or f64[13] without the rotor speeds."""
+    fields = ("pos", "quat", "vel", "ang_vel") + (("rpm",) if rotor_state else ())
+    return np.concatenate([np.asarray(getattr(state, k), np.float64).reshape(-1) for k in fields])
 
 
 def continuous_dynamics(params: DroneParams, config: SimConfig = SimConfig(), rotor_state: bool | None = None,
@@ -474,12 +481,11 @@ def crazyflow_params(params: DroneParams) -> dict[str, Any]:
         rotor_dyn_coef, drag_matrix.
     """
     a = _airframe(params)
-    rate = lambda tau: 1.0 / tau if tau > 0 else 0.0  # noqa: E731
     return {"mass": a.mass, "L": a.arm, "prop_inertia": 0.0, "gravity_vec": np.array([0.0, 0.0, -a.gravity]),
             "J": a.inertia, "J_inv": a.inertia_inv, "rpm2thrust": np.array([0.0, 0.0, a.kf]),
             "rpm2torque": np.array([0.0, 0.0, a.km]),
             "mixing_matrix": np.vstack([a.torque_arm / a.arm, -a.prop_spin[None]]),
-            "rotor_dyn_coef": np.array([rate(a.motor_tau_up), 0.0, rate(a.motor_tau_down), 0.0]),
+            "rotor_dyn_coef": np.array([_motor_rate(a.motor_tau_up), 0.0, _motor_rate(a.motor_tau_down), 0.0]),
             "drag_matrix": np.zeros((3, 3))}
 
 
@@ -526,14 +532,12 @@ def symbolic_dynamics(model_rotor_vel: bool = True, model_dist_f: bool = False, 
               + prop_inertia * cs.vertcat(-ang_vel[1] * cs.dot(spin, rotor * RPM_TO_RAD_S),
                                           -ang_vel[0] * cs.dot(spin, rotor * RPM_TO_RAD_S),
                                           cs.dot(spin, rotor_dot * RPM_TO_RAD_S)))
-    for wanted, name in ((model_dist_f, "dist_f"), (model_dist_t, "dist_t")):
-        if wanted:
-            disturbance = cs.MX.sym(name, 3)
-            state.append(disturbance)
-            if name == "dist_f":
-                force = force + disturbance
-            else:
-                torque = torque + rot.T @ disturbance
+    if model_dist_f:
+        state.append(cs.MX.sym("dist_f", 3))
+        force = force + state[-1]
+    if model_dist_t:
+        state.append(cs.MX.sym("dist_t", 3))
+        torque = torque + rot.T @ state[-1]
     ang_acc = cs.mtimes(J_inv, torque - cs.cross(ang_vel, cs.mtimes(J, ang_vel)))
     x_dot = [vel, 0.5 * _quat_mul(quat, cs.vertcat(ang_vel, 0)), force / mass, ang_acc]
     if model_rotor_vel:

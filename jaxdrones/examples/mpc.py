@@ -35,8 +35,8 @@ from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import check_steps, initial_carry, jax_closed_loop, track_position
 from jaxdrones.params import DroneParams, load_params
 from jaxdrones.sim import SimConfig, make_step
-from jaxdrones.state import DroneState, init_state
-from jaxdrones.symbolic import discrete_step, require_casadi
+from jaxdrones.state import init_state
+from jaxdrones.symbolic import discrete_step, require_casadi, state_vector
 
 __all__ = ["FIGURE8", "MPC", "MPCWeights", "figure8", "fly_figure8", "plot_figure8", "main"]
 
@@ -86,7 +86,7 @@ class MPC:
 
     Call ``mpc(x, ref_pos, ref_vel)`` with the state vector ``x`` (`jaxdrones.symbolic` order, f[nx]) and the
     reference over the horizon, f[horizon + 1, 3] each (from the current time on): it returns the RPM command f[4]
-    for this step. `state_vector` turns a `DroneState` of one drone into ``x``.
+    for this step. `jaxdrones.symbolic.state_vector` turns a `DroneState` of one drone into ``x``.
     """
 
     def __init__(self, params: DroneParams, config: SimConfig, weights: MPCWeights = MPCWeights()):
@@ -136,13 +136,6 @@ class MPC:
         return self.hover_rpm * (1 + np.asarray(du0).ravel())
 
 
-def state_vector(state: DroneState) -> np.ndarray:
-    """One drone's `DroneState` (leading shape ``[1]``) as the symbolic model's state f64[17]: pos, quat, vel,
-    ang_vel, rpm."""
-    return np.concatenate([np.asarray(getattr(state, k), np.float64).reshape(-1)
-                           for k in ("pos", "quat", "vel", "ang_vel", "rpm")])
-
-
 def fly_figure8(duration_s: float = 6.0, ctrl_freq: int = 30, drag: bool = True, ground_effect: bool = True,
                 weights: MPCWeights = MPCWeights(), settle_s: float = 1.0, params: DroneParams | None = None,
                 model_drag: bool | None = None, model_ground_effect: bool | None = None, **figure) -> dict:
@@ -186,7 +179,8 @@ def fly_figure8(duration_s: float = 6.0, ctrl_freq: int = 30, drag: bool = True,
     dt = 1.0 / ctrl_freq
     times = dt * np.arange(1, n_steps + 1)
     reference, reference_vel = figure8(times, **figure)
-    start = init_state(config, pos=jnp.asarray([figure8(np.zeros(1), **figure)[0][0]]))
+    start_pos, start_vel = figure8(np.zeros(1), **figure)  # the reference at t = 0
+    start = init_state(config, pos=jnp.asarray(start_pos))
 
     step, state, positions, solve_s = make_step(config), start, [], []
     horizon_times = dt * np.arange(mpc.horizon + 1)
@@ -202,7 +196,7 @@ def fly_figure8(duration_s: float = 6.0, ctrl_freq: int = 30, drag: bool = True,
     # time t (from the state reached then) targets the reference at t, its velocity fed forward.
     dtype = start.pos.dtype
     xs = (jnp.asarray(reference[:, None], dtype), jnp.asarray(reference_vel[:, None], dtype))
-    x_first = tuple(jnp.asarray(r, dtype) for r in figure8(np.zeros(1), **figure))
+    x_first = (jnp.asarray(start_pos, dtype), jnp.asarray(start_vel, dtype))
     fixed = (jnp.zeros((1, 3), dtype), jnp.asarray(1.0, dtype))
     _, (states, _) = jax_closed_loop(config, track_position)(params, PIDGains.dsl(), initial_carry(start), xs, fixed,
                                                              x_first)

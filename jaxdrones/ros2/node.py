@@ -39,11 +39,12 @@ from jaxdrones.sim import make_step
 
 __all__ = ["COMMAND_TOPICS", "MODES", "STATE_TOPICS", "EnvNode", "check_namespace"]
 
-#: The topics each drone publishes and subscribes to, under ``/{namespace}{i}``.
-STATE_TOPICS = ("obs", "pose", "odom")
-COMMAND_TOPICS = ("action", "cmd_vel", "cmd_position")
 #: A drone's command mode: motors off, RPM from ``action``, a velocity, a position.
 MODES = ("off", "rpm", "velocity", "position")
+_OFF, _RPM, _VELOCITY, _POSITION = range(len(MODES))
+#: The topics each drone publishes and subscribes to, under ``/{namespace}{i}``; each command topic's mode.
+STATE_TOPICS = ("obs", "pose", "odom")
+COMMAND_TOPICS = {"action": "rpm", "cmd_vel": "velocity", "cmd_position": "position"}
 _NAMESPACE = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 
 
@@ -61,16 +62,16 @@ def check_namespace(namespace: str) -> str:
 def _commands(params, pid_state, state, mode, rpm, velocity, position, yaw, ctrl_dt):
     """The RPM f[D, 4] to apply for each drone's mode (`MODES` index i32[D]) and the PID state after it."""
     current_yaw = quat_to_euler(state.quat)[..., 2]
-    by_position, by_velocity = (mode == 3)[:, None], (mode == 2)[:, None]
+    by_position, by_velocity = (mode == _POSITION)[:, None], (mode == _VELOCITY)[:, None]
     target_pos = jnp.where(by_position, position, state.pos)  # a velocity setpoint holds the current position
     target_vel = jnp.where(by_velocity, velocity, 0.0)
-    target_yaw = jnp.where(mode == 3, yaw, current_yaw)
+    target_yaw = jnp.where(mode == _POSITION, yaw, current_yaw)
     target_rpy = jnp.stack([jnp.zeros_like(target_yaw), jnp.zeros_like(target_yaw), target_yaw], -1)
     pid_rpm, new_pid = pid_control(params, PIDGains.dsl(state.pos.dtype), pid_state, state, target_pos,
                                    target_vel=target_vel, target_rpy=target_rpy, ctrl_dt=ctrl_dt)
-    uses_pid = (mode >= 2)[:, None]
+    uses_pid = by_position | by_velocity
     new_pid = jax.tree.map(lambda new, old: jnp.where(uses_pid, new, old), new_pid, pid_state)
-    out = jnp.where(mode[:, None] == 1, rpm, jnp.where(uses_pid, pid_rpm, 0.0))
+    out = jnp.where((mode == _RPM)[:, None], rpm, jnp.where(uses_pid, pid_rpm, 0.0))
     return out.astype(state.rpm.dtype), new_pid
 
 
@@ -141,10 +142,10 @@ class EnvNode:
         self._publishers = [{name: self.node.create_publisher(self._types[name], self.topic(i, name), 10)
                              for name in STATE_TOPICS} for i in range(n)]
         self._clock = None if self.realtime else self.node.create_publisher(Clock, "/clock", 10)
+        command_types = {"action": Float32MultiArray, "cmd_vel": Twist, "cmd_position": PoseStamped}
         for i in range(n):
-            for topic, msg_type, mode in (("action", Float32MultiArray, "rpm"), ("cmd_vel", Twist, "velocity"),
-                                          ("cmd_position", PoseStamped, "position")):
-                self.node.create_subscription(msg_type, self.topic(i, topic),
+            for topic, mode in COMMAND_TOPICS.items():
+                self.node.create_subscription(command_types[topic], self.topic(i, topic),
                                               lambda msg, i=i, mode=mode: self._on_command(i, mode, msg), 10)
         self._check_clash(discovery_s)
         self._timer = self.node.create_timer(self.ctrl_dt, self.tick) if self.realtime else None
