@@ -1,0 +1,548 @@
+"""Flight viewer: a rollout as one self-contained HTML file that plays offline, or as a GIF/MP4 through the JAX
+cameras.
+
+`write_html` records a `Flight` (positions and attitudes of every drone of one world or many, the scene's
+obstacles and gates, and the onboard camera images when the env has cameras) with viser's scene serializer and
+writes viser's static client with the recording embedded: one ``.html`` file that opens from ``file://`` with no
+server and no network, with play/pause, a time slider, playback speed, trails behind the drones and a 3D view to
+orbit. It needs viser (``pip install "jaxdrones[viewer]"``).
+
+`write_video` draws the same flight from a chase or fixed camera with the JAX ray caster
+(`jaxdrones.cameras.render`, no PyBullet) and writes a GIF or MP4 (`jaxdrones.video.VideoWriter`).
+
+    import jaxdrones as jd
+    from jaxdrones.viz import Flight, write_html
+
+    flight = Flight.from_states(env, states)      # states: EnvState with a leading time axis (rollout_policy)
+    write_html("flight.html", flight)
+
+Frames: positions are m in the world frame, z up; quaternions (x, y, z, w) rotate body to world, as everywhere in
+jaxdrones (`jaxdrones.types`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import math
+import numbers
+import os
+import socket
+from contextlib import redirect_stdout
+from typing import Any
+
+import numpy as np
+
+#: The pip extra that brings viser (the HTML viewer's only optional dependency).
+VIEWER_EXTRA = "jaxdrones[viewer]"
+#: Drone colours (RGB 0-255), cycled over the drones of a world: distinct hues that stand out on a white scene.
+DRONE_COLORS = ((31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14), (23, 190, 207),
+                (227, 119, 194), (188, 189, 34))
+#: The cf2x's arm length, m (its URDF): the drones' drawn size when a `Flight` does not say.
+CF2X_ARM = 0.0397
+#: Camera presets of `write_video`.
+VIDEO_CAMERAS = ("chase", "fixed")
+
+
+def _viser():
+    """Import viser, or raise one ModuleNotFoundError that names the extra to install."""
+    try:
+        import viser
+    except ModuleNotFoundError as err:
+        raise ModuleNotFoundError(f'the flight viewer needs viser: pip install "{VIEWER_EXTRA}"',
+                                  name="viser") from err
+    return viser
+
+
+def viewer_available() -> bool:
+    """Whether viser (the ``viewer`` extra) is installed, so that `write_html` can run."""
+    import importlib.util
+
+    return importlib.util.find_spec("viser") is not None
+
+
+# --------------------------------------------------------------------------------------------- the flight
+@dataclasses.dataclass(frozen=True, eq=False)
+class Flight:
+    """A rollout to show: every drone's pose over time, the scene, and optionally the onboard camera images.
+
+    Build it from arrays (checked and flattened here) or from env states with `Flight.from_states`.
+
+    Attributes:
+        pos: f[T, ..., D, 3] m, world frame, z up: T frames, any leading world axes, D drones. Stored as
+            f64[T, W, D, 3] with the world axes flattened (W = 1 without world axes).
+        quat: f[T, ..., D, 4] (x, y, z, w), body → world, same leading axes; stored normalised as f64[T, W, D, 4].
+        dt: time between frames, s (> 0).
+        scene: the static obstacles and gates: None, a sequence of `jaxdrones.scene.Obstacle` (or anything
+            `jaxdrones.scene.resolve_obstacles` takes; URDF meshes are not drawn), or a `jaxdrones.cameras.Scene`
+            (a task's ``TaskParams.scene``: the gate of ``fly_thru_gate``, the obstacles of ``avoid``), unbatched
+            or with the flight's world axes (one scene per world). Stored as a `jaxdrones.cameras.Scene` of NumPy
+            arrays, unbatched or with one world axis [W], or None.
+        images: onboard camera frames: u8[T, ..., D, H, W, 3 or 4] (RGB or RGBA), or depth f[T, ..., D, H, W] m
+            (drawn grey, near bright); stored as u8[T, W, D, H, W, 3]. None: no camera.
+        arm: the drones' arm length, m (their drawn size); default the cf2x's.
+
+    Raises:
+        ValueError: arrays of the wrong shape (the message names the expected one), non-finite values, a zero
+            quaternion, a dt that is not a positive number, a scene whose world axes differ from the flight's, or
+            images whose leading axes differ from the positions'.
+    """
+
+    pos: np.ndarray
+    quat: np.ndarray
+    dt: float
+    scene: Any = None
+    images: np.ndarray | None = None
+    arm: float = CF2X_ARM
+
+    def __post_init__(self):
+        pos = _finite_array("pos", self.pos, "f[T, ..., D, 3] (m, world frame)", last=(3,))
+        quat = _finite_array("quat", self.quat, "f[T, ..., D, 4] (x, y, z, w)", last=(4,))
+        if quat.shape[:-1] != pos.shape[:-1]:
+            raise ValueError(f"quat must be f[T, ..., D, 4] with the leading axes of pos f{list(pos.shape)}, that is "
+                             f"f{list(pos.shape[:-1]) + [4]}; got f{list(quat.shape)}")
+        norm = np.linalg.norm(quat, axis=-1, keepdims=True)
+        if np.any(norm < 1e-9):
+            raise ValueError("quat: every quaternion must be non-zero (x, y, z, w), body → world")
+        lead = pos.shape[1:-2]
+        n_worlds = math.prod(lead)
+        t, d = pos.shape[0], pos.shape[-2]
+        object.__setattr__(self, "pos", pos.reshape(t, n_worlds, d, 3))
+        object.__setattr__(self, "quat", (quat / norm).reshape(t, n_worlds, d, 4))
+        if isinstance(self.dt, bool) or not isinstance(self.dt, numbers.Real) or not (0 < self.dt < math.inf):
+            raise ValueError(f"dt must be the time between frames, a finite number of seconds > 0, got {self.dt!r}")
+        object.__setattr__(self, "dt", float(self.dt))
+        if isinstance(self.arm, bool) or not isinstance(self.arm, numbers.Real) or not (0 < self.arm < math.inf):
+            raise ValueError(f"arm must be the drones' arm length, a finite number of metres > 0, got {self.arm!r}")
+        object.__setattr__(self, "scene", _check_scene(self.scene, lead))
+        object.__setattr__(self, "images", _check_images(self.images, pos.shape[:-1]))
+
+    @property
+    def n_frames(self) -> int:
+        """T, the number of frames."""
+        return self.pos.shape[0]
+
+    @property
+    def n_worlds(self) -> int:
+        """W, the number of worlds (the leading world axes flattened)."""
+        return self.pos.shape[1]
+
+    @property
+    def n_drones(self) -> int:
+        """D, the drones per world."""
+        return self.pos.shape[2]
+
+    @classmethod
+    def from_states(cls, env, states, time_axis: int = 0) -> Flight:
+        """The flight of env states with a time axis, e.g. `jaxdrones.training.rollout_policy`'s (time first) or
+        those of several episodes vmapped (``time_axis=1``).
+
+        Takes the drones' poses (``states.sim``), the frame time ``1 / env.config.ctrl_freq``, the task's scene
+        (``states.task.scene``, per world as sampled at reset: the gate, the obstacles) or else the config's
+        obstacles, the camera images of the observation (RGB, else depth; the newest frame of a frame stack) and
+        the drones' arm length.
+
+        Args:
+            env: the `jaxdrones.envs.TaskEnv` the states come from.
+            states: `jaxdrones.envs.EnvState` with leading axes holding a time axis at ``time_axis``.
+            time_axis: the time axis among the leading axes.
+
+        Raises:
+            ValueError: as `Flight`, or a ``time_axis`` beyond the states' leading axes.
+        """
+        import jax
+
+        pos = np.asarray(states.sim.pos)
+        n_lead = pos.ndim - 2
+        if not isinstance(time_axis, numbers.Integral) or not 0 <= time_axis < n_lead:
+            raise ValueError(f"time_axis must index a leading axis of the states' pos f{list(pos.shape)} "
+                             f"(0 <= time_axis < {n_lead}), got {time_axis!r}")
+
+        def first_time(x):  # move the time axis first
+            return np.moveaxis(np.asarray(x), time_axis, 0)
+
+        scene = getattr(states.task, "scene", None)
+        if scene is not None:  # constant over an episode: the first frame's
+            scene = jax.tree.map(lambda x: first_time(x)[0], scene)
+        else:
+            scene = tuple(o for o in _resolve(env.config.obstacles) if o.shape != "urdf")
+        images = None
+        if isinstance(states.obs, dict):
+            name = "rgb" if "rgb" in states.obs else "depth" if "depth" in states.obs else None
+            if name is not None:
+                images = first_time(states.obs[name])
+                stacked = images.ndim == pos.ndim + (2 if name == "rgb" else 1)
+                if stacked:  # [T, ..., D, K, H, W(, C)]: the newest frame of the stack
+                    images = images[(slice(None),) * (pos.ndim - 1) + (-1,)]
+        arm = float(np.max(np.asarray(states.params.arm)))
+        return cls(first_time(pos), first_time(states.sim.quat), 1.0 / env.config.ctrl_freq, scene=scene,
+                   images=images, arm=arm)
+
+
+def _finite_array(name: str, value, expected: str, last: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a finite f64 array with at least 3 axes (T, D and the last) ending in ``last``."""
+    try:
+        x = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a numeric array {expected}, got {type(value).__name__}") from None
+    if x.ndim < 3 or x.shape[-len(last):] != last or 0 in x.shape:
+        raise ValueError(f"{name} must be {expected} with T >= 1 frames and D >= 1 drones, got shape "
+                         f"{list(x.shape)}")
+    if not np.all(np.isfinite(x)):
+        bad = np.argwhere(~np.isfinite(x))[0]
+        raise ValueError(f"{name} must be finite; entry {tuple(int(i) for i in bad)} is {x[tuple(bad)]}")
+    return x
+
+
+def _resolve(obstacles) -> tuple:
+    from jaxdrones.scene import resolve_obstacles
+
+    return resolve_obstacles(obstacles)
+
+
+def _check_scene(scene, lead: tuple[int, ...]):
+    """The `Flight.scene` argument as a `jaxdrones.cameras.Scene` of NumPy arrays, unbatched or [W], or None."""
+    import jax
+
+    from jaxdrones.cameras import Scene, make_scene
+
+    if scene is None or (isinstance(scene, (tuple, list)) and len(scene) == 0):
+        return None
+    if not isinstance(scene, Scene):
+        obstacles = tuple(o for o in _resolve(scene) if o.shape != "urdf")  # meshes: Bullet's alone
+        return jax.tree.map(np.asarray, make_scene(obstacles, ground=True)) if obstacles else None
+    scene = jax.tree.map(np.asarray, scene)
+    scene_lead = scene.box.pos.shape[:-2]
+    if scene_lead == ():
+        return scene
+    if scene_lead != lead:
+        raise ValueError(f"scene: a jaxdrones.cameras.Scene unbatched or with the flight's world axes {list(lead)} "
+                         f"(box.pos f[..., N, 3]), got world axes {list(scene_lead)}")
+    n = math.prod(lead)
+    return jax.tree.map(lambda x: x.reshape((n,) + x.shape[len(lead):]), scene)
+
+
+def _check_images(images, lead: tuple[int, ...]):
+    """Camera frames as u8[T, W, D, H, W, 3] (RGB; depth drawn grey), or None; ``lead`` is pos's [T, ..., D]."""
+    if images is None:
+        return None
+    x = np.asarray(images)
+    n = len(lead)
+    expected = (f"u8[T, ..., D, H, W, 3 or 4] (RGB/RGBA) or depth f[T, ..., D, H, W] m with T, ..., D = "
+                f"{list(lead)}")
+    rgb = x.dtype == np.uint8 and x.ndim == n + 3 and x.shape[-1] in (3, 4)
+    depth = np.issubdtype(x.dtype, np.floating) and x.ndim == n + 2
+    if x.shape[:n] != lead or not (rgb or depth) or 0 in x.shape:
+        raise ValueError(f"images must be {expected}; got {x.dtype}{list(x.shape)}")
+    if depth:
+        finite = np.isfinite(x)
+        far = np.max(x[finite]) if finite.any() else 1.0
+        x = np.where(finite, x, far)
+        grey = np.round(255 * (1 - np.clip(x / max(far, 1e-9), 0, 1))).astype(np.uint8)
+        x = np.repeat(grey[..., None], 3, -1)
+    x = x[..., :3]
+    n_worlds = math.prod(lead[1:-1])
+    return np.ascontiguousarray(x.reshape((lead[0], n_worlds, lead[-1]) + x.shape[n:]))
+
+
+# --------------------------------------------------------------------------------------------- geometry helpers
+def _wxyz(xyzw: np.ndarray) -> np.ndarray:
+    """(x, y, z, w) → (w, x, y, z), viser's order."""
+    return np.concatenate([xyzw[..., 3:], xyzw[..., :3]], axis=-1)
+
+
+def _wxyz_from_rotmat(r: np.ndarray) -> np.ndarray:
+    """A rotation matrix f[3, 3] as a unit quaternion (w, x, y, z) (Shepperd's method)."""
+    r = np.asarray(r, np.float64)
+    tr = np.trace(r)
+    if tr > 0:
+        s = 2 * math.sqrt(1 + tr)
+        q = (0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s)
+    else:
+        i = int(np.argmax(np.diag(r)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2 * math.sqrt(max(1 + r[i, i] - r[j, j] - r[k, k], 1e-12))
+        q = np.zeros(4)
+        q[0] = (r[k, j] - r[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (r[j, i] + r[i, j]) / s
+        q[1 + k] = (r[k, i] + r[i, k]) / s
+    q = np.asarray(q)
+    return q / np.linalg.norm(q)
+
+
+def _primitives(scene, world: int) -> list[tuple]:
+    """The valid primitives of world ``world`` of a `Flight.scene`: (shape, centre, rotation, size, rgb) with
+    `jaxdrones.cameras.Primitives`' size convention (half extents; radius; radius and half length)."""
+    if scene is None:
+        return []
+    out = []
+    for shape in ("box", "sphere", "cylinder", "capsule"):
+        p = getattr(scene, shape)
+        if p.valid.ndim == 2:  # one scene per world: this world's
+            p = type(p)(**{f.name: getattr(p, f.name)[world] for f in dataclasses.fields(p)})
+        out += [(shape, p.pos[i], p.rot[i], p.size[i], p.rgb[i]) for i in np.flatnonzero(p.valid)]
+    return out
+
+
+def _drone_mesh(arm: float) -> tuple[np.ndarray, np.ndarray]:
+    """A quadrotor of arm length ``arm`` m as one triangle mesh (vertices f[V, 3] m, body frame; faces i32[F, 3]):
+    a square plate, four rotor disks on the diagonals (the cf2x's X layout) and a nose along body +x that shows the
+    heading."""
+    import trimesh
+
+    side = 1.13 * arm  # `jaxdrones.cameras.BODY_SIDE_PER_ARM`, as the cameras draw the plate
+    d = arm / math.sqrt(2)
+    parts = [trimesh.creation.box((side, side, 0.012))]
+    nose = trimesh.creation.box((0.9 * arm, 0.25 * arm, 0.012))
+    nose.apply_translation((side / 2 + 0.3 * arm, 0.0, 0.0))
+    parts.append(nose)
+    for sx, sy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        disk = trimesh.creation.cylinder(radius=0.58 * arm, height=0.004, sections=20)
+        disk.apply_translation((sx * d, sy * d, 0.008))
+        parts.append(disk)
+    mesh = trimesh.util.concatenate(parts)
+    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+
+
+def _world_offsets(flight: Flight, spacing: float | None) -> np.ndarray:
+    """f[W, 3]: where each world is drawn, m: all at the origin (``spacing`` 0), or on a square grid of that pitch."""
+    n = flight.n_worlds
+    if spacing is None:
+        per_world = flight.scene is not None and flight.scene.box.pos.ndim == 3 and n > 1
+        if not per_world:
+            return np.zeros((n, 3))
+        span = float(np.ptp(flight.pos[..., :2], axis=(0, 2)).max())
+        reach = [np.abs(c[:2] - flight.pos[0, w, :, :2].mean(0)).max() + 2 * np.max(s)
+                 for w in range(n) for _, c, _, s, _ in _primitives(flight.scene, w)]
+        spacing = 2 * max([span, *reach]) + 1.0
+    cols = math.ceil(math.sqrt(n))
+    w = np.arange(n)
+    return np.stack([(w % cols) * spacing, -(w // cols) * spacing, np.zeros(n)], -1)
+
+
+def _view(flight: Flight, offsets: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
+    """The initial camera (position, look-at point), m: ``camera`` if given, else looking at the centre of the
+    drones' paths from the front left and above, far enough to see them all."""
+    if camera is not None:
+        eye, target = (np.asarray(v, np.float64) for v in camera)
+        if eye.shape != (3,) or target.shape != (3,) or not np.all(np.isfinite([*eye, *target])):
+            raise ValueError(f"camera must be (position, look_at), two finite (x, y, z) points in m, got {camera!r}")
+        if np.allclose(eye, target):
+            raise ValueError("camera: position and look_at must differ")
+        return eye, target
+    pts = (flight.pos + offsets[None, :, None, :]).reshape(-1, 3)
+    lo, hi = pts.min(0), pts.max(0)
+    target = (lo + hi) / 2
+    radius = max(float(np.linalg.norm(hi - lo)) / 2, 0.5)
+    direction = np.array([-0.55, -1.0, 0.6])
+    return target + direction / np.linalg.norm(direction) * radius * 2.6, target
+
+
+# --------------------------------------------------------------------------------------------- HTML viewer
+def write_html(path: str | os.PathLike, flight: Flight, *, overwrite: bool = False, trail_s: float | None = 2.0,
+               max_fps: float = 30.0, spacing: float | None = None, camera=None, drone_scale: float = 1.0,
+               colors=None, dark_mode: bool = False) -> str:
+    """Write ``flight`` as one self-contained HTML file that plays offline (from ``file://``, no server).
+
+    The file is viser's static client with the recorded scene embedded (no URL is fetched): the ground grid, the
+    scene's boxes, spheres, cylinders and capsules, the drones as small quadrotors (a nose marks body +x) in a colour
+    per drone index (`DRONE_COLORS`), their trails, and with ``flight.images`` a panel per drone of world 0 showing
+    its camera frames beside the flight, facing the initial view. The page has play/pause (also the space bar), a
+    time slider, playback speed and a view to orbit, pan and zoom. Worlds are drawn at the same place unless the
+    scene differs per world, where they are laid out on a grid (see ``spacing``).
+
+    Args:
+        path: the file to write (``.html``); parent folders are created.
+        flight: the `Flight`.
+        overwrite: replace an existing file (otherwise FileExistsError).
+        trail_s: how far back each trail reaches, s; None: the whole flight; 0: no trails.
+        max_fps: the recording's frame rate at most, Hz: frames are skipped to stay at or below it (the time axis
+            is kept: playback runs at real time).
+        spacing: the pitch, m, of the grid the worlds are laid out on; 0: all at the origin; None: at the origin
+            unless the scene is per world, then a pitch that keeps the worlds apart.
+        camera: the initial view, ``(position, look_at)`` in m (world frame); None: from the front left and above,
+            framing the drones' paths.
+        drone_scale: draw the drones this many times their size (> 0), e.g. to see small drones in a large arena.
+        colors: RGB 0-255 per drone index, a sequence of (r, g, b); default `DRONE_COLORS`.
+        dark_mode: the viewer's dark theme.
+
+    Returns:
+        The path written.
+
+    Raises:
+        TypeError: ``flight`` is not a `Flight`.
+        ModuleNotFoundError: viser is not installed (``pip install "jaxdrones[viewer]"``).
+        FileExistsError: ``path`` exists and not ``overwrite``.
+        ValueError: a bad option (a negative trail, a frame rate or scale that is not positive, a camera that is not
+            two points, colours that are not RGB triples).
+    """
+    if not isinstance(flight, Flight):
+        raise TypeError(f"flight must be a jaxdrones.viz.Flight (e.g. Flight(pos, quat, dt)), got "
+                         f"{type(flight).__name__}")
+    path = os.fspath(path)
+    _check_target(path, overwrite)
+    if trail_s is not None and not (isinstance(trail_s, numbers.Real) and 0 <= trail_s < math.inf):
+        raise ValueError(f"trail_s must be None or a finite number of seconds >= 0, got {trail_s!r}")
+    for name, value in (("max_fps", max_fps), ("drone_scale", drone_scale)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 < value < math.inf:
+            raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    if spacing is not None and not (isinstance(spacing, numbers.Real) and 0 <= spacing < math.inf):
+        raise ValueError(f"spacing must be None or a finite number of metres >= 0, got {spacing!r}")
+    palette = _palette(colors)
+    offsets = _world_offsets(flight, spacing)
+    eye, target = _view(flight, offsets, camera)
+    viser = _viser()
+    html = _record(viser, flight, offsets, eye, target, trail_s, max_fps, drone_scale, palette, dark_mode)
+    folder = os.path.dirname(path)
+    if folder:
+        os.makedirs(folder, exist_ok=True)
+    with open(path, "w" if overwrite else "x", encoding="utf-8") as f:
+        f.write(html)
+    return path
+
+
+def _check_target(path: str, overwrite: bool) -> None:
+    if os.path.isdir(path):
+        raise ValueError(f"{path!r} is a folder; give a file name such as flight.html")
+    if os.path.exists(path) and not overwrite:
+        raise FileExistsError(f"{path!r} exists; pass overwrite=True to replace it")
+
+
+def _palette(colors) -> np.ndarray:
+    colors = DRONE_COLORS if colors is None else colors
+    try:
+        palette = np.asarray(colors, np.float64)
+    except (TypeError, ValueError):
+        palette = np.zeros(0)
+    if palette.ndim != 2 or palette.shape[1] != 3 or len(palette) == 0 or not np.all((palette >= 0) & (palette <= 255)):
+        raise ValueError(f"colors must be a sequence of (r, g, b) in 0-255, got {colors!r}")
+    return palette.astype(np.uint8)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _record(viser, flight: Flight, offsets, eye, target, trail_s, max_fps, drone_scale, palette, dark_mode) -> str:
+    """Build the scene in a viser server bound to localhost (no client ever connects), record the frames with its
+    scene serializer and return the static client with the recording embedded."""
+    quiet = io.StringIO()  # viser prints a banner on start and a line on stop
+    with redirect_stdout(quiet):
+        server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    try:
+        return _build(server, flight, offsets, eye, target, trail_s, max_fps, drone_scale, palette, dark_mode)
+    finally:
+        with redirect_stdout(quiet):
+            server.stop()
+
+
+def _build(server, flight: Flight, offsets, eye, target, trail_s, max_fps, drone_scale, palette, dark_mode) -> str:
+    scene = server.scene
+    scene.set_up_direction("+z")
+    n_w, n_d = flight.n_worlds, flight.n_drones
+    pos = flight.pos + offsets[None, :, None, :]  # [T, W, D, 3]
+    n = n_w * n_d
+    colours = np.tile(palette[np.arange(n_d) % len(palette)], (n_w, 1))  # [W*D, 3], per drone index
+    corners = [pos.reshape(-1, 3), target[None]]
+    corners += [(c + offsets[w] + np.abs(r) @ h)[None] for w in range(n_w) for _, c, r, h, _ in
+                _primitives(flight.scene, w)]
+    corners += [(c + offsets[w] - np.abs(r) @ h)[None] for w in range(n_w) for _, c, r, h, _ in
+                _primitives(flight.scene, w)]
+    lo, hi = np.concatenate(corners).min(0) - 0.5, np.concatenate(corners).max(0) + 0.5
+    size = float(np.ceil(max(hi[0] - lo[0], hi[1] - lo[1], 2.0)))
+    scene.add_grid("/ground", width=size, height=size, plane="xy", cell_size=0.25, section_size=1.0,
+                   position=(float(round((lo[0] + hi[0]) / 2)), float(round((lo[1] + hi[1]) / 2)), 0.0),
+                   shadow_opacity=0.0)
+    for w in range(n_w):
+        if w > 0 and (flight.scene is None or flight.scene.box.pos.ndim == 2) and not np.any(offsets[w]):
+            break  # one scene for all worlds drawn at one place: once
+        for k, (shape, centre, rot, half, rgb) in enumerate(_primitives(flight.scene, w)):
+            _add_primitive(scene, f"/scene/w{w}/{shape}{k}", shape, centre + offsets[w], rot, half,
+                           tuple(int(c) for c in np.round(255 * np.clip(rgb, 0, 1))))
+    vertices, faces = _drone_mesh(flight.arm * drone_scale)
+    drones = scene.add_batched_meshes_simple(
+        "/drones", vertices, faces, batched_wxyzs=_wxyz(flight.quat[0]).reshape(n, 4),
+        batched_positions=pos[0].reshape(n, 3), batched_colors=colours, lod="off", cast_shadow=False,
+        receive_shadow=False)
+    server.initial_camera.position = tuple(eye)
+    server.initial_camera.look_at = tuple(target)
+    server.initial_camera.up = (0.0, 0.0, 1.0)
+    panels = _add_panels(scene, flight, eye, target, lo, hi)
+    stride = max(1, math.ceil(1.0 / (flight.dt * max_fps)))
+    frames = list(range(0, flight.n_frames, stride))
+    if frames[-1] != flight.n_frames - 1:
+        frames.append(flight.n_frames - 1)
+    keep = None if trail_s is None else math.ceil(trail_s / (stride * flight.dt))
+    serializer = server.get_scene_serializer()
+    trails = []
+    for i, t in enumerate(frames):
+        if i > 0:
+            serializer.insert_sleep((t - frames[i - 1]) * flight.dt)
+            drones.batched_positions = pos[t].reshape(n, 3)
+            drones.batched_wxyzs = _wxyz(flight.quat[t]).reshape(n, 4)
+            if keep != 0:
+                segment = np.stack([pos[frames[i - 1]], pos[t]], axis=-2).reshape(n, 2, 3)
+                trails.append(scene.add_line_segments(f"/trails/{i}", segment, colors=np.repeat(colours[:, None], 2, 1),
+                                                      thickness=1.5, thickness_units="screen"))
+                if keep is not None and len(trails) > keep:
+                    trails.pop(0).remove()
+        for d, panel in enumerate(panels):
+            if i == 0 or not np.array_equal(flight.images[t, 0, d], flight.images[frames[i - 1], 0, d]):
+                panel.image = flight.images[t, 0, d]
+    if len(frames) == 1:  # a single frame: a still scene
+        serializer.insert_sleep(flight.dt)
+    return serializer.as_html(dark_mode=dark_mode)
+
+
+def _add_primitive(scene, name: str, shape: str, centre, rot, half, rgb) -> None:
+    """One obstacle (`jaxdrones.cameras.Primitives` conventions) as a viser shape."""
+    wxyz = _wxyz_from_rotmat(rot)
+    centre = tuple(float(c) for c in centre)
+    if shape == "box":
+        scene.add_box(name, color=rgb, dimensions=tuple(2 * float(h) for h in half), wxyz=wxyz, position=centre)
+    elif shape == "sphere":
+        scene.add_icosphere(name, radius=float(half[0]), color=rgb, position=centre)
+    elif shape == "cylinder":
+        scene.add_cylinder(name, radius=float(half[0]), height=2 * float(half[1]), color=rgb, wxyz=wxyz,
+                           position=centre)
+    else:
+        import trimesh
+
+        mesh = trimesh.creation.capsule(height=2 * float(half[1]), radius=float(half[0]))  # along z, centred
+        scene.add_mesh_simple(name, np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32),
+                              color=rgb, wxyz=wxyz, position=centre)
+
+
+#: Camera panels drawn at most (world 0's first drones).
+MAX_PANELS = 4
+
+
+def _add_panels(scene, flight: Flight, eye, target, lo, hi) -> list:
+    """Image panels for world 0's drones' camera frames: upright, facing the initial view, in a column beside the
+    flight (to its right as seen from the initial view)."""
+    if flight.images is None:
+        return []
+    forward = target - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, (0.0, 0.0, 1.0))
+    right /= max(np.linalg.norm(right), 1e-9)
+    up = np.cross(right, forward)
+    rot = np.stack([right, -up, forward], axis=1)  # the image plane's x right, y down, z away from the viewer
+    wxyz = _wxyz_from_rotmat(rot)
+    h, w = flight.images.shape[3:5]
+    extent = float(np.linalg.norm(hi - lo))
+    height = max(0.5 * extent / MAX_PANELS, 0.15)
+    width = height * w / h
+    half = float(np.abs(np.dot(hi - lo, right))) / 2
+    panels = []
+    count = min(flight.n_drones, MAX_PANELS)
+    middle = target + right * (half + 0.2 + width / 2)
+    middle[2] = max(middle[2], 1.1 * height * count / 2 + 0.05)  # the lowest panel above the ground
+    for d in range(count):
+        centre = middle + up * (height * 1.1 * ((count - 1) / 2 - d))
+        panels.append(scene.add_image(f"/cameras/drone{d}", flight.images[0, 0, d], width, height, format="png",
+                                      wxyz=wxyz, position=tuple(centre), cast_shadow=False, receive_shadow=False))
+    return panels
