@@ -23,6 +23,7 @@ jaxdrones (`jaxdrones.types`).
 from __future__ import annotations
 
 import dataclasses
+import errno
 import io
 import math
 import numbers
@@ -40,6 +41,8 @@ DRONE_COLORS = ((31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (
                 (227, 119, 194), (188, 189, 34))
 #: The cf2x's arm length, m (its URDF): the drones' drawn size when a `Flight` does not say.
 CF2X_ARM = 0.0397
+#: The HTML viewer's initial vertical field of view, degrees.
+VIEW_FOV = 50.0
 #: Camera presets of `write_video`.
 VIDEO_CAMERAS = ("chase", "fixed")
 
@@ -135,12 +138,7 @@ class Flight:
     @classmethod
     def from_states(cls, env, states, time_axis: int = 0) -> Flight:
         """The flight of env states with a time axis, e.g. `jaxdrones.training.rollout_policy`'s (time first) or
-        those of several episodes vmapped (``time_axis=1``).
-
-        Takes the drones' poses (``states.sim``), the frame time ``1 / env.config.ctrl_freq``, the task's scene
-        (``states.task.scene``, per world as sampled at reset: the gate, the obstacles) or else the config's
-        obstacles, the camera images of the observation (RGB, else depth; the newest frame of a frame stack) and
-        the drones' arm length.
+        those of several episodes vmapped (``time_axis=1``): `from_data` of `flight_data`.
 
         Args:
             env: the `jaxdrones.envs.TaskEnv` the states come from.
@@ -150,33 +148,63 @@ class Flight:
         Raises:
             ValueError: as `Flight`, or a ``time_axis`` beyond the states' leading axes.
         """
+        return cls.from_data(env, flight_data(states), time_axis)
+
+    @classmethod
+    def from_data(cls, env, data: dict, time_axis: int = 0) -> Flight:
+        """The flight of `flight_data`'s arrays (taken inside a compiled program, e.g. an evaluation's).
+
+        Takes the frame time ``1 / env.config.ctrl_freq``, and the config's obstacles where the states carry no
+        scene (URDF meshes are not drawn).
+
+        Args:
+            env: the `jaxdrones.envs.TaskEnv` the states come from.
+            data: `flight_data`'s dict (JAX or NumPy arrays).
+            time_axis: the time axis among the leading axes of ``data["pos"]`` f[..., D, 3].
+
+        Raises:
+            ValueError: as `Flight`, or a ``time_axis`` beyond the leading axes.
+        """
         import jax
 
-        pos = np.asarray(states.sim.pos)
+        pos = np.asarray(data["pos"])
         n_lead = pos.ndim - 2
-        if not isinstance(time_axis, numbers.Integral) or not 0 <= time_axis < n_lead:
-            raise ValueError(f"time_axis must index a leading axis of the states' pos f{list(pos.shape)} "
-                             f"(0 <= time_axis < {n_lead}), got {time_axis!r}")
+        if isinstance(time_axis, bool) or not isinstance(time_axis, numbers.Integral) or not 0 <= time_axis < n_lead:
+            raise ValueError(f"time_axis must index a leading axis of pos f{list(pos.shape)} (0 <= time_axis < "
+                             f"{n_lead}), got {time_axis!r}")
 
-        def first_time(x):  # move the time axis first
+        def first_time(x):
             return np.moveaxis(np.asarray(x), time_axis, 0)
 
-        scene = getattr(states.task, "scene", None)
+        scene = data.get("scene")
         if scene is not None:  # constant over an episode: the first frame's
             scene = jax.tree.map(lambda x: first_time(x)[0], scene)
         else:
             scene = tuple(o for o in _resolve(env.config.obstacles) if o.shape != "urdf")
-        images = None
-        if isinstance(states.obs, dict):
-            name = "rgb" if "rgb" in states.obs else "depth" if "depth" in states.obs else None
-            if name is not None:
-                images = first_time(states.obs[name])
-                stacked = images.ndim == pos.ndim + (2 if name == "rgb" else 1)
-                if stacked:  # [T, ..., D, K, H, W(, C)]: the newest frame of the stack
-                    images = images[(slice(None),) * (pos.ndim - 1) + (-1,)]
-        arm = float(np.max(np.asarray(states.params.arm)))
-        return cls(first_time(pos), first_time(states.sim.quat), 1.0 / env.config.ctrl_freq, scene=scene,
-                   images=images, arm=arm)
+        images = None if data.get("images") is None else first_time(data["images"])
+        return cls(first_time(pos), first_time(data["quat"]), 1.0 / env.config.ctrl_freq, scene=scene,
+                   images=images, arm=float(np.max(np.asarray(data["arm"]))))
+
+
+def flight_data(states) -> dict:
+    """What a `Flight` needs from env states, as a dict of arrays; traceable, so that a compiled program (an
+    evaluation) can return it: ``pos`` f[..., D, 3], ``quat`` f[..., D, 4], ``arm`` f[..., D] m, ``scene`` (the task
+    params' `jaxdrones.cameras.Scene`, or None) and ``images`` (the observation's camera frames: RGB u8[..., D, H, W,
+    4], else depth f[..., D, H, W]; the newest frame of a frame stack; None without cameras).
+
+    Args:
+        states: `jaxdrones.envs.EnvState` with any leading axes (time, episodes, worlds).
+    """
+    pos = states.sim.pos
+    images = None
+    if isinstance(states.obs, dict):
+        name = "rgb" if "rgb" in states.obs else "depth" if "depth" in states.obs else None
+        if name is not None:
+            images = states.obs[name]
+            if images.ndim == pos.ndim + (2 if name == "rgb" else 1):  # [..., D, K, H, W(, C)]: the newest frame
+                images = images[(slice(None),) * (pos.ndim - 1) + (-1,)]
+    return {"pos": pos, "quat": states.sim.quat, "arm": states.params.arm,
+            "scene": getattr(states.task, "scene", None), "images": images}
 
 
 def _finite_array(name: str, value, expected: str, last: tuple[int, ...]) -> np.ndarray:
@@ -361,8 +389,8 @@ def write_html(path: str | os.PathLike, flight: Flight, *, overwrite: bool = Fal
             is kept: playback runs at real time).
         spacing: the pitch, m, of the grid the worlds are laid out on; 0: all at the origin; None: at the origin
             unless the scene is per world, then a pitch that keeps the worlds apart.
-        camera: the initial view, ``(position, look_at)`` in m (world frame); None: from the front left and above,
-            framing the drones' paths.
+        camera: the initial view, ``(position, look_at)`` in m (world frame), z up, `VIEW_FOV` vertically; None:
+            from the front left and above, framing the drones' paths.
         drone_scale: draw the drones this many times their size (> 0), e.g. to see small drones in a large arena.
         colors: RGB 0-255 per drone index, a sequence of (r, g, b); default `DRONE_COLORS`.
         dark_mode: the viewer's dark theme.
@@ -406,7 +434,7 @@ def _check_target(path: str, overwrite: bool) -> None:
     if os.path.isdir(path):
         raise ValueError(f"{path!r} is a folder; give a file name such as flight.html")
     if os.path.exists(path) and not overwrite:
-        raise FileExistsError(f"{path!r} exists; pass overwrite=True to replace it")
+        raise FileExistsError(errno.EEXIST, "exists; pass overwrite=True to replace it", path)
 
 
 def _palette(colors) -> np.ndarray:
@@ -465,11 +493,12 @@ def _build(server, flight: Flight, offsets, eye, target, trail_s, max_fps, drone
     vertices, faces = _drone_mesh(flight.arm * drone_scale)
     drones = scene.add_batched_meshes_simple(
         "/drones", vertices, faces, batched_wxyzs=_wxyz(flight.quat[0]).reshape(n, 4),
-        batched_positions=pos[0].reshape(n, 3), batched_colors=colours, lod="off", cast_shadow=False,
-        receive_shadow=False)
+        batched_positions=pos[0].reshape(n, 3), batched_colors=colours, lod="off", material="toon3",
+        cast_shadow=False, receive_shadow=False)  # toon: saturated colours under viser's bright default lights
     server.initial_camera.position = tuple(eye)
     server.initial_camera.look_at = tuple(target)
     server.initial_camera.up = (0.0, 0.0, 1.0)
+    server.initial_camera.fov = math.radians(VIEW_FOV)
     panels = _add_panels(scene, flight, eye, target, lo, hi)
     stride = max(1, math.ceil(1.0 / (flight.dt * max_fps)))
     frames = list(range(0, flight.n_frames, stride))
@@ -546,3 +575,55 @@ def _add_panels(scene, flight: Flight, eye, target, lo, hi) -> list:
         panels.append(scene.add_image(f"/cameras/drone{d}", flight.images[0, 0, d], width, height, format="png",
                                       wxyz=wxyz, position=tuple(centre), cast_shadow=False, receive_shadow=False))
     return panels
+
+
+# --------------------------------------------------------------------------------------------- a training run
+#: Evaluation episodes `view_run` flies by default (and ``jaxdrones train`` shows in its flight.html).
+VIEW_EPISODES = 4
+
+
+def view_run(run: str | os.PathLike, out: str | os.PathLike | None = None, *, n_episodes: int = VIEW_EPISODES,
+             seed: int = 0, overwrite: bool = False, **options) -> str:
+    """Fly a training run's policy for a few evaluation episodes on the JAX backend and write them with `write_html`
+    (what ``jaxdrones view RUN`` runs).
+
+    The policy is loaded with `jaxdrones.training.load_policy` and flown deterministically from ``n_episodes``
+    random starts (keys split from ``seed``) in the env it was trained on, or, for a run of the PyBullet backend, in
+    the same task on the JAX backend. Episodes are worlds of one flight (`Flight.from_states`): overlaid, or side by
+    side where each has its own scene (a gate or obstacles drawn per episode).
+
+    Args:
+        run: a run folder of ``jaxdrones train`` (or its ``policy.pkl``).
+        out: the HTML file (default ``RUN/flight.html``).
+        n_episodes: episodes to fly (>= 1).
+        seed: the seed of their random starts.
+        overwrite: replace an existing ``out``.
+        **options: `write_html`'s options (``trail_s``, ``spacing``, ``camera``, ...).
+
+    Returns:
+        The path written.
+
+    Raises:
+        ModuleNotFoundError: viser is not installed (``pip install "jaxdrones[viewer]"``).
+        FileExistsError: ``out`` exists and not ``overwrite`` (checked before flying).
+        ValueError: no policy at ``run``, or a bad option.
+    """
+    import jax
+
+    from jaxdrones.envs import make
+    from jaxdrones.training import load_policy, rollout_policy
+    from jaxdrones.training.checkpoint import read_payload
+
+    if isinstance(n_episodes, bool) or not isinstance(n_episodes, numbers.Integral) or n_episodes < 1:
+        raise ValueError(f"n_episodes must be an integer >= 1, got {n_episodes!r}")
+    path, payload = read_payload(run)
+    out = os.path.join(os.path.dirname(path), "flight.html") if out is None else os.fspath(out)
+    _check_target(out, overwrite)
+    _viser()
+    env = None
+    if payload["env_overrides"].get("backend", "jax") != "jax":
+        env = make(payload["env_name"], **{**payload["env_overrides"], "backend": "jax"})
+    env, policy = load_policy(path, env=env)
+    keys = jax.random.split(jax.random.key(seed), n_episodes)
+    states = jax.jit(jax.vmap(lambda k: rollout_policy(env, policy, k)))(keys)
+    return write_html(out, Flight.from_states(env, states, time_axis=1), overwrite=overwrite, **options)

@@ -1,5 +1,5 @@
 """Command line: ``jaxdrones train TASK``, ``jaxdrones fly``, ``jaxdrones camera``, ``jaxdrones export RUN``,
-``jaxdrones ros2 TASK``."""
+``jaxdrones ros2 TASK``, ``jaxdrones view RUN``."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import time
 
 def build_parser() -> argparse.ArgumentParser:
     from jaxdrones import __version__
-    from jaxdrones.cli import camera, export, fly, ros2, train
+    from jaxdrones.cli import camera, export, fly, ros2, train, view
 
     parser = argparse.ArgumentParser(prog="jaxdrones", description=__doc__)
     parser.add_argument("--version", action="version", version=f"jaxdrones {__version__}")
@@ -21,6 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
     camera.register(sub)
     export.register(sub)
     ros2.register(sub)
+    view.register(sub)
     return parser
 
 

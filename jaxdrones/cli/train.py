@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 
 from jaxdrones import devices
@@ -227,5 +228,6 @@ def run_cli(args: argparse.Namespace) -> int:
           f"(threshold {summary['success_threshold']:g}) over {stats['n_episodes']} random starts "
           f"({stats['terminated_rate']:.1%} terminated), {summary['env_steps']:,} env steps, "
           f"{summary['wall_time_s']:.1f} s wall time")
-    print(f"saved policy.pkl, learning_curve.png, flight.png, summary.json in {summary['out_dir']}")
+    viewer = ", flight.html" if os.path.exists(os.path.join(summary["out_dir"], "flight.html")) else ""
+    print(f"saved policy.pkl, learning_curve.png, flight.png{viewer}, summary.json in {summary['out_dir']}")
     return 0

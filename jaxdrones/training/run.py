@@ -48,6 +48,7 @@ def _eval_program(env, trainer, n_episodes: int, seed: int):
     import jax
 
     from jaxdrones.training.evaluation import outcomes_of, rollout_policy
+    from jaxdrones.viz import VIEW_EPISODES, flight_data
 
     keys = jax.random.split(jax.random.split(jax.random.key(seed + 1))[0], n_episodes)
 
@@ -58,7 +59,8 @@ def _eval_program(env, trainer, n_episodes: int, seed: int):
         steps = jax.numpy.arange(env.episode_length + 1)
         ref = jax.vmap(lambda s: env.task.reference(env.config, jax.tree.map(lambda x: x[0], flight.task), s))(steps)
         return {"outcomes": outcomes_of(states),
-                "flight": {"pos": flight.sim.pos, "ref": ref.pos, "vel": flight.sim.vel, "rpm": flight.sim.rpm}}
+                "flight": {"pos": flight.sim.pos, "ref": ref.pos, "vel": flight.sim.vel, "rpm": flight.sim.rpm},
+                "viewer": jax.tree.map(lambda x: x[:VIEW_EPISODES], flight_data(states))}  # for flight.html
 
     evaluate.description = f"evaluation {n_episodes} {seed} {trainer.name} {env.task.name} {env.config!r}"
     return evaluate
@@ -73,9 +75,10 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     Outputs in a new run folder (see `jaxdrones.runs.new_run_dir`; an existing run is never overwritten unless
     ``overwrite``): ``policy.pkl`` (`jaxdrones.training.checkpoint`; load with `jaxdrones.training.load_policy`),
     ``learning_curve.png`` (the task's success metric as the run is judged, with its threshold), ``progress.json``,
-    ``flight.png`` (position against the task's reference, speed and RPMs of one evaluation episode) and
-    ``summary.json``. With several processes (`jax.distributed`) every process trains its share of the worlds and
-    process 0 writes the run.
+    ``flight.png`` (position against the task's reference, speed and RPMs of one evaluation episode),
+    ``flight.html`` (the first `jaxdrones.viz.VIEW_EPISODES` evaluation episodes in the flight viewer, which plays
+    offline in a browser; where viser, the ``viewer`` extra, is installed) and ``summary.json``. With several
+    processes (`jax.distributed`) every process trains its share of the worlds and process 0 writes the run.
 
     An evaluation on ``n_eval_episodes`` random starts runs after each of the trainer's chunks of updates (compiled
     beside them, for our trainers); the last one is the run's result. On Ctrl-C the run stops after the chunk
@@ -101,7 +104,7 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
         The summary dict (also written to ``summary.json``): ``wall_time_s`` (everything from ``t_start``: imports,
         compilation, training, evaluation, plots), ``phases_s`` (the seconds of each phase: ``startup`` before this
         call, ``setup`` (envs, run folder), ``train`` (tracing, compilation, training and the evaluations),
-        ``save``, ``plots``), ``env_steps``,
+        ``save``, ``plots``, ``viewer``), ``env_steps``,
         ``success_metric``, ``success_value`` (the task's success metric over ``n_eval_episodes`` random starts),
         ``success`` (that value below the task's threshold with no episode terminated early), ``eval`` (all
         evaluation statistics), ``interrupted``, ``provenance`` (versions, commit, devices, processes, CPU), the
@@ -177,6 +180,9 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     t_phase = time.perf_counter()
     _plot(env, task, algo, log, last.get("eval"), out)
     phases["plots"] = time.perf_counter() - t_phase
+    t_phase = time.perf_counter()
+    _write_viewer(env, last.get("eval"), out)
+    phases["viewer"] = time.perf_counter() - t_phase
     value = stats.get("success_value", math.nan)
     summary = {
         "task": task,
@@ -204,6 +210,20 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     with open(os.path.join(out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=2)
     return summary
+
+
+def _write_viewer(env, evaluation: dict | None, out: str) -> None:
+    """``flight.html``, the first evaluation episodes in the flight viewer (`jaxdrones.viz.write_html`), where viser
+    is installed; without it, one printed line says how to get it."""
+    from jaxdrones import viz
+
+    if evaluation is None:
+        return
+    if not viz.viewer_available():
+        print(f'flight.html not written: the flight viewer needs viser (pip install "{viz.VIEWER_EXTRA}")')
+        return
+    flight = viz.Flight.from_data(env, evaluation["viewer"], time_axis=1)
+    viz.write_html(os.path.join(out, "flight.html"), flight, overwrite=True)
 
 
 def _plot(env, task: str, algo: str, log, evaluation: dict | None, out: str) -> None:
