@@ -2,11 +2,11 @@
 
 from jaxdrones import _fork  # noqa: F401  (refuse forked processes instead of hanging)
 from jaxdrones.envs import make
-from jaxdrones.params import MODELS, DroneParams, load_params
-from jaxdrones.realism import Realism
+from jaxdrones.physics.params import MODELS, DroneParams, load_params
+from jaxdrones.physics.realism import Realism
 from jaxdrones.scene import Obstacle
 from jaxdrones.sim import SimConfig, make_step, rollout
-from jaxdrones.state import Disturbance, DroneState, init_state
+from jaxdrones.physics.state import Disturbance, DroneState, init_state
 
 __all__ = [
     "MODELS", "make", "Disturbance", "DroneParams", "DroneState", "Obstacle", "Realism", "SimConfig", "init_state",
@@ -28,3 +28,23 @@ def _register_gymnasium() -> None:
 
 
 _register_gymnasium()
+
+
+# The modules' paths before they moved into the physics and io packages keep importing (``import jaxdrones.dynamics``,
+# ``from jaxdrones.params import load_params``, and the pickles of runs that name them): ``import jaxdrones.<name>``
+# runs this file first, which binds them.
+def _alias_moved_modules() -> None:
+    import sys
+
+    from jaxdrones.io import plotting, runs, video
+    from jaxdrones.physics import (adjoint, aerodynamics, checks, config, dynamics, kinks, neighbors, params, realism,
+                                   rotations, state)
+
+    for module in (adjoint, aerodynamics, checks, config, dynamics, kinks, neighbors, params, realism, rotations,
+                   state, plotting, runs, video):
+        name = module.__name__.rsplit(".", 1)[1]
+        sys.modules[f"{__name__}.{name}"] = module
+        globals()[name] = module
+
+
+_alias_moved_modules()

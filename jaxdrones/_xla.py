@@ -78,7 +78,7 @@ def _installation() -> str:
 def cache_file() -> str:
     """Where `accepted` keeps XLA's answers: ``xla_flags.json`` in `jaxdrones.runs.user_cache_dir`
     (``~/.cache/jaxdrones/xla_flags.json``)."""
-    from jaxdrones.runs import user_cache_dir
+    from jaxdrones.io.runs import user_cache_dir
 
     return os.path.join(user_cache_dir(), "xla_flags.json")
 

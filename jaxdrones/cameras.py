@@ -48,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jaxdrones.rotations import quat_to_rotmat
+from jaxdrones.physics.rotations import quat_to_rotmat
 
 #: Gap between the front of a drone's collision cylinder and its camera's eye, m.
 EYE_MARGIN = 0.005

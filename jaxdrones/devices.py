@@ -3,7 +3,8 @@
 The trainers spread their worlds over `jax.devices()`: every local device (GPUs, or CPU devices from
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) and, after `start` with several processes, the devices of
 every process. Each process then holds its share of the worlds; parameters are replicated and stay identical, since
-every process runs the same program on the same global arrays (JAX's multi-controller model).
+every process runs the same program on the same global arrays (JAX's multi-controller model). `shard_worlds` spreads
+a state's world axis over the devices, for a step or rollout to run on all of them.
 """
 
 from __future__ import annotations
@@ -98,3 +99,43 @@ def _wait_for(host: str, port: int, timeout_s: int) -> None:
                                   f"({err.strerror or err}): start process 0 first, check the address and the "
                                   f"firewall, or raise --distributed-timeout") from None
             time.sleep(0.2)
+
+
+def shard_worlds(tree, axis: int = 0, devices=None):
+    """Spread the world axis of every array in ``tree`` over devices, for a step or rollout to run on all of them.
+
+    Each leaf is placed with a `jax.sharding.NamedSharding` over a 1-D mesh ``("worlds",)``: device k holds a
+    contiguous slice of the worlds. A jitted `make_step` step or `rollout` on such arrays runs on every device at
+    once, each on its own slice (worlds do not interact, so no data moves between devices), and returns arrays
+    sharded the same way. Shared, unbatched params need no sharding; per-world params are sharded like the state.
+    On a CPU host, start Python with ``XLA_FLAGS=--xla_force_host_platform_device_count=<cores>`` (set before
+    ``jax`` is imported) to get one device per core; on GPUs the devices are the GPUs.
+
+    Args:
+        tree: a pytree of arrays whose axis ``axis`` is the world axis, e.g. a DroneState f[W, D, ...], an RPM
+            command f[W, D, 4] (``axis=0``) or a rollout's commands f[T, W, D, 4] (``axis=1``).
+        axis: the world axis of every leaf.
+        devices: the devices to use, default ``jax.devices()``.
+
+    Returns:
+        The same pytree with its leaves sharded over ``devices``.
+
+    Raises:
+        ValueError: if a leaf lacks ``axis`` or its size there is not a multiple of the number of devices.
+    """
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    devices = list(jax.devices() if devices is None else devices)
+    mesh = jax.sharding.Mesh(np.array(devices), ("worlds",))
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(*[None] * axis, "worlds"))
+
+    def put(x):
+        x = jnp.asarray(x)
+        if x.ndim <= axis or x.shape[axis] % len(devices):
+            raise ValueError(f"shard_worlds: a leaf of shape {x.shape} has no world axis {axis} whose size is a "
+                             f"multiple of the {len(devices)} devices")
+        return jax.device_put(x, sharding)
+
+    return jax.tree.map(put, tree)

@@ -37,10 +37,10 @@ from typing import Any
 
 import numpy as np
 
-from jaxdrones.config import SimConfig
-from jaxdrones.params import DroneParams
-from jaxdrones.rotations import GIMBAL_SNAP, OMEGA_EPS, quat_mul_c, quat_to_rotmat_c
-from jaxdrones.state import DroneState
+from jaxdrones.physics.config import SimConfig
+from jaxdrones.physics.params import DroneParams
+from jaxdrones.physics.rotations import GIMBAL_SNAP, OMEGA_EPS, quat_mul_c, quat_to_rotmat_c
+from jaxdrones.physics.state import DroneState
 
 __all__ = ["STATE_NAMES", "ROTOR_NAMES", "INPUT_NAMES", "OBSERVATION_NAMES", "SymbolicModel", "continuous_dynamics",
            "crazyflow_params", "discrete_step", "observation", "require_casadi", "state_vector", "symbolic_dynamics"]

@@ -24,11 +24,11 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from jaxdrones.config import SimConfig
-from jaxdrones.params import DroneParams, with_derived
-from jaxdrones.rotations import quat_integrate
+from jaxdrones.physics.config import SimConfig
+from jaxdrones.physics.params import DroneParams, with_derived
+from jaxdrones.physics.rotations import quat_integrate
 from jaxdrones.sim import make_step, rollout
-from jaxdrones.state import DroneState
+from jaxdrones.physics.state import DroneState
 
 #: Default measurement noise (standard deviations) that scales each residual: position m, velocity m/s, attitude
 #: (quaternion components, about half the angle in rad: 5e-3 for 0.01 rad), body rate rad/s.
@@ -279,7 +279,7 @@ def excitation_flight(config: SimConfig, params: DroneParams, duration_s: float 
         ValueError: a config with other than one drone.
     """
     from jaxdrones.control import pid
-    from jaxdrones.state import init_state
+    from jaxdrones.physics.state import init_state
 
     if config.n_drones != 1:
         raise ValueError(f"excitation_flight flies one drone, got n_drones={config.n_drones}")

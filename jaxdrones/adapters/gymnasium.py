@@ -289,7 +289,7 @@ def render_frame(env: Env, state, world: int = 0, shared_params: bool = False) -
 
 
 def _plotting():
-    from jaxdrones import plotting
+    from jaxdrones.io import plotting
 
     return plotting
 

@@ -52,9 +52,9 @@ import numpy as np
 from jaxdrones.backends import require_pybullet
 from jaxdrones.cameras import ENV_IMAGES, EYE_MARGIN, check_camera_args, check_image_size, image_shapes
 from jaxdrones.cameras import real as _real
-from jaxdrones.params import DroneParams, broadcast_params, pack_params
-from jaxdrones.checks import check_params_batch, check_state_shape
-from jaxdrones.state import DroneState
+from jaxdrones.physics.params import DroneParams, broadcast_params, pack_params
+from jaxdrones.physics.checks import check_params_batch, check_state_shape
+from jaxdrones.physics.state import DroneState
 
 pybullet = require_pybullet()
 

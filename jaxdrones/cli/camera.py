@@ -31,7 +31,7 @@ def register(subparsers) -> None:
 
 def run_cli(args: argparse.Namespace) -> int:
     """Run the ``camera`` subcommand; returns the exit status."""
-    from jaxdrones.runs import new_run_dir
+    from jaxdrones.io.runs import new_run_dir
 
     try:
         scene = camera_scene(args.model, args.width, args.height, args.fov, args.distance, args.renderer)

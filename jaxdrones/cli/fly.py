@@ -23,8 +23,8 @@ from jaxdrones.examples.circle import (
     plot_flight,
 )
 from jaxdrones.examples.closed_loop import BACKENDS
-from jaxdrones.params import MODELS
-from jaxdrones.video import video_format
+from jaxdrones.physics.params import MODELS
+from jaxdrones.io.video import video_format
 
 #: The examples of ``jaxdrones fly --example`` (paper §V-A); every one but the circle is a module of
 #: `jaxdrones.examples` with the same interface (``check``, ``fly``, ``plot``, ``summary``, ``arrays``,
@@ -109,7 +109,7 @@ def run_cli(args: argparse.Namespace) -> int:
     """Run the ``fly`` subcommand; returns the exit status."""
     if args.example != "circle":
         return _run_example(args)
-    from jaxdrones.runs import new_run_dir
+    from jaxdrones.io.runs import new_run_dir
 
     backend, video = args.backend, args.video
     if backend == "pybullet" and video is None and not args.no_video:
@@ -172,7 +172,7 @@ def _run_example(args: argparse.Namespace) -> int:
     Options the example does not take, and invalid values, are reported on stderr with exit status 2 before any
     run folder is created.
     """
-    from jaxdrones.runs import new_run_dir
+    from jaxdrones.io.runs import new_run_dir
 
     module = EXAMPLES[args.example]
     given = [flag for dest, flag in _SPECIFIC_OPTIONS.items()

@@ -8,7 +8,7 @@ import os
 import sys
 
 from jaxdrones import devices
-from jaxdrones.runs import enable_compilation_cache
+from jaxdrones.io.runs import enable_compilation_cache
 from jaxdrones.training import trainers
 from jaxdrones.training.run import default_env, train_task
 from jaxdrones.training.trainers import ALGOS, TRAINABLE, default_algo

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jaxdrones.params import DroneParams, params_batch_shape
+from jaxdrones.physics.params import DroneParams, params_batch_shape
 
 #: The 16 passive sets of the 4-motor NNLS problem, bool[16, 4] (True = the motor's s_i is free, False = held at
 #: 0). Row 0 is the empty set (s = 0, always feasible).

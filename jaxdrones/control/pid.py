@@ -34,9 +34,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jaxdrones.params import DroneParams
-from jaxdrones.rotations import quat_to_euler, quat_to_rotmat
-from jaxdrones.state import DroneState
+from jaxdrones.physics.params import DroneParams
+from jaxdrones.physics.rotations import quat_to_euler, quat_to_rotmat
+from jaxdrones.physics.state import DroneState
 
 #: PWM→RPM map of the Crazyflie: rpm = PWM2RPM_SCALE·pwm + PWM2RPM_CONST (docs/physics.md §12.1).
 PWM2RPM_SCALE = 0.2685

@@ -20,8 +20,8 @@ from jaxdrones.envs.task import Task, TaskParams
 from jaxdrones.envs.tasks.avoid import AVOID
 from jaxdrones.envs.tasks.multi import MULTI_AGENT_TASKS
 from jaxdrones.envs.tasks.single import SINGLE_AGENT_TASKS, HoverConfig
-from jaxdrones.realism import Realism
-from jaxdrones.realism import resolve as resolve_realism
+from jaxdrones.physics.realism import Realism
+from jaxdrones.physics.realism import resolve as resolve_realism
 
 #: The `Realism` fields that `make` and `make_config` take as keywords.
 REALISM_OPTIONS = frozenset(f.name for f in dataclasses.fields(Realism))

@@ -39,8 +39,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.control.pid import PIDGains, pid_control, pid_init, speed_limit, velocity_targets
-from jaxdrones.params import DroneParams
-from jaxdrones.state import DroneState
+from jaxdrones.physics.params import DroneParams
+from jaxdrones.physics.state import DroneState
 
 #: Normalised RPM actions: rpm = hover_rpm · (1 + RPM_ACTION_SCALE · a) (gym-pybullet-drones RPM action).
 RPM_ACTION_SCALE = 0.05

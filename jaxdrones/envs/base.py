@@ -8,8 +8,8 @@ from typing import Any
 import jax
 from flax import struct
 
-from jaxdrones.params import DroneParams
-from jaxdrones.state import DroneState
+from jaxdrones.physics.params import DroneParams
+from jaxdrones.physics.state import DroneState
 
 
 @struct.dataclass

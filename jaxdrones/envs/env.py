@@ -18,11 +18,11 @@ from jaxdrones.envs.base import Env, EnvState
 from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import ObsType
 from jaxdrones.envs.task import Bounds, StartRanges, Task, TaskParams
-from jaxdrones.params import DroneParams, broadcast_params, load_params, stack_params
-from jaxdrones.realism import RealismModel
-from jaxdrones.rotations import quat_from_euler
+from jaxdrones.physics.params import DroneParams, broadcast_params, load_params, stack_params
+from jaxdrones.physics.realism import RealismModel
+from jaxdrones.physics.rotations import quat_from_euler
 from jaxdrones.sim import make_step
-from jaxdrones.state import DroneState
+from jaxdrones.physics.state import DroneState
 
 #: How far (in action units) an entry may lie outside its box before ``metrics["clipped_actions"]`` counts it:
 #: float32 round-off of actions computed at the bounds (e.g. ``tanh`` saturating to 1 + 1 ulp) is not a clip.

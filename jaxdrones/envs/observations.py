@@ -38,9 +38,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrones.neighbors import nearest
-from jaxdrones.rotations import quat_to_euler, quat_to_rotmat
-from jaxdrones.state import DroneState
+from jaxdrones.physics.neighbors import nearest
+from jaxdrones.physics.rotations import quat_to_euler, quat_to_rotmat
+from jaxdrones.physics.state import DroneState
 
 #: Clip bounds of the observations: position (m), velocity (m/s), body rates (rad/s), relative positions (m).
 POS_BOUND = 20.0

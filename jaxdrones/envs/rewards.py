@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxdrones.rotations import quat_to_rotmat
+from jaxdrones.physics.rotations import quat_to_rotmat
 
 #: Length scales of `closeness`: a broad term (m) that pulls from afar and a sharp one (m) that settles precisely.
 BROAD_SCALE_M = 0.3

@@ -21,7 +21,7 @@ from jaxdrones.envs import rewards, terminations
 from jaxdrones.envs.actions import Reference
 from jaxdrones.envs.config import TaskConfig
 from jaxdrones.scene import resolve_obstacles
-from jaxdrones.state import DroneState
+from jaxdrones.physics.state import DroneState
 
 
 @struct.dataclass
@@ -149,7 +149,7 @@ class Task(abc.ABC):
 
     def start_defaults(self, config: TaskConfig) -> dict:
         """Default random start: centre ``pos`` f[D, 3] m and the half-widths (see `TaskConfig`)."""
-        from jaxdrones.state import default_start_pos
+        from jaxdrones.physics.state import default_start_pos
 
         return dict(pos=default_start_pos(config.n_drones), pos_range=(0.0, 0.0, 0.0), tilt=0.0, yaw=0.0,
                     vel=0.0, ang_vel=0.0)

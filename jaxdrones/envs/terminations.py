@@ -6,8 +6,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxdrones.rotations import quat_to_rotmat
-from jaxdrones.state import DroneState
+from jaxdrones.physics.rotations import quat_to_rotmat
+from jaxdrones.physics.state import DroneState
 
 
 def out_of_bounds(pos: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:

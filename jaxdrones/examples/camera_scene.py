@@ -88,9 +88,9 @@ def camera_scene(model: str = "cf2x", width: int = 320, height: int = 240, fov: 
     """
     import jax
 
-    from jaxdrones.params import load_params
+    from jaxdrones.physics.params import load_params
     from jaxdrones.sim import SimConfig, make_step
-    from jaxdrones.state import init_state
+    from jaxdrones.physics.state import init_state
 
     params = load_params(model)
     config = SimConfig(n_drones=1)

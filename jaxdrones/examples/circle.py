@@ -56,11 +56,11 @@ from jaxdrones.examples.closed_loop import (
     run_closed_loop,
     track_position,
 )
-from jaxdrones.params import load_params
+from jaxdrones.physics.params import load_params
 from jaxdrones.scene import resolve_obstacles
 from jaxdrones.sim import SimConfig, make_step
-from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, init_state
-from jaxdrones.video import VideoWriter, video_format
+from jaxdrones.physics.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, init_state
+from jaxdrones.io.video import VideoWriter, video_format
 
 #: Circle radius (m), first altitude (m) and altitude step between drones (m) of the paper's example (§13).
 RADIUS = 0.3
@@ -363,7 +363,7 @@ def tracking_metrics(waypoint_err: np.ndarray, cross_track_err: np.ndarray, sett
 
 def plot_flight(result: dict, path: str | os.PathLike) -> str:
     """Plot a `fly_circle` result (states, references, RPM vs time) with its metrics; returns ``path``."""
-    from jaxdrones.plotting import plot_flight as _plot
+    from jaxdrones.io.plotting import plot_flight as _plot
 
     s, m = result["settings"], result["metrics"]
     title = (f"Circle tracking: {s['num_drones']} × {s['model']}, DSL PID at {s['ctrl_freq']} Hz, physics "

@@ -26,10 +26,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.control.pid import PIDGains, PIDState, pid_control, pid_init
-from jaxdrones.params import DroneParams
-from jaxdrones.rotations import quat_to_euler
+from jaxdrones.physics.params import DroneParams
+from jaxdrones.physics.rotations import quat_to_euler
 from jaxdrones.sim import SimConfig, StepFn, make_step
-from jaxdrones.state import DroneState
+from jaxdrones.physics.state import DroneState
 
 #: Physics backends of the examples (`jaxdrones.sim.make_step`).
 BACKENDS = ("jax", "pybullet")

@@ -41,9 +41,9 @@ from jaxdrones.examples.closed_loop import (
     run_closed_loop,
     track_position,
 )
-from jaxdrones.params import load_params
+from jaxdrones.physics.params import load_params
 from jaxdrones.sim import SimConfig
-from jaxdrones.state import init_state
+from jaxdrones.physics.state import init_state
 
 #: Start positions, m, world frame (``downwash.py:47``); each drone's target altitude is its start altitude.
 INIT_POS = ((0.5, 0.0, 1.0), (-0.5, 0.0, 0.5))
@@ -200,7 +200,7 @@ def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq
 
 def plot(result: dict, path) -> str:
     """Plot a `fly` result: both drones' altitude in both runs against time, passes shaded; returns ``path``."""
-    from jaxdrones.plotting import plot_altitude_comparison
+    from jaxdrones.io.plotting import plot_altitude_comparison
 
     s, m = result["settings"], result["metrics"]
     title = (f"Downwash: 2 × {s['model']} crossing 0.5 m apart, DSL PID at {s['ctrl_freq']} Hz, physics "

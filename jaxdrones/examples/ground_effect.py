@@ -42,9 +42,9 @@ from jaxdrones.examples.closed_loop import (
     run_closed_loop,
     track_position,
 )
-from jaxdrones.params import load_params
+from jaxdrones.physics.params import load_params
 from jaxdrones.sim import SimConfig
-from jaxdrones.state import init_state
+from jaxdrones.physics.state import init_state
 
 #: Start altitude, m (``groundeffect.py:62``), above (x, y) = (0, 0).
 START_Z = 0.014
@@ -173,7 +173,7 @@ def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq
 
 def plot(result: dict, path) -> str:
     """Plot a `fly` result: z, vz and the four motor speeds of both runs against time; returns ``path``."""
-    from jaxdrones.plotting import plot_takeoff_comparison
+    from jaxdrones.io.plotting import plot_takeoff_comparison
 
     s, m = result["settings"], result["metrics"]
     title = (f"Take-off with and without ground effect: {s['model']}, DSL PID at {s['ctrl_freq']} Hz, physics "

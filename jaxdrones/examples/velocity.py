@@ -41,9 +41,9 @@ from jaxdrones.examples.closed_loop import (
     initial_carry,
     run_closed_loop,
 )
-from jaxdrones.params import load_params
+from jaxdrones.physics.params import load_params
 from jaxdrones.sim import SimConfig
-from jaxdrones.state import init_state
+from jaxdrones.physics.state import init_state
 
 #: Start positions, m, world frame, and roll/pitch/yaw, rad, of the 4 drones (``velocity.py:65-76``).
 INIT_POS = ((0.0, 0.0, 0.1), (0.3, 0.0, 0.1), (0.6, 0.0, 0.1), (0.9, 0.0, 0.1))
@@ -234,7 +234,7 @@ def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, settle_s
 
 def plot(result: dict, path) -> str:
     """Plot a `fly` result: commanded vs reached velocity components of each drone against time; returns ``path``."""
-    from jaxdrones.plotting import plot_velocity_tracking
+    from jaxdrones.io.plotting import plot_velocity_tracking
 
     s, m = result["settings"], result["metrics"]
     title = (f"Velocity commands: {s['num_drones']} × {s['model']}, VEL action (DSL PID at {s['ctrl_freq']} Hz, "

@@ -31,10 +31,10 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrones.params import load_params
+from jaxdrones.physics.params import load_params
 from jaxdrones.ros2 import messages
 from jaxdrones.sim import SimConfig, make_step
-from jaxdrones.state import init_state
+from jaxdrones.physics.state import init_state
 
 __all__ = ["Backend"]
 

@@ -113,7 +113,7 @@ def position_command(pose) -> tuple[np.ndarray, float]:
     norm = np.linalg.norm(quat)
     if norm == 0:  # an all-zero orientation (a message that leaves it unset): yaw 0
         return pos, 0.0
-    from jaxdrones.rotations import quat_to_euler
+    from jaxdrones.physics.rotations import quat_to_euler
 
     return pos, float(quat_to_euler(quat / norm)[2])
 

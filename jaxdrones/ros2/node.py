@@ -34,7 +34,7 @@ import numpy as np
 
 from jaxdrones.control.pid import PIDGains, pid_control, pid_init
 from jaxdrones.ros2 import messages, require_rclpy
-from jaxdrones.rotations import quat_to_euler
+from jaxdrones.physics.rotations import quat_to_euler
 from jaxdrones.sim import make_step
 
 __all__ = ["COMMAND_TOPICS", "MODES", "STATE_TOPICS", "EnvNode", "check_namespace"]

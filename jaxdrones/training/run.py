@@ -120,7 +120,7 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     import jax
 
     from jaxdrones.envs import make, registered
-    from jaxdrones.runs import new_run_dir, provenance
+    from jaxdrones.io.runs import new_run_dir, provenance
     from jaxdrones.training import checkpoint, trainers
     from jaxdrones.training.common import Interrupted
     from jaxdrones.training.evaluation import episode_statistics
@@ -231,7 +231,7 @@ def _plot(env, task: str, algo: str, log, evaluation: dict | None, out: str) -> 
     ``flight.png`` (its first episode)."""
     import numpy as np
 
-    from jaxdrones.plotting import plot_learning_curve, plot_task_flight
+    from jaxdrones.io.plotting import plot_learning_curve, plot_task_flight
 
     title = f"{algo.upper()} on {task} ({env.config.model}, {env.config.action_type})"
     if log.history:

@@ -31,6 +31,6 @@ def use_compilation_cache() -> None:
     import jax
 
     if jax.config.jax_compilation_cache_dir is None:
-        from jaxdrones.runs import enable_compilation_cache
+        from jaxdrones.io.runs import enable_compilation_cache
 
         enable_compilation_cache()

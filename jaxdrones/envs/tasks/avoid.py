@@ -18,7 +18,7 @@ from jaxdrones.envs import rewards, terminations
 from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import POS_BOUND
 from jaxdrones.envs.task import Task
-from jaxdrones.state import DroneState
+from jaxdrones.physics.state import DroneState
 
 #: Obstacle colours, cycled (RGB in [0, 1]): greys and muted tones, distinct in the RGB image.
 COLOURS = ((0.55, 0.35, 0.25), (0.35, 0.45, 0.55), (0.5, 0.5, 0.45), (0.3, 0.5, 0.35))
@@ -241,7 +241,7 @@ class Avoid(GoalTask):
 def collision_data(config) -> dict:
     """`Task.data` of a task that detects collisions with its scene: each drone's collision radius (the URDF's),
     ``collision_radius`` f[D] m."""
-    from jaxdrones.params import load_params
+    from jaxdrones.physics.params import load_params
 
     models = config.model if isinstance(config.model, tuple) else (config.model,)
     return {"collision_radius": np.array([float(load_params(m).collision_radius) for m in models])}

@@ -17,7 +17,7 @@ import numpy as np
 from jaxdrones.envs import terminations
 from jaxdrones.envs.tasks.avoid import GoalTask, collided, progress
 from jaxdrones.envs.tasks.single import GATE_OPENING_HALF_X, GATE_OPENING_TOP, GATE_PARTS, GateConfig
-from jaxdrones.state import DroneState
+from jaxdrones.physics.state import DroneState
 
 #: The start's height, m: the opening's mid height (the drone starts at the origin facing +x, towards the gate).
 START_Z = 0.25

@@ -22,7 +22,7 @@ from jaxdrones.envs.config import TaskConfig, _is_number
 from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
 from jaxdrones.envs.task import Task
 from jaxdrones.envs.tasks.single import ANG_SPEED_WEIGHT, SPEED_WEIGHT
-from jaxdrones.state import default_start_pos
+from jaxdrones.physics.state import default_start_pos
 
 
 @dataclasses.dataclass(frozen=True)

@@ -21,7 +21,7 @@ from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
 from jaxdrones.envs.task import Task
 from jaxdrones.scene import Obstacle
-from jaxdrones.state import DEFAULT_START_Z, DroneState
+from jaxdrones.physics.state import DEFAULT_START_Z, DroneState
 
 #: Shaped hover-type rewards: r = max(0, closeness − SPEED_WEIGHT ‖v‖² − ANG_SPEED_WEIGHT ‖ω‖²) (see
 #: `rewards.closeness`), non-negative so that ending an episode early never pays.

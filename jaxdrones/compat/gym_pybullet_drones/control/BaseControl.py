@@ -8,7 +8,7 @@ import numpy as np
 
 from jaxdrones.compat.gym_pybullet_drones._common import KeywordHints
 from jaxdrones.compat.gym_pybullet_drones.utils.enums import DroneModel
-from jaxdrones.params import load_params
+from jaxdrones.physics.params import load_params
 
 
 class BaseControl(KeywordHints, metaclass=abc.ABCMeta):

@@ -23,8 +23,8 @@ from jaxdrones.control.pid import (
     pid_compute,
     pid_init,
 )
-from jaxdrones.params import load_params
-from jaxdrones.state import DroneState
+from jaxdrones.physics.params import load_params
+from jaxdrones.physics.state import DroneState
 
 _GAINS = {"P_COEFF_FOR": "p_pos", "I_COEFF_FOR": "i_pos", "D_COEFF_FOR": "d_pos", "P_COEFF_TOR": "p_att",
           "I_COEFF_TOR": "i_att", "D_COEFF_TOR": "d_att"}

@@ -14,7 +14,7 @@ from gymnasium import spaces
 from jaxdrones.compat.gym_pybullet_drones.envs.BaseAviary import BaseAviary, action_array
 from jaxdrones.compat.gym_pybullet_drones.utils.enums import ActionType, DroneModel, ObservationType, Physics
 from jaxdrones.envs.actions import Reference, make_action
-from jaxdrones.params import broadcast_params
+from jaxdrones.physics.params import broadcast_params
 
 
 class BaseRLAviary(BaseAviary):

@@ -389,7 +389,7 @@ def render_state(pos, quat, *, arm: float = 0.0397, targets=None, width: int = 4
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from jaxdrones.rotations import quat_to_rotmat
+    from jaxdrones.physics.rotations import quat_to_rotmat
 
     pos = np.asarray(pos, np.float64).reshape(-1, 3)
     rot = np.asarray(quat_to_rotmat(np.asarray(quat, np.float64).reshape(-1, 4)))

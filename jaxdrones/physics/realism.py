@@ -25,8 +25,8 @@ import numpy as np
 from flax import struct
 
 from jaxdrones._hints import did_you_mean
-from jaxdrones.rotations import join, normalize_c, quat_integrate_c, split
-from jaxdrones.state import Disturbance, DroneState
+from jaxdrones.physics.rotations import join, normalize_c, quat_integrate_c, split
+from jaxdrones.physics.state import Disturbance, DroneState
 
 #: Feet per metre, for MIL-F-8785C's low-altitude formulas (written in ft).
 _FT_PER_M = 1 / 0.3048

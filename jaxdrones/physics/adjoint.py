@@ -31,12 +31,12 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import CustomVJPPrimal, SymbolicZero
 
-from jaxdrones import dynamics
-from jaxdrones.dynamics import Effects, Kinematics, Motors
-from jaxdrones.params import DroneParams
-from jaxdrones.rotations import (GIMBAL_SNAP, OMEGA_EPS, Components, cross, dot, matvec, quat_mul_c, quat_to_rotmat_c,
+from jaxdrones.physics import dynamics
+from jaxdrones.physics.dynamics import Effects, Kinematics, Motors
+from jaxdrones.physics.params import DroneParams
+from jaxdrones.physics.rotations import (GIMBAL_SNAP, OMEGA_EPS, Components, cross, dot, matvec, quat_mul_c, quat_to_rotmat_c,
                                  split)
-from jaxdrones.state import Disturbance
+from jaxdrones.physics.state import Disturbance
 
 
 def supported(config) -> bool:

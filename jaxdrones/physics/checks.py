@@ -9,11 +9,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdrones.params import DroneParams, params_batch_shape
-from jaxdrones.state import Disturbance, DroneState
+from jaxdrones.physics.params import DroneParams, params_batch_shape
+from jaxdrones.physics.state import Disturbance, DroneState
 
 if TYPE_CHECKING:
-    from jaxdrones.config import SimConfig
+    from jaxdrones.physics.config import SimConfig
 
 
 def check_rpm(config: SimConfig, state: DroneState, rpm) -> jax.Array:

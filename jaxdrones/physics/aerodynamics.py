@@ -14,10 +14,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxdrones.kinks import Kinks
-from jaxdrones.neighbors import gather
-from jaxdrones.params import DroneParams
-from jaxdrones.rotations import GIMBAL_SNAP, Components, dot, join, split
+from jaxdrones.physics.kinks import Kinks
+from jaxdrones.physics.neighbors import gather
+from jaxdrones.physics.params import DroneParams
+from jaxdrones.physics.rotations import GIMBAL_SNAP, Components, dot, join, split
 
 #: The downwash models of `jaxdrones.config.SimConfig.downwash`: the paper's one force at the lower drone's centre
 #: of mass (`downwash_force`, docs/physics.md §6.3) and the per-rotor thrust changes (`downwash_thrust`, §6.4).

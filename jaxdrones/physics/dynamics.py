@@ -17,13 +17,13 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxdrones import aerodynamics
-from jaxdrones.kinks import Kinks
-from jaxdrones.neighbors import cell_candidates
-from jaxdrones.params import DroneParams
-from jaxdrones.rotations import (Components, cross, dot, matvec, normalize_c, quat_derivative_c,
+from jaxdrones.physics import aerodynamics
+from jaxdrones.physics.kinks import Kinks
+from jaxdrones.physics.neighbors import cell_candidates
+from jaxdrones.physics.params import DroneParams
+from jaxdrones.physics.rotations import (Components, cross, dot, matvec, normalize_c, quat_derivative_c,
                                  quat_integrate_c, quat_to_rotmat_c, split)
-from jaxdrones.state import Disturbance
+from jaxdrones.physics.state import Disturbance
 
 
 class Effects(NamedTuple):

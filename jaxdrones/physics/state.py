@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jaxdrones.rotations import quat_from_euler
+from jaxdrones.physics.rotations import quat_from_euler
 
 #: Arm length of the Crazyflie used by the paper's default start pose (docs/physics.md §1.1, §14.4).
 _CF2_ARM = 0.0397

@@ -99,7 +99,7 @@ def provenance() -> dict:
             versions[package] = importlib.metadata.version(package)
         except importlib.metadata.PackageNotFoundError:
             versions[package] = None
-    source = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    source = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     try:
         top, commit = (subprocess.run(["git", "-C", source, "rev-parse", "--show-toplevel", "HEAD"],
                                       capture_output=True, text=True, timeout=5).stdout.split() + [None, None])[:2]

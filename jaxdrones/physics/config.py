@@ -6,10 +6,10 @@ import dataclasses
 
 import numpy as np
 
-from jaxdrones import dynamics
+from jaxdrones.physics import dynamics
 from jaxdrones._hints import did_you_mean
-from jaxdrones.aerodynamics import DOWNWASH_MODELS
-from jaxdrones.kinks import Kinks
+from jaxdrones.physics.aerodynamics import DOWNWASH_MODELS
+from jaxdrones.physics.kinks import Kinks
 
 
 @dataclasses.dataclass(frozen=True)
