@@ -9,7 +9,7 @@ import pytest
 
 import jaxdrones as jd
 from jaxdrones import cameras
-from jaxdrones.envs.tasks.single import GATE_OPENING_HALF_X
+from jaxdrones.envs.tasks.gate import GATE_OPENING_HALF_X
 
 
 @pytest.fixture(scope="module")

@@ -38,13 +38,13 @@ USER_MODULE = textwrap.dedent('''
 @pytest.fixture(autouse=True)
 def restore_registries():
     """Each test's registrations are undone after it (the registry is the process's)."""
-    from jaxdrones import envs
     from jaxdrones.adapters import gymnasium as gym_adapter
+    from jaxdrones.envs import registry
 
-    tasks, ids, gym_ids = dict(envs._REGISTRY), dict(gym_adapter.GYM_IDS), set(gym.registry)
+    tasks, ids, gym_ids = dict(registry._REGISTRY), dict(gym_adapter.GYM_IDS), set(gym.registry)
     yield
-    envs._REGISTRY.clear()
-    envs._REGISTRY.update(tasks)
+    registry._REGISTRY.clear()
+    registry._REGISTRY.update(tasks)
     gym_adapter.GYM_IDS.clear()
     gym_adapter.GYM_IDS.update(ids)
     for env_id in set(gym.registry) - gym_ids:

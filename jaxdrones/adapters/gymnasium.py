@@ -46,6 +46,7 @@ from jaxdrones._fork import check_not_forked
 from jaxdrones.cameras import ENV_IMAGES
 from jaxdrones.envs.base import Env, world_axes
 from jaxdrones.envs.env import outside_box
+from jaxdrones.envs.registry import make, registered, subscribe
 from jaxdrones.wrappers.autoreset import reset_where
 
 #: The gymnasium releases the adapters need: `GymnasiumEnv` the reset/step API of 0.26 (tested with 0.29.1, the
@@ -53,12 +54,6 @@ from jaxdrones.wrappers.autoreset import reset_where
 MIN_GYMNASIUM, MIN_GYMNASIUM_VECTOR = (0, 26), (1, 1)
 #: The installed gymnasium's (major, minor).
 GYMNASIUM_VERSION = tuple(int(part) for part in gym.__version__.split(".")[:2])
-#: gymnasium id of every task (a task of your own gets one from `jaxdrones.envs.register`).
-GYM_IDS = {"hover": "jaxdrones/Hover-v0", "takeoff": "jaxdrones/Takeoff-v0", "velocity": "jaxdrones/Velocity-v0",
-           "waypoints": "jaxdrones/Waypoints-v0", "fly_thru_gate": "jaxdrones/FlyThruGate-v0",
-           "tune": "jaxdrones/Tune-v0", "avoid": "jaxdrones/Avoid-v0", "multi_hover": "jaxdrones/MultiHover-v0",
-           "leader_follower": "jaxdrones/LeaderFollower-v0", "flock": "jaxdrones/Flock-v0",
-           "meetup": "jaxdrones/Meetup-v0", "crossing": "jaxdrones/Crossing-v0"}
 #: ``"human"``: a window shows every step (`HumanView`); ``"rgb_array"``: ``render()`` returns the frame.
 RENDER_MODES = ("human", "rgb_array")
 
@@ -445,8 +440,6 @@ def make_env(task: str, render_mode: str | None = None, strict_actions: bool = F
              **overrides) -> GymnasiumEnv:
     """Entry point of ``gymnasium.make(GYM_IDS[task], **overrides)``; overrides are the task's config fields,
     ``strict_actions`` that of `GymnasiumEnv`."""
-    from jaxdrones.envs import make
-
     _check_render_mode(render_mode)
     return GymnasiumEnv(make(task, **overrides), render_mode=render_mode, strict_actions=strict_actions)
 
@@ -455,8 +448,6 @@ def make_vector_env(task: str, num_envs: int = 1, render_mode: str | None = None
                     **overrides) -> GymnasiumVectorEnv:
     """Vector entry point of ``gymnasium.make_vec(GYM_IDS[task], num_envs, vectorization_mode="vector_entry_point",
     **overrides)``."""
-    from jaxdrones.envs import make
-
     _check_render_mode(render_mode)
     return GymnasiumVectorEnv(make(task, **overrides), num_envs, render_mode=render_mode,
                               strict_actions=strict_actions)
@@ -464,8 +455,12 @@ def make_vector_env(task: str, num_envs: int = 1, render_mode: str | None = None
 
 def gym_id(task: str) -> str:
     """A task's gymnasium id: ``jaxdrones/`` and its name in CamelCase, version 0 (``"my_hover"`` →
-    ``"jaxdrones/MyHover-v0"``), as `GYM_IDS` names the built-in tasks."""
-    return GYM_IDS.get(task, "jaxdrones/" + "".join(part.capitalize() for part in task.split("_")) + "-v0")
+    ``"jaxdrones/MyHover-v0"``, ``"fly_thru_gate"`` → ``"jaxdrones/FlyThruGate-v0"``)."""
+    return "jaxdrones/" + "".join(part.capitalize() for part in task.split("_")) + "-v0"
+
+
+#: gymnasium id of every registered task (`gym_id`; a task of your own gets one from `jaxdrones.envs.register`).
+GYM_IDS = {task: gym_id(task) for task in registered()}
 
 
 def register() -> None:
@@ -474,6 +469,7 @@ def register() -> None:
     With gymnasium older than `MIN_GYMNASIUM` nothing is registered and a `UserWarning` names the installed and the
     required versions.
     """
+    subscribe(register_task)  # and each task registered later (`jaxdrones.envs.register`)
     if GYMNASIUM_VERSION < MIN_GYMNASIUM:
         warnings.warn(f"jaxdrones registers its gymnasium ids with gymnasium >= {'.'.join(map(str, MIN_GYMNASIUM))} "
                       f"(the reset/step API of 0.26); gymnasium {gym.__version__} is installed, so none were "

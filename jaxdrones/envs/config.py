@@ -18,9 +18,9 @@ import numpy as np
 from jaxdrones._hints import did_you_mean
 from jaxdrones.backends import BACKENDS, RENDERERS, require_pybullet
 from jaxdrones.cameras import ENV_IMAGES
-from jaxdrones.physics.config import downwash_model
 from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS
 from jaxdrones.envs.observations import OBS_TYPES
+from jaxdrones.physics.config import downwash_model
 from jaxdrones.physics.params import MODELS, DroneParams, with_derived
 from jaxdrones.physics.realism import resolve as resolve_realism
 from jaxdrones.scene import resolve_obstacles

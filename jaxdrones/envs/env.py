@@ -21,8 +21,8 @@ from jaxdrones.envs.task import Bounds, StartRanges, Task, TaskParams
 from jaxdrones.physics.params import DroneParams, broadcast_params, load_params, stack_params
 from jaxdrones.physics.realism import RealismModel
 from jaxdrones.physics.rotations import quat_from_euler
-from jaxdrones.sim import make_step
 from jaxdrones.physics.state import DroneState
+from jaxdrones.sim import make_step
 
 #: How far (in action units) an entry may lie outside its box before ``metrics["clipped_actions"]`` counts it:
 #: float32 round-off of actions computed at the bounds (e.g. ``tanh`` saturating to 1 + 1 ulp) is not a clip.

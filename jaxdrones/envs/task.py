@@ -20,8 +20,8 @@ from flax import struct
 from jaxdrones.envs import rewards, terminations
 from jaxdrones.envs.actions import Reference
 from jaxdrones.envs.config import TaskConfig
-from jaxdrones.scene import resolve_obstacles
 from jaxdrones.physics.state import DroneState
+from jaxdrones.scene import resolve_obstacles
 
 
 @struct.dataclass

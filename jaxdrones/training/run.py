@@ -9,7 +9,7 @@ import math
 import os
 import time
 
-from jaxdrones.training.trainers import ALGOS, MULTI_AGENT, SINGLE_AGENT, TRAINABLE, default_algo  # noqa: F401
+from jaxdrones.training.trainers import default_algo
 
 #: Task settings ``jaxdrones train`` uses unless told otherwise: the paper's multi-agent example trains
 #: leader-follower with one_d_rpm actions (docs: reference facts §11.4).

@@ -16,11 +16,10 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any
 
-#: The built-in single-agent tasks ``jaxdrones train`` trains (default algorithm: `default_algo`); it trains a task
-#: of your own too (`jaxdrones.envs.register`).
-SINGLE_AGENT = ("hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune", "avoid")
-#: The built-in multi-agent tasks ``jaxdrones train`` trains (default algorithm: MAPPO).
-MULTI_AGENT = ("leader_follower", "multi_hover", "flock", "meetup", "crossing")
+from jaxdrones.envs import MULTI_AGENT, SINGLE_AGENT
+
+#: The built-in tasks ``jaxdrones train`` trains: the single-agent ones (default algorithm: `default_algo`) and the
+#: multi-agent ones (default algorithm: MAPPO); it trains a task of your own too (`jaxdrones.envs.register`).
 TRAINABLE = SINGLE_AGENT + MULTI_AGENT
 
 

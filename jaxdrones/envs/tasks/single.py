@@ -1,4 +1,5 @@
-"""Single-agent tasks (D = 1): hover, takeoff, velocity, waypoints, fly_thru_gate, tune (docs/physics.md §11).
+"""Single-agent tasks (D = 1): hover, takeoff, velocity, waypoints, tune (docs/physics.md §11); fly_thru_gate is in
+`jaxdrones.envs.tasks.gate`.
 
 Each documents its reward (``reward="shaped"``, the default, tuned for fast RL; ``reward="paper"``, the
 original's), its termination and its source. All terminate when the drone leaves the arena
@@ -20,7 +21,6 @@ from jaxdrones.envs.actions import ACTION_SIZES, Reference
 from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
 from jaxdrones.envs.task import Task
-from jaxdrones.scene import Obstacle
 from jaxdrones.physics.state import DEFAULT_START_Z, DroneState
 
 #: Shaped hover-type rewards: r = max(0, closeness − SPEED_WEIGHT ‖v‖² − ANG_SPEED_WEIGHT ‖ω‖²) (see
@@ -38,7 +38,9 @@ def _target_check(name: str, target) -> tuple[float, float, float]:
     return tuple(float(v) for v in arr)
 
 
-def _hover_weights(config: TaskConfig, paper: dict[str, float]) -> dict[str, float]:
+def hover_weights(config: TaskConfig, paper: dict[str, float]) -> dict[str, float]:
+    """The reward weights of the hover-type tasks: the paper's (``paper``) with ``reward="paper"``, else the shaped
+    reward's closeness and speed penalties (`SPEED_WEIGHT`, `ANG_SPEED_WEIGHT`)."""
     if config.reward == "paper":
         return paper
     return {"closeness": 1.0, "speed_sq": -SPEED_WEIGHT, "ang_speed_sq": -ANG_SPEED_WEIGHT}
@@ -106,7 +108,7 @@ class Hover(Task):
         return np.asarray([config.target])
 
     def weights(self, config):
-        return _hover_weights(config, {"distance_sq": -1.0})
+        return hover_weights(config, {"distance_sq": -1.0})
 
     def reward_terms(self, config, task, sim, action, steps):
         return _tracking_terms(config, task.target, sim)
@@ -145,7 +147,7 @@ class Takeoff(Task):
         return np.asarray([config.target])
 
     def weights(self, config):
-        return _hover_weights(config, {"takeoff": 1.0})
+        return hover_weights(config, {"takeoff": 1.0})
 
     def reward_terms(self, config, task, sim, action, steps):
         if config.reward == "paper":
@@ -352,7 +354,7 @@ class Waypoints(ReferenceTask):
                 "radius": np.asarray(config.radius)}
 
     def weights(self, config):
-        return _hover_weights(config, {"distance_sq": -1.0})
+        return hover_weights(config, {"distance_sq": -1.0})
 
     def sample(self, config, task, key):
         k_kind, k_r, k_phase, k_dir = jax.random.split(key, 4)
@@ -402,125 +404,3 @@ class Tune(Waypoints):
 
     name = "tune"
     config_cls = TuneConfig
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# fly through a gate
-# ---------------------------------------------------------------------------------------------------------------
-
-#: The paper's gate (FlyThruGateAviary): at y = −1 m, two 0.05 m columns 0.5 m tall at x = ±0.3 m and a
-#: 0.8 × 0.05 × 0.05 m architrave at z = 0.55 m, on the ground: its boxes as (centre, size) in the gate's frame
-#: (origin on the ground below the architrave's centre, x along it, y across the gate).
-GATE_Y = -1.0
-GATE_COLUMN_X = 0.3
-GATE_PARTS = (((-GATE_COLUMN_X, 0.0, 0.245), (0.05, 0.05, 0.5)), ((GATE_COLUMN_X, 0.0, 0.245), (0.05, 0.05, 0.5)),
-              ((0.0, 0.0, 0.55), (0.8, 0.05, 0.05)))
-#: The gate's opening in its frame: |x| < 0.275 m between the columns, below z = 0.525 m (the architrave).
-GATE_OPENING_HALF_X = GATE_COLUMN_X - 0.025
-GATE_OPENING_TOP = 0.525
-#: The gate's reference: a point moving from (0, 0, 0.75) to (0, −2, 0.75) m over the episode.
-GATE_REF_Z = 0.75
-GATE_REF_DY = -2.0
-
-
-def gate_obstacles() -> tuple:
-    """The paper's gate as obstacles (`jaxdrones.scene.Obstacle` boxes)."""
-    colour = (0.6, 0.6, 0.6, 1.0)
-    return tuple(Obstacle("box", size=size, pos=(x, GATE_Y + y, z), rgba=colour) for (x, y, z), size in GATE_PARTS)
-
-
-@dataclasses.dataclass(frozen=True)
-class GateConfig(TaskConfig):
-    """Settings of `FlyThruGate`.
-
-    Attributes:
-        gate_pose: ``"fixed"``, the paper's gate at y = −1 m, a reference to follow through it (`FlyThruGate`);
-            ``"random"``, the gate drawn per episode ahead of the drone and seen only through its camera, with no
-            reference (`jaxdrones.envs.tasks.gate.GatePass`; JAX backend).
-        gate_distance: ``"random"``: (low, high) of the gate's distance ahead of the start (along +x), m.
-        gate_offset: ``"random"``: the gate's centre within ±gate_offset m across (y).
-        gate_yaw: ``"random"``: the gate's yaw within ±gate_yaw rad.
-
-    With ``"fixed"``, on the PyBullet backend and with ``vision`` on the JAX backend (the cameras see it),
-    ``obstacles`` defaults to the gate (`gate_obstacles`).
-
-    Raises:
-        ValueError: an unknown ``gate_pose``, a range out of order or negative, or ``"random"`` with
-            ``backend="pybullet"`` or with ``obstacles``.
-    """
-
-    arena_xy: float = 3.0
-    gate_pose: str = "fixed"
-    gate_distance: tuple[float, float] = (1.5, 2.5)
-    gate_offset: float = 0.4
-    gate_yaw: float = 0.5
-
-    def __post_init__(self):
-        if self.gate_pose not in GATE_POSES:
-            raise ValueError(f"fly_thru_gate: gate_pose must be one of {GATE_POSES}, got {self.gate_pose!r}")
-        lo, hi = (float(v) for v in self.gate_distance)
-        if not (math.isfinite(hi) and 1.0 <= lo <= hi):
-            raise ValueError(f"fly_thru_gate: gate_distance must be (low, high) m with 1 <= low <= high, got "
-                             f"{self.gate_distance!r}")
-        object.__setattr__(self, "gate_distance", (lo, hi))
-        for name in ("gate_offset", "gate_yaw"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"fly_thru_gate: {name} must be a finite number >= 0, got {value!r}")
-        if self.gate_pose == "random":
-            if self.backend != "jax" or self.obstacles is not None:
-                raise ValueError("fly_thru_gate: gate_pose='random' draws the gate per episode in the task params: "
-                                 "backend='jax' and no obstacles")
-        elif (self.backend == "pybullet" or self.vision) and self.obstacles is None:
-            object.__setattr__(self, "obstacles", gate_obstacles())
-        super().__post_init__()
-
-
-#: The values of `GateConfig.gate_pose`.
-GATE_POSES = ("fixed", "random")
-
-
-class FlyThruGate(ReferenceTask):
-    """Fly through the paper's gate (FlyThruGateAviary): follow a reference point moving from (0, 0, 0.75) m to
-    (0, −2, 0.75) m over the episode, through the gate at y = −1 m.
-
-    On the JAX backend the gate is only the reference; on the PyBullet backend its columns and architrave are
-    obstacles (contacts reported in ``state.sim.contact``). With ``gate_pose="random"`` the env runs
-    `jaxdrones.envs.tasks.gate.GatePass` instead (the gate drawn per episode, seen only through the camera). The observation appends the offset to the reference
-    point and its velocity (6 entries). Starts: the paper's default start (0, 0, 0.1125) m, within ±0.05 m in x and
-    y, any yaw.
-    Reward ``"shaped"``: as `Hover`'s, towards the moving reference; ``"paper"``: −10 ‖p* − p‖².
-    Success metric: ``distance`` to the reference (m).
-    """
-
-    name = "fly_thru_gate"
-    config_cls = GateConfig
-    success_at = "mean"
-    success_threshold = 0.1
-
-    def variant(self, config):
-        if config.gate_pose == "random":
-            from jaxdrones.envs.tasks.gate import GATE_PASS
-
-            return GATE_PASS
-        return self
-
-    def start_defaults(self, config):
-        return dict(pos=[[0.0, 0.0, DEFAULT_START_Z]], pos_range=(0.05, 0.05, 0.0), tilt=0.0, yaw=math.pi,
-                    vel=0.0, ang_vel=0.0)
-
-    def target(self, config):
-        return np.array([[0.0, GATE_REF_DY, GATE_REF_Z]])
-
-    def weights(self, config):
-        return _hover_weights(config, {"distance_sq": -10.0})
-
-    def reference(self, config, task, steps):
-        duration = config.episode_len_s
-        tau = jnp.minimum(steps / config.ctrl_freq, duration) / duration
-        start = task.target.at[..., 1].set(0.0)
-        vel = (task.target - start) / duration
-        return Reference(start + (task.target - start) * tau, jnp.where(tau < 1, vel, 0.0))
-
-
-SINGLE_AGENT_TASKS = (Hover(), Takeoff(), Velocity(), Waypoints(), FlyThruGate(), Tune())
