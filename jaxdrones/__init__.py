@@ -4,9 +4,9 @@ from jaxdrones import _fork  # noqa: F401  (refuse forked processes instead of h
 from jaxdrones.envs import make
 from jaxdrones.physics.params import MODELS, DroneParams, load_params
 from jaxdrones.physics.realism import Realism
+from jaxdrones.physics.state import Disturbance, DroneState, init_state
 from jaxdrones.scene import Obstacle
 from jaxdrones.sim import SimConfig, make_step, rollout
-from jaxdrones.physics.state import Disturbance, DroneState, init_state
 
 __all__ = [
     "MODELS", "make", "Disturbance", "DroneParams", "DroneState", "Obstacle", "Realism", "SimConfig", "init_state",
@@ -37,8 +37,19 @@ def _alias_moved_modules() -> None:
     import sys
 
     from jaxdrones.io import plotting, runs, video
-    from jaxdrones.physics import (adjoint, aerodynamics, checks, config, dynamics, kinks, neighbors, params, realism,
-                                   rotations, state)
+    from jaxdrones.physics import (
+        adjoint,
+        aerodynamics,
+        checks,
+        config,
+        dynamics,
+        kinks,
+        neighbors,
+        params,
+        realism,
+        rotations,
+        state,
+    )
 
     for module in (adjoint, aerodynamics, checks, config, dynamics, kinks, neighbors, params, realism, rotations,
                    state, plotting, runs, video):

@@ -27,8 +27,8 @@ import optimistix as optx
 from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.params import DroneParams, with_derived
 from jaxdrones.physics.rotations import quat_integrate
-from jaxdrones.sim import make_step, rollout
 from jaxdrones.physics.state import DroneState
+from jaxdrones.sim import make_step, rollout
 
 #: Default measurement noise (standard deviations) that scales each residual: position m, velocity m/s, attitude
 #: (quaternion components, about half the angle in rad: 5e-3 for 0.01 rad), body rate rad/s.

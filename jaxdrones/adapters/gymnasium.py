@@ -43,10 +43,10 @@ except ImportError:  # gymnasium < 1.1, where `GymnasiumVectorEnv` refuses to ru
     _NEXT_STEP = "next_step"
 
 from jaxdrones._fork import check_not_forked
-from jaxdrones.cameras import ENV_IMAGES
 from jaxdrones.envs.base import Env, world_axes
 from jaxdrones.envs.env import outside_box
 from jaxdrones.envs.registry import make, registered, subscribe
+from jaxdrones.sensors.camera import ENV_IMAGES
 from jaxdrones.wrappers.autoreset import reset_where
 
 #: The gymnasium releases the adapters need: `GymnasiumEnv` the reset/step API of 0.26 (tested with 0.29.1, the

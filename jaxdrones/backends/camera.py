@@ -50,11 +50,11 @@ import jax
 import numpy as np
 
 from jaxdrones.backends import require_pybullet
-from jaxdrones.cameras import ENV_IMAGES, EYE_MARGIN, check_camera_args, check_image_size, image_shapes
-from jaxdrones.cameras import real as _real
-from jaxdrones.physics.params import DroneParams, broadcast_params, pack_params
 from jaxdrones.physics.checks import check_params_batch, check_state_shape
+from jaxdrones.physics.params import DroneParams, broadcast_params, pack_params
 from jaxdrones.physics.state import DroneState
+from jaxdrones.sensors.camera import ENV_IMAGES, EYE_MARGIN, check_camera_args, check_image_size, image_shapes
+from jaxdrones.sensors.camera import real as _real
 
 pybullet = require_pybullet()
 

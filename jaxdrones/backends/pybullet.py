@@ -40,14 +40,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrones.backends import RENDERERS, camera, require_pybullet, scene
 from jaxdrones.physics import aerodynamics
-from jaxdrones.backends import camera, scene
+from jaxdrones.physics.checks import check_disturbance, check_params_batch, check_rpm, check_rpm_shape
+from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.dynamics import Effects
 from jaxdrones.physics.params import DroneParams, broadcast_params, pack_params, params_batch_shape
 from jaxdrones.physics.rotations import join, quat_to_rotmat_c, split
-from jaxdrones.backends import RENDERERS, require_pybullet
-from jaxdrones.physics.checks import check_disturbance, check_params_batch, check_rpm, check_rpm_shape
-from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, Disturbance, DroneState
 
 pybullet = require_pybullet()

@@ -12,10 +12,11 @@ import numpy as np
 
 from jaxdrones.backends import require_pybullet
 
-# The drones' visual shape (a plate and four propeller disks), shared with the JAX cameras.
-from jaxdrones.cameras import BODY_RGBA, BODY_SIDE_PER_ARM, BODY_THICKNESS, PROP_RGBA, PROP_THICKNESS, PROP_Z
 # The obstacles are backend-neutral (jaxdrones.scene), re-exported for `from jaxdrones.backends.scene import Obstacle`.
 from jaxdrones.scene.obstacles import PAPER_OBSTACLES, Obstacle, resolve_obstacles, urdf_path  # noqa: F401
+
+# The drones' visual shape (a plate and four propeller disks), shared with the JAX cameras.
+from jaxdrones.scene.primitives import BODY_RGBA, BODY_SIDE_PER_ARM, BODY_THICKNESS, PROP_RGBA, PROP_THICKNESS, PROP_Z
 
 pybullet = require_pybullet()
 import pybullet_data  # noqa: E402  (installed with pybullet)

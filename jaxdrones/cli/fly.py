@@ -23,8 +23,8 @@ from jaxdrones.examples.circle import (
     plot_flight,
 )
 from jaxdrones.examples.closed_loop import BACKENDS
-from jaxdrones.physics.params import MODELS
 from jaxdrones.io.video import video_format
+from jaxdrones.physics.params import MODELS
 
 #: The examples of ``jaxdrones fly --example`` (paper §V-A); every one but the circle is a module of
 #: `jaxdrones.examples` with the same interface (``check``, ``fly``, ``plot``, ``summary``, ``arrays``,

@@ -17,13 +17,13 @@ import numpy as np
 
 from jaxdrones._hints import did_you_mean
 from jaxdrones.backends import BACKENDS, RENDERERS, require_pybullet
-from jaxdrones.cameras import ENV_IMAGES
 from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS
 from jaxdrones.envs.observations import OBS_TYPES
 from jaxdrones.physics.config import downwash_model
 from jaxdrones.physics.params import MODELS, DroneParams, with_derived
 from jaxdrones.physics.realism import resolve as resolve_realism
 from jaxdrones.scene import resolve_obstacles
+from jaxdrones.sensors.camera import ENV_IMAGES
 from jaxdrones.sim import SimConfig
 
 #: Camera images a vision observation can hold (see `TaskConfig.vision`; their dtypes and per-pixel shapes in
@@ -281,7 +281,7 @@ class TaskConfig:
             if obstacles and not self.vision:
                 raise ValueError("obstacles on backend='jax' are only seen by its cameras (its physics models the "
                                  "ground only): pass vision=(...), or use backend='pybullet' for collisions")
-            from jaxdrones.cameras import check_obstacles
+            from jaxdrones.scene.primitives import check_obstacles
 
             check_obstacles(obstacles)  # a mesh: a clear error now rather than at the first render
         if not (_is_number(self.camera_freq) and math.isfinite(self.camera_freq) and self.camera_freq > 0):

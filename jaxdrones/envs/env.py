@@ -11,7 +11,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones._fork import check_not_forked
-from jaxdrones.cameras import image_shapes
 from jaxdrones.envs import rewards
 from jaxdrones.envs.actions import make_action
 from jaxdrones.envs.base import Env, EnvState
@@ -22,6 +21,7 @@ from jaxdrones.physics.params import DroneParams, broadcast_params, load_params,
 from jaxdrones.physics.realism import RealismModel
 from jaxdrones.physics.rotations import quat_from_euler
 from jaxdrones.physics.state import DroneState
+from jaxdrones.sensors.camera import image_shapes
 from jaxdrones.sim import make_step
 
 #: How far (in action units) an entry may lie outside its box before ``metrics["clipped_actions"]`` counts it:
@@ -353,7 +353,7 @@ class TaskEnv(Env):
             from jaxdrones.backends.camera import held_images
 
             return held_images(self._step, params, sim, due, held, width, height, self.config.camera_fov)
-        from jaxdrones.cameras import CameraSpec, render
+        from jaxdrones.sensors.camera import CameraSpec, render
 
         spec = CameraSpec(width=width, height=height, fov=self.config.camera_fov)
         images = render(spec, scene, params, sim.pos, sim.quat, kinds=self.config.vision)

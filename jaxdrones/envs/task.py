@@ -173,7 +173,7 @@ class Task(abc.ABC):
     def scene(self, config: TaskConfig):
         """What the JAX backend's cameras see (`TaskParams.scene`), built once per env: by default the config's
         ``obstacles`` (`jaxdrones.cameras.make_scene`)."""
-        from jaxdrones.cameras import make_scene
+        from jaxdrones.scene.primitives import make_scene
 
         return make_scene(resolve_obstacles(config.obstacles))
 

@@ -25,7 +25,6 @@ import numpy as np
 
 from jaxdrones.scene import Obstacle
 
-
 #: The drone's position, m, world frame (level, yaw 0: the camera looks along world +x).
 DRONE_POS = (0.0, 0.0, 0.5)
 #: Distance from the camera's eye to the box's front face, m; the box's side, m; its colour (RGBA in [0, 1]).
@@ -45,7 +44,7 @@ _SEG_COLOURS = ((0, 0, 0), (128, 128, 128), (230, 90, 50), (60, 180, 80), (70, 1
 
 def eye_position(params) -> np.ndarray:
     """The camera's eye, f[3] m, world frame: `DRONE_POS` + (collision_radius + EYE_MARGIN, 0, 0)."""
-    from jaxdrones.cameras import EYE_MARGIN
+    from jaxdrones.sensors.camera import EYE_MARGIN
 
     return np.asarray(DRONE_POS) + np.array([float(params.collision_radius) + EYE_MARGIN, 0.0, 0.0])
 
@@ -89,8 +88,8 @@ def camera_scene(model: str = "cf2x", width: int = 320, height: int = 240, fov: 
     import jax
 
     from jaxdrones.physics.params import load_params
-    from jaxdrones.sim import SimConfig, make_step
     from jaxdrones.physics.state import init_state
+    from jaxdrones.sim import SimConfig, make_step
 
     params = load_params(model)
     config = SimConfig(n_drones=1)

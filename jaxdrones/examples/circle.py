@@ -56,11 +56,11 @@ from jaxdrones.examples.closed_loop import (
     run_closed_loop,
     track_position,
 )
+from jaxdrones.io.video import VideoWriter, video_format
 from jaxdrones.physics.params import load_params
+from jaxdrones.physics.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, init_state
 from jaxdrones.scene import resolve_obstacles
 from jaxdrones.sim import SimConfig, make_step
-from jaxdrones.physics.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, init_state
-from jaxdrones.io.video import VideoWriter, video_format
 
 #: Circle radius (m), first altitude (m) and altitude step between drones (m) of the paper's example (§13).
 RADIUS = 0.3

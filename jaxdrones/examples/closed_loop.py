@@ -28,8 +28,8 @@ import numpy as np
 from jaxdrones.control.pid import PIDGains, PIDState, pid_control, pid_init
 from jaxdrones.physics.params import DroneParams
 from jaxdrones.physics.rotations import quat_to_euler
-from jaxdrones.sim import SimConfig, StepFn, make_step
 from jaxdrones.physics.state import DroneState
+from jaxdrones.sim import SimConfig, StepFn, make_step
 
 #: Physics backends of the examples (`jaxdrones.sim.make_step`).
 BACKENDS = ("jax", "pybullet")

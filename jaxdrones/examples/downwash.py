@@ -42,8 +42,8 @@ from jaxdrones.examples.closed_loop import (
     track_position,
 )
 from jaxdrones.physics.params import load_params
-from jaxdrones.sim import SimConfig
 from jaxdrones.physics.state import init_state
+from jaxdrones.sim import SimConfig
 
 #: Start positions, m, world frame (``downwash.py:47``); each drone's target altitude is its start altitude.
 INIT_POS = ((0.5, 0.0, 1.0), (-0.5, 0.0, 0.5))

@@ -43,8 +43,8 @@ from jaxdrones.examples.closed_loop import (
     track_position,
 )
 from jaxdrones.physics.params import load_params
-from jaxdrones.sim import SimConfig
 from jaxdrones.physics.state import init_state
+from jaxdrones.sim import SimConfig
 
 #: Start altitude, m (``groundeffect.py:62``), above (x, y) = (0, 0).
 START_Z = 0.014

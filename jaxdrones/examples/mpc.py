@@ -34,8 +34,8 @@ import numpy as np
 from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import check_steps, initial_carry, jax_closed_loop, track_position
 from jaxdrones.physics.params import DroneParams, load_params
-from jaxdrones.sim import SimConfig, make_step
 from jaxdrones.physics.state import init_state
+from jaxdrones.sim import SimConfig, make_step
 from jaxdrones.symbolic import discrete_step, require_casadi, state_vector
 
 __all__ = ["FIGURE8", "MPC", "MPCWeights", "figure8", "fly_figure8", "plot_figure8", "main"]

@@ -42,8 +42,8 @@ from jaxdrones.examples.closed_loop import (
     run_closed_loop,
 )
 from jaxdrones.physics.params import load_params
-from jaxdrones.sim import SimConfig
 from jaxdrones.physics.state import init_state
+from jaxdrones.sim import SimConfig
 
 #: Start positions, m, world frame, and roll/pitch/yaw, rad, of the 4 drones (``velocity.py:65-76``).
 INIT_POS = ((0.0, 0.0, 0.1), (0.3, 0.0, 0.1), (0.6, 0.0, 0.1), (0.9, 0.0, 0.1))

@@ -34,8 +34,17 @@ from jax.custom_derivatives import CustomVJPPrimal, SymbolicZero
 from jaxdrones.physics import dynamics
 from jaxdrones.physics.dynamics import Effects, Kinematics, Motors
 from jaxdrones.physics.params import DroneParams
-from jaxdrones.physics.rotations import (GIMBAL_SNAP, OMEGA_EPS, Components, cross, dot, matvec, quat_mul_c, quat_to_rotmat_c,
-                                 split)
+from jaxdrones.physics.rotations import (
+    GIMBAL_SNAP,
+    OMEGA_EPS,
+    Components,
+    cross,
+    dot,
+    matvec,
+    quat_mul_c,
+    quat_to_rotmat_c,
+    split,
+)
 from jaxdrones.physics.state import Disturbance
 
 

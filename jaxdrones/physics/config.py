@@ -6,8 +6,8 @@ import dataclasses
 
 import numpy as np
 
-from jaxdrones.physics import dynamics
 from jaxdrones._hints import did_you_mean
+from jaxdrones.physics import dynamics
 from jaxdrones.physics.aerodynamics import DOWNWASH_MODELS
 from jaxdrones.physics.kinks import Kinks
 

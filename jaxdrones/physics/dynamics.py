@@ -21,8 +21,17 @@ from jaxdrones.physics import aerodynamics
 from jaxdrones.physics.kinks import Kinks
 from jaxdrones.physics.neighbors import cell_candidates
 from jaxdrones.physics.params import DroneParams
-from jaxdrones.physics.rotations import (Components, cross, dot, matvec, normalize_c, quat_derivative_c,
-                                 quat_integrate_c, quat_to_rotmat_c, split)
+from jaxdrones.physics.rotations import (
+    Components,
+    cross,
+    dot,
+    matvec,
+    normalize_c,
+    quat_derivative_c,
+    quat_integrate_c,
+    quat_to_rotmat_c,
+    split,
+)
 from jaxdrones.physics.state import Disturbance
 
 

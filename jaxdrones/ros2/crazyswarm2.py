@@ -32,9 +32,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.physics.params import load_params
+from jaxdrones.physics.state import init_state
 from jaxdrones.ros2 import messages
 from jaxdrones.sim import SimConfig, make_step
-from jaxdrones.physics.state import init_state
 
 __all__ = ["Backend"]
 

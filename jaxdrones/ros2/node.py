@@ -33,8 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.control.pid import PIDGains, pid_control, pid_init
-from jaxdrones.ros2 import messages, require_rclpy
 from jaxdrones.physics.rotations import quat_to_euler
+from jaxdrones.ros2 import messages, require_rclpy
 from jaxdrones.sim import make_step
 
 __all__ = ["COMMAND_TOPICS", "MODES", "STATE_TOPICS", "EnvNode", "check_namespace"]

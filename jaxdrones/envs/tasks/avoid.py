@@ -173,7 +173,7 @@ class Avoid(GoalTask):
         return np.array([[config.goal_x, 0.0, config.flight_z]])
 
     def scene(self, config):
-        from jaxdrones.cameras import make_scene
+        from jaxdrones.scene.primitives import make_scene
 
         return make_scene((), capacity={"cylinder": config.n_cylinders, "box": config.n_boxes})
 
@@ -251,7 +251,7 @@ def clearance(task, sim: DroneState) -> jax.Array:
     """f[D] m: the gap between each drone's collision radius and the nearest obstacle of ``task.scene``
     (`jaxdrones.cameras.distance` less ``task.data["collision_radius"]``, `collision_data`); negative when they
     touch."""
-    from jaxdrones.cameras import distance
+    from jaxdrones.scene.primitives import distance
 
     return distance(task.scene, sim.pos) - task.data["collision_radius"]
 
@@ -268,7 +268,7 @@ def scene_clearances(task, sim: DroneState) -> jax.Array:
     horizontal plane at its altitude (`SAMPLE_BEARINGS`, `SAMPLE_RANGES`; bearing-major), clipped to
     [−`SAMPLE_CLIP_M`, `SAMPLE_CLIP_M`]: a map of the obstacles near the drone, in every direction, which its camera
     sees only in part. Privileged: for a critic (`Task.privileged`), not the policy."""
-    from jaxdrones.cameras import distance
+    from jaxdrones.scene.primitives import distance
 
     bearing = np.asarray(SAMPLE_BEARINGS)[:, None]
     ranges = np.asarray(SAMPLE_RANGES)[None, :]

@@ -187,7 +187,7 @@ class GatePass(GoalTask):
         return {**super().data(config), "gate_pos": np.zeros(3), "gate_rot": np.eye(3)}
 
     def scene(self, config):
-        from jaxdrones.cameras import make_scene
+        from jaxdrones.scene.primitives import make_scene
 
         return make_scene((), capacity={"box": len(GATE_PARTS)})
 

@@ -20,12 +20,12 @@ import numpy as np
 
 from jaxdrones.compat.gym_pybullet_drones._common import KeywordHints
 from jaxdrones.compat.gym_pybullet_drones.utils.enums import PHYSICS_EFFECTS, DroneModel, Physics
-from jaxdrones.physics.config import SimConfig
 from jaxdrones.envs.config import fixed_triples
+from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.params import load_params
 from jaxdrones.physics.rotations import quat_to_euler, quat_to_rotmat
-from jaxdrones.sim import make_step
 from jaxdrones.physics.state import DEFAULT_START_Z, init_state
+from jaxdrones.sim import make_step
 
 #: The backends an aviary runs on: the JAX core, or PyBullet (collisions with the ground and the obstacles).
 BACKENDS = ("jax", "pybullet")
