@@ -1,0 +1,136 @@
+"""The documentation site: it builds with ``--strict``, its API reference has a page for every public module, its
+Python examples run as written, and the notebooks it renders are stored with their outputs.
+
+Which code blocks of ``docs/*.md`` run (the README's are ``tests/test_readme.py``'s): every block fenced
+```` ```python ```` runs as written, in a fresh namespace, in the test process. A block that needs pybullet or torch
+gets that marker, by the README's rule (`markers`: ``backend="pybullet"`` or ``stable_baselines3`` in its code). A
+block that cannot run in the suite (minutes of computation, hardware, ROS) is fenced with another language tag,
+```` ```py-norun ```` for Python: the site shows it and nothing runs it. Such blocks are kept few
+(`test_few_blocks_left_unrun`: at most `MAX_NORUN`), and each says beside it why it does not run.
+
+The site is built with ``mkdocs build --strict`` into a temporary folder, once per test session and worker
+(about 12-18 s on 2 busy cores, so not marked slow); Material's and properdocs' notices are silenced by the
+variables mkdocs.yml names.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import pkgutil
+import re
+import subprocess
+import sys
+import time
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
+MAX_NORUN = 3  # docs blocks fenced so as not to run (py-norun)
+QUIET = {"NO_MKDOCS_2_WARNING": "1", "DISABLE_MKDOCS_2_WARNING": "true"}  # mkdocs.yml: the theme's notices
+
+
+def blocks(tag: str) -> list[tuple[str, str]]:
+    """``(page:index, code)`` of every block fenced ```` ```tag ```` in ``docs/*.md``, dedented."""
+    found = []
+    for page in sorted(DOCS.glob("*.md")):
+        pattern = rf"^( *)```{re.escape(tag)}\n(.*?)^\1```"
+        for i, (indent, code) in enumerate(re.findall(pattern, page.read_text(), flags=re.DOTALL | re.MULTILINE)):
+            code = "".join(line[len(indent):] for line in code.splitlines(keepends=True))
+            found.append((f"{page.name}:{i}", code))
+    return found
+
+
+def markers(code: str) -> list:
+    """The markers of the optional packages that an example uses (as tests/test_readme.py's)."""
+    return [pytest.mark.pybullet] * ('backend="pybullet"' in code) + [pytest.mark.torch] * ("stable_baselines3" in code)
+
+
+def public_modules() -> list[str]:
+    """Every public module of jaxdrones, found by importing the package's subpackages (pkgutil), independently of
+    docs/gen_ref.py: no private part, not under ``jaxdrones.compat`` (docs/gen_ref.py says why), and not an old
+    import path that imports as another module."""
+    import importlib
+
+    import jaxdrones
+
+    names = ["jaxdrones"]
+    for info in pkgutil.walk_packages(jaxdrones.__path__, "jaxdrones.", onerror=lambda name: None):
+        parts = info.name.split(".")
+        if any(p.startswith("_") for p in parts) or parts[1] == "compat":
+            continue
+        try:
+            if importlib.import_module(info.name).__name__ != info.name:
+                continue  # an alias of a module documented under its new path
+        except ImportError:  # an optional dependency missing (rclpy): documented from its source
+            pass
+        names.append(info.name)
+    return names
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    """The site built by ``mkdocs build --strict``: (completed process, output folder, seconds)."""
+    out = tmp_path_factory.mktemp("site")
+    t0 = time.perf_counter()
+    result = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(out)], check=False,
+                            cwd=ROOT, env={**os.environ, **QUIET}, capture_output=True, text=True, timeout=600)
+    return result, out, time.perf_counter() - t0
+
+
+def test_site_builds_strict(site):
+    result, out, seconds = site
+    print(f"mkdocs build --strict: {seconds:.1f} s")
+    assert result.returncode == 0, result.stderr[-4000:]
+    assert (out / "index.html").is_file()
+    assert "WARNING" not in result.stderr, result.stderr[-4000:]
+
+
+def test_api_reference_covers_every_public_module(site):
+    result, out, _ = site
+    assert result.returncode == 0, result.stderr[-4000:]
+    modules = public_modules()
+    assert {"jaxdrones", "jaxdrones.sim", "jaxdrones.envs", "jaxdrones.training"} <= set(modules)
+    missing = []
+    for name in modules:
+        page = out / "reference" / pathlib.Path(*name.split(".")) / "index.html"
+        if not page.is_file() or f'id="{name}"' not in page.read_text():
+            missing.append(name)
+    assert not missing, f"modules without an API reference page: {missing}"
+
+
+def test_changelog_page_includes_changelog(site):
+    result, out, _ = site
+    assert result.returncode == 0, result.stderr[-4000:]
+    version = re.search(r'^version = "(.+)"', (ROOT / "pyproject.toml").read_text(), flags=re.MULTILINE).group(1)
+    assert f"## {version}" in (ROOT / "CHANGELOG.md").read_text()
+    html = (out / "changelog" / "index.html").read_text()
+    assert "Unreleased" in html and version in html
+
+
+def test_docs_have_examples():
+    assert len(blocks("python")) >= 10
+
+
+def test_few_blocks_left_unrun():
+    assert len(blocks("py-norun")) <= MAX_NORUN
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=markers(c), id=n) for n, c in blocks("python")])
+def test_docs_example_runs(name, capsys):
+    code = dict(blocks("python"))[name]
+    exec(compile(code, f"docs/{name} (python block)", "exec"), {})
+    if "print(touched)" in code:  # the PyBullet backend's collision report
+        assert capsys.readouterr().out.strip() == "[2 0]"
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
+def test_notebook_stored_with_outputs(path):
+    """The site renders the notebooks as stored (mkdocs.yml: ``execute: false``), so each must hold its outputs."""
+    import nbformat
+
+    notebook = nbformat.read(path, as_version=4)
+    outputs = [cell for cell in notebook.cells if cell.cell_type == "code" and cell.get("outputs")]
+    assert outputs, f"{path.name} is stored without outputs: run it and save it with them"
