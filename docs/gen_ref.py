@@ -4,11 +4,10 @@ The package is walked on disk, so a module added or moved into a subpackage gets
 without editing this file or ``mkdocs.yml``. Skipped:
 
 - private modules and packages (a name part starting with ``_``, e.g. ``jaxdrones._xla``) and ``__main__``;
-- ``jaxdrones.compat`` and everything under it: the gym-pybullet-drones port reproduces the original's API, names
-  and docstrings (not Google style; its own documentation is gym-pybullet-drones'), and ``docs/migrating.md``
-  documents it;
 - a module that only re-exports another under an old import path (a file whose module, once imported, is another
   module: ``sys.modules`` aliases), so that each object is documented once, under its public home.
+
+``jaxdrones.compat`` (gym-pybullet-drones' API) is documented too: it builds cleanly under ``--strict``.
 
 The navigation is written to ``reference/SUMMARY.md`` for mkdocs-literate-nav.
 """
@@ -22,7 +21,6 @@ import mkdocs_gen_files
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PACKAGE = "jaxdrones"
-SKIP = ("jaxdrones.compat",)
 
 
 def module_name(path: pathlib.Path) -> str:
@@ -32,11 +30,8 @@ def module_name(path: pathlib.Path) -> str:
 
 
 def is_public(name: str) -> bool:
-    """Whether ``name`` is a public module: no private part, not ``__main__``, not under `SKIP`."""
-    parts = name.split(".")
-    if any(p.startswith("_") for p in parts):
-        return False
-    return not any(name == s or name.startswith(s + ".") for s in SKIP)
+    """Whether ``name`` is a public module: no part starting with ``_`` (which also leaves out ``__main__``)."""
+    return not any(p.startswith("_") for p in name.split("."))
 
 
 def is_alias(name: str) -> bool:
