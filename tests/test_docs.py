@@ -124,6 +124,15 @@ def test_changelog_page_includes_changelog(site):
     assert "Unreleased" in html and version in html
 
 
+def test_readme_links_resolve():
+    """The README's relative links (to the guides under docs/, CHANGELOG.md) point at files that exist, so that they
+    work on GitHub; `mkdocs build --strict` checks the links between the pages."""
+    links = re.findall(r"\]\(([^)#:]+)(?:#[^)]*)?\)", (ROOT / "README.md").read_text())
+    assert any(link.startswith("docs/") for link in links)
+    missing = [link for link in links if not (ROOT / link).is_file()]
+    assert not missing, f"README links to missing files: {missing}"
+
+
 def test_docs_have_examples():
     assert len(blocks("python")) >= 10
 
