@@ -11,6 +11,7 @@ import jaxdrones as jd
 from jaxdrones import cameras
 from jaxdrones.scene import Obstacle
 from jaxdrones.envs.observations import DEPTH_SCALE, policy_input
+from jaxdrones.sensors import raycast
 
 PARAMS = jd.load_params("cf2x")
 LEVEL = [[0.0, 0.0, 0.0]]
@@ -279,7 +280,7 @@ def test_scenes_larger_than_one_step_trace_as_unrolled(monkeypatch):
     """A scene of 22 primitives (scanned `SLOTS_PER_STEP` slots at a time, padded) and two drones per world gives
     the images of every slot traced at once, and without RGB (packed keys) the same; the drones see each other
     (ids 23 and 24) but not themselves."""
-    monkeypatch.setattr(cameras, "SLOTS_PER_STEP", 2)
+    monkeypatch.setattr(raycast, "SLOTS_PER_STEP", 2)
     rng = np.random.default_rng(0)
     obstacles = [Obstacle(("box", "sphere", "cylinder", "capsule")[k % 4],
                           size=(0.2, 0.3, 0.4) if k % 4 == 0 else (0.2,) if k % 4 == 1 else (0.1, 0.5),
@@ -289,7 +290,7 @@ def test_scenes_larger_than_one_step_trace_as_unrolled(monkeypatch):
     p, q = pose([[0.0, 0.0, 1.0], [0.6, 0.05, 0.92]], [[0.0, 0.0, 0.0], [0.0, 0.0, np.pi]])
     spec = cameras.CameraSpec(width=32, height=24)
     scanned = jax.jit(lambda p, q: cameras.render(spec, scene, PARAMS, p, q))(p, q)
-    monkeypatch.setattr(cameras, "SLOTS_PER_STEP", 100)
+    monkeypatch.setattr(raycast, "SLOTS_PER_STEP", 100)
     unrolled = jax.jit(lambda p, q: cameras.render(spec, scene, PARAMS, p, q))(p, q)
     np.testing.assert_allclose(np.asarray(scanned["depth"]), np.asarray(unrolled["depth"]), rtol=1e-5)
     for k in ("seg", "rgb"):  # compiled apart, float rounding may differ, never what a pixel sees
