@@ -9,8 +9,18 @@ from jaxdrones.scene import Obstacle
 from jaxdrones.sim import SimConfig, make_step, rollout
 
 __all__ = [
-    "MODELS", "make", "Disturbance", "DroneParams", "DroneState", "Obstacle", "Realism", "SimConfig", "init_state",
-    "load_params", "make_step", "rollout",
+    "MODELS",
+    "make",
+    "Disturbance",
+    "DroneParams",
+    "DroneState",
+    "Obstacle",
+    "Realism",
+    "SimConfig",
+    "init_state",
+    "load_params",
+    "make_step",
+    "rollout",
 ]
 __version__ = "0.1.0"
 
@@ -51,8 +61,22 @@ def _alias_moved_modules() -> None:
         state,
     )
 
-    for module in (adjoint, aerodynamics, checks, config, dynamics, kinks, neighbors, params, realism, rotations,
-                   state, plotting, runs, video):
+    for module in (
+        adjoint,
+        aerodynamics,
+        checks,
+        config,
+        dynamics,
+        kinks,
+        neighbors,
+        params,
+        realism,
+        rotations,
+        state,
+        plotting,
+        runs,
+        video,
+    ):
         name = module.__name__.rsplit(".", 1)[1]
         sys.modules[f"{__name__}.{name}"] = module
         globals()[name] = module

@@ -50,6 +50,8 @@ def check_not_forked() -> None:
         RuntimeError: in such a process, with `FORK_HELP`.
     """
     if _forked_after_jax:
-        raise RuntimeError(f"jaxdrones cannot run in this process: it was forked from a process in which JAX had "
-                           f"already started, and JAX hangs after a fork (multiprocessing forks by default on Linux "
-                           f"before Python 3.14). {FORK_HELP}")
+        raise RuntimeError(
+            f"jaxdrones cannot run in this process: it was forked from a process in which JAX had "
+            f"already started, and JAX hangs after a fork (multiprocessing forks by default on Linux "
+            f"before Python 3.14). {FORK_HELP}"
+        )

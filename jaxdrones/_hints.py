@@ -1,4 +1,5 @@
-""""Did you mean" hints for mistyped names at the API boundary, and the names gym-pybullet-drones uses for ours."""
+"""Hints for mistyped names at the API boundary ("did you mean ...?"), and the names gym-pybullet-drones uses for
+ours."""
 
 from __future__ import annotations
 
@@ -8,10 +9,18 @@ from collections.abc import Iterable
 #: gym-pybullet-drones' keyword and attribute names with the `jaxdrones.make` option that does the same, for the
 #: hint of an unknown option (the compat classes, `jaxdrones.compat.gym_pybullet_drones`, take the original names).
 ORIGINAL_NAMES = {
-    "obs": "obs_type", "act": "action_type", "pyb_freq": "sim_freq", "initial_xyzs": "init_pos",
-    "initial_rpys": "init_rpy", "num_drones": "n_drones", "drone_model": "model",
-    "neighbourhood_radius": "neighbor_radius", "EPISODE_LEN_SEC": "episode_len_s", "CTRL_FREQ": "ctrl_freq",
-    "PYB_FREQ": "sim_freq", "physics": "drag, ground_effect, downwash",
+    "obs": "obs_type",
+    "act": "action_type",
+    "pyb_freq": "sim_freq",
+    "initial_xyzs": "init_pos",
+    "initial_rpys": "init_rpy",
+    "num_drones": "n_drones",
+    "drone_model": "model",
+    "neighbourhood_radius": "neighbor_radius",
+    "EPISODE_LEN_SEC": "episode_len_s",
+    "CTRL_FREQ": "ctrl_freq",
+    "PYB_FREQ": "sim_freq",
+    "physics": "drag, ground_effect, downwash",
 }
 
 
@@ -29,8 +38,10 @@ def unknown_option(owner: str, name: str, valid: Iterable[str]) -> str:
     name ours and the compat classes."""
     valid = sorted(valid)
     if name in ORIGINAL_NAMES:
-        hint = (f" ({name!r} is gym-pybullet-drones' name: here {ORIGINAL_NAMES[name]}; the original's classes and "
-                f"names are in jaxdrones.compat.gym_pybullet_drones)")
+        hint = (
+            f" ({name!r} is gym-pybullet-drones' name: here {ORIGINAL_NAMES[name]}; the original's classes and "
+            f"names are in jaxdrones.compat.gym_pybullet_drones)"
+        )
     else:
         hint = did_you_mean(name, valid)
     return f"{owner}: unknown option {name!r}{hint}; valid options are {valid}"

@@ -37,8 +37,11 @@ import warnings
 #: Environment variable that, set to 0 (or false/no/off), stops jaxdrones from setting any XLA flag.
 OPT_OUT_VAR = "JAXDRONES_XLA_FLAGS"
 #: Flags added by the ``jaxdrones`` command line (and the test suite), before JAX starts a backend.
-CLI_FLAGS = ("--xla_backend_optimization_level=1", "--xla_llvm_disable_expensive_passes=true",
-             "--xla_cpu_use_fusion_emitters=false")
+CLI_FLAGS = (
+    "--xla_backend_optimization_level=1",
+    "--xla_llvm_disable_expensive_passes=true",
+    "--xla_cpu_use_fusion_emitters=false",
+)
 #: Libraries below this size are Python bindings, not XLA.
 _MIN_XLA_LIBRARY_BYTES = 10 * 2**20
 #: What the probe runs: start every backend JAX finds, which parses ``XLA_FLAGS`` (and aborts on an unknown flag).
@@ -111,8 +114,15 @@ def _probe(*flag_sets: tuple[str, ...]) -> list[bool]:
     for flags in flag_sets:
         env = dict(os.environ, XLA_FLAGS=" ".join(flags), XLA_PYTHON_CLIENT_PREALLOCATE="false")
         try:
-            runs.append(subprocess.Popen([sys.executable, "-c", _PROBE], env=env, stdin=subprocess.DEVNULL,
-                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            runs.append(
+                subprocess.Popen(
+                    [sys.executable, "-c", _PROBE],
+                    env=env,
+                    stdin=subprocess.DEVNULL,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
         except OSError:
             runs.append(None)
     answers = []
@@ -146,7 +156,7 @@ def accepted(flags: tuple[str, ...]) -> tuple[str, ...]:
             alone = _probe((), *[(f,) for f in unknown]) if len(unknown) > 1 else [_probe(())[0], False]
             if not alone[0]:  # the refusal was not the flags': ask again next time
                 return tuple(f for f in flags if known.get(f))
-            known.update(zip(unknown, alone[1:]))
+            known.update(zip(unknown, alone[1:], strict=True))
         cache = _read_cache()  # another process may have written meanwhile: keep its answers
         cache[installation] = {**cache.get(installation, {}), **known}
         _write_cache(cache)
@@ -171,6 +181,10 @@ def add_flags(flags: tuple[str, ...]) -> list[str]:
     bridge = sys.modules.get("jax._src.xla_bridge")
     started = getattr(bridge, "backends_are_initialized", None)
     if started is not None and started():
-        warnings.warn(f"JAX started its backends before jaxdrones set the XLA flags {added}, so they cannot take "
-                      f"effect: set them before running JAX code", RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"JAX started its backends before jaxdrones set the XLA flags {added}, so they cannot take "
+            f"effect: set them before running JAX code",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     return added

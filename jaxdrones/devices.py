@@ -20,8 +20,14 @@ class DeviceError(RuntimeError):
     a coordinator that cannot be reached in time."""
 
 
-def start(platform: str | None = None, coordinator: str | None = None, num_processes: int | None = None,
-          process_id: int | None = None, auto: bool = False, timeout_s: int = 60) -> None:
+def start(
+    platform: str | None = None,
+    coordinator: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
+    auto: bool = False,
+    timeout_s: int = 60,
+) -> None:
     """Select the platform and, for a run over several processes, join them with `jax.distributed.initialize`.
     Call before JAX computes anything.
 
@@ -57,8 +63,10 @@ def start(platform: str | None = None, coordinator: str | None = None, num_proce
             jax.devices()
         except RuntimeError as err:
             jax.config.update("jax_platforms", None)
-            raise DeviceError(f"no {platform} device here ({str(err).splitlines()[0]}); available: "
-                              f"{sorted({d.platform for d in jax.devices()})}") from None
+            raise DeviceError(
+                f"no {platform} device here ({str(err).splitlines()[0]}); available: "
+                f"{sorted({d.platform for d in jax.devices()})}"
+            ) from None
 
 
 def _join(jax, coordinator, num_processes, process_id, auto: bool, timeout_s: int) -> None:
@@ -67,8 +75,10 @@ def _join(jax, coordinator, num_processes, process_id, auto: bool, timeout_s: in
         if num_processes < 1:
             raise DeviceError(f"--num-processes must be >= 1, got {num_processes}")
         if not 0 <= process_id < num_processes:
-            raise DeviceError(f"--process-id must be in [0, {num_processes - 1}] for --num-processes "
-                              f"{num_processes}, got {process_id}")
+            raise DeviceError(
+                f"--process-id must be in [0, {num_processes - 1}] for --num-processes "
+                f"{num_processes}, got {process_id}"
+            )
         host, _, port = coordinator.rpartition(":")
         if not host or not port.isdigit():
             raise DeviceError(f"--coordinator must be HOST:PORT, got {coordinator!r}")
@@ -76,8 +86,7 @@ def _join(jax, coordinator, num_processes, process_id, auto: bool, timeout_s: in
             _wait_for(host, int(port), timeout_s)
     # Collectives between the CPU devices of several processes (the CPU backend's; GPUs use NCCL).
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    kwargs = {} if auto else dict(coordinator_address=coordinator, num_processes=num_processes,
-                                  process_id=process_id)
+    kwargs = {} if auto else dict(coordinator_address=coordinator, num_processes=num_processes, process_id=process_id)
     try:
         jax.distributed.initialize(**kwargs, initialization_timeout=timeout_s)
     except (RuntimeError, ValueError) as err:
@@ -95,9 +104,11 @@ def _wait_for(host: str, port: int, timeout_s: int) -> None:
                 return
         except OSError as err:
             if time.monotonic() > deadline:
-                raise DeviceError(f"the coordinator {host}:{port} could not be reached within {timeout_s} s "
-                                  f"({err.strerror or err}): start process 0 first, check the address and the "
-                                  f"firewall, or raise --distributed-timeout") from None
+                raise DeviceError(
+                    f"the coordinator {host}:{port} could not be reached within {timeout_s} s "
+                    f"({err.strerror or err}): start process 0 first, check the address and the "
+                    f"firewall, or raise --distributed-timeout"
+                ) from None
             time.sleep(0.2)
 
 
@@ -134,8 +145,10 @@ def shard_worlds(tree, axis: int = 0, devices=None):
     def put(x):
         x = jnp.asarray(x)
         if x.ndim <= axis or x.shape[axis] % len(devices):
-            raise ValueError(f"shard_worlds: a leaf of shape {x.shape} has no world axis {axis} whose size is a "
-                             f"multiple of the {len(devices)} devices")
+            raise ValueError(
+                f"shard_worlds: a leaf of shape {x.shape} has no world axis {axis} whose size is a "
+                f"multiple of the {len(devices)} devices"
+            )
         return jax.device_put(x, sharding)
 
     return jax.tree.map(put, tree)

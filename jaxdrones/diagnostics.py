@@ -39,8 +39,14 @@ def episode_return(env: Env, policy: Callable, policy_params, state: EnvState, h
     return jnp.sum(jax.lax.scan(body, state, None, length=horizon)[1])
 
 
-def return_gradient_stats(env: Env, policy: Callable, policy_params, key: jax.Array,
-                          horizons: Sequence[int] = (10, 30, 100, 300), n_starts: int = 64) -> list[dict]:
+def return_gradient_stats(
+    env: Env,
+    policy: Callable,
+    policy_params,
+    key: jax.Array,
+    horizons: Sequence[int] = (10, 30, 100, 300),
+    n_starts: int = 64,
+) -> list[dict]:
     """Statistics of the gradient of the return w.r.t. the policy's params, over random starts, per horizon.
 
     For each horizon H, the return of H steps from each of ``n_starts`` starts (``env.reset`` with keys split from
@@ -64,12 +70,14 @@ def return_gradient_stats(env: Env, policy: Callable, policy_params, key: jax.Ar
         ValueError: ``n_starts`` < 2 or a horizon < 1.
     """
     if n_starts < 2 or min(horizons) < 1:
-        raise ValueError(f"n_starts must be >= 2 and every horizon >= 1, got n_starts={n_starts}, "
-                         f"horizons={tuple(horizons)}")
+        raise ValueError(
+            f"n_starts must be >= 2 and every horizon >= 1, got n_starts={n_starts}, horizons={tuple(horizons)}"
+        )
     states = jax.vmap(env.reset)(jax.random.split(key, n_starts))
     flat = lambda tree: jnp.concatenate([jnp.ravel(x) for x in jax.tree.leaves(tree)])  # noqa: E731
     stats = []
     for horizon in horizons:
+
         def value_and_flat_grad(state, horizon=horizon):
             value, grad = jax.value_and_grad(lambda p: episode_return(env, policy, p, state, horizon))(policy_params)
             return value, flat(grad)
@@ -81,10 +89,16 @@ def return_gradient_stats(env: Env, policy: Callable, policy_params, key: jax.Ar
         mean = g.mean(axis=0) if len(g) else np.full(grads.shape[1], np.nan)
         variance = float(np.mean(np.sum((g - mean) ** 2, axis=1))) if len(g) else float("nan")
         signal = float(np.linalg.norm(mean))
-        stats.append({"horizon": int(horizon), "return_mean": float(values[finite].mean()),
-                      "return_std": float(values[finite].std()),
-                      "grad_norm_mean": float(np.linalg.norm(g, axis=1).mean()) if len(g) else float("nan"),
-                      "mean_grad_norm": signal, "grad_variance": variance,
-                      "snr": float(signal / np.sqrt(variance)) if variance > 0 else float("inf"),
-                      "nonfinite": int((~finite).sum())})
+        stats.append(
+            {
+                "horizon": int(horizon),
+                "return_mean": float(values[finite].mean()),
+                "return_std": float(values[finite].std()),
+                "grad_norm_mean": float(np.linalg.norm(g, axis=1).mean()) if len(g) else float("nan"),
+                "mean_grad_norm": signal,
+                "grad_variance": variance,
+                "snr": float(signal / np.sqrt(variance)) if variance > 0 else float("inf"),
+                "nonfinite": int((~finite).sum()),
+            }
+        )
     return stats

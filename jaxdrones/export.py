@@ -26,12 +26,35 @@ import numpy as np
 SUPPORTED = ("apg", "shac")
 
 #: Entry labels of the state observation types (`jaxdrones.envs.observations`), one per entry.
-_KIN = ["x (m, world)", "y (m, world)", "z (m, world)", "roll (rad, PyBullet Euler)", "pitch (rad)", "yaw (rad)",
-        "vx (m/s, world)", "vy (m/s, world)", "vz (m/s, world)", "wx (rad/s, body)", "wy (rad/s, body)",
-        "wz (rad/s, body)"]
+_KIN = [
+    "x (m, world)",
+    "y (m, world)",
+    "z (m, world)",
+    "roll (rad, PyBullet Euler)",
+    "pitch (rad)",
+    "yaw (rad)",
+    "vx (m/s, world)",
+    "vy (m/s, world)",
+    "vz (m/s, world)",
+    "wx (rad/s, body)",
+    "wy (rad/s, body)",
+    "wz (rad/s, body)",
+]
 _ROTMAT = [f"R{i}{j} (rotation body->world, row-major)" for i in range(3) for j in range(3)]
-_KIN_NORM = ["x / 15 m", "y / 15 m", "z / 5 m", "roll / pi", "pitch / pi", "yaw / pi", "vx / 3 m/s", "vy / 3 m/s",
-             "vz / 1 m/s", "body rate unit vector x", "body rate unit vector y", "body rate unit vector z"]
+_KIN_NORM = [
+    "x / 15 m",
+    "y / 15 m",
+    "z / 5 m",
+    "roll / pi",
+    "pitch / pi",
+    "yaw / pi",
+    "vx / 3 m/s",
+    "vy / 3 m/s",
+    "vz / 1 m/s",
+    "body rate unit vector x",
+    "body rate unit vector y",
+    "body rate unit vector z",
+]
 _BASE_LABELS = {"kin": _KIN, "kin_rotmat": _KIN + _ROTMAT, "kin_norm": _KIN_NORM}
 
 
@@ -53,14 +76,15 @@ def mlp_layers(payload: dict) -> list[tuple[np.ndarray, np.ndarray]]:
         ValueError: a policy of a trainer not in `SUPPORTED`, or parameters that are not flax ``Dense_0 ...``.
     """
     if payload["algo"] not in SUPPORTED:
-        raise ValueError(f"export: policies of {payload['algo']!r} are not supported yet; it writes those of "
-                         f"{SUPPORTED} (an MLP with tanh layers)")
+        raise ValueError(
+            f"export: policies of {payload['algo']!r} are not supported yet; it writes those of "
+            f"{SUPPORTED} (an MLP with tanh layers)"
+        )
     params = payload["params"].get("params", payload["params"])
     names = sorted((k for k in params if re.fullmatch(r"Dense_\d+", k)), key=lambda k: int(k.split("_")[1]))
     if not names or len(names) != len(params):
         raise ValueError(f"export: expected flax Dense_0 ... Dense_n parameters, got {sorted(params)}")
-    layers = [(np.asarray(params[k]["kernel"], np.float32), np.asarray(params[k]["bias"], np.float32))
-              for k in names]
+    layers = [(np.asarray(params[k]["kernel"], np.float32), np.asarray(params[k]["bias"], np.float32)) for k in names]
     for (w, b), (w_next, _) in zip(layers, layers[1:] + [(None, None)], strict=True):
         if w.ndim != 2 or b.shape != (w.shape[1],) or (w_next is not None and w_next.shape[0] != w.shape[1]):
             raise ValueError("export: the layers' shapes do not chain")
@@ -73,8 +97,11 @@ def _obs_labels(env) -> list[str]:
     n_base = obs_type.size - obs_type.buffer_len * obs_type.action_size
     if base is None or len(base) != n_base:
         base = [f"{obs_type.name} entry {i} (jaxdrones.envs.observations)" for i in range(n_base)]
-    buffer = [f"action buffer: action {-(obs_type.buffer_len - k)} step(s) ago, entry {j}"
-              for k in range(obs_type.buffer_len) for j in range(obs_type.action_size)]
+    buffer = [
+        f"action buffer: action {-(obs_type.buffer_len - k)} step(s) ago, entry {j}"
+        for k in range(obs_type.buffer_len)
+        for j in range(obs_type.action_size)
+    ]
     task = [f"task observation {i} ({env.task.name}: jaxdrones.envs.tasks)" for i in range(env.task.obs_size)]
     return base + buffer + task
 
@@ -86,14 +113,21 @@ def _action_text(env) -> str:
     rows = [line for line in actions.__doc__.splitlines() if line.startswith(f"``{name}``")]
     mapping = " ".join(rows[0].split()[2:]) if rows else f"see jaxdrones.envs.actions ({name})"
     hover = float(np.asarray(env.params.hover_rpm).reshape(-1)[0])
-    return (f"action_type {name!r}, each entry in [-1, 1]: {mapping}. Model {env.config.model!r}: hover_rpm = "
-            f"{hover:.2f} RPM, motor order as in its URDF (docs/physics.md).")
+    return (
+        f"action_type {name!r}, each entry in [-1, 1]: {mapping}. Model {env.config.model!r}: hover_rpm = "
+        f"{hover:.2f} RPM, motor order as in its URDF (docs/physics.md)."
+    )
 
 
 def _array(name: str, values: np.ndarray) -> str:
     flat = np.asarray(values, np.float32).reshape(-1)
-    body = ",\n".join("  " + ", ".join(f"{v!r}f" if np.isfinite(v) else ("3.4e38f" if v > 0 else "-3.4e38f")
-                                        for v in map(float, flat[i:i + 8])) for i in range(0, flat.size, 8))
+    body = ",\n".join(
+        "  "
+        + ", ".join(
+            f"{v!r}f" if np.isfinite(v) else ("3.4e38f" if v > 0 else "-3.4e38f") for v in map(float, flat[i : i + 8])
+        )
+        for i in range(0, flat.size, 8)
+    )
     return f"static const float {name}[{flat.size}] = {{\n{body}\n}};\n"
 
 
@@ -104,12 +138,15 @@ def _policy_env(payload: dict):
     layers = mlp_layers(payload)
     env = make(payload["env_name"], **payload["env_overrides"])
     if env.n_drones != 1 or env.config.vision:
-        raise ValueError("export: single-drone state policies only (this one flies "
-                         f"{env.n_drones} drones{' with cameras' if env.config.vision else ''})")
+        raise ValueError(
+            "export: single-drone state policies only (this one flies "
+            f"{env.n_drones} drones{' with cameras' if env.config.vision else ''})"
+        )
     n_obs, n_act = layers[0][0].shape[0], layers[-1][0].shape[1]
     if (n_obs, n_act) != (env.observation_size, env.action_size):
-        raise ValueError(f"export: the network maps {n_obs} -> {n_act}, the env {env.observation_size} -> "
-                         f"{env.action_size}")
+        raise ValueError(
+            f"export: the network maps {n_obs} -> {n_act}, the env {env.observation_size} -> {env.action_size}"
+        )
     return layers, env
 
 
@@ -117,8 +154,12 @@ def sizes_of(layers) -> dict:
     """``{"n_obs", "n_act", "weight_bytes", "multiply_adds"}`` of an exported network (the bytes count the weights,
     the biases and the observation box's two bounds, float32)."""
     n_obs, n_act = layers[0][0].shape[0], layers[-1][0].shape[1]
-    return {"n_obs": n_obs, "n_act": n_act, "weight_bytes": 4 * (sum(w.size + b.size for w, b in layers) + 2 * n_obs),
-            "multiply_adds": sum(w.size for w, _ in layers)}
+    return {
+        "n_obs": n_obs,
+        "n_act": n_act,
+        "weight_bytes": 4 * (sum(w.size + b.size for w, b in layers) + 2 * n_obs),
+        "multiply_adds": sum(w.size for w, _ in layers),
+    }
 
 
 def describe(payload: dict, env, layers) -> list[str]:
@@ -155,7 +196,7 @@ def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
     upper = name.upper()
     lines = [
         f"/* {name}: void {name}(const float obs[{n_obs}], float action[{n_act}]); needs <math.h> (tanhf) only.",
-        " * The observation is clipped to {0}_obs_low/high before the network.".format(name),
+        f" * The observation is clipped to {name}_obs_low/high before the network.",
         " *",
         *[f" * {line}".rstrip() for line in describe(payload, env, layers)],
         " */",
@@ -208,25 +249,38 @@ def onnx_model(payload: dict):
         import onnx
         from onnx import TensorProto, helper, numpy_helper
     except ModuleNotFoundError as e:
-        raise ModuleNotFoundError("export --format onnx needs the onnx package: pip install onnx, or the export "
-                                  "extra (pip install \"jaxdrones[export]\")") from e
+        raise ModuleNotFoundError(
+            "export --format onnx needs the onnx package: pip install onnx, or the export "
+            'extra (pip install "jaxdrones[export]")'
+        ) from e
     layers, env = _policy_env(payload)
     sizes = sizes_of(layers)
     low, high = (np.asarray(b[0], np.float32) for b in env.observation_bounds())
     inits = [numpy_helper.from_array(low[None], "obs_low"), numpy_helper.from_array(high[None], "obs_high")]
-    nodes = [helper.make_node("Max", ["obs", "obs_low"], ["obs_above"]),
-             helper.make_node("Min", ["obs_above", "obs_high"], ["x0"])]
+    nodes = [
+        helper.make_node("Max", ["obs", "obs_low"], ["obs_above"]),
+        helper.make_node("Min", ["obs_above", "obs_high"], ["x0"]),
+    ]
     for k, (w, b) in enumerate(layers):
         inits += [numpy_helper.from_array(w, f"w{k}"), numpy_helper.from_array(b, f"b{k}")]
         out = "action" if k == len(layers) - 1 else f"x{k + 1}"
-        nodes += [helper.make_node("Gemm", [f"x{k}", f"w{k}", f"b{k}"], [f"z{k}"]),
-                  helper.make_node("Tanh", [f"z{k}"], [out])]
-    graph = helper.make_graph(nodes, "jaxdrones_policy",
-                              [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["N", sizes["n_obs"]])],
-                              [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["N", sizes["n_act"]])],
-                              initializer=inits)
-    model = helper.make_model(graph, producer_name="jaxdrones", opset_imports=[helper.make_opsetid("", 17)],
-                              doc_string="\n".join(describe(payload, env, layers)))
+        nodes += [
+            helper.make_node("Gemm", [f"x{k}", f"w{k}", f"b{k}"], [f"z{k}"]),
+            helper.make_node("Tanh", [f"z{k}"], [out]),
+        ]
+    graph = helper.make_graph(
+        nodes,
+        "jaxdrones_policy",
+        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["N", sizes["n_obs"]])],
+        [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["N", sizes["n_act"]])],
+        initializer=inits,
+    )
+    model = helper.make_model(
+        graph,
+        producer_name="jaxdrones",
+        opset_imports=[helper.make_opsetid("", 17)],
+        doc_string="\n".join(describe(payload, env, layers)),
+    )
     onnx.checker.check_model(model)
     return model, sizes
 
@@ -234,8 +288,13 @@ def onnx_model(payload: dict):
 FORMATS = ("c", "onnx")
 
 
-def export(run: str | os.PathLike, fmt: str = "c", out: str | os.PathLike | None = None,
-           name: str = "jaxdrones_policy", overwrite: bool = False) -> tuple[str, dict]:
+def export(
+    run: str | os.PathLike,
+    fmt: str = "c",
+    out: str | os.PathLike | None = None,
+    name: str = "jaxdrones_policy",
+    overwrite: bool = False,
+) -> tuple[str, dict]:
     """Write the policy of ``run`` (a run folder or its ``policy.pkl``) as a C file (`c_source`) or an ONNX model
     (`onnx_model`); returns ``(path, sizes)``. ``out`` defaults to ``<run>/<name>.c`` or ``.onnx``.
 

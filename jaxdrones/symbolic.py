@@ -42,8 +42,20 @@ from jaxdrones.physics.params import DroneParams
 from jaxdrones.physics.rotations import GIMBAL_SNAP, OMEGA_EPS, quat_mul_c, quat_to_rotmat_c
 from jaxdrones.physics.state import DroneState
 
-__all__ = ["STATE_NAMES", "ROTOR_NAMES", "INPUT_NAMES", "OBSERVATION_NAMES", "SymbolicModel", "continuous_dynamics",
-           "crazyflow_params", "discrete_step", "observation", "require_casadi", "state_vector", "symbolic_dynamics"]
+__all__ = [
+    "STATE_NAMES",
+    "ROTOR_NAMES",
+    "INPUT_NAMES",
+    "OBSERVATION_NAMES",
+    "SymbolicModel",
+    "continuous_dynamics",
+    "crazyflow_params",
+    "discrete_step",
+    "observation",
+    "require_casadi",
+    "state_vector",
+    "symbolic_dynamics",
+]
 
 #: The kinematic state's entries, in order (crazyflow's order).
 STATE_NAMES = ("x", "y", "z", "qx", "qy", "qz", "qw", "vx", "vy", "vz", "wx", "wy", "wz")
@@ -62,7 +74,8 @@ def require_casadi():
         import casadi
     except ModuleNotFoundError as error:
         raise ModuleNotFoundError(
-            "jaxdrones.symbolic needs casadi, which is not installed: pip install 'jaxdrones[casadi]'") from error
+            "jaxdrones.symbolic needs casadi, which is not installed: pip install 'jaxdrones[casadi]'"
+        ) from error
     return casadi
 
 
@@ -91,8 +104,14 @@ class _Airframe:
     arm: float
 
 
-_SHAPES = {"inertia": (3, 3), "inertia_inv": (3, 3), "torque_arm": (2, 4), "prop_spin": (4,), "prop_pos": (4, 3),
-           "drag_coeff": (3,)}
+_SHAPES = {
+    "inertia": (3, 3),
+    "inertia_inv": (3, 3),
+    "torque_arm": (2, 4),
+    "prop_spin": (4,),
+    "prop_pos": (4, 3),
+    "drag_coeff": (3,),
+}
 
 
 def _airframe(params: DroneParams) -> _Airframe:
@@ -103,8 +122,10 @@ def _airframe(params: DroneParams) -> _Airframe:
         value = np.asarray(getattr(params, name), np.float64)
         shape = _SHAPES.get(name, ())
         if value.shape != shape:
-            raise ValueError(f"the symbolic model is of one drone: DroneParams.{name} must have shape {shape}, got "
-                             f"{value.shape} (pick one drone's params, e.g. jax.tree.map(lambda x: x[0], params))")
+            raise ValueError(
+                f"the symbolic model is of one drone: DroneParams.{name} must have shape {shape}, got "
+                f"{value.shape} (pick one drone's params, e.g. jax.tree.map(lambda x: x[0], params))"
+            )
         if not np.all(np.isfinite(value)):
             raise ValueError(f"DroneParams.{name} is not finite: {value}")
         values[name] = value if shape else float(value)
@@ -115,8 +136,10 @@ def _check_config(config: SimConfig) -> SimConfig:
     if not isinstance(config, SimConfig):
         raise ValueError(f"expected a SimConfig, got {type(config).__name__}")
     if config.kinks.mode == "smooth":
-        raise ValueError("the symbolic model has the original's kinks (SimConfig(kinks='exact' or "
-                         "'straight_through')); smooth kinks change the values")
+        raise ValueError(
+            "the symbolic model has the original's kinks (SimConfig(kinks='exact' or "
+            "'straight_through')); smooth kinks change the values"
+        )
     return config
 
 
@@ -125,13 +148,14 @@ def _check_config(config: SimConfig) -> SimConfig:
 # The component-form functions of `jaxdrones.rotations` that are plain arithmetic take CasADi entries as they
 # take arrays: the Hamilton product and the rotation matrix are written once, there.
 
+
 def _entries(v) -> tuple:
     """A CasADi column vector as the tuple of its entries (the component form of `jaxdrones.rotations`)."""
     return tuple(v[i] for i in range(v.shape[0]))
 
 
 def _quat_mul(a, b):
-    """a ⊗ b (`jaxdrones.rotations.quat_mul_c`) of CasADi 4-vectors (x, y, z, w)."""
+    """A ⊗ b (`jaxdrones.rotations.quat_mul_c`) of CasADi 4-vectors (x, y, z, w)."""
     return require_casadi().vertcat(*quat_mul_c(_entries(a), _entries(b)))
 
 
@@ -170,7 +194,7 @@ def _accelerations(a: _Airframe, config: SimConfig, pos, quat, vel, ang_vel, rpm
 
 
 def _quat_integrate(quat, ang_vel, dt: float):
-    """q ⊗ (sin(θ) ω/|ω|, cos θ), θ = ½ dt |ω|; q itself below |ω| = OMEGA_EPS (docs/physics.md §4.6)."""
+    """Q ⊗ (sin(θ) ω/|ω|, cos θ), θ = ½ dt |ω|; q itself below |ω| = OMEGA_EPS (docs/physics.md §4.6)."""
     cs = require_casadi()
     sq = cs.dot(ang_vel, ang_vel)
     moving = sq > OMEGA_EPS**2
@@ -253,8 +277,9 @@ def _step_expression(a: _Airframe, config: SimConfig, x, u, rotor_state: bool):
     up, down = _motor_decay(a.motor_tau_up, dt), _motor_decay(a.motor_tau_down, dt)
     for _ in range(config.n_substeps):
         if config.motor_dynamics:  # §3.3: the exact first-order response over the substep, then applied
-            rpm = command + (rpm_prev - command) * cs.if_else(command > rpm_prev, up * cs.DM.ones(4),
-                                                              down * cs.DM.ones(4))
+            rpm = command + (rpm_prev - command) * cs.if_else(
+                command > rpm_prev, up * cs.DM.ones(4), down * cs.DM.ones(4)
+            )
         else:
             rpm = command
         pos, quat, vel, ang_vel = integrate(a, config, pos, quat, vel, ang_vel, rpm, rpm_prev, dt)
@@ -272,11 +297,14 @@ def _continuous_expression(a: _Airframe, config: SimConfig, x, u, rotor_state: b
         if rotor is None:
             raise ValueError("motor dynamics need the rotor speeds in the state (rotor_state=True)")
         if not (a.motor_tau_up > 0 and a.motor_tau_down > 0):
-            raise ValueError("the continuous model with motor dynamics needs positive motor time constants, got "
-                             f"motor_tau_up={a.motor_tau_up}, motor_tau_down={a.motor_tau_down}")
+            raise ValueError(
+                "the continuous model with motor dynamics needs positive motor time constants, got "
+                f"motor_tau_up={a.motor_tau_up}, motor_tau_down={a.motor_tau_down}"
+            )
         rpm = rotor
-        rotor_dot = (command - rotor) * cs.if_else(command > rotor, _motor_rate(a.motor_tau_up) * cs.DM.ones(4),
-                                                   _motor_rate(a.motor_tau_down) * cs.DM.ones(4))
+        rotor_dot = (command - rotor) * cs.if_else(
+            command > rotor, _motor_rate(a.motor_tau_up) * cs.DM.ones(4), _motor_rate(a.motor_tau_down) * cs.DM.ones(4)
+        )
     else:
         rpm = command
         rotor_dot = None if rotor is None else cs.DM.zeros(4)
@@ -296,10 +324,12 @@ def _euler_angles(q):
     snap = cs.logic_or(low, high)
     sign = cs.if_else(low, 1.0, -1.0)
     roll = cs.if_else(snap, 0.0, cs.atan2(2 * (y * z + w * x), w * w - x * x - y * y + z * z))
-    pitch = cs.if_else(low, -math.pi / 2, cs.if_else(high, math.pi / 2,
-                                                     cs.asin(cs.fmin(cs.fmax(s, -GIMBAL_SNAP), GIMBAL_SNAP))))
-    yaw = cs.if_else(snap, 2 * cs.atan2(sign * x, -sign * y),
-                     cs.atan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z))
+    pitch = cs.if_else(
+        low, -math.pi / 2, cs.if_else(high, math.pi / 2, cs.asin(cs.fmin(cs.fmax(s, -GIMBAL_SNAP), GIMBAL_SNAP)))
+    )
+    yaw = cs.if_else(
+        snap, 2 * cs.atan2(sign * x, -sign * y), cs.atan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z)
+    )
     return cs.vertcat(roll, pitch, yaw)
 
 
@@ -316,8 +346,10 @@ def _rotor_state(config: SimConfig, rotor_state: bool | None) -> bool:
     if rotor_state is None:
         return needed
     if needed and not rotor_state:
-        raise ValueError("this config reads the rotor speeds from the state (drag on the previous RPM, or motor "
-                         "dynamics): rotor_state must be True (or None)")
+        raise ValueError(
+            "this config reads the rotor speeds from the state (drag on the previous RPM, or motor "
+            "dynamics): rotor_state must be True (or None)"
+        )
     return bool(rotor_state)
 
 
@@ -332,8 +364,9 @@ def state_vector(state: DroneState, rotor_state: bool = True) -> np.ndarray:
     return np.concatenate([np.asarray(getattr(state, k), np.float64).reshape(-1) for k in fields])
 
 
-def continuous_dynamics(params: DroneParams, config: SimConfig = SimConfig(), rotor_state: bool | None = None,
-                        kind: str = "SX"):
+def continuous_dynamics(
+    params: DroneParams, config: SimConfig = SimConfig(), rotor_state: bool | None = None, kind: str = "SX"
+):
     """ẋ = f(x, u) of one drone as a ``casadi.Function`` ``f(x, u) -> xdot``.
 
     The explicit model of docs/physics.md §3-§4 (thrust kf·rpm², torques from the mixer's lever arms and the yaw
@@ -392,7 +425,7 @@ def discrete_step(params: DroneParams, config: SimConfig, rotor_state: bool | No
 
 
 def observation(rotor_state: bool = False, kind: str = "SX"):
-    """y = g(x): the paper's KIN observation of one drone (pos, quat, rpy as ``getEulerFromQuaternion``, vel,
+    """Y = g(x): the paper's KIN observation of one drone (pos, quat, rpy as ``getEulerFromQuaternion``, vel,
     ang_vel; `OBSERVATION_NAMES`, docs/physics.md §8.2), as a ``casadi.Function`` ``g(x) -> y`` (16 outputs) of a
     state with or without the rotor speeds."""
     cs = require_casadi()
@@ -446,20 +479,26 @@ class SymbolicModel:
         self.g_func = cs.Function("g", [x, u], [self.y_sym], ["x", "u"], ["g"])
         self.dfdx, self.dfdu = cs.jacobian(self.x_dot, x), cs.jacobian(self.x_dot, u)
         self.df_func = cs.Function("df", [x, u], [self.dfdx, self.dfdu], ["x", "u"], ["dfdx", "dfdu"])
-        self.dfd_func = cs.Function("dfd", [x, u], [cs.jacobian(self.x_next, x), cs.jacobian(self.x_next, u)],
-                                    ["x", "u"], ["dfdx", "dfdu"])
+        self.dfd_func = cs.Function(
+            "dfd", [x, u], [cs.jacobian(self.x_next, x), cs.jacobian(self.x_next, u)], ["x", "u"], ["dfdx", "dfdu"]
+        )
         self.dgdx, self.dgdu = cs.jacobian(self.y_sym, x), cs.jacobian(self.y_sym, u)
         self.dg_func = cs.Function("dg", [x, u], [self.dgdx, self.dgdu], ["x", "u"], ["dgdx", "dgdu"])
         xr, ur = cs.MX.sym("Xr", self.nx), cs.MX.sym("Ur", self.nu)
         q, r = cs.MX.sym("Q", self.nx, self.nx), cs.MX.sym("R", self.nu, self.nu)
         cost = 0.5 * cs.bilin(q, x - xr, x - xr) + 0.5 * cs.bilin(r, u - ur, u - ur)
         l_x, l_u = cs.jacobian(cost, x), cs.jacobian(cost, u)
-        self.loss = cs.Function("loss", [x, u, xr, ur, q, r],
-                                [cost, l_x, cs.jacobian(l_x, x), l_u, cs.jacobian(l_u, u), cs.jacobian(l_x, u)],
-                                ["x", "u", "Xr", "Ur", "Q", "R"], ["l", "l_x", "l_xx", "l_u", "l_uu", "l_xu"])
+        self.loss = cs.Function(
+            "loss",
+            [x, u, xr, ur, q, r],
+            [cost, l_x, cs.jacobian(l_x, x), l_u, cs.jacobian(l_u, u), cs.jacobian(l_x, u)],
+            ["x", "u", "Xr", "Ur", "Q", "R"],
+            ["l", "l_x", "l_xx", "l_u", "l_uu", "l_xu"],
+        )
         self.u_eq = np.full(4, a.hover_rpm)
-        self.x_eq = np.concatenate([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0], np.zeros(6)]
-                                   + ([self.u_eq] if self.rotor_state else []))
+        self.x_eq = np.concatenate(
+            [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0], np.zeros(6)] + ([self.u_eq] if self.rotor_state else [])
+        )
 
     def __repr__(self) -> str:
         return f"SymbolicModel(nx={self.nx}, nu={self.nu}, ny={self.ny}, dt={self.dt}, config={self.config})"
@@ -481,18 +520,39 @@ def crazyflow_params(params: DroneParams) -> dict[str, Any]:
         rotor_dyn_coef, drag_matrix.
     """
     a = _airframe(params)
-    return {"mass": a.mass, "L": a.arm, "prop_inertia": 0.0, "gravity_vec": np.array([0.0, 0.0, -a.gravity]),
-            "J": a.inertia, "J_inv": a.inertia_inv, "rpm2thrust": np.array([0.0, 0.0, a.kf]),
-            "rpm2torque": np.array([0.0, 0.0, a.km]),
-            "mixing_matrix": np.vstack([a.torque_arm / a.arm, -a.prop_spin[None]]),
-            "rotor_dyn_coef": np.array([_motor_rate(a.motor_tau_up), 0.0, _motor_rate(a.motor_tau_down), 0.0]),
-            "drag_matrix": np.zeros((3, 3))}
+    return {
+        "mass": a.mass,
+        "L": a.arm,
+        "prop_inertia": 0.0,
+        "gravity_vec": np.array([0.0, 0.0, -a.gravity]),
+        "J": a.inertia,
+        "J_inv": a.inertia_inv,
+        "rpm2thrust": np.array([0.0, 0.0, a.kf]),
+        "rpm2torque": np.array([0.0, 0.0, a.km]),
+        "mixing_matrix": np.vstack([a.torque_arm / a.arm, -a.prop_spin[None]]),
+        "rotor_dyn_coef": np.array([_motor_rate(a.motor_tau_up), 0.0, _motor_rate(a.motor_tau_down), 0.0]),
+        "drag_matrix": np.zeros((3, 3)),
+    }
 
 
-def symbolic_dynamics(model_rotor_vel: bool = True, model_dist_f: bool = False, model_dist_t: bool = False, *,
-                      mass, L, prop_inertia, gravity_vec, J, J_inv, rpm2thrust, rpm2torque, mixing_matrix,
-                      rotor_dyn_coef, drag_matrix):
-    """crazyflow's (drone_models') first-principles ``symbolic_dynamics``: the same signature, state order and
+def symbolic_dynamics(
+    model_rotor_vel: bool = True,
+    model_dist_f: bool = False,
+    model_dist_t: bool = False,
+    *,
+    mass,
+    L,
+    prop_inertia,
+    gravity_vec,
+    J,
+    J_inv,
+    rpm2thrust,
+    rpm2torque,
+    mixing_matrix,
+    rotor_dyn_coef,
+    drag_matrix,
+):
+    """Crazyflow's (drone_models') first-principles ``symbolic_dynamics``: the same signature, state order and
     return value, so MPC code written against it runs here with `crazyflow_params`' parameter set.
 
     The model (McKinnon and Schoellig, "Estimating and reacting to forces and torques resulting from common
@@ -517,21 +577,31 @@ def symbolic_dynamics(model_rotor_vel: bool = True, model_dist_f: bool = False, 
     if model_rotor_vel:
         rotor = cs.MX.sym("rotor_vel", 4)
         state.append(rotor)
-        rotor_dot = cs.if_else(command > rotor, dyn[0] * (command - rotor) + dyn[1] * (command**2 - rotor**2),
-                               dyn[2] * (command - rotor) + dyn[3] * (command**2 - rotor**2))
+        rotor_dot = cs.if_else(
+            command > rotor,
+            dyn[0] * (command - rotor) + dyn[1] * (command**2 - rotor**2),
+            dyn[2] * (command - rotor) + dyn[3] * (command**2 - rotor**2),
+        )
     else:
         rotor, rotor_dot = command, cs.DM.zeros(4)
     rot = _rotmat(quat / cs.norm_2(quat))
     forces = thrust_c[0] + thrust_c[1] * rotor + thrust_c[2] * rotor**2
     torques = torque_c[0] + torque_c[1] * rotor + torque_c[2] * rotor**2
-    force = (rot @ cs.vertcat(0, 0, cs.sum1(forces)) + np.asarray(gravity_vec, np.float64).reshape(3, 1) * mass
-             + rot @ (np.asarray(drag_matrix, np.float64) @ (rot.T @ vel)))
+    force = (
+        rot @ cs.vertcat(0, 0, cs.sum1(forces))
+        + np.asarray(gravity_vec, np.float64).reshape(3, 1) * mass
+        + rot @ (np.asarray(drag_matrix, np.float64) @ (rot.T @ vel))
+    )
     spin = cs.DM(mixing[2])
-    torque = (cs.vertcat(L * cs.mtimes(cs.DM(mixing[0:1]), forces), L * cs.mtimes(cs.DM(mixing[1:2]), forces),
-                         cs.mtimes(cs.DM(mixing[2:3]), torques))
-              + prop_inertia * cs.vertcat(-ang_vel[1] * cs.dot(spin, rotor * RPM_TO_RAD_S),
-                                          -ang_vel[0] * cs.dot(spin, rotor * RPM_TO_RAD_S),
-                                          cs.dot(spin, rotor_dot * RPM_TO_RAD_S)))
+    torque = cs.vertcat(
+        L * cs.mtimes(cs.DM(mixing[0:1]), forces),
+        L * cs.mtimes(cs.DM(mixing[1:2]), forces),
+        cs.mtimes(cs.DM(mixing[2:3]), torques),
+    ) + prop_inertia * cs.vertcat(
+        -ang_vel[1] * cs.dot(spin, rotor * RPM_TO_RAD_S),
+        -ang_vel[0] * cs.dot(spin, rotor * RPM_TO_RAD_S),
+        cs.dot(spin, rotor_dot * RPM_TO_RAD_S),
+    )
     if model_dist_f:
         state.append(cs.MX.sym("dist_f", 3))
         force = force + state[-1]

@@ -59,17 +59,24 @@ def _corrected(start: DroneState, z: jax.Array, noise: dict) -> DroneState:
     if z.size == 0:
         return start
     pos, vel, att, ang_vel = z.reshape((4,) + start.pos.shape)
-    return start.replace(pos=start.pos + noise["pos"] * pos, vel=start.vel + noise["vel"] * vel,
-                         quat=quat_integrate(start.quat, 2 * noise["quat"] * att, 1.0),
-                         ang_vel=start.ang_vel + noise["ang_vel"] * ang_vel)
+    return start.replace(
+        pos=start.pos + noise["pos"] * pos,
+        vel=start.vel + noise["vel"] * vel,
+        quat=quat_integrate(start.quat, 2 * noise["quat"] * att, 1.0),
+        ang_vel=start.ang_vel + noise["ang_vel"] * ang_vel,
+    )
 
 
 def _scaled(state: DroneState, observed: DroneState, noise: dict, scale: float = 1.0) -> jax.Array:
     """``state − observed`` in units of ``scale`` × the noise, flat; q and −q being the same attitude, the
     quaternion is compared with the sign of the observed one."""
     sign = jnp.sign(jnp.sum(state.quat * observed.quat, axis=-1, keepdims=True))
-    parts = [(state.pos - observed.pos) / noise["pos"], (state.vel - observed.vel) / noise["vel"],
-             (sign * state.quat - observed.quat) / noise["quat"], (state.ang_vel - observed.ang_vel) / noise["ang_vel"]]
+    parts = [
+        (state.pos - observed.pos) / noise["pos"],
+        (state.vel - observed.vel) / noise["vel"],
+        (sign * state.quat - observed.quat) / noise["quat"],
+        (state.ang_vel - observed.ang_vel) / noise["ang_vel"],
+    ]
     return jnp.concatenate([jnp.ravel(p) for p in parts]) / scale
 
 
@@ -77,7 +84,7 @@ def _windows(init_state: DroneState, rpms: jax.Array, observed: DroneState, wind
     """The record cut into whole windows, each leaf with a leading window axis [W]: (start state, rpms
     [W, window, D, 4], observed [W, window, D, ...], the next window's start (the first's after the last))."""
     n = (rpms.shape[0] // window) * window
-    before = jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest[:n - 1]]), init_state, observed)
+    before = jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest[: n - 1]]), init_state, observed)
     starts = jax.tree.map(lambda x: x[::window], before)
     cut = lambda x: x[:n].reshape((n // window, window) + x.shape[1:])  # noqa: E731
     return starts, cut(rpms), jax.tree.map(cut, observed), jax.tree.map(lambda x: jnp.roll(x, -1, axis=0), starts)
@@ -106,8 +113,9 @@ def _residuals(y: tuple, args: tuple) -> jax.Array:
     (theta, z), (params0, noise, defect, windows, joined, step, fields) = y, args
     one = _window_residuals(step, params0, fields, noise, defect)
     z_next = jnp.concatenate([z[1:], jnp.zeros_like(z[:1])])
-    return jnp.concatenate([jnp.ravel(jax.vmap(one, in_axes=(None, 0, 0, 0, 0))(theta, z, z_next, windows, joined)),
-                            z[0]])
+    return jnp.concatenate(
+        [jnp.ravel(jax.vmap(one, in_axes=(None, 0, 0, 0, 0))(theta, z, z_next, windows, joined)), z[0]]
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("step", "fields"))
@@ -129,8 +137,10 @@ def _check(init_state, rpms, observed, fields, window, iterations, noise, defect
     for name in ("pos", "quat", "vel", "ang_vel", "rpm"):
         value, expected = getattr(observed, name), (rpms.shape[0],) + getattr(init_state, name).shape
         if value.shape != expected:
-            raise ValueError(f"observed.{name} must have shape [T, ...] = {expected} (the state after each of the T "
-                             f"commands, as rollout returns it), got {value.shape}")
+            raise ValueError(
+                f"observed.{name} must have shape [T, ...] = {expected} (the state after each of the T "
+                f"commands, as rollout returns it), got {value.shape}"
+            )
         if not bool(jnp.all(jnp.isfinite(value))):
             raise ValueError(f"observed.{name} contains NaN or inf")
     if not (isinstance(window, int) and 1 <= window <= rpms.shape[0]):
@@ -156,9 +166,20 @@ def _float64(tree):
     return jax.tree.map(lambda x: jnp.asarray(x, jnp.float64) if floating(x) else x, tree)
 
 
-def fit(config: SimConfig, params0: DroneParams, init_state: DroneState, rpms, observed: DroneState,
-        fields=("kf", "km", "drag_coeff"), *, window: int = 10, noise: dict | None = None,
-        iterations: int = 100, estimate_starts: bool = True, defect: float = 1e-3) -> tuple[DroneParams, dict]:
+def fit(
+    config: SimConfig,
+    params0: DroneParams,
+    init_state: DroneState,
+    rpms,
+    observed: DroneState,
+    fields=("kf", "km", "drag_coeff"),
+    *,
+    window: int = 10,
+    noise: dict | None = None,
+    iterations: int = 100,
+    estimate_starts: bool = True,
+    defect: float = 1e-3,
+) -> tuple[DroneParams, dict]:
     """Fit the named fields of ``params0`` to recorded flight by multiple shooting.
 
     The unknowns are the fields' log-ratios θ to ``params0`` and, with ``estimate_starts``, each window's start
@@ -226,8 +247,14 @@ def fit(config: SimConfig, params0: DroneParams, init_state: DroneState, rpms, o
         y, steps, r = (theta, z), 0, np.asarray(_evaluate((theta, z), problem, **static)[0])
         loss = [float(r @ r) / size]
         if iterations:
-            solution = optx.least_squares(_residuals, optx.LevenbergMarquardt(rtol=RTOL, atol=ATOL), y,
-                                          args=problem + tuple(static.values()), max_steps=iterations, throw=False)
+            solution = optx.least_squares(
+                _residuals,
+                optx.LevenbergMarquardt(rtol=RTOL, atol=ATOL),
+                y,
+                args=problem + tuple(static.values()),
+                max_steps=iterations,
+                throw=False,
+            )
             y, steps = solution.value, int(solution.stats["num_steps"])
         r, jac = (np.asarray(a) for a in _evaluate(y, problem, **static))
         loss.append(float(r @ r) / size)
@@ -236,10 +263,15 @@ def fit(config: SimConfig, params0: DroneParams, init_state: DroneState, rpms, o
     dtype = jnp.result_type(getattr(params0, fields[0]))
     params = _apply(params0, _fields(jnp.asarray(theta, dtype), params0, fields))
     std = _fields(np.asarray(std), params0, fields)
-    return params, {"loss": loss, "steps": steps, "estimates": {f: np.asarray(getattr(params, f)) for f in fields},
-                    "initial": {f: np.asarray(getattr(params0, f)) for f in fields},
-                    "std": {f: np.asarray(getattr(params, f)) * np.asarray(std[f]) for f in fields},
-                    "windows": count, "window": window}
+    return params, {
+        "loss": loss,
+        "steps": steps,
+        "estimates": {f: np.asarray(getattr(params, f)) for f in fields},
+        "initial": {f: np.asarray(getattr(params0, f)) for f in fields},
+        "std": {f: np.asarray(getattr(params, f)) * np.asarray(std[f]) for f in fields},
+        "windows": count,
+        "window": window,
+    }
 
 
 def _standard_errors(r: np.ndarray, jac: np.ndarray, p: int, size: int) -> np.ndarray:
@@ -293,8 +325,9 @@ def excitation_flight(config: SimConfig, params: DroneParams, duration_s: float 
         state, ctrl = carry
         target = jnp.stack([0.5 * jnp.sin(0.8 * t), 0.4 * jnp.sin(1.6 * t), 1.0 + 0.3 * jnp.sin(1.2 * t)])
         yaw = jnp.stack([0.0, 0.0, 1.0 * jnp.sin(0.7 * t)])
-        rpm, ctrl = pid.pid_control(params, gains, ctrl, state, target[None], target_rpy=yaw[None],
-                                    ctrl_dt=config.ctrl_dt)
+        rpm, ctrl = pid.pid_control(
+            params, gains, ctrl, state, target[None], target_rpy=yaw[None], ctrl_dt=config.ctrl_dt
+        )
         state = step(params, state, rpm)
         return (state, ctrl), (rpm, state)
 
@@ -303,8 +336,9 @@ def excitation_flight(config: SimConfig, params: DroneParams, duration_s: float 
     return Flight(state0, rpms, states)
 
 
-def add_noise(flight: Flight, key: jax.Array, pos: float = 1e-3, att: float = 1e-2, vel: float = 0.0,
-              ang_vel: float = 0.0) -> Flight:
+def add_noise(
+    flight: Flight, key: jax.Array, pos: float = 1e-3, att: float = 1e-2, vel: float = 0.0, ang_vel: float = 0.0
+) -> Flight:
     """``flight`` as sensors would record it: independent Gaussian noise of the given standard deviations added to
     each position component (m), velocity component (m/s) and body rate component (rad/s) of ``init_state`` and
     ``observed``, and each attitude rotated in the body frame by a rotation vector with N(0, ``att``²) rad
@@ -314,9 +348,12 @@ def add_noise(flight: Flight, key: jax.Array, pos: float = 1e-3, att: float = 1e
     def noisy(state: DroneState, key: jax.Array) -> DroneState:
         keys = jax.random.split(key, 4)
         normal = lambda k, std: std * jax.random.normal(k, state.pos.shape, state.pos.dtype)  # noqa: E731
-        return state.replace(pos=state.pos + normal(keys[0], pos), vel=state.vel + normal(keys[1], vel),
-                             quat=quat_integrate(state.quat, normal(keys[2], att), 1.0),
-                             ang_vel=state.ang_vel + normal(keys[3], ang_vel))
+        return state.replace(
+            pos=state.pos + normal(keys[0], pos),
+            vel=state.vel + normal(keys[1], vel),
+            quat=quat_integrate(state.quat, normal(keys[2], att), 1.0),
+            ang_vel=state.ang_vel + normal(keys[3], ang_vel),
+        )
 
     first, rest = jax.random.split(key)
     return Flight(noisy(flight.init_state, first), flight.rpms, noisy(flight.observed, rest))

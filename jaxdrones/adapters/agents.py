@@ -22,8 +22,11 @@ def make_multi_agent(task: str, **options) -> TaskEnv:
             raises (an unknown option, an invalid value, an ``n_drones`` the task does not allow).
     """
     if task not in MULTI_AGENT:
-        kind = ("is a single-agent task (use jaxdrones.adapters.gymnasium)" if task in SINGLE_AGENT
-                else "is not a registered task")
+        kind = (
+            "is a single-agent task (use jaxdrones.adapters.gymnasium)"
+            if task in SINGLE_AGENT
+            else "is not a registered task"
+        )
         raise ValueError(f"{task!r} {kind}; the multi-agent tasks are {MULTI_AGENT}")
     return make(task, **options)
 
@@ -35,8 +38,9 @@ def check_agent_keys(actions, agents: list[str]) -> None:
         ValueError: not a dict, or missing, unknown or extra agent names (naming the expected agents).
     """
     if not isinstance(actions, dict):
-        raise ValueError(f"actions must be a dict {{agent: action}} over the agents {agents}, "
-                         f"got {type(actions).__name__}")
+        raise ValueError(
+            f"actions must be a dict {{agent: action}} over the agents {agents}, got {type(actions).__name__}"
+        )
     missing = [a for a in agents if a not in actions]
     extra = [a for a in actions if a not in agents]
     if missing or extra:

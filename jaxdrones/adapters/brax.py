@@ -37,8 +37,12 @@ from jaxdrones.envs.observations import policy_input
 from jaxdrones.wrappers.autoreset import AutoReset
 
 #: brax's modules that call ``jax.device_put_replicated`` (brax 0.14.2): `patch_brax` gives them a stand-in.
-BRAX_REPLICATING_MODULES = ("brax.training.pmap", "brax.training.agents.ppo.train", "brax.training.agents.apg.train",
-                            "brax.training.agents.sac.train")
+BRAX_REPLICATING_MODULES = (
+    "brax.training.pmap",
+    "brax.training.agents.ppo.train",
+    "brax.training.agents.apg.train",
+    "brax.training.agents.sac.train",
+)
 
 
 def device_put_replicated(x, devices):
@@ -47,8 +51,9 @@ def device_put_replicated(x, devices):
     import numpy as np
 
     devices = list(devices)
-    sharding = jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devices), ("devices",)),
-                                          jax.sharding.PartitionSpec("devices"))
+    sharding = jax.sharding.NamedSharding(
+        jax.sharding.Mesh(np.array(devices), ("devices",)), jax.sharding.PartitionSpec("devices")
+    )
 
     def put(leaf):
         leaf = jnp.asarray(leaf)
@@ -126,8 +131,10 @@ class BraxEnv(BraxBaseEnv):
 
     def __init__(self, env: Env, auto_reset: bool = True, privileged: bool = False):
         if privileged and not (isinstance(env.observation_spec, dict) and privileged_shape(env)):
-            raise ValueError("privileged=True needs an env with camera images (vision=...) and a privileged "
-                             "observation (Task.privileged: e.g. avoid, fly_thru_gate)")
+            raise ValueError(
+                "privileged=True needs an env with camera images (vision=...) and a privileged "
+                "observation (Task.privileged: e.g. avoid, fly_thru_gate)"
+            )
         self.env = env
         self.privileged = privileged
         self._inner = AutoReset(env) if auto_reset else env
@@ -137,8 +144,9 @@ class BraxEnv(BraxBaseEnv):
         zero = jnp.zeros((), state.reward.dtype)
         episode = {k: zero for k in ("sum_reward", "length", *state.metrics)}
         info = {"truncation": zero, "steps": zero, "episode_done": zero, "episode_metrics": episode}
-        return BraxState(pipeline_state=state, obs=self._flat(state), reward=zero, done=zero,
-                         metrics=dict(state.metrics), info=info)
+        return BraxState(
+            pipeline_state=state, obs=self._flat(state), reward=zero, done=zero, metrics=dict(state.metrics), info=info
+        )
 
     def step(self, state: BraxState, action: jax.Array) -> BraxState:
         action = jnp.reshape(action, (self.env.n_drones, self.env.action_size))
@@ -151,10 +159,14 @@ class BraxEnv(BraxBaseEnv):
         keep = 1 - state.info["episode_done"]
         values = {"sum_reward": reward, "length": jnp.ones((), dtype), **new.metrics}
         episode = {k: v * keep + values[k] for k, v in state.info["episode_metrics"].items()}
-        info = {**state.info, "truncation": new.truncated.astype(dtype), "steps": steps.astype(dtype),
-                "episode_done": done, "episode_metrics": episode}
-        return BraxState(pipeline_state=new, obs=self._flat(new), reward=reward, done=done, metrics=metrics,
-                         info=info)
+        info = {
+            **state.info,
+            "truncation": new.truncated.astype(dtype),
+            "steps": steps.astype(dtype),
+            "episode_done": done,
+            "episode_metrics": episode,
+        }
+        return BraxState(pipeline_state=new, obs=self._flat(new), reward=reward, done=done, metrics=metrics, info=info)
 
     def _flat(self, state):
         obs = policy_input(state.obs)
@@ -196,8 +208,10 @@ def wrap_for_brax_training(env, episode_length: int | None = None, action_repeat
         ValueError: ``action_repeat`` ≠ 1 or a ``randomization_fn``.
     """
     if randomization_fn is not None:
-        raise ValueError("brax's randomization_fn is not supported: pass randomize={'mass': 0.1, ...} to "
-                         "jd.make(...) to draw randomised drone params at every reset")
+        raise ValueError(
+            "brax's randomization_fn is not supported: pass randomize={'mass': 0.1, ...} to "
+            "jd.make(...) to draw randomised drone params at every reset"
+        )
     if action_repeat != 1:
         raise ValueError(f"action_repeat must be 1 (set the env's ctrl_freq instead), got {action_repeat}")
     if not isinstance(env, BraxEnv):

@@ -91,8 +91,9 @@ def spaces(env: Env) -> tuple[gym.Space, gym.Space]:
     obs = gym.spaces.Box(low, high, dtype=np.float32)
     spec = env.observation_spec
     if isinstance(spec, dict):
-        images = {k: _image_box(k, v.shape[1:] if env.n_drones == 1 else v.shape) for k, v in spec.items()
-                  if k != "state"}
+        images = {
+            k: _image_box(k, v.shape[1:] if env.n_drones == 1 else v.shape) for k, v in spec.items() if k != "state"
+        }
         obs = gym.spaces.Dict({"state": obs, **images})
     return obs, gym.spaces.Box(a_low, a_high, dtype=np.float32)
 
@@ -110,8 +111,9 @@ def _to_numpy(obs, space: gym.Space, squeeze: bool):
     return np.take(obs, 0, axis=obs.ndim - len(space.shape) - 1) if squeeze else obs
 
 
-def check_action(action, space: gym.spaces.Box, batch: tuple[int, ...] = (), strict: bool = False,
-                 name: str = "action") -> np.ndarray:
+def check_action(
+    action, space: gym.spaces.Box, batch: tuple[int, ...] = (), strict: bool = False, name: str = "action"
+) -> np.ndarray:
     """``action`` as f32 of shape ``batch + space.shape``, checked at the adapters' boundary.
 
     Entries outside the box are passed on (the env clips them and counts them in ``clipped_actions``), unless
@@ -129,12 +131,16 @@ def check_action(action, space: gym.spaces.Box, batch: tuple[int, ...] = (), str
     if action.shape != expected:
         raise ValueError(f"{name} must have shape {expected}, got {action.shape}")
     if not np.all(np.isfinite(action)):
-        raise ValueError(f"{name} must be finite, got {np.sum(~np.isfinite(action))} NaN or inf entries: "
-                         f"{action.tolist() if action.size <= 16 else action}")
+        raise ValueError(
+            f"{name} must be finite, got {np.sum(~np.isfinite(action))} NaN or inf entries: "
+            f"{action.tolist() if action.size <= 16 else action}"
+        )
     if strict and np.any(outside_box(action, space.low, space.high)):
-        raise ValueError(f"{name} must lie in the action space [{space.low.min():g}, {space.high.max():g}] "
-                         f"(strict_actions=True), got values in [{action.min():g}, {action.max():g}]; without "
-                         f"strict_actions the env clips them and counts them in info['clipped_actions']")
+        raise ValueError(
+            f"{name} must lie in the action space [{space.low.min():g}, {space.high.max():g}] "
+            f"(strict_actions=True), got values in [{action.min():g}, {action.max():g}]; without "
+            f"strict_actions the env clips them and counts them in info['clipped_actions']"
+        )
     return action
 
 
@@ -243,22 +249,30 @@ class ImageObservation(gym.ObservationWrapper):
         inner = env.unwrapped.env
         spec = inner.observation_spec
         if not isinstance(spec, dict) or not {"depth", "rgb"} & set(spec):
-            raise ValueError(f"ImageObservation needs an env with a depth or RGB camera (vision=('depth',) or "
-                             f"('rgb',)), got observations {sorted(spec) if isinstance(spec, dict) else 'f[D, n]'}")
+            raise ValueError(
+                f"ImageObservation needs an env with a depth or RGB camera (vision=('depth',) or "
+                f"('rgb',)), got observations {sorted(spec) if isinstance(spec, dict) else 'f[D, n]'}"
+            )
         self._n_drones = inner.n_drones
 
         def transform(obs):
             out = policy_input(obs)
-            return {k.removeprefix("pixels/"): jnp.moveaxis(v, -1, 0) if channels_first and k != "state" else v
-                    for k, v in out.items()}
+            return {
+                k.removeprefix("pixels/"): jnp.moveaxis(v, -1, 0) if channels_first and k != "state" else v
+                for k, v in out.items()
+            }
 
         self._transform = jax.jit(transform)
-        shapes = jax.eval_shape(transform, {k: jax.ShapeDtypeStruct(v.shape, v.dtype) for k, v in spec.items()
-                                            if k != "seg"})
+        shapes = jax.eval_shape(
+            transform, {k: jax.ShapeDtypeStruct(v.shape, v.dtype) for k, v in spec.items() if k != "seg"}
+        )
         state = env.observation_space["state"]
-        self.observation_space = gym.spaces.Dict({
-            "state": gym.spaces.Box(state.low.reshape(-1), state.high.reshape(-1), dtype=np.float32),
-            **{k: gym.spaces.Box(0.0, 1.0, v.shape, np.float32) for k, v in shapes.items() if k != "state"}})
+        self.observation_space = gym.spaces.Dict(
+            {
+                "state": gym.spaces.Box(state.low.reshape(-1), state.high.reshape(-1), dtype=np.float32),
+                **{k: gym.spaces.Box(0.0, 1.0, v.shape, np.float32) for k, v in shapes.items() if k != "state"},
+            }
+        )
 
     def observation(self, observation):
         if self._n_drones == 1:  # the gymnasium env drops the drone axis of one drone
@@ -274,7 +288,7 @@ def render_frame(env: Env, state, world: int = 0, shared_params: bool = False) -
 
     def one(x):
         x = np.asarray(x)
-        return x.reshape((-1,) + x.shape[len(lead):])[world] if lead else x
+        return x.reshape((-1,) + x.shape[len(lead) :])[world] if lead else x
 
     sim = jax.tree.map(one, state.sim)
     params = jax.tree.map(np.asarray, state.params) if shared_params else jax.tree.map(one, state.params)
@@ -345,10 +359,12 @@ class GymnasiumVectorEnv(VectorEnv):
 
     def __init__(self, env: Env, num_envs: int, render_mode: str | None = None, strict_actions: bool = False):
         if GYMNASIUM_VERSION < MIN_GYMNASIUM_VECTOR:
-            raise RuntimeError(f"jaxdrones' vector env needs gymnasium >= {'.'.join(map(str, MIN_GYMNASIUM_VECTOR))} "
-                               f"(its VectorEnv API); gymnasium {gym.__version__} is installed. With this gymnasium, "
-                               f"batch the single-world env: gymnasium.vector.SyncVectorEnv([lambda: "
-                               f"gymnasium.make(id) for _ in range(n)]), or upgrade: pip install 'gymnasium>=1.1'")
+            raise RuntimeError(
+                f"jaxdrones' vector env needs gymnasium >= {'.'.join(map(str, MIN_GYMNASIUM_VECTOR))} "
+                f"(its VectorEnv API); gymnasium {gym.__version__} is installed. With this gymnasium, "
+                f"batch the single-world env: gymnasium.vector.SyncVectorEnv([lambda: "
+                f"gymnasium.make(id) for _ in range(n)]), or upgrade: pip install 'gymnasium>=1.1'"
+            )
         _check_render_mode(render_mode)
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
@@ -436,21 +452,20 @@ class GymnasiumVectorEnv(VectorEnv):
         return infos
 
 
-def make_env(task: str, render_mode: str | None = None, strict_actions: bool = False,
-             **overrides) -> GymnasiumEnv:
+def make_env(task: str, render_mode: str | None = None, strict_actions: bool = False, **overrides) -> GymnasiumEnv:
     """Entry point of ``gymnasium.make(GYM_IDS[task], **overrides)``; overrides are the task's config fields,
     ``strict_actions`` that of `GymnasiumEnv`."""
     _check_render_mode(render_mode)
     return GymnasiumEnv(make(task, **overrides), render_mode=render_mode, strict_actions=strict_actions)
 
 
-def make_vector_env(task: str, num_envs: int = 1, render_mode: str | None = None, strict_actions: bool = False,
-                    **overrides) -> GymnasiumVectorEnv:
+def make_vector_env(
+    task: str, num_envs: int = 1, render_mode: str | None = None, strict_actions: bool = False, **overrides
+) -> GymnasiumVectorEnv:
     """Vector entry point of ``gymnasium.make_vec(GYM_IDS[task], num_envs, vectorization_mode="vector_entry_point",
     **overrides)``."""
     _check_render_mode(render_mode)
-    return GymnasiumVectorEnv(make(task, **overrides), num_envs, render_mode=render_mode,
-                              strict_actions=strict_actions)
+    return GymnasiumVectorEnv(make(task, **overrides), num_envs, render_mode=render_mode, strict_actions=strict_actions)
 
 
 def gym_id(task: str) -> str:
@@ -471,9 +486,13 @@ def register() -> None:
     """
     subscribe(register_task)  # and each task registered later (`jaxdrones.envs.register`)
     if GYMNASIUM_VERSION < MIN_GYMNASIUM:
-        warnings.warn(f"jaxdrones registers its gymnasium ids with gymnasium >= {'.'.join(map(str, MIN_GYMNASIUM))} "
-                      f"(the reset/step API of 0.26); gymnasium {gym.__version__} is installed, so none were "
-                      f"registered: pip install 'gymnasium>=0.29.1'", UserWarning, stacklevel=2)
+        warnings.warn(
+            f"jaxdrones registers its gymnasium ids with gymnasium >= {'.'.join(map(str, MIN_GYMNASIUM))} "
+            f"(the reset/step API of 0.26); gymnasium {gym.__version__} is installed, so none were "
+            f"registered: pip install 'gymnasium>=0.29.1'",
+            UserWarning,
+            stacklevel=2,
+        )
         return
     for task in GYM_IDS:
         register_task(task)
@@ -485,7 +504,11 @@ def register_task(task: str) -> str:
     older than `MIN_GYMNASIUM`."""
     env_id = GYM_IDS.setdefault(task, gym_id(task))
     if GYMNASIUM_VERSION >= MIN_GYMNASIUM and env_id not in gym.registry:
-        gym.register(id=env_id, entry_point="jaxdrones.adapters.gymnasium:make_env",
-                     vector_entry_point="jaxdrones.adapters.gymnasium:make_vector_env", kwargs={"task": task},
-                     disable_env_checker=True)
+        gym.register(
+            id=env_id,
+            entry_point="jaxdrones.adapters.gymnasium:make_env",
+            vector_entry_point="jaxdrones.adapters.gymnasium:make_vector_env",
+            kwargs={"task": task},
+            disable_env_checker=True,
+        )
     return env_id

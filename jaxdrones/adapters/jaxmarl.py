@@ -84,8 +84,10 @@ class JaxMARLEnv:
 
     def __init__(self, env: TaskEnv, strict_actions: bool = False):
         if env.config.vision:
-            raise ValueError(f"the JaxMARL view takes state observations only, got vision={env.config.vision}; "
-                             "the PettingZoo and gymnasium adapters take camera images")
+            raise ValueError(
+                f"the JaxMARL view takes state observations only, got vision={env.config.vision}; "
+                "the PettingZoo and gymnasium adapters take camera images"
+            )
         self.env = env
         self.strict_actions = bool(strict_actions)
         self._auto = AutoReset(env)
@@ -139,8 +141,12 @@ class JaxMARLEnv:
         done = state.done
         rewards = {a: state.reward[i] for i, a in enumerate(self.agents)}
         dones = {**dict.fromkeys(self.agents, done), "__all__": done}
-        per_world = {**state.metrics, "terminated": state.terminated, "truncated": state.truncated,
-                     "final_steps": state.info["final_steps"]}
+        per_world = {
+            **state.metrics,
+            "terminated": state.terminated,
+            "truncated": state.truncated,
+            "final_steps": state.info["final_steps"],
+        }
         infos = {k: jnp.broadcast_to(v[..., None], v.shape + (self.num_agents,)) for k, v in per_world.items()}
         infos["clipped_actions"] = jnp.sum(outside, axis=-1).astype(infos["clipped_actions"].dtype)
         return self.get_obs(state), state, rewards, dones, infos
@@ -172,8 +178,10 @@ class JaxMARLEnv:
         for agent in self.agents:
             action = jnp.asarray(actions[agent])
             if action.shape != shape or not jnp.issubdtype(action.dtype, jnp.floating):
-                raise ValueError(f"action of {agent} must be a float array of shape {shape} (vmap over worlds for "
-                                 f"a batch), got {action.dtype}{list(action.shape)}")
+                raise ValueError(
+                    f"action of {agent} must be a float array of shape {shape} (vmap over worlds for "
+                    f"a batch), got {action.dtype}{list(action.shape)}"
+                )
             rows.append(action)
         return jnp.stack(rows)
 

@@ -57,8 +57,7 @@ class PettingZooEnv(ParallelEnv):
       (`jaxdrones.adapters.gymnasium.HumanView`). `close` releases the backend.
     """
 
-    metadata = {"render_modes": list(RENDER_MODES), "name": "jaxdrones", "is_parallelizable": True,
-                "render_fps": 30}
+    metadata = {"render_modes": list(RENDER_MODES), "name": "jaxdrones", "is_parallelizable": True, "render_fps": 30}
 
     def __init__(self, env: TaskEnv, render_mode: str | None = None, strict_actions: bool = False):
         if render_mode is not None and render_mode not in RENDER_MODES:
@@ -68,8 +67,7 @@ class PettingZooEnv(ParallelEnv):
         self.env = env
         self.render_mode = render_mode
         self.strict_actions = bool(strict_actions)
-        self.metadata = {**self.metadata, "name": f"jaxdrones_{env.task.name}_v0",
-                         "render_fps": env.config.ctrl_freq}
+        self.metadata = {**self.metadata, "name": f"jaxdrones_{env.task.name}_v0", "render_fps": env.config.ctrl_freq}
         self.possible_agents = agent_names(env.n_drones)
         self.agents = []
         obs_space, action_space = spaces(env)
@@ -122,8 +120,12 @@ class PettingZooEnv(ParallelEnv):
             raise RuntimeError("no episode is running: call reset() first (agents is empty after an episode ends)")
         agents = self.agents
         check_agent_keys(actions, agents)
-        action = np.stack([check_action(actions[a], self.action_spaces[a], strict=self.strict_actions,
-                                        name=f"action of {a}") for a in agents])
+        action = np.stack(
+            [
+                check_action(actions[a], self.action_spaces[a], strict=self.strict_actions, name=f"action of {a}")
+                for a in agents
+            ]
+        )
         space = self.action_spaces[agents[0]]
         clipped = np.sum(outside_box(action, space.low, space.high), axis=-1)
         self._state = self._step(self._state, action)
@@ -131,8 +133,13 @@ class PettingZooEnv(ParallelEnv):
         s = self._state
         reward = np.asarray(s.reward, np.float32)
         terminated, truncated = bool(s.terminated), bool(s.truncated)
-        out = (self._observations(agents), {a: float(reward[i]) for i, a in enumerate(agents)},
-               dict.fromkeys(agents, terminated), dict.fromkeys(agents, truncated), self._infos(agents, clipped))
+        out = (
+            self._observations(agents),
+            {a: float(reward[i]) for i, a in enumerate(agents)},
+            dict.fromkeys(agents, terminated),
+            dict.fromkeys(agents, truncated),
+            self._infos(agents, clipped),
+        )
         if terminated or truncated:
             self.agents = []
         return out
@@ -165,8 +172,9 @@ class PettingZooEnv(ParallelEnv):
     def _infos(self, agents: list[str], clipped: np.ndarray | None = None) -> dict:
         """The world's metrics for each agent, with ``clipped_actions`` that agent's own count (0 at a reset)."""
         metrics = {k: float(v) for k, v in self._state.metrics.items()}
-        return {a: {**metrics, "clipped_actions": 0 if clipped is None else int(clipped[i])}
-                for i, a in enumerate(agents)}
+        return {
+            a: {**metrics, "clipped_actions": 0 if clipped is None else int(clipped[i])} for i, a in enumerate(agents)
+        }
 
 
 def _agent_space(space: gym.Space, i: int, stacked: bool) -> gym.Space:
@@ -184,8 +192,7 @@ def _agent_obs(obs, space: gym.Space, i: int):
     return np.asarray(obs[i], space.dtype)
 
 
-def parallel_env(task: str, render_mode: str | None = None, strict_actions: bool = False,
-                 **options) -> PettingZooEnv:
+def parallel_env(task: str, render_mode: str | None = None, strict_actions: bool = False, **options) -> PettingZooEnv:
     """A multi-agent task as a PettingZoo ``ParallelEnv``, e.g. ``parallel_env("flock", n_drones=5)``.
 
     Args:

@@ -11,9 +11,11 @@ BACKENDS = ("jax", "pybullet")
 RENDERERS = ("tiny", "egl")
 
 #: How to install pybullet, in every error that asks for it.
-PYBULLET_INSTALL = ('pip install pybullet, or the pybullet extra (pip install ".[pybullet]" from a clone): a wheel '
-                    "on Python 3.11; on Python >= 3.12 pip builds it from source (a C++ build, about 3 minutes on "
-                    "2 cores)")
+PYBULLET_INSTALL = (
+    'pip install pybullet, or the pybullet extra (pip install ".[pybullet]" from a clone): a wheel '
+    "on Python 3.11; on Python >= 3.12 pip builds it from source (a C++ build, about 3 minutes on "
+    "2 cores)"
+)
 
 
 def require_pybullet():
@@ -27,6 +29,7 @@ def require_pybullet():
     except ModuleNotFoundError as e:
         if e.name != "pybullet":
             raise
-        raise ModuleNotFoundError(f"the PyBullet backend needs pybullet, which is not installed: {PYBULLET_INSTALL}",
-                                  name="pybullet") from None
+        raise ModuleNotFoundError(
+            f"the PyBullet backend needs pybullet, which is not installed: {PYBULLET_INSTALL}", name="pybullet"
+        ) from None
     return pybullet

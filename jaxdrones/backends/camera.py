@@ -150,8 +150,17 @@ def _is_traced(*xs) -> bool:
 
 
 # --------------------------------------------------------------------------------------------- onboard cameras
-def camera_images(step, params: DroneParams, state: DroneState, *, width: int = 64, height: int = 48,
-                  fov: float = 60.0, near: float | None = None, far: float = 100.0) -> dict:
+def camera_images(
+    step,
+    params: DroneParams,
+    state: DroneState,
+    *,
+    width: int = 64,
+    height: int = 48,
+    fov: float = 60.0,
+    near: float | None = None,
+    far: float = 100.0,
+) -> dict:
     """The onboard camera images of every drone; see ``PyBulletStep.camera_images``."""
     step.check_open()
     width, height, fov, near, far = check_camera_args(width, height, fov, near, far)
@@ -176,8 +185,14 @@ def _traced_images(step, params: DroneParams, state: DroneState, lead: tuple[int
         host = step.host_params(unpack_params(packed_params), pos, by_value=True)
         return _host_images(step, host, np.asarray(pos, np.float64), np.asarray(quat, np.float64), settings)
 
-    return jax.pure_callback(callback, image_shapes(lead, settings[0], settings[1]), packed_params, state.pos,
-                             state.quat, vmap_method="broadcast_all")
+    return jax.pure_callback(
+        callback,
+        image_shapes(lead, settings[0], settings[1]),
+        packed_params,
+        state.pos,
+        state.quat,
+        vmap_method="broadcast_all",
+    )
 
 
 def _host_images(step, host: dict, pos: np.ndarray, quat: np.ndarray, settings) -> dict:
@@ -194,29 +209,46 @@ def _host_images(step, host: dict, pos: np.ndarray, quat: np.ndarray, settings) 
     norm = np.sqrt(np.sum(quat * quat, -1, keepdims=True)).reshape(n_worlds, n_drones, 1)
     quat = quat.reshape(n_worlds, n_drones, 4) / np.where(norm > 0, norm, 1.0)
     ok = np.all(np.isfinite(pos), -1) & np.all(np.isfinite(quat), -1) & (norm[..., 0] > 0)  # [W, D]
-    views = onboard_view_matrices(np.where(ok[..., None], pos, 0.0), np.where(ok[..., None], quat, 1.0),
-                                  arrays["collision_radius"] + EYE_MARGIN).tolist()
+    views = onboard_view_matrices(
+        np.where(ok[..., None], pos, 0.0), np.where(ok[..., None], quat, 1.0), arrays["collision_radius"] + EYE_MARGIN
+    ).tolist()
     projections = projection_matrix(fov, width / height, near_d, far).tolist()
-    rgb, zbuf, seg = (np.full(s.shape, ENV_IMAGES[k].blank, s.dtype)
-                      for k, s in image_shapes((n_worlds, n_drones), width, height).items())
+    rgb, zbuf, seg = (
+        np.full(s.shape, ENV_IMAGES[k].blank, s.dtype)
+        for k, s in image_shapes((n_worlds, n_drones), width, height).items()
+    )
     step._ensure_worlds(n_worlds, host)
     renderer = _BULLET_RENDERER[step.renderer]
     pos_l, quat_l, ok_l = pos.tolist(), quat.tolist(), ok.tolist()
     for w in range(n_worlds):
         for attempt in (0, 1):
             try:
-                _capture_world(step._worlds[w], pos_l[w], quat_l[w], ok_l[w], views[w], projections[w],
-                               (width, height, renderer), rgb[w], zbuf[w], seg[w])
+                _capture_world(
+                    step._worlds[w],
+                    pos_l[w],
+                    quat_l[w],
+                    ok_l[w],
+                    views[w],
+                    projections[w],
+                    (width, height, renderer),
+                    rgb[w],
+                    zbuf[w],
+                    seg[w],
+                )
                 break
             except pybullet.error:
                 if attempt:
-                    raise RuntimeError(f"PyBullet failed to render world {w} twice (its client was rebuilt in "
-                                       f"between)") from None
+                    raise RuntimeError(
+                        f"PyBullet failed to render world {w} twice (its client was rebuilt in between)"
+                    ) from None
                 step._rebuild_world(w, host)
     # in float64: far − (far − near)·z cancels to ~near at z ≈ 1, which float32 would resolve only to ~1e-4 relative
     depth = zbuffer_to_depth(zbuf.astype(np.float64), near_d[..., None, None], far).astype(np.float32)
-    return {"rgb": rgb.reshape(lead + rgb.shape[2:]), "depth": depth.reshape(lead + depth.shape[2:]),
-            "seg": seg.reshape(lead + seg.shape[2:])}
+    return {
+        "rgb": rgb.reshape(lead + rgb.shape[2:]),
+        "depth": depth.reshape(lead + depth.shape[2:]),
+        "seg": seg.reshape(lead + seg.shape[2:]),
+    }
 
 
 def _capture_world(world, pos, quat, ok, views, projections, image, rgb, zbuf, seg) -> None:
@@ -234,24 +266,43 @@ def _capture_world(world, pos, quat, ok, views, projections, image, rgb, zbuf, s
         if not ok[d]:
             continue
         _, _, pixels, depth, ids = pybullet.getCameraImage(
-            width, height, viewMatrix=views[d], projectionMatrix=projections[d], renderer=renderer, shadow=0,
-            physicsClientId=client)
+            width,
+            height,
+            viewMatrix=views[d],
+            projectionMatrix=projections[d],
+            renderer=renderer,
+            shadow=0,
+            physicsClientId=client,
+        )
         rgb[d] = np.reshape(pixels, (height, width, 4))
         zbuf[d] = np.reshape(depth, (height, width))
         seg[d] = np.reshape(ids, (height, width))
 
 
 # --------------------------------------------------------------------------------------------- third-person view
-def render(step, params: DroneParams, state: DroneState, *, world: int = 0, width: int = 640, height: int = 480,
-           target=None, distance: float = 1.5, yaw: float = -30.0, pitch: float = -30.0) -> np.ndarray:
+def render(
+    step,
+    params: DroneParams,
+    state: DroneState,
+    *,
+    world: int = 0,
+    width: int = 640,
+    height: int = 480,
+    target=None,
+    distance: float = 1.5,
+    yaw: float = -30.0,
+    pitch: float = -30.0,
+) -> np.ndarray:
     """A third-person image of one world; see ``PyBulletStep.render``."""
     step.check_open()
     width, height = check_image_size(width, height)
     lead = check_pose(step.config, state)
     check_params_batch(params, state)
     if _is_traced(state.pos, state.quat, params.mass):
-        raise ValueError("render takes concrete arrays (NumPy or JAX), not traced ones: call it outside jit/vmap, "
-                         "e.g. on the states of a rollout")
+        raise ValueError(
+            "render takes concrete arrays (NumPy or JAX), not traced ones: call it outside jit/vmap, "
+            "e.g. on the states of a rollout"
+        )
     n_worlds = math.prod(lead[:-1])
     if not isinstance(world, numbers.Integral) or isinstance(world, bool) or not 0 <= world < n_worlds:
         raise ValueError(f"world must be an int in [0, {n_worlds}) (the state's worlds, flattened), got {world!r}")
@@ -273,18 +324,26 @@ def render(step, params: DroneParams, state: DroneState, *, world: int = 0, widt
     host = step.host_params(params, state.pos)
     step._ensure_worlds(world + 1, host)
     client, bodies = step._worlds[world].client, step._worlds[world].drones
-    for body, p, q in zip(bodies, pos.tolist(), (quat / norm).tolist()):
+    for body, p, q in zip(bodies, pos.tolist(), (quat / norm).tolist(), strict=True):
         pybullet.resetBasePositionAndOrientation(body, p, q, physicsClientId=client)
     view = pybullet.computeViewMatrixFromYawPitchRoll(target.tolist(), distance, yaw, pitch, 0.0, 2)
     projection = projection_matrix(RENDER_FOV, width / height, RENDER_NEAR, RENDER_FAR).tolist()
     _, _, pixels, _, _ = pybullet.getCameraImage(
-        width, height, viewMatrix=view, projectionMatrix=projection, renderer=_BULLET_RENDERER[step.renderer],
-        shadow=0, flags=pybullet.ER_NO_SEGMENTATION_MASK, physicsClientId=client)
+        width,
+        height,
+        viewMatrix=view,
+        projectionMatrix=projection,
+        renderer=_BULLET_RENDERER[step.renderer],
+        shadow=0,
+        flags=pybullet.ER_NO_SEGMENTATION_MASK,
+        physicsClientId=client,
+    )
     return np.ascontiguousarray(np.reshape(pixels, (height, width, 4))[:, :, :3], dtype=np.uint8)
 
 
-def held_images(step, params: DroneParams, sim: DroneState, due: jax.Array, held: dict, width: int,
-                height: int, fov: float = 60.0) -> dict:
+def held_images(
+    step, params: DroneParams, sim: DroneState, due: jax.Array, held: dict, width: int, height: int, fov: float = 60.0
+) -> dict:
     """One world's camera images on the PyBullet backend, as an env holds them (`jaxdrones.envs.env.TaskEnv`):
     `camera_images` if the render is ``due`` (bool[]), else ``held`` (the last images, [D, H, W(, 4)]), in one host
     callback, with vertical field of view ``fov`` (degrees). Under ``vmap`` (where `jax.lax.cond` runs both branches)
@@ -297,20 +356,27 @@ def held_images(step, params: DroneParams, sim: DroneState, due: jax.Array, held
 
         def flat(x):
             x = np.asarray(x)
-            return x.reshape((-1,) + x.shape[len(lead):])
+            return x.reshape((-1,) + x.shape[len(lead) :])
 
         out = {k: flat(v).copy() for k, v in held.items()}
         pos, quat = flat(sim.pos), flat(sim.quat)
-        finite = (np.all(np.isfinite(pos), axis=(-2, -1)) & np.all(np.isfinite(quat), axis=(-2, -1))
-                  & np.all(np.sum(quat * quat, -1) > 0, axis=-1))
+        finite = (
+            np.all(np.isfinite(pos), axis=(-2, -1))
+            & np.all(np.isfinite(quat), axis=(-2, -1))
+            & np.all(np.sum(quat * quat, -1) > 0, axis=-1)
+        )
         due = flat(due)
         for k in out:
             out[k][due & ~finite] = ENV_IMAGES[k].blank
         index = np.flatnonzero(due & finite)
         if index.size:
-            images = step.camera_images(jax.tree.map(lambda x: flat(x)[index], params),
-                                        jax.tree.map(lambda x: flat(x)[index], sim), width=width, height=height,
-                                        fov=fov)
+            images = step.camera_images(
+                jax.tree.map(lambda x: flat(x)[index], params),
+                jax.tree.map(lambda x: flat(x)[index], sim),
+                width=width,
+                height=height,
+                fov=fov,
+            )
             for k in out:
                 out[k][index] = images[k]
         return {k: v.reshape(lead + spec[k].shape) for k, v in out.items()}

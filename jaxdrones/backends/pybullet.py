@@ -121,16 +121,21 @@ class PyBulletStep:
     #: The PyBullet backend renders (`camera_images`, `render`).
     has_cameras = True
 
-    def __init__(self, config: SimConfig, *, obstacles=None, damping: bool = False, gui: bool = False,
-                 renderer: str = "tiny"):
+    def __init__(
+        self, config: SimConfig, *, obstacles=None, damping: bool = False, gui: bool = False, renderer: str = "tiny"
+    ):
         if renderer not in RENDERERS:
             raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
         if config.kinks.mode != "exact":
-            raise ValueError(f"the pybullet backend is not differentiable and steps the original's physics: "
-                             f"SimConfig.kinks must be 'exact', got {config.kinks.mode!r}")
+            raise ValueError(
+                f"the pybullet backend is not differentiable and steps the original's physics: "
+                f"SimConfig.kinks must be 'exact', got {config.kinks.mode!r}"
+            )
         if config.downwash_radius is not None:
-            raise ValueError(f"the pybullet backend steps the original's downwash between every pair of drones: "
-                             f"SimConfig.downwash_radius must be None, got {config.downwash_radius!r}")
+            raise ValueError(
+                f"the pybullet backend steps the original's downwash between every pair of drones: "
+                f"SimConfig.downwash_radius must be None, got {config.downwash_radius!r}"
+            )
         if gui:
             require_display()
         self.config = config
@@ -173,19 +178,27 @@ class PyBulletStep:
         if self._closed:
             raise RuntimeError("this PyBullet step was closed; build a new one with jd.make_step(...)")
 
-    def __call__(self, params: DroneParams, state: DroneState, rpm, disturbance: Disturbance | None = None
-                 ) -> DroneState:
+    def __call__(
+        self, params: DroneParams, state: DroneState, rpm, disturbance: Disturbance | None = None
+    ) -> DroneState:
         self.check_open()
         tracer = jax.core.Tracer
         if disturbance is not None:
             # One array [..., D, 9] (force, torque, wind; zero where not given), as the host step reads it.
             disturbance = check_disturbance(self.config, state, disturbance)
-            parts = [jnp.zeros_like(state.pos) if x is None else x
-                     for x in (disturbance.force, disturbance.torque, disturbance.wind)]
+            parts = [
+                jnp.zeros_like(state.pos) if x is None else x
+                for x in (disturbance.force, disturbance.torque, disturbance.wind)
+            ]
             disturbance = jnp.concatenate(parts, axis=-1)
-        if (isinstance(state.pos, tracer) or isinstance(state.quat, tracer) or isinstance(rpm, tracer)
-                or isinstance(params.mass, tracer) or isinstance(params.kf, tracer)
-                or isinstance(disturbance, tracer)):
+        if (
+            isinstance(state.pos, tracer)
+            or isinstance(state.quat, tracer)
+            or isinstance(rpm, tracer)
+            or isinstance(params.mass, tracer)
+            or isinstance(params.kf, tracer)
+            or isinstance(disturbance, tracer)
+        ):
             return self._traced(params, state, rpm, disturbance)
         if disturbance is not None:
             disturbance = np.asarray(disturbance, np.float64)
@@ -194,14 +207,22 @@ class PyBulletStep:
         if isinstance(rpm, jax.Array):
             rpm = np.asarray(rpm)
         n = self.config.n_drones
-        if not (isinstance(rpm, np.ndarray) and rpm.dtype.kind in "fiu" and rpm.shape == state.rpm.shape
-                and state.pos.shape[-2:] == (n, 3) and state.quat.shape[-2:] == (n, 4)):
+        if not (
+            isinstance(rpm, np.ndarray)
+            and rpm.dtype.kind in "fiu"
+            and rpm.shape == state.rpm.shape
+            and state.pos.shape[-2:] == (n, 3)
+            and state.quat.shape[-2:] == (n, 4)
+        ):
             dtype = rpm.dtype if hasattr(rpm, "dtype") else np.asarray(rpm).dtype
             check_rpm_shape(self.config, state, np.shape(rpm), dtype)  # raises the error, or passes for lists
             rpm = np.asarray(rpm, dtype=np.float64)
         host = self.host_params(params, state.pos)
-        return DroneState(*self._host_step(host, [np.asarray(getattr(state, f)) for f in _STATE_FIELDS], rpm,
-                                           strict=True, disturbance=disturbance))
+        return DroneState(
+            *self._host_step(
+                host, [np.asarray(getattr(state, f)) for f in _STATE_FIELDS], rpm, strict=True, disturbance=disturbance
+            )
+        )
 
     def _traced(self, params: DroneParams, state: DroneState, rpm, disturbance=None) -> DroneState:
         rpm = check_rpm(self.config, state, rpm)
@@ -219,8 +240,9 @@ class PyBulletStep:
             return DroneState(*self._host_step(host, fields, np.asarray(rpm, np.float64), disturbance=extra))
 
         extra = () if disturbance is None else (disturbance,)
-        return jax.pure_callback(callback, shapes, packed_params, kinematics, state.contact, rpm, *extra,
-                                 vmap_method="broadcast_all")
+        return jax.pure_callback(
+            callback, shapes, packed_params, kinematics, state.contact, rpm, *extra, vmap_method="broadcast_all"
+        )
 
     def host_params(self, params: DroneParams, pos, by_value: bool = False) -> dict:
         """The host-side params (`_host_params`) for drone positions ``pos`` f[*L, D, 3], cached: by identity of
@@ -240,8 +262,14 @@ class PyBulletStep:
             self._host_cache = (params, lead, host)
         return host
 
-    def _host_step(self, host: dict, fields: list[np.ndarray], rpm: np.ndarray, strict: bool = False,
-                   disturbance: np.ndarray | None = None) -> list[np.ndarray]:
+    def _host_step(
+        self,
+        host: dict,
+        fields: list[np.ndarray],
+        rpm: np.ndarray,
+        strict: bool = False,
+        disturbance: np.ndarray | None = None,
+    ) -> list[np.ndarray]:
         """Step NumPy state fields [*L, D, k] with host params (see `_host_params`); returns the new fields.
         ``disturbance``: None or f[*L, D, 9], each drone's force (world, N), torque (body, N·m) and wind (world,
         m/s).
@@ -279,8 +307,10 @@ class PyBulletStep:
                 contact.append(contact_d)
         # One array, and a view of it per field: for a few drones NumPy's per-call cost is most of a step's.
         packed = np.array(flat, dtype=fields[0].dtype).reshape(lead + (17,))
-        out = [packed[..., a:b] if field.dtype == packed.dtype else packed[..., a:b].astype(field.dtype)
-               for (a, b), field in zip(_FIELD_SLICES, fields)]
+        out = [
+            packed[..., a:b] if field.dtype == packed.dtype else packed[..., a:b].astype(field.dtype)
+            for (a, b), field in zip(_FIELD_SLICES, fields, strict=True)
+        ]
         return out + [np.array(contact, dtype=fields[5].dtype).reshape(lead)]
 
     def _step_world(self, world: _World, w: int, host: dict, pos, quat, vel, ang_vel, rpm_prev, rpm, extra=None):
@@ -295,8 +325,10 @@ class PyBulletStep:
         command = [[min(max(r, 0.0), max_rpm[d]) for r in rpm_d] for d, rpm_d in enumerate(rpm)]
         lagged = self.config.motor_dynamics
         if lagged:  # docs/physics.md §3.3, as `dynamics.motor_response_c`: exp(-dt/τ) of each drone, rising/falling
-            decay = [(_decay(up, self.config.dt), _decay(down, self.config.dt))
-                     for up, down in zip(host["motor_tau_up"][w], host["motor_tau_down"][w], strict=True)]
+            decay = [
+                (_decay(up, self.config.dt), _decay(down, self.config.dt))
+                for up, down in zip(host["motor_tau_up"][w], host["motor_tau_down"][w], strict=True)
+            ]
         speeds, previous = command, rpm_prev
         for d, body in enumerate(bodies):
             q = _normalized(quat[d])
@@ -312,32 +344,49 @@ class PyBulletStep:
             world.jax_params = jax.tree.map(jnp.asarray, DroneParams(**_world_slice(host["arrays"], w)))
         for sub in range(self.config.n_substeps):
             if lagged:
-                speeds = [[c + (r - c) * (up if c > r else down) for r, c in zip(r_d, c_d, strict=True)]
-                          for r_d, c_d, (up, down) in zip(previous, command, decay, strict=True)]
+                speeds = [
+                    [c + (r - c) * (up if c > r else down) for r, c in zip(r_d, c_d, strict=True)]
+                    for r_d, c_d, (up, down) in zip(previous, command, decay, strict=True)
+                ]
             if sub == 0 or lagged:
                 # The motor model (docs/physics.md §3): f_i = kf rpm_i², yaw torque -Σ spin_i km rpm_i², as
                 # `dynamics.motors_c`.
                 thrust = [[kf[d] * r * r for r in rpm_d] for d, rpm_d in enumerate(speeds)]
-                yaw = [-km[d] * sum(s * r * r for s, r in zip(spin[d], rpm_d)) for d, rpm_d in enumerate(speeds)]
+                yaw = [
+                    -km[d] * sum(s * r * r for s, r in zip(spin[d], rpm_d, strict=True))
+                    for d, rpm_d in enumerate(speeds)
+                ]
             lift, body_z, drag = thrust, None, None
             if any_effect:
                 if sub > 0:
                     pos, quat, vel, _ = _read_kinematics(client, bodies)
                 air = np.asarray([e[6:] for e in extra]) if wind else None
-                lift, body_z, drag = (np.asarray(x).tolist() for x in _effect_forces(
-                    effects, world.jax_params, np.asarray(pos), np.asarray(quat), np.asarray(vel), np.asarray(thrust),
-                    np.asarray(previous), air))
+                lift, body_z, drag = (
+                    np.asarray(x).tolist()
+                    for x in _effect_forces(
+                        effects,
+                        world.jax_params,
+                        np.asarray(pos),
+                        np.asarray(quat),
+                        np.asarray(vel),
+                        np.asarray(thrust),
+                        np.asarray(previous),
+                        air,
+                    )
+                )
             elif sub > 0 and extra is not None:
                 pos = _read_kinematics(client, bodies)[0]
             for d, body in enumerate(bodies):
                 lift_d, points_d = lift[d], points[d]
                 for i in range(4):
-                    pybullet.applyExternalForce(body, -1, (0.0, 0.0, lift_d[i]), points_d[i], link,
-                                                physicsClientId=client)
+                    pybullet.applyExternalForce(
+                        body, -1, (0.0, 0.0, lift_d[i]), points_d[i], link, physicsClientId=client
+                    )
                 pybullet.applyExternalTorque(body, -1, (0.0, 0.0, yaw[d]), link, physicsClientId=client)
                 if body_z is not None and body_z[d] != 0.0:
-                    pybullet.applyExternalForce(body, -1, (0.0, 0.0, body_z[d]), (0.0, 0.0, 0.0), link,
-                                                physicsClientId=client)
+                    pybullet.applyExternalForce(
+                        body, -1, (0.0, 0.0, body_z[d]), (0.0, 0.0, 0.0), link, physicsClientId=client
+                    )
                 if drag is not None and effects.drag:
                     pybullet.applyExternalForce(body, -1, drag[d], pos[d], world_frame, physicsClientId=client)
                 if extra is not None:  # the disturbance: a world force at the centre of mass, a body torque
@@ -375,8 +424,9 @@ class PyBulletStep:
             try:
                 client = pybullet.connect(pybullet.GUI)
             except pybullet.error as err:
-                raise RuntimeError(f"PyBullet GUI could not open ({err}); it needs a display, and only one GUI "
-                                   f"per process") from None
+                raise RuntimeError(
+                    f"PyBullet GUI could not open ({err}); it needs a display, and only one GUI per process"
+                ) from None
             pybullet.configureDebugVisualizer(pybullet.COV_ENABLE_GUI, 0, physicsClientId=client)
         else:
             client = pybullet.connect(pybullet.DIRECT)
@@ -411,17 +461,25 @@ class PyBulletStep:
                 world.drones[d] = scene.create_drone(client, geom, self.damping)
             else:
                 world.drones.append(scene.create_drone(client, geom, self.damping))
-        for body in world.drones[len(geometry):]:
+        for body in world.drones[len(geometry) :]:
             pybullet.removeBody(body, physicsClientId=client)
-        del world.drones[len(geometry):]
+        del world.drones[len(geometry) :]
         world.geometry = [dict(g) for g in geometry]
         world.drone_index = {body: d for d, body in enumerate(world.drones)}
         world.category.update({body: CONTACT_DRONE for body in world.drones})
 
-
     # ----------------------------------------------------------------------------------------------- cameras
-    def camera_images(self, params: DroneParams, state: DroneState, *, width: int = 64, height: int = 48,
-                      fov: float = 60.0, near: float | None = None, far: float = 100.0) -> dict:
+    def camera_images(
+        self,
+        params: DroneParams,
+        state: DroneState,
+        *,
+        width: int = 64,
+        height: int = 48,
+        fov: float = 60.0,
+        near: float | None = None,
+        far: float = 100.0,
+    ) -> dict:
         """Render every drone's onboard camera (see `jaxdrones.backends.camera` for the camera model).
 
         The drones are first placed at ``state``'s poses (its velocities are not used), then each drone's camera
@@ -457,9 +515,19 @@ class PyBulletStep:
         """
         return camera.camera_images(self, params, state, width=width, height=height, fov=fov, near=near, far=far)
 
-    def render(self, params: DroneParams, state: DroneState, *, world: int = 0, width: int = 640,
-               height: int = 480, target=None, distance: float = 1.5, yaw: float = -30.0,
-               pitch: float = -30.0) -> np.ndarray:
+    def render(
+        self,
+        params: DroneParams,
+        state: DroneState,
+        *,
+        world: int = 0,
+        width: int = 640,
+        height: int = 480,
+        target=None,
+        distance: float = 1.5,
+        yaw: float = -30.0,
+        pitch: float = -30.0,
+    ) -> np.ndarray:
         """A third-person RGB image of one world, e.g. for a video frame (`jaxdrones.video.VideoWriter`).
 
         The world's drones are placed at ``state``'s poses; the camera orbits ``target`` as in PyBullet's
@@ -482,8 +550,18 @@ class PyBulletStep:
             ValueError: on a bad argument, traced inputs (call it outside ``jit``), or a non-finite pose.
             RuntimeError: if the step was closed.
         """
-        return camera.render(self, params, state, world=world, width=width, height=height, target=target,
-                             distance=distance, yaw=yaw, pitch=pitch)
+        return camera.render(
+            self,
+            params,
+            state,
+            world=world,
+            width=width,
+            height=height,
+            target=target,
+            distance=distance,
+            yaw=yaw,
+            pitch=pitch,
+        )
 
     def body_ids(self, world: int = 0) -> dict:
         """The Bullet body ids of world ``world``, to read segmentation images (`camera_images`).
@@ -497,8 +575,10 @@ class PyBulletStep:
             ValueError: if the world has not been created yet (call the step or `camera_images` first).
         """
         if not isinstance(world, int) or isinstance(world, bool) or not 0 <= world < len(self._worlds):
-            raise ValueError(f"world must be an int in [0, {len(self._worlds)}) (the worlds created so far, "
-                             f"by calling the step or camera_images), got {world!r}")
+            raise ValueError(
+                f"world must be an int in [0, {len(self._worlds)}) (the worlds created so far, "
+                f"by calling the step or camera_images), got {world!r}"
+            )
         w = self._worlds[world]
         return {"ground": w.ground, "obstacles": tuple(w.obstacles), "drones": tuple(w.drones)}
 
@@ -513,16 +593,25 @@ def _host_params(params: DroneParams, lead: tuple[int, ...]) -> dict:
     lead = tuple(lead)
     n_drones, n_worlds = lead[-1], math.prod(lead[:-1])
     full = broadcast_params(jax.tree.map(np.asarray, params), lead, xp=np)
-    arrays = {name: np.asarray(getattr(full, name), np.float64).reshape((n_worlds, n_drones)
-                                                                        + getattr(full, name).shape[len(lead):])
-              for name in DroneParams.__dataclass_fields__}
+    arrays = {
+        name: np.asarray(getattr(full, name), np.float64).reshape(
+            (n_worlds, n_drones) + getattr(full, name).shape[len(lead) :]
+        )
+        for name in DroneParams.__dataclass_fields__
+    }
     arm = arrays["torque_arm"]  # τx = Σ arm[0, i] f_i, τy = Σ arm[1, i] f_i  ⇔  f_i at (-arm[1, i], arm[0, i])
     points = np.stack([-arm[..., 1, :], arm[..., 0, :], arrays["prop_pos"][..., 2]], axis=-1)
-    geometry = [[{**scene.drone_geometry({k: v[w, d] for k, v in arrays.items()}),
-                  "gravity": float(arrays["gravity"][w, d])} for d in range(n_drones)] for w in range(n_worlds)]
+    geometry = [
+        [
+            {**scene.drone_geometry({k: v[w, d] for k, v in arrays.items()}), "gravity": float(arrays["gravity"][w, d])}
+            for d in range(n_drones)
+        ]
+        for w in range(n_worlds)
+    ]
     return {
         **{k: arrays[k].tolist() for k in ("kf", "km", "prop_spin", "max_rpm", "motor_tau_up", "motor_tau_down")},
-        "thrust_points": points.tolist(), "geometry": geometry,
+        "thrust_points": points.tolist(),
+        "geometry": geometry,
         "arrays": arrays,
     }
 
@@ -541,7 +630,7 @@ def _effect_forces(effects: Effects, params: DroneParams, pos, quat, vel, thrust
     lift = split(thrust)
     if effects.ground_effect:
         extra = aerodynamics.ground_effect_thrust_c(params, pos[:, 2], rotmat[2], lift)
-        lift = tuple(t + e for t, e in zip(lift, extra))
+        lift = tuple(t + e for t, e in zip(lift, extra, strict=True))
     body_z = jnp.zeros(pos.shape[0], pos.dtype)
     if effects.downwash == "per_rotor" and pos.shape[0] > 1:
         change = aerodynamics.downwash_thrust_c(params, split(pos), rotmat, split(thrust))
@@ -589,8 +678,10 @@ def _load_egl(client: int) -> None:
     if egl is not None:
         plugin = pybullet.loadPlugin(egl.get_filename(), "_eglRendererPlugin", physicsClientId=client)
     if plugin < 0:
-        raise RuntimeError("renderer='egl': Bullet's EGL plugin could not be loaded on this machine; use "
-                           "renderer='tiny' (TinyRenderer, CPU)")
+        raise RuntimeError(
+            "renderer='egl': Bullet's EGL plugin could not be loaded on this machine; use "
+            "renderer='tiny' (TinyRenderer, CPU)"
+        )
 
 
 def require_display() -> None:

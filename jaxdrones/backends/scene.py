@@ -31,8 +31,14 @@ def load_obstacle(client: int, obstacle: Obstacle) -> int:
     """Create one fixed obstacle in a Bullet world and return its body id."""
     quat = pybullet.getQuaternionFromEuler(obstacle.rpy)
     if obstacle.shape == "urdf":
-        return pybullet.loadURDF(urdf_path(obstacle.urdf), obstacle.pos, quat, useFixedBase=True,
-                                 globalScaling=obstacle.scale, physicsClientId=client)
+        return pybullet.loadURDF(
+            urdf_path(obstacle.urdf),
+            obstacle.pos,
+            quat,
+            useFixedBase=True,
+            globalScaling=obstacle.scale,
+            physicsClientId=client,
+        )
     if obstacle.shape == "box":
         kwargs = {"halfExtents": [s / 2 for s in obstacle.size]}
         geom = pybullet.GEOM_BOX
@@ -43,10 +49,16 @@ def load_obstacle(client: int, obstacle: Obstacle) -> int:
         kwargs = {"radius": obstacle.size[0]}
         geom = pybullet.GEOM_CYLINDER if obstacle.shape == "cylinder" else pybullet.GEOM_CAPSULE
     axial = geom in (pybullet.GEOM_CYLINDER, pybullet.GEOM_CAPSULE)
-    col = pybullet.createCollisionShape(geom, **kwargs, **({"height": obstacle.size[1]} if axial else {}),
-                                        physicsClientId=client)
-    vis = pybullet.createVisualShape(geom, **kwargs, **({"length": obstacle.size[1]} if axial else {}),
-                                     rgbaColor=obstacle.rgba, physicsClientId=client)
+    col = pybullet.createCollisionShape(
+        geom, **kwargs, **({"height": obstacle.size[1]} if axial else {}), physicsClientId=client
+    )
+    vis = pybullet.createVisualShape(
+        geom,
+        **kwargs,
+        **({"length": obstacle.size[1]} if axial else {}),
+        rgbaColor=obstacle.rgba,
+        physicsClientId=client,
+    )
     return pybullet.createMultiBody(0.0, col, vis, obstacle.pos, quat, physicsClientId=client)
 
 
@@ -61,12 +73,17 @@ def drone_geometry(params: dict) -> dict:
     """
     inertia = np.asarray(params["inertia"], dtype=np.float64)
     if np.any(np.abs(inertia - np.diag(np.diag(inertia))) > 1e-12 * np.max(np.abs(inertia))):
-        raise ValueError(f"the PyBullet backend needs a diagonal inertia (principal axes along the body axes), "
-                         f"got {inertia.tolist()}")
+        raise ValueError(
+            f"the PyBullet backend needs a diagonal inertia (principal axes along the body axes), "
+            f"got {inertia.tolist()}"
+        )
     return {
-        "mass": float(params["mass"]), "inertia": tuple(np.diag(inertia).tolist()),
-        "collision_radius": float(params["collision_radius"]), "collision_height": float(params["collision_height"]),
-        "arm": float(params["arm"]), "prop_pos": tuple(map(tuple, np.asarray(params["prop_pos"]).tolist())),
+        "mass": float(params["mass"]),
+        "inertia": tuple(np.diag(inertia).tolist()),
+        "collision_radius": float(params["collision_radius"]),
+        "collision_height": float(params["collision_height"]),
+        "arm": float(params["arm"]),
+        "prop_pos": tuple(map(tuple, np.asarray(params["prop_pos"]).tolist())),
         "prop_radius": float(params["prop_radius"]),
     }
 
@@ -79,8 +96,12 @@ def create_drone(client: int, geometry: dict, damping: bool) -> int:
     velocity damping (0.04 linear and angular, docs/physics.md §5.2) is removed unless ``damping``; sleeping is
     disabled, so a drone resting on the ground responds to thrust at once.
     """
-    col = pybullet.createCollisionShape(pybullet.GEOM_CYLINDER, radius=geometry["collision_radius"],
-                                        height=geometry["collision_height"], physicsClientId=client)
+    col = pybullet.createCollisionShape(
+        pybullet.GEOM_CYLINDER,
+        radius=geometry["collision_radius"],
+        height=geometry["collision_height"],
+        physicsClientId=client,
+    )
     side = BODY_SIDE_PER_ARM * geometry["arm"]
     props = [(x, y, z + PROP_Z) for x, y, z in geometry["prop_pos"]]
     vis = pybullet.createVisualShapeArray(
@@ -90,7 +111,8 @@ def create_drone(client: int, geometry: dict, damping: bool) -> int:
         lengths=[0.0] + [PROP_THICKNESS] * 4,
         rgbaColors=[BODY_RGBA] + [PROP_RGBA] * 4,
         visualFramePositions=[[0.0, 0.0, 0.0]] + props,
-        physicsClientId=client)
+        physicsClientId=client,
+    )
     body = pybullet.createMultiBody(geometry["mass"], col, vis, physicsClientId=client)
     set_drone_dynamics(client, body, geometry, damping)
     return body
@@ -99,6 +121,12 @@ def create_drone(client: int, geometry: dict, damping: bool) -> int:
 def set_drone_dynamics(client: int, body: int, geometry: dict, damping: bool) -> None:
     """Set a drone body's mass, inertia, damping and sleeping (see `create_drone`)."""
     extra = {} if damping else {"linearDamping": 0.0, "angularDamping": 0.0}
-    pybullet.changeDynamics(body, -1, mass=geometry["mass"], localInertiaDiagonal=geometry["inertia"],
-                            activationState=pybullet.ACTIVATION_STATE_DISABLE_SLEEPING, **extra,
-                            physicsClientId=client)
+    pybullet.changeDynamics(
+        body,
+        -1,
+        mass=geometry["mass"],
+        localInertiaDiagonal=geometry["inertia"],
+        activationState=pybullet.ACTIVATION_STATE_DISABLE_SLEEPING,
+        **extra,
+        physicsClientId=client,
+    )

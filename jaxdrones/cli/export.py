@@ -10,14 +10,20 @@ import sys
 def register(subparsers) -> None:
     """Add the ``export`` subcommand to an argparse subparsers object."""
     parser = subparsers.add_parser(
-        "export", help="write a trained policy as one dependency-free C file (or an ONNX model)",
+        "export",
+        help="write a trained policy as one dependency-free C file (or an ONNX model)",
         description="Write the policy of a run of `jaxdrones train` (an MLP of apg or shac) as one C file: float32 "
-                    "weights and `void NAME(const float obs[N_OBS], float action[N_ACT])`, with the observation's "
-                    "layout, units, frames and clip and the action's mapping to motor commands in its header "
-                    "comment. Prints its path, its bytes of constants and its multiply-adds per call.")
+        "weights and `void NAME(const float obs[N_OBS], float action[N_ACT])`, with the observation's "
+        "layout, units, frames and clip and the action's mapping to motor commands in its header "
+        "comment. Prints its path, its bytes of constants and its multiply-adds per call.",
+    )
     parser.add_argument("run", help="a run folder of `jaxdrones train` (or its policy.pkl)")
-    parser.add_argument("--format", choices=("c", "onnx"), default="c",
-                        help="c (default), or onnx (an ONNX model of the same network; needs the onnx package)")
+    parser.add_argument(
+        "--format",
+        choices=("c", "onnx"),
+        default="c",
+        help="c (default), or onnx (an ONNX model of the same network; needs the onnx package)",
+    )
     parser.add_argument("--out", default=None, help="output file (default RUN/NAME.c or .onnx)")
     parser.add_argument("--name", default="jaxdrones_policy", help="the C function's name (default jaxdrones_policy)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
@@ -25,6 +31,7 @@ def register(subparsers) -> None:
 
 
 def run_cli(args: argparse.Namespace) -> int:
+    """Run ``jaxdrones export`` with its parsed arguments; returns the exit status."""
     from jaxdrones.export import export
 
     try:
@@ -35,6 +42,8 @@ def run_cli(args: argparse.Namespace) -> int:
     except (ValueError, ModuleNotFoundError) as e:
         print(f"jaxdrones export: {e}", file=sys.stderr)
         return 2
-    print(f"wrote {path}: {sizes['n_obs']} observations -> {sizes['n_act']} actions, {sizes['weight_bytes']} bytes "
-          f"of float32 constants, {sizes['multiply_adds']} multiply-adds per call")
+    print(
+        f"wrote {path}: {sizes['n_obs']} observations -> {sizes['n_act']} actions, {sizes['weight_bytes']} bytes "
+        f"of float32 constants, {sizes['multiply_adds']} multiply-adds per call"
+    )
     return 0

@@ -17,114 +17,241 @@ from jaxdrones.training.trainers import ALGOS, TRAINABLE, default_algo
 def register(subparsers) -> None:
     """Add the ``train`` subcommand to an argparse subparsers object."""
     parser = subparsers.add_parser(
-        "train", help="train a policy with batched PPO, APG, SHAC or multi-agent PPO",
+        "train",
+        help="train a policy with batched PPO, APG, SHAC or multi-agent PPO",
         description="Train a policy on a jaxdrones task with batched PPO (ours or brax's), through the "
-                    "differentiable simulator with APG or SHAC, or a team with multi-agent PPO, on every local "
-                    "device (and across processes with --coordinator); then evaluate it and save the policy, a "
-                    "learning curve, an evaluation flight plot and summary.json in a new run folder. Ctrl-C stops "
-                    "the run and saves the policy so far.")
-    parser.add_argument("task", help=f"task to train: {', '.join(TRAINABLE)}, or one of your own that a module "
-                                     f"given by --import registers (jaxdrones.envs.register)")
-    parser.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE",
-                        help="import MODULE first (from the current folder or the installed packages), e.g. one "
-                             "that registers a task of your own; repeatable")
+        "differentiable simulator with APG or SHAC, or a team with multi-agent PPO, on every local "
+        "device (and across processes with --coordinator); then evaluate it and save the policy, a "
+        "learning curve, an evaluation flight plot and summary.json in a new run folder. Ctrl-C stops "
+        "the run and saves the policy so far.",
+    )
+    parser.add_argument(
+        "task",
+        help=f"task to train: {', '.join(TRAINABLE)}, or one of your own that a module "
+        f"given by --import registers (jaxdrones.envs.register)",
+    )
+    parser.add_argument(
+        "--import",
+        dest="imports",
+        action="append",
+        default=[],
+        metavar="MODULE",
+        help="import MODULE first (from the current folder or the installed packages), e.g. one "
+        "that registers a task of your own; repeatable",
+    )
     ppo = parser.add_argument_group("training")
-    ppo.add_argument("--algo", choices=ALGOS, default=None,
-                     help="apg (analytic policy gradients through the simulator, the default for hover), ppo (our "
-                          "batched PPO), brax_ppo (brax's PPO, the default for the other single-agent tasks), shac "
-                          "(short-horizon actor-critic through the simulator), mappo (multi-agent PPO with a "
-                          "centralised critic, the default for multi-agent tasks) or ippo (independent PPO)")
+    ppo.add_argument(
+        "--algo",
+        choices=ALGOS,
+        default=None,
+        help="apg (analytic policy gradients through the simulator, the default for hover), ppo (our "
+        "batched PPO), brax_ppo (brax's PPO, the default for the other single-agent tasks), shac "
+        "(short-horizon actor-critic through the simulator), mappo (multi-agent PPO with a "
+        "centralised critic, the default for multi-agent tasks) or ippo (independent PPO)",
+    )
     ppo.add_argument("--steps", type=int, default=None, help="env steps to train (default: the task's tuned budget)")
     ppo.add_argument("--num-envs", type=int, default=None, help="parallel environments")
     ppo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    ppo.add_argument("--num-evals", type=int, default=None,
-                     help="evaluations over the run, the learning curve's points (default: the trainer's, 10)")
+    ppo.add_argument(
+        "--num-evals",
+        type=int,
+        default=None,
+        help="evaluations over the run, the learning curve's points (default: the trainer's, 10)",
+    )
     ppo.add_argument("--eval-episodes", type=int, default=256, help="evaluation episodes, >= 64 (default 256)")
     env = parser.add_argument_group("task")
-    env.add_argument("--action-type", default=None, help="action type (default: the task's): rpm, one_d_rpm (the "
-                     "paper's 1-D hover setting), pid, one_d_pid, vel, thrust_torque, one_d_thrust, tun, ctbr")
-    env.add_argument("--obs-type", default=None, help="observation type (default: the task's): kin, kin_norm, "
-                     "kin_rotmat, neighbors")
+    env.add_argument(
+        "--action-type",
+        default=None,
+        help="action type (default: the task's): rpm, one_d_rpm (the "
+        "paper's 1-D hover setting), pid, one_d_pid, vel, thrust_torque, one_d_thrust, tun, ctbr",
+    )
+    env.add_argument(
+        "--obs-type", default=None, help="observation type (default: the task's): kin, kin_norm, kin_rotmat, neighbors"
+    )
     env.add_argument("--model", default=None, help="drone model name (cf2x, cf2p, racer) or URDF path")
-    env.add_argument("--num-drones", type=int, default=None,
-                     help="drones per world (single-agent tasks: 1; multi-agent tasks: 2 by default)")
+    env.add_argument(
+        "--num-drones",
+        type=int,
+        default=None,
+        help="drones per world (single-agent tasks: 1; multi-agent tasks: 2 by default)",
+    )
     env.add_argument("--ctrl-freq", type=int, default=None, help="control rate, Hz (default 30)")
     env.add_argument("--episode-len", type=float, default=None, help="episode length, s")
-    env.add_argument("--reward", choices=("shaped", "paper"), default=None,
-                     help="shaped (default, for fast learning) or the paper's reward")
+    env.add_argument(
+        "--reward",
+        choices=("shaped", "paper"),
+        default=None,
+        help="shaped (default, for fast learning) or the paper's reward",
+    )
     for effect in ("drag", "ground-effect", "downwash"):
-        env.add_argument(f"--{effect}", action=argparse.BooleanOptionalAction, default=None,
-                         help=f"aerodynamic effect {effect.replace('-', ' ')} on, or off with --no-{effect} "
-                              f"(default: the task's; downwash is on in crossing)")
-    env.add_argument("--max-neighbors", type=int, default=None, metavar="K",
-                     help="neighbors observation of the K nearest drones only (default: every drone)")
-    env.add_argument("--downwash-radius", type=float, default=None, metavar="R",
-                     help="downwash cut-off in m, with a neighbour list: a cost linear in the team size (default: "
-                          "every pair of drones within 10 m, the original)")
+        env.add_argument(
+            f"--{effect}",
+            action=argparse.BooleanOptionalAction,
+            default=None,
+            help=f"aerodynamic effect {effect.replace('-', ' ')} on, or off with --no-{effect} "
+            f"(default: the task's; downwash is on in crossing)",
+        )
+    env.add_argument(
+        "--max-neighbors",
+        type=int,
+        default=None,
+        metavar="K",
+        help="neighbors observation of the K nearest drones only (default: every drone)",
+    )
+    env.add_argument(
+        "--downwash-radius",
+        type=float,
+        default=None,
+        metavar="R",
+        help="downwash cut-off in m, with a neighbour list: a cost linear in the team size (default: "
+        "every pair of drones within 10 m, the original)",
+    )
     env.add_argument("--backend", choices=("jax", "pybullet"), default=None, help="physics backend (default jax)")
-    env.add_argument("--vision", nargs="+", choices=("rgb", "depth", "seg"), default=None, metavar="IMAGE",
-                     help="camera images in the observation (rgb, depth, seg; default: the task's, avoid: depth): "
-                          "trained with brax's vision PPO")
-    env.add_argument("--image-size", type=int, nargs=2, default=None, metavar=("W", "H"),
-                     help="camera image size, pixels (default: the task's; avoid: 64 x 16)")
+    env.add_argument(
+        "--vision",
+        nargs="+",
+        choices=("rgb", "depth", "seg"),
+        default=None,
+        metavar="IMAGE",
+        help="camera images in the observation (rgb, depth, seg; default: the task's, avoid: depth): "
+        "trained with brax's vision PPO",
+    )
+    env.add_argument(
+        "--image-size",
+        type=int,
+        nargs=2,
+        default=None,
+        metavar=("W", "H"),
+        help="camera image size, pixels (default: the task's; avoid: 64 x 16)",
+    )
     env.add_argument("--camera-freq", type=float, default=None, help="camera rate, Hz")
-    env.add_argument("--camera-fov", type=float, default=None, metavar="DEG",
-                     help="the cameras' vertical field of view, degrees (default: the task's; the paper's 60)")
-    env.add_argument("--frame-stack", type=int, default=None, metavar="K",
-                     help="the last K camera frames in the observation, a memory for the policy (default: the "
-                          "task's, 1)")
-    env.add_argument("--target", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
-                     help="hover/takeoff target, m")
-    env.add_argument("--start-pos-range", type=float, nargs=3, default=None, metavar=("DX", "DY", "DZ"),
-                     help="half-widths of random start positions, m")
+    env.add_argument(
+        "--camera-fov",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="the cameras' vertical field of view, degrees (default: the task's; the paper's 60)",
+    )
+    env.add_argument(
+        "--frame-stack",
+        type=int,
+        default=None,
+        metavar="K",
+        help="the last K camera frames in the observation, a memory for the policy (default: the task's, 1)",
+    )
+    env.add_argument(
+        "--target", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"), help="hover/takeoff target, m"
+    )
+    env.add_argument(
+        "--start-pos-range",
+        type=float,
+        nargs=3,
+        default=None,
+        metavar=("DX", "DY", "DZ"),
+        help="half-widths of random start positions, m",
+    )
     env.add_argument("--start-tilt", type=float, default=None, help="largest random start tilt, rad")
     env.add_argument("--start-yaw", type=float, default=None, help="half-width of the random start yaw, rad")
     env.add_argument("--start-vel", type=float, default=None, help="half-width of random start velocities, m/s")
-    env.add_argument("--start-ang-vel", type=float, default=None,
-                     help="half-width of random start body rates, rad/s (default: the task's; multi_hover trains from "
-                          "1 rad/s and is evaluated from its own 0.1)")
-    env.add_argument("--realism", default=None, metavar="PRESET",
-                     help="sim-to-real preset: crazyflie (Learning to Fly in Seconds' Crazyflie: 0.15 s motor lag, "
-                          "observation noise, a random force and torque per episode) or crazyflie_harsh (twice its "
-                          "lag and noise, 1 m/s Dryden turbulence); default none, the paper's physics")
-    env.add_argument("--realism-set", action="append", default=[], metavar="NAME=VALUE",
-                     help="one sim-to-real option (a field of jaxdrones.Realism), over --realism's preset: a value or "
-                          "a range LOW,HIGH drawn per episode, e.g. action_delay=1, motor_tau_up=0.05,0.2, "
-                          "turbulence=0.5; repeatable")
+    env.add_argument(
+        "--start-ang-vel",
+        type=float,
+        default=None,
+        help="half-width of random start body rates, rad/s (default: the task's; multi_hover trains from "
+        "1 rad/s and is evaluated from its own 0.1)",
+    )
+    env.add_argument(
+        "--realism",
+        default=None,
+        metavar="PRESET",
+        help="sim-to-real preset: crazyflie (Learning to Fly in Seconds' Crazyflie: 0.15 s motor lag, "
+        "observation noise, a random force and torque per episode) or crazyflie_harsh (twice its "
+        "lag and noise, 1 m/s Dryden turbulence); default none, the paper's physics",
+    )
+    env.add_argument(
+        "--realism-set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="one sim-to-real option (a field of jaxdrones.Realism), over --realism's preset: a value or "
+        "a range LOW,HIGH drawn per episode, e.g. action_delay=1, motor_tau_up=0.05,0.2, "
+        "turbulence=0.5; repeatable",
+    )
     out = parser.add_argument_group("output")
-    out.add_argument("--out", default=None, help="output folder (default runs/TASK; a numbered sibling is used if "
-                                                 "it exists, unless --overwrite)")
+    out.add_argument(
+        "--out",
+        default=None,
+        help="output folder (default runs/TASK; a numbered sibling is used if it exists, unless --overwrite)",
+    )
     out.add_argument("--overwrite", action="store_true", help="replace the contents of an existing --out")
     out.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    out.add_argument("--no-compile-cache", action="store_true",
-                     help="do not use JAX's persistent compilation cache (default: on, in $JAXDRONES_CACHE_DIR or "
-                          "~/.cache/jaxdrones/xla, so that a second run compiles nothing)")
+    out.add_argument(
+        "--no-compile-cache",
+        action="store_true",
+        help="do not use JAX's persistent compilation cache (default: on, in $JAXDRONES_CACHE_DIR or "
+        "~/.cache/jaxdrones/xla, so that a second run compiles nothing)",
+    )
     devices = parser.add_argument_group("devices and processes")
-    devices.add_argument("--device", default=None, metavar="PLATFORM",
-                         help="run on this JAX platform: cpu, gpu (cuda or rocm) or tpu (default: JAX's choice, a GPU "
-                              "when one is installed); the worlds are spread over all its local devices")
-    devices.add_argument("--coordinator", default=None, metavar="HOST:PORT",
-                         help="train across processes with jax.distributed: the address of process 0's coordinator "
-                              "(with --num-processes and --process-id; or set nothing and let "
-                              "jax.distributed.initialize read SLURM's or the cluster's variables with --distributed)")
+    devices.add_argument(
+        "--device",
+        default=None,
+        metavar="PLATFORM",
+        help="run on this JAX platform: cpu, gpu (cuda or rocm) or tpu (default: JAX's choice, a GPU "
+        "when one is installed); the worlds are spread over all its local devices",
+    )
+    devices.add_argument(
+        "--coordinator",
+        default=None,
+        metavar="HOST:PORT",
+        help="train across processes with jax.distributed: the address of process 0's coordinator "
+        "(with --num-processes and --process-id; or set nothing and let "
+        "jax.distributed.initialize read SLURM's or the cluster's variables with --distributed)",
+    )
     devices.add_argument("--num-processes", type=int, default=None, help="processes in the run (with --coordinator)")
     devices.add_argument("--process-id", type=int, default=None, help="this process's index, 0 .. N-1")
-    devices.add_argument("--distributed", action="store_true",
-                         help="call jax.distributed.initialize() with no arguments: it reads the coordinator, the "
-                              "process count and index from the cluster (SLURM, Open MPI, Cloud TPU, ...)")
-    devices.add_argument("--distributed-timeout", type=int, default=60, metavar="S",
-                         help="seconds to wait for every process to join the coordinator before failing (default 60)")
+    devices.add_argument(
+        "--distributed",
+        action="store_true",
+        help="call jax.distributed.initialize() with no arguments: it reads the coordinator, the "
+        "process count and index from the cluster (SLURM, Open MPI, Cloud TPU, ...)",
+    )
+    devices.add_argument(
+        "--distributed-timeout",
+        type=int,
+        default=60,
+        metavar="S",
+        help="seconds to wait for every process to join the coordinator before failing (default 60)",
+    )
     parser.set_defaults(func=run_cli)
 
 
-_ENV_OPTIONS = {"action_type": "action_type", "obs_type": "obs_type", "model": "model", "num_drones": "n_drones",
-                "ctrl_freq": "ctrl_freq", "episode_len": "episode_len_s", "reward": "reward", "backend": "backend",
-                "target": "target", "start_pos_range": "start_pos_range", "start_tilt": "start_tilt",
-                "start_yaw": "start_yaw", "start_vel": "start_vel", "start_ang_vel": "start_ang_vel",
-                "max_neighbors": "max_neighbors", "downwash_radius": "downwash_radius", "drag": "drag",
-                "ground_effect": "ground_effect", "downwash": "downwash", "vision": "vision",
-                "image_size": "image_size", "camera_freq": "camera_freq", "camera_fov": "camera_fov",
-                "frame_stack": "frame_stack"}
+_ENV_OPTIONS = {
+    "action_type": "action_type",
+    "obs_type": "obs_type",
+    "model": "model",
+    "num_drones": "n_drones",
+    "ctrl_freq": "ctrl_freq",
+    "episode_len": "episode_len_s",
+    "reward": "reward",
+    "backend": "backend",
+    "target": "target",
+    "start_pos_range": "start_pos_range",
+    "start_tilt": "start_tilt",
+    "start_yaw": "start_yaw",
+    "start_vel": "start_vel",
+    "start_ang_vel": "start_ang_vel",
+    "max_neighbors": "max_neighbors",
+    "downwash_radius": "downwash_radius",
+    "drag": "drag",
+    "ground_effect": "ground_effect",
+    "downwash": "downwash",
+    "vision": "vision",
+    "image_size": "image_size",
+    "camera_freq": "camera_freq",
+    "camera_fov": "camera_fov",
+    "frame_stack": "frame_stack",
+}
 
 
 def realism_options(preset: str | None, settings: list[str]):
@@ -181,8 +308,14 @@ def run_cli(args: argparse.Namespace) -> int:
         _positive("--eval-episodes", args.eval_episodes)
         _positive("--num-evals", args.num_evals)
         _positive("--distributed-timeout", args.distributed_timeout)
-        devices.start(platform=args.device, coordinator=args.coordinator, num_processes=args.num_processes,
-                      process_id=args.process_id, auto=args.distributed, timeout_s=args.distributed_timeout)
+        devices.start(
+            platform=args.device,
+            coordinator=args.coordinator,
+            num_processes=args.num_processes,
+            process_id=args.process_id,
+            auto=args.distributed,
+            timeout_s=args.distributed_timeout,
+        )
         if not args.no_compile_cache:
             enable_compilation_cache()
         env = {field: getattr(args, arg) for arg, field in _ENV_OPTIONS.items() if getattr(args, arg) is not None}
@@ -207,9 +340,17 @@ def run_cli(args: argparse.Namespace) -> int:
             if trainer.name == "brax_ppo":
                 overrides["batch_size"] = args.num_envs
         config = dataclasses.replace(trainer.default_config(args.task, vision), **overrides)
-        summary = train_task(args.task, args.out, overwrite=args.overwrite, env_overrides=env, config=config,
-                             n_eval_episodes=args.eval_episodes, progress=not args.no_progress,
-                             t_start=getattr(args, "t_start", None), algo=trainer.name)
+        summary = train_task(
+            args.task,
+            args.out,
+            overwrite=args.overwrite,
+            env_overrides=env,
+            config=config,
+            n_eval_episodes=args.eval_episodes,
+            progress=not args.no_progress,
+            t_start=getattr(args, "t_start", None),
+            algo=trainer.name,
+        )
     except (ValueError, OSError, ImportError, devices.DeviceError) as err:
         print(f"jaxdrones train: error: {err}", file=sys.stderr)
         return 2
@@ -219,15 +360,19 @@ def run_cli(args: argparse.Namespace) -> int:
     if "out_dir" not in summary:  # a process other than 0: process 0 reports and saves
         return 0
     if summary["interrupted"]:
-        print(f"interrupted after {summary['env_steps']:,} env steps: saved the policy so far in "
-              f"{summary['out_dir']}", file=sys.stderr)
+        print(
+            f"interrupted after {summary['env_steps']:,} env steps: saved the policy so far in {summary['out_dir']}",
+            file=sys.stderr,
+        )
         return 130
     verdict = "solved" if summary["success"] else "not solved"
     stats = summary["eval"]
-    print(f"{verdict}: {summary['success_metric']} {summary['success_value']:.4g} {summary['success_unit']} "
-          f"(threshold {summary['success_threshold']:g}) over {stats['n_episodes']} random starts "
-          f"({stats['terminated_rate']:.1%} terminated), {summary['env_steps']:,} env steps, "
-          f"{summary['wall_time_s']:.1f} s wall time")
+    print(
+        f"{verdict}: {summary['success_metric']} {summary['success_value']:.4g} {summary['success_unit']} "
+        f"(threshold {summary['success_threshold']:g}) over {stats['n_episodes']} random starts "
+        f"({stats['terminated_rate']:.1%} terminated), {summary['env_steps']:,} env steps, "
+        f"{summary['wall_time_s']:.1f} s wall time"
+    )
     viewer = ", flight.html" if os.path.exists(os.path.join(summary["out_dir"], "flight.html")) else ""
     print(f"saved policy.pkl, learning_curve.png, flight.png{viewer}, summary.json in {summary['out_dir']}")
     return 0

@@ -27,7 +27,21 @@ from jaxdrones.control.pid import (
 )
 
 __all__ = [
-    "PIDGains", "PIDInfo", "PIDState", "RateGains", "allocation_matrix", "body_rate_control", "body_rate_torque",
-    "mixer_matrix", "nnls_rpm_squared", "pid_compute", "pid_control", "pid_init", "speed_limit", "velocity_control",
-    "velocity_targets", "wrench_scale", "wrench_to_rpm",
+    "PIDGains",
+    "PIDInfo",
+    "PIDState",
+    "RateGains",
+    "allocation_matrix",
+    "body_rate_control",
+    "body_rate_torque",
+    "mixer_matrix",
+    "nnls_rpm_squared",
+    "pid_compute",
+    "pid_control",
+    "pid_init",
+    "speed_limit",
+    "velocity_control",
+    "velocity_targets",
+    "wrench_scale",
+    "wrench_to_rpm",
 ]

@@ -69,8 +69,9 @@ class RateGains:
 def allocation_matrix(params: DroneParams) -> jax.Array:
     """The motor mixer of the explicit dynamics: wrench = A @ rpm², exactly as `jaxdrones.dynamics` computes it.
 
-    Rows (docs/physics.md §3.1, ``main:BA:838-855``): collective thrust T = kf Σ rpm_i²; (τx, τy) = kf · torque_arm @ rpm²
-    (the explicit model's lever arms: L/√2 along each diagonal for an x frame, L along each axis for a + frame);
+    Rows (docs/physics.md §3.1, ``main:BA:838-855``): collective thrust T = kf Σ rpm_i²;
+    (τx, τy) = kf · torque_arm @ rpm² (the explicit model's lever arms: L/√2 along each diagonal for an x frame, L
+    along each axis for a + frame);
     τz = −km Σ spin_i rpm_i² (`dynamics.yaw_torque_c`: a counter-clockwise motor, spin +1, pushes the body
     clockwise).
 
@@ -91,8 +92,12 @@ def allocation_matrix(params: DroneParams) -> jax.Array:
 
 def _allocation_matrix(params: DroneParams) -> jax.Array:
     kf = params.kf[..., None]
-    rows = (kf * jnp.ones_like(params.prop_spin), kf * params.torque_arm[..., 0, :], kf * params.torque_arm[..., 1, :],
-            -params.km[..., None] * params.prop_spin)
+    rows = (
+        kf * jnp.ones_like(params.prop_spin),
+        kf * params.torque_arm[..., 0, :],
+        kf * params.torque_arm[..., 1, :],
+        -params.km[..., None] * params.prop_spin,
+    )
     return jnp.stack(rows, axis=-2)
 
 
@@ -222,8 +227,9 @@ def body_rate_control(params: DroneParams, ang_vel, rate_cmd, thrust, gains: Rat
             is not a RateGains or its ``k_rate`` is not f[..., 3], or ``params`` does not broadcast against the
             drones' leading shape.
     """
-    ang_vel, rate_cmd, thrust, gains, params = _prepare_rates(params, ang_vel, rate_cmd, thrust, gains,
-                                                              "body_rate_control")
+    ang_vel, rate_cmd, thrust, gains, params = _prepare_rates(
+        params, ang_vel, rate_cmd, thrust, gains, "body_rate_control"
+    )
     return _body_rate_control(params, ang_vel, rate_cmd, thrust, gains)
 
 
@@ -332,8 +338,10 @@ def _check_params(params) -> None:
 
 def _float_array(value, params: DroneParams, what: str) -> jax.Array:
     value = jnp.asarray(value)
-    if not (jnp.issubdtype(value.dtype, jnp.floating) or jnp.issubdtype(value.dtype, jnp.integer)) \
-            or value.dtype == bool:
+    if (
+        not (jnp.issubdtype(value.dtype, jnp.floating) or jnp.issubdtype(value.dtype, jnp.integer))
+        or value.dtype == bool
+    ):
         raise ValueError(f"{what} must be a real (float or int) array, got dtype {value.dtype}")
     return value.astype(jnp.result_type(params.kf.dtype, value.dtype, float))
 
@@ -348,9 +356,11 @@ def _broadcast_params(params: DroneParams, lead: tuple[int, ...], name: str) -> 
     try:
         full = tuple(np.broadcast_shapes(batch, lead))
     except ValueError:
-        raise ValueError(f"{name}: params have batch shape {batch}, which does not broadcast against the drones' "
-                         f"leading shape {lead} (batched params are right-aligned with the drone axis: per-drone "
-                         f"[D] or [W, D], per-world [W, 1])") from None
+        raise ValueError(
+            f"{name}: params have batch shape {batch}, which does not broadcast against the drones' "
+            f"leading shape {lead} (batched params are right-aligned with the drone axis: per-drone "
+            f"[D] or [W, D], per-world [W, 1])"
+        ) from None
     extra = (1,) * (len(full) - len(batch))
     return full, jax.tree.map(lambda leaf: jnp.reshape(leaf, extra + leaf.shape), params)
 
@@ -371,8 +381,7 @@ def _prepare_rates(params, ang_vel, rate_cmd, thrust, gains, name: str):
     _check_params(params)
     gains = RateGains.flightmare() if gains is None else gains
     if not isinstance(gains, RateGains):
-        raise ValueError(f"{name}: gains must be a RateGains (e.g. RateGains.flightmare()), got "
-                         f"{type(gains).__name__}")
+        raise ValueError(f"{name}: gains must be a RateGains (e.g. RateGains.flightmare()), got {type(gains).__name__}")
     ang_vel = _float_array(ang_vel, params, f"{name}: ang_vel")
     if ang_vel.ndim < 2 or ang_vel.shape[-1] != 3:
         raise ValueError(f"{name}: ang_vel must have shape [..., D, 3] (rad/s, body frame), got {ang_vel.shape}")
@@ -381,13 +390,16 @@ def _prepare_rates(params, ang_vel, rate_cmd, thrust, gains, name: str):
     k_rate = _float_array(gains.k_rate, params, f"{name}: gains.k_rate")
     for what, value in (("rate_cmd", rate_cmd), ("gains.k_rate", k_rate)):
         if value.ndim < 1 or value.shape[-1] != 3 or not _broadcasts(value.shape, shape):
-            raise ValueError(f"{name}: {what} must broadcast to ang_vel's shape {shape} ([..., D, 3]), got "
-                             f"{value.shape}")
+            raise ValueError(
+                f"{name}: {what} must broadcast to ang_vel's shape {shape} ([..., D, 3]), got {value.shape}"
+            )
     if thrust is not None:
         thrust = _float_array(thrust, params, f"{name}: thrust")
         if not _broadcasts(thrust.shape, shape[:-1]):
-            raise ValueError(f"{name}: thrust must broadcast to the drones' leading shape {shape[:-1]} ([..., D], N), "
-                             f"got {thrust.shape}")
+            raise ValueError(
+                f"{name}: thrust must broadcast to the drones' leading shape {shape[:-1]} ([..., D], N), "
+                f"got {thrust.shape}"
+            )
     lead, params = _broadcast_params(params, shape[:-1], name)
     dtype = jnp.result_type(ang_vel.dtype, rate_cmd.dtype, k_rate.dtype, *(() if thrust is None else (thrust.dtype,)))
     ang_vel = jnp.broadcast_to(ang_vel.astype(dtype), lead + (3,))

@@ -59,8 +59,12 @@ _XYZ_GIMBAL_EPS = 1e-7
 #: The DSL gains of the paper's controller by `PIDGains` field (docs/physics.md §12.1; DSLPIDControl.py's
 #: ``P_COEFF_FOR`` ... ``D_COEFF_TOR``).
 DSL_GAINS = dict(
-    p_pos=(0.4, 0.4, 1.25), i_pos=(0.05, 0.05, 0.05), d_pos=(0.2, 0.2, 0.5),
-    p_att=(70000.0, 70000.0, 60000.0), i_att=(0.0, 0.0, 500.0), d_att=(20000.0, 20000.0, 12000.0),
+    p_pos=(0.4, 0.4, 1.25),
+    i_pos=(0.05, 0.05, 0.05),
+    d_pos=(0.2, 0.2, 0.5),
+    p_att=(70000.0, 70000.0, 60000.0),
+    i_att=(0.0, 0.0, 500.0),
+    d_att=(20000.0, 20000.0, 12000.0),
 )
 
 
@@ -88,7 +92,7 @@ class PIDGains:
     d_att: jax.Array
 
     @classmethod
-    def dsl(cls, dtype=None) -> "PIDGains":
+    def dsl(cls, dtype=None) -> PIDGains:
         """The DSL gains of the paper's controller (docs/physics.md §12.1), in JAX's default float or ``dtype``."""
         dtype = jnp.result_type(float) if dtype is None else dtype
         return cls(**{k: jnp.asarray(v, dtype=dtype) for k, v in DSL_GAINS.items()})
@@ -145,8 +149,10 @@ def pid_init(shape_or_state, dtype=None) -> PIDState:
     else:
         lead = tuple(int(n) for n in np.atleast_1d(shape_or_state))
         if not lead or any(n < 1 for n in lead):
-            raise ValueError(f"pid_init: expected a DroneState or a leading shape (..., n_drones) of positive "
-                             f"sizes, got {shape_or_state!r}")
+            raise ValueError(
+                f"pid_init: expected a DroneState or a leading shape (..., n_drones) of positive "
+                f"sizes, got {shape_or_state!r}"
+            )
         shape = lead + (3,)
     dtype = jnp.result_type(float) if dtype is None else dtype
     zeros = jnp.zeros(shape, dtype=dtype)
@@ -222,8 +228,18 @@ def euler_xyz_from_rotmat(rotmat: jax.Array) -> jax.Array:
     return jnp.stack([a, b, c], axis=-1)
 
 
-def pid_control(params: DroneParams, gains: PIDGains, pid_state: PIDState, state: DroneState, target_pos, *,
-                target_vel=None, target_rpy=None, target_rpy_rates=None, ctrl_dt) -> tuple[jax.Array, PIDState]:
+def pid_control(
+    params: DroneParams,
+    gains: PIDGains,
+    pid_state: PIDState,
+    state: DroneState,
+    target_pos,
+    *,
+    target_vel=None,
+    target_rpy=None,
+    target_rpy_rates=None,
+    ctrl_dt,
+) -> tuple[jax.Array, PIDState]:
     """One call of DSLPIDControl ``computeControl`` for every drone: motor speeds and the updated controller state.
 
     Same as `pid_compute` without the intermediate values; see there for arguments, units and errors.
@@ -231,14 +247,32 @@ def pid_control(params: DroneParams, gains: PIDGains, pid_state: PIDState, state
     Returns:
         (rpm f[..., D, 4] in RPM, new PIDState).
     """
-    rpm, new_state, _ = pid_compute(params, gains, pid_state, state, target_pos, target_vel=target_vel,
-                                    target_rpy=target_rpy, target_rpy_rates=target_rpy_rates, ctrl_dt=ctrl_dt)
+    rpm, new_state, _ = pid_compute(
+        params,
+        gains,
+        pid_state,
+        state,
+        target_pos,
+        target_vel=target_vel,
+        target_rpy=target_rpy,
+        target_rpy_rates=target_rpy_rates,
+        ctrl_dt=ctrl_dt,
+    )
     return rpm, new_state
 
 
-def pid_compute(params: DroneParams, gains: PIDGains, pid_state: PIDState, state: DroneState, target_pos, *,
-                target_vel=None, target_rpy=None, target_rpy_rates=None,
-                ctrl_dt) -> tuple[jax.Array, PIDState, PIDInfo]:
+def pid_compute(
+    params: DroneParams,
+    gains: PIDGains,
+    pid_state: PIDState,
+    state: DroneState,
+    target_pos,
+    *,
+    target_vel=None,
+    target_rpy=None,
+    target_rpy_rates=None,
+    ctrl_dt,
+) -> tuple[jax.Array, PIDState, PIDInfo]:
     """DSLPIDControl ``computeControl`` (docs/physics.md §12), batched.
 
     Source: gym-pybullet-drones main, control/DSLPIDControl.py:82-145, 187-208, 240-259.
@@ -273,8 +307,10 @@ def pid_compute(params: DroneParams, gains: PIDGains, pid_state: PIDState, state
     """
     _check_state(state)
     if not isinstance(pid_state, PIDState) or not isinstance(gains, PIDGains):
-        raise ValueError(f"expected a PIDGains and a PIDState (see PIDGains.dsl() and pid_init()), got "
-                         f"{type(gains).__name__} and {type(pid_state).__name__}")
+        raise ValueError(
+            f"expected a PIDGains and a PIDState (see PIDGains.dsl() and pid_init()), got "
+            f"{type(gains).__name__} and {type(pid_state).__name__}"
+        )
     targets = tuple(_host_array(t) for t in (target_pos, target_vel, target_rpy, target_rpy_rates))
     return _pid_checked(params, gains, pid_state, state, *targets, _check_dt(ctrl_dt, state.pos.dtype))
 
@@ -289,8 +325,7 @@ def _pid_checked(params, gains, pid_state, state, target_pos, target_vel, target
     target_vel = _as_shape("target_vel", target_vel, shape, dtype)
     target_rpy = _as_shape("target_rpy", target_rpy, shape, dtype)
     target_rpy_rates = _as_shape("target_rpy_rates", target_rpy_rates, shape, dtype)
-    return _pid_compute(params, gains, pid_state, state, target_pos, target_vel, target_rpy, target_rpy_rates,
-                        ctrl_dt)
+    return _pid_compute(params, gains, pid_state, state, target_pos, target_vel, target_rpy, target_rpy_rates, ctrl_dt)
 
 
 def _host_array(value):
@@ -304,13 +339,16 @@ def _pid_compute(params, gains, pid_state, state, target_pos, target_vel, target
     rotmat = quat_to_rotmat(state.quat)
     with jax.named_scope("pid_position"):
         thrust_pwm, target_euler, pos_err, integral_pos_e = _position_loop(
-            params, gains, pid_state.integral_pos_e, rotmat, state, target_pos, target_vel, target_rpy, ctrl_dt)
+            params, gains, pid_state.integral_pos_e, rotmat, state, target_pos, target_vel, target_rpy, ctrl_dt
+        )
     with jax.named_scope("pid_attitude"):
         rpm, rpy, integral_rpy_e = _attitude_loop(
-            params, gains, pid_state, rotmat, state.quat, thrust_pwm, target_euler, target_rpy_rates, ctrl_dt)
+            params, gains, pid_state, rotmat, state.quat, thrust_pwm, target_euler, target_rpy_rates, ctrl_dt
+        )
     new_state = PIDState(integral_pos_e=integral_pos_e, integral_rpy_e=integral_rpy_e, last_rpy=rpy)
-    info = PIDInfo(pos_err=pos_err, yaw_err=target_euler[..., 2] - rpy[..., 2], target_euler=target_euler,
-                   thrust_pwm=thrust_pwm)
+    info = PIDInfo(
+        pos_err=pos_err, yaw_err=target_euler[..., 2] - rpy[..., 2], target_euler=target_euler, thrust_pwm=thrust_pwm
+    )
     return rpm, new_state, info
 
 
@@ -342,7 +380,7 @@ def _attitude_loop(params, gains, pid_state, rotmat, quat, thrust_pwm, target_eu
     """``_dslPIDAttitudeControl`` (docs/physics.md §12.3; main, control/DSLPIDControl.py:240-259)."""
     rpy = quat_to_euler(quat)
     target_rotmat = rotmat_from_euler_xyz(target_euler)
-    err = (jnp.swapaxes(target_rotmat, -1, -2) @ rotmat - jnp.swapaxes(rotmat, -1, -2) @ target_rotmat)
+    err = jnp.swapaxes(target_rotmat, -1, -2) @ rotmat - jnp.swapaxes(rotmat, -1, -2) @ target_rotmat
     rot_err = jnp.stack([err[..., 2, 1], err[..., 0, 2], err[..., 1, 0]], axis=-1)
     rate_err = target_rpy_rates - (rpy - pid_state.last_rpy) / dt
     limit = jnp.asarray(ATT_INTEGRAL_LIMIT, dtype=rot_err.dtype)
@@ -399,8 +437,9 @@ def _velocity_targets(state, action, limit):
     return state.pos, target_vel, target_rpy
 
 
-def velocity_control(params: DroneParams, gains: PIDGains, pid_state: PIDState, state: DroneState, action, *,
-                     ctrl_dt, limit=None) -> tuple[jax.Array, PIDState]:
+def velocity_control(
+    params: DroneParams, gains: PIDGains, pid_state: PIDState, state: DroneState, action, *, ctrl_dt, limit=None
+) -> tuple[jax.Array, PIDState]:
     """Desired-velocity control (the paper's VEL action): `velocity_targets` followed by `pid_control`.
 
     Args:
@@ -417,18 +456,25 @@ def velocity_control(params: DroneParams, gains: PIDGains, pid_state: PIDState, 
     """
     limit = speed_limit(params) if limit is None else limit
     target_pos, target_vel, target_rpy = velocity_targets(state, action, limit)
-    return pid_control(params, gains, pid_state, state, target_pos, target_vel=target_vel, target_rpy=target_rpy,
-                       ctrl_dt=ctrl_dt)
+    return pid_control(
+        params, gains, pid_state, state, target_pos, target_vel=target_vel, target_rpy=target_rpy, ctrl_dt=ctrl_dt
+    )
 
 
 def _check_state(state: DroneState) -> tuple[tuple[int, ...], jnp.dtype]:
     if not isinstance(state, DroneState):
         raise ValueError(f"expected a DroneState, got {type(state).__name__}")
     pos_shape, quat_shape = tuple(state.pos.shape), tuple(state.quat.shape)
-    if len(pos_shape) < 2 or pos_shape[-1] != 3 or quat_shape != pos_shape[:-1] + (4,) \
-            or tuple(state.vel.shape) != pos_shape:
-        raise ValueError(f"state must have pos/vel f[..., D, 3] and quat f[..., D, 4] with the same leading shape, "
-                         f"got pos {pos_shape}, vel {tuple(state.vel.shape)}, quat {quat_shape}")
+    if (
+        len(pos_shape) < 2
+        or pos_shape[-1] != 3
+        or quat_shape != pos_shape[:-1] + (4,)
+        or tuple(state.vel.shape) != pos_shape
+    ):
+        raise ValueError(
+            f"state must have pos/vel f[..., D, 3] and quat f[..., D, 4] with the same leading shape, "
+            f"got pos {pos_shape}, vel {tuple(state.vel.shape)}, quat {quat_shape}"
+        )
     return pos_shape, state.pos.dtype
 
 
@@ -442,8 +488,10 @@ def _as_shape(name: str, value, shape: tuple[int, ...], dtype) -> jax.Array:
     except ValueError:
         ok = False
     if not ok or value.ndim == 0 or value.shape[-1] != shape[-1]:
-        raise ValueError(f"{name} must broadcast to shape {shape} ([..., n_drones, {shape[-1]}] with the state's "
-                         f"leading shape), got {value.shape}")
+        raise ValueError(
+            f"{name} must broadcast to shape {shape} ([..., n_drones, {shape[-1]}] with the state's "
+            f"leading shape), got {value.shape}"
+        )
     return jnp.broadcast_to(value, shape)
 
 

@@ -14,20 +14,40 @@ from jaxdrones.envs.config import DomainRandomization, TaskConfig
 from jaxdrones.envs.env import TaskEnv
 from jaxdrones.envs.observations import OBS_TYPES, kinematic_obs
 from jaxdrones.envs.registry import (
-                                     MULTI_AGENT,
-                                     REALISM_OPTIONS,
-                                     SINGLE_AGENT,
-                                     get_task,
-                                     is_multi_agent,
-                                     make,
-                                     make_config,
-                                     register,
-                                     registered,
-                                     subscribe,
+    MULTI_AGENT,
+    REALISM_OPTIONS,
+    SINGLE_AGENT,
+    get_task,
+    is_multi_agent,
+    make,
+    make_config,
+    register,
+    registered,
+    subscribe,
 )
 from jaxdrones.envs.task import Task, TaskParams
 from jaxdrones.envs.tasks.single import HoverConfig
 
-__all__ = ["ACTION_TYPES", "MULTI_AGENT", "OBS_TYPES", "REALISM_OPTIONS", "SINGLE_AGENT", "DomainRandomization", "Env", "EnvState",
-           "HoverConfig", "Task", "TaskConfig", "TaskEnv", "TaskParams", "get_task", "is_multi_agent", "kinematic_obs",
-           "make", "make_config", "register", "registered", "subscribe"]
+__all__ = [
+    "ACTION_TYPES",
+    "MULTI_AGENT",
+    "OBS_TYPES",
+    "REALISM_OPTIONS",
+    "SINGLE_AGENT",
+    "DomainRandomization",
+    "Env",
+    "EnvState",
+    "HoverConfig",
+    "Task",
+    "TaskConfig",
+    "TaskEnv",
+    "TaskParams",
+    "get_task",
+    "is_multi_agent",
+    "kinematic_obs",
+    "make",
+    "make_config",
+    "register",
+    "registered",
+    "subscribe",
+]

@@ -106,8 +106,9 @@ class ActionType:
         """The carry at reset: a zeroed `PIDState` f[..., D, 3] for the PID-based types, else ``()``."""
         return pid_init(sim) if self.uses_pid else ()
 
-    def to_rpm(self, params: DroneParams, sim: DroneState, carry, action: jax.Array, ref: Reference,
-               ctrl_dt: float) -> tuple[jax.Array, Any]:
+    def to_rpm(
+        self, params: DroneParams, sim: DroneState, carry, action: jax.Array, ref: Reference, ctrl_dt: float
+    ) -> tuple[jax.Array, Any]:
         """Map ``action`` f[..., D, size] (already clipped to the box) to an RPM command.
 
         Args:
@@ -162,8 +163,12 @@ def _vel(kind, params, sim, carry, action, ref, ctrl_dt):
 def _tun(kind, params, sim, carry, action, ref, ctrl_dt):
     base = PIDGains.dsl(sim.pos.dtype)
     scale = action + 1.0
-    gains = PIDGains(*(g * scale[..., k:k + 1] for k, g in enumerate(
-        (base.p_pos, base.i_pos, base.d_pos, base.p_att, base.i_att, base.d_att))))
+    gains = PIDGains(
+        *(
+            g * scale[..., k : k + 1]
+            for k, g in enumerate((base.p_pos, base.i_pos, base.d_pos, base.p_att, base.i_att, base.d_att))
+        )
+    )
     return _pid_to(params, sim, carry, ref.pos, ctrl_dt, gains=gains, target_vel=ref.vel)
 
 
@@ -198,10 +203,17 @@ class _Entry(NamedTuple):
 
 
 #: Every action type (see the module docstring): its size, whether it runs the PID, its mapping.
-_TABLE = {"rpm": _Entry(4, False, _rpm), "one_d_rpm": _Entry(1, False, _rpm), "pid": _Entry(3, True, _pid),
-          "one_d_pid": _Entry(1, True, _one_d_pid), "vel": _Entry(4, True, _vel),
-          "thrust_torque": _Entry(4, False, _thrust_torque), "one_d_thrust": _Entry(1, False, _one_d_thrust),
-          "tun": _Entry(6, True, _tun), "ctbr": _Entry(4, False, _ctbr)}
+_TABLE = {
+    "rpm": _Entry(4, False, _rpm),
+    "one_d_rpm": _Entry(1, False, _rpm),
+    "pid": _Entry(3, True, _pid),
+    "one_d_pid": _Entry(1, True, _one_d_pid),
+    "vel": _Entry(4, True, _vel),
+    "thrust_torque": _Entry(4, False, _thrust_torque),
+    "one_d_thrust": _Entry(1, False, _one_d_thrust),
+    "tun": _Entry(6, True, _tun),
+    "ctbr": _Entry(4, False, _ctbr),
+}
 #: Action entries per drone of every action type.
 ACTION_SIZES = {name: entry.size for name, entry in _TABLE.items()}
 #: The registered action type names.

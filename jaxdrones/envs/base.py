@@ -61,8 +61,22 @@ class EnvState:
 def world_axes(shared_params: bool) -> EnvState:
     """The ``vmap`` axes (``in_axes``/``out_axes``) of an `EnvState` batched over worlds: every field on axis 0,
     except ``params`` on none when every world shares them (``shared_params``; see `Env.shared_params`)."""
-    return EnvState(sim=0, params=None if shared_params else 0, task=0, ctrl=0, history=0, key=0, obs=0, reward=0,
-                    terminated=0, truncated=0, steps=0, metrics=0, info=0, realism=0)
+    return EnvState(
+        sim=0,
+        params=None if shared_params else 0,
+        task=0,
+        ctrl=0,
+        history=0,
+        key=0,
+        obs=0,
+        reward=0,
+        terminated=0,
+        truncated=0,
+        steps=0,
+        metrics=0,
+        info=0,
+        realism=0,
+    )
 
 
 class Env(abc.ABC):
@@ -71,7 +85,7 @@ class Env(abc.ABC):
     `close` releases what the backend holds (PyBullet worlds); an env is also a context manager that closes it.
     """
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027  (a default: the JAX backend holds nothing to release)
         """Release the backend's resources (nothing to do for the JAX backend)."""
 
     def __enter__(self):

@@ -62,8 +62,10 @@ class DomainRandomization:
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value < 1):
-                raise ValueError(f"randomize.{f.name} must be a relative half-width in [0, 1) (a factor in "
-                                 f"[1 - r, 1 + r]; r >= 1 allows a non-positive {f.name}), got {value!r}")
+                raise ValueError(
+                    f"randomize.{f.name} must be a relative half-width in [0, 1) (a factor in "
+                    f"[1 - r, 1 + r]; r >= 1 allows a non-positive {f.name}), got {value!r}"
+                )
 
     def sample(self, key: jax.Array, params: DroneParams) -> DroneParams:
         """Randomised ``params`` (batch shape [..., D]), with the derived fields recomputed."""
@@ -232,15 +234,22 @@ class TaskConfig:
             value = getattr(self, name)
             if not (_is_number(value) and value > 0):
                 raise ValueError(f"{name} must be a number > 0, got {value!r}")
-        if not (_is_number(self.episode_len_s) and math.isfinite(self.episode_len_s)
-                and self.episode_len_s * self.ctrl_freq >= 1):
-            raise ValueError(f"episode_len_s·ctrl_freq must give at least one control step, got "
-                             f"{self.episode_len_s!r} s at {self.ctrl_freq!r} Hz")
+        if not (
+            _is_number(self.episode_len_s)
+            and math.isfinite(self.episode_len_s)
+            and self.episode_len_s * self.ctrl_freq >= 1
+        ):
+            raise ValueError(
+                f"episode_len_s·ctrl_freq must give at least one control step, got "
+                f"{self.episode_len_s!r} s at {self.ctrl_freq!r} Hz"
+            )
         if isinstance(self.randomize, dict):
             self._set("randomize", DomainRandomization(**self.randomize))
         elif self.randomize is not None and not isinstance(self.randomize, DomainRandomization):
-            raise ValueError(f"randomize must be None, a DomainRandomization or a dict of its fields "
-                             f"{[f.name for f in dataclasses.fields(DomainRandomization)]}, got {self.randomize!r}")
+            raise ValueError(
+                f"randomize must be None, a DomainRandomization or a dict of its fields "
+                f"{[f.name for f in dataclasses.fields(DomainRandomization)]}, got {self.randomize!r}"
+            )
         self._set("realism", resolve_realism(self.realism))
         self.sim_config()  # validates the rates
         self._check_backend()
@@ -254,9 +263,10 @@ class TaskConfig:
             model = tuple(model)
             self._set("model", model)
         if isinstance(model, tuple) and len(model) != self.n_drones:
-            raise ValueError(f"model: give one model for all drones or one per drone ({self.n_drones}), "
-                             f"got {len(model)}: {model}")
-        for m in (model if isinstance(model, tuple) else (model,)):
+            raise ValueError(
+                f"model: give one model for all drones or one per drone ({self.n_drones}), got {len(model)}: {model}"
+            )
+        for m in model if isinstance(model, tuple) else (model,):
             if not isinstance(m, str) or (m not in MODELS and not m.endswith(".urdf")):
                 raise ValueError(f"unknown drone model {m!r}: expected one of {MODELS} or a path to a .urdf file")
 
@@ -276,39 +286,51 @@ class TaskConfig:
         obstacles = resolve_obstacles(self.obstacles)
         if self.backend == "jax":
             if self.renderer != "tiny":
-                raise ValueError("renderer needs backend='pybullet' (the jax backend renders with "
-                                 "jaxdrones.cameras)")
+                raise ValueError("renderer needs backend='pybullet' (the jax backend renders with jaxdrones.cameras)")
             if obstacles and not self.vision:
-                raise ValueError("obstacles on backend='jax' are only seen by its cameras (its physics models the "
-                                 "ground only): pass vision=(...), or use backend='pybullet' for collisions")
+                raise ValueError(
+                    "obstacles on backend='jax' are only seen by its cameras (its physics models the "
+                    "ground only): pass vision=(...), or use backend='pybullet' for collisions"
+                )
             from jaxdrones.scene.primitives import check_obstacles
 
             check_obstacles(obstacles)  # a mesh: a clear error now rather than at the first render
         if not (_is_number(self.camera_freq) and math.isfinite(self.camera_freq) and self.camera_freq > 0):
             raise ValueError(f"camera_freq must be a finite rate > 0 Hz, got {self.camera_freq!r}")
         size = self.image_size
-        if (not isinstance(size, (tuple, list)) or len(size) != 2
-                or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in size)):
+        if (
+            not isinstance(size, (tuple, list))
+            or len(size) != 2
+            or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in size)
+        ):
             raise ValueError(f"image_size must be two positive integers (width, height) in pixels, got {size!r}")
         self._set("image_size", (int(size[0]), int(size[1])))
         if not (_is_number(self.camera_fov) and 0 < self.camera_fov < 180):
-            raise ValueError(f"camera_fov must be the vertical field of view in degrees, in (0, 180), got "
-                             f"{self.camera_fov!r}")
+            raise ValueError(
+                f"camera_fov must be the vertical field of view in degrees, in (0, 180), got {self.camera_fov!r}"
+            )
         k = self.frame_stack
         if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
             raise ValueError(f"frame_stack must be an integer ≥ 1 (camera frames per image), got {k!r}")
         if k > 1 and not self.vision:
-            raise ValueError(f"frame_stack={k} stacks camera frames: it needs vision=('depth',), ('rgb',) or "
-                             f"('seg',)")
+            raise ValueError(f"frame_stack={k} stacks camera frames: it needs vision=('depth',), ('rgb',) or ('seg',)")
         self._set("frame_stack", int(k))
 
     def sim_config(self) -> SimConfig:
         """The `SimConfig` of the physics."""
         realism = self.realism
-        return SimConfig(n_drones=self.n_drones, sim_freq=self.sim_freq, ctrl_freq=self.ctrl_freq,
-                         drag=self.drag or (realism is not None and realism.wind), ground_effect=self.ground_effect,
-                         downwash=self.downwash, kinks=self.kinks, downwash_radius=self.downwash_radius,
-                         adjoint=self.adjoint, motor_dynamics=realism is not None and realism.motor_dynamics)
+        return SimConfig(
+            n_drones=self.n_drones,
+            sim_freq=self.sim_freq,
+            ctrl_freq=self.ctrl_freq,
+            drag=self.drag or (realism is not None and realism.wind),
+            ground_effect=self.ground_effect,
+            downwash=self.downwash,
+            kinks=self.kinks,
+            downwash_radius=self.downwash_radius,
+            adjoint=self.adjoint,
+            motor_dynamics=realism is not None and realism.motor_dynamics,
+        )
 
     @property
     def camera_period(self) -> int:
@@ -357,8 +379,9 @@ def fixed_triples(name: str, value, n: int):
     if arr.shape == (3,) and n == 1:
         arr = arr[None]
     if arr.shape != (n, 3) or not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be f[{n}, 3] finite numbers (one triple per drone, n_drones={n}), "
-                         f"got shape {arr.shape}")
+        raise ValueError(
+            f"{name} must be f[{n}, 3] finite numbers (one triple per drone, n_drones={n}), got shape {arr.shape}"
+        )
     if name == "init_pos" and np.any(arr[:, 2] < 0):
         raise ValueError(f"init_pos must be above the ground (z >= 0 m), got {arr.tolist()}")
     return tuple(tuple(float(v) for v in row) for row in arr)

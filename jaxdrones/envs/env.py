@@ -67,20 +67,25 @@ class TaskEnv(Env):
         params = stack_params(model) if isinstance(model, tuple) else load_params(model)
         self.params = broadcast_params(params, (config.n_drones,))
         self.action_type = make_action(config.action_type, config.pid_target, config.pid_scale)
-        self.obs_type = ObsType(config.obs_type, config.n_drones, config.neighbor_radius,
-                                config.ctrl_freq // 2 if config.action_buffer else 0, self.action_type.size,
-                                config.max_neighbors)
-        options = ({"obstacles": config.obstacles, "renderer": config.renderer} if config.backend == "pybullet"
-                   else {})
+        self.obs_type = ObsType(
+            config.obs_type,
+            config.n_drones,
+            config.neighbor_radius,
+            config.ctrl_freq // 2 if config.action_buffer else 0,
+            self.action_type.size,
+            config.max_neighbors,
+        )
+        options = {"obstacles": config.obstacles, "renderer": config.renderer} if config.backend == "pybullet" else {}
         self._step = make_step(self.sim_config, backend=config.backend, **options)
         self._default_task = None
         self.realism = None
         if config.realism is not None:
-            self.realism = RealismModel(config.realism, config.n_drones, self.action_type.size,
-                                        self.sim_config.ctrl_dt)
+            self.realism = RealismModel(config.realism, config.n_drones, self.action_type.size, self.sim_config.ctrl_dt)
             if config.realism.motor_dynamics and not config.realism.randomizes_params:
-                taus = {name: jnp.full((config.n_drones,), getattr(config.realism, name)[0], self.params.mass.dtype)
-                        for name in ("motor_tau_up", "motor_tau_down")}
+                taus = {
+                    name: jnp.full((config.n_drones,), getattr(config.realism, name)[0], self.params.mass.dtype)
+                    for name in ("motor_tau_up", "motor_tau_down")
+                }
                 self.params = self.params.replace(**taus)
 
     def __reduce__(self):
@@ -172,13 +177,19 @@ class TaskEnv(Env):
     def _build_task_params(self) -> TaskParams:
         cfg, task = self.config, self.task
         start = task.start_defaults(cfg)
-        overrides = dict(pos_range=cfg.start_pos_range, tilt=cfg.start_tilt, yaw=cfg.start_yaw, vel=cfg.start_vel,
-                         ang_vel=cfg.start_ang_vel)
+        overrides = dict(
+            pos_range=cfg.start_pos_range,
+            tilt=cfg.start_tilt,
+            yaw=cfg.start_yaw,
+            vel=cfg.start_vel,
+            ang_vel=cfg.start_ang_vel,
+        )
         start.update({k: v for k, v in overrides.items() if v is not None})
         rpy = np.zeros((cfg.n_drones, 3))
         if cfg.init_pos is not None:  # a fixed start, at rest and (unless init_rpy says otherwise) level
-            start.update(pos=np.asarray(cfg.init_pos), pos_range=(0.0, 0.0, 0.0), vel=0.0, ang_vel=0.0, tilt=0.0,
-                         yaw=0.0)
+            start.update(
+                pos=np.asarray(cfg.init_pos), pos_range=(0.0, 0.0, 0.0), vel=0.0, ang_vel=0.0, tilt=0.0, yaw=0.0
+            )
         if cfg.init_rpy is not None:
             rpy = np.asarray(cfg.init_rpy)
             start.update(tilt=0.0, yaw=0.0)
@@ -188,18 +199,33 @@ class TaskEnv(Env):
             x = np.asarray(x, np.float64)
             return np.asarray(x if shape is None else np.broadcast_to(x, shape), dt)
 
-        ranges = StartRanges(pos=arr(start["pos"], (cfg.n_drones, 3)), pos_range=arr(start["pos_range"], (3,)),
-                             rpy=arr(rpy), tilt=arr(start["tilt"]), yaw=arr(start["yaw"]),
-                             vel=arr(start["vel"], (3,)), ang_vel=arr(start["ang_vel"], (3,)))
-        bounds = Bounds(pos_low=arr([-cfg.arena_xy, -cfg.arena_xy, -1.0]),
-                        pos_high=arr([cfg.arena_xy, cfg.arena_xy, cfg.arena_z]), max_tilt=arr(cfg.max_tilt))
+        ranges = StartRanges(
+            pos=arr(start["pos"], (cfg.n_drones, 3)),
+            pos_range=arr(start["pos_range"], (3,)),
+            rpy=arr(rpy),
+            tilt=arr(start["tilt"]),
+            yaw=arr(start["yaw"]),
+            vel=arr(start["vel"], (3,)),
+            ang_vel=arr(start["ang_vel"], (3,)),
+        )
+        bounds = Bounds(
+            pos_low=arr([-cfg.arena_xy, -cfg.arena_xy, -1.0]),
+            pos_high=arr([cfg.arena_xy, cfg.arena_xy, cfg.arena_z]),
+            max_tilt=arr(cfg.max_tilt),
+        )
         scene = None
         if (cfg.vision and cfg.backend == "jax") or task.uses_scene:
-            scene = jax.tree.map(lambda x: np.asarray(x, dt) if jnp.issubdtype(x.dtype, jnp.floating)
-                                 else np.asarray(x), task.scene(cfg))
-        return TaskParams(target=arr(task.target(cfg), (cfg.n_drones, 3)), start=ranges, bounds=bounds,
-                          weights={k: arr(v) for k, v in task.weights(cfg).items()},
-                          data={k: arr(v) for k, v in task.data(cfg).items()}, scene=scene)
+            scene = jax.tree.map(
+                lambda x: np.asarray(x, dt) if jnp.issubdtype(x.dtype, jnp.floating) else np.asarray(x), task.scene(cfg)
+            )
+        return TaskParams(
+            target=arr(task.target(cfg), (cfg.n_drones, 3)),
+            start=ranges,
+            bounds=bounds,
+            weights={k: arr(v) for k, v in task.weights(cfg).items()},
+            data={k: arr(v) for k, v in task.data(cfg).items()},
+            scene=scene,
+        )
 
     # -- reset and step --------------------------------------------------------------------------------------------
 
@@ -227,8 +253,9 @@ class TaskEnv(Env):
         if self.realism is not None:
             realism = self.realism.reset(k_realism, sim, self.dtype)
             if cfg.realism.randomizes_params:
-                params = params.replace(motor_tau_up=realism.values["motor_tau_up"],
-                                        motor_tau_down=realism.values["motor_tau_down"])
+                params = params.replace(
+                    motor_tau_up=realism.values["motor_tau_up"], motor_tau_down=realism.values["motor_tau_down"]
+                )
             seen = self.realism.initial(realism, sim)
         obs = self._observe(task, seen, history, steps)
         if cfg.vision:
@@ -236,13 +263,24 @@ class TaskEnv(Env):
             first = self._render(task.scene, params, sim, jnp.ones((), bool), blank)
             obs = {"state": obs, **self._stack(first)}
         zeros = jnp.zeros((cfg.n_drones,), self.dtype)
-        terms = self.task.reward_terms(cfg, task, sim, jnp.zeros((cfg.n_drones, self.action_size), self.dtype),
-                                       steps)
+        terms = self.task.reward_terms(cfg, task, sim, jnp.zeros((cfg.n_drones, self.action_size), self.dtype), steps)
         false = jnp.zeros((), bool)
         metrics = self._metrics(task, sim, steps, {k: zeros for k in terms}, false, false, jnp.zeros((), jnp.int32))
-        return EnvState(sim=sim, params=params, task=task, ctrl=self.action_type.init(params, sim), history=history,
-                        key=key, obs=obs, reward=zeros, terminated=jnp.zeros((), bool),
-                        truncated=jnp.zeros((), bool), steps=steps, metrics=metrics, realism=realism)
+        return EnvState(
+            sim=sim,
+            params=params,
+            task=task,
+            ctrl=self.action_type.init(params, sim),
+            history=history,
+            key=key,
+            obs=obs,
+            reward=zeros,
+            terminated=jnp.zeros((), bool),
+            truncated=jnp.zeros((), bool),
+            steps=steps,
+            metrics=metrics,
+            realism=realism,
+        )
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Advance one control step.
@@ -288,8 +326,18 @@ class TaskEnv(Env):
         terminated = crashed | self.task.reached(cfg, task, sim) | ~finite
         truncated = (steps >= self.episode_length) & ~terminated
         metrics = self._metrics(task, sim, steps, weighted, crashed, ~finite, clipped)
-        return state.replace(sim=sim, ctrl=ctrl, history=history, obs=obs, reward=reward, terminated=terminated,
-                             truncated=truncated, steps=steps, metrics=metrics, realism=realism)
+        return state.replace(
+            sim=sim,
+            ctrl=ctrl,
+            history=history,
+            obs=obs,
+            reward=reward,
+            terminated=terminated,
+            truncated=truncated,
+            steps=steps,
+            metrics=metrics,
+            realism=realism,
+        )
 
     def loss(self, state: EnvState) -> jax.Array:
         """The task's differentiable training loss of a (post-step) state, f[D]: `Task.loss_terms` weighted by
@@ -302,16 +350,19 @@ class TaskEnv(Env):
         dtype = self.dtype
         metrics = {k: jnp.asarray(v, dtype) for k, v in self.task.metrics(self.config, task, sim, steps).items()}
         metrics.update({f"reward/{k}": jnp.mean(v) for k, v in weighted.items()})
-        metrics.update(crash=crashed.astype(dtype), invalid_action=invalid.astype(dtype),
-                       clipped_actions=clipped.astype(dtype))
+        metrics.update(
+            crash=crashed.astype(dtype), invalid_action=invalid.astype(dtype), clipped_actions=clipped.astype(dtype)
+        )
         return metrics
 
     def _check_action(self, action) -> jax.Array:
         action = jnp.asarray(action)
         expected = (self.n_drones, self.action_size)
         if action.shape != expected:
-            raise ValueError(f"{self.task.name}: action must have shape {expected} ([n_drones, size] for "
-                             f"action_type={self.config.action_type!r}, entries in [-1, 1]), got {action.shape}")
+            raise ValueError(
+                f"{self.task.name}: action must have shape {expected} ([n_drones, size] for "
+                f"action_type={self.config.action_type!r}, entries in [-1, 1]), got {action.shape}"
+            )
         if not jnp.issubdtype(action.dtype, jnp.floating):
             raise ValueError(f"{self.task.name}: action must be a float array, got dtype {action.dtype}")
         return action
@@ -339,8 +390,10 @@ class TaskEnv(Env):
         last = {name: v[:, -1] for name, v in held.items()}
         new = self._render(scene, params, sim, due, last)
         shifted = {name: jnp.concatenate([v[:, 1:], new[name][:, None]], axis=1) for name, v in held.items()}
-        return {name: jnp.where(jnp.reshape(due, due.shape + (1,) * (v.ndim - due.ndim)), v, held[name])
-                for name, v in shifted.items()}
+        return {
+            name: jnp.where(jnp.reshape(due, due.shape + (1,) * (v.ndim - due.ndim)), v, held[name])
+            for name, v in shifted.items()
+        }
 
     def _render(self, scene, params: DroneParams, sim: DroneState, due: jax.Array, held: dict) -> dict:
         """The camera images of ``sim`` where ``due`` (bool[...]), ``held`` elsewhere.
@@ -360,8 +413,10 @@ class TaskEnv(Env):
         if "rgb" in images:  # RGBA, as Bullet's
             rgb = images["rgb"]
             images["rgb"] = jnp.concatenate([rgb, jnp.full(rgb.shape[:-1] + (1,), 255, rgb.dtype)], -1)
-        return {k: jnp.where(jnp.reshape(due, due.shape + (1,) * (v.ndim - due.ndim)), v, held[k])
-                for k, v in images.items()}
+        return {
+            k: jnp.where(jnp.reshape(due, due.shape + (1,) * (v.ndim - due.ndim)), v, held[k])
+            for k, v in images.items()
+        }
 
 
 def sample_start(key: jax.Array, start: StartRanges, dtype) -> DroneState:
@@ -380,6 +435,11 @@ def sample_start(key: jax.Array, start: StartRanges, dtype) -> DroneState:
     phi = jnp.pi * (u[:, 4] + 1.0)
     yaw = start.yaw * u[:, 5]
     rpy = start.rpy + jnp.stack([tilt * jnp.cos(phi), tilt * jnp.sin(phi), yaw], axis=-1)
-    return DroneState(pos=pos, quat=quat_from_euler(rpy), vel=start.vel * u[:, 6:9],
-                      ang_vel=start.ang_vel * u[:, 9:12], rpm=jnp.zeros((n, 4), dtype),
-                      contact=jnp.zeros((n,), jnp.int32))
+    return DroneState(
+        pos=pos,
+        quat=quat_from_euler(rpy),
+        vel=start.vel * u[:, 6:9],
+        ang_vel=start.ang_vel * u[:, 9:12],
+        rpm=jnp.zeros((n, 4), dtype),
+        contact=jnp.zeros((n,), jnp.int32),
+    )

@@ -166,7 +166,7 @@ class ObsType:
 
     @property
     def n_nearest(self) -> int | None:
-        """k of the ``neighbors`` observation's nearest drones, or None for the paper's layout (every drone)."""
+        """K of the ``neighbors`` observation's nearest drones, or None for the paper's layout (every drone)."""
         return None if self.max_neighbors is None else min(self.max_neighbors, self.n_drones - 1)
 
     @property
@@ -219,8 +219,10 @@ def _neighbors_bounds(obs_type: ObsType) -> tuple[np.ndarray, np.ndarray]:
     n, k = obs_type.n_drones, obs_type.n_nearest
     flags, others = (n, n - 1) if k is None else (k, k)
     rel = np.full(3 * others, POS_BOUND, np.float32)
-    return (np.concatenate([low, np.zeros(flags, np.float32), -rel]),
-            np.concatenate([high, np.ones(flags, np.float32), rel]))
+    return (
+        np.concatenate([low, np.zeros(flags, np.float32), -rel]),
+        np.concatenate([high, np.ones(flags, np.float32), rel]),
+    )
 
 
 def _neighbors_obs(obs_type: ObsType, sim: DroneState) -> list:

@@ -112,12 +112,13 @@ def register(task: Task, *, overwrite: bool = False) -> Task:
     if not isinstance(name, str) or not name.isidentifier():
         raise ValueError(f"a task's name must be a Python identifier (e.g. 'my_hover'), got {name!r}")
     if not (isinstance(task.config_cls, type) and issubclass(task.config_cls, TaskConfig)):
-        raise ValueError(f"{name}: config_cls must be a subclass of jaxdrones.envs.TaskConfig, got "
-                         f"{task.config_cls!r}")
+        raise ValueError(f"{name}: config_cls must be a subclass of jaxdrones.envs.TaskConfig, got {task.config_cls!r}")
     known = _REGISTRY.get(name)
     if known is not None and known is not task and (name in _BUILT_IN or not overwrite):
-        raise ValueError(f"a task named {name!r} is already registered ({type(known).__name__})"
-                         + ("" if name in _BUILT_IN else ": pass overwrite=True to replace it"))
+        raise ValueError(
+            f"a task named {name!r} is already registered ({type(known).__name__})"
+            + ("" if name in _BUILT_IN else ": pass overwrite=True to replace it")
+        )
     _REGISTRY[name] = task
     for callback in _SUBSCRIBERS:
         callback(name)

@@ -76,8 +76,9 @@ def takeoff_paper(z: jax.Array) -> jax.Array:
     return jnp.where(low, -5.0, -1.0 / (10.0 * jnp.where(low, 1.0, z)))
 
 
-def combine(terms: dict[str, jax.Array], weights: dict[str, jax.Array],
-            nonnegative: bool = False) -> tuple[jax.Array, dict[str, jax.Array]]:
+def combine(
+    terms: dict[str, jax.Array], weights: dict[str, jax.Array], nonnegative: bool = False
+) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Weighted sum of reward terms.
 
     Args:

@@ -151,8 +151,9 @@ class Task(abc.ABC):
         """Default random start: centre ``pos`` f[D, 3] m and the half-widths (see `TaskConfig`)."""
         from jaxdrones.physics.state import default_start_pos
 
-        return dict(pos=default_start_pos(config.n_drones), pos_range=(0.0, 0.0, 0.0), tilt=0.0, yaw=0.0,
-                    vel=0.0, ang_vel=0.0)
+        return dict(
+            pos=default_start_pos(config.n_drones), pos_range=(0.0, 0.0, 0.0), tilt=0.0, yaw=0.0, vel=0.0, ang_vel=0.0
+        )
 
     def target(self, config: TaskConfig) -> np.ndarray:
         """f[D, 3] m, the position targets (default: 1 m above each start centre)."""
@@ -200,8 +201,9 @@ class Task(abc.ABC):
         return Reference(task.target, jnp.zeros_like(task.target))
 
     @abc.abstractmethod
-    def reward_terms(self, config: TaskConfig, task: TaskParams, sim: DroneState, action: jax.Array,
-                     steps: jax.Array) -> dict[str, jax.Array]:
+    def reward_terms(
+        self, config: TaskConfig, task: TaskParams, sim: DroneState, action: jax.Array, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         """Reward terms by name, each f[D], from the post-step state."""
 
     def terminated(self, config: TaskConfig, task: TaskParams, sim: DroneState) -> jax.Array:
@@ -224,9 +226,11 @@ class Task(abc.ABC):
         squared body rate ((rad/s)²). Smooth everywhere, unlike shaped RL rewards such as max(0, ...), which have
         no gradient far from the target."""
         ref = self.reference(config, task, steps)
-        return {"distance_sq": rewards.distance_sq(sim.pos, ref.pos),
-                "velocity_error_sq": rewards.velocity_error_sq(sim.vel, ref.vel),
-                "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel)}
+        return {
+            "distance_sq": rewards.distance_sq(sim.pos, ref.pos),
+            "velocity_error_sq": rewards.velocity_error_sq(sim.vel, ref.vel),
+            "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel),
+        }
 
     def metrics(self, config: TaskConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> dict:
         """Success metrics, f[] per world (default: ``distance``, the mean distance to the reference, m)."""

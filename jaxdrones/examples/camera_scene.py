@@ -38,8 +38,17 @@ SPHERE_RGBA = (0.2, 0.7, 0.3, 1.0)
 #: Files written by `save_camera_images`.
 FILES = ("rgb.png", "depth.png", "seg.png", "scene.json")
 #: Colours of seg.png's palette: nothing, then body ids 0, 1, ... (cycled).
-_SEG_COLOURS = ((0, 0, 0), (128, 128, 128), (230, 90, 50), (60, 180, 80), (70, 110, 230), (240, 200, 40),
-                (170, 80, 200), (40, 200, 200), (250, 250, 250))
+_SEG_COLOURS = (
+    (0, 0, 0),
+    (128, 128, 128),
+    (230, 90, 50),
+    (60, 180, 80),
+    (70, 110, 230),
+    (240, 200, 40),
+    (170, 80, 200),
+    (40, 200, 200),
+    (250, 250, 250),
+)
 
 
 def eye_position(params) -> np.ndarray:
@@ -58,14 +67,19 @@ def scene_obstacles(params, distance: float = BOX_DISTANCE) -> tuple:
     if isinstance(distance, bool) or not isinstance(distance, numbers.Real) or not 0 < distance < math.inf:
         raise ValueError(f"distance must be a positive number of metres, got {distance!r}")
     eye = eye_position(params)
-    box = Obstacle("box", size=(BOX_SIDE,) * 3, pos=(eye[0] + distance + BOX_SIDE / 2, eye[1], eye[2]),
-                   rgba=BOX_RGBA)
+    box = Obstacle("box", size=(BOX_SIDE,) * 3, pos=(eye[0] + distance + BOX_SIDE / 2, eye[1], eye[2]), rgba=BOX_RGBA)
     sphere = Obstacle("sphere", size=(SPHERE_RADIUS,), pos=SPHERE_POS, rgba=SPHERE_RGBA)
     return box, sphere
 
 
-def camera_scene(model: str = "cf2x", width: int = 320, height: int = 240, fov: float = 60.0,
-                 distance: float = BOX_DISTANCE, renderer: str = "tiny") -> dict:
+def camera_scene(
+    model: str = "cf2x",
+    width: int = 320,
+    height: int = 240,
+    fov: float = 60.0,
+    distance: float = BOX_DISTANCE,
+    renderer: str = "tiny",
+) -> dict:
     """Build the scene in a PyBullet step and render the drone's onboard camera.
 
     Args:
@@ -94,14 +108,24 @@ def camera_scene(model: str = "cf2x", width: int = 320, height: int = 240, fov: 
     params = load_params(model)
     config = SimConfig(n_drones=1)
     state = jax.tree.map(np.asarray, init_state(config, pos=np.array([DRONE_POS])))
-    with make_step(config, backend="pybullet", obstacles=scene_obstacles(params, distance),
-                   renderer=renderer) as step:
+    with make_step(config, backend="pybullet", obstacles=scene_obstacles(params, distance), renderer=renderer) as step:
         images = step.camera_images(params, state, width=width, height=height, fov=fov)
         ids = step.body_ids(0)
-    return {**{k: v[0] for k, v in images.items()}, "body_ids": ids, "eye": eye_position(params),
-            "settings": {"model": model, "width": width, "height": height, "fov_deg": fov,
-                         "near_m": float(params.arm), "far_m": 100.0, "box_distance_m": distance,
-                         "renderer": renderer}}
+    return {
+        **{k: v[0] for k, v in images.items()},
+        "body_ids": ids,
+        "eye": eye_position(params),
+        "settings": {
+            "model": model,
+            "width": width,
+            "height": height,
+            "fov_deg": fov,
+            "near_m": float(params.arm),
+            "far_m": 100.0,
+            "box_distance_m": distance,
+            "renderer": renderer,
+        },
+    }
 
 
 def save_camera_images(scene: dict, out_dir: str | os.PathLike, overwrite: bool = False) -> dict:
@@ -125,10 +149,19 @@ def save_camera_images(scene: dict, out_dir: str | os.PathLike, overwrite: bool 
     Image.fromarray(depth_to_mm(scene["depth"], scene["settings"]["far_m"])).save(paths["depth.png"])
     seg_image(scene["seg"]).save(paths["seg.png"])
     with open(paths["scene.json"], "w") as f:
-        json.dump({"body_ids": scene["body_ids"], "eye_m": np.asarray(scene["eye"]).tolist(),
-                   "settings": scene["settings"],
-                   "files": {"depth.png": "uint16 depth along the optical axis in mm, 0 = nothing within far",
-                             "seg.png": "pixel value = Bullet body id + 1, 0 = nothing"}}, f, indent=2)
+        json.dump(
+            {
+                "body_ids": scene["body_ids"],
+                "eye_m": np.asarray(scene["eye"]).tolist(),
+                "settings": scene["settings"],
+                "files": {
+                    "depth.png": "uint16 depth along the optical axis in mm, 0 = nothing within far",
+                    "seg.png": "pixel value = Bullet body id + 1, 0 = nothing",
+                },
+            },
+            f,
+            indent=2,
+        )
     return paths
 
 
@@ -146,8 +179,11 @@ def seg_image(seg: np.ndarray):
     index = np.asarray(seg).astype(np.int64) + 1
     if index.max(initial=0) <= 255:
         image = Image.fromarray(index.astype(np.uint8), "L").convert("P")
-        palette = [c for i in range(256) for c in (_SEG_COLOURS[0] if i == 0 else
-                                                   _SEG_COLOURS[1 + (i - 1) % (len(_SEG_COLOURS) - 1)])]
+        palette = [
+            c
+            for i in range(256)
+            for c in (_SEG_COLOURS[0] if i == 0 else _SEG_COLOURS[1 + (i - 1) % (len(_SEG_COLOURS) - 1)])
+        ]
         image.putpalette(palette)
         return image
     return Image.fromarray(index.astype(np.uint16))

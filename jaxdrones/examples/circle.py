@@ -95,11 +95,22 @@ def circle_setup(num_drones: int, ctrl_freq: int = 48) -> dict:
     num_wp = ctrl_freq * LAP_S
     k = np.arange(num_wp)
     x0, y0 = init_pos[0, 0], init_pos[0, 1]
-    waypoints = np.stack([RADIUS * np.cos(2 * np.pi * k / num_wp + np.pi / 2) + x0,
-                          RADIUS * np.sin(2 * np.pi * k / num_wp + np.pi / 2) - RADIUS + y0], -1)
+    waypoints = np.stack(
+        [
+            RADIUS * np.cos(2 * np.pi * k / num_wp + np.pi / 2) + x0,
+            RADIUS * np.sin(2 * np.pi * k / num_wp + np.pi / 2) - RADIUS + y0,
+        ],
+        -1,
+    )
     wp_start = np.array([int((j * num_wp / 6) % num_wp) for j in range(num_drones)])
-    return dict(init_pos=init_pos, init_rpy=init_rpy, waypoints=waypoints, wp_start=wp_start,
-                center=np.array([x0, y0 - RADIUS]), num_wp=num_wp)
+    return dict(
+        init_pos=init_pos,
+        init_rpy=init_rpy,
+        waypoints=waypoints,
+        wp_start=wp_start,
+        center=np.array([x0, y0 - RADIUS]),
+        num_wp=num_wp,
+    )
 
 
 def circle_targets(setup: dict, n_steps: int, ctrl_freq: int = 48) -> tuple[np.ndarray, np.ndarray]:
@@ -118,11 +129,24 @@ def circle_targets(setup: dict, n_steps: int, ctrl_freq: int = 48) -> tuple[np.n
     return np.concatenate([xy, z[..., None]], -1), vel
 
 
-def check_flight(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x", *,
-                 settle_s: float = DEFAULT_SETTLE_S, sim_freq: int = 240, ctrl_freq: int = 48, backend: str = "jax",
-                 obstacles=None, gui: bool = False, video=None, video_size=DEFAULT_VIDEO_SIZE,
-                 video_fps: float = DEFAULT_VIDEO_FPS, drag: bool = False, ground_effect: bool = False,
-                 downwash: bool = False) -> dict:
+def check_flight(
+    num_drones: int = 4,
+    duration_s: float = 12.0,
+    model: str = "cf2x",
+    *,
+    settle_s: float = DEFAULT_SETTLE_S,
+    sim_freq: int = 240,
+    ctrl_freq: int = 48,
+    backend: str = "jax",
+    obstacles=None,
+    gui: bool = False,
+    video=None,
+    video_size=DEFAULT_VIDEO_SIZE,
+    video_fps: float = DEFAULT_VIDEO_FPS,
+    drag: bool = False,
+    ground_effect: bool = False,
+    downwash: bool = False,
+) -> dict:
     """Validate `fly_circle`'s arguments without flying (cheap; `fly_circle` calls it first).
 
     Returns:
@@ -136,8 +160,14 @@ def check_flight(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf
     """
     if isinstance(num_drones, bool) or not isinstance(num_drones, (int, np.integer)) or num_drones < 1:
         raise ValueError(f"num_drones must be a positive integer, got {num_drones!r}")
-    config = SimConfig(n_drones=int(num_drones), sim_freq=sim_freq, ctrl_freq=ctrl_freq, drag=drag,
-                       ground_effect=ground_effect, downwash=downwash)
+    config = SimConfig(
+        n_drones=int(num_drones),
+        sim_freq=sim_freq,
+        ctrl_freq=ctrl_freq,
+        drag=drag,
+        ground_effect=ground_effect,
+        downwash=downwash,
+    )
     n_steps = check_steps(duration_s, ctrl_freq)
     if not math.isfinite(settle_s) or settle_s < 0 or settle_s >= n_steps / ctrl_freq:
         raise ValueError(f"settle_s must be in [0, {n_steps / ctrl_freq}) s (the flight time), got {settle_s!r}")
@@ -146,8 +176,7 @@ def check_flight(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf
     if backend == "jax":
         for name, value in (("obstacles", obstacles not in (None, False)), ("gui", gui), ("video", video)):
             if value:
-                raise ValueError(f"{name} needs backend='pybullet' (the jax backend has no obstacles, GUI or "
-                                 f"renderer)")
+                raise ValueError(f"{name} needs backend='pybullet' (the jax backend has no obstacles, GUI or renderer)")
     else:
         require_pybullet()
         resolved = resolve_obstacles(obstacles)
@@ -156,9 +185,11 @@ def check_flight(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf
         video_format(video)
         if os.path.exists(video):
             raise ValueError(f"video file {video!r} exists; choose another name (it is never overwritten)")
-    if (not isinstance(video_size, (tuple, list)) or len(video_size) != 2
-            or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 1 <= v <= 8192
-                       for v in video_size)):
+    if (
+        not isinstance(video_size, (tuple, list))
+        or len(video_size) != 2
+        or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 1 <= v <= 8192 for v in video_size)
+    ):
         raise ValueError(f"video_size must be (width, height) in pixels, each in [1, 8192], got {video_size!r}")
     if isinstance(video_fps, bool) or not (isinstance(video_fps, (int, float)) and 0 < video_fps < math.inf):
         raise ValueError(f"video_fps must be a positive frame rate in Hz, got {video_fps!r}")
@@ -167,16 +198,32 @@ def check_flight(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf
 
         require_display()
     params = load_params(model)
-    return dict(config=config, n_steps=n_steps, params=params, obstacles=resolved,
-                video_size=tuple(int(v) for v in video_size))
+    return dict(
+        config=config, n_steps=n_steps, params=params, obstacles=resolved, video_size=tuple(int(v) for v in video_size)
+    )
 
 
-def fly_circle(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x", drag: bool = False,
-               ground_effect: bool = False, downwash: bool = False, *, feedforward: bool = DEFAULT_FEEDFORWARD,
-               settle_s: float = DEFAULT_SETTLE_S, sim_freq: int = 240, ctrl_freq: int = 48,
-               gains: PIDGains | None = None, backend: str = "jax", obstacles=None, gui: bool = False,
-               video: str | os.PathLike | None = None, video_size: tuple[int, int] = DEFAULT_VIDEO_SIZE,
-               video_fps: float = DEFAULT_VIDEO_FPS, progress: bool = False) -> dict:
+def fly_circle(
+    num_drones: int = 4,
+    duration_s: float = 12.0,
+    model: str = "cf2x",
+    drag: bool = False,
+    ground_effect: bool = False,
+    downwash: bool = False,
+    *,
+    feedforward: bool = DEFAULT_FEEDFORWARD,
+    settle_s: float = DEFAULT_SETTLE_S,
+    sim_freq: int = 240,
+    ctrl_freq: int = 48,
+    gains: PIDGains | None = None,
+    backend: str = "jax",
+    obstacles=None,
+    gui: bool = False,
+    video: str | os.PathLike | None = None,
+    video_size: tuple[int, int] = DEFAULT_VIDEO_SIZE,
+    video_fps: float = DEFAULT_VIDEO_FPS,
+    progress: bool = False,
+) -> dict:
     """Fly the paper's circle example and measure how well it tracks.
 
     Args:
@@ -220,9 +267,23 @@ def fly_circle(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x
             exists, a bad ``video_size`` or ``video_fps``.
         RuntimeError: ``gui`` without a display.
     """
-    checked = check_flight(num_drones, duration_s, model, settle_s=settle_s, sim_freq=sim_freq, ctrl_freq=ctrl_freq,
-                           backend=backend, obstacles=obstacles, gui=gui, video=video, video_size=video_size,
-                           video_fps=video_fps, drag=drag, ground_effect=ground_effect, downwash=downwash)
+    checked = check_flight(
+        num_drones,
+        duration_s,
+        model,
+        settle_s=settle_s,
+        sim_freq=sim_freq,
+        ctrl_freq=ctrl_freq,
+        backend=backend,
+        obstacles=obstacles,
+        gui=gui,
+        video=video,
+        video_size=video_size,
+        video_fps=video_fps,
+        drag=drag,
+        ground_effect=ground_effect,
+        downwash=downwash,
+    )
     config, n_steps, params = checked["config"], checked["n_steps"], checked["params"]
 
     start = time.perf_counter()
@@ -237,14 +298,27 @@ def fly_circle(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x
     n_frames = 0
     if video is None and not gui:
         options = {} if backend == "jax" else {"obstacles": checked["obstacles"]}
-        states, rpm_cmd = run_closed_loop(config, track_position, params, gains, carry, inputs, fixed, backend,
-                                          **options)
+        states, rpm_cmd = run_closed_loop(
+            config, track_position, params, gains, carry, inputs, fixed, backend, **options
+        )
     else:
         step = make_step(config, backend="pybullet", obstacles=checked["obstacles"], gui=gui)
         try:
             states, rpm_cmd, n_frames = _fly_in_chunks(
-                step, closed_loop(step, track_position), params, gains, carry, inputs, fixed, setup, video=video,
-                video_size=checked["video_size"], video_fps=video_fps, gui=gui, progress=progress)
+                step,
+                closed_loop(step, track_position),
+                params,
+                gains,
+                carry,
+                inputs,
+                fixed,
+                setup,
+                video=video,
+                video_size=checked["video_size"],
+                video_fps=video_fps,
+                gui=gui,
+                progress=progress,
+            )
         finally:
             step.close()
     out = flight_arrays(states, rpm_cmd, ctrl_freq)
@@ -256,21 +330,38 @@ def fly_circle(num_drones: int = 4, duration_s: float = 12.0, model: str = "cf2x
     cross_track_err = np.hypot(radial, out["pos"][..., 2] - setup["init_pos"][:, 2])
     keep = times >= settle_s - 1e-9
     out.update(
-        target_pos=target_pos, target_vel=target_vel, waypoint_err=waypoint_err,
-        cross_track_err=cross_track_err, setup=setup, wall_s=wall_s,
+        target_pos=target_pos,
+        target_vel=target_vel,
+        waypoint_err=waypoint_err,
+        cross_track_err=cross_track_err,
+        setup=setup,
+        wall_s=wall_s,
         metrics=tracking_metrics(waypoint_err[keep], cross_track_err[keep], settle_s),
         contacts=contact_metrics(out["contact"], times, backend),
-        video=None if video is None else os.fspath(video), video_frames=n_frames,
-        settings=dict(num_drones=config.n_drones, duration_s=n_steps / ctrl_freq, model=str(model), drag=drag,
-                      ground_effect=ground_effect, downwash=downwash, feedforward=bool(feedforward),
-                      settle_s=settle_s, sim_freq=sim_freq, ctrl_freq=ctrl_freq, dtype=str(dtype), backend=backend,
-                      obstacles=[_obstacle_dict(o) for o in checked["obstacles"]]),
+        video=None if video is None else os.fspath(video),
+        video_frames=n_frames,
+        settings=dict(
+            num_drones=config.n_drones,
+            duration_s=n_steps / ctrl_freq,
+            model=str(model),
+            drag=drag,
+            ground_effect=ground_effect,
+            downwash=downwash,
+            feedforward=bool(feedforward),
+            settle_s=settle_s,
+            sim_freq=sim_freq,
+            ctrl_freq=ctrl_freq,
+            dtype=str(dtype),
+            backend=backend,
+            obstacles=[_obstacle_dict(o) for o in checked["obstacles"]],
+        ),
     )
     return out
 
 
-def _fly_in_chunks(step, simulate, params, gains, carry, inputs, fixed, setup, *, video, video_size, video_fps,
-                   gui, progress):
+def _fly_in_chunks(
+    step, simulate, params, gains, carry, inputs, fixed, setup, *, video, video_size, video_fps, gui, progress
+):
     """Run the closed loop in chunks of k = max(1, round(ctrl_freq / video_fps)) control steps, rendering a video
     frame of world 0 at the start and after each chunk, and pacing the flight to real time with the GUI.
 
@@ -303,8 +394,13 @@ def _fly_in_chunks(step, simulate, params, gains, carry, inputs, fixed, setup, *
                 if gui and begin == 0:  # the GUI's world exists from the first step on: aim its camera
                     pybullet = require_pybullet()
                     camera = VIDEO_CAMERA
-                    pybullet.resetDebugVisualizerCamera(camera["distance"], camera["yaw"], camera["pitch"],
-                                                        center.tolist(), physicsClientId=step.clients[0])
+                    pybullet.resetDebugVisualizerCamera(
+                        camera["distance"],
+                        camera["yaw"],
+                        camera["pitch"],
+                        center.tolist(),
+                        physicsClientId=step.clients[0],
+                    )
                 if gui:  # real time: step k ends at (k + 1) / ctrl_freq
                     time.sleep(max(0.0, t0 + end * config.ctrl_dt - time.perf_counter()))
                 bar.update(end - begin)
@@ -330,8 +426,10 @@ def contact_metrics(contact: np.ndarray, times: np.ndarray, backend: str = "pybu
         only).
     """
     contact = np.asarray(contact)
-    hits = {name: ((contact & bit) != 0) for name, bit in (("ground", CONTACT_GROUND), ("obstacle", CONTACT_OBSTACLE),
-                                                           ("drone", CONTACT_DRONE))}
+    hits = {
+        name: ((contact & bit) != 0)
+        for name, bit in (("ground", CONTACT_GROUND), ("obstacle", CONTACT_OBSTACLE), ("drone", CONTACT_DRONE))
+    }
     collided = hits["obstacle"] | hits["drone"]
     any_step = collided.any(axis=1)
     return {
@@ -349,8 +447,10 @@ def tracking_metrics(waypoint_err: np.ndarray, cross_track_err: np.ndarray, sett
         return np.sqrt(np.mean(np.square(e), axis=axis))
 
     return {
-        "definition": (f"RMS over control steps with t >= {settle_s:g} s of the 3-D distance to the moving way-point "
-                       "(waypoint) and to the nearest point of the drone's reference circle (cross_track), m"),
+        "definition": (
+            f"RMS over control steps with t >= {settle_s:g} s of the 3-D distance to the moving way-point "
+            "(waypoint) and to the nearest point of the drone's reference circle (cross_track), m"
+        ),
         "settle_s": settle_s,
         "waypoint_rms_m": float(rms(waypoint_err)),
         "cross_track_rms_m": float(rms(cross_track_err)),
@@ -366,14 +466,19 @@ def plot_flight(result: dict, path: str | os.PathLike) -> str:
     from jaxdrones.io.plotting import plot_flight as _plot
 
     s, m = result["settings"], result["metrics"]
-    title = (f"Circle tracking: {s['num_drones']} × {s['model']}, DSL PID at {s['ctrl_freq']} Hz, physics "
-             f"{s['sim_freq']} Hz ({s.get('backend', 'jax')}), feed-forward {'on' if s['feedforward'] else 'off'}")
+    title = (
+        f"Circle tracking: {s['num_drones']} × {s['model']}, DSL PID at {s['ctrl_freq']} Hz, physics "
+        f"{s['sim_freq']} Hz ({s.get('backend', 'jax')}), feed-forward {'on' if s['feedforward'] else 'off'}"
+    )
     effects = [name for name in ("drag", "ground_effect", "downwash") if s[name]]
-    note = (f"RMS for t ≥ {m['settle_s']:g} s: to the moving way-point {100 * m['waypoint_rms_m']:.2f} cm, "
-            f"to the circle (cross-track) {100 * m['cross_track_rms_m']:.2f} cm; effects: "
-            f"{', '.join(effects) or 'none'}")
+    note = (
+        f"RMS for t ≥ {m['settle_s']:g} s: to the moving way-point {100 * m['waypoint_rms_m']:.2f} cm, "
+        f"to the circle (cross-track) {100 * m['cross_track_rms_m']:.2f} cm; effects: "
+        f"{', '.join(effects) or 'none'}"
+    )
     if s.get("obstacles"):
         c = result["contacts"]
-        note += (f"; {len(s['obstacles'])} obstacles, " + ("no collision" if not c["collided"] else
-                                                            f"first collision at {c['first_collision_s']:.2f} s"))
+        note += f"; {len(s['obstacles'])} obstacles, " + (
+            "no collision" if not c["collided"] else f"first collision at {c['first_collision_s']:.2f} s"
+        )
     return _plot(result, path, title=title, note=note, mark_t=m["settle_s"])

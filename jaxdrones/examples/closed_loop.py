@@ -41,8 +41,9 @@ Control = Callable[[DroneParams, PIDGains, PIDState, DroneState, Any, Any, float
 Carry = tuple[DroneState, PIDState, jax.Array]
 
 
-def track_position(params: DroneParams, gains: PIDGains, pid_state: PIDState, state: DroneState, x_k, fixed,
-                   ctrl_dt: float) -> tuple[jax.Array, PIDState]:
+def track_position(
+    params: DroneParams, gains: PIDGains, pid_state: PIDState, state: DroneState, x_k, fixed, ctrl_dt: float
+) -> tuple[jax.Array, PIDState]:
     """Position tracking with the DSL PID (the controller of the circle, ground-effect and downwash examples).
 
     Args:
@@ -57,8 +58,16 @@ def track_position(params: DroneParams, gains: PIDGains, pid_state: PIDState, st
     """
     target_pos, target_vel = x_k
     target_rpy, feedforward = fixed
-    return pid_control(params, gains, pid_state, state, target_pos, target_vel=feedforward * target_vel,
-                       target_rpy=target_rpy, ctrl_dt=ctrl_dt)
+    return pid_control(
+        params,
+        gains,
+        pid_state,
+        state,
+        target_pos,
+        target_vel=feedforward * target_vel,
+        target_rpy=target_rpy,
+        ctrl_dt=ctrl_dt,
+    )
 
 
 def closed_loop(step: StepFn, control: Control) -> Callable:
@@ -109,8 +118,18 @@ def initial_carry(state: DroneState, rpm=None) -> Carry:
     return state, pid_init(state), first
 
 
-def run_closed_loop(config: SimConfig, control: Control, params: DroneParams, gains: PIDGains, carry: Carry, xs,
-                    fixed, backend: str = "jax", x_first=None, **options) -> tuple[DroneState, jax.Array]:
+def run_closed_loop(
+    config: SimConfig,
+    control: Control,
+    params: DroneParams,
+    gains: PIDGains,
+    carry: Carry,
+    xs,
+    fixed,
+    backend: str = "jax",
+    x_first=None,
+    **options,
+) -> tuple[DroneState, jax.Array]:
     """Fly one closed loop to the end on a backend; the PyBullet worlds are closed afterwards.
 
     Args:
@@ -151,8 +170,16 @@ def flight_arrays(states: DroneState, rpm_cmd, ctrl_freq: int) -> dict:
         ``rpm_cmd`` f[T, D, 4] the command computed at ``times`` (applied next); ``contact`` i32[T, D]
         (`DroneState.contact`).
     """
-    fields = {"pos": states.pos, "quat": states.quat, "vel": states.vel, "rpy": quat_to_euler(states.quat),
-              "ang_vel": states.ang_vel, "rpm": states.rpm, "rpm_cmd": rpm_cmd, "contact": states.contact}
+    fields = {
+        "pos": states.pos,
+        "quat": states.quat,
+        "vel": states.vel,
+        "rpy": quat_to_euler(states.quat),
+        "ang_vel": states.ang_vel,
+        "rpm": states.rpm,
+        "rpm_cmd": rpm_cmd,
+        "contact": states.contact,
+    }
     out = {k: np.asarray(v) for k, v in fields.items()}
     out["times"] = np.arange(1, out["pos"].shape[0] + 1) / ctrl_freq
     return out
@@ -164,8 +191,12 @@ def check_steps(duration_s: float, ctrl_freq: int) -> int:
     Raises:
         ValueError: if ``duration_s`` is not finite or shorter than one control step.
     """
-    if isinstance(duration_s, bool) or not isinstance(duration_s, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(duration_s) or duration_s * ctrl_freq < 1:
+    if (
+        isinstance(duration_s, bool)
+        or not isinstance(duration_s, (int, float, np.integer, np.floating))
+        or not math.isfinite(duration_s)
+        or duration_s * ctrl_freq < 1
+    ):
         raise ValueError(f"duration_s must be at least one control step (1/{ctrl_freq} s), got {duration_s!r}")
     return int(duration_s * ctrl_freq + 1e-9)
 

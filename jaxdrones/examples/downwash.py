@@ -84,11 +84,17 @@ def find_passes(pos: np.ndarray, radius: float = PASS_RADIUS_M) -> list[tuple[in
     below ``radius`` (m). ``pos`` is f[T, 2, 3] m."""
     close = np.linalg.norm(pos[:, 0, :2] - pos[:, 1, :2], axis=-1) < radius
     edges = np.diff(np.concatenate([[0], close.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(edges == 1).tolist(), (np.flatnonzero(edges == -1) - 1).tolist()))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), (np.flatnonzero(edges == -1) - 1).tolist(), strict=True))
 
 
-def dip_metrics(times: np.ndarray, pos: np.ndarray, target_z: np.ndarray, *, radius: float = PASS_RADIUS_M,
-                recovery_s: float = RECOVERY_S) -> dict:
+def dip_metrics(
+    times: np.ndarray,
+    pos: np.ndarray,
+    target_z: np.ndarray,
+    *,
+    radius: float = PASS_RADIUS_M,
+    recovery_s: float = RECOVERY_S,
+) -> dict:
     """The lower drone's altitude dips while the other passes over it, in one run.
 
     Args:
@@ -107,7 +113,7 @@ def dip_metrics(times: np.ndarray, pos: np.ndarray, target_z: np.ndarray, *, rad
     pass_times, dips = [], []
     for first, last in find_passes(pos, radius):
         end = int(np.searchsorted(times, times[last] + recovery_s + 1e-9))
-        pass_times.append(float(times[first + int(np.argmin(dist[first:last + 1]))]))
+        pass_times.append(float(times[first + int(np.argmin(dist[first : last + 1]))]))
         dips.append(float(np.max(below[first:end])))
     return {
         "lower_drone": lower,
@@ -118,9 +124,17 @@ def dip_metrics(times: np.ndarray, pos: np.ndarray, target_z: np.ndarray, *, rad
     }
 
 
-def check(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq: int = SIM_FREQ,
-          ctrl_freq: int = CTRL_FREQ, backend: str = "jax", drag: bool = False, ground_effect: bool = False,
-          downwash: bool | str = True) -> dict:
+def check(
+    duration_s: float = DEFAULT_DURATION_S,
+    model: str = "cf2x",
+    *,
+    sim_freq: int = SIM_FREQ,
+    ctrl_freq: int = CTRL_FREQ,
+    backend: str = "jax",
+    drag: bool = False,
+    ground_effect: bool = False,
+    downwash: bool | str = True,
+) -> dict:
     """Validate `fly`'s arguments without flying.
 
     Returns:
@@ -129,17 +143,34 @@ def check(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_fr
     Raises:
         ValueError: see `fly`.
     """
-    configs = {label: SimConfig(n_drones=2, sim_freq=sim_freq, ctrl_freq=ctrl_freq, drag=drag,
-                                ground_effect=ground_effect, downwash=downwash if label == "on" else False)
-               for label in RUNS}
+    configs = {
+        label: SimConfig(
+            n_drones=2,
+            sim_freq=sim_freq,
+            ctrl_freq=ctrl_freq,
+            drag=drag,
+            ground_effect=ground_effect,
+            downwash=downwash if label == "on" else False,
+        )
+        for label in RUNS
+    }
     n_steps = check_steps(duration_s, ctrl_freq)
     check_backend(backend)
     return {"configs": configs, "n_steps": n_steps, "params": load_params(model)}
 
 
-def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq: int = SIM_FREQ,
-        ctrl_freq: int = CTRL_FREQ, backend: str = "jax", drag: bool = False, ground_effect: bool = False,
-        gains: PIDGains | None = None, downwash: bool | str = True) -> dict:
+def fly(
+    duration_s: float = DEFAULT_DURATION_S,
+    model: str = "cf2x",
+    *,
+    sim_freq: int = SIM_FREQ,
+    ctrl_freq: int = CTRL_FREQ,
+    backend: str = "jax",
+    drag: bool = False,
+    ground_effect: bool = False,
+    gains: PIDGains | None = None,
+    downwash: bool | str = True,
+) -> dict:
     """Fly the crossing twice, with and without downwash, and measure the lower drone's dips.
 
     Args:
@@ -164,8 +195,16 @@ def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq
         ValueError: ``duration_s`` shorter than one control step, an unknown model, invalid rates, an unknown
             backend or downwash model.
     """
-    checked = check(duration_s, model, sim_freq=sim_freq, ctrl_freq=ctrl_freq, backend=backend, drag=drag,
-                    ground_effect=ground_effect, downwash=downwash)
+    checked = check(
+        duration_s,
+        model,
+        sim_freq=sim_freq,
+        ctrl_freq=ctrl_freq,
+        backend=backend,
+        drag=drag,
+        ground_effect=ground_effect,
+        downwash=downwash,
+    )
     n_steps, params = checked["n_steps"], checked["params"]
     start = time.perf_counter()
     gains = PIDGains.dsl() if gains is None else gains
@@ -177,24 +216,43 @@ def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq
         dtype = state.pos.dtype
         xs = (jnp.asarray(target_pos, dtype), jnp.zeros(target_pos.shape, dtype))
         fixed = (jnp.zeros((2, 3), dtype), jnp.asarray(0.0, dtype))
-        states, rpm_cmd = run_closed_loop(config, track_position, params, gains, initial_carry(state), xs, fixed,
-                                          backend)
+        states, rpm_cmd = run_closed_loop(
+            config, track_position, params, gains, initial_carry(state), xs, fixed, backend
+        )
         run = runs[label] = flight_arrays(states, rpm_cmd, ctrl_freq)
         figures[label] = dip_metrics(run["times"], run["pos"], target_z)
         passes[label] = np.zeros(n_steps, dtype=bool)
         for first, last in find_passes(run["pos"]):
-            passes[label][first:last + 1] = True
+            passes[label][first : last + 1] = True
     wall_s = time.perf_counter() - start
     dip = {"on": figures["on"]["max_dip_m"], "off": figures["off"]["max_dip_m"]}
     return {
-        "times": runs["on"]["times"], "target_pos": target_pos, "runs": runs, "passes": passes, "wall_s": wall_s,
-        "metrics": {"definition": (f"lower drone's largest z_target - z while the drones are less than "
-                                   f"{PASS_RADIUS_M:g} m apart horizontally and {RECOVERY_S:g} s after, m"),
-                    **figures, "max_dip_m": {**dip, "difference": dip["on"] - dip["off"]}},
-        "settings": {"example": "downwash", "num_drones": 2, "duration_s": n_steps / ctrl_freq, "model": str(model),
-                     "drag": drag, "ground_effect": ground_effect, "downwash": checked["configs"]["on"].downwash,
-                     "sim_freq": sim_freq, "ctrl_freq": ctrl_freq,
-                     "dtype": str(dtype), "backend": backend},
+        "times": runs["on"]["times"],
+        "target_pos": target_pos,
+        "runs": runs,
+        "passes": passes,
+        "wall_s": wall_s,
+        "metrics": {
+            "definition": (
+                f"lower drone's largest z_target - z while the drones are less than "
+                f"{PASS_RADIUS_M:g} m apart horizontally and {RECOVERY_S:g} s after, m"
+            ),
+            **figures,
+            "max_dip_m": {**dip, "difference": dip["on"] - dip["off"]},
+        },
+        "settings": {
+            "example": "downwash",
+            "num_drones": 2,
+            "duration_s": n_steps / ctrl_freq,
+            "model": str(model),
+            "drag": drag,
+            "ground_effect": ground_effect,
+            "downwash": checked["configs"]["on"].downwash,
+            "sim_freq": sim_freq,
+            "ctrl_freq": ctrl_freq,
+            "dtype": str(dtype),
+            "backend": backend,
+        },
     }
 
 
@@ -203,30 +261,41 @@ def plot(result: dict, path) -> str:
     from jaxdrones.io.plotting import plot_altitude_comparison
 
     s, m = result["settings"], result["metrics"]
-    title = (f"Downwash: 2 × {s['model']} crossing 0.5 m apart, DSL PID at {s['ctrl_freq']} Hz, physics "
-             f"{s['sim_freq']} Hz ({s['backend']})")
+    title = (
+        f"Downwash: 2 × {s['model']} crossing 0.5 m apart, DSL PID at {s['ctrl_freq']} Hz, physics "
+        f"{s['sim_freq']} Hz ({s['backend']})"
+    )
     dip = m["max_dip_m"]
-    note = (f"lower drone's largest dip below its target while the other passes over it (grey): "
-            f"{100 * dip['on']:.2f} cm with downwash, {100 * dip['off']:.2f} cm without")
+    note = (
+        f"lower drone's largest dip below its target while the other passes over it (grey): "
+        f"{100 * dip['on']:.2f} cm with downwash, {100 * dip['off']:.2f} cm without"
+    )
     target_z = np.array(INIT_POS)[:, 2]
     labels = [f"drone {d} ({'upper' if z == target_z.max() else 'lower'}, {z:g} m)" for d, z in enumerate(target_z)]
     runs = {f"downwash {label}": run["pos"][..., 2] for label, run in result["runs"].items()}
-    return plot_altitude_comparison(result["times"], runs, target_z, path, drone_labels=labels,
-                                    shade=result["passes"]["on"], title=title, note=note)
+    return plot_altitude_comparison(
+        result["times"], runs, target_z, path, drone_labels=labels, shade=result["passes"]["on"], title=title, note=note
+    )
 
 
 def summary(result: dict) -> list[str]:
     """Lines printed by ``jaxdrones fly --example downwash``."""
     s, m = result["settings"], result["metrics"]
-    lines = [(f"2 × {s['model']} crossing 0.5 m apart, {s['duration_s']:g} s on {s['backend']}, with and without "
-              f"downwash: simulated in {result['wall_s']:.2f} s (compilation included)")]
+    lines = [
+        (
+            f"2 × {s['model']} crossing 0.5 m apart, {s['duration_s']:g} s on {s['backend']}, with and without "
+            f"downwash: simulated in {result['wall_s']:.2f} s (compilation included)"
+        )
+    ]
     for label in RUNS:
         r = m[label]
-        dips = ", ".join(f"{100 * d:.2f} at {t:.2f} s" for d, t in zip(r["dips_m"], r["pass_times_s"]))
+        dips = ", ".join(f"{100 * d:.2f} at {t:.2f} s" for d, t in zip(r["dips_m"], r["pass_times_s"], strict=True))
         lines.append(f"  downwash {label:3s}: lower drone's dips (cm) {dips or 'none (no pass)'}")
     dip = m["max_dip_m"]
-    lines.append(f"largest dip: {100 * dip['on']:.2f} cm with downwash, {100 * dip['off']:.2f} cm without "
-                 f"(difference {100 * dip['difference']:+.2f} cm)")
+    lines.append(
+        f"largest dip: {100 * dip['on']:.2f} cm with downwash, {100 * dip['off']:.2f} cm without "
+        f"(difference {100 * dip['difference']:+.2f} cm)"
+    )
     return lines
 
 

@@ -14,8 +14,8 @@ comparison"):
 * 240 Hz physics and 240 Hz control (one substep per control step); the first control step applies 0 RPM.
 
 The paper's figure shows z, vz and the four motor speeds over the first 0.5 s (`WINDOW_S`), the default flight
-time here. Ground effect adds thrust kf·rpm²·C_gnd·(R/(4h))² on each propeller at height h (docs/physics.md §6.1): near the
-ground the same RPM lifts more, so the drone climbs faster and the PID settles on lower motor speeds.
+time here. Ground effect adds thrust kf·rpm²·C_gnd·(R/(4h))² on each propeller at height h (docs/physics.md §6.1):
+near the ground the same RPM lifts more, so the drone climbs faster and the PID settles on lower motor speeds.
 
 Metrics (``result["metrics"]``), for each run (``on``, ``off``) and their difference on − off:
 
@@ -73,13 +73,15 @@ def target_altitude(n_steps: int, ctrl_freq: int = CTRL_FREQ) -> np.ndarray:
     return START_Z + AMPLITUDE * (np.sin(2 * np.pi * k / num_wp) + 1)
 
 
-def takeoff_metrics(times: np.ndarray, z: np.ndarray, vz: np.ndarray, rpm: np.ndarray, target_z: np.ndarray,
-                    window_s: float = WINDOW_S) -> dict:
+def takeoff_metrics(
+    times: np.ndarray, z: np.ndarray, vz: np.ndarray, rpm: np.ndarray, target_z: np.ndarray, window_s: float = WINDOW_S
+) -> dict:
     """Take-off figures of one run over t ≤ ``window_s``.
 
     Args:
         times: f[T] s; z, vz: f[T] m and m/s (world frame); rpm: f[T, 4] RPM; target_z: f[T] m (commanded after
             each step, i.e. the target the next step flies to).
+        window_s: the window the metrics look at, s from the start (`WINDOW_S`, the paper's figure's 0.5 s).
 
     Returns:
         dict with ``z_at_window_m``, ``overshoot_m``, ``peak_vz_mps``, ``mean_rpm_window`` (see the module
@@ -102,8 +104,15 @@ def compare(on: dict, off: dict) -> dict:
     return {k: {"on": on[k], "off": off[k], "difference": on[k] - off[k]} for k in on}
 
 
-def check(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq: int = SIM_FREQ,
-          ctrl_freq: int = CTRL_FREQ, backend: str = "jax", drag: bool = False) -> dict:
+def check(
+    duration_s: float = DEFAULT_DURATION_S,
+    model: str = "cf2x",
+    *,
+    sim_freq: int = SIM_FREQ,
+    ctrl_freq: int = CTRL_FREQ,
+    backend: str = "jax",
+    drag: bool = False,
+) -> dict:
     """Validate `fly`'s arguments without flying.
 
     Returns:
@@ -112,8 +121,10 @@ def check(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_fr
     Raises:
         ValueError: see `fly`.
     """
-    configs = {label: SimConfig(n_drones=1, sim_freq=sim_freq, ctrl_freq=ctrl_freq, drag=drag,
-                                ground_effect=label == "on") for label in RUNS}
+    configs = {
+        label: SimConfig(n_drones=1, sim_freq=sim_freq, ctrl_freq=ctrl_freq, drag=drag, ground_effect=label == "on")
+        for label in RUNS
+    }
     n_steps = check_steps(duration_s, ctrl_freq)
     if n_steps / ctrl_freq < WINDOW_S - 1e-9:
         raise ValueError(f"duration_s must cover the figure's {WINDOW_S:g} s window, got {duration_s!r}")
@@ -121,8 +132,16 @@ def check(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_fr
     return {"configs": configs, "n_steps": n_steps, "params": load_params(model)}
 
 
-def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq: int = SIM_FREQ,
-        ctrl_freq: int = CTRL_FREQ, backend: str = "jax", drag: bool = False, gains: PIDGains | None = None) -> dict:
+def fly(
+    duration_s: float = DEFAULT_DURATION_S,
+    model: str = "cf2x",
+    *,
+    sim_freq: int = SIM_FREQ,
+    ctrl_freq: int = CTRL_FREQ,
+    backend: str = "jax",
+    drag: bool = False,
+    gains: PIDGains | None = None,
+) -> dict:
     """Fly the take-off twice, with and without ground effect, and compare.
 
     Args:
@@ -156,18 +175,31 @@ def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, sim_freq
         target_pos[:, 0, 2] = target_z
         xs = (jnp.asarray(target_pos, dtype), jnp.zeros((n_steps, 1, 3), dtype))
         fixed = (jnp.zeros((1, 3), dtype), jnp.asarray(0.0, dtype))
-        states, rpm_cmd = run_closed_loop(config, track_position, params, gains, initial_carry(state), xs, fixed,
-                                          backend)
+        states, rpm_cmd = run_closed_loop(
+            config, track_position, params, gains, initial_carry(state), xs, fixed, backend
+        )
         runs[label] = flight_arrays(states, rpm_cmd, ctrl_freq)
         r = runs[label]
         figures[label] = takeoff_metrics(r["times"], r["pos"][:, 0, 2], r["vel"][:, 0, 2], r["rpm"][:, 0], target_z)
     wall_s = time.perf_counter() - start
     return {
-        "times": runs["on"]["times"], "target_z": target_z, "runs": runs, "wall_s": wall_s,
+        "times": runs["on"]["times"],
+        "target_z": target_z,
+        "runs": runs,
+        "wall_s": wall_s,
         "metrics": {"window_s": WINDOW_S, **compare(figures["on"], figures["off"])},
-        "settings": {"example": "ground-effect", "num_drones": 1, "duration_s": n_steps / ctrl_freq,
-                     "model": str(model), "drag": drag, "start_z_m": START_Z, "sim_freq": sim_freq,
-                     "ctrl_freq": ctrl_freq, "dtype": str(dtype), "backend": backend},
+        "settings": {
+            "example": "ground-effect",
+            "num_drones": 1,
+            "duration_s": n_steps / ctrl_freq,
+            "model": str(model),
+            "drag": drag,
+            "start_z_m": START_Z,
+            "sim_freq": sim_freq,
+            "ctrl_freq": ctrl_freq,
+            "dtype": str(dtype),
+            "backend": backend,
+        },
     }
 
 
@@ -176,30 +208,46 @@ def plot(result: dict, path) -> str:
     from jaxdrones.io.plotting import plot_takeoff_comparison
 
     s, m = result["settings"], result["metrics"]
-    title = (f"Take-off with and without ground effect: {s['model']}, DSL PID at {s['ctrl_freq']} Hz, physics "
-             f"{s['sim_freq']} Hz ({s['backend']})")
+    title = (
+        f"Take-off with and without ground effect: {s['model']}, DSL PID at {s['ctrl_freq']} Hz, physics "
+        f"{s['sim_freq']} Hz ({s['backend']})"
+    )
     z, over = m["z_at_window_m"], m["overshoot_m"]
-    note = (f"at t = {m['window_s']:g} s: z = {100 * z['on']:.2f} cm with ground effect, {100 * z['off']:.2f} cm "
-            f"without (difference {100 * z['difference']:+.2f} cm); largest z − target up to then "
-            f"{100 * over['on']:+.2f} / {100 * over['off']:+.2f} cm")
-    runs = {f"ground effect {label}": {k: v[:, 0] for k, v in run.items() if k in ("pos", "vel", "rpm")}
-            for label, run in result["runs"].items()}
+    note = (
+        f"at t = {m['window_s']:g} s: z = {100 * z['on']:.2f} cm with ground effect, {100 * z['off']:.2f} cm "
+        f"without (difference {100 * z['difference']:+.2f} cm); largest z − target up to then "
+        f"{100 * over['on']:+.2f} / {100 * over['off']:+.2f} cm"
+    )
+    runs = {
+        f"ground effect {label}": {k: v[:, 0] for k, v in run.items() if k in ("pos", "vel", "rpm")}
+        for label, run in result["runs"].items()
+    }
     return plot_takeoff_comparison(result["times"], runs, result["target_z"], path, title=title, note=note)
 
 
 def summary(result: dict) -> list[str]:
     """Lines printed by ``jaxdrones fly --example ground-effect``."""
     s, m = result["settings"], result["metrics"]
-    rows = (("z at {w:g} s (cm)", "z_at_window_m", 100), ("largest z - target (cm)", "overshoot_m", 100),
-            ("peak vz (cm/s)", "peak_vz_mps", 100), ("mean motor speed (RPM)", "mean_rpm_window", 1))
-    lines = [(f"1 × {s['model']} taking off from z = {100 * s['start_z_m']:.1f} cm, {s['duration_s']:g} s on "
-              f"{s['backend']}, with and without ground effect: simulated in {result['wall_s']:.2f} s "
-              f"(compilation included)"),
-             f"over t ≤ {m['window_s']:g} s:               with |  without | difference"]
+    rows = (
+        ("z at {w:g} s (cm)", "z_at_window_m", 100),
+        ("largest z - target (cm)", "overshoot_m", 100),
+        ("peak vz (cm/s)", "peak_vz_mps", 100),
+        ("mean motor speed (RPM)", "mean_rpm_window", 1),
+    )
+    lines = [
+        (
+            f"1 × {s['model']} taking off from z = {100 * s['start_z_m']:.1f} cm, {s['duration_s']:g} s on "
+            f"{s['backend']}, with and without ground effect: simulated in {result['wall_s']:.2f} s "
+            f"(compilation included)"
+        ),
+        f"over t ≤ {m['window_s']:g} s:               with |  without | difference",
+    ]
     for name, key, scale in rows:
         v = m[key]
-        lines.append(f"  {name.format(w=m['window_s']):24s} {scale * v['on']:9.2f} | {scale * v['off']:8.2f} | "
-                     f"{scale * v['difference']:+9.2f}")
+        lines.append(
+            f"  {name.format(w=m['window_s']):24s} {scale * v['on']:9.2f} | {scale * v['off']:8.2f} | "
+            f"{scale * v['difference']:+9.2f}"
+        )
     return lines
 
 

@@ -44,8 +44,12 @@ __all__ = ["FIGURE8", "MPC", "MPCWeights", "figure8", "fly_figure8", "plot_figur
 FIGURE8 = {"amplitude": 0.5, "period_s": 6.0, "height": 0.5}
 
 
-def figure8(times, amplitude: float = FIGURE8["amplitude"], period_s: float = FIGURE8["period_s"],
-            height: float = FIGURE8["height"]) -> tuple[np.ndarray, np.ndarray]:
+def figure8(
+    times,
+    amplitude: float = FIGURE8["amplitude"],
+    period_s: float = FIGURE8["period_s"],
+    height: float = FIGURE8["height"],
+) -> tuple[np.ndarray, np.ndarray]:
     """The figure-8 reference at ``times`` (f[T] s): positions f[T, 3] m and velocities f[T, 3] m/s, world frame."""
     t = np.asarray(times, np.float64)
     w = 2 * math.pi / period_s
@@ -101,14 +105,25 @@ class MPC:
         cost = 0
         for k in range(n):
             opti.subject_to(x[:, k + 1] == step(x[:, k], self.hover_rpm * (1 + du[:, k])))
-            cost += (weights.position * cs.sumsqr(x[0:3, k + 1] - ref_pos[:, k + 1])
-                     + weights.velocity * cs.sumsqr(x[7:10, k + 1] - ref_vel[:, k + 1])
-                     + weights.attitude * cs.sumsqr(x[3:6, k + 1]) + weights.rates * cs.sumsqr(x[10:13, k + 1])
-                     + weights.rpm * cs.sumsqr(du[:, k]))
+            cost += (
+                weights.position * cs.sumsqr(x[0:3, k + 1] - ref_pos[:, k + 1])
+                + weights.velocity * cs.sumsqr(x[7:10, k + 1] - ref_vel[:, k + 1])
+                + weights.attitude * cs.sumsqr(x[3:6, k + 1])
+                + weights.rates * cs.sumsqr(x[10:13, k + 1])
+                + weights.rpm * cs.sumsqr(du[:, k])
+            )
         opti.subject_to(opti.bounded(-1, du, self.max_rpm / self.hover_rpm - 1))
         opti.minimize(cost)
-        opti.solver("ipopt", {"print_time": False, "ipopt.print_level": 0, "ipopt.sb": "yes",
-                              "ipopt.max_iter": weights.max_iter, "ipopt.tol": 1e-6})
+        opti.solver(
+            "ipopt",
+            {
+                "print_time": False,
+                "ipopt.print_level": 0,
+                "ipopt.sb": "yes",
+                "ipopt.max_iter": weights.max_iter,
+                "ipopt.tol": 1e-6,
+            },
+        )
         # One Function: (state, references, initial guesses) -> (first command, predicted states, commands).
         self._solve = opti.to_function("mpc", [x0, ref_pos, ref_vel, x, du], [du[:, 0], x, du])
         self.reset()
@@ -124,21 +139,32 @@ class MPC:
             raise ValueError(f"the MPC's state must have shape ({self.nx},), got {x.shape}")
         for name, ref in (("ref_pos", ref_pos), ("ref_vel", ref_vel)):
             if np.shape(ref) != (self.horizon + 1, 3):
-                raise ValueError(f"{name} must have shape (horizon + 1, 3) = ({self.horizon + 1}, 3), got "
-                                 f"{np.shape(ref)}")
+                raise ValueError(
+                    f"{name} must have shape (horizon + 1, 3) = ({self.horizon + 1}, 3), got {np.shape(ref)}"
+                )
         if self._x_guess is None:
             self.reset(x)
-        du0, xs, dus = self._solve(x, np.asarray(ref_pos, np.float64).T, np.asarray(ref_vel, np.float64).T,
-                                   self._x_guess, self._du_guess)
+        du0, xs, dus = self._solve(
+            x, np.asarray(ref_pos, np.float64).T, np.asarray(ref_vel, np.float64).T, self._x_guess, self._du_guess
+        )
         xs, dus = np.asarray(xs), np.asarray(dus)
         self._x_guess = np.concatenate([xs[:, 1:], xs[:, -1:]], axis=1)  # shifted by one step
         self._du_guess = np.concatenate([dus[:, 1:], dus[:, -1:]], axis=1)
         return self.hover_rpm * (1 + np.asarray(du0).ravel())
 
 
-def fly_figure8(duration_s: float = 6.0, ctrl_freq: int = 30, drag: bool = True, ground_effect: bool = True,
-                weights: MPCWeights = MPCWeights(), settle_s: float = 1.0, params: DroneParams | None = None,
-                model_drag: bool | None = None, model_ground_effect: bool | None = None, **figure) -> dict:
+def fly_figure8(
+    duration_s: float = 6.0,
+    ctrl_freq: int = 30,
+    drag: bool = True,
+    ground_effect: bool = True,
+    weights: MPCWeights = MPCWeights(),
+    settle_s: float = 1.0,
+    params: DroneParams | None = None,
+    model_drag: bool | None = None,
+    model_ground_effect: bool | None = None,
+    **figure,
+) -> dict:
     """Fly the figure-8 with the MPC and with the DSL PID (position and velocity feed-forward) on the JAX core.
 
     Args:
@@ -173,8 +199,11 @@ def fly_figure8(duration_s: float = 6.0, ctrl_freq: int = 30, drag: bool = True,
         raise ValueError(f"settle_s must be in [0, duration_s), got {settle_s!r}")
     params = load_params("cf2x") if params is None else params
     config = SimConfig(ctrl_freq=ctrl_freq, drag=drag, ground_effect=ground_effect)
-    model = SimConfig(ctrl_freq=ctrl_freq, drag=drag if model_drag is None else model_drag,
-                      ground_effect=ground_effect if model_ground_effect is None else model_ground_effect)
+    model = SimConfig(
+        ctrl_freq=ctrl_freq,
+        drag=drag if model_drag is None else model_drag,
+        ground_effect=ground_effect if model_ground_effect is None else model_ground_effect,
+    )
     mpc = MPC(params, model, weights)
     dt = 1.0 / ctrl_freq
     times = dt * np.arange(1, n_steps + 1)
@@ -198,18 +227,25 @@ def fly_figure8(duration_s: float = 6.0, ctrl_freq: int = 30, drag: bool = True,
     xs = (jnp.asarray(reference[:, None], dtype), jnp.asarray(reference_vel[:, None], dtype))
     x_first = (jnp.asarray(start_pos, dtype), jnp.asarray(start_vel, dtype))
     fixed = (jnp.zeros((1, 3), dtype), jnp.asarray(1.0, dtype))
-    _, (states, _) = jax_closed_loop(config, track_position)(params, PIDGains.dsl(), initial_carry(start), xs, fixed,
-                                                             x_first)
+    _, (states, _) = jax_closed_loop(config, track_position)(
+        params, PIDGains.dsl(), initial_carry(start), xs, fixed, x_first
+    )
     settled = times >= settle_s - 1e-9
 
     def summary(pos):
         error = np.linalg.norm(pos - reference, axis=-1)
         return {"pos": pos, "error": error, "rms": float(np.sqrt(np.mean(error[settled] ** 2)))}
 
-    return {"times": times, "reference": reference, "settle_s": settle_s, "ctrl_freq": ctrl_freq, "figure": figure,
-            "model": {"drag": model.drag, "ground_effect": model.ground_effect},
-            "mpc": {**summary(np.stack(positions)), "solve_s": np.asarray(solve_s)},
-            "pid": summary(np.asarray(states.pos[:, 0], np.float64))}
+    return {
+        "times": times,
+        "reference": reference,
+        "settle_s": settle_s,
+        "ctrl_freq": ctrl_freq,
+        "figure": figure,
+        "model": {"drag": model.drag, "ground_effect": model.ground_effect},
+        "mpc": {**summary(np.stack(positions)), "solve_s": np.asarray(solve_s)},
+        "pid": summary(np.asarray(states.pos[:, 0], np.float64)),
+    }
 
 
 def plot_figure8(result: dict, path: str | None = None):
@@ -224,17 +260,23 @@ def plot_figure8(result: dict, path: str | None = None):
     for name, style in (("mpc", "C0"), ("pid", "C1")):
         flight = result[name]
         paths.plot(flight["pos"][:, 0], flight["pos"][:, 1], style, label=f"{name.upper()}")
-        errors.plot(result["times"], 100 * flight["error"], style,
-                    label=f"{name.upper()}: RMS {100 * flight['rms']:.2f} cm")
+        errors.plot(
+            result["times"], 100 * flight["error"], style, label=f"{name.upper()}: RMS {100 * flight['rms']:.2f} cm"
+        )
     errors.axvline(result["settle_s"], color="grey", lw=0.8, ls=":")
     paths.set(xlabel="x (m)", ylabel="y (m)", title="figure-8, top view", aspect="equal")
-    errors.set(xlabel="time (s)", ylabel="distance to the reference (cm)", yscale="log",
-               title=f"tracking error (RMS after {result['settle_s']:g} s)")
+    errors.set(
+        xlabel="time (s)",
+        ylabel="distance to the reference (cm)",
+        yscale="log",
+        title=f"tracking error (RMS after {result['settle_s']:g} s)",
+    )
     solve_ms = 1e3 * result["mpc"]["solve_s"]
     solves.plot(result["times"], solve_ms, "C0.", ms=3)
     solves.axhline(1e3 / result["ctrl_freq"], color="grey", lw=0.8, ls=":", label="control period")
-    solves.set(xlabel="time (s)", ylabel="IPOPT solve (ms)",
-               title=f"MPC solve time, median {np.median(solve_ms):.0f} ms")
+    solves.set(
+        xlabel="time (s)", ylabel="IPOPT solve (ms)", title=f"MPC solve time, median {np.median(solve_ms):.0f} ms"
+    )
     for ax in (paths, errors, solves):
         ax.legend(fontsize=8)
     fig.tight_layout()
@@ -246,14 +288,22 @@ def plot_figure8(result: dict, path: str | None = None):
 def summary_lines(result: dict) -> list[str]:
     """The comparison as text lines: RMS error per controller and the MPC's solve times."""
     solve_ms = 1e3 * result["mpc"]["solve_s"]
-    return [(f"figure-8 {result['figure']}, {result['times'][-1]:.1f} s at {result['ctrl_freq']} Hz control, "
-             f"RMS after {result['settle_s']:g} s (the MPC's model: {result['model']}):"),
-            (f"  MPC: RMS error {100 * result['mpc']['rms']:.2f} cm, solve time median {np.median(solve_ms):.1f} ms, "
-             f"95th percentile {np.percentile(solve_ms, 95):.1f} ms, max {solve_ms.max():.1f} ms"),
-            f"  PID: RMS error {100 * result['pid']['rms']:.2f} cm"]
+    return [
+        (
+            f"figure-8 {result['figure']}, {result['times'][-1]:.1f} s at {result['ctrl_freq']} Hz control, "
+            f"RMS after {result['settle_s']:g} s (the MPC's model: {result['model']}):"
+        ),
+        (
+            f"  MPC: RMS error {100 * result['mpc']['rms']:.2f} cm, solve time median {np.median(solve_ms):.1f} ms, "
+            f"95th percentile {np.percentile(solve_ms, 95):.1f} ms, max {solve_ms.max():.1f} ms"
+        ),
+        f"  PID: RMS error {100 * result['pid']['rms']:.2f} cm",
+    ]
 
 
 def main(argv=None) -> int:
+    """Fly the figure-8 with the MPC and the PID, print the summary and write the plot (``python -m
+    jaxdrones.examples.mpc --help``); returns the exit status."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--duration", type=float, default=6.0, help="flight time, s (default 6: one lap)")
     parser.add_argument("--ctrl-freq", type=int, default=30, help="control rate, Hz (default 30)")
@@ -261,8 +311,12 @@ def main(argv=None) -> int:
     parser.add_argument("--no-model-drag", action="store_true", help="the MPC's model without drag")
     parser.add_argument("--plot", help="save the figure to this PNG (not overwritten)")
     args = parser.parse_args(argv)
-    result = fly_figure8(args.duration, args.ctrl_freq, weights=MPCWeights(horizon=args.horizon),
-                         model_drag=False if args.no_model_drag else None)
+    result = fly_figure8(
+        args.duration,
+        args.ctrl_freq,
+        weights=MPCWeights(horizon=args.horizon),
+        model_drag=False if args.no_model_drag else None,
+    )
     print("\n".join(summary_lines(result)))
     if args.plot:
         plot_figure8(result, args.plot)

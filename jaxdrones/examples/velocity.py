@@ -4,8 +4,8 @@ Reproduces gym-pybullet-drones ``examples/velocity.py`` (``pid_velocity.py`` on 
 d27f30d: start poses lines 65-76, command schedule 100-110, loop 119-140) on the jaxdrones physics:
 
 * drone i starts at rest at (0.3·i, 0, 0.1) m with yaw (0, π/3, π/4, π/2)[i] rad;
-* each drone is flown through the VEL action (docs/physics.md §10.1-10.2, `jaxdrones.control.velocity_control`): an action
-  (vx, vy, vz, s) becomes the DSL PID's targets position = current position, yaw = current yaw and velocity =
+* each drone is flown through the VEL action (docs/physics.md §10.1-10.2, `jaxdrones.control.velocity_control`): an
+  action (vx, vy, vz, s) becomes the DSL PID's targets position = current position, yaw = current yaw and velocity =
   SPEED_LIMIT·|s|·(vx, vy, vz)/‖(vx, vy, vz)‖, with the original's SPEED_LIMIT = 3 % of the airframe's maximum
   speed (`jaxdrones.control.speed_limit`: 0.25 m/s for the Crazyflies);
 * the commands (`SCHEDULE`, s = 0.99, so 0.2475 m/s) switch once per drone, drone i at (1/8 + i/6)·`PERIOD_S`,
@@ -137,8 +137,10 @@ def velocity_metrics(vel: np.ndarray, vel_cmd: np.ndarray, settled: np.ndarray, 
     per_drone = np.sqrt(np.sum(np.where(settled, norm2, 0.0), axis=0) / np.maximum(count, 1))
     per_axis = np.sqrt(np.sum(np.where(settled[..., None], err**2, 0.0), axis=0) / np.maximum(count, 1)[:, None])
     return {
-        "definition": (f"RMS over control steps of |v - v_cmd| (world frame, m/s), counting steps at least "
-                       f"{settle_s:g} s after the drone's command last changed"),
+        "definition": (
+            f"RMS over control steps of |v - v_cmd| (world frame, m/s), counting steps at least "
+            f"{settle_s:g} s after the drone's command last changed"
+        ),
         "settle_s": settle_s,
         "rms_mps": float(np.sqrt(np.sum(np.where(settled, norm2, 0.0)) / max(int(count.sum()), 1))),
         "rms_per_drone_mps": per_drone.tolist(),
@@ -153,9 +155,18 @@ def _vel_action_control(params, gains, pid_state, state, action, limit, ctrl_dt)
     return velocity_control(params, gains, pid_state, state, action, ctrl_dt=ctrl_dt, limit=limit)
 
 
-def check(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, settle_s: float = DEFAULT_SETTLE_S,
-          sim_freq: int = SIM_FREQ, ctrl_freq: int = CTRL_FREQ, backend: str = "jax", drag: bool = False,
-          ground_effect: bool = False, downwash: bool = False) -> dict:
+def check(
+    duration_s: float = DEFAULT_DURATION_S,
+    model: str = "cf2x",
+    *,
+    settle_s: float = DEFAULT_SETTLE_S,
+    sim_freq: int = SIM_FREQ,
+    ctrl_freq: int = CTRL_FREQ,
+    backend: str = "jax",
+    drag: bool = False,
+    ground_effect: bool = False,
+    downwash: bool = False,
+) -> dict:
     """Validate `fly`'s arguments without flying.
 
     Returns:
@@ -164,21 +175,39 @@ def check(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, settle
     Raises:
         ValueError: see `fly`.
     """
-    config = SimConfig(n_drones=len(INIT_POS), sim_freq=sim_freq, ctrl_freq=ctrl_freq, drag=drag,
-                       ground_effect=ground_effect, downwash=downwash)
+    config = SimConfig(
+        n_drones=len(INIT_POS),
+        sim_freq=sim_freq,
+        ctrl_freq=ctrl_freq,
+        drag=drag,
+        ground_effect=ground_effect,
+        downwash=downwash,
+    )
     n_steps = check_steps(duration_s, ctrl_freq)
     if isinstance(settle_s, bool) or not isinstance(settle_s, (int, float)) or not 0 <= settle_s < math.inf:
         raise ValueError(f"settle_s must be a non-negative number of seconds, got {settle_s!r}")
     if not settled_mask(applied_actions(n_steps, ctrl_freq), ctrl_freq, settle_s).any(axis=0).all():
-        raise ValueError(f"settle_s = {settle_s!r} s leaves no settled sample for some drone in a {duration_s!r} s "
-                         f"flight; fly longer or settle for less")
+        raise ValueError(
+            f"settle_s = {settle_s!r} s leaves no settled sample for some drone in a {duration_s!r} s "
+            f"flight; fly longer or settle for less"
+        )
     check_backend(backend)
     return {"config": config, "n_steps": n_steps, "params": load_params(model)}
 
 
-def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, settle_s: float = DEFAULT_SETTLE_S,
-        sim_freq: int = SIM_FREQ, ctrl_freq: int = CTRL_FREQ, backend: str = "jax", drag: bool = False,
-        ground_effect: bool = False, downwash: bool = False, gains: PIDGains | None = None) -> dict:
+def fly(
+    duration_s: float = DEFAULT_DURATION_S,
+    model: str = "cf2x",
+    *,
+    settle_s: float = DEFAULT_SETTLE_S,
+    sim_freq: int = SIM_FREQ,
+    ctrl_freq: int = CTRL_FREQ,
+    backend: str = "jax",
+    drag: bool = False,
+    ground_effect: bool = False,
+    downwash: bool = False,
+    gains: PIDGains | None = None,
+) -> dict:
     """Fly the velocity example and measure how well each drone tracks its commanded velocity.
 
     Args:
@@ -202,8 +231,17 @@ def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, settle_s
         ValueError: ``duration_s`` shorter than one control step, a negative ``settle_s`` or one that leaves a
             drone no settled sample, an unknown model, invalid rates, an unknown backend.
     """
-    checked = check(duration_s, model, settle_s=settle_s, sim_freq=sim_freq, ctrl_freq=ctrl_freq, backend=backend,
-                    drag=drag, ground_effect=ground_effect, downwash=downwash)
+    checked = check(
+        duration_s,
+        model,
+        settle_s=settle_s,
+        sim_freq=sim_freq,
+        ctrl_freq=ctrl_freq,
+        backend=backend,
+        drag=drag,
+        ground_effect=ground_effect,
+        downwash=downwash,
+    )
     config, n_steps, params = checked["config"], checked["n_steps"], checked["params"]
     start = time.perf_counter()
     gains = PIDGains.dsl() if gains is None else gains
@@ -215,19 +253,42 @@ def fly(duration_s: float = DEFAULT_DURATION_S, model: str = "cf2x", *, settle_s
     # converted after step k and applied in step k + 1 (the last one is computed but not applied).
     schedule = velocity_schedule(ctrl_freq)
     xs = jnp.asarray(schedule[np.arange(n_steps) % schedule.shape[0]], dtype)
-    states, rpm_cmd = run_closed_loop(config, _vel_action_control, params, gains, initial_carry(state), xs, limit,
-                                      backend, x_first=jnp.asarray(actions[0], dtype))
+    states, rpm_cmd = run_closed_loop(
+        config,
+        _vel_action_control,
+        params,
+        gains,
+        initial_carry(state),
+        xs,
+        limit,
+        backend,
+        x_first=jnp.asarray(actions[0], dtype),
+    )
     out = flight_arrays(states, rpm_cmd, ctrl_freq)
     wall_s = time.perf_counter() - start
     vel_cmd = commanded_velocity(actions, float(limit))
     settled = settled_mask(actions, ctrl_freq, settle_s)
     out.update(
-        action=actions, vel_cmd=vel_cmd, settled=settled, wall_s=wall_s,
+        action=actions,
+        vel_cmd=vel_cmd,
+        settled=settled,
+        wall_s=wall_s,
         metrics=velocity_metrics(out["vel"], vel_cmd, settled, settle_s),
-        settings={"example": "velocity", "num_drones": config.n_drones, "duration_s": n_steps / ctrl_freq,
-                  "model": str(model), "drag": drag, "ground_effect": ground_effect, "downwash": downwash,
-                  "speed_limit_mps": float(limit), "settle_s": settle_s, "sim_freq": sim_freq,
-                  "ctrl_freq": ctrl_freq, "dtype": str(dtype), "backend": backend},
+        settings={
+            "example": "velocity",
+            "num_drones": config.n_drones,
+            "duration_s": n_steps / ctrl_freq,
+            "model": str(model),
+            "drag": drag,
+            "ground_effect": ground_effect,
+            "downwash": downwash,
+            "speed_limit_mps": float(limit),
+            "settle_s": settle_s,
+            "sim_freq": sim_freq,
+            "ctrl_freq": ctrl_freq,
+            "dtype": str(dtype),
+            "backend": backend,
+        },
     )
     return out
 
@@ -237,20 +298,30 @@ def plot(result: dict, path) -> str:
     from jaxdrones.io.plotting import plot_velocity_tracking
 
     s, m = result["settings"], result["metrics"]
-    title = (f"Velocity commands: {s['num_drones']} × {s['model']}, VEL action (DSL PID at {s['ctrl_freq']} Hz, "
-             f"speed limit {s['speed_limit_mps']:.3g} m/s), physics {s['sim_freq']} Hz ({s['backend']})")
-    note = (f"RMS |v − v_cmd| at least {m['settle_s']:g} s after each command change (grey: excluded): "
-            + ", ".join(f"drone {d} {100 * e:.2f}" for d, e in enumerate(m["rms_per_drone_mps"])) + " cm/s")
-    return plot_velocity_tracking(result["times"], result["vel"], result["vel_cmd"], path,
-                                  settled=result["settled"], title=title, note=note)
+    title = (
+        f"Velocity commands: {s['num_drones']} × {s['model']}, VEL action (DSL PID at {s['ctrl_freq']} Hz, "
+        f"speed limit {s['speed_limit_mps']:.3g} m/s), physics {s['sim_freq']} Hz ({s['backend']})"
+    )
+    note = (
+        f"RMS |v − v_cmd| at least {m['settle_s']:g} s after each command change (grey: excluded): "
+        + ", ".join(f"drone {d} {100 * e:.2f}" for d, e in enumerate(m["rms_per_drone_mps"]))
+        + " cm/s"
+    )
+    return plot_velocity_tracking(
+        result["times"], result["vel"], result["vel_cmd"], path, settled=result["settled"], title=title, note=note
+    )
 
 
 def summary(result: dict) -> list[str]:
     """Lines printed by ``jaxdrones fly --example velocity``."""
     s, m = result["settings"], result["metrics"]
-    lines = [(f"{s['num_drones']} × {s['model']} following velocity commands, {s['duration_s']:g} s on "
-              f"{s['backend']}: simulated in {result['wall_s']:.2f} s (compilation included)"),
-             f"RMS velocity error at least {m['settle_s']:g} s after each command change (cm/s):"]
+    lines = [
+        (
+            f"{s['num_drones']} × {s['model']} following velocity commands, {s['duration_s']:g} s on "
+            f"{s['backend']}: simulated in {result['wall_s']:.2f} s (compilation included)"
+        ),
+        f"RMS velocity error at least {m['settle_s']:g} s after each command change (cm/s):",
+    ]
     lines += [f"  drone {d}: {100 * e:7.3f}" for d, e in enumerate(m["rms_per_drone_mps"])]
     lines.append(f"  overall: {100 * m['rms_mps']:7.3f} (largest {100 * m['max_mps']:.3f})")
     return lines

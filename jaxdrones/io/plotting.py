@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -17,8 +17,14 @@ _GROUPS = (
 )
 
 
-def plot_flight(flight: Mapping, path: str | os.PathLike, *, title: str | None = None,
-                note: str | None = None, mark_t: float | None = None) -> str:
+def plot_flight(
+    flight: Mapping,
+    path: str | os.PathLike,
+    *,
+    title: str | None = None,
+    note: str | None = None,
+    mark_t: float | None = None,
+) -> str:
     """Plot a flight of ``N`` drones: one column per quantity group, one line per drone.
 
     Columns: position, velocity, roll/pitch/yaw, body angular velocity, motor RPM. If ``flight`` has
@@ -112,22 +118,29 @@ def _check(flight: Mapping) -> dict:
     missing = [k for k in ("times", *(g[0] for g in _GROUPS)) if k not in flight]
     if missing:
         raise ValueError(f"plot_flight: flight lacks {missing}; expected times, pos, vel, rpy, ang_vel, rpm")
-    data = {k: np.asarray(v) for k, v in flight.items()
-            if k in ("times", "target_pos") or k in {g[0] for g in _GROUPS}}
+    data = {k: np.asarray(v) for k, v in flight.items() if k in ("times", "target_pos") or k in {g[0] for g in _GROUPS}}
     t = data["times"]
     if t.ndim != 1:
         raise ValueError(f"plot_flight: times must be f[T], got shape {t.shape}")
     n = data["pos"].shape[1] if data["pos"].ndim == 3 else -1
     for key, _, labels, _ in _GROUPS + (("target_pos", "", "xyz", ""),):
         if key in data and data[key].shape != (t.shape[0], n, len(labels)):
-            raise ValueError(f"plot_flight: {key} must have shape [T={t.shape[0]}, N, {len(labels)}] with the same N "
-                             f"as pos, got {data[key].shape}")
+            raise ValueError(
+                f"plot_flight: {key} must have shape [T={t.shape[0]}, N, {len(labels)}] with the same N "
+                f"as pos, got {data[key].shape}"
+            )
     return data
 
 
-def plot_learning_curve(history: list[Mapping], path: str | os.PathLike, *, title: str | None = None,
-                        metric: str = "success_value", metric_label: str = "final distance (m)",
-                        threshold: float | None = None) -> str:
+def plot_learning_curve(
+    history: list[Mapping],
+    path: str | os.PathLike,
+    *,
+    title: str | None = None,
+    metric: str = "success_value",
+    metric_label: str = "final distance (m)",
+    threshold: float | None = None,
+) -> str:
     """Plot evaluation return and the task's success metric against env steps.
 
     Args:
@@ -189,8 +202,9 @@ def plot_task_flight(times, pos, ref_pos, vel, rpm, path: str | os.PathLike, *, 
             axes[k].set_ylabel(f"{name} (m)")
         axes[3].plot(times, np.linalg.norm(vel[:, d], axis=-1), label=f"drone {d}")
         for m in range(rpm.shape[-1]):
-            axes[4].plot(times, rpm[:, d, m], lw=0.8, label=f"drone {d} motor {m}" if pos.shape[1] > 1 else
-                         f"motor {m}")
+            axes[4].plot(
+                times, rpm[:, d, m], lw=0.8, label=f"drone {d} motor {m}" if pos.shape[1] > 1 else f"motor {m}"
+            )
     axes[0].legend(fontsize=7, ncol=4, title="dashed: reference", title_fontsize=7)
     axes[3].set_ylabel("speed (m/s)")
     axes[4].set_ylabel("motor speed (RPM)")
@@ -201,8 +215,9 @@ def plot_task_flight(times, pos, ref_pos, vel, rpm, path: str | os.PathLike, *, 
     return _save(plt, fig, path, title)
 
 
-def plot_hover_flight(times, pos, vel, rpm, target_z: float, path: str | os.PathLike, *,
-                      title: str | None = None) -> str:
+def plot_hover_flight(
+    times, pos, vel, rpm, target_z: float, path: str | os.PathLike, *, title: str | None = None
+) -> str:
     """The paper's hover figure: altitude, vertical velocity and the four motor speeds against time.
 
     Args:
@@ -237,8 +252,9 @@ def plot_hover_flight(times, pos, vel, rpm, target_z: float, path: str | os.Path
     return _save(plt, fig, path, title)
 
 
-def plot_velocity_tracking(times, vel, vel_cmd, path: str | os.PathLike, *, settled=None, title: str | None = None,
-                           note: str | None = None) -> str:
+def plot_velocity_tracking(
+    times, vel, vel_cmd, path: str | os.PathLike, *, settled=None, title: str | None = None, note: str | None = None
+) -> str:
     """Commanded vs reached velocity: one row per drone, one column per world axis (vx, vy, vz).
 
     Args:
@@ -264,8 +280,16 @@ def plot_velocity_tracking(times, vel, vel_cmd, path: str | os.PathLike, *, sett
         for axis, label in enumerate(("vx", "vy", "vz")):
             ax = axes[d, axis]
             if settled is not None:
-                ax.fill_between(times, 0, 1, where=~np.asarray(settled)[:, d], color="0.85", step="pre",
-                                transform=ax.get_xaxis_transform(), lw=0)
+                ax.fill_between(
+                    times,
+                    0,
+                    1,
+                    where=~np.asarray(settled)[:, d],
+                    color="0.85",
+                    step="pre",
+                    transform=ax.get_xaxis_transform(),
+                    lw=0,
+                )
             ax.plot(times, vel[:, d, axis], color=colors[d], lw=1.2, label="reached")
             ax.plot(times, vel_cmd[:, d, axis], color="k", lw=0.9, ls="--", label="commanded")
             ax.set_ylabel(f"drone {d} {label} (m/s)")
@@ -276,8 +300,15 @@ def plot_velocity_tracking(times, vel, vel_cmd, path: str | os.PathLike, *, sett
     return _save_with_note(plt, fig, path, title, note)
 
 
-def plot_takeoff_comparison(times, runs: Mapping[str, Mapping], target_z, path: str | os.PathLike, *,
-                            title: str | None = None, note: str | None = None) -> str:
+def plot_takeoff_comparison(
+    times,
+    runs: Mapping[str, Mapping],
+    target_z,
+    path: str | os.PathLike,
+    *,
+    title: str | None = None,
+    note: str | None = None,
+) -> str:
     """Take-off of one drone in several runs: altitude, vertical velocity and the four motor speeds against time.
 
     Args:
@@ -304,8 +335,9 @@ def plot_takeoff_comparison(times, runs: Mapping[str, Mapping], target_z, path: 
         axes[0].plot(times, pos[:, 2], color=f"C{j}", ls=ls, label=label)
         axes[1].plot(times, vel[:, 2], color=f"C{j}", ls=ls, label=label)
         for k in range(rpm.shape[-1]):
-            axes[2].plot(times, rpm[:, k], color=f"C{k + 2}", ls=ls, lw=1.0,
-                         label=f"motor {k} ({label})" if j < 2 else None)
+            axes[2].plot(
+                times, rpm[:, k], color=f"C{k + 2}", ls=ls, lw=1.0, label=f"motor {k} ({label})" if j < 2 else None
+            )
     axes[0].set_ylabel("z (m)")
     axes[1].set_ylabel("vz (m/s)")
     axes[2].set_ylabel("motor speed (RPM)")
@@ -318,8 +350,17 @@ def plot_takeoff_comparison(times, runs: Mapping[str, Mapping], target_z, path: 
     return _save_with_note(plt, fig, path, title, note)
 
 
-def plot_altitude_comparison(times, runs: Mapping[str, np.ndarray], target_z, path: str | os.PathLike, *,
-                             drone_labels=None, shade=None, title: str | None = None, note: str | None = None) -> str:
+def plot_altitude_comparison(
+    times,
+    runs: Mapping[str, np.ndarray],
+    target_z,
+    path: str | os.PathLike,
+    *,
+    drone_labels=None,
+    shade=None,
+    title: str | None = None,
+    note: str | None = None,
+) -> str:
     """Altitude of each drone in several runs (one panel per drone), e.g. with and without downwash.
 
     Args:
@@ -346,8 +387,9 @@ def plot_altitude_comparison(times, runs: Mapping[str, np.ndarray], target_z, pa
     fig, axes = plt.subplots(n_drones, 1, figsize=(10, 2.6 * n_drones + 1.0), sharex=True, squeeze=False)
     for d, ax in enumerate(axes[:, 0]):
         if shade is not None:
-            ax.fill_between(times, 0, 1, where=np.asarray(shade), color="0.88", step="pre",
-                            transform=ax.get_xaxis_transform(), lw=0)
+            ax.fill_between(
+                times, 0, 1, where=np.asarray(shade), color="0.88", step="pre", transform=ax.get_xaxis_transform(), lw=0
+            )
         ax.plot(times, target_z[:, d], color="k", lw=0.8, label="target")
         for j, (label, z) in enumerate(runs.items()):
             ax.plot(times, np.asarray(z)[:, d], color=f"C{j}", ls=styles[j % len(styles)], lw=1.1, label=label)
@@ -371,8 +413,9 @@ def _save_with_note(plt, fig, path: str | os.PathLike, title: str | None, note: 
     return path
 
 
-def render_state(pos, quat, *, arm: float = 0.0397, targets=None, width: int = 480, height: int = 480,
-                 title: str | None = None) -> np.ndarray:
+def render_state(
+    pos, quat, *, arm: float = 0.0397, targets=None, width: int = 480, height: int = 480, title: str | None = None
+) -> np.ndarray:
     """A 3-D view of drones drawn with matplotlib, as an RGB image (what ``render()`` shows on the JAX backend).
 
     Args:
@@ -397,7 +440,7 @@ def render_state(pos, quat, *, arm: float = 0.0397, targets=None, width: int = 4
     canvas = FigureCanvasAgg(fig)
     ax = fig.add_subplot(projection="3d")
     scale = 3 * arm
-    for p, r in zip(pos, rot):
+    for p, r in zip(pos, rot, strict=True):
         for diag in (np.array([1.0, 1.0, 0.0]), np.array([1.0, -1.0, 0.0])):
             d = r @ diag * scale / np.sqrt(2)
             ax.plot(*np.stack([p - d, p + d]).T, color="tab:blue", lw=2)

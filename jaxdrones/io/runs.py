@@ -49,7 +49,7 @@ CACHE_DIR_VAR = "JAXDRONES_CACHE_DIR"
 
 
 def user_cache_dir() -> str:
-    """jaxdrones' folder in the user's cache: ``$XDG_CACHE_HOME/jaxdrones`` (``~/.cache/jaxdrones``)."""
+    """Jaxdrones' folder in the user's cache: ``$XDG_CACHE_HOME/jaxdrones`` (``~/.cache/jaxdrones``)."""
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return os.path.join(base, "jaxdrones")
 
@@ -74,8 +74,9 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
     try:
         os.makedirs(path, exist_ok=True)
     except OSError as err:
-        warnings.warn(f"compilation cache off: cannot create {path!r} ({err.strerror or err})", RuntimeWarning,
-                      stacklevel=2)
+        warnings.warn(
+            f"compilation cache off: cannot create {path!r} ({err.strerror or err})", RuntimeWarning, stacklevel=2
+        )
         return None
     jax.config.update("jax_compilation_cache_dir", path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
@@ -101,12 +102,23 @@ def provenance() -> dict:
             versions[package] = None
     source = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     try:
-        top, commit = (subprocess.run(["git", "-C", source, "rev-parse", "--show-toplevel", "HEAD"],
-                                      capture_output=True, text=True, timeout=5).stdout.split() + [None, None])[:2]
+        top, commit = (
+            subprocess.run(
+                ["git", "-C", source, "rev-parse", "--show-toplevel", "HEAD"], capture_output=True, text=True, timeout=5
+            ).stdout.split()
+            + [None, None]
+        )[:2]
         if top is None or os.path.realpath(top) != os.path.realpath(source):  # not jaxdrones' own checkout
             commit = None
-        if commit and subprocess.run(["git", "-C", source, "status", "--porcelain", "--untracked-files=no"],
-                                     capture_output=True, text=True, timeout=5).stdout.strip():
+        if (
+            commit
+            and subprocess.run(
+                ["git", "-C", source, "status", "--porcelain", "--untracked-files=no"],
+                capture_output=True,
+                text=True,
+                timeout=5,
+            ).stdout.strip()
+        ):
             commit += "+modified"
     except (OSError, subprocess.SubprocessError):
         commit = None
@@ -117,8 +129,16 @@ def provenance() -> dict:
     except OSError:
         pass
     devices = jax.devices()
-    return {"versions": versions, "python": platform.python_version(), "git_commit": commit,
-            "backend": jax.default_backend(), "devices": [str(d) for d in devices],
-            "device_kind": devices[0].device_kind, "num_processes": jax.process_count(),
-            "cpu": cpu, "cpu_count": os.cpu_count(), "platform": platform.platform(),
-            "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
+    return {
+        "versions": versions,
+        "python": platform.python_version(),
+        "git_commit": commit,
+        "backend": jax.default_backend(),
+        "devices": [str(d) for d in devices],
+        "device_kind": devices[0].device_kind,
+        "num_processes": jax.process_count(),
+        "cpu": cpu,
+        "cpu_count": os.cpu_count(),
+        "platform": platform.platform(),
+        "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+    }

@@ -30,8 +30,10 @@ def video_format(path: str | os.PathLike) -> str:
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
     if ext not in FORMATS:
-        raise ValueError(f"video path {path!r} has an unknown extension {ext!r}: expected a file name ending in one "
-                         f"of {tuple(FORMATS)}")
+        raise ValueError(
+            f"video path {path!r} has an unknown extension {ext!r}: expected a file name ending in one "
+            f"of {tuple(FORMATS)}"
+        )
     return FORMATS[ext]
 
 
@@ -101,8 +103,7 @@ class VideoWriter:
             self._shape = frame.shape
             self._open()
         elif frame.shape != self._shape:
-            raise ValueError(f"frame {self._count} has shape {frame.shape}, but the video's frames are "
-                             f"{self._shape}")
+            raise ValueError(f"frame {self._count} has shape {frame.shape}, but the video's frames are {self._shape}")
         if self.format == "mp4":
             with warnings.catch_warnings():
                 # The first frame starts ffmpeg as a subprocess; Python warns that forking a process with JAX's
@@ -125,8 +126,9 @@ class VideoWriter:
             self._writer = None
         if self._frames:
             duration = max(10, int(round(100.0 / self.fps)) * 10)  # ms, in GIF's 10 ms units
-            self._frames[0].save(self.path, format="GIF", save_all=True, append_images=self._frames[1:],
-                                 duration=duration, loop=0)
+            self._frames[0].save(
+                self.path, format="GIF", save_all=True, append_images=self._frames[1:], duration=duration, loop=0
+            )
             self._frames = []
 
     def _open(self) -> None:
@@ -138,8 +140,16 @@ class VideoWriter:
         if self.format == "mp4":
             import imageio.v2 as imageio
 
-            self._writer = imageio.get_writer(self.path, format="FFMPEG", mode="I", fps=self.fps, codec="libx264",
-                                              pixelformat="yuv420p", macro_block_size=1, ffmpeg_log_level="error")
+            self._writer = imageio.get_writer(
+                self.path,
+                format="FFMPEG",
+                mode="I",
+                fps=self.fps,
+                codec="libx264",
+                pixelformat="yuv420p",
+                macro_block_size=1,
+                ffmpeg_log_level="error",
+            )
 
 
 def _pad_even(frame: np.ndarray) -> np.ndarray:

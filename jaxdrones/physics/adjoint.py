@@ -55,9 +55,16 @@ def supported(config) -> bool:
     return config.adjoint and config.integrator == "euler" and config.kinks.mode == "exact"
 
 
-def euler_substep_c(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors, rpm_prev: Components,
-                    dt: float, neighbors: jax.Array | None = None,
-                    disturbance: Disturbance | None = None) -> tuple[Kinematics, jax.Array]:
+def euler_substep_c(
+    params: DroneParams,
+    effects: Effects,
+    kin: Kinematics,
+    motors: Motors,
+    rpm_prev: Components,
+    dt: float,
+    neighbors: jax.Array | None = None,
+    disturbance: Disturbance | None = None,
+) -> tuple[Kinematics, jax.Array]:
     """One Euler physics substep of ``dt`` s and the ground contact, in component form, as
     ``dynamics.ground_contact_c(params, dynamics.euler_step_c(params, effects, kin, motors, rpm_prev, dt, True,
     neighbors, None, disturbance))`` (``kin.quat`` of unit norm), with the reverse-mode derivative of
@@ -104,11 +111,19 @@ def _substep_bwd(effects, dt, residuals, cotangent):
     params, kin, motors, rpm_prev, downwash, disturbance, params_perturbed = residuals
     ct_kin = jax.tree.map(_instantiate, cotangent[0], is_leaf=lambda x: isinstance(x, SymbolicZero))
     if params_perturbed:  # JAX's derived derivative, params included (system identification)
-        _, vjp = jax.vjp(lambda *args: _reference(args[0], effects, *args[1:], dt)[0],
-                         params, kin, motors, rpm_prev, downwash, disturbance)
+        _, vjp = jax.vjp(
+            lambda *args: _reference(args[0], effects, *args[1:], dt)[0],
+            params,
+            kin,
+            motors,
+            rpm_prev,
+            downwash,
+            disturbance,
+        )
         return vjp(ct_kin)
     kin_b, motors_b, rpm_prev_b, downwash_b, disturbance_b = substep_vjp(
-        params, effects, kin, motors, rpm_prev, downwash, dt, ct_kin, disturbance)
+        params, effects, kin, motors, rpm_prev, downwash, dt, ct_kin, disturbance
+    )
     return None, kin_b, motors_b, rpm_prev_b, None if downwash is None else downwash_b, disturbance_b
 
 
@@ -120,7 +135,7 @@ _substep.defvjp(_substep_fwd, _substep_bwd, symbolic_zeros=True)
 
 
 def _max_weight(x: jax.Array, floor) -> jax.Array:
-    """d max(x, floor) / dx as ``jnp.maximum`` defines it: 1 above the floor, ½ at it, 0 below."""
+    """D max(x, floor) / dx as ``jnp.maximum`` defines it: 1 above the floor, ½ at it, 0 below."""
     return jnp.where(x > floor, 1.0, jnp.where(x == floor, 0.5, 0.0)).astype(x.dtype)
 
 
@@ -133,9 +148,17 @@ def _matvec_t(m: jax.Array, v: Components) -> Components:
     return tuple(dot(split(m[..., :, j]), v) for j in range(m.shape[-1]))
 
 
-def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors, rpm_prev: Components,
-                downwash: jax.Array | None, dt: float, ct: Kinematics, disturbance: Disturbance | None = None
-                ) -> tuple[Kinematics, Motors, Components, jax.Array, Disturbance | None]:
+def substep_vjp(
+    params: DroneParams,
+    effects: Effects,
+    kin: Kinematics,
+    motors: Motors,
+    rpm_prev: Components,
+    downwash: jax.Array | None,
+    dt: float,
+    ct: Kinematics,
+    disturbance: Disturbance | None = None,
+) -> tuple[Kinematics, Motors, Components, jax.Array, Disturbance | None]:
     """The cotangents of the substep's inputs (``kin``, ``motors``, ``rpm_prev``, ``downwash``: None, the paper's
     force f[..., D] N along body z or the per-rotor thrust changes, a 4-tuple of f[..., D] N, as
     `dynamics.downwash_c` returns them, and ``disturbance``, None or a `Disturbance` in component form) for the
@@ -197,8 +220,11 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
     # The reverse pass. Ground contact: z ← max(z, rest); while touching v ← (0, 0, max(v_z, 0)), ω ← 0.
     pos_b, quat_b, vel_b, ang_vel_b = ct
     pos_b = (pos_b[0], pos_b[1], pos_b[2] * _max_weight(z_new, rest))
-    vel_b = (jnp.where(touching, 0.0, vel_b[0]), jnp.where(touching, 0.0, vel_b[1]),
-             jnp.where(touching, vel_b[2] * _max_weight(vel[2], 0.0), vel_b[2]))
+    vel_b = (
+        jnp.where(touching, 0.0, vel_b[0]),
+        jnp.where(touching, 0.0, vel_b[1]),
+        jnp.where(touching, vel_b[2] * _max_weight(vel[2], 0.0), vel_b[2]),
+    )
     ang_vel_b = tuple(jnp.where(touching, 0.0, b) for b in ang_vel_b)
     # p ← p + dt v.
     vel_b = tuple(a + dt * b for a, b in zip(vel_b, pos_b, strict=True))
@@ -208,20 +234,27 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
     unnormalised_b = tuple((b - u * along) / length for b, u in zip(quat_b, unit, strict=True))
     q_b = quat_mul_c(unnormalised_b, _conj(delta))  # the transpose of q ↦ q ⊗ delta
     delta_b = quat_mul_c(_conj(q), unnormalised_b)  # the transpose of delta ↦ q ⊗ delta
-    radial = jnp.where(moving, (dot(delta_b[:3], ang_vel) * (0.5 * dt * cos * norm - sin) / norm**2
-                                - delta_b[3] * 0.5 * dt * sin) / norm, 0.0)
-    ang_vel_b = tuple(a + sin_over_norm * d + radial * wk
-                      for a, d, wk in zip(ang_vel_b, delta_b[:3], ang_vel, strict=True))
+    radial = jnp.where(
+        moving,
+        (dot(delta_b[:3], ang_vel) * (0.5 * dt * cos * norm - sin) / norm**2 - delta_b[3] * 0.5 * dt * sin) / norm,
+        0.0,
+    )
+    ang_vel_b = tuple(
+        a + sin_over_norm * d + radial * wk for a, d, wk in zip(ang_vel_b, delta_b[:3], ang_vel, strict=True)
+    )
     # ω ← ω + dt J⁻¹ (τ - ω × Jω); v ← v + dt F / m.
     tau_b = _matvec_t(params.inertia_inv, tuple(dt * b for b in ang_vel_b))
     gyro_b = tuple(-b for b in tau_b)
-    w_b = tuple(a + b + c for a, b, c in zip(ang_vel_b, cross(inertia_w, gyro_b),
-                                             _matvec_t(params.inertia, cross(gyro_b, w)), strict=True))
+    w_b = tuple(
+        a + b + c
+        for a, b, c in zip(
+            ang_vel_b, cross(inertia_w, gyro_b), _matvec_t(params.inertia, cross(gyro_b, w)), strict=True
+        )
+    )
     force_b = tuple(dt * b / params.mass for b in vel_b)
     v_b = vel_b
     # τ = (torque_arm @ lift, yaw); F = R (0, 0, Σ lift + downwash) - m g e_z + drag.
-    lift_b = tuple(params.torque_arm[..., 0, i] * tau_b[0] + params.torque_arm[..., 1, i] * tau_b[1]
-                   for i in range(4))
+    lift_b = tuple(params.torque_arm[..., 0, i] * tau_b[0] + params.torque_arm[..., 1, i] * tau_b[1] for i in range(4))
     rpm_prev_b = tuple(jnp.zeros_like(r) for r in rpm_prev)
     wind_b = None
     if effects.drag:
@@ -232,8 +265,13 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
         rpm_prev_b = tuple(jnp.broadcast_to(omega_sum_b * (2 * jnp.pi / 60), r.shape) for r in rpm_prev)
     if wind is not None and wind_b is None:  # no drag: the wind does not act
         wind_b = tuple(jnp.zeros_like(x) for x in wind)
-    disturbance_b = None if disturbance is None else Disturbance(
-        force=None if given.force is None else force_b, torque=None if given.torque is None else tau_b, wind=wind_b)
+    disturbance_b = (
+        None
+        if disturbance is None
+        else Disturbance(
+            force=None if given.force is None else force_b, torque=None if given.torque is None else tau_b, wind=wind_b
+        )
+    )
     body_z_force_b = dot(tuple(rot[k][2] for k in range(3)), force_b)
     lift_b = tuple(b + body_z_force_b for b in lift_b)
     downwash_b = lift_b if isinstance(downwash, tuple) else body_z_force_b  # per-rotor changes add to the lifts
@@ -244,8 +282,10 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
     if effects.ground_effect:
         # lift_i = f_i (1 + gain_i) while upright, gain_i = C (r / 4 h_i)², h_i = max(z + R[2] · prop_i, h_clip).
         thrust_b = tuple(b * (1 + jnp.where(upright, g, 0.0)) for b, g in zip(lift_b, gain, strict=True))
-        height_b = [jnp.where(upright, b * t * (-2 * g / c), 0.0) * _max_weight(h, params.gnd_eff_h_clip)
-                    for b, t, g, c, h in zip(lift_b, thrust, gain, clipped, height, strict=True)]
+        height_b = [
+            jnp.where(upright, b * t * (-2 * g / c), 0.0) * _max_weight(h, params.gnd_eff_h_clip)
+            for b, t, g, c, h in zip(lift_b, thrust, gain, clipped, height, strict=True)
+        ]
         pos_b = (pos_b[0], pos_b[1], pos_b[2] + sum(height_b[1:], height_b[0]))
         for k in range(3):
             rot_b[2][k] = rot_b[2][k] + sum(height_b[i] * params.prop_pos[..., i, k] for i in range(4))
@@ -253,8 +293,10 @@ def substep_vjp(params: DroneParams, effects: Effects, kin: Kinematics, motors: 
     x, y, z, s = q
     b02, b12, b22 = rot_b[0][2], rot_b[1][2], rot_b[2][2]
     b20, b21 = rot_b[2][0], rot_b[2][1]
-    q_b = (q_b[0] + 2 * (z * b02 - s * b12 - 2 * x * b22 + z * b20 + s * b21),
-           q_b[1] + 2 * (s * b02 + z * b12 - 2 * y * b22 - s * b20 + z * b21),
-           q_b[2] + 2 * (x * b02 + y * b12 + x * b20 + y * b21),
-           q_b[3] + 2 * (y * b02 - x * b12 - y * b20 + x * b21))
+    q_b = (
+        q_b[0] + 2 * (z * b02 - s * b12 - 2 * x * b22 + z * b20 + s * b21),
+        q_b[1] + 2 * (s * b02 + z * b12 - 2 * y * b22 - s * b20 + z * b21),
+        q_b[2] + 2 * (x * b02 + y * b12 + x * b20 + y * b21),
+        q_b[3] + 2 * (y * b02 - x * b12 - y * b20 + x * b21),
+    )
     return Kinematics(pos_b, q_b, v_b, w_b), Motors(thrust_b, tau_b[2]), rpm_prev_b, downwash_b, disturbance_b

@@ -62,8 +62,9 @@ def drag_force(params: DroneParams, vel: jax.Array, rpm_prev: jax.Array) -> jax.
     return join(drag_force_c(params, split(vel), split(rpm_prev)))
 
 
-def drag_force_c(params: DroneParams, vel: Components, rpm_prev: Components,
-                 wind: Components | None = None) -> Components:
+def drag_force_c(
+    params: DroneParams, vel: Components, rpm_prev: Components, wind: Components | None = None
+) -> Components:
     """`drag_force` in component form: vel (vx, vy, vz) and rpm_prev (4 motors), each f[..., D]. With ``wind``
     (the air's velocity, world frame, m/s, a 3-tuple of f[..., D]) the drag acts on the velocity relative to the
     air, v - wind: the paper's drag model in moving air (docs/physics.md §6.2)."""
@@ -73,8 +74,9 @@ def drag_force_c(params: DroneParams, vel: Components, rpm_prev: Components,
     return tuple(-omega_sum * params.drag_coeff[..., k] * vel[k] for k in range(3))
 
 
-def ground_effect_thrust(params: DroneParams, pos: jax.Array, rotmat: jax.Array, thrust: jax.Array,
-                         kinks: Kinks = Kinks()) -> jax.Array:
+def ground_effect_thrust(
+    params: DroneParams, pos: jax.Array, rotmat: jax.Array, thrust: jax.Array, kinks: Kinks = Kinks()
+) -> jax.Array:
     """Extra per-propeller thrust near the ground, paper eq. (ground): g_i = f_i · C_gnd · (R / (4 h_i))².
 
     h_i is the world height of propeller i, clipped from below at ``gnd_eff_h_clip`` (so the gain is at most 4/15).
@@ -97,8 +99,9 @@ def ground_effect_thrust(params: DroneParams, pos: jax.Array, rotmat: jax.Array,
     return join(ground_effect_thrust_c(params, pos[..., 2], rotmat_z, split(thrust), kinks))
 
 
-def ground_effect_thrust_c(params: DroneParams, pos_z: jax.Array, rotmat_z: Components,
-                           thrust: Components, kinks: Kinks = Kinks()) -> Components:
+def ground_effect_thrust_c(
+    params: DroneParams, pos_z: jax.Array, rotmat_z: Components, thrust: Components, kinks: Kinks = Kinks()
+) -> Components:
     """`ground_effect_thrust` in component form.
 
     Args:
@@ -109,8 +112,9 @@ def ground_effect_thrust_c(params: DroneParams, pos_z: jax.Array, rotmat_z: Comp
         kinks: the kinks' treatment.
     """
     if kinks.mode == "smooth":
-        upright = kinks.step(rotmat_z[2], kinks.attitude) * kinks.step(GIMBAL_SNAP - jnp.abs(rotmat_z[0]),
-                                                                        kinks.attitude)
+        upright = kinks.step(rotmat_z[2], kinks.attitude) * kinks.step(
+            GIMBAL_SNAP - jnp.abs(rotmat_z[0]), kinks.attitude
+        )
         on = lambda value: upright * value  # noqa: E731
     else:
         upright = (rotmat_z[2] > 0) & (jnp.abs(rotmat_z[0]) < GIMBAL_SNAP)
@@ -124,8 +128,13 @@ def ground_effect_thrust_c(params: DroneParams, pos_z: jax.Array, rotmat_z: Comp
     return tuple(extra)
 
 
-def downwash_force(params: DroneParams, pos: jax.Array, kinks: Kinks = Kinks(),
-                   neighbors: jax.Array | None = None, cutoff: float = DOWNWASH_MAX_DIST) -> jax.Array:
+def downwash_force(
+    params: DroneParams,
+    pos: jax.Array,
+    kinks: Kinks = Kinks(),
+    neighbors: jax.Array | None = None,
+    cutoff: float = DOWNWASH_MAX_DIST,
+) -> jax.Array:
     """Downwash on each drone from every drone above it, paper eq. (down), along the lower drone's body -z.
 
     For a lower drone j and a drone i with Δz = z_i - z_j > 0 and horizontal distance d < 10 m:
@@ -152,8 +161,13 @@ def downwash_force(params: DroneParams, pos: jax.Array, kinks: Kinks = Kinks(),
     return downwash_force_c(params, split(pos), kinks, neighbors, cutoff)
 
 
-def downwash_force_c(params: DroneParams, pos: Components, kinks: Kinks = Kinks(),
-                     neighbors: jax.Array | None = None, cutoff: float = DOWNWASH_MAX_DIST) -> jax.Array:
+def downwash_force_c(
+    params: DroneParams,
+    pos: Components,
+    kinks: Kinks = Kinks(),
+    neighbors: jax.Array | None = None,
+    cutoff: float = DOWNWASH_MAX_DIST,
+) -> jax.Array:
     """`downwash_force` in component form: pos (x, y, z), each f[..., D]; returns f[..., D] N."""
     if neighbors is None:  # every drone, itself included (Δz = 0: no force)
         others = tuple(p[..., None, :] for p in pos)
@@ -207,9 +221,15 @@ def jet_speed(s: jax.Array, r2: jax.Array, u_hover: jax.Array, length: jax.Array
     return u_hover * JET_DECAY / axial / (1 + (jnp.sqrt(2.0) - 1) * xi2) ** 2
 
 
-def downwash_thrust(params: DroneParams, pos: jax.Array, rotmat: jax.Array, thrust: jax.Array,
-                    kinks: Kinks = Kinks(), neighbors: jax.Array | None = None,
-                    cutoff: float = DOWNWASH_MAX_DIST) -> jax.Array:
+def downwash_thrust(
+    params: DroneParams,
+    pos: jax.Array,
+    rotmat: jax.Array,
+    thrust: jax.Array,
+    kinks: Kinks = Kinks(),
+    neighbors: jax.Array | None = None,
+    cutoff: float = DOWNWASH_MAX_DIST,
+) -> jax.Array:
     """Per-rotor downwash: the change of each rotor's thrust in the jets of the drones above (docs/physics.md §6.4).
 
     Each drone i is a hovering source whose jet (`jet_speed`: Bauersfeld et al., "Robotics meets Fluid Dynamics",
@@ -245,9 +265,15 @@ def downwash_thrust(params: DroneParams, pos: jax.Array, rotmat: jax.Array, thru
     return join(downwash_thrust_c(params, split(pos), rows, split(thrust), kinks, neighbors, cutoff))
 
 
-def downwash_thrust_c(params: DroneParams, pos: Components, rotmat: tuple[Components, Components, Components],
-                      thrust: Components, kinks: Kinks = Kinks(), neighbors: jax.Array | None = None,
-                      cutoff: float = DOWNWASH_MAX_DIST) -> Components:
+def downwash_thrust_c(
+    params: DroneParams,
+    pos: Components,
+    rotmat: tuple[Components, Components, Components],
+    thrust: Components,
+    kinks: Kinks = Kinks(),
+    neighbors: jax.Array | None = None,
+    cutoff: float = DOWNWASH_MAX_DIST,
+) -> Components:
     """`downwash_thrust` in component form: pos (x, y, z), rotmat's rows and thrust (4 motors), each f[..., D];
     returns the 4-tuple of thrust changes, each f[..., D] N."""
     shape = pos[0].shape

@@ -46,8 +46,10 @@ def check_state_shape(config: SimConfig, state: DroneState) -> tuple[int, ...]:
     n = config.n_drones
     pos, quat = np.shape(state.pos), np.shape(state.quat)
     if pos[-2:] != (n, 3) or quat[-2:] != (n, 4) or pos[:-1] != quat[:-1]:
-        raise ValueError(f"state has pos {pos} and quat {quat}; expected [..., {n}, 3] and [..., {n}, 4] with the "
-                         f"same leading shape, for n_drones={n} (build it with jd.init_state(config, ...))")
+        raise ValueError(
+            f"state has pos {pos} and quat {quat}; expected [..., {n}, 3] and [..., {n}, 4] with the "
+            f"same leading shape, for n_drones={n} (build it with jd.init_state(config, ...))"
+        )
     return tuple(pos[:-1])
 
 
@@ -63,8 +65,10 @@ def check_rpm_shape(config: SimConfig, state: DroneState, shape: tuple[int, ...]
         raise ValueError(f"rpm must be a real (float or int) array in RPM, got dtype {dtype}")
     expected = state.rpm.shape
     if tuple(shape) != tuple(expected):
-        raise ValueError(f"rpm must have shape {expected} ([..., n_drones={n}, 4] motor speeds in RPM, with the "
-                         f"state's leading shape {expected[:-2]}), got {tuple(shape)}")
+        raise ValueError(
+            f"rpm must have shape {expected} ([..., n_drones={n}, 4] motor speeds in RPM, with the "
+            f"state's leading shape {expected[:-2]}), got {tuple(shape)}"
+        )
 
 
 def check_params_batch(params: DroneParams, state: DroneState) -> None:
@@ -82,9 +86,11 @@ def check_params_batch(params: DroneParams, state: DroneState) -> None:
     except ValueError:
         ok = False
     if not ok:
-        raise ValueError(f"params have batch shape {batch}, which does not line up with the state's [..., D] = "
-                         f"{lead}: batched params are right-aligned with the drone axis, so per-drone params are "
-                         f"[D] or [W, D] and per-world params [W, 1] (or vmap the step over worlds)")
+        raise ValueError(
+            f"params have batch shape {batch}, which does not line up with the state's [..., D] = "
+            f"{lead}: batched params are right-aligned with the drone axis, so per-drone params are "
+            f"[D] or [W, D] and per-world params [W, 1] (or vmap the step over worlds)"
+        )
 
 
 def check_disturbance(config: SimConfig, state: DroneState, disturbance) -> Disturbance | None:
@@ -99,11 +105,15 @@ def check_disturbance(config: SimConfig, state: DroneState, disturbance) -> Dist
     if disturbance is None:
         return None
     if not isinstance(disturbance, Disturbance):
-        raise ValueError(f"disturbance must be a jaxdrones.Disturbance(force=, torque=, wind=) or None, got "
-                         f"{type(disturbance).__name__}")
+        raise ValueError(
+            f"disturbance must be a jaxdrones.Disturbance(force=, torque=, wind=) or None, got "
+            f"{type(disturbance).__name__}"
+        )
     if disturbance.wind is not None and not config.drag:
-        raise ValueError("disturbance.wind acts through the drag model (paper eq. (drag) on the velocity relative "
-                         "to the air): it needs SimConfig(drag=True)")
+        raise ValueError(
+            "disturbance.wind acts through the drag model (paper eq. (drag) on the velocity relative "
+            "to the air): it needs SimConfig(drag=True)"
+        )
     shape = tuple(np.shape(state.pos))
     fields = {}
     for name, unit in (("force", "N, world frame"), ("torque", "N·m, body frame"), ("wind", "m/s, world frame")):
@@ -119,8 +129,10 @@ def check_disturbance(config: SimConfig, state: DroneState, disturbance) -> Dist
         except ValueError:
             ok = False
         if not ok:
-            raise ValueError(f"disturbance.{name} must broadcast to the state's {shape} ([..., n_drones, 3], "
-                             f"{unit}), got {np.shape(value)}")
+            raise ValueError(
+                f"disturbance.{name} must broadcast to the state's {shape} ([..., n_drones, 3], "
+                f"{unit}), got {np.shape(value)}"
+            )
         if not isinstance(value, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(value))):
             raise ValueError(f"disturbance.{name} contains NaN or inf")
         fields[name] = jnp.broadcast_to(jnp.asarray(value, state.pos.dtype), shape)
@@ -140,5 +152,6 @@ def check_motor_time_constants(params: DroneParams) -> None:
             continue
         host = np.asarray(value)
         if not np.all(np.isfinite(host)) or np.any(host < 0):
-            raise ValueError(f"DroneParams.{name} must be finite time constants >= 0 s (0: instant motors), got "
-                             f"{host.tolist()}")
+            raise ValueError(
+                f"DroneParams.{name} must be finite time constants >= 0 s (0: instant motors), got {host.tolist()}"
+            )

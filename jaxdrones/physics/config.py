@@ -79,13 +79,20 @@ class SimConfig:
             if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"SimConfig.{name} must be a positive integer, got {value!r}")
         if self.sim_freq % self.ctrl_freq:
-            raise ValueError(f"SimConfig: sim_freq ({self.sim_freq} Hz) must be a multiple of ctrl_freq "
-                             f"({self.ctrl_freq} Hz), e.g. sim_freq=240 with ctrl_freq in 240, 120, 80, 48, 30, ...")
+            raise ValueError(
+                f"SimConfig: sim_freq ({self.sim_freq} Hz) must be a multiple of ctrl_freq "
+                f"({self.ctrl_freq} Hz), e.g. sim_freq=240 with ctrl_freq in 240, 120, 80, 48, 30, ..."
+            )
         radius = self.downwash_radius
-        if radius is not None and (isinstance(radius, bool) or not isinstance(radius, (int, float, np.number))
-                                   or not np.isfinite(radius) or radius <= 0):
-            raise ValueError(f"SimConfig.downwash_radius must be None (every drone) or a finite radius > 0 m, "
-                             f"got {radius!r}")
+        if radius is not None and (
+            isinstance(radius, bool)
+            or not isinstance(radius, (int, float, np.number))
+            or not np.isfinite(radius)
+            or radius <= 0
+        ):
+            raise ValueError(
+                f"SimConfig.downwash_radius must be None (every drone) or a finite radius > 0 m, got {radius!r}"
+            )
         capacity = self.cell_capacity
         if not isinstance(capacity, (int, np.integer)) or isinstance(capacity, bool) or capacity < 1:
             raise ValueError(f"SimConfig.cell_capacity must be a positive integer, got {capacity!r}")
@@ -96,8 +103,9 @@ class SimConfig:
             object.__setattr__(self, name, bool(value))
         object.__setattr__(self, "downwash", downwash_model(self.downwash, "SimConfig.downwash"))
         if self.integrator not in dynamics.INTEGRATORS:
-            raise ValueError(f"SimConfig.integrator must be one of {tuple(dynamics.INTEGRATORS)}, "
-                             f"got {self.integrator!r}")
+            raise ValueError(
+                f"SimConfig.integrator must be one of {tuple(dynamics.INTEGRATORS)}, got {self.integrator!r}"
+            )
 
     @property
     def n_substeps(self) -> int:
@@ -116,8 +124,9 @@ class SimConfig:
 
     @property
     def effects(self) -> dynamics.Effects:
-        return dynamics.Effects(self.drag, self.ground_effect, self.downwash, self.kinks, self.downwash_radius,
-                                self.cell_capacity)
+        return dynamics.Effects(
+            self.drag, self.ground_effect, self.downwash, self.kinks, self.downwash_radius, self.cell_capacity
+        )
 
 
 def downwash_model(value, name: str = "downwash") -> bool | str:
@@ -132,5 +141,7 @@ def downwash_model(value, name: str = "downwash") -> bool | str:
     if isinstance(value, str) and value in DOWNWASH_MODELS:
         return True if value == "paper" else value
     hint = did_you_mean(value, DOWNWASH_MODELS) if isinstance(value, str) else ""
-    raise ValueError(f"{name} must be False (off), True or 'paper' (the paper's model) or 'per_rotor' (thrust "
-                     f"changes per rotor), got {value!r}{hint}")
+    raise ValueError(
+        f"{name} must be False (off), True or 'paper' (the paper's model) or 'per_rotor' (thrust "
+        f"changes per rotor), got {value!r}{hint}"
+    )

@@ -137,9 +137,17 @@ def body_torque_c(params: DroneParams, lift: Components, yaw_torque: jax.Array) 
     return tau_x, tau_y, yaw_torque
 
 
-def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors, rpm_prev: Components,
-                    unit_quat: bool = False, neighbors: jax.Array | None = None, downwash: jax.Array | None = None,
-                    disturbance: Disturbance | None = None):
+def accelerations_c(
+    params: DroneParams,
+    effects: Effects,
+    kin: Kinematics,
+    motors: Motors,
+    rpm_prev: Components,
+    unit_quat: bool = False,
+    neighbors: jax.Array | None = None,
+    downwash: jax.Array | None = None,
+    disturbance: Disturbance | None = None,
+):
     """Linear (world, m/s²) and angular (body, rad/s²) accelerations, with the motors' output for the applied RPM
     (`motors_c`) and ``rpm_prev`` (4-tuple of f[..., D], the RPM of the previous substep, for drag only).
 
@@ -158,7 +166,7 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
     lift = thrust
     if effects.ground_effect:
         extra = aerodynamics.ground_effect_thrust_c(params, kin.pos[2], rotmat[2], thrust, effects.kinks)
-        lift = tuple(t + e for t, e in zip(thrust, extra))
+        lift = tuple(t + e for t, e in zip(thrust, extra, strict=True))
     if downwash is None:
         downwash = downwash_c(params, effects, kin, motors, neighbors, unit_quat)
     lift, downwash = add_downwash_c(lift, downwash)
@@ -170,20 +178,26 @@ def accelerations_c(params: DroneParams, effects: Effects, kin: Kinematics, moto
     disturbance = Disturbance() if disturbance is None else disturbance
     if effects.drag:
         drag = aerodynamics.drag_force_c(params, kin.vel, rpm_prev, disturbance.wind)
-        force = tuple(f + d for f, d in zip(force, drag))
+        force = tuple(f + d for f, d in zip(force, drag, strict=True))
     if disturbance.force is not None:
         force = tuple(f + e for f, e in zip(force, disturbance.force, strict=True))
     torque = body_torque_c(params, lift, motors.yaw_torque)
     if disturbance.torque is not None:
         torque = tuple(t + e for t, e in zip(torque, disturbance.torque, strict=True))
     gyro = cross(kin.ang_vel, matvec(params.inertia, kin.ang_vel))
-    torque = tuple(t - g for t, g in zip(torque, gyro))
+    torque = tuple(t - g for t, g in zip(torque, gyro, strict=True))
     ang_acc = matvec(params.inertia_inv, torque)
     return tuple(f / params.mass for f in force), ang_acc
 
 
-def downwash_c(params: DroneParams, effects: Effects, kin: Kinematics, motors: Motors,
-               neighbors: jax.Array | None = None, unit_quat: bool = False) -> jax.Array | Components | None:
+def downwash_c(
+    params: DroneParams,
+    effects: Effects,
+    kin: Kinematics,
+    motors: Motors,
+    neighbors: jax.Array | None = None,
+    unit_quat: bool = False,
+) -> jax.Array | Components | None:
     """The downwash of ``effects.downwash``'s model with the effects' kinks and cut-off, in component form
     (``kin``, ``motors``, ``neighbors`` and ``unit_quat`` as in `accelerations_c`).
 
@@ -201,8 +215,9 @@ def downwash_c(params: DroneParams, effects: Effects, kin: Kinematics, motors: M
         neighbors = effects.downwash_neighbors(pos)
     if effects.downwash == "per_rotor":
         rotmat = quat_to_rotmat_c(kin.quat, unit=unit_quat)
-        return aerodynamics.downwash_thrust_c(params, pos, rotmat, motors.thrust, effects.kinks, neighbors,
-                                              effects.downwash_cutoff)
+        return aerodynamics.downwash_thrust_c(
+            params, pos, rotmat, motors.thrust, effects.kinks, neighbors, effects.downwash_cutoff
+        )
     return aerodynamics.downwash_force_c(params, pos, effects.kinks, neighbors, effects.downwash_cutoff)
 
 
@@ -215,27 +230,44 @@ def add_downwash_c(lift: Components, downwash: jax.Array | Components | None) ->
     return lift, downwash
 
 
-def euler_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
-                 unit_quat: bool = False, neighbors: jax.Array | None = None,
-                 downwash: jax.Array | None = None, disturbance: Disturbance | None = None) -> Kinematics:
+def euler_step_c(
+    params,
+    effects,
+    kin: Kinematics,
+    motors: Motors,
+    rpm_prev: Components,
+    dt: float,
+    unit_quat: bool = False,
+    neighbors: jax.Array | None = None,
+    downwash: jax.Array | None = None,
+    disturbance: Disturbance | None = None,
+) -> Kinematics:
     """The paper code's semi-implicit Euler update (docs/physics.md §4.5-4.6), one physics step of ``dt`` s.
 
     v ← v + dt·a; ω ← ω + dt·ω̇; p ← p + dt·v_new; q ← exp-map(q, ω_new, dt), then q is normalised as PyBullet
     does when the state is written back. ``motors``, ``unit_quat``, ``neighbors``, ``downwash`` and ``disturbance``
     as in `accelerations_c`.
     """
-    acc, ang_acc = accelerations_c(params, effects, kin, motors, rpm_prev, unit_quat, neighbors, downwash,
-                                   disturbance)
-    vel = tuple(v + dt * a for v, a in zip(kin.vel, acc))
-    ang_vel = tuple(w + dt * a for w, a in zip(kin.ang_vel, ang_acc))
+    acc, ang_acc = accelerations_c(params, effects, kin, motors, rpm_prev, unit_quat, neighbors, downwash, disturbance)
+    vel = tuple(v + dt * a for v, a in zip(kin.vel, acc, strict=True))
+    ang_vel = tuple(w + dt * a for w, a in zip(kin.ang_vel, ang_acc, strict=True))
     quat = quat_integrate_c(kin.quat, ang_vel, dt)
-    pos = tuple(p + dt * v for p, v in zip(kin.pos, vel))
+    pos = tuple(p + dt * v for p, v in zip(kin.pos, vel, strict=True))
     return Kinematics(pos, normalize_c(quat), vel, ang_vel)
 
 
-def rk4_step_c(params, effects, kin: Kinematics, motors: Motors, rpm_prev: Components, dt: float,
-               unit_quat: bool = False, neighbors: jax.Array | None = None, downwash: None = None,
-               disturbance: Disturbance | None = None) -> Kinematics:
+def rk4_step_c(
+    params,
+    effects,
+    kin: Kinematics,
+    motors: Motors,
+    rpm_prev: Components,
+    dt: float,
+    unit_quat: bool = False,
+    neighbors: jax.Array | None = None,
+    downwash: None = None,
+    disturbance: Disturbance | None = None,
+) -> Kinematics:
     """Classical 4th-order Runge-Kutta on (p, q, v, ω) with the motor inputs held over the step; q renormalised.
 
     See docs/physics.md §4.11. ``motors`` and ``unit_quat`` as in `accelerations_c` (``unit_quat`` concerns the first

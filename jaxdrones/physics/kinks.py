@@ -79,7 +79,8 @@ class Kinks:
         return _straight_through(x, exact) if self.mode == "straight_through" else exact
 
     def clip(self, x: jax.Array, low, high, width: float) -> jax.Array:
-        """clip(x, low, high), treated by `mode` with band half-width ``width`` at each bound (high - low > 2 width)."""
+        """Clip x to [low, high], the kinks treated by `mode` with band half-width ``width`` at each bound
+        (high - low > 2 width)."""
         exact = jnp.clip(x, low, high)
         if self.mode == "smooth":
             return low + _soft_relu(x - low, width) - _soft_relu(x - high, width)

@@ -28,8 +28,20 @@ MODELS = ("cf2x", "cf2p", "racer")
 #: Optional ``<properties>`` attributes, 0 when absent: the motors' time constants, s (`DroneParams.motor_tau_up`).
 _OPTIONAL_KEYS = ("motor_tau_up", "motor_tau_down")
 _PROPERTY_KEYS = (
-    "arm", "kf", "km", "thrust2weight", "max_speed_kmh", "gnd_eff_coeff", "prop_radius",
-    "drag_coeff_xy", "drag_coeff_z", "dw_coeff_1", "dw_coeff_2", "dw_coeff_3", "frame", "prop_spin",
+    "arm",
+    "kf",
+    "km",
+    "thrust2weight",
+    "max_speed_kmh",
+    "gnd_eff_coeff",
+    "prop_radius",
+    "drag_coeff_xy",
+    "drag_coeff_z",
+    "dw_coeff_1",
+    "dw_coeff_2",
+    "dw_coeff_3",
+    "frame",
+    "prop_spin",
 )
 
 
@@ -108,8 +120,15 @@ class DroneParams:
 
 
 #: Number of trailing (per-drone) axes of each `DroneParams` field; the other fields are per-drone scalars.
-_CORE_NDIM = {"inertia": 2, "inertia_inv": 2, "prop_pos": 2, "torque_arm": 2, "drag_coeff": 1, "dw_coeff": 1,
-              "prop_spin": 1}
+_CORE_NDIM = {
+    "inertia": 2,
+    "inertia_inv": 2,
+    "prop_pos": 2,
+    "torque_arm": 2,
+    "drag_coeff": 1,
+    "dw_coeff": 1,
+    "prop_spin": 1,
+}
 
 
 def params_batch_shape(params: DroneParams) -> tuple[int, ...]:
@@ -122,7 +141,7 @@ def params_batch_shape(params: DroneParams) -> tuple[int, ...]:
     for field in dataclasses.fields(params):
         shape = np.shape(getattr(params, field.name))  # a Python number (params.replace(kf=...)) too
         core = _CORE_NDIM.get(field.name, 0)
-        shapes[field.name] = tuple(shape[:len(shape) - core])
+        shapes[field.name] = tuple(shape[: len(shape) - core])
     batch = shapes["mass"]
     odd = {k: v for k, v in shapes.items() if v != batch}
     if odd:
@@ -141,14 +160,16 @@ def broadcast_params(params: DroneParams, lead: tuple[int, ...], xp=jnp) -> Dron
     Raises:
         ValueError: if a field does not broadcast to ``lead``.
     """
+
     def widen(name, leaf):
         core = _CORE_NDIM.get(name, 0)
-        shape = tuple(lead) + tuple(leaf.shape[leaf.ndim - core:])
+        shape = tuple(lead) + tuple(leaf.shape[leaf.ndim - core :])
         try:
             return xp.broadcast_to(xp.asarray(leaf), shape)
         except ValueError:
-            raise ValueError(f"DroneParams.{name} of shape {leaf.shape} does not broadcast to the batch shape "
-                             f"{tuple(lead)}") from None
+            raise ValueError(
+                f"DroneParams.{name} of shape {leaf.shape} does not broadcast to the batch shape {tuple(lead)}"
+            ) from None
 
     return DroneParams(**{f.name: widen(f.name, getattr(params, f.name)) for f in dataclasses.fields(params)})
 
@@ -161,14 +182,16 @@ def pack_params(params: DroneParams, lead: tuple[int, ...]):
     """
     lead = tuple(lead)
     names = [f.name for f in dataclasses.fields(params)]
-    cores = [tuple(getattr(params, n).shape[len(lead):]) for n in names]
+    cores = [tuple(getattr(params, n).shape[len(lead) :]) for n in names]
     packed = jnp.concatenate([jnp.reshape(getattr(params, n), lead + (-1,)) for n in names], axis=-1)
     sizes = np.cumsum([math.prod(c) for c in cores])[:-1]
 
     def unpack(array) -> DroneParams:
         array = np.asarray(array)
         parts = np.split(array, sizes, axis=-1)
-        return DroneParams(**{n: part.reshape(array.shape[:-1] + core) for n, part, core in zip(names, parts, cores)})
+        return DroneParams(
+            **{n: part.reshape(array.shape[:-1] + core) for n, part, core in zip(names, parts, cores, strict=True)}
+        )
 
     return packed, unpack
 
@@ -236,8 +259,10 @@ def _parse_urdf(path: str) -> dict:
     inertia = base.find("inertial/inertia")
     if inertia is None:
         raise ValueError(f"{path}: base_link lacks <inertial><inertia>")
-    i = {k: _number(path, f"base_link inertia/@{k}", inertia.get(k, "0" if k[1] != k[2] else None))
-         for k in ("ixx", "iyy", "izz", "ixy", "ixz", "iyz")}
+    i = {
+        k: _number(path, f"base_link inertia/@{k}", inertia.get(k, "0" if k[1] != k[2] else None))
+        for k in ("ixx", "iyy", "izz", "ixy", "ixz", "iyz")
+    }
     raw["inertia"] = [[i["ixx"], i["ixy"], i["ixz"]], [i["ixy"], i["iyy"], i["iyz"]], [i["ixz"], i["iyz"], i["izz"]]]
     cyl = base.find("collision/geometry/cylinder")
     if cyl is None:
@@ -280,14 +305,16 @@ def _check_physical(raw: dict, path: str) -> None:
         raise ValueError(f"{path}: mass must be > 0 kg, got {raw['mass']}")
     inertia = np.asarray(raw["inertia"])
     if np.any(np.linalg.eigvalsh(inertia) <= 0):
-        raise ValueError(f"{path}: inertia must be symmetric positive definite, got eigenvalues "
-                         f"{np.linalg.eigvalsh(inertia)} kg·m²")
+        raise ValueError(
+            f"{path}: inertia must be symmetric positive definite, got eigenvalues {np.linalg.eigvalsh(inertia)} kg·m²"
+        )
     for key in ("arm", "kf", "km", "prop_radius", "collision_radius", "collision_height"):
         if raw[key] <= 0:
             raise ValueError(f"{path}: {key} must be > 0, got {raw[key]}")
     if raw["thrust2weight"] <= 1:
-        raise ValueError(f"{path}: thrust2weight must be > 1 (the drone must be able to hover), "
-                         f"got {raw['thrust2weight']}")
+        raise ValueError(
+            f"{path}: thrust2weight must be > 1 (the drone must be able to hover), got {raw['thrust2weight']}"
+        )
     for key in ("max_speed_kmh", "gnd_eff_coeff", "drag_coeff_xy", "drag_coeff_z", "dw_coeff_1", *_OPTIONAL_KEYS):
         if raw[key] < 0:
             raise ValueError(f"{path}: {key} must be >= 0, got {raw[key]}")
@@ -316,14 +343,25 @@ def _derive(raw: dict, path: str) -> DroneParams:
         raise ValueError(f"{path}: every motor must sit off the body z axis, got positions {prop_pos.tolist()}")
     inertia = np.asarray(raw["inertia"])
     values = dict(
-        mass=raw["mass"], arm=raw["arm"], inertia=inertia, kf=raw["kf"], km=raw["km"],
-        thrust2weight=raw["thrust2weight"], max_speed_kmh=raw["max_speed_kmh"], prop_radius=raw["prop_radius"],
+        mass=raw["mass"],
+        arm=raw["arm"],
+        inertia=inertia,
+        kf=raw["kf"],
+        km=raw["km"],
+        thrust2weight=raw["thrust2weight"],
+        max_speed_kmh=raw["max_speed_kmh"],
+        prop_radius=raw["prop_radius"],
         gnd_eff_coeff=raw["gnd_eff_coeff"],
         drag_coeff=[raw["drag_coeff_xy"], raw["drag_coeff_xy"], raw["drag_coeff_z"]],
         dw_coeff=[raw["dw_coeff_1"], raw["dw_coeff_2"], raw["dw_coeff_3"]],
-        prop_pos=prop_pos, prop_spin=raw["prop_spin"], torque_arm=_torque_arm(raw["frame"], raw["arm"], prop_pos),
-        gravity=GRAVITY, collision_radius=raw["collision_radius"], collision_height=raw["collision_height"],
-        motor_tau_up=raw["motor_tau_up"], motor_tau_down=raw["motor_tau_down"],
+        prop_pos=prop_pos,
+        prop_spin=raw["prop_spin"],
+        torque_arm=_torque_arm(raw["frame"], raw["arm"], prop_pos),
+        gravity=GRAVITY,
+        collision_radius=raw["collision_radius"],
+        collision_height=raw["collision_height"],
+        motor_tau_up=raw["motor_tau_up"],
+        motor_tau_down=raw["motor_tau_down"],
     )
     values = {k: np.asarray(v, dtype=np.float64) for k, v in values.items()}
     derived = derive_params(_PrimaryParams(**values), xp=np)  # in float64, then cast once
@@ -332,8 +370,15 @@ def _derive(raw: dict, path: str) -> DroneParams:
 
 
 #: The `DroneParams` fields computed from the others by `derive_params`.
-DERIVED_FIELDS = ("inertia_inv", "hover_rpm", "max_rpm", "max_thrust", "max_xy_torque", "max_z_torque",
-                  "gnd_eff_h_clip")
+DERIVED_FIELDS = (
+    "inertia_inv",
+    "hover_rpm",
+    "max_rpm",
+    "max_thrust",
+    "max_xy_torque",
+    "max_z_torque",
+    "gnd_eff_h_clip",
+)
 
 
 class _PrimaryParams(NamedTuple):
@@ -383,7 +428,9 @@ def derive_params(params, xp=jnp) -> dict:
     max_rpm = xp.sqrt(params.thrust2weight * weight / (4 * params.kf))
     max_sq = max_rpm**2
     return dict(
-        inertia_inv=xp.linalg.inv(params.inertia), hover_rpm=hover_rpm, max_rpm=max_rpm,
+        inertia_inv=xp.linalg.inv(params.inertia),
+        hover_rpm=hover_rpm,
+        max_rpm=max_rpm,
         max_thrust=4 * params.kf * max_sq,
         max_xy_torque=params.kf * max_sq * xp.sum(xp.maximum(params.torque_arm[..., 0, :], 0.0), axis=-1),
         max_z_torque=2 * params.km * max_sq,

@@ -155,8 +155,13 @@ class Realism:
         """These settings with the motors' time constants times ``lag`` and the noise and bias σ times ``noise``."""
         new = {}
         for f in dataclasses.fields(self):
-            factor = lag if f.name.startswith("motor_tau") else noise if f.name.startswith(("obs_noise", "obs_bias")) \
+            factor = (
+                lag
+                if f.name.startswith("motor_tau")
+                else noise
+                if f.name.startswith(("obs_noise", "obs_bias"))
                 else None
+            )
             if factor is not None:
                 new[f.name] = tuple(v * factor for v in getattr(self, f.name))
         return dataclasses.replace(self, **new)
@@ -172,9 +177,17 @@ def _is_real(value) -> bool:
 #: 0.001 (rotation), 0.002 m/s, 0.002 rad/s; a force σ = 0.027 kg · 9.81 m/s² / 20 = 0.0132 N and a torque
 #: σ = 0.027 · 9.81 / 10000 = 2.65e-5 N·m per axis, drawn once per episode. Its latency (about 10 ms from IMU to
 #: motors) is below one control step at the envs' 30 Hz: no delay.
-CRAZYFLIE = Realism(motor_tau_up=0.15, motor_tau_down=0.15, obs_noise_pos=0.001, obs_noise_att=0.001,
-                    obs_noise_vel=0.002, obs_noise_ang_vel=0.002, disturbance_force=0.027 * 9.81 / 20,
-                    disturbance_torque=0.027 * 9.81 / 10000, disturbance_hold=math.inf)
+CRAZYFLIE = Realism(
+    motor_tau_up=0.15,
+    motor_tau_down=0.15,
+    obs_noise_pos=0.001,
+    obs_noise_att=0.001,
+    obs_noise_vel=0.002,
+    obs_noise_ang_vel=0.002,
+    disturbance_force=0.027 * 9.81 / 20,
+    disturbance_torque=0.027 * 9.81 / 10000,
+    disturbance_hold=math.inf,
+)
 #: Named settings for `jaxdrones.make`'s ``realism``.
 PRESETS = {
     "crazyflie": CRAZYFLIE,
@@ -193,8 +206,10 @@ def resolve(value) -> Realism | None:
         return value
     if isinstance(value, str):
         if value not in PRESETS:
-            raise ValueError(f"unknown realism preset {value!r}{did_you_mean(value, PRESETS)}: expected one of "
-                             f"{tuple(PRESETS)}, a jaxdrones.realism.Realism or a dict of its fields")
+            raise ValueError(
+                f"unknown realism preset {value!r}{did_you_mean(value, PRESETS)}: expected one of "
+                f"{tuple(PRESETS)}, a jaxdrones.realism.Realism or a dict of its fields"
+            )
         return PRESETS[value]
     if isinstance(value, dict):
         fields = {f.name for f in dataclasses.fields(Realism)}
@@ -202,11 +217,15 @@ def resolve(value) -> Realism | None:
         base = resolve(options.pop("preset", None)) or Realism()
         for name in options:
             if name not in fields:
-                raise ValueError(f"unknown realism option {name!r}{did_you_mean(name, fields | {'preset'})}: "
-                                 f"expected 'preset' or fields of jaxdrones.realism.Realism {sorted(fields)}")
+                raise ValueError(
+                    f"unknown realism option {name!r}{did_you_mean(name, fields | {'preset'})}: "
+                    f"expected 'preset' or fields of jaxdrones.realism.Realism {sorted(fields)}"
+                )
         return dataclasses.replace(base, **options)
-    raise ValueError(f"realism must be None, a preset name {tuple(PRESETS)}, a jaxdrones.realism.Realism or a dict "
-                     f"of its fields, got {value!r}")
+    raise ValueError(
+        f"realism must be None, a preset name {tuple(PRESETS)}, a jaxdrones.realism.Realism or a dict "
+        f"of its fields, got {value!r}"
+    )
 
 
 @struct.dataclass
@@ -330,8 +349,9 @@ class RealismModel:
             if f.name.endswith("_delay"):
                 values[f.name] = jax.random.randint(k, (), low, high + 1, jnp.int32)
             elif f.name.startswith("motor_tau"):
-                values[f.name] = jax.random.uniform(k, (n,), dtype, low, high) if low != high \
-                    else jnp.full((n,), low, dtype)
+                values[f.name] = (
+                    jax.random.uniform(k, (n,), dtype, low, high) if low != high else jnp.full((n,), low, dtype)
+                )
             elif low == high or math.isinf(high):
                 values[f.name] = jnp.asarray(low if low == high else high, dtype)
             else:
@@ -347,13 +367,24 @@ class RealismModel:
         disturbance, hold = self._draw_disturbance(k_dist, values, dtype)
         actions = jnp.zeros((self.action_buffer + 1, n, self.action_size), dtype)
         observed = jnp.broadcast_to(_pack(sim), (self.obs_buffer + 1, n, 13))
-        return RealismState(values=values, bias=bias, actions=actions, observed=observed, axis=axis, dryden=dryden,
-                            gust=gust, disturbance=disturbance, hold=hold, key=key)
+        return RealismState(
+            values=values,
+            bias=bias,
+            actions=actions,
+            observed=observed,
+            axis=axis,
+            dryden=dryden,
+            gust=gust,
+            disturbance=disturbance,
+            hold=hold,
+            key=key,
+        )
 
     def _draw_disturbance(self, key, values, dtype):
         k_force, k_hold = jax.random.split(key)
-        sigma = jnp.concatenate([jnp.broadcast_to(values["disturbance_force"], (3,)),
-                                 jnp.broadcast_to(values["disturbance_torque"], (3,))])
+        sigma = jnp.concatenate(
+            [jnp.broadcast_to(values["disturbance_force"], (3,)), jnp.broadcast_to(values["disturbance_torque"], (3,))]
+        )
         draw = jax.random.normal(k_force, (self.n_drones, 6), dtype) * sigma
         mean = values["disturbance_hold"]
         hold = jnp.where(jnp.isinf(mean), jnp.inf, mean * jax.random.exponential(k_hold, (), dtype))
@@ -387,8 +418,10 @@ class RealismModel:
             draw, new_hold = self._draw_disturbance(k_dist, state.values, dtype)
             held = jnp.where(redraw, draw, state.disturbance)
             state = state.replace(disturbance=held, hold=jnp.where(redraw, new_hold, hold))
-            force, torque = (held[:, :3] if r.on("disturbance_force") else None,
-                             held[:, 3:] if r.on("disturbance_torque") else None)
+            force, torque = (
+                held[:, :3] if r.on("disturbance_force") else None,
+                held[:, 3:] if r.on("disturbance_torque") else None,
+            )
         return Disturbance(force=force, torque=torque, wind=wind), state.replace(key=key)
 
     def _wind(self, state: RealismState, key, dtype):
@@ -403,8 +436,15 @@ class RealismModel:
             low, high = r.gust_duration
             angle = 2 * jnp.pi * u[2]
             speed = r.gust_speed[0] + (r.gust_speed[1] - r.gust_speed[0]) * u[3]
-            fresh = jnp.stack([jnp.zeros((), dtype), low + (high - low) * u[1], speed * jnp.cos(angle),
-                               speed * jnp.sin(angle), jnp.zeros((), dtype)])
+            fresh = jnp.stack(
+                [
+                    jnp.zeros((), dtype),
+                    low + (high - low) * u[1],
+                    speed * jnp.cos(angle),
+                    speed * jnp.sin(angle),
+                    jnp.zeros((), dtype),
+                ]
+            )
             gust = jnp.where(start, fresh, state.gust.at[0].set(t))
             active = gust[0] <= gust[1]
             shape = 0.5 * (1 - jnp.cos(2 * jnp.pi * gust[0] / jnp.where(active, gust[1], 1.0)))
@@ -412,12 +452,17 @@ class RealismModel:
             state = state.replace(gust=gust)
         if r.on("turbulence"):
             (sigma_u, sigma_w), (tau_u, tau_w) = dryden_constants(
-                values["turbulence"], values["turbulence_altitude"], values["wind_speed"])
+                values["turbulence"], values["turbulence_altitude"], values["wind_speed"]
+            )
             noise = jax.random.normal(jax.random.fold_in(key, 1), (5,), dtype)
             d = state.dryden
-            dryden = jnp.concatenate([_first_order(d[:1], tau_u, dt, noise[:1]),
-                                      _second_order(d[1:3], tau_u, dt, noise[1:3]),
-                                      _second_order(d[3:5], tau_w, dt, noise[3:5])])
+            dryden = jnp.concatenate(
+                [
+                    _first_order(d[:1], tau_u, dt, noise[:1]),
+                    _second_order(d[1:3], tau_u, dt, noise[1:3]),
+                    _second_order(d[3:5], tau_w, dt, noise[3:5]),
+                ]
+            )
             along, across = sigma_u * dryden[0], sigma_u * _second_order_output(dryden[1:3])
             horizontal = horizontal + along * axis + across * jnp.stack([-axis[1], axis[0]])
             vertical = sigma_w * _second_order_output(dryden[3:5])
@@ -455,8 +500,9 @@ def _with_error(sim: DroneState, error: jax.Array) -> DroneState:
     """``sim`` as a sensor with ``error`` f[D, 4, 3] reports it: position, velocity and body rates plus their rows;
     the attitude rotated by the rotation vector of row 1 (body frame)."""
     quat = normalize_c(quat_integrate_c(split(sim.quat), split(error[:, 1]), 1.0))
-    return sim.replace(pos=sim.pos + error[:, 0], quat=join(quat), vel=sim.vel + error[:, 2],
-                       ang_vel=sim.ang_vel + error[:, 3])
+    return sim.replace(
+        pos=sim.pos + error[:, 0], quat=join(quat), vel=sim.vel + error[:, 2], ang_vel=sim.ang_vel + error[:, 3]
+    )
 
 
 def _pack(sim: DroneState) -> jax.Array:

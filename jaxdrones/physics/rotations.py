@@ -125,9 +125,9 @@ def dot(a: Components, b: Components) -> jax.Array:
     other; summing in pairs keeps sums of equal and opposite products exactly zero (e.g. the roll torque of a
     hovering drone, or of a + frame raising a motor on its x axis), as a dot product does.
     """
-    terms = [ai * bi for ai, bi in zip(a, b)]
+    terms = [ai * bi for ai, bi in zip(a, b, strict=True)]
     while len(terms) > 1:
-        pairs = [terms[i:i + 2] for i in range(0, len(terms), 2)]
+        pairs = [terms[i : i + 2] for i in range(0, len(terms), 2)]
         terms = [pair[0] + pair[1] if len(pair) == 2 else pair[0] for pair in pairs]
     return terms[0]
 
@@ -138,12 +138,12 @@ def matvec(m: jax.Array, v: Components) -> Components:
 
 
 def cross(a: Components, b: Components) -> Components:
-    """a × b of 3-vectors, as ``jnp.cross``."""
+    """A × b of 3-vectors, as ``jnp.cross``."""
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
 def normalize_c(v: Components) -> Components:
-    """v / |v| in component form."""
+    """V / |v| in component form."""
     norm = jnp.sqrt(dot(v, v))
     return tuple(vi / norm for vi in v)
 
@@ -198,12 +198,15 @@ def quat_from_euler(rpy: jax.Array) -> jax.Array:
     half = 0.5 * jnp.asarray(rpy)
     cr, cp, cy = jnp.cos(half[..., 0]), jnp.cos(half[..., 1]), jnp.cos(half[..., 2])
     sr, sp, sy = jnp.sin(half[..., 0]), jnp.sin(half[..., 1]), jnp.sin(half[..., 2])
-    return jnp.stack([
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-        cr * cp * cy + sr * sp * sy,
-    ], axis=-1)
+    return jnp.stack(
+        [
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy,
+        ],
+        axis=-1,
+    )
 
 
 #: Coefficients of Cephes' ``atanf`` polynomial: atan(z) ≈ z + z³ (p0 z⁶ + p1 z⁴ + p2 z² + p3) for |z| ≤ tan(π/8).
@@ -212,7 +215,8 @@ _TAN_PI_8 = 0.4142135623730950
 
 
 def atan2(y: jax.Array, x: jax.Array) -> jax.Array:
-    """atan2(y, x) in rad, in [-π, π], with the signed-zero conventions of C's ``atan2``.
+    """The angle of the point (x, y) in rad, in [-π, π], with the signed-zero conventions of C's two-argument
+    arctangent.
 
     XLA on CPU computes ``jnp.arctan2`` with a scalar library call per element (about 18 ns); in float32 this uses
     Cephes' ``atanf`` instead (octant reduction to [0, 1], a second one at tan(π/8), a degree-9 odd polynomial;
@@ -278,8 +282,9 @@ def quat_to_euler(quat: jax.Array) -> jax.Array:
     roll = atan2(jnp.where(snap, 0.0, 2 * (y * z + w * x)), jnp.where(snap, 1.0, w * w - x * x - y * y + z * z))
     pitch = asin(jnp.clip(s, -GIMBAL_SNAP, GIMBAL_SNAP))
     pitch = jnp.where(low, -jnp.pi / 2, jnp.where(high, jnp.pi / 2, pitch))
-    yaw = atan2(jnp.where(snap, sign * x, 2 * (x * y + w * z)),
-                jnp.where(snap, -sign * y, w * w + x * x - y * y - z * z))
+    yaw = atan2(
+        jnp.where(snap, sign * x, 2 * (x * y + w * z)), jnp.where(snap, -sign * y, w * w + x * x - y * y - z * z)
+    )
     yaw = jnp.where(snap, 2 * yaw, yaw)
     return jnp.stack([roll, pitch, yaw], axis=-1)
 

@@ -115,16 +115,18 @@ def init_state(config, *, pos=None, rpy=None, quat=None, vel=None, ang_vel=None,
     for name, (value, width) in fields.items():
         value = np.asarray(value, dtype=np.float64)
         if value.ndim < 2 or value.shape[-2:] != (n, width):
-            raise ValueError(f"init_state: {name} must have shape [..., {n}, {width}] for n_drones={n}, "
-                             f"got {value.shape}")
+            raise ValueError(
+                f"init_state: {name} must have shape [..., {n}, {width}] for n_drones={n}, got {value.shape}"
+            )
         if not np.all(np.isfinite(value)):
             raise ValueError(f"init_state: {name} contains non-finite values")
         arrays[name] = value
     try:
         lead = np.broadcast_shapes(*(a.shape[:-2] for a in arrays.values()))
     except ValueError:
-        raise ValueError("init_state: leading (world) shapes do not broadcast: "
-                         f"{ {k: v.shape for k, v in arrays.items()} }") from None
+        raise ValueError(
+            f"init_state: leading (world) shapes do not broadcast: { {k: v.shape for k, v in arrays.items()} }"
+        ) from None
     if "quat" in arrays:
         norm = np.linalg.norm(arrays["quat"], axis=-1, keepdims=True)
         if np.any(norm == 0):
@@ -137,7 +139,10 @@ def init_state(config, *, pos=None, rpy=None, quat=None, vel=None, ang_vel=None,
         return jnp.broadcast_to(jnp.asarray(x, dtype=dtype), lead + (n, width))
 
     return DroneState(
-        pos=full(arrays["pos"], 3), quat=full(quat_arr, 4), vel=full(arrays["vel"], 3),
-        ang_vel=full(arrays["ang_vel"], 3), rpm=full(arrays["rpm"], 4),
+        pos=full(arrays["pos"], 3),
+        quat=full(quat_arr, 4),
+        vel=full(arrays["vel"], 3),
+        ang_vel=full(arrays["ang_vel"], 3),
+        rpm=full(arrays["rpm"], 4),
         contact=jnp.zeros(lead + (n,), dtype=jnp.int32),
     )

@@ -27,9 +27,16 @@ StepFn = Callable[..., DroneState]  #: ``step(params, state, rpm, disturbance=No
 __all__ = ["JaxStep", "StepFn", "physics_substep_c", "rollout"]
 
 
-def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState, rpm: tuple,
-                      motors: dynamics.Motors | None = None, unit_quat: bool = False,
-                      neighbors: jax.Array | None = None, disturbance: Disturbance | None = None) -> DroneState:
+def physics_substep_c(
+    config: SimConfig,
+    params: DroneParams,
+    state: DroneState,
+    rpm: tuple,
+    motors: dynamics.Motors | None = None,
+    unit_quat: bool = False,
+    neighbors: jax.Array | None = None,
+    disturbance: Disturbance | None = None,
+) -> DroneState:
     """One physics step of ``config.dt`` with already-clipped RPM, pure and differentiable, in component form:
     ``state``'s vector fields and ``rpm`` are tuples of f[..., D] arrays (``contact`` stays i32[..., D]); ``motors``
     is ``dynamics.motors_c(params, rpm)`` when already known; ``unit_quat=True`` if ``state.quat`` is known to be of
@@ -44,12 +51,14 @@ def physics_substep_c(config: SimConfig, params: DroneParams, state: DroneState,
         motors = dynamics.motors_c(params, rpm)
     kin = dynamics.Kinematics(state.pos, state.quat, state.vel, state.ang_vel)
     if unit_quat and adjoint.supported(config):
-        kin, touching = adjoint.euler_substep_c(params, config.effects, kin, motors, state.rpm, config.dt, neighbors,
-                                                disturbance)
+        kin, touching = adjoint.euler_substep_c(
+            params, config.effects, kin, motors, state.rpm, config.dt, neighbors, disturbance
+        )
     else:
         integrate = dynamics.INTEGRATORS[config.integrator]
-        kin = integrate(params, config.effects, kin, motors, state.rpm, config.dt, unit_quat, neighbors, None,
-                        disturbance)
+        kin = integrate(
+            params, config.effects, kin, motors, state.rpm, config.dt, unit_quat, neighbors, None, disturbance
+        )
         kin, touching = dynamics.ground_contact_c(params, kin, config.kinks)
     return DroneState(*kin, rpm=rpm, contact=state.contact | jnp.where(touching, CONTACT_GROUND, 0).astype(jnp.int32))
 
@@ -69,15 +78,21 @@ def _core_step_c(config: SimConfig):
     state_c`` with the state's vectors, the RPM command and the disturbance's given fields as tuples of f[..., D]
     arrays (see `jaxdrones.rotations`); ``disturbance_c`` may be None."""
 
-    def core_c(params: DroneParams, state: DroneState, rpm: tuple, disturbance: Disturbance | None = None
-               ) -> DroneState:
+    def core_c(
+        params: DroneParams, state: DroneState, rpm: tuple, disturbance: Disturbance | None = None
+    ) -> DroneState:
         # The quaternion is normalised here once; every substep then leaves it of unit norm, so the substeps need
         # not normalise it again for their rotation matrices. The clip, the normalisation and the motors' output
         # are recomputed in the backward pass (jax.checkpoint) rather than their intermediates stored at every
         # control step of a differentiated rollout (see `_recomputed`).
-        rpm, quat = _recomputed(lambda rpm, quat: (
-            tuple(config.kinks.clip(r, 0.0, params.max_rpm, config.kinks.rpm) for r in rpm), normalize_c(quat)),
-            rpm, state.quat)
+        rpm, quat = _recomputed(
+            lambda rpm, quat: (
+                tuple(config.kinks.clip(r, 0.0, params.max_rpm, config.kinks.rpm) for r in rpm),
+                normalize_c(quat),
+            ),
+            rpm,
+            state.quat,
+        )
         state = state.replace(quat=quat, contact=jnp.zeros_like(state.contact))
         # With config.downwash_radius, the neighbour list of the downwash is built once per control step.
         neighbors = config.effects.downwash_neighbors(state.pos)
@@ -135,16 +150,18 @@ def _core_step(core_c, remat: bool):
     torques differently, see `jaxdrones.rotations.dot`; sliced, it stays exactly level, as on PyBullet).
     """
 
-    def core(params: DroneParams, state: DroneState, rpm: jax.Array, disturbance: Disturbance | None = None
-             ) -> DroneState:
-        state = core_c(params, _split_state(state, contiguous=True), split(rpm),
-                       _split_disturbance(disturbance, contiguous=True))
+    def core(
+        params: DroneParams, state: DroneState, rpm: jax.Array, disturbance: Disturbance | None = None
+    ) -> DroneState:
+        state = core_c(
+            params, _split_state(state, contiguous=True), split(rpm), _split_disturbance(disturbance, contiguous=True)
+        )
         return _join_state(state, contiguous=True)
 
     return jax.jit(jax.checkpoint(core) if remat else core)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _compiled_step(config: SimConfig):
     """(`_core_step_c`, `_core_step`) of ``config``, shared by every `JaxStep` of an equal config: an env built
     again (an evaluation env beside the training env, a second run in a notebook) compiles nothing again."""
@@ -166,8 +183,9 @@ class JaxStep:
         self.config = config
         self._core_c, self._core = _compiled_step(config)
 
-    def __call__(self, params: DroneParams, state: DroneState, rpm, disturbance: Disturbance | None = None
-                 ) -> DroneState:
+    def __call__(
+        self, params: DroneParams, state: DroneState, rpm, disturbance: Disturbance | None = None
+    ) -> DroneState:
         rpm = check_rpm(self.config, state, rpm)
         check_params_batch(params, state)
         if self.config.motor_dynamics:
@@ -218,8 +236,10 @@ def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Arra
     """
     rpms = jnp.asarray(rpms)
     if rpms.ndim != state.rpm.ndim + 1 or rpms.shape[1:] != state.rpm.shape:
-        raise ValueError(f"rpms must have shape [T, {', '.join(map(str, state.rpm.shape))}] (one RPM command per "
-                         f"control step), got {rpms.shape}")
+        raise ValueError(
+            f"rpms must have shape [T, {', '.join(map(str, state.rpm.shape))}] (one RPM command per "
+            f"control step), got {rpms.shape}"
+        )
     if isinstance(step, JaxStep):
         check_params_batch(params, state)
         return _rollout_c(step, params, state, rpms.astype(state.pos.dtype), bool(remat))

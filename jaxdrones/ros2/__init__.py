@@ -22,5 +22,6 @@ def require_rclpy():
     except ModuleNotFoundError as error:
         raise ModuleNotFoundError(
             "the ROS 2 interfaces need rclpy and the ROS 2 message packages, which are not installed: "
-            "pip install 'jaxdrones[ros2]' (or source a ROS 2 installation)") from error
+            "pip install 'jaxdrones[ros2]' (or source a ROS 2 installation)"
+        ) from error
     return rclpy

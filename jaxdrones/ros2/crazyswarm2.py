@@ -63,16 +63,33 @@ class Backend:
             position, or a bad rate or model.
     """
 
-    def __init__(self, node: Any, names: Sequence[str], states: Sequence[Any], *, model: str = "cf2x",
-                 sim_freq: int = 500, drag: bool = False, ground_effect: bool = True, downwash: bool | str = False,
-                 clock_type: Any = None):
+    def __init__(
+        self,
+        node: Any,
+        names: Sequence[str],
+        states: Sequence[Any],
+        *,
+        model: str = "cf2x",
+        sim_freq: int = 500,
+        drag: bool = False,
+        ground_effect: bool = True,
+        downwash: bool | str = False,
+        clock_type: Any = None,
+    ):
         if len(names) != len(states) or not names:
-            raise ValueError(f"expected one initial state per drone name, got {len(names)} names and {len(states)} "
-                             "states")
+            raise ValueError(
+                f"expected one initial state per drone name, got {len(names)} names and {len(states)} states"
+            )
         self.node, self.names = node, list(names)
         self._state_type = type(states[0])
-        self.config = SimConfig(n_drones=len(names), sim_freq=sim_freq, ctrl_freq=sim_freq, drag=drag,
-                                ground_effect=ground_effect, downwash=downwash)
+        self.config = SimConfig(
+            n_drones=len(names),
+            sim_freq=sim_freq,
+            ctrl_freq=sim_freq,
+            drag=drag,
+            ground_effect=ground_effect,
+            downwash=downwash,
+        )
         self.dt = 1.0 / sim_freq
         self.params = load_params(model)
         self._step = make_step(self.config)
@@ -112,10 +129,13 @@ class Backend:
         self.state = self._step(self.params, self.state, jnp.asarray(rpm, self.state.pos.dtype))
         self.t += self.dt
         self.clock_publisher.publish(messages.fill_rclpy(self._clock_type(), messages.clock_fields(self.t)))
-        pos, vel, quat, omega = (np.asarray(getattr(self.state, k), np.float64)
-                                 for k in ("pos", "vel", "quat", "ang_vel"))
-        return [self._state_type(pos=pos[i], vel=vel[i], quat=np.r_[quat[i, 3], quat[i, :3]], omega=omega[i])
-                for i in range(len(self.names))]
+        pos, vel, quat, omega = (
+            np.asarray(getattr(self.state, k), np.float64) for k in ("pos", "vel", "quat", "ang_vel")
+        )
+        return [
+            self._state_type(pos=pos[i], vel=vel[i], quat=np.r_[quat[i, 3], quat[i, :3]], omega=omega[i])
+            for i in range(len(self.names))
+        ]
 
     def shutdown(self) -> None:
         """Nothing to release (the JAX core holds no resources)."""

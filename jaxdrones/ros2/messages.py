@@ -25,8 +25,28 @@ from typing import Any
 import numpy as np
 
 #: The entries of the paper's ``obs`` array, per drone.
-OBS_NAMES = ("x", "y", "z", "qx", "qy", "qz", "qw", "roll", "pitch", "yaw", "vx", "vy", "vz", "wx", "wy", "wz",
-             "rpm0", "rpm1", "rpm2", "rpm3")
+OBS_NAMES = (
+    "x",
+    "y",
+    "z",
+    "qx",
+    "qy",
+    "qz",
+    "qw",
+    "roll",
+    "pitch",
+    "yaw",
+    "vx",
+    "vy",
+    "vz",
+    "wx",
+    "wy",
+    "wz",
+    "rpm0",
+    "rpm1",
+    "rpm2",
+    "rpm3",
+)
 
 
 def time_fields(t: float) -> dict:
@@ -38,8 +58,9 @@ def time_fields(t: float) -> dict:
 def obs_vector(pos, quat, rpy, vel, ang_vel, rpm) -> np.ndarray:
     """The paper's observation of one drone, f32[20] (`OBS_NAMES`); ``rpy`` from
     `jaxdrones.rotations.quat_to_euler` (PyBullet's ``getEulerFromQuaternion``)."""
-    return np.concatenate([np.ravel(pos), np.ravel(quat), np.ravel(rpy), np.ravel(vel), np.ravel(ang_vel),
-                           np.ravel(rpm)]).astype(np.float32)
+    return np.concatenate(
+        [np.ravel(pos), np.ravel(quat), np.ravel(rpy), np.ravel(vel), np.ravel(ang_vel), np.ravel(rpm)]
+    ).astype(np.float32)
 
 
 def float_array_fields(data) -> dict:
@@ -53,8 +74,7 @@ def _header(t: float, frame_id: str) -> dict:
 
 def _pose(pos, quat) -> dict:
     p, q = np.asarray(pos, np.float64).ravel(), np.asarray(quat, np.float64).ravel()
-    return {"position": {"x": p[0], "y": p[1], "z": p[2]},
-            "orientation": {"x": q[0], "y": q[1], "z": q[2], "w": q[3]}}
+    return {"position": {"x": p[0], "y": p[1], "z": p[2]}, "orientation": {"x": q[0], "y": q[1], "z": q[2], "w": q[3]}}
 
 
 def _vector(v) -> dict:
@@ -71,13 +91,20 @@ def odometry_fields(pos, quat, vel, ang_vel, t: float, frame_id: str = "world", 
     """``nav_msgs/Odometry`` of one drone: the pose in ``frame_id``, the twist in the body frame ``child_frame_id``
     (linear Rᵀ v from the world-frame velocity ``vel``, angular ``ang_vel`` already body-frame), zero covariances."""
     x, y, z, w = np.asarray(quat, np.float64).ravel()
-    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                    [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                    [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    rot = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
     body_vel = rot.T @ np.asarray(vel, np.float64).ravel()
-    return {"header": _header(t, frame_id), "child_frame_id": child_frame_id,
-            "pose": {"pose": _pose(pos, quat), "covariance": np.zeros(36)},
-            "twist": {"twist": {"linear": _vector(body_vel), "angular": _vector(ang_vel)}, "covariance": np.zeros(36)}}
+    return {
+        "header": _header(t, frame_id),
+        "child_frame_id": child_frame_id,
+        "pose": {"pose": _pose(pos, quat), "covariance": np.zeros(36)},
+        "twist": {"twist": {"linear": _vector(body_vel), "angular": _vector(ang_vel)}, "covariance": np.zeros(36)},
+    }
 
 
 def clock_fields(t: float) -> dict:

@@ -53,8 +53,10 @@ def check_namespace(namespace: str) -> str:
     underscores (not ending in a digit, which would make drone 1's and drone 11's names clash with drones of
     another namespace); else ValueError."""
     if not isinstance(namespace, str) or not _NAMESPACE.fullmatch(namespace) or namespace[-1].isdigit():
-        raise ValueError(f"namespace must be a letter followed by letters, digits or underscores, not ending in a "
-                         f"digit (topics /<namespace><i>/obs), got {namespace!r}")
+        raise ValueError(
+            f"namespace must be a letter followed by letters, digits or underscores, not ending in a "
+            f"digit (topics /<namespace><i>/obs), got {namespace!r}"
+        )
     return namespace
 
 
@@ -67,8 +69,16 @@ def _commands(params, pid_state, state, mode, rpm, velocity, position, yaw, ctrl
     target_vel = jnp.where(by_velocity, velocity, 0.0)
     target_yaw = jnp.where(mode == _POSITION, yaw, current_yaw)
     target_rpy = jnp.stack([jnp.zeros_like(target_yaw), jnp.zeros_like(target_yaw), target_yaw], -1)
-    pid_rpm, new_pid = pid_control(params, PIDGains.dsl(state.pos.dtype), pid_state, state, target_pos,
-                                   target_vel=target_vel, target_rpy=target_rpy, ctrl_dt=ctrl_dt)
+    pid_rpm, new_pid = pid_control(
+        params,
+        PIDGains.dsl(state.pos.dtype),
+        pid_state,
+        state,
+        target_pos,
+        target_vel=target_vel,
+        target_rpy=target_rpy,
+        ctrl_dt=ctrl_dt,
+    )
     uses_pid = by_position | by_velocity
     new_pid = jax.tree.map(lambda new, old: jnp.where(uses_pid, new, old), new_pid, pid_state)
     out = jnp.where((mode == _RPM)[:, None], rpm, jnp.where(uses_pid, pid_rpm, 0.0))
@@ -99,9 +109,20 @@ class EnvNode:
         ModuleNotFoundError: rclpy or the message packages are missing (the ``[ros2]`` extra).
     """
 
-    def __init__(self, task: str = "hover", *, n_drones: int | None = None, namespace: str = "cf",
-                 realtime: bool = True, seed: int = 0, node_name: str = "jaxdrones", discovery_s: float = 0.5,
-                 wait_for_command: bool = False, sync: bool = False, **make_options):
+    def __init__(
+        self,
+        task: str = "hover",
+        *,
+        n_drones: int | None = None,
+        namespace: str = "cf",
+        realtime: bool = True,
+        seed: int = 0,
+        node_name: str = "jaxdrones",
+        discovery_s: float = 0.5,
+        wait_for_command: bool = False,
+        sync: bool = False,
+        **make_options,
+    ):
         rclpy = require_rclpy()
         from geometry_msgs.msg import PoseStamped, Twist
         from nav_msgs.msg import Odometry
@@ -139,14 +160,20 @@ class EnvNode:
 
             rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node(node_name)
-        self._publishers = [{name: self.node.create_publisher(self._types[name], self.topic(i, name), 10)
-                             for name in STATE_TOPICS} for i in range(n)]
+        self._publishers = [
+            {name: self.node.create_publisher(self._types[name], self.topic(i, name), 10) for name in STATE_TOPICS}
+            for i in range(n)
+        ]
         self._clock = None if self.realtime else self.node.create_publisher(Clock, "/clock", 10)
         command_types = {"action": Float32MultiArray, "cmd_vel": Twist, "cmd_position": PoseStamped}
         for i in range(n):
             for topic, mode in COMMAND_TOPICS.items():
-                self.node.create_subscription(command_types[topic], self.topic(i, topic),
-                                              lambda msg, i=i, mode=mode: self._on_command(i, mode, msg), 10)
+                self.node.create_subscription(
+                    command_types[topic],
+                    self.topic(i, topic),
+                    lambda msg, i=i, mode=mode: self._on_command(i, mode, msg),
+                    10,
+                )
         self._check_clash(discovery_s)
         self._timer = self.node.create_timer(self.ctrl_dt, self.tick) if self.realtime else None
         self.publish()
@@ -159,12 +186,17 @@ class EnvNode:
         deadline = time.monotonic() + discovery_s
         while True:
             self._rclpy.spin_once(self.node, timeout_sec=0.05)
-            taken = [self.topic(i, "obs") for i in range(self.n_drones) if self.node.count_publishers(
-                self.topic(i, "obs")) > 1]
+            taken = [
+                self.topic(i, "obs")
+                for i in range(self.n_drones)
+                if self.node.count_publishers(self.topic(i, "obs")) > 1
+            ]
             if taken:
                 self.close()
-                raise ValueError(f"another node already publishes {taken}: choose another namespace "
-                                 f"(--namespace) than {self.namespace!r}")
+                raise ValueError(
+                    f"another node already publishes {taken}: choose another namespace "
+                    f"(--namespace) than {self.namespace!r}"
+                )
             if time.monotonic() >= deadline:
                 return
 
@@ -200,9 +232,17 @@ class EnvNode:
             self.publish()
             return
         dtype = self.state.pos.dtype
-        rpm, self._pid = _commands(self.params, self._pid, self.state, jnp.asarray(self.mode),
-                                   jnp.asarray(self._rpm, dtype), jnp.asarray(self._velocity, dtype),
-                                   jnp.asarray(self._position, dtype), jnp.asarray(self._yaw, dtype), self.ctrl_dt)
+        rpm, self._pid = _commands(
+            self.params,
+            self._pid,
+            self.state,
+            jnp.asarray(self.mode),
+            jnp.asarray(self._rpm, dtype),
+            jnp.asarray(self._velocity, dtype),
+            jnp.asarray(self._position, dtype),
+            jnp.asarray(self._yaw, dtype),
+            self.ctrl_dt,
+        )
         self.state = self._step(self.params, self.state, rpm)
         self.steps += 1
         self.time_s = self.steps * self.ctrl_dt
@@ -214,15 +254,22 @@ class EnvNode:
         self._published = time.monotonic()
         if self._clock is not None:
             self._clock.publish(fill(self._types["clock"](), messages.clock_fields(t)))
-        pos, quat, vel, ang_vel, rpm = (np.asarray(getattr(self.state, k), np.float64)
-                                        for k in ("pos", "quat", "vel", "ang_vel", "rpm"))
+        pos, quat, vel, ang_vel, rpm = (
+            np.asarray(getattr(self.state, k), np.float64) for k in ("pos", "quat", "vel", "ang_vel", "rpm")
+        )
         rpy = np.asarray(quat_to_euler(self.state.quat), np.float64)
         for i, publishers in enumerate(self._publishers):
             obs = messages.obs_vector(pos[i], quat[i], rpy[i], vel[i], ang_vel[i], rpm[i])
             publishers["obs"].publish(fill(self._types["obs"](), messages.float_array_fields(obs)))
             publishers["pose"].publish(fill(self._types["pose"](), messages.pose_fields(pos[i], quat[i], t)))
-            publishers["odom"].publish(fill(self._types["odom"](), messages.odometry_fields(
-                pos[i], quat[i], vel[i], ang_vel[i], t, child_frame_id=f"{self.namespace}{i}")))
+            publishers["odom"].publish(
+                fill(
+                    self._types["odom"](),
+                    messages.odometry_fields(
+                        pos[i], quat[i], vel[i], ang_vel[i], t, child_frame_id=f"{self.namespace}{i}"
+                    ),
+                )
+            )
 
     def spin(self, duration_s: float | None = None) -> None:
         """Run until ``duration_s`` of simulated time (None: until Ctrl-C), then close the node."""

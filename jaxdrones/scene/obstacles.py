@@ -54,8 +54,9 @@ class Obstacle:
             if _pybullet_data_dir() is not None or os.path.isfile(self.urdf):
                 urdf_path(self.urdf)  # without pybullet, a pybullet_data name is checked when Bullet loads it
         elif len(self.size) != n_size[self.shape] or min(self.size) <= 0:
-            raise ValueError(f"Obstacle {self.shape}: size must be {n_size[self.shape]} positive numbers (m), "
-                             f"got {self.size}")
+            raise ValueError(
+                f"Obstacle {self.shape}: size must be {n_size[self.shape]} positive numbers (m), got {self.size}"
+            )
         if len(self.pos) != 3 or len(self.rpy) != 3:
             raise ValueError(f"Obstacle: pos and rpy must have 3 values, got {self.pos} and {self.rpy}")
         if not self.scale > 0:
@@ -74,8 +75,9 @@ def urdf_path(name: str | os.PathLike) -> str:
         if os.path.isfile(candidate):
             return candidate
     where = "" if data else "; pybullet_data's files need pybullet, which is not installed"
-    raise ValueError(f"obstacle URDF {name!r} not found (give a path, or a file of pybullet_data such as "
-                     f"'duck_vhacd.urdf'{where})")
+    raise ValueError(
+        f"obstacle URDF {name!r} not found (give a path, or a file of pybullet_data such as 'duck_vhacd.urdf'{where})"
+    )
 
 
 def _pybullet_data_dir() -> str | None:
@@ -117,6 +119,8 @@ def resolve_obstacles(obstacles) -> tuple[Obstacle, ...]:
         elif isinstance(item, (str, os.PathLike)):
             out.append(Obstacle("urdf", urdf=os.fspath(item), pos=(0.0, 0.0, 0.0)))
         else:
-            raise ValueError(f"obstacles: expected None, True, 'paper', or a sequence of Obstacle or URDF paths; "
-                             f"got an item {item!r}")
+            raise ValueError(
+                f"obstacles: expected None, True, 'paper', or a sequence of Obstacle or URDF paths; "
+                f"got an item {item!r}"
+            )
     return tuple(out)

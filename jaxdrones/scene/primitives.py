@@ -11,7 +11,22 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-__all__ = ["BODY_RGBA", "BODY_SIDE_PER_ARM", "BODY_THICKNESS", "GROUND_RGB", "PROP_RGBA", "PROP_THICKNESS", "PROP_Z", "Primitives", "SHAPES", "Scene", "check_obstacles", "distance", "drone_primitives", "make_scene"]
+__all__ = [
+    "BODY_RGBA",
+    "BODY_SIDE_PER_ARM",
+    "BODY_THICKNESS",
+    "GROUND_RGB",
+    "PROP_RGBA",
+    "PROP_THICKNESS",
+    "PROP_Z",
+    "Primitives",
+    "SHAPES",
+    "Scene",
+    "check_obstacles",
+    "distance",
+    "drone_primitives",
+    "make_scene",
+]
 
 #: Colour of the ground (RGB in [0, 1]).
 GROUND_RGB = (0.72, 0.72, 0.72)
@@ -33,7 +48,6 @@ PROP_RGBA = (0.55, 0.55, 0.6, 1.0)
 
 #: The primitive types of a `Scene`, in the order `render` numbers them.
 SHAPES = ("box", "sphere", "cylinder", "capsule")
-
 
 
 # --------------------------------------------------------------------------------------------- the scene
@@ -59,7 +73,6 @@ class Primitives:
     valid: jax.Array
 
 
-
 @struct.dataclass
 class Scene:
     """What the cameras see besides the drones: the ground plane z = 0 (seg id 0) and padded primitives per shape.
@@ -81,16 +94,18 @@ class Scene:
         return jnp.max(jnp.concatenate(ids, axis=-1), axis=-1, initial=0) + 1
 
 
-
 def _rotmat_from_rpy(rpy) -> np.ndarray:
     """R(roll, pitch, yaw) = Rz(yaw) Ry(pitch) Rx(roll), in NumPy (host-side scene building): the URDF's and
     PyBullet's convention, as `jaxdrones.rotations.quat_from_euler`."""
     r, p, y = rpy
     cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                     [-sp, cp * sr, cp * cr]])
-
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
 
 
 def check_obstacles(obstacles) -> tuple:
@@ -100,12 +115,13 @@ def check_obstacles(obstacles) -> tuple:
     for k, o in enumerate(obstacles):
         shape = getattr(o, "shape", None)
         if shape == "urdf":
-            raise ValueError(f"obstacle {k} is a URDF mesh ({o.urdf!r}): the JAX cameras draw only boxes, spheres, "
-                             f"cylinders and capsules; use backend='pybullet' for meshes")
+            raise ValueError(
+                f"obstacle {k} is a URDF mesh ({o.urdf!r}): the JAX cameras draw only boxes, spheres, "
+                f"cylinders and capsules; use backend='pybullet' for meshes"
+            )
         if shape not in SHAPES:
             raise ValueError(f"obstacle {k}: shape must be one of {SHAPES}, got {shape!r}")
     return obstacles
-
 
 
 def _size(shape: str, size) -> tuple:
@@ -115,9 +131,7 @@ def _size(shape: str, size) -> tuple:
     return (size[0], 0.0, 0.0) if shape == "sphere" else (size[0], size[1] / 2, 0.0)
 
 
-
-def make_scene(obstacles=(), capacity: dict | int | None = None, ground: bool = True,
-               dtype=jnp.float32) -> Scene:
+def make_scene(obstacles=(), capacity: dict | int | None = None, ground: bool = True, dtype=jnp.float32) -> Scene:
     """A `Scene` from static obstacles, as the PyBullet backend takes them.
 
     Args:
@@ -146,18 +160,24 @@ def make_scene(obstacles=(), capacity: dict | int | None = None, ground: bool = 
     for shape in SHAPES:
         n = capacity.get(shape, len(by_shape[shape]))
         if not isinstance(n, numbers.Integral) or n < len(by_shape[shape]):
-            raise ValueError(f"the scene holds {len(by_shape[shape])} {shape} obstacles, more than its capacity "
-                             f"of {n}: raise capacity[{shape!r}]")
+            raise ValueError(
+                f"the scene holds {len(by_shape[shape])} {shape} obstacles, more than its capacity "
+                f"of {n}: raise capacity[{shape!r}]"
+            )
         pos, rot, size = np.zeros((n, 3)), np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
         seg, rgb, valid = np.full(n, -1, np.int32), np.zeros((n, 3)), np.zeros(n, bool)
         for i, (sid, o) in enumerate(by_shape[shape]):
             pos[i], rot[i], seg[i], rgb[i], valid[i] = o.pos, _rotmat_from_rpy(o.rpy), sid, o.rgba[:3], True
             size[i] = _size(shape, o.size)
-        parts[shape] = Primitives(pos=jnp.asarray(pos, dtype), rot=jnp.asarray(rot, dtype),
-                                  size=jnp.asarray(size, dtype), seg=jnp.asarray(seg), rgb=jnp.asarray(rgb, dtype),
-                                  valid=jnp.asarray(valid))
+        parts[shape] = Primitives(
+            pos=jnp.asarray(pos, dtype),
+            rot=jnp.asarray(rot, dtype),
+            size=jnp.asarray(size, dtype),
+            seg=jnp.asarray(seg),
+            rgb=jnp.asarray(rgb, dtype),
+            valid=jnp.asarray(valid),
+        )
     return Scene(**parts, ground=jnp.asarray(ground))
-
 
 
 def distance(scene: Scene, points: jax.Array) -> jax.Array:
@@ -185,17 +205,14 @@ def distance(scene: Scene, points: jax.Array) -> jax.Array:
     return out
 
 
-
 def _sdf_box(p, size):
     q = jnp.abs(p) - size
     outside = jnp.linalg.norm(jnp.maximum(q, 0.0) + 1e-30, axis=-1)
     return jnp.where(jnp.all(q <= 0, axis=-1), jnp.max(q, axis=-1), outside)
 
 
-
 def _sdf_sphere(p, size):
     return jnp.linalg.norm(p, axis=-1) - size[..., 0]
-
 
 
 def _sdf_cylinder(p, size):
@@ -204,22 +221,19 @@ def _sdf_cylinder(p, size):
     return jnp.where(jnp.all(q <= 0, axis=-1), jnp.max(q, axis=-1), outside)
 
 
-
 def _sdf_capsule(p, size):
     axis = jnp.clip(p[..., 2], -size[..., 1], size[..., 1])
-    return jnp.linalg.norm(p - jnp.stack([jnp.zeros_like(axis), jnp.zeros_like(axis), axis], -1), axis=-1) - \
-        size[..., 0]
-
+    return (
+        jnp.linalg.norm(p - jnp.stack([jnp.zeros_like(axis), jnp.zeros_like(axis), axis], -1), axis=-1) - size[..., 0]
+    )
 
 
 _SDF = {"box": _sdf_box, "sphere": _sdf_sphere, "cylinder": _sdf_cylinder, "capsule": _sdf_capsule}
 
 
-
 # --------------------------------------------------------------------------------------------- ray intersections
 def _safe_sqrt(x, ok):
     return jnp.sqrt(jnp.where(ok, x, 1.0))
-
 
 
 def drone_primitives(params, pos: jax.Array, rot: jax.Array, first_seg: int | jax.Array) -> dict:
@@ -239,9 +253,14 @@ def drone_primitives(params, pos: jax.Array, rot: jax.Array, first_seg: int | ja
     arm = jnp.broadcast_to(jnp.asarray(params.arm, dtype), pos.shape[:-1])
     seg = jnp.broadcast_to(first_seg + jnp.arange(n, dtype=jnp.int32), pos.shape[:-1])
     side = BODY_SIDE_PER_ARM * arm / 2
-    plate = Primitives(pos=pos, rot=rot, size=jnp.stack([side, side, jnp.full_like(side, BODY_THICKNESS / 2)], -1),
-                       seg=seg, rgb=jnp.broadcast_to(jnp.asarray(BODY_RGBA[:3], dtype), pos.shape),
-                       valid=jnp.ones(pos.shape[:-1], bool))
+    plate = Primitives(
+        pos=pos,
+        rot=rot,
+        size=jnp.stack([side, side, jnp.full_like(side, BODY_THICKNESS / 2)], -1),
+        seg=seg,
+        rgb=jnp.broadcast_to(jnp.asarray(BODY_RGBA[:3], dtype), pos.shape),
+        valid=jnp.ones(pos.shape[:-1], bool),
+    )
     prop_pos = jnp.broadcast_to(jnp.asarray(params.prop_pos, dtype), pos.shape[:-1] + (4, 3))
     prop_pos = prop_pos + jnp.asarray([0.0, 0.0, PROP_Z], dtype)
     centres = pos[..., None, :] + jnp.einsum("...ij,...kj->...ki", rot, prop_pos)  # [..., D, 4, 3]
@@ -250,8 +269,11 @@ def drone_primitives(params, pos: jax.Array, rot: jax.Array, first_seg: int | ja
     props = Primitives(
         pos=centres.reshape(lead + (4 * n, 3)),
         rot=jnp.repeat(rot, 4, axis=-3),
-        size=jnp.repeat(jnp.stack([radius, jnp.full_like(radius, PROP_THICKNESS / 2), jnp.zeros_like(radius)],
-                                  -1), 4, axis=-2),
-        seg=jnp.repeat(seg, 4, axis=-1), rgb=jnp.broadcast_to(jnp.asarray(PROP_RGBA[:3], dtype), lead + (4 * n, 3)),
-        valid=jnp.ones(lead + (4 * n,), bool))
+        size=jnp.repeat(
+            jnp.stack([radius, jnp.full_like(radius, PROP_THICKNESS / 2), jnp.zeros_like(radius)], -1), 4, axis=-2
+        ),
+        seg=jnp.repeat(seg, 4, axis=-1),
+        rgb=jnp.broadcast_to(jnp.asarray(PROP_RGBA[:3], dtype), lead + (4 * n, 3)),
+        valid=jnp.ones(lead + (4 * n,), bool),
+    )
     return {"box": plate, "cylinder": props}

@@ -60,7 +60,21 @@ from jaxdrones.sensors.raycast import (
     _unpack,
 )
 
-__all__ = ["AMBIENT", "CameraSpec", "ENV_IMAGES", "EYE_MARGIN", "IMAGE_KINDS", "ImageKind", "LIGHT", "camera_frames", "check_camera_args", "check_image_size", "image_shapes", "real", "render"]
+__all__ = [
+    "AMBIENT",
+    "CameraSpec",
+    "ENV_IMAGES",
+    "EYE_MARGIN",
+    "IMAGE_KINDS",
+    "ImageKind",
+    "LIGHT",
+    "camera_frames",
+    "check_camera_args",
+    "check_image_size",
+    "image_shapes",
+    "real",
+    "render",
+]
 
 #: Gap between the front of a drone's collision cylinder and its camera's eye, m.
 EYE_MARGIN = 0.005
@@ -72,7 +86,6 @@ AMBIENT = 0.35
 
 #: The images `render` gives.
 IMAGE_KINDS = ("rgb", "depth", "seg")
-
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,19 +106,20 @@ class ImageKind:
     high: float
 
 
-
 #: The camera images of the envs' observations and of the PyBullet backend, by name (see `TaskConfig.vision`).
-ENV_IMAGES = {"rgb": ImageKind(np.uint8, (4,), 0, 0, 255),
-              "depth": ImageKind(np.float32, (), np.nan, 0.0, np.inf),  # m along the optical axis
-              "seg": ImageKind(np.int32, (), -1, -1, np.iinfo(np.int32).max)}  # body ids, -1: nothing seen
-
+ENV_IMAGES = {
+    "rgb": ImageKind(np.uint8, (4,), 0, 0, 255),
+    "depth": ImageKind(np.float32, (), np.nan, 0.0, np.inf),  # m along the optical axis
+    "seg": ImageKind(np.int32, (), -1, -1, np.iinfo(np.int32).max),
+}  # body ids, -1: nothing seen
 
 
 def image_shapes(lead: tuple[int, ...], width: int, height: int, kinds=tuple(ENV_IMAGES)) -> dict:
     """``{kind: jax.ShapeDtypeStruct(lead + (height, width) + channels, dtype)}`` of `ENV_IMAGES`' ``kinds``."""
-    return {k: jax.ShapeDtypeStruct(tuple(lead) + (height, width) + ENV_IMAGES[k].channels, ENV_IMAGES[k].dtype)
-            for k in kinds}
-
+    return {
+        k: jax.ShapeDtypeStruct(tuple(lead) + (height, width) + ENV_IMAGES[k].channels, ENV_IMAGES[k].dtype)
+        for k in kinds
+    }
 
 
 # --------------------------------------------------------------------------------------------- the camera spec
@@ -117,13 +131,11 @@ def check_image_size(width, height) -> tuple[int, int]:
     return int(width), int(height)
 
 
-
 def real(name: str, value) -> float:
     """``value`` as a Python float, or ValueError naming ``name`` if it is not a real scalar."""
     if isinstance(value, bool) or not isinstance(value, (numbers.Real, np.ndarray, jax.Array)) or np.ndim(value):
         raise ValueError(f"{name} must be a real number, got {value!r}")
     return float(value)
-
 
 
 def check_camera_args(width, height, fov, near, far) -> tuple[int, int, float, float | None, float]:
@@ -142,10 +154,10 @@ def check_camera_args(width, height, fov, near, far) -> tuple[int, int, float, f
     if near is not None:
         near = real("near", near)
         if not (math.isfinite(near) and 0.0 < near < far):
-            raise ValueError(f"near must be None (the drone's arm) or a distance in m with 0 < near < far={far}, "
-                             f"got {near}")
+            raise ValueError(
+                f"near must be None (the drone's arm) or a distance in m with 0 < near < far={far}, got {near}"
+            )
     return width, height, fov, near, far
-
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,7 +224,6 @@ class CameraSpec:
         return np.stack([np.ones_like(up), -right, up], -1).astype(np.float32)
 
 
-
 def camera_frames(spec: CameraSpec, params, pos: jax.Array, rot: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Each drone's eye f[..., D, 3] (m, world) and camera axes f[..., D, 3, 3] (world; columns forward, left, up),
     from its position, body → world rotation f[..., D, 3, 3] and ``spec`` (see the module docstring)."""
@@ -232,9 +243,14 @@ def camera_frames(spec: CameraSpec, params, pos: jax.Array, rot: jax.Array) -> t
     return eye, axes
 
 
-
-def render(spec: CameraSpec, scene: Scene, params, pos: jax.Array, quat: jax.Array,
-           kinds: tuple[str, ...] = ("rgb", "depth", "seg")) -> dict:
+def render(
+    spec: CameraSpec,
+    scene: Scene,
+    params,
+    pos: jax.Array,
+    quat: jax.Array,
+    kinds: tuple[str, ...] = ("rgb", "depth", "seg"),
+) -> dict:
     """Every drone's onboard camera images (see the module docstring for the camera model and the images).
 
     Each pixel's ray meets the primitives one after the other (the ground, then each slot of each shape), keeping
@@ -271,12 +287,10 @@ def render(spec: CameraSpec, scene: Scene, params, pos: jax.Array, quat: jax.Arr
     return _depth_seg(spec, kinds, scene, params, pos.astype(dtype), quat.astype(dtype))
 
 
-
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
 def _depth_seg(spec, kinds, scene, params, pos, quat) -> dict:
     """`render` without RGB: each pixel's nearest hit as one packed key (`_pack`), a single chain of minimums."""
     return _images(spec, kinds, scene, params, pos, quat, fast=True)
-
 
 
 @_depth_seg.defjvp
@@ -284,7 +298,6 @@ def _depth_seg_jvp(spec, kinds, primals, tangents):
     """The derivative of the surface each pixel sees: that of `_trace`'s nearest hit, which keeps t unrounded."""
     _, tangent = jax.jvp(functools.partial(_images, spec, kinds, fast=False), primals, tangents)
     return _depth_seg(spec, kinds, *primals), tangent
-
 
 
 def _images(spec, kinds, scene, params, pos, quat, fast: bool) -> dict:
@@ -314,7 +327,7 @@ def _images(spec, kinds, scene, params, pos, quat, fast: bool) -> dict:
 
     def image(x):  # [B, ..., D, h, W, *C] -> [..., D, H, W, *C]
         x = jnp.moveaxis(x, 0, n_lead + 1)
-        x = x.reshape(x.shape[:n_lead + 1] + (blocks * ROWS_PER_BLOCK,) + x.shape[n_lead + 3:])
+        x = x.reshape(x.shape[: n_lead + 1] + (blocks * ROWS_PER_BLOCK,) + x.shape[n_lead + 3 :])
         return jax.lax.slice_in_dim(x, 0, spec.height, axis=n_lead + 1)
 
     best = {k: image(v) for k, v in best.items()}

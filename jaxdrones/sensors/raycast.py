@@ -26,7 +26,6 @@ ROWS_PER_BLOCK = 4
 SLOTS_PER_STEP = 4
 
 
-
 def _slab(o, d, half):
     """Entry and exit t of the ray o + t d through |x| ≤ half (one axis)."""
     inv = 1.0 / jnp.where(d == 0, 1e-30, d)
@@ -34,13 +33,11 @@ def _slab(o, d, half):
     return jnp.minimum(t0, t1), jnp.maximum(t0, t1)
 
 
-
 def _hit_box(o, d, size):
-    lo, hi = zip(*(_slab(o[i], d[i], size[..., i]) for i in range(3)))
+    lo, hi = zip(*(_slab(o[i], d[i], size[..., i]) for i in range(3)), strict=True)
     t_in = jnp.maximum(jnp.maximum(lo[0], lo[1]), lo[2])
     t_out = jnp.minimum(jnp.minimum(hi[0], hi[1]), hi[2])
     return t_in, t_out
-
 
 
 def _hit_sphere_at(o, d, radius):
@@ -53,10 +50,8 @@ def _hit_sphere_at(o, d, radius):
     return jnp.where(ok, (-b - root) / a, jnp.inf), jnp.where(ok, (-b + root) / a, -jnp.inf)
 
 
-
 def _hit_sphere(o, d, size):
     return _hit_sphere_at(o, d, size[..., 0])
-
 
 
 def _hit_cylinder(o, d, size):
@@ -75,20 +70,18 @@ def _hit_cylinder(o, d, size):
     return jnp.maximum(side_in, cap_in), jnp.minimum(side_out, cap_out)
 
 
-
 def _hit_capsule(o, d, size):
     """The union of the cylinder and its two end spheres: the first entry and last exit among the pieces hit."""
     radius, half = size[..., 0], size[..., 1]
-    pieces = [_hit_cylinder(o, d, size)] + [_hit_sphere_at((o[0], o[1], o[2] - end), d, radius)
-                                            for end in (half, -half)]
+    pieces = [_hit_cylinder(o, d, size)] + [
+        _hit_sphere_at((o[0], o[1], o[2] - end), d, radius) for end in (half, -half)
+    ]
     t_in = functools.reduce(jnp.minimum, [jnp.where(a <= b, a, jnp.inf) for a, b in pieces])
     t_out = functools.reduce(jnp.maximum, [jnp.where(a <= b, b, -jnp.inf) for a, b in pieces])
     return t_in, t_out
 
 
-
 _HIT = {"box": _hit_box, "sphere": _hit_sphere, "cylinder": _hit_cylinder, "capsule": _hit_capsule}
-
 
 
 def _normal(shape, p, size):
@@ -108,7 +101,6 @@ def _normal(shape, p, size):
     return x, y, z - axis_z
 
 
-
 def _slots(scene, drones) -> list:
     """The primitives in the order the rays meet them after the ground (`_trace_keys` numbers them so): per shape
     the scene's, then the drones' (`drone_primitives`); as (shape, primitives, owner), ``owner`` i[N] the drone
@@ -123,26 +115,22 @@ def _slots(scene, drones) -> list:
     return out
 
 
-
 def _key_bits(scene, drones) -> int:
     """Bits of a packed key that hold the slot: enough for every slot, the ground and 'nothing hit'."""
     n = 2 + sum(p.seg.shape[-1] for _, p, _ in _slots(scene, drones))
     return max(1, (n - 1).bit_length())
 
 
-
 def _int_type(dtype):
     return jnp.int64 if jnp.dtype(dtype).itemsize == 8 else jnp.int32
 
 
-
 def _pack(t, slot, bits: int):
     """A hit at t > 0 of slot as one integer whose order is that of t: t's bits rounded to the nearest multiple of
-    2^bits (a relative change below 2^(bits − 24) in float32, 2^(bits − 53) in float64), the slot in the low bits.
-    (The bits of positive floats are ordered as the floats.)"""
+    2^bits (a relative change below 2^(bits − 24) in float32, 2^(bits − 53) in float64), the slot in the low bits;
+    the bits of positive floats are ordered as the floats."""
     key = jax.lax.bitcast_convert_type(t, _int_type(t.dtype))
     return ((key + (1 << (bits - 1))) & ~((1 << bits) - 1)) | slot
-
 
 
 def _trace_keys(spec, scene, drones, eye, ray, near) -> jax.Array:
@@ -168,11 +156,9 @@ def _trace_keys(spec, scene, drones, eye, ray, near) -> jax.Array:
     return key
 
 
-
 def _slot(prims: Primitives, u: int) -> Primitives:
     """Slot u of padded primitives (fields [..., N, ...] → [..., ...])."""
     return jax.tree.map(lambda x, k: jnp.take(x, u, axis=x.ndim - 1 - k), prims, Primitives(**_TRAILING))
-
 
 
 def _unpack(spec, scene, drones, key) -> dict:
@@ -190,10 +176,8 @@ def _unpack(spec, scene, drones, key) -> dict:
     return {"t": jnp.where(slot == mask, jnp.asarray(spec.far, t.dtype), t), "seg": seg.reshape(key.shape)}
 
 
-
 def _float_type(itype):
     return jnp.float64 if jnp.dtype(itype).itemsize == 8 else jnp.float32
-
 
 
 def _trace(spec, scene, drones, eye, ray, near, shading) -> dict:
@@ -215,7 +199,6 @@ def _trace(spec, scene, drones, eye, ray, near, shading) -> dict:
     for shape, prims, owner in _slots(scene, drones):
         best = _nearest(shape, prims, owner, eye, ray, near, best, shading)
     return best
-
 
 
 def _nearest(shape, prims, owner, eye, ray, near, best, shading) -> dict:
@@ -249,7 +232,7 @@ def _nearest(shape, prims, owner, eye, ray, near, best, shading) -> dict:
         prims, owners = block
         for u in range(unroll):
             seen_by = None if owners is None else own != owners[u]
-            _nearer(shape, jax.tree.map(lambda x: x[u], prims), seen_by, eye, ray, near, best, shading)
+            _nearer(shape, jax.tree.map(lambda x, u=u: x[u], prims), seen_by, eye, ray, near, best, shading)
         return best, None
 
     if steps == 1:
@@ -257,17 +240,14 @@ def _nearest(shape, prims, owner, eye, ray, near, best, shading) -> dict:
     return jax.lax.scan(update, best, (slots, None if owners is None else jnp.asarray(owners)))[0]
 
 
-
 #: The trailing axes of each `Primitives` field after its slot axis.
 _TRAILING = {"pos": 1, "rot": 2, "size": 1, "seg": 0, "rgb": 1, "valid": 0}
-
 
 
 def _dot3(a: jax.Array, b: jax.Array) -> jax.Array:
     """Σ_k a[..., k] b[..., k] over a last axis of 3, written out: an elementwise expression that XLA fuses into
     its consumers (a reduction over an axis of 3 compiles on CPU to a separate, slow kernel)."""
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-
 
 
 def _hit(shape, prim, seen_by, eye, ray, near):
@@ -286,7 +266,6 @@ def _hit(shape, prim, seen_by, eye, ray, near):
     return t_in, hit, (o, d, size, rot)
 
 
-
 def _nearer(shape, prim, seen_by, eye, ray, near, best, shading):
     """Update ``best`` (t, seg and, with ``shading``, rgb and the world normal, per pixel [..., D, H, W]) with one
     primitive (fields [..., ...], per world or shared) where its hit is nearer.
@@ -300,7 +279,7 @@ def _nearer(shape, prim, seen_by, eye, ray, near, best, shading):
     best["seg"] = jnp.where(hit, prim.seg[..., None, None, None], best["seg"])
     if shading:
         t_safe = jnp.where(hit, t_in, 0.0)
-        n_local = _normal(shape, tuple(oc + t_safe * dc for oc, dc in zip(o, d)), size)
+        n_local = _normal(shape, tuple(oc + t_safe * dc for oc, dc in zip(o, d, strict=True)), size)
         normal = tuple(sum(n_local[k] * rot[..., i, k, None, None] for k in range(3)) for i in range(3))
         best["normal"] = jnp.where(hit[..., None], jnp.stack(normal, -1), best["normal"])
         best["rgb"] = jnp.where(hit[..., None], prim.rgb[..., None, None, None, :], best["rgb"])

@@ -5,8 +5,7 @@ and the run of ``jaxdrones train`` (`run.train_task`).
 The names below are loaded on first use, so that importing ``jaxdrones.training`` imports no trainer.
 """
 
-_EXPORTS = {"evaluate": "evaluation", "rollout_policy": "evaluation", "load_policy": "checkpoint",
-            "train_task": "run"}
+_EXPORTS = {"evaluate": "evaluation", "rollout_policy": "evaluation", "load_policy": "checkpoint", "train_task": "run"}
 __all__ = sorted(_EXPORTS)
 
 

@@ -57,8 +57,11 @@ class APGConfig(Schedule):
     algo: ClassVar[str] = "apg"
 
     def __post_init__(self):
-        check_config(self, integers={"num_timesteps": 1, "num_envs": 1, "horizon": 1, "num_evals": 1, "seed": 0},
-                     positive=("learning_rate", "max_grad_norm"))
+        check_config(
+            self,
+            integers={"num_timesteps": 1, "num_envs": 1, "horizon": 1, "num_evals": 1, "seed": 0},
+            positive=("learning_rate", "max_grad_norm"),
+        )
 
     @property
     def steps_per_update(self) -> int:
@@ -92,8 +95,12 @@ def make_policy(network, params) -> Callable:
     return policy
 
 
-def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, dict], None] | None = None,
-          evaluate: Callable[..., dict] | None = None):
+def train(
+    env: Env,
+    config: APGConfig = APGConfig(),
+    progress: Callable[[int, dict], None] | None = None,
+    evaluate: Callable[..., dict] | None = None,
+):
     """Train a policy on ``env`` (one world; D drones share the policy, each seeing its own observation).
 
     Args:
@@ -142,5 +149,6 @@ def train(env: Env, config: APGConfig = APGConfig(), progress: Callable[[int, di
         return network, carry[0]
 
     run_eval = None if evaluate is None else described(lambda carry: evaluate(*result(carry)), evaluate)
-    return run_updates(config, init, update, result, config.num_envs, progress, run_eval,
-                       description=program_description(config, env))
+    return run_updates(
+        config, init, update, result, config.num_envs, progress, run_eval, description=program_description(config, env)
+    )

@@ -84,32 +84,49 @@ class BraxPPOConfig:
         if not isinstance(self.privileged_critic, (bool, np.bool_)):
             raise ValueError(f"BraxPPOConfig: privileged_critic must be True or False, got {self.privileged_critic!r}")
         if self.learning_rate_schedule not in (None, "NONE", "ADAPTIVE_KL"):
-            raise ValueError(f"BraxPPOConfig: learning_rate_schedule must be None, 'NONE' or 'ADAPTIVE_KL' (brax's "
-                             f"LRSchedule), got {self.learning_rate_schedule!r}")
+            raise ValueError(
+                f"BraxPPOConfig: learning_rate_schedule must be None, 'NONE' or 'ADAPTIVE_KL' (brax's "
+                f"LRSchedule), got {self.learning_rate_schedule!r}"
+            )
         if not (isinstance(self.desired_kl, (int, float)) and math.isfinite(self.desired_kl) and self.desired_kl > 0):
             raise ValueError(f"BraxPPOConfig: desired_kl must be a finite number > 0, got {self.desired_kl!r}")
         if (self.batch_size * self.num_minibatches) % self.num_envs:
-            raise ValueError(f"BraxPPOConfig: batch_size·num_minibatches ({self.batch_size}·{self.num_minibatches}) "
-                             f"must be a multiple of num_envs ({self.num_envs}), as brax's PPO requires")
+            raise ValueError(
+                f"BraxPPOConfig: batch_size·num_minibatches ({self.batch_size}·{self.num_minibatches}) "
+                f"must be a multiple of num_envs ({self.num_envs}), as brax's PPO requires"
+            )
 
 
 #: The config fields that shape the networks (`_network_factory`), not arguments of brax's ``ppo.train``.
-NETWORK_FIELDS = ("policy_hidden_layer_sizes", "value_hidden_layer_sizes", "cnn_output_channels", "cnn_kernel_size",
-                  "cnn_stride", "privileged_critic")
+NETWORK_FIELDS = (
+    "policy_hidden_layer_sizes",
+    "value_hidden_layer_sizes",
+    "cnn_output_channels",
+    "cnn_kernel_size",
+    "cnn_stride",
+    "privileged_critic",
+)
 
 
 def _network_factory(config: BraxPPOConfig, vision: bool = False, privileged: bool = False):
     from brax.training.agents.ppo import networks as ppo_networks
 
-    layers = dict(policy_hidden_layer_sizes=tuple(config.policy_hidden_layer_sizes),
-                  value_hidden_layer_sizes=tuple(config.value_hidden_layer_sizes))
+    layers = dict(
+        policy_hidden_layer_sizes=tuple(config.policy_hidden_layer_sizes),
+        value_hidden_layer_sizes=tuple(config.value_hidden_layer_sizes),
+    )
     if not vision:
         return functools.partial(ppo_networks.make_ppo_networks, **layers)
     from jaxdrones.training.encoders import make_ppo_networks_vision
 
-    return functools.partial(make_ppo_networks_vision, **layers, cnn_output_channels=tuple(config.cnn_output_channels),
-                             cnn_kernel_size=tuple(config.cnn_kernel_size), cnn_stride=tuple(config.cnn_stride),
-                             value_obs_key="privileged_state" if privileged else None)
+    return functools.partial(
+        make_ppo_networks_vision,
+        **layers,
+        cnn_output_channels=tuple(config.cnn_output_channels),
+        cnn_kernel_size=tuple(config.cnn_kernel_size),
+        cnn_stride=tuple(config.cnn_stride),
+        value_obs_key="privileged_state" if privileged else None,
+    )
 
 
 def default_config(task: str, vision: bool = False) -> BraxPPOConfig:
@@ -121,16 +138,48 @@ def default_config(task: str, vision: bool = False) -> BraxPPOConfig:
     59 % in two runs); the asymmetric critic (``privileged_critic``; with ``avoid``'s crash weight of 50, 79 % in 2.1 M
     steps, its iterations a little cheaper: ``benchmarks/vision_ppo.py``)."""
     tuned = {
-        "hover": dict(num_timesteps=2_500_000, num_envs=1024, batch_size=1024, num_minibatches=8, unroll_length=10,
-                      learning_rate=2e-3, entropy_cost=1e-3, discounting=0.97),
-        "velocity": dict(num_timesteps=4_000_000, num_envs=1024, batch_size=1024, num_minibatches=8,
-                         unroll_length=10, discounting=0.97),
-        "waypoints": dict(num_timesteps=6_000_000, num_envs=1024, batch_size=1024, num_minibatches=8,
-                          unroll_length=10, discounting=0.97),
-        "vision": dict(num_timesteps=2_000_000, num_envs=256, batch_size=256, num_minibatches=4, unroll_length=16,
-                       learning_rate=1e-3, entropy_cost=1e-3, discounting=0.98, num_updates_per_batch=2,
-                       policy_hidden_layer_sizes=(64, 64), value_hidden_layer_sizes=(64, 64), num_evals=9,
-                       learning_rate_schedule="ADAPTIVE_KL", privileged_critic=True),
+        "hover": dict(
+            num_timesteps=2_500_000,
+            num_envs=1024,
+            batch_size=1024,
+            num_minibatches=8,
+            unroll_length=10,
+            learning_rate=2e-3,
+            entropy_cost=1e-3,
+            discounting=0.97,
+        ),
+        "velocity": dict(
+            num_timesteps=4_000_000,
+            num_envs=1024,
+            batch_size=1024,
+            num_minibatches=8,
+            unroll_length=10,
+            discounting=0.97,
+        ),
+        "waypoints": dict(
+            num_timesteps=6_000_000,
+            num_envs=1024,
+            batch_size=1024,
+            num_minibatches=8,
+            unroll_length=10,
+            discounting=0.97,
+        ),
+        "vision": dict(
+            num_timesteps=2_000_000,
+            num_envs=256,
+            batch_size=256,
+            num_minibatches=4,
+            unroll_length=16,
+            learning_rate=1e-3,
+            entropy_cost=1e-3,
+            discounting=0.98,
+            num_updates_per_batch=2,
+            policy_hidden_layer_sizes=(64, 64),
+            value_hidden_layer_sizes=(64, 64),
+            num_evals=9,
+            learning_rate_schedule="ADAPTIVE_KL",
+            privileged_critic=True,
+        ),
     }
     # avoid: twice the worlds and batch (its collisions fell from 10-16 % to 6 % in 2.1 M steps). Rewards scaled by
     # 0.1: brax clips the gradient of the policy's, the value's and the entropy's losses together (one global norm,
@@ -139,12 +188,13 @@ def default_config(task: str, vision: bool = False) -> BraxPPOConfig:
     # steps. 4.5 M steps (4.7 M in whole epochs): at 3.1 M a third run was at 88 % and still rising (83 %, 87 %, 88 %
     # over the last 800,000 steps); at 4.7 M, 95 % and 92 % (seeds 0 and 1, README).
     tuned["avoid"] = dict(tuned["vision"], num_envs=512, batch_size=512, num_timesteps=4_500_000, reward_scaling=0.1)
-    return BraxPPOConfig(**tuned["avoid" if task == "avoid" else "vision" if vision else
-                               task if task in tuned else "hover"])
+    return BraxPPOConfig(
+        **tuned["avoid" if task == "avoid" else "vision" if vision else task if task in tuned else "hover"]
+    )
 
 
 def make_network(config: BraxPPOConfig, env: Env):
-    """brax's PPO networks for ``env`` (on the world's flat observation and action, normalised observations when
+    """Brax's PPO networks for ``env`` (on the world's flat observation and action, normalised observations when
     ``config.normalize_observations``; with cameras, brax's vision PPO networks on our encoder
     (`jaxdrones.training.encoders.make_ppo_networks_vision`) reading `jaxdrones.envs.observations.policy_input`, the
     images not normalised)."""
@@ -153,8 +203,10 @@ def make_network(config: BraxPPOConfig, env: Env):
 
     preprocess = running_statistics.normalize if config.normalize_observations else (lambda x, _: x)
     return _network_factory(config, bool(env.config.vision), _privileged(config, env))(
-        _brax_env(adapter, config, env).observation_size, env.n_drones * env.action_size,
-        preprocess_observations_fn=preprocess)
+        _brax_env(adapter, config, env).observation_size,
+        env.n_drones * env.action_size,
+        preprocess_observations_fn=preprocess,
+    )
 
 
 def _privileged(config: BraxPPOConfig, env: Env) -> bool:
@@ -179,8 +231,13 @@ def make_policy(networks, params, deterministic: bool = True) -> Callable:
     return ppo_networks.make_inference_fn(networks)(params, deterministic=deterministic)
 
 
-def train(env: Env, config: BraxPPOConfig = BraxPPOConfig(), progress: Callable[[int, dict], None] | None = None,
-          evaluate: Callable | None = None, eval_env: Env | None = None):
+def train(
+    env: Env,
+    config: BraxPPOConfig = BraxPPOConfig(),
+    progress: Callable[[int, dict], None] | None = None,
+    evaluate: Callable | None = None,
+    eval_env: Env | None = None,
+):
     """Train a policy on ``env`` with brax's PPO.
 
     Args:
@@ -221,12 +278,18 @@ def train(env: Env, config: BraxPPOConfig = BraxPPOConfig(), progress: Callable[
     try:
         vision = bool(env.config.vision)
         _, params, _ = ppo.train(
-            _brax_env(adapter, config, env), episode_length=env.episode_length,
-            wrap_env_fn=adapter.wrap_for_brax_training, vision=vision,
+            _brax_env(adapter, config, env),
+            episode_length=env.episode_length,
+            wrap_env_fn=adapter.wrap_for_brax_training,
+            vision=vision,
             network_factory=_network_factory(config, vision, _privileged(config, env)),
-            deterministic_eval=True, progress_fn=report,
-            policy_params_fn=keep, eval_env=None if eval_env is None else _brax_env(adapter, config, eval_env),
-            run_evals=eval_env is not None, **kwargs)
+            deterministic_eval=True,
+            progress_fn=report,
+            policy_params_fn=keep,
+            eval_env=None if eval_env is None else _brax_env(adapter, config, eval_env),
+            run_evals=eval_env is not None,
+            **kwargs,
+        )
     except KeyboardInterrupt:
         if latest["params"] is None:
             raise

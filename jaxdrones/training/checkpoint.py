@@ -19,8 +19,14 @@ FORMAT = 1
 
 def save(path: str | os.PathLike, algo: str, params, task: str, env_overrides: dict, config) -> str:
     """Write a policy file (see the module doc); returns ``path``. ``params`` may live on any devices."""
-    payload = {"format": FORMAT, "algo": algo, "params": jax.tree.map(host_array, params), "env_name": task,
-               "env_overrides": dict(env_overrides), "config": dataclasses.asdict(config)}
+    payload = {
+        "format": FORMAT,
+        "algo": algo,
+        "params": jax.tree.map(host_array, params),
+        "env_name": task,
+        "env_overrides": dict(env_overrides),
+        "config": dataclasses.asdict(config),
+    }
     path = os.fspath(path)
     with open(path, "wb") as f:
         pickle.dump(payload, f)
@@ -104,6 +110,8 @@ def _check_same_agents(path: str, name: str, trained_on: Env, env: Env) -> None:
     have = (getattr(getattr(env, "task", None), "name", None), env.n_drones, env.observation_size, env.action_size)
     want = (name, trained_on.n_drones, trained_on.observation_size, trained_on.action_size)
     if have != want:
-        raise ValueError(f"the policy in {path!r} was trained on {want[0]!r} with {want[1]} drones, observation "
-                         f"size {want[2]} and action size {want[3]}; the env given is {have[0]!r} with {have[1]} "
-                         f"drones, observation size {have[2]} and action size {have[3]}")
+        raise ValueError(
+            f"the policy in {path!r} was trained on {want[0]!r} with {want[1]} drones, observation "
+            f"size {want[2]} and action size {want[3]}; the env given is {have[0]!r} with {have[1]} "
+            f"drones, observation size {have[2]} and action size {have[3]}"
+        )

@@ -11,8 +11,9 @@ import jax
 import numpy as np
 
 
-def check_config(config, *, integers: dict[str, int] | None = None, positive=(), nonnegative=(), fractions=(),
-                 open_fractions=()) -> None:
+def check_config(
+    config, *, integers: dict[str, int] | None = None, positive=(), nonnegative=(), fractions=(), open_fractions=()
+) -> None:
     """Raise ``ValueError`` naming the config class and field for a value out of range: ``integers`` maps fields to
     their least value; ``positive`` fields must be > 0, ``nonnegative`` ≥ 0, ``fractions`` in [0, 1] and
     ``open_fractions`` in [0, 1)."""
@@ -21,8 +22,12 @@ def check_config(config, *, integers: dict[str, int] | None = None, positive=(),
         value = getattr(config, field)
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
             raise ValueError(f"{name}: {field} must be an integer >= {low}, got {value!r}")
-    checks = ((positive, lambda v: v > 0, "> 0"), (nonnegative, lambda v: v >= 0, ">= 0"),
-              (fractions, lambda v: 0 <= v <= 1, "in [0, 1]"), (open_fractions, lambda v: 0 <= v < 1, "in [0, 1)"))
+    checks = (
+        (positive, lambda v: v > 0, "> 0"),
+        (nonnegative, lambda v: v >= 0, ">= 0"),
+        (fractions, lambda v: 0 <= v <= 1, "in [0, 1]"),
+        (open_fractions, lambda v: 0 <= v < 1, "in [0, 1)"),
+    )
     for fields, ok, text in checks:
         for field in fields:
             value = getattr(config, field)
@@ -118,9 +123,16 @@ def described(fn: Callable, evaluate: Callable) -> Callable:
     return fn
 
 
-def run_updates(config: Schedule, init: Callable, update: Callable, result: Callable, n_worlds: int,
-                progress: Callable[[int, dict], None] | None = None, evaluate: Callable | None = None,
-                description: str | None = None):
+def run_updates(
+    config: Schedule,
+    init: Callable,
+    update: Callable,
+    result: Callable,
+    n_worlds: int,
+    progress: Callable[[int, dict], None] | None = None,
+    evaluate: Callable | None = None,
+    description: str | None = None,
+):
     """The training loop of our trainers: three compiled programs, ``init``, a chunk of updates and the evaluation.
 
     ``init(key) -> carry`` builds the parameters, optimiser state and the worlds' states (jitted, with the carry

@@ -35,8 +35,11 @@ def patches(x: jax.Array, kernel: int, stride: int) -> jax.Array:
     (top, bottom), (left, right) = same_padding(h, kernel, stride), same_padding(w, kernel, stride)
     x = jnp.pad(x, [(0, 0)] * len(lead) + [(top, bottom), (left, right), (0, 0)])
     out_h, out_w = -(-h // stride), -(-w // stride)
-    cols = [x[..., i:i + (out_h - 1) * stride + 1:stride, j:j + (out_w - 1) * stride + 1:stride, :]
-            for i in range(kernel) for j in range(kernel)]
+    cols = [
+        x[..., i : i + (out_h - 1) * stride + 1 : stride, j : j + (out_w - 1) * stride + 1 : stride, :]
+        for i in range(kernel)
+        for j in range(kernel)
+    ]
     return jnp.concatenate(cols, axis=-1)
 
 
@@ -67,7 +70,7 @@ class CNN(linen.Module):
 
     @linen.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        for features, kernel, stride in zip(self.features, self.kernel_sizes, self.strides):
+        for features, kernel, stride in zip(self.features, self.kernel_sizes, self.strides, strict=True):
             x = linen.relu(Conv(features, kernel, stride)(x))
         return x.reshape(x.shape[:-3] + (-1,))
 
@@ -86,11 +89,15 @@ class VisionMLP(linen.Module):
     def __call__(self, obs: Mapping[str, jax.Array]) -> jax.Array:
         from brax.training import networks
 
-        feats = [CNN(self.cnn_features, self.cnn_kernel_sizes, self.cnn_strides)(obs[key])
-                 for key in sorted(obs) if key.startswith("pixels/")]
+        feats = [
+            CNN(self.cnn_features, self.cnn_kernel_sizes, self.cnn_strides)(obs[key])
+            for key in sorted(obs)
+            if key.startswith("pixels/")
+        ]
         hidden = jnp.concatenate(feats + [obs[self.state_key]], axis=-1)
-        return networks.MLP(layer_sizes=self.layer_sizes, activation=linen.swish,
-                            kernel_init=jax.nn.initializers.lecun_uniform())(hidden)
+        return networks.MLP(
+            layer_sizes=self.layer_sizes, activation=linen.swish, kernel_init=jax.nn.initializers.lecun_uniform()
+        )(hidden)
 
 
 class StateMLP(linen.Module):
@@ -104,18 +111,24 @@ class StateMLP(linen.Module):
         from brax.training import networks
 
         hidden = jnp.concatenate([obs[k] for k in self.keys], axis=-1)
-        return networks.MLP(layer_sizes=self.layer_sizes, activation=linen.swish,
-                            kernel_init=jax.nn.initializers.lecun_uniform())(hidden)
+        return networks.MLP(
+            layer_sizes=self.layer_sizes, activation=linen.swish, kernel_init=jax.nn.initializers.lecun_uniform()
+        )(hidden)
 
 
-def make_ppo_networks_vision(observation_size: Mapping[str, tuple[int, ...]], action_size: int,
-                             preprocess_observations_fn: Callable = lambda x, _: x,
-                             policy_hidden_layer_sizes: Sequence[int] = (64, 64),
-                             value_hidden_layer_sizes: Sequence[int] = (64, 64), state_key: str = "state",
-                             cnn_output_channels: Sequence[int] = (8, 16, 16),
-                             cnn_kernel_size: Sequence[int] = (4, 3, 3), cnn_stride: Sequence[int] = (2, 2, 2),
-                             value_obs_key: str | None = None):
-    """brax's PPO networks (``networks_vision.PPONetworks``: policy, value, tanh-normal action distribution) on
+def make_ppo_networks_vision(
+    observation_size: Mapping[str, tuple[int, ...]],
+    action_size: int,
+    preprocess_observations_fn: Callable = lambda x, _: x,
+    policy_hidden_layer_sizes: Sequence[int] = (64, 64),
+    value_hidden_layer_sizes: Sequence[int] = (64, 64),
+    state_key: str = "state",
+    cnn_output_channels: Sequence[int] = (8, 16, 16),
+    cnn_kernel_size: Sequence[int] = (4, 3, 3),
+    cnn_stride: Sequence[int] = (2, 2, 2),
+    value_obs_key: str | None = None,
+):
+    """Brax's PPO networks (``networks_vision.PPONetworks``: policy, value, tanh-normal action distribution) on
     `VisionMLP`: what brax's ``make_ppo_networks_vision`` builds with ``cnn_global_pool="none"`` and
     ``policy_obs_key = value_obs_key = state_key``, on `Conv`.
 
@@ -140,13 +153,18 @@ def make_ppo_networks_vision(observation_size: Mapping[str, tuple[int, ...]], ac
 
     action_dist = distribution.NormalTanhDistribution(event_size=action_size)
     dummy = {key: jnp.zeros((1,) + tuple(shape)) for key, shape in observation_size.items()}
-    cnn = dict(state_key=state_key, cnn_features=tuple(cnn_output_channels),
-               cnn_kernel_sizes=tuple(cnn_kernel_size), cnn_strides=tuple(cnn_stride))
+    cnn = dict(
+        state_key=state_key,
+        cnn_features=tuple(cnn_output_channels),
+        cnn_kernel_sizes=tuple(cnn_kernel_size),
+        cnn_strides=tuple(cnn_stride),
+    )
 
     def network(module, squeeze, keys=(state_key,)):
         def apply(processor_params, params, obs):
-            normed = {k: preprocess_observations_fn(obs[k], networks.normalizer_select(processor_params, k))
-                      for k in keys}
+            normed = {
+                k: preprocess_observations_fn(obs[k], networks.normalizer_select(processor_params, k)) for k in keys
+            }
             out = module.apply(params, {**obs, **normed})
             return jnp.squeeze(out, -1) if squeeze else out
 
@@ -157,11 +175,14 @@ def make_ppo_networks_vision(observation_size: Mapping[str, tuple[int, ...]], ac
     if value_obs_key is None:
         value_keys, value = (state_key,), VisionMLP(layer_sizes=value_layers, **cnn)
     elif value_obs_key not in observation_size:
-        raise ValueError(f"value_obs_key {value_obs_key!r} is not a key of the observation "
-                         f"({sorted(observation_size)})")
+        raise ValueError(
+            f"value_obs_key {value_obs_key!r} is not a key of the observation ({sorted(observation_size)})"
+        )
     else:
         value_keys = (state_key, value_obs_key)
         value = StateMLP(layer_sizes=value_layers, keys=value_keys)
-    return networks_vision.PPONetworks(policy_network=network(policy, False),
-                                       value_network=network(value, True, value_keys),
-                                       parametric_action_distribution=action_dist)
+    return networks_vision.PPONetworks(
+        policy_network=network(policy, False),
+        value_network=network(value, True, value_keys),
+        parametric_action_distribution=action_dist,
+    )

@@ -60,8 +60,9 @@ def evaluate(env: Env, policy, key: jax.Array, n_episodes: int = 256) -> dict:
         `Task.reached`), ``episode_reward`` (mean return, summed over drones),
         ``n_episodes``; and for tasks measured by a distance, ``final_pos_error_m`` with its max and 90th percentile.
     """
-    return episode_statistics(env, jax.jit(lambda keys: episode_outcomes(env, policy, keys))(
-        jax.random.split(key, n_episodes)))
+    return episode_statistics(
+        env, jax.jit(lambda keys: episode_outcomes(env, policy, keys))(jax.random.split(key, n_episodes))
+    )
 
 
 def episode_outcomes(env: Env, policy, keys: jax.Array):
@@ -79,8 +80,9 @@ def outcomes_of(states: EnvState):
     live = (states.steps[:, 1:] > states.steps[:, :-1]).astype(states.reward.dtype)
     returns = jnp.sum(live * jnp.sum(states.reward[:, 1:], axis=-1), axis=1)
     final = {k: v[:, -1] for k, v in states.metrics.items()}
-    mean = {k: jnp.sum(live * v[:, 1:], axis=1) / jnp.maximum(jnp.sum(live, axis=1), 1) for k, v in
-            states.metrics.items()}
+    mean = {
+        k: jnp.sum(live * v[:, 1:], axis=1) / jnp.maximum(jnp.sum(live, axis=1), 1) for k, v in states.metrics.items()
+    }
     # Every episode has a live first step; the frozen steps after its end repeat its last state.
     maximum = {k: jnp.max(jnp.where(live > 0, v[:, 1:], -jnp.inf), axis=1) for k, v in states.metrics.items()}
     return final, mean, states.terminated[:, -1], returns, maximum
@@ -102,10 +104,16 @@ def episode_statistics(env: Env, outcomes) -> dict:
         stats["success_rate"] = 1.0 - float(final["failure"].mean())
     if "distance" in final:
         dist = final["distance"]
-        stats.update(final_pos_error_m=float(dist.mean()), final_pos_error_max_m=float(dist.max()),
-                     final_pos_error_p90_m=float(np.percentile(dist, 90)))
+        stats.update(
+            final_pos_error_m=float(dist.mean()),
+            final_pos_error_max_m=float(dist.max()),
+            final_pos_error_p90_m=float(np.percentile(dist, 90)),
+        )
     if "crash" in final and "invalid_action" in final:  # a `TaskEnv`: not the episodes that end at their goal
         terminated = np.maximum(final["crash"], final["invalid_action"])
-    stats.update(terminated_rate=float(terminated.mean()), episode_reward=float(returns.mean()),
-                 n_episodes=int(terminated.shape[0]))
+    stats.update(
+        terminated_rate=float(terminated.mean()),
+        episode_reward=float(returns.mean()),
+        n_episodes=int(terminated.shape[0]),
+    )
     return stats

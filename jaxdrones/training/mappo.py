@@ -96,15 +96,28 @@ class MAPPOConfig(Schedule):
     seed: int = 0
 
     def __post_init__(self):
-        check_config(self, integers={"num_timesteps": 1, "num_envs": 1, "unroll_length": 1, "epochs": 1,
-                                     "minibatches": 1, "num_evals": 1, "seed": 0},
-                     positive=("learning_rate", "clip", "max_grad_norm", "init_std"),
-                     nonnegative=("entropy_cost", "value_cost"), fractions=("discounting", "gae_lambda"))
+        check_config(
+            self,
+            integers={
+                "num_timesteps": 1,
+                "num_envs": 1,
+                "unroll_length": 1,
+                "epochs": 1,
+                "minibatches": 1,
+                "num_evals": 1,
+                "seed": 0,
+            },
+            positive=("learning_rate", "clip", "max_grad_norm", "init_std"),
+            nonnegative=("entropy_cost", "value_cost"),
+            fractions=("discounting", "gae_lambda"),
+        )
         if self.critic not in CRITICS:
             raise ValueError(f"MAPPOConfig: critic must be one of {CRITICS}, got {self.critic!r}")
         if (self.num_envs * self.unroll_length) % self.minibatches:
-            raise ValueError(f"MAPPOConfig: num_envs * unroll_length = {self.num_envs * self.unroll_length} must "
-                             f"split into minibatches={self.minibatches} equal parts")
+            raise ValueError(
+                f"MAPPOConfig: num_envs * unroll_length = {self.num_envs * self.unroll_length} must "
+                f"split into minibatches={self.minibatches} equal parts"
+            )
 
     @property
     def algo(self) -> str:
@@ -170,8 +183,10 @@ class Networks:
         world = jnp.zeros(self.world_size) if self.world_size else None
 
         def one(key_actor, key_critic):
-            return {"actor": self.actor_mlp.init(key_actor, obs),
-                    "critic": self.critic_mlp.init(key_critic, obs, world)}
+            return {
+                "actor": self.actor_mlp.init(key_actor, obs),
+                "critic": self.critic_mlp.init(key_critic, obs, world),
+            }
 
         if self.config.share_params:
             params = one(*keys)
@@ -183,7 +198,7 @@ class Networks:
 
     @staticmethod
     def normalize(params: dict, x: jax.Array) -> jax.Array:
-        """x standardised by the running statistics ``params["norm"]`` (`update_norm`), clipped to ±10."""
+        """X standardised by the running statistics ``params["norm"]`` (`update_norm`), clipped to ±10."""
         norm = params["norm"]
         return jnp.clip((x - norm["mean"]) / jnp.sqrt(norm["var"] + 1e-6), -10.0, 10.0)
 
@@ -192,8 +207,9 @@ class Networks:
         if self.config.share_params:
             return mlp.apply(params, x, world)
         # Per-agent networks: agent k's parameters on its own observation (a team of one, without an id).
-        per_agent = jax.vmap(lambda p, xk: mlp.apply(p, xk[..., None, :], world)[..., 0, :], in_axes=(0, -2),
-                             out_axes=-2)
+        per_agent = jax.vmap(
+            lambda p, xk: mlp.apply(p, xk[..., None, :], world)[..., 0, :], in_axes=(0, -2), out_axes=-2
+        )
         return per_agent(params, x)
 
     def actor(self, params: dict, obs: jax.Array) -> jax.Array:
@@ -261,8 +277,12 @@ def gae(rewards, values, bootstrap, terminated, ended, discounting, gae_lambda):
     return advantages
 
 
-def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int, dict], None] | None = None,
-          evaluate: Callable[..., dict] | None = None):
+def train(
+    env: Env,
+    config: MAPPOConfig = MAPPOConfig(),
+    progress: Callable[[int, dict], None] | None = None,
+    evaluate: Callable[..., dict] | None = None,
+):
     """Train the agents of ``env`` (D drones per world) with MAPPO or independent PPO (module doc).
 
     Args:
@@ -298,12 +318,17 @@ def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int
             mean = nets.actor(params, state.obs)
             action = mean + jnp.exp(params["log_std"]) * jax.random.normal(key, mean.shape, mean.dtype)
             ended, nxt = auto.step_ended(state, jnp.tanh(action) if config.squash else action)
-            sample = {"obs": state.obs, "world": world, "action": action,
-                      "log_prob": _log_prob(mean, params["log_std"], action),
-                      "value": nets.critic(params, state.obs, world), "reward": ended.reward,
-                      "bootstrap": nets.critic(params, ended.obs, features(ended)),
-                      "terminated": jnp.broadcast_to(ended.terminated[:, None], ended.reward.shape),
-                      "ended": jnp.broadcast_to(ended.done[:, None], ended.reward.shape)}
+            sample = {
+                "obs": state.obs,
+                "world": world,
+                "action": action,
+                "log_prob": _log_prob(mean, params["log_std"], action),
+                "value": nets.critic(params, state.obs, world),
+                "reward": ended.reward,
+                "bootstrap": nets.critic(params, ended.obs, features(ended)),
+                "terminated": jnp.broadcast_to(ended.terminated[:, None], ended.reward.shape),
+                "ended": jnp.broadcast_to(ended.done[:, None], ended.reward.shape),
+            }
             return nxt, sample
 
         return jax.lax.scan(body, state, jax.random.split(key, config.unroll_length))
@@ -325,12 +350,21 @@ def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int
         params, norm, opt_state, state, key = carry
         key, key_collect, key_shuffle = jax.random.split(key, 3)
         state, data = collect({**params, "norm": norm}, state, key_collect)
-        advantage = gae(data["reward"], data["value"], data["bootstrap"], data["terminated"], data["ended"],
-                        gamma, config.gae_lambda)
+        advantage = gae(
+            data["reward"],
+            data["value"],
+            data["bootstrap"],
+            data["terminated"],
+            data["ended"],
+            gamma,
+            config.gae_lambda,
+        )
         data = {**data, "advantage": advantage, "return": advantage + data["value"]}
         data.pop("bootstrap")
-        samples = jax.tree.map(lambda x: x.reshape((config.steps_per_update,) + x.shape[2:]),
-                               {k: v for k, v in data.items() if v is not None})
+        samples = jax.tree.map(
+            lambda x: x.reshape((config.steps_per_update,) + x.shape[2:]),
+            {k: v for k, v in data.items() if v is not None},
+        )
 
         def minibatch(carry, index):
             params, opt_state = carry
@@ -342,9 +376,11 @@ def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int
             return (optax.apply_updates(params, updates), opt_state), metrics
 
         orders = jax.vmap(lambda k: jax.random.permutation(k, config.steps_per_update))(
-            jax.random.split(key_shuffle, config.epochs))
+            jax.random.split(key_shuffle, config.epochs)
+        )
         (params, opt_state), metrics = jax.lax.scan(
-            minibatch, (params, opt_state), orders.reshape(config.epochs * config.minibatches, -1))
+            minibatch, (params, opt_state), orders.reshape(config.epochs * config.minibatches, -1)
+        )
         metrics = {k: v[-1] for k, v in metrics.items()}
         metrics["train/std"] = jnp.mean(jnp.exp(params["log_std"]))
         norm = update_norm(norm, data["obs"])  # after the update, which used the statistics the data was taken with
@@ -361,5 +397,6 @@ def train(env: Env, config: MAPPOConfig = MAPPOConfig(), progress: Callable[[int
         return nets, {**carry[0], "norm": carry[1]}
 
     run_eval = None if evaluate is None else described(lambda carry: evaluate(*result(carry)), evaluate)
-    return run_updates(config, init, update, result, config.num_envs, progress, run_eval,
-                       description=program_description(config, env))
+    return run_updates(
+        config, init, update, result, config.num_envs, progress, run_eval, description=program_description(config, env)
+    )

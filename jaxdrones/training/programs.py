@@ -76,21 +76,37 @@ def cached_jit(fn: Callable, example, description: str) -> Callable:
         return jax.jit(fn)
     leaves, treedef = jax.tree.flatten(example)
     is_key = [_is_key(x) for x in leaves]
-    raw_avals = [jax.eval_shape(jax.random.key_data, x) if k else jax.ShapeDtypeStruct(x.shape, x.dtype)
-                 for x, k in zip(leaves, is_key, strict=True)]
+    raw_avals = [
+        jax.eval_shape(jax.random.key_data, x) if k else jax.ShapeDtypeStruct(x.shape, x.dtype)
+        for x, k in zip(leaves, is_key, strict=True)
+    ]
     device = jax.devices()[0]
-    key = hashlib.sha256("\n".join([
-        description, str(treedef), repr(is_key), repr([(a.shape, str(a.dtype)) for a in raw_avals]), _source_hash(),
-        jax.__version__, getattr(jax.lib, "__version__", ""), device.platform, device.device_kind,
-        str(jax.config.jax_enable_x64)]).encode()).hexdigest()
+    key = hashlib.sha256(
+        "\n".join(
+            [
+                description,
+                str(treedef),
+                repr(is_key),
+                repr([(a.shape, str(a.dtype)) for a in raw_avals]),
+                _source_hash(),
+                jax.__version__,
+                getattr(jax.lib, "__version__", ""),
+                device.platform,
+                device.device_kind,
+                str(jax.config.jax_enable_x64),
+            ]
+        ).encode()
+    ).hexdigest()
     path = os.path.join(folder, key)
     out_tree: dict = {}
 
     def traced_program(*raw):
-        tree = jax.tree.unflatten(treedef, [jax.random.wrap_key_data(r) if k else r for r, k in zip(raw, is_key)])
+        tree = jax.tree.unflatten(
+            treedef, [jax.random.wrap_key_data(r) if k else r for r, k in zip(raw, is_key, strict=True)]
+        )
         out_leaves, out_tree["treedef"] = jax.tree.flatten(fn(tree))
         out_tree["is_key"] = [_is_key(x) for x in out_leaves]
-        return [jax.random.key_data(x) if k else x for x, k in zip(out_leaves, out_tree["is_key"])]
+        return [jax.random.key_data(x) if k else x for x, k in zip(out_leaves, out_tree["is_key"], strict=True)]
 
     loaded = _load(path)
     if loaded is None:
@@ -106,8 +122,8 @@ def cached_jit(fn: Callable, example, description: str) -> Callable:
         # Committed to the device, as the program's outputs are: a later call with its own outputs then reuses the
         # compiled program (jit compiles anew for inputs committed otherwise).
         leaves = jax.device_put(jax.tree.leaves(tree), device)
-        out = call(*[jax.random.key_data(x) if k else x for x, k in zip(leaves, is_key)])
-        out = [jax.random.wrap_key_data(r) if k else r for r, k in zip(out, out_tree["is_key"])]
+        out = call(*[jax.random.key_data(x) if k else x for x, k in zip(leaves, is_key, strict=True)])
+        out = [jax.random.wrap_key_data(r) if k else r for r, k in zip(out, out_tree["is_key"], strict=True)]
         return jax.tree.unflatten(out_tree["treedef"], out)
 
     return run

@@ -33,8 +33,13 @@ class ProgressLog:
         self.task = task
         self.history: list[dict] = []
         self._first: tuple[float, int] | None = None
-        self.bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not enabled,
-                        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}] {postfix}")
+        self.bar = tqdm(
+            total=total_steps,
+            unit="step",
+            unit_scale=True,
+            disable=not enabled,
+            bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}] {postfix}",
+        )
 
     @property
     def label(self) -> str:
@@ -45,19 +50,24 @@ class ProgressLog:
     def __call__(self, step: int, stats: dict) -> None:
         """Record an evaluation: ``stats`` as `episode_statistics` returns them, at ``step`` env steps."""
         now = time.perf_counter()
-        row = {"env_steps": int(step), "time_s": now - self.t0,
-               "success_value": float(stats.get("success_value", math.nan)),
-               "terminated_rate": float(stats.get("terminated_rate", math.nan)),
-               "episode_reward": float(stats.get("episode_reward", math.nan))}
+        row = {
+            "env_steps": int(step),
+            "time_s": now - self.t0,
+            "success_value": float(stats.get("success_value", math.nan)),
+            "terminated_rate": float(stats.get("terminated_rate", math.nan)),
+            "episode_reward": float(stats.get("episode_reward", math.nan)),
+        }
         self.history.append(row)
         if self._first is None:
             self._first = (now, step)
         elapsed, done = now - self._first[0], step - self._first[1]
         rate = f"{done / elapsed:,.0f} steps/s  " if elapsed > 0 and done > 0 else ""
         task = self.task
-        self.bar.set_postfix_str(f"{rate}{AGGREGATES[task.success_at]} {task.success_metric} "
-                                 f"{row['success_value']:.3g} {task.success_unit} (solved < "
-                                 f"{task.success_threshold:g})  terminated {row['terminated_rate']:.0%}")
+        self.bar.set_postfix_str(
+            f"{rate}{AGGREGATES[task.success_at]} {task.success_metric} "
+            f"{row['success_value']:.3g} {task.success_unit} (solved < "
+            f"{task.success_threshold:g})  terminated {row['terminated_rate']:.0%}"
+        )
         self.bar.total = max(self.bar.total, step)
         self.bar.update(step - self.bar.n)
 

@@ -60,8 +60,12 @@ class SHACConfig(APGConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        check_config(self, integers={"critic_epochs": 1, "critic_minibatches": 1}, positive=("critic_learning_rate",),
-                     open_fractions=("discounting", "td_lambda", "target_alpha"))
+        check_config(
+            self,
+            integers={"critic_epochs": 1, "critic_minibatches": 1},
+            positive=("critic_learning_rate",),
+            open_fractions=("discounting", "td_lambda", "target_alpha"),
+        )
 
 
 def make_critic(config: SHACConfig):
@@ -69,8 +73,9 @@ def make_critic(config: SHACConfig):
     return mlp(config.critic_hidden_layer_sizes, 1)
 
 
-def td_lambda_returns(rewards: jax.Array, next_values: jax.Array, ended: jax.Array, discounting: float,
-                      td_lambda: float) -> jax.Array:
+def td_lambda_returns(
+    rewards: jax.Array, next_values: jax.Array, ended: jax.Array, discounting: float, td_lambda: float
+) -> jax.Array:
     """TD(λ) returns of a window, f[T, ...]: G_t = r_t + γ·((1 - λ)·V_{t+1} + λ·G_{t+1}), cut to r_t + γ·V_{t+1}
     where the episode ended at step t and at the window's last step.
 
@@ -79,6 +84,8 @@ def td_lambda_returns(rewards: jax.Array, next_values: jax.Array, ended: jax.Arr
         next_values: f[T, ...], the value of the state after each step (0 where the episode terminated; of the
             last observation where it was truncated).
         ended: bool[T, ...], the episode ended at that step.
+        discounting: the discount γ per step.
+        td_lambda: λ, the weight of the longer returns (0: one-step TD targets, 1: Monte-Carlo returns).
     """
 
     def back(later, inputs):
@@ -91,8 +98,12 @@ def td_lambda_returns(rewards: jax.Array, next_values: jax.Array, ended: jax.Arr
     return jnp.concatenate([returns, last[None]])
 
 
-def train(env: Env, config: SHACConfig = SHACConfig(), progress: Callable[[int, dict], None] | None = None,
-          evaluate: Callable[..., dict] | None = None):
+def train(
+    env: Env,
+    config: SHACConfig = SHACConfig(),
+    progress: Callable[[int, dict], None] | None = None,
+    evaluate: Callable[..., dict] | None = None,
+):
     """Train a policy on ``env`` with SHAC (module doc; arguments and return as `jaxdrones.training.apg.train`).
 
     ``progress`` also reports ``train/critic_loss`` (the critic's mean squared error on the last window's targets,
@@ -108,14 +119,15 @@ def train(env: Env, config: SHACConfig = SHACConfig(), progress: Callable[[int, 
 
     samples = config.num_envs * config.horizon * env.n_drones
     if samples % config.critic_minibatches:
-        raise ValueError(f"SHACConfig: num_envs * horizon * drones = {samples} samples per window must split into "
-                         f"critic_minibatches={config.critic_minibatches} equal minibatches")
+        raise ValueError(
+            f"SHACConfig: num_envs * horizon * drones = {samples} samples per window must split into "
+            f"critic_minibatches={config.critic_minibatches} equal minibatches"
+        )
     auto = VmapAutoReset(env)
     batched_loss = jax.vmap(env.loss, in_axes=(world_axes(auto.params_shared),))
     actor, critic = make_network(config, env), make_critic(config)
     actor_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.schedule()))
-    critic_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
-                             optax.adam(config.critic_learning_rate))
+    critic_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.critic_learning_rate))
     gamma = config.discounting
 
     def actor_loss(params, target_params, state):
@@ -156,36 +168,51 @@ def train(env: Env, config: SHACConfig = SHACConfig(), progress: Callable[[int, 
 
         order = jax.vmap(lambda k: jax.random.permutation(k, samples))(jax.random.split(key, config.critic_epochs))
         before = mse(critic_params, obs, targets)
-        (critic_params, opt_state), _ = jax.lax.scan(minibatch, (critic_params, opt_state),
-                                                     order.reshape(-1, size))
+        (critic_params, opt_state), _ = jax.lax.scan(minibatch, (critic_params, opt_state), order.reshape(-1, size))
         return critic_params, opt_state, before
 
     def update(carry, _):
         actor_params, critic_params, target_params, actor_state, critic_state, state, key = carry
         key, key_fit = jax.random.split(key)
         (loss, (state, (obs, rewards, next_values, ended))), grad = jax.value_and_grad(actor_loss, has_aux=True)(
-            actor_params, target_params, state)
+            actor_params, target_params, state
+        )
         updates, actor_state = actor_opt.update(grad, actor_state, actor_params)
         actor_params = optax.apply_updates(actor_params, updates)
         targets = td_lambda_returns(rewards, next_values, ended, gamma, config.td_lambda)
         critic_params, critic_state, critic_loss = fit_critic(critic_params, critic_state, obs, targets, key_fit)
-        target_params = jax.tree.map(lambda t, c: config.target_alpha * t + (1 - config.target_alpha) * c,
-                                     target_params, critic_params)
-        carry = (actor_params, critic_params, target_params, actor_state, critic_state,
-                 jax.lax.stop_gradient(state), key)
-        return carry, {"train/loss": loss, "train/grad_norm": optax.tree.norm(grad),
-                       "train/critic_loss": critic_loss}
+        target_params = jax.tree.map(
+            lambda t, c: config.target_alpha * t + (1 - config.target_alpha) * c, target_params, critic_params
+        )
+        carry = (
+            actor_params,
+            critic_params,
+            target_params,
+            actor_state,
+            critic_state,
+            jax.lax.stop_gradient(state),
+            key,
+        )
+        return carry, {"train/loss": loss, "train/grad_norm": optax.tree.norm(grad), "train/critic_loss": critic_loss}
 
     def init(key):
         key_actor, key_critic, key_reset, key_shuffle = jax.random.split(key, 4)
         obs0 = jnp.zeros((env.observation_size,), env.dtype)
         actor_params, critic_params = actor.init(key_actor, obs0), critic.init(key_critic, obs0)
-        return (actor_params, critic_params, critic_params, actor_opt.init(actor_params),
-                critic_opt.init(critic_params), auto.reset(jax.random.split(key_reset, config.num_envs)), key_shuffle)
+        return (
+            actor_params,
+            critic_params,
+            critic_params,
+            actor_opt.init(actor_params),
+            critic_opt.init(critic_params),
+            auto.reset(jax.random.split(key_reset, config.num_envs)),
+            key_shuffle,
+        )
 
     def result(carry):
         return actor, carry[0]
 
     run_eval = None if evaluate is None else described(lambda carry: evaluate(*result(carry)), evaluate)
-    return run_updates(config, init, update, result, config.num_envs, progress, run_eval,
-                       description=program_description(config, env))
+    return run_updates(
+        config, init, update, result, config.num_envs, progress, run_eval, description=program_description(config, env)
+    )

@@ -43,8 +43,16 @@ def _ppo_config(task: str, vision: bool = False):
     minibatches, learning rate 3e-3; 1.3 M env steps; see the README's training table)."""
     from jaxdrones.training.mappo import MAPPOConfig
 
-    return MAPPOConfig(critic="local", num_timesteps=1_200_000, num_envs=512, unroll_length=32, minibatches=4,
-                       epochs=4, learning_rate=3e-3, discounting=0.99)
+    return MAPPOConfig(
+        critic="local",
+        num_timesteps=1_200_000,
+        num_envs=512,
+        unroll_length=32,
+        minibatches=4,
+        epochs=4,
+        learning_rate=3e-3,
+        discounting=0.99,
+    )
 
 
 def _brax_ppo_config(task: str, vision: bool = False):
@@ -97,24 +105,61 @@ def _config_cls(module: str, name: str):
 
 
 def _table() -> dict[str, Trainer]:
-    mappo_kw = dict(train=_module_trainer("mappo", "train"), make_network=_module_trainer("mappo", "make_network"),
-                    make_policy=_module_trainer("mappo", "make_policy"))
-    apg_kw = dict(make_network=_module_trainer("apg", "make_network"), make_policy=_module_trainer("apg", "make_policy"))
+    mappo_kw = dict(
+        train=_module_trainer("mappo", "train"),
+        make_network=_module_trainer("mappo", "make_network"),
+        make_policy=_module_trainer("mappo", "make_policy"),
+    )
+    apg_kw = dict(
+        make_network=_module_trainer("apg", "make_network"), make_policy=_module_trainer("apg", "make_policy")
+    )
     return {
-        "ppo": Trainer("ppo", "PPO (ours: one compiled program per chunk of updates)",
-                       _config_cls("mappo", "MAPPOConfig"), _ppo_config, **mappo_kw),
-        "brax_ppo": Trainer("brax_ppo", "brax's PPO (brax.training.agents.ppo) through the brax adapter",
-                            _config_cls("brax_ppo", "BraxPPOConfig"), _brax_ppo_config,
-                            _module_trainer("brax_ppo", "train"), _module_trainer("brax_ppo", "make_network"),
-                            _module_trainer("brax_ppo", "make_policy")),
-        "apg": Trainer("apg", "analytic policy gradients through the simulator (the default for hover)", _config_cls("apg", "APGConfig"),
-                       _apg_config, _module_trainer("apg", "train"), **apg_kw),
-        "shac": Trainer("shac", "short-horizon actor-critic through the simulator", _config_cls("shac", "SHACConfig"),
-                        _shac_config, _module_trainer("shac", "train"), **apg_kw),
-        "mappo": Trainer("mappo", "multi-agent PPO with a centralised critic (the default for multi-agent tasks)",
-                         _config_cls("mappo", "MAPPOConfig"), _mappo_config("central"), **mappo_kw),
-        "ippo": Trainer("ippo", "independent PPO (each agent's critic sees its own observation)",
-                        _config_cls("mappo", "MAPPOConfig"), _mappo_config("local"), **mappo_kw),
+        "ppo": Trainer(
+            "ppo",
+            "PPO (ours: one compiled program per chunk of updates)",
+            _config_cls("mappo", "MAPPOConfig"),
+            _ppo_config,
+            **mappo_kw,
+        ),
+        "brax_ppo": Trainer(
+            "brax_ppo",
+            "brax's PPO (brax.training.agents.ppo) through the brax adapter",
+            _config_cls("brax_ppo", "BraxPPOConfig"),
+            _brax_ppo_config,
+            _module_trainer("brax_ppo", "train"),
+            _module_trainer("brax_ppo", "make_network"),
+            _module_trainer("brax_ppo", "make_policy"),
+        ),
+        "apg": Trainer(
+            "apg",
+            "analytic policy gradients through the simulator (the default for hover)",
+            _config_cls("apg", "APGConfig"),
+            _apg_config,
+            _module_trainer("apg", "train"),
+            **apg_kw,
+        ),
+        "shac": Trainer(
+            "shac",
+            "short-horizon actor-critic through the simulator",
+            _config_cls("shac", "SHACConfig"),
+            _shac_config,
+            _module_trainer("shac", "train"),
+            **apg_kw,
+        ),
+        "mappo": Trainer(
+            "mappo",
+            "multi-agent PPO with a centralised critic (the default for multi-agent tasks)",
+            _config_cls("mappo", "MAPPOConfig"),
+            _mappo_config("central"),
+            **mappo_kw,
+        ),
+        "ippo": Trainer(
+            "ippo",
+            "independent PPO (each agent's critic sees its own observation)",
+            _config_cls("mappo", "MAPPOConfig"),
+            _mappo_config("local"),
+            **mappo_kw,
+        ),
     }
 
 

@@ -116,12 +116,19 @@ class VmapAutoReset(_Wrapper):
         loss of the step that ended an episode): ``(ended [W], state [W])``."""
         axes = world_axes(self.params_shared)
         ended = _final_info(jax.vmap(self.env.step, in_axes=(axes, 0), out_axes=axes)(state, action))
-        return ended, reset_where(self.env, ended, ended.done, self.max_resets, keep=ENDING_STEP_FIELDS,
-                                  shared_params=self.params_shared)
+        return ended, reset_where(
+            self.env, ended, ended.done, self.max_resets, keep=ENDING_STEP_FIELDS, shared_params=self.params_shared
+        )
 
 
-def reset_where(env: Env, state: EnvState, mask: jax.Array, max_resets: int | None = None,
-                keep: tuple[str, ...] = (), shared_params: bool = False) -> EnvState:
+def reset_where(
+    env: Env,
+    state: EnvState,
+    mask: jax.Array,
+    max_resets: int | None = None,
+    keep: tuple[str, ...] = (),
+    shared_params: bool = False,
+) -> EnvState:
     """Replace the worlds of a batched ``state`` where ``mask`` holds by a new episode, ``env.reset(key, task)`` with
     the world's own key and task params; the other worlds are returned unchanged.
 

@@ -32,11 +32,27 @@ from jaxdrones.compat.gym_pybullet_drones.utils.Logger import Logger
 from jaxdrones.compat.gym_pybullet_drones.utils.utils import str2bool, sync
 
 __all__ = [
-    "ActionType", "BaseAviary", "BaseControl", "BaseRLAviary", "CtrlAviary", "DSLPIDControl", "DroneModel",
-    "HoverAviary", "ImageType", "Logger", "MultiHoverAviary", "ObservationType", "Physics", "str2bool", "sync",
+    "ActionType",
+    "BaseAviary",
+    "BaseControl",
+    "BaseRLAviary",
+    "CtrlAviary",
+    "DSLPIDControl",
+    "DroneModel",
+    "HoverAviary",
+    "ImageType",
+    "Logger",
+    "MultiHoverAviary",
+    "ObservationType",
+    "Physics",
+    "str2bool",
+    "sync",
 ]
 
-for _id, _cls in (("ctrl-aviary-v0", "CtrlAviary"), ("hover-aviary-v0", "HoverAviary"),
-                  ("multihover-aviary-v0", "MultiHoverAviary")):
+for _id, _cls in (
+    ("ctrl-aviary-v0", "CtrlAviary"),
+    ("hover-aviary-v0", "HoverAviary"),
+    ("multihover-aviary-v0", "MultiHoverAviary"),
+):
     if _id not in gym.registry:
         gym.register(id=_id, entry_point=f"jaxdrones.compat.gym_pybullet_drones.envs:{_cls}")

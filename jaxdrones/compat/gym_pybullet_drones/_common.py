@@ -19,8 +19,10 @@ class KeywordHints:
             valid = [n for n, p in params.items() if n != "self" and p.kind is not inspect.Parameter.VAR_POSITIONAL]
             for name in kwargs:
                 if name not in params:
-                    raise TypeError(f"{cls.__name__}() got an unexpected keyword argument {name!r}"
-                                    f"{did_you_mean(name, valid)}; its keywords are {valid}")
+                    raise TypeError(
+                        f"{cls.__name__}() got an unexpected keyword argument {name!r}"
+                        f"{did_you_mean(name, valid)}; its keywords are {valid}"
+                    )
         use_compilation_cache()
         return super().__new__(cls)
 

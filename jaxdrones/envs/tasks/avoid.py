@@ -97,11 +97,15 @@ class AvoidConfig(TaskConfig):
                 raise ValueError(f"avoid: {name} must be a finite number >= 0 m, got {value!r}")
         reach = max(self.cylinder_radius[1], math.sqrt(2) * self.box_half[1])
         if self.field_x[0] - reach <= 0.2 or self.field_x[1] + reach >= self.goal_x - self.goal_radius:
-            raise ValueError(f"avoid: the obstacles (centres in x {self.field_x}, up to {reach:.2f} m wide) must "
-                             f"leave the start (x = 0) and the goal (x = {self.goal_x}) clear")
+            raise ValueError(
+                f"avoid: the obstacles (centres in x {self.field_x}, up to {reach:.2f} m wide) must "
+                f"leave the start (x = 0) and the goal (x = {self.goal_x}) clear"
+            )
         if self.backend != "jax":
-            raise ValueError("avoid runs on backend='jax': its obstacles are drawn per episode in the task params, "
-                             "which the PyBullet backend's fixed worlds cannot follow")
+            raise ValueError(
+                "avoid runs on backend='jax': its obstacles are drawn per episode in the task params, "
+                "which the PyBullet backend's fixed worlds cannot follow"
+            )
         super().__post_init__()
 
 
@@ -166,8 +170,14 @@ class Avoid(GoalTask):
         return np.array([POS_BOUND] * 3, np.float32)
 
     def start_defaults(self, config):
-        return dict(pos=[[0.0, 0.0, config.flight_z]], pos_range=(0.0, config.start_y, 0.0), tilt=0.0, yaw=0.0,
-                    vel=0.0, ang_vel=0.0)
+        return dict(
+            pos=[[0.0, 0.0, config.flight_z]],
+            pos_range=(0.0, config.start_y, 0.0),
+            tilt=0.0,
+            yaw=0.0,
+            vel=0.0,
+            ang_vel=0.0,
+        )
 
     def target(self, config):
         return np.array([[config.goal_x, 0.0, config.flight_z]])
@@ -187,21 +197,39 @@ class Avoid(GoalTask):
         u = jax.random.uniform(k_cyl, (n_cyl, 3), dtype)
         cyl = scene.cylinder.replace(
             pos=_field_points(config, u, half_z),
-            size=jnp.stack([_between(config.cylinder_radius, u[:, 2]), jnp.full((n_cyl,), half_z, dtype),
-                            jnp.zeros((n_cyl,), dtype)], -1),
-            seg=1 + jnp.arange(n_cyl, dtype=jnp.int32), valid=jnp.ones((n_cyl,), bool),
-            rgb=jnp.asarray(np.resize(np.asarray(COLOURS), (n_cyl, 3)), dtype))
+            size=jnp.stack(
+                [
+                    _between(config.cylinder_radius, u[:, 2]),
+                    jnp.full((n_cyl,), half_z, dtype),
+                    jnp.zeros((n_cyl,), dtype),
+                ],
+                -1,
+            ),
+            seg=1 + jnp.arange(n_cyl, dtype=jnp.int32),
+            valid=jnp.ones((n_cyl,), bool),
+            rgb=jnp.asarray(np.resize(np.asarray(COLOURS), (n_cyl, 3)), dtype),
+        )
         u = jax.random.uniform(k_box, (n_box, 5), dtype)
         yaw = 2 * jnp.pi * u[:, 4]
         c, s, zero, one = jnp.cos(yaw), jnp.sin(yaw), jnp.zeros_like(yaw), jnp.ones_like(yaw)
-        rot = jnp.stack([jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1),
-                         jnp.stack([zero, zero, one], -1)], -2)
+        rot = jnp.stack(
+            [jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1), jnp.stack([zero, zero, one], -1)], -2
+        )
         box = scene.box.replace(
-            pos=_field_points(config, u, half_z), rot=rot,
-            size=jnp.stack([_between(config.box_half, u[:, 2]), _between(config.box_half, u[:, 3]),
-                            jnp.full((n_box,), half_z, dtype)], -1),
-            seg=1 + n_cyl + jnp.arange(n_box, dtype=jnp.int32), valid=jnp.ones((n_box,), bool),
-            rgb=jnp.asarray(np.resize(np.asarray(COLOURS[::-1]), (n_box, 3)), dtype))
+            pos=_field_points(config, u, half_z),
+            rot=rot,
+            size=jnp.stack(
+                [
+                    _between(config.box_half, u[:, 2]),
+                    _between(config.box_half, u[:, 3]),
+                    jnp.full((n_box,), half_z, dtype),
+                ],
+                -1,
+            ),
+            seg=1 + n_cyl + jnp.arange(n_box, dtype=jnp.int32),
+            valid=jnp.ones((n_box,), bool),
+            rgb=jnp.asarray(np.resize(np.asarray(COLOURS[::-1]), (n_box, 3)), dtype),
+        )
         return task.replace(target=task.target.at[..., 1].set(goal_y), scene=scene.replace(cylinder=cyl, box=box))
 
     def observe(self, config, task, sim, steps):
@@ -214,8 +242,12 @@ class Avoid(GoalTask):
         dist = rewards.distance(sim.pos, task.target)
         clear = clearance(task, sim)
         crash = (clear < 0) | self._lost(config, task, sim)
-        return {"progress": progress(sim, task.target), "reached": (dist < config.goal_radius).astype(dist.dtype),
-                "crash": crash.astype(dist.dtype), "proximity": proximity(clear)}
+        return {
+            "progress": progress(sim, task.target),
+            "reached": (dist < config.goal_radius).astype(dist.dtype),
+            "crash": crash.astype(dist.dtype),
+            "proximity": proximity(clear),
+        }
 
     def terminated(self, config, task, sim):
         return jnp.any(collided(task, sim) | self._lost(config, task, sim))
@@ -228,8 +260,11 @@ class Avoid(GoalTask):
         dist = rewards.distance(sim.pos, task.target)
         hit = jnp.any(collided(task, sim))
         reached = jnp.all(dist < config.goal_radius)
-        return {"distance": jnp.mean(dist), "collision": hit.astype(dist.dtype),
-                "failure": (hit | ~reached).astype(dist.dtype)}
+        return {
+            "distance": jnp.mean(dist),
+            "collision": hit.astype(dist.dtype),
+            "failure": (hit | ~reached).astype(dist.dtype),
+        }
 
     @staticmethod
     def _lost(config, task, sim: DroneState) -> jax.Array:
@@ -309,8 +344,9 @@ def _between(bounds: tuple[float, float], u: jax.Array) -> jax.Array:
 
 def _field_points(config: AvoidConfig, u: jax.Array, z: float) -> jax.Array:
     """Centres f[N, 3] uniform in the field (x in field_x, |y| ≤ field_y) at height z, from u f[N, ≥2] in [0, 1)."""
-    return jnp.stack([_between(config.field_x, u[:, 0]), config.field_y * (2 * u[:, 1] - 1),
-                      jnp.full(u.shape[:1], z, u.dtype)], -1)
+    return jnp.stack(
+        [_between(config.field_x, u[:, 0]), config.field_y * (2 * u[:, 1] - 1), jnp.full(u.shape[:1], z, u.dtype)], -1
+    )
 
 
 AVOID = Avoid()

@@ -28,8 +28,11 @@ from jaxdrones.scene import Obstacle
 #: (origin on the ground below the architrave's centre, x along it, y across the gate).
 GATE_Y = -1.0
 GATE_COLUMN_X = 0.3
-GATE_PARTS = (((-GATE_COLUMN_X, 0.0, 0.245), (0.05, 0.05, 0.5)), ((GATE_COLUMN_X, 0.0, 0.245), (0.05, 0.05, 0.5)),
-              ((0.0, 0.0, 0.55), (0.8, 0.05, 0.05)))
+GATE_PARTS = (
+    ((-GATE_COLUMN_X, 0.0, 0.245), (0.05, 0.05, 0.5)),
+    ((GATE_COLUMN_X, 0.0, 0.245), (0.05, 0.05, 0.5)),
+    ((0.0, 0.0, 0.55), (0.8, 0.05, 0.05)),
+)
 #: The gate's opening in its frame: |x| < 0.275 m between the columns, below z = 0.525 m (the architrave).
 GATE_OPENING_HALF_X = GATE_COLUMN_X - 0.025
 GATE_OPENING_TOP = 0.525
@@ -75,8 +78,9 @@ class GateConfig(TaskConfig):
             raise ValueError(f"fly_thru_gate: gate_pose must be one of {GATE_POSES}, got {self.gate_pose!r}")
         lo, hi = (float(v) for v in self.gate_distance)
         if not (math.isfinite(hi) and 1.0 <= lo <= hi):
-            raise ValueError(f"fly_thru_gate: gate_distance must be (low, high) m with 1 <= low <= high, got "
-                             f"{self.gate_distance!r}")
+            raise ValueError(
+                f"fly_thru_gate: gate_distance must be (low, high) m with 1 <= low <= high, got {self.gate_distance!r}"
+            )
         object.__setattr__(self, "gate_distance", (lo, hi))
         for name in ("gate_offset", "gate_yaw"):
             value = getattr(self, name)
@@ -84,8 +88,10 @@ class GateConfig(TaskConfig):
                 raise ValueError(f"fly_thru_gate: {name} must be a finite number >= 0, got {value!r}")
         if self.gate_pose == "random":
             if self.backend != "jax" or self.obstacles is not None:
-                raise ValueError("fly_thru_gate: gate_pose='random' draws the gate per episode in the task params: "
-                                 "backend='jax' and no obstacles")
+                raise ValueError(
+                    "fly_thru_gate: gate_pose='random' draws the gate per episode in the task params: "
+                    "backend='jax' and no obstacles"
+                )
         elif (self.backend == "pybullet" or self.vision) and self.obstacles is None:
             object.__setattr__(self, "obstacles", gate_obstacles())
         super().__post_init__()
@@ -101,9 +107,9 @@ class FlyThruGate(ReferenceTask):
 
     On the JAX backend the gate is only the reference; on the PyBullet backend its columns and architrave are
     obstacles (contacts reported in ``state.sim.contact``). With ``gate_pose="random"`` the env runs
-    `jaxdrones.envs.tasks.gate.GatePass` instead (the gate drawn per episode, seen only through the camera). The observation appends the offset to the reference
-    point and its velocity (6 entries). Starts: the paper's default start (0, 0, 0.1125) m, within ±0.05 m in x and
-    y, any yaw.
+    `GatePass` instead (the gate drawn per episode, seen only through the camera). The observation appends the
+    offset to the reference point and its velocity (6 entries). Starts: the paper's default start (0, 0, 0.1125) m,
+    within ±0.05 m in x and y, any yaw.
     Reward ``"shaped"``: as `Hover`'s, towards the moving reference; ``"paper"``: −10 ‖p* − p‖².
     Success metric: ``distance`` to the reference (m).
     """
@@ -119,8 +125,9 @@ class FlyThruGate(ReferenceTask):
         return self
 
     def start_defaults(self, config):
-        return dict(pos=[[0.0, 0.0, DEFAULT_START_Z]], pos_range=(0.05, 0.05, 0.0), tilt=0.0, yaw=math.pi,
-                    vel=0.0, ang_vel=0.0)
+        return dict(
+            pos=[[0.0, 0.0, DEFAULT_START_Z]], pos_range=(0.05, 0.05, 0.0), tilt=0.0, yaw=math.pi, vel=0.0, ang_vel=0.0
+        )
 
     def target(self, config):
         return np.array([[0.0, GATE_REF_DY, GATE_REF_Z]])
@@ -171,8 +178,10 @@ class GatePass(GoalTask):
     def check(self, config):
         super().check(config)
         if not config.vision:
-            raise ValueError("fly_thru_gate with gate_pose='random' sees the gate only through its camera: set "
-                             "vision, e.g. vision=('depth',)")
+            raise ValueError(
+                "fly_thru_gate with gate_pose='random' sees the gate only through its camera: set "
+                "vision, e.g. vision=('depth',)"
+            )
 
     def obs_bound(self, config):
         return np.zeros(0, np.float32)
@@ -201,20 +210,30 @@ class GatePass(GoalTask):
         local = jnp.asarray([p for p, _ in GATE_PARTS], centre.dtype)
         half = jnp.asarray([size for _, size in GATE_PARTS], centre.dtype) / 2
         box = task.scene.box.replace(
-            pos=centre + local @ rot.T, rot=jnp.broadcast_to(rot, (len(GATE_PARTS), 3, 3)), size=half,
-            seg=1 + jnp.arange(len(GATE_PARTS), dtype=jnp.int32), valid=jnp.ones(len(GATE_PARTS), bool),
-            rgb=jnp.full((len(GATE_PARTS), 3), 0.6, centre.dtype))
+            pos=centre + local @ rot.T,
+            rot=jnp.broadcast_to(rot, (len(GATE_PARTS), 3, 3)),
+            size=half,
+            seg=1 + jnp.arange(len(GATE_PARTS), dtype=jnp.int32),
+            valid=jnp.ones(len(GATE_PARTS), bool),
+            rgb=jnp.full((len(GATE_PARTS), 3), 0.6, centre.dtype),
+        )
         aim = centre + rot @ jnp.asarray(AIM, centre.dtype)
-        return task.replace(target=jnp.broadcast_to(aim, task.target.shape), scene=task.scene.replace(box=box),
-                            data={**task.data, "gate_pos": centre, "gate_rot": rot})
+        return task.replace(
+            target=jnp.broadcast_to(aim, task.target.shape),
+            scene=task.scene.replace(box=box),
+            data={**task.data, "gate_pos": centre, "gate_rot": rot},
+        )
 
     def observe(self, config, task, sim, steps):
         return jnp.zeros(sim.pos.shape[:-1] + (0,), sim.pos.dtype)
 
     def reward_terms(self, config, task, sim, action, steps):
         dtype = sim.pos.dtype
-        return {"progress": progress(sim, task.target), "reached": _through(task, sim).astype(dtype),
-                "crash": self._failed(config, task, sim).astype(dtype)}
+        return {
+            "progress": progress(sim, task.target),
+            "reached": _through(task, sim).astype(dtype),
+            "crash": self._failed(config, task, sim).astype(dtype),
+        }
 
     def terminated(self, config, task, sim):
         return jnp.any(self._failed(config, task, sim))
@@ -226,8 +245,11 @@ class GatePass(GoalTask):
         hit = jnp.any(collided(task, sim))
         passed = self.reached(config, task, sim)
         dtype = sim.pos.dtype
-        return {"collision": hit.astype(dtype), "missed": jnp.any(_missed(task, sim)).astype(dtype),
-                "failure": (~passed).astype(dtype)}
+        return {
+            "collision": hit.astype(dtype),
+            "missed": jnp.any(_missed(task, sim)).astype(dtype),
+            "failure": (~passed).astype(dtype),
+        }
 
     @staticmethod
     def _failed(config, task, sim: DroneState) -> jax.Array:

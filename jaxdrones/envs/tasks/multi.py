@@ -70,10 +70,22 @@ class MultiTask(Task):
 
     def start_defaults(self, config):
         if ACTION_SIZES[config.action_type] == 1:  # 1-D actions (the paper's one_d_rpm) cannot level a tilted drone
-            return dict(pos=default_start_pos(config.n_drones), pos_range=(0.02, 0.02, 0.0), tilt=0.0, yaw=0.0,
-                        vel=0.0, ang_vel=0.0)
-        return dict(pos=default_start_pos(config.n_drones), pos_range=(0.02, 0.02, 0.0), tilt=0.05, yaw=math.pi,
-                    vel=0.05, ang_vel=0.1)
+            return dict(
+                pos=default_start_pos(config.n_drones),
+                pos_range=(0.02, 0.02, 0.0),
+                tilt=0.0,
+                yaw=0.0,
+                vel=0.0,
+                ang_vel=0.0,
+            )
+        return dict(
+            pos=default_start_pos(config.n_drones),
+            pos_range=(0.02, 0.02, 0.0),
+            tilt=0.05,
+            yaw=math.pi,
+            vel=0.05,
+            ang_vel=0.1,
+        )
 
     def ref_points(self, config, task, sim) -> jax.Array:
         """f[D, 3] m: where each drone should be, given the others (the shaped reward's target)."""
@@ -89,8 +101,11 @@ class MultiTask(Task):
 
     def shaped_terms(self, config, task, sim) -> dict:
         points = self.ref_points(config, task, sim)
-        return {"closeness": rewards.closeness(sim.pos, points), "speed_sq": rewards.speed_sq(sim.vel),
-                "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel)}
+        return {
+            "closeness": rewards.closeness(sim.pos, points),
+            "speed_sq": rewards.speed_sq(sim.vel),
+            "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel),
+        }
 
     def reward_terms(self, config, task, sim, action, steps):
         if config.reward == "paper":
@@ -161,15 +176,18 @@ class LeaderFollower(MultiTask):
     def paper_reward(self, config, task, sim):
         n = config.n_drones
         leader = -rewards.distance_sq(sim.pos[:1], task.target[:1])
-        followers = -(sim.pos[1:, 2] - sim.pos[0, 2]) ** 2 / n
+        followers = -((sim.pos[1:, 2] - sim.pos[0, 2]) ** 2) / n
         return jnp.concatenate([leader, followers])
 
     def metrics(self, config, task, sim, steps):
         leader = jnp.abs(sim.pos[0, 2] - task.target[0, 2])
         followers = jnp.abs(sim.pos[1:, 2] - sim.pos[0, 2])
-        return {"leader_distance": rewards.distance(sim.pos[0], task.target[0]), "leader_altitude_error": leader,
-                "follower_altitude_error": jnp.mean(followers),
-                "max_altitude_error": jnp.maximum(leader, jnp.max(followers))}
+        return {
+            "leader_distance": rewards.distance(sim.pos[0], task.target[0]),
+            "leader_altitude_error": leader,
+            "follower_altitude_error": jnp.mean(followers),
+            "max_altitude_error": jnp.maximum(leader, jnp.max(followers)),
+        }
 
 
 class Flock(MultiTask):
@@ -207,13 +225,16 @@ class Flock(MultiTask):
 
     def paper_reward(self, config, task, sim):
         leader = -rewards.distance_sq(sim.pos[:1], task.target[:1])
-        return jnp.concatenate([leader, -(sim.pos[:-1, 2] - sim.pos[1:, 2]) ** 2])
+        return jnp.concatenate([leader, -((sim.pos[:-1, 2] - sim.pos[1:, 2]) ** 2)])
 
     def metrics(self, config, task, sim, steps):
         if config.objective == "flocking":
             terms = flocking_terms(sim.pos, sim.vel)
-            return {"alignment": jnp.mean(terms["alignment"]), "flock_speed": jnp.mean(terms["flock_speed"]),
-                    "spacing_violation": jnp.mean(terms["spacing"])}
+            return {
+                "alignment": jnp.mean(terms["alignment"]),
+                "flock_speed": jnp.mean(terms["flock_speed"]),
+                "spacing_violation": jnp.mean(terms["spacing"]),
+            }
         return super().metrics(config, task, sim, steps)
 
 
@@ -237,8 +258,12 @@ def flocking_terms(pos: jax.Array, vel: jax.Array) -> dict[str, jax.Array]:
     spacing = jnp.sum(violation, -1) / (n - 1)
     mean_d = jnp.sum(jnp.where(others, dist, 0.0), -1, keepdims=True) / (n - 1)
     variance = jnp.sum(jnp.where(others, (dist - mean_d) ** 2, 0.0), -1) / (n - 1)
-    return {"alignment": alignment, "flock_speed": jnp.broadcast_to(speed, alignment.shape), "spacing": spacing,
-            "spacing_variance": variance}
+    return {
+        "alignment": alignment,
+        "flock_speed": jnp.broadcast_to(speed, alignment.shape),
+        "spacing": spacing,
+        "spacing_variance": variance,
+    }
 
 
 class Meetup(MultiTask):
@@ -311,13 +336,17 @@ class CrossingConfig(MultiConfig):
                 raise ValueError(f"crossing: {name} must be a finite number > 0, got {value!r}")
         super().__post_init__()
         if self.amplitude >= self.arena_xy:
-            raise ValueError(f"crossing: amplitude must be below arena_xy ({self.arena_xy} m), the path would leave "
-                             f"the arena, got {self.amplitude!r}")
+            raise ValueError(
+                f"crossing: amplitude must be below arena_xy ({self.arena_xy} m), the path would leave "
+                f"the arena, got {self.amplitude!r}"
+            )
         top = CROSSING_BASE_Z + self.spacing * (self.n_drones - 1)
         if top >= self.arena_z:
-            raise ValueError(f"crossing: the top drone's altitude 0.5 + spacing·(n_drones − 1) = {top:g} m must be "
-                             f"below arena_z ({self.arena_z} m): lower spacing ({self.spacing!r}) or n_drones, "
-                             f"or raise arena_z")
+            raise ValueError(
+                f"crossing: the top drone's altitude 0.5 + spacing·(n_drones − 1) = {top:g} m must be "
+                f"below arena_z ({self.arena_z} m): lower spacing ({self.spacing!r}) or n_drones, "
+                f"or raise arena_z"
+            )
 
 
 class Crossing(MultiTask):
@@ -361,8 +390,11 @@ class Crossing(MultiTask):
         return np.stack([np.zeros(n), np.zeros(n), z], -1)
 
     def data(self, config):
-        return {"amplitude": np.asarray(config.amplitude), "period": np.asarray(config.period_s),
-                "phase": np.pi * np.arange(config.n_drones)}
+        return {
+            "amplitude": np.asarray(config.amplitude),
+            "period": np.asarray(config.period_s),
+            "phase": np.pi * np.arange(config.n_drones),
+        }
 
     def start_defaults(self, config):
         start = super().start_defaults(config)
@@ -393,15 +425,20 @@ class Crossing(MultiTask):
         ref = self.reference(config, task, steps)
         if config.reward == "paper":
             return {"paper": jnp.maximum(0.0, 2.0 - rewards.distance_sq(sim.pos, ref.pos) ** 2)}
-        return {"closeness": rewards.closeness(sim.pos, ref.pos),
-                "velocity_error_sq": rewards.velocity_error_sq(sim.vel, ref.vel),
-                "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel)}
+        return {
+            "closeness": rewards.closeness(sim.pos, ref.pos),
+            "velocity_error_sq": rewards.velocity_error_sq(sim.vel, ref.vel),
+            "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel),
+        }
 
     def metrics(self, config, task, sim, steps):
         ref = self.reference(config, task, steps)
         altitude = jnp.abs(sim.pos[..., 2] - ref.pos[..., 2])
-        return {"tracking_error": jnp.mean(rewards.distance(sim.pos, ref.pos)), "altitude_error": jnp.mean(altitude),
-                "max_altitude_error": jnp.max(altitude)}
+        return {
+            "tracking_error": jnp.mean(rewards.distance(sim.pos, ref.pos)),
+            "altitude_error": jnp.mean(altitude),
+            "max_altitude_error": jnp.max(altitude),
+        }
 
 
 MULTI_AGENT_TASKS = (MultiHover(), LeaderFollower(), Flock(), Meetup(), Crossing())

@@ -50,8 +50,11 @@ def _tracking_terms(config: TaskConfig, target: jax.Array, sim: DroneState) -> d
     """The shaped terms towards ``target`` f[D, 3] and the paper's squared distance."""
     if config.reward == "paper":
         return {"distance_sq": rewards.distance_sq(sim.pos, target)}
-    return {"closeness": rewards.closeness(sim.pos, target), "speed_sq": rewards.speed_sq(sim.vel),
-            "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel)}
+    return {
+        "closeness": rewards.closeness(sim.pos, target),
+        "speed_sq": rewards.speed_sq(sim.vel),
+        "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel),
+    }
 
 
 def _one_d(config: TaskConfig) -> bool:
@@ -100,8 +103,14 @@ class Hover(Task):
         target = np.asarray(config.target)
         if _one_d(config):
             low, high = DEFAULT_START_Z, 1.8
-            return dict(pos=[[target[0], target[1], (low + high) / 2]], pos_range=(0.0, 0.0, (high - low) / 2),
-                        tilt=0.0, yaw=0.0, vel=(0.0, 0.0, 0.2), ang_vel=0.0)
+            return dict(
+                pos=[[target[0], target[1], (low + high) / 2]],
+                pos_range=(0.0, 0.0, (high - low) / 2),
+                tilt=0.0,
+                yaw=0.0,
+                vel=(0.0, 0.0, 0.2),
+                ang_vel=0.0,
+            )
         return dict(pos=[target], pos_range=(0.5, 0.5, 0.5), tilt=0.5, yaw=math.pi, vel=0.5, ang_vel=1.0)
 
     def target(self, config: HoverConfig) -> np.ndarray:
@@ -140,8 +149,14 @@ class Takeoff(Task):
     def start_defaults(self, config):
         target = np.asarray(config.target)
         spread = 0.0 if _one_d(config) else 0.1
-        return dict(pos=[[target[0], target[1], DEFAULT_START_Z]], pos_range=(spread, spread, 0.0), tilt=0.0,
-                    yaw=0.0 if _one_d(config) else math.pi, vel=0.0, ang_vel=0.0)
+        return dict(
+            pos=[[target[0], target[1], DEFAULT_START_Z]],
+            pos_range=(spread, spread, 0.0),
+            tilt=0.0,
+            yaw=0.0 if _one_d(config) else math.pi,
+            vel=0.0,
+            ang_vel=0.0,
+        )
 
     def target(self, config):
         return np.asarray([config.target])
@@ -175,8 +190,9 @@ class VelocityConfig(TaskConfig):
     def __post_init__(self):
         cmd = np.asarray(self.max_command, dtype=np.float64)
         if cmd.shape != (3,) or not np.all(np.isfinite(cmd)) or np.any(cmd < 0):
-            raise ValueError(f"velocity: max_command must be three finite half-widths >= 0 in m/s, "
-                             f"got {self.max_command!r}")
+            raise ValueError(
+                f"velocity: max_command must be three finite half-widths >= 0 in m/s, got {self.max_command!r}"
+            )
         object.__setattr__(self, "max_command", tuple(float(v) for v in cmd))
         super().__post_init__()
 
@@ -238,9 +254,11 @@ class Velocity(Task):
         if config.reward == "paper":
             return {"velocity_error_sq": rewards.velocity_error_sq(sim.vel, vel)}
         z_ref = self.reference(config, task, steps).pos[..., 2]
-        return {"velocity_tracking": rewards.velocity_tracking(sim.vel, vel),
-                "altitude": jnp.exp(-jnp.abs(sim.pos[..., 2] - z_ref) / rewards.BROAD_SCALE_M),
-                "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel)}
+        return {
+            "velocity_tracking": rewards.velocity_tracking(sim.vel, vel),
+            "altitude": jnp.exp(-jnp.abs(sim.pos[..., 2] - z_ref) / rewards.BROAD_SCALE_M),
+            "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel),
+        }
 
     def metrics(self, config, task, sim, steps):
         return {"velocity_error": jnp.mean(rewards.distance(sim.vel, task.data["target_vel"]))}
@@ -284,8 +302,9 @@ class WaypointsConfig(TaskConfig):
         super().__post_init__()
 
 
-def path_points(kind: jax.Array, radius: jax.Array, phase: jax.Array, direction: jax.Array, centre: jax.Array,
-                angle: jax.Array) -> jax.Array:
+def path_points(
+    kind: jax.Array, radius: jax.Array, phase: jax.Array, direction: jax.Array, centre: jax.Array, angle: jax.Array
+) -> jax.Array:
     """Points of a circle (``kind`` 0) or a figure-8 (``kind`` 1, a lemniscate of Gerono) in the horizontal plane.
 
     Args:
@@ -301,8 +320,9 @@ def path_points(kind: jax.Array, radius: jax.Array, phase: jax.Array, direction:
     """
     theta = phase + direction * angle
     circle = jnp.stack([jnp.cos(theta) - jnp.cos(phase), jnp.sin(theta) - jnp.sin(phase)], axis=-1)
-    eight = jnp.stack([jnp.sin(theta) - jnp.sin(phase), jnp.sin(theta) * jnp.cos(theta)
-                       - jnp.sin(phase) * jnp.cos(phase)], axis=-1)
+    eight = jnp.stack(
+        [jnp.sin(theta) - jnp.sin(phase), jnp.sin(theta) * jnp.cos(theta) - jnp.sin(phase) * jnp.cos(phase)], axis=-1
+    )
     xy = radius * jnp.where(kind == 0, circle, eight)
     return centre + jnp.concatenate([xy, jnp.zeros_like(xy[:, :1])], axis=-1)
 
@@ -350,8 +370,11 @@ class Waypoints(ReferenceTask):
     def data(self, config):
         n = int(round(config.episode_len_s * config.ctrl_freq)) + 2
         kind = {"circle": 0, "figure8": 1, "random": -1}[config.path]
-        return {"waypoints": np.zeros((n, config.n_drones, 3)), "path": np.asarray(kind),
-                "radius": np.asarray(config.radius)}
+        return {
+            "waypoints": np.zeros((n, config.n_drones, 3)),
+            "path": np.asarray(kind),
+            "radius": np.asarray(config.radius),
+        }
 
     def weights(self, config):
         return hover_weights(config, {"distance_sq": -1.0})
@@ -359,8 +382,9 @@ class Waypoints(ReferenceTask):
     def sample(self, config, task, key):
         k_kind, k_r, k_phase, k_dir = jax.random.split(key, 4)
         dtype = task.target.dtype
-        kind = jnp.where(task.data["path"] < 0, jax.random.bernoulli(k_kind).astype(jnp.int32),
-                         task.data["path"].astype(jnp.int32))
+        kind = jnp.where(
+            task.data["path"] < 0, jax.random.bernoulli(k_kind).astype(jnp.int32), task.data["path"].astype(jnp.int32)
+        )
         radius = jax.random.uniform(k_r, (), dtype, task.data["radius"][0], task.data["radius"][1])
         phase = jax.random.uniform(k_phase, (), dtype, 0.0, 2 * jnp.pi)
         direction = jnp.where(jax.random.bernoulli(k_dir), 1.0, -1.0).astype(dtype)
@@ -388,8 +412,9 @@ class TuneConfig(WaypointsConfig):
 
     def __post_init__(self):
         if self.action_type != "tun":
-            raise ValueError(f"tune: action_type must be 'tun' (the policy scales the PID gains), "
-                             f"got {self.action_type!r}")
+            raise ValueError(
+                f"tune: action_type must be 'tun' (the policy scales the PID gains), got {self.action_type!r}"
+            )
         super().__post_init__()
 
 

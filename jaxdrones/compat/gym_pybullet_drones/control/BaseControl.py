@@ -34,16 +34,41 @@ class BaseControl(KeywordHints, metaclass=abc.ABCMeta):
         """Zero the call counter (subclasses also zero their memory)."""
         self.control_counter = 0
 
-    def computeControlFromState(self, control_timestep, state, target_pos, target_rpy=np.zeros(3),  # noqa: B008
-                                target_vel=np.zeros(3), target_rpy_rates=np.zeros(3)):  # noqa: B008
+    def computeControlFromState(
+        self,
+        control_timestep,
+        state,
+        target_pos,
+        target_rpy=np.zeros(3),  # noqa: B008
+        target_vel=np.zeros(3),
+        target_rpy_rates=np.zeros(3),
+    ):  # noqa: B008
         """`computeControl` from a 20-entry state vector (the aviaries' observation row: pos 0:3, quat 3:7, vel
         10:13, angular velocity 13:16)."""
         state = np.asarray(state)
-        return self.computeControl(control_timestep=control_timestep, cur_pos=state[0:3], cur_quat=state[3:7],
-                                   cur_vel=state[10:13], cur_ang_vel=state[13:16], target_pos=target_pos,
-                                   target_rpy=target_rpy, target_vel=target_vel, target_rpy_rates=target_rpy_rates)
+        return self.computeControl(
+            control_timestep=control_timestep,
+            cur_pos=state[0:3],
+            cur_quat=state[3:7],
+            cur_vel=state[10:13],
+            cur_ang_vel=state[13:16],
+            target_pos=target_pos,
+            target_rpy=target_rpy,
+            target_vel=target_vel,
+            target_rpy_rates=target_rpy_rates,
+        )
 
     @abc.abstractmethod
-    def computeControl(self, control_timestep, cur_pos, cur_quat, cur_vel, cur_ang_vel, target_pos,
-                       target_rpy=np.zeros(3), target_vel=np.zeros(3), target_rpy_rates=np.zeros(3)):  # noqa: B008
+    def computeControl(
+        self,
+        control_timestep,
+        cur_pos,
+        cur_quat,
+        cur_vel,
+        cur_ang_vel,
+        target_pos,
+        target_rpy=np.zeros(3),
+        target_vel=np.zeros(3),
+        target_rpy_rates=np.zeros(3),
+    ):  # noqa: B008
         """(rpm f[4], ...) for one drone; each controller defines it."""

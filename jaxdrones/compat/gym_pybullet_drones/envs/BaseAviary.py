@@ -69,17 +69,32 @@ class BaseAviary(KeywordHints, gym.Env, metaclass=abc.ABCMeta):
 
     metadata = {"render_modes": ["human"]}
 
-    def __init__(self, drone_model: DroneModel = DroneModel.CF2X, num_drones: int = 1,
-                 neighbourhood_radius: float = np.inf, initial_xyzs=None, initial_rpys=None,
-                 physics: Physics = Physics.PYB, pyb_freq: int = 240, ctrl_freq: int = 240, gui: bool = False,
-                 record: bool = False, obstacles: bool = False, user_debug_gui: bool = True,
-                 vision_attributes: bool = False, output_folder: str = "results", backend: str = "jax"):
+    def __init__(
+        self,
+        drone_model: DroneModel = DroneModel.CF2X,
+        num_drones: int = 1,
+        neighbourhood_radius: float = np.inf,
+        initial_xyzs=None,
+        initial_rpys=None,
+        physics: Physics = Physics.PYB,
+        pyb_freq: int = 240,
+        ctrl_freq: int = 240,
+        gui: bool = False,
+        record: bool = False,
+        obstacles: bool = False,
+        user_debug_gui: bool = True,
+        vision_attributes: bool = False,
+        output_folder: str = "results",
+        backend: str = "jax",
+    ):
         self.DRONE_MODEL, self.PHYSICS = DroneModel(drone_model), Physics(physics)
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if vision_attributes:
-            raise ValueError("vision_attributes: the compat aviaries have no cameras; jaxdrones.make(task, "
-                             "vision=('rgb',)) gives camera observations")
+            raise ValueError(
+                "vision_attributes: the compat aviaries have no cameras; jaxdrones.make(task, "
+                "vision=('rgb',)) gives camera observations"
+            )
         if not (isinstance(num_drones, (int, np.integer)) and num_drones >= 1):
             raise ValueError(f"num_drones must be a positive integer, got {num_drones!r}")
         self.G, self.RAD2DEG, self.DEG2RAD = 9.8, 180 / np.pi, np.pi / 180
@@ -94,11 +109,19 @@ class BaseAviary(KeywordHints, gym.Env, metaclass=abc.ABCMeta):
         self.BACKEND = backend
         for flag, what in ((gui, "gui (PyBullet's window)"), (record, "record (PyBullet's video)")):
             if flag:
-                warnings.warn(f"{type(self).__name__}: {what} is not available here; running headless "
-                              f"(jaxdrones fly and jaxdrones.video record flights)", UserWarning, stacklevel=3)
+                warnings.warn(
+                    f"{type(self).__name__}: {what} is not available here; running headless "
+                    f"(jaxdrones fly and jaxdrones.video record flights)",
+                    UserWarning,
+                    stacklevel=3,
+                )
         if obstacles and backend == "jax":
-            warnings.warn(f"{type(self).__name__}: obstacles are not simulated on the JAX backend (its physics has "
-                          f"the ground only); pass backend='pybullet' for collisions", UserWarning, stacklevel=3)
+            warnings.warn(
+                f"{type(self).__name__}: obstacles are not simulated on the JAX backend (its physics has "
+                f"the ground only); pass backend='pybullet' for collisions",
+                UserWarning,
+                stacklevel=3,
+            )
         self._set_constants(load_params(self.DRONE_MODEL.value))
         n = self.NUM_DRONES
         i = np.arange(n)
@@ -108,8 +131,14 @@ class BaseAviary(KeywordHints, gym.Env, metaclass=abc.ABCMeta):
         self.INIT_XYZS = np.asarray(fixed_triples("initial_xyzs", xyzs, n))
         self.INIT_RPYS = np.asarray(fixed_triples("initial_rpys", rpys, n))
         drag, ground_effect, downwash = PHYSICS_EFFECTS[self.PHYSICS]
-        self._config = SimConfig(n_drones=n, sim_freq=pyb_freq, ctrl_freq=ctrl_freq, drag=drag,
-                                 ground_effect=ground_effect, downwash=downwash)
+        self._config = SimConfig(
+            n_drones=n,
+            sim_freq=pyb_freq,
+            ctrl_freq=ctrl_freq,
+            drag=drag,
+            ground_effect=ground_effect,
+            downwash=downwash,
+        )
         options = {"obstacles": "paper" if obstacles else None} if backend == "pybullet" else {}
         self._sim_step = make_step(self._config, backend=backend, **options)
         self.action_space = self._actionSpace()
@@ -149,8 +178,13 @@ class BaseAviary(KeywordHints, gym.Env, metaclass=abc.ABCMeta):
         self._state = self._sim_step(self._params, self._state, rpm)
         self.last_clipped_action = rpm
         self._updateAndStoreKinematicInformation()
-        out = (self._computeObs(), self._computeReward(), self._computeTerminated(), self._computeTruncated(),
-               self._computeInfo())
+        out = (
+            self._computeObs(),
+            self._computeReward(),
+            self._computeTerminated(),
+            self._computeTruncated(),
+            self._computeInfo(),
+        )
         self.step_counter += self.PYB_STEPS_PER_CTRL
         return out
 
@@ -161,13 +195,17 @@ class BaseAviary(KeywordHints, gym.Env, metaclass=abc.ABCMeta):
             self.first_render_call = False
         elapsed = time.time() - self.RESET_TIME
         sim_time = self.step_counter * self.PYB_TIMESTEP
-        print(f"\n[INFO] render() ——— it {self.step_counter:04d} ——— wall-clock time {elapsed:.1f}s, simulation "
-              f"time {sim_time:.1f}s@{self.PYB_FREQ:d}Hz ({sim_time / max(elapsed, 1e-9):.2f}x)")
+        print(
+            f"\n[INFO] render() ——— it {self.step_counter:04d} ——— wall-clock time {elapsed:.1f}s, simulation "
+            f"time {sim_time:.1f}s@{self.PYB_FREQ:d}Hz ({sim_time / max(elapsed, 1e-9):.2f}x)"
+        )
         for i in range(self.NUM_DRONES):
             (x, y, z), v, a, w = self.pos[i], self.vel[i], self.rpy[i] * self.RAD2DEG, self.ang_v[i]
-            print(f"[INFO] render() ——— drone {i:d} ——— x {x:+06.2f}, y {y:+06.2f}, z {z:+06.2f} ——— velocity "
-                  f"{v[0]:+06.2f}, {v[1]:+06.2f}, {v[2]:+06.2f} ——— roll {a[0]:+06.2f}, pitch {a[1]:+06.2f}, yaw "
-                  f"{a[2]:+06.2f} ——— angular velocity {w[0]:+06.4f}, {w[1]:+06.4f}, {w[2]:+06.4f} ——— ")
+            print(
+                f"[INFO] render() ——— drone {i:d} ——— x {x:+06.2f}, y {y:+06.2f}, z {z:+06.2f} ——— velocity "
+                f"{v[0]:+06.2f}, {v[1]:+06.2f}, {v[2]:+06.2f} ——— roll {a[0]:+06.2f}, pitch {a[1]:+06.2f}, yaw "
+                f"{a[2]:+06.2f} ——— angular velocity {w[0]:+06.4f}, {w[1]:+06.4f}, {w[2]:+06.4f} ——— "
+            )
 
     def close(self) -> None:
         """Release the backend (PyBullet's worlds)."""
@@ -194,16 +232,18 @@ class BaseAviary(KeywordHints, gym.Env, metaclass=abc.ABCMeta):
 
     def _updateAndStoreKinematicInformation(self) -> None:
         """Read the drones' state into ``pos``, ``quat``, ``rpy``, ``vel``, ``ang_v`` (NumPy, float64)."""
-        packed = np.asarray(_kinematics(self._state.pos, self._state.quat, self._state.vel, self._state.ang_vel),
-                            np.float64)  # one transfer
+        packed = np.asarray(
+            _kinematics(self._state.pos, self._state.quat, self._state.vel, self._state.ang_vel), np.float64
+        )  # one transfer
         self.pos, self.quat, self.rpy, self.vel, self.ang_v = np.split(packed, [3, 7, 10, 13], axis=-1)
 
     def _getDroneStateVector(self, nth_drone: int) -> np.ndarray:
         """f64[20] of drone ``nth_drone``: pos (m), quat (x, y, z, w), roll/pitch/yaw (rad), vel (m/s), angular
         velocity (rad/s, world frame), the last RPM command."""
         i = nth_drone
-        return np.concatenate([self.pos[i], self.quat[i], self.rpy[i], self.vel[i], self.ang_v[i],
-                               self.last_clipped_action[i]])
+        return np.concatenate(
+            [self.pos[i], self.quat[i], self.rpy[i], self.vel[i], self.ang_v[i], self.last_clipped_action[i]]
+        )
 
     # -- hooks: each aviary defines them (the original's) ----------------------------------------------------------
 

@@ -37,22 +37,46 @@ class BaseRLAviary(BaseAviary):
             (``step``) an action that is not D × size numbers, or with NaN or inf.
     """
 
-    def __init__(self, drone_model: DroneModel = DroneModel.CF2X, num_drones: int = 1,
-                 neighbourhood_radius: float = np.inf, initial_xyzs=None, initial_rpys=None,
-                 physics: Physics = Physics.PYB, pyb_freq: int = 240, ctrl_freq: int = 240, gui: bool = False,
-                 record: bool = False, obs: ObservationType = ObservationType.KIN,
-                 act: ActionType = ActionType.RPM, backend: str = "jax"):
+    def __init__(
+        self,
+        drone_model: DroneModel = DroneModel.CF2X,
+        num_drones: int = 1,
+        neighbourhood_radius: float = np.inf,
+        initial_xyzs=None,
+        initial_rpys=None,
+        physics: Physics = Physics.PYB,
+        pyb_freq: int = 240,
+        ctrl_freq: int = 240,
+        gui: bool = False,
+        record: bool = False,
+        obs: ObservationType = ObservationType.KIN,
+        act: ActionType = ActionType.RPM,
+        backend: str = "jax",
+    ):
         self.OBS_TYPE, self.ACT_TYPE = ObservationType(obs), ActionType(act)
         if self.OBS_TYPE is ObservationType.RGB:
-            raise ValueError("ObservationType.RGB: the compat aviaries observe KIN only; camera observations are "
-                             "jaxdrones.make(task, vision=('rgb',)) (pure JAX, batched)")
+            raise ValueError(
+                "ObservationType.RGB: the compat aviaries observe KIN only; camera observations are "
+                "jaxdrones.make(task, vision=('rgb',)) (pure JAX, batched)"
+            )
         self.ACTION_BUFFER_SIZE = int(ctrl_freq // 2)
         self.action_buffer = deque(maxlen=self.ACTION_BUFFER_SIZE)
         self._action = make_action(self.ACT_TYPE.value, pid_target="absolute")
-        super().__init__(drone_model=drone_model, num_drones=num_drones, neighbourhood_radius=neighbourhood_radius,
-                         initial_xyzs=initial_xyzs, initial_rpys=initial_rpys, physics=physics, pyb_freq=pyb_freq,
-                         ctrl_freq=ctrl_freq, gui=gui, record=record, obstacles=False, user_debug_gui=False,
-                         backend=backend)
+        super().__init__(
+            drone_model=drone_model,
+            num_drones=num_drones,
+            neighbourhood_radius=neighbourhood_radius,
+            initial_xyzs=initial_xyzs,
+            initial_rpys=initial_rpys,
+            physics=physics,
+            pyb_freq=pyb_freq,
+            ctrl_freq=ctrl_freq,
+            gui=gui,
+            record=record,
+            obstacles=False,
+            user_debug_gui=False,
+            backend=backend,
+        )
         if self.ACT_TYPE is ActionType.VEL:
             self.SPEED_LIMIT = 0.03 * self.MAX_SPEED_KMH * (1000 / 3600)
 
@@ -81,8 +105,9 @@ class BaseRLAviary(BaseAviary):
     def _preprocessAction(self, action):
         action = action_array(action, self.NUM_DRONES, self._action.size, f"for {self.ACT_TYPE}", np.float32)
         self.action_buffer.append(action)
-        rpm, self._carry = _to_rpm(self._action, self._drone_params, self._state, self._carry,
-                                   np.clip(action, -1.0, 1.0), self.CTRL_TIMESTEP)
+        rpm, self._carry = _to_rpm(
+            self._action, self._drone_params, self._state, self._carry, np.clip(action, -1.0, 1.0), self.CTRL_TIMESTEP
+        )
         return np.asarray(rpm, np.float64)
 
     def _computeObs(self):

@@ -22,15 +22,36 @@ class HoverAviary(BaseRLAviary):
     ``act=ActionType.RPM``).
     """
 
-    def __init__(self, drone_model: DroneModel = DroneModel.CF2X, initial_xyzs=None, initial_rpys=None,
-                 physics: Physics = Physics.PYB, pyb_freq: int = 240, ctrl_freq: int = 30, gui: bool = False,
-                 record: bool = False, obs: ObservationType = ObservationType.KIN,
-                 act: ActionType = ActionType.RPM, backend: str = "jax"):
+    def __init__(
+        self,
+        drone_model: DroneModel = DroneModel.CF2X,
+        initial_xyzs=None,
+        initial_rpys=None,
+        physics: Physics = Physics.PYB,
+        pyb_freq: int = 240,
+        ctrl_freq: int = 30,
+        gui: bool = False,
+        record: bool = False,
+        obs: ObservationType = ObservationType.KIN,
+        act: ActionType = ActionType.RPM,
+        backend: str = "jax",
+    ):
         self.TARGET_POS = np.array([0, 0, 1])
         self.EPISODE_LEN_SEC = 8
-        super().__init__(drone_model=drone_model, num_drones=1, initial_xyzs=initial_xyzs, initial_rpys=initial_rpys,
-                         physics=physics, pyb_freq=pyb_freq, ctrl_freq=ctrl_freq, gui=gui, record=record, obs=obs,
-                         act=act, backend=backend)
+        super().__init__(
+            drone_model=drone_model,
+            num_drones=1,
+            initial_xyzs=initial_xyzs,
+            initial_rpys=initial_rpys,
+            physics=physics,
+            pyb_freq=pyb_freq,
+            ctrl_freq=ctrl_freq,
+            gui=gui,
+            record=record,
+            obs=obs,
+            act=act,
+            backend=backend,
+        )
 
     def _computeReward(self):
         return max(0.0, 2.0 - float(np.linalg.norm(self.TARGET_POS - self.pos[0])) ** 4)

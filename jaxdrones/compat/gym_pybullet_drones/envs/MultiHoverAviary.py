@@ -22,15 +22,38 @@ class MultiHoverAviary(BaseRLAviary):
     `BaseRLAviary` (defaults ``num_drones=2``, ``ctrl_freq=30``, ``act=ActionType.RPM``).
     """
 
-    def __init__(self, drone_model: DroneModel = DroneModel.CF2X, num_drones: int = 2,
-                 neighbourhood_radius: float = np.inf, initial_xyzs=None, initial_rpys=None,
-                 physics: Physics = Physics.PYB, pyb_freq: int = 240, ctrl_freq: int = 30, gui: bool = False,
-                 record: bool = False, obs: ObservationType = ObservationType.KIN,
-                 act: ActionType = ActionType.RPM, backend: str = "jax"):
+    def __init__(
+        self,
+        drone_model: DroneModel = DroneModel.CF2X,
+        num_drones: int = 2,
+        neighbourhood_radius: float = np.inf,
+        initial_xyzs=None,
+        initial_rpys=None,
+        physics: Physics = Physics.PYB,
+        pyb_freq: int = 240,
+        ctrl_freq: int = 30,
+        gui: bool = False,
+        record: bool = False,
+        obs: ObservationType = ObservationType.KIN,
+        act: ActionType = ActionType.RPM,
+        backend: str = "jax",
+    ):
         self.EPISODE_LEN_SEC = 8
-        super().__init__(drone_model=drone_model, num_drones=num_drones, neighbourhood_radius=neighbourhood_radius,
-                         initial_xyzs=initial_xyzs, initial_rpys=initial_rpys, physics=physics, pyb_freq=pyb_freq,
-                         ctrl_freq=ctrl_freq, gui=gui, record=record, obs=obs, act=act, backend=backend)
+        super().__init__(
+            drone_model=drone_model,
+            num_drones=num_drones,
+            neighbourhood_radius=neighbourhood_radius,
+            initial_xyzs=initial_xyzs,
+            initial_rpys=initial_rpys,
+            physics=physics,
+            pyb_freq=pyb_freq,
+            ctrl_freq=ctrl_freq,
+            gui=gui,
+            record=record,
+            obs=obs,
+            act=act,
+            backend=backend,
+        )
         self.TARGET_POS = self.INIT_XYZS + np.array([[0, 0, 1 / (i + 1)] for i in range(num_drones)])
 
     def _computeReward(self):

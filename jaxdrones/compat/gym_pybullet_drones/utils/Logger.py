@@ -10,8 +10,24 @@ import numpy as np
 from jaxdrones.control.pid import PWM2RPM_CONST, PWM2RPM_SCALE
 
 #: The 16 logged state entries, in the Logger's order (the state vector reordered by `Logger.log`).
-STATE_LABELS = ("x (m)", "y (m)", "z (m)", "vx (m/s)", "vy (m/s)", "vz (m/s)", "roll (rad)", "pitch (rad)",
-                "yaw (rad)", "wx (rad/s)", "wy (rad/s)", "wz (rad/s)", "RPM0", "RPM1", "RPM2", "RPM3")
+STATE_LABELS = (
+    "x (m)",
+    "y (m)",
+    "z (m)",
+    "vx (m/s)",
+    "vy (m/s)",
+    "vz (m/s)",
+    "roll (rad)",
+    "pitch (rad)",
+    "yaw (rad)",
+    "wx (rad/s)",
+    "wy (rad/s)",
+    "wz (rad/s)",
+    "RPM0",
+    "RPM1",
+    "RPM2",
+    "RPM3",
+)
 #: The 12 logged control targets.
 CONTROL_LABELS = ("x", "y", "z", "vx", "vy", "vz", "roll", "pitch", "yaw", "wx", "wy", "wz")
 
@@ -34,8 +50,14 @@ class Logger:
             or a control of another length than 12.
     """
 
-    def __init__(self, logging_freq_hz: int, output_folder: str = "results", num_drones: int = 1,
-                 duration_sec: int = 0, colab: bool = False):
+    def __init__(
+        self,
+        logging_freq_hz: int,
+        output_folder: str = "results",
+        num_drones: int = 1,
+        duration_sec: int = 0,
+        colab: bool = False,
+    ):
         if not (isinstance(num_drones, (int, np.integer)) and num_drones >= 1):
             raise ValueError(f"num_drones must be a positive integer, got {num_drones!r}")
         if not logging_freq_hz > 0:
@@ -52,9 +74,11 @@ class Logger:
         state = np.asarray(state, np.float64).reshape(-1)
         control = np.zeros(12) if control is None else np.asarray(control, np.float64).reshape(-1)
         if not 0 <= drone < self.NUM_DRONES or timestamp < 0 or state.size != 20 or control.size != 12:
-            raise ValueError(f"Logger.log: expected drone in [0, {self.NUM_DRONES}), timestamp >= 0, a state of 20 "
-                             f"and a control of 12 entries; got drone {drone}, timestamp {timestamp}, "
-                             f"{state.size} and {control.size}")
+            raise ValueError(
+                f"Logger.log: expected drone in [0, {self.NUM_DRONES}), timestamp >= 0, a state of 20 "
+                f"and a control of 12 entries; got drone {drone}, timestamp {timestamp}, "
+                f"{state.size} and {control.size}"
+            )
         ordered = np.concatenate([state[0:3], state[10:13], state[7:10], state[13:20]])
         self._rows[drone].append((float(timestamp), ordered, control))
 
@@ -64,7 +88,7 @@ class Logger:
         for d, rows in enumerate(self._rows):
             if rows:
                 values = np.asarray([r[index] for r in rows])
-                out[d, ..., :len(rows)] = values.T
+                out[d, ..., : len(rows)] = values.T
         return out
 
     @property
@@ -102,8 +126,13 @@ class Logger:
         t, states = self.timestamps, self.states
         header = ",".join(("time (s)",) + STATE_LABELS)
         for d in range(self.NUM_DRONES):
-            np.savetxt(os.path.join(folder, f"drone{d}.csv"), np.column_stack([t[d], states[d].T]), delimiter=",",
-                       header=header, comments="")
+            np.savetxt(
+                os.path.join(folder, f"drone{d}.csv"),
+                np.column_stack([t[d], states[d].T]),
+                delimiter=",",
+                header=header,
+                comments="",
+            )
         return folder
 
     def plot(self, pwm: bool = False) -> str | None:

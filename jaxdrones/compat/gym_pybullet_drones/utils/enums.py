@@ -54,7 +54,10 @@ class ObservationType(Enum):
 
 #: The aerodynamic effects of each `Physics` member: (drag, ground_effect, downwash).
 PHYSICS_EFFECTS = {
-    Physics.PYB: (False, False, False), Physics.DYN: (False, False, False),
-    Physics.PYB_GND: (False, True, False), Physics.PYB_DRAG: (True, False, False),
-    Physics.PYB_DW: (False, False, True), Physics.PYB_GND_DRAG_DW: (True, True, True),
+    Physics.PYB: (False, False, False),
+    Physics.DYN: (False, False, False),
+    Physics.PYB_GND: (False, True, False),
+    Physics.PYB_DRAG: (True, False, False),
+    Physics.PYB_DW: (False, False, True),
+    Physics.PYB_GND_DRAG_DW: (True, True, True),
 }
