@@ -52,8 +52,11 @@ def main() -> None:
     nav = mkdocs_gen_files.Nav()
     for name in public_modules():
         parts = tuple(name.split("."))
-        doc_path = pathlib.Path(*parts, "index.md") if (ROOT / pathlib.Path(*parts)).is_dir() else \
-            pathlib.Path(*parts).with_suffix(".md")
+        doc_path = (
+            pathlib.Path(*parts, "index.md")
+            if (ROOT / pathlib.Path(*parts)).is_dir()
+            else pathlib.Path(*parts).with_suffix(".md")
+        )
         nav[parts] = doc_path.as_posix()
         with mkdocs_gen_files.open(pathlib.Path("reference", doc_path), "w") as f:
             f.write(f"# `{name}`\n\n::: {name}\n")

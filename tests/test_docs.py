@@ -38,7 +38,7 @@ def blocks(tag: str) -> list[tuple[str, str]]:
     for page in sorted(DOCS.glob("*.md")):
         pattern = rf"^( *)```{re.escape(tag)}\n(.*?)^\1```"
         for i, (indent, code) in enumerate(re.findall(pattern, page.read_text(), flags=re.DOTALL | re.MULTILINE)):
-            code = "".join(line[len(indent):] for line in code.splitlines(keepends=True))
+            code = "".join(line[len(indent) :] for line in code.splitlines(keepends=True))
             found.append((f"{page.name}:{i}", code))
     return found
 
@@ -86,8 +86,15 @@ def site(tmp_path_factory):
     """The site built by ``mkdocs build --strict``: (completed process, output folder, seconds)."""
     out = tmp_path_factory.mktemp("site")
     t0 = time.perf_counter()
-    result = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(out)], check=False,
-                            cwd=ROOT, env={**os.environ, **QUIET}, capture_output=True, text=True, timeout=600)
+    result = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(out)],
+        check=False,
+        cwd=ROOT,
+        env={**os.environ, **QUIET},
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     return result, out, time.perf_counter() - t0
 
 
