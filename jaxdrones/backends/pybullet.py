@@ -309,7 +309,7 @@ class PyBulletStep:
         packed = np.array(flat, dtype=fields[0].dtype).reshape(lead + (17,))
         out = [
             packed[..., a:b] if field.dtype == packed.dtype else packed[..., a:b].astype(field.dtype)
-            for (a, b), field in zip(_FIELD_SLICES, fields, strict=True)
+            for (a, b), field in zip(_FIELD_SLICES, fields[: len(_FIELD_SLICES)], strict=True)
         ]
         return out + [np.array(contact, dtype=fields[5].dtype).reshape(lead)]
 
