@@ -13,7 +13,7 @@ plugin's, e.g. CUDA), so the check runs once per installation (1.1 s on jax 0.10
 ``benchmarks/xla_flags.py``). A flag the user already set in ``XLA_FLAGS`` is left alone, whatever its value.
 ``JAXDRONES_XLA_FLAGS=0`` (set before the ``jaxdrones`` command or the test run) turns every flag off.
 
-`CLI_FLAGS`, measured on 2 cores (README, "Benchmarks"):
+`CLI_FLAGS`, measured on 2 cores (docs/benchmarks.md):
 
 - ``--xla_backend_optimization_level=1`` and ``--xla_llvm_disable_expensive_passes=true`` halve the compile time
   of the training and simulation programs on CPU with no measured change in their run time;

@@ -15,7 +15,7 @@ Measured with `benchmarks/gradients.py` on 2 idle CPU cores (100 steps, 1024 wor
 the gradient w.r.t. the commands over the forward pass, XLA:CPU's classic / fusion emitters, the latter jax 0.11's
 only ones): through `jaxdrones.rollout` 3.5x / 3.5x before, 2.4x / 2.6x after; through a user's own ``lax.scan``
 over the step 2.9x / 5.0x before, 2.4x / 2.1x after; through the hover env's ``step`` 3.7x / 2.9x before,
-3.0x / 2.3x after (README, "Benchmarks").
+3.0x / 2.3x after (docs/benchmarks.md).
 
 tests/test_adjoint.py checks it against JAX's derived derivative to float64 rounding. Two parts keep JAX's
 derivative: the downwash (the paper's force, or the per-rotor thrust changes, which enter the lifts) is computed

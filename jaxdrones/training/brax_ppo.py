@@ -186,7 +186,7 @@ def default_config(task: str, vision: bool = False) -> BraxPPOConfig:
     # ``max_grad_norm``), and the value's error on returns of tens (a crash costs 50) can make most of that norm and
     # shrink the policy's steps too; scaled, two runs (seeds 0 and 1) rose at every evaluation to 92 % at 3.1 M
     # steps. 4.5 M steps (4.7 M in whole epochs): at 3.1 M a third run was at 88 % and still rising (83 %, 87 %, 88 %
-    # over the last 800,000 steps); at 4.7 M, 95 % and 92 % (seeds 0 and 1, README).
+    # over the last 800,000 steps); at 4.7 M, 95 % and 92 % (seeds 0 and 1, docs/experiments.md).
     tuned["avoid"] = dict(tuned["vision"], num_envs=512, batch_size=512, num_timesteps=4_500_000, reward_scaling=0.1)
     return BraxPPOConfig(
         **tuned["avoid" if task == "avoid" else "vision" if vision else task if task in tuned else "hover"]

@@ -40,7 +40,7 @@ class Trainer:
 def _ppo_config(task: str, vision: bool = False):
     """Our PPO's settings: a local critic (PPO is MAPPO's independent-critic form at one drone), tuned for the
     fewest seconds to a solved 3-D hover on 2 CPU cores (γ = 0.99 over 32-step unrolls of 512 worlds, 4 epochs of 4
-    minibatches, learning rate 3e-3; 1.3 M env steps; see the README's training table)."""
+    minibatches, learning rate 3e-3; 1.3 M env steps; see the table in docs/training.md)."""
     from jaxdrones.training.mappo import MAPPOConfig
 
     return MAPPOConfig(
@@ -179,7 +179,7 @@ def get(algo: str) -> Trainer:
 
 
 #: The default algorithm of a single-agent task: the fastest to a solved hover on 2 CPU cores is APG (see the
-#: README's training table); the other single-agent tasks keep brax's PPO, with the settings it was tuned with for
+#: the table in docs/training.md); the other single-agent tasks keep brax's PPO, with the settings it was tuned with for
 #: them (`jaxdrones.training.brax_ppo.default_config`).
 DEFAULT_ALGO = {"hover": "apg"}
 
