@@ -178,7 +178,7 @@ def get(algo: str) -> Trainer:
     return _table()[algo]
 
 
-#: The default algorithm of a single-agent task: the fastest to a solved hover on 2 CPU cores is APG (see the
+#: The default algorithm of a single-agent task: the fastest to a solved hover on 2 CPU cores is APG (see
 #: the table in docs/training.md); the other single-agent tasks keep brax's PPO, with the settings it was tuned with for
 #: them (`jaxdrones.training.brax_ppo.default_config`).
 DEFAULT_ALGO = {"hover": "apg"}
