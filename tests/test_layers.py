@@ -20,8 +20,14 @@ def test_old_module_paths_still_import():
     import jaxdrones as jd
     from jaxdrones import physics
 
-    for old, new in (("dynamics", physics.dynamics), ("params", physics.params), ("rotations", physics.rotations),
-                     ("config", physics.config), ("state", physics.state), ("realism", physics.realism)):
+    for old, new in (
+        ("dynamics", physics.dynamics),
+        ("params", physics.params),
+        ("rotations", physics.rotations),
+        ("config", physics.config),
+        ("state", physics.state),
+        ("realism", physics.realism),
+    ):
         assert importlib.import_module(f"jaxdrones.{old}") is new
         assert getattr(jd, old) is new
     from jaxdrones.cameras import CameraSpec, make_scene, render  # noqa: F401
@@ -30,6 +36,8 @@ def test_old_module_paths_still_import():
 
     # A pickle written before the move names jaxdrones.params.DroneParams (protocol 0 spells names out as text, so the
     # name can be swapped): it loads as today's class.
-    old_pickle = pickle.dumps(jd.load_params("cf2x"), protocol=0).replace(b"jaxdrones.physics.params", b"jaxdrones.params")
+    old_pickle = pickle.dumps(jd.load_params("cf2x"), protocol=0).replace(
+        b"jaxdrones.physics.params", b"jaxdrones.params"
+    )
     assert b"jaxdrones.params" in old_pickle
     assert type(pickle.loads(old_pickle)) is physics.params.DroneParams
