@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import functools
 import io
 import math
 import numbers
@@ -37,8 +38,16 @@ import numpy as np
 #: The pip extra that brings viser (the HTML viewer's only optional dependency).
 VIEWER_EXTRA = "jaxdrones[viewer]"
 #: Drone colours (RGB 0-255), cycled over the drones of a world: distinct hues that stand out on a white scene.
-DRONE_COLORS = ((31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14), (23, 190, 207),
-                (227, 119, 194), (188, 189, 34))
+DRONE_COLORS = (
+    (31, 119, 180),
+    (214, 39, 40),
+    (44, 160, 44),
+    (148, 103, 189),
+    (255, 127, 14),
+    (23, 190, 207),
+    (227, 119, 194),
+    (188, 189, 34),
+)
 #: The cf2x's arm length, m (its URDF): the drones' drawn size when a `Flight` does not say.
 CF2X_ARM = 0.0397
 #: The HTML viewer's initial vertical field of view, degrees.
@@ -52,8 +61,7 @@ def _viser():
     try:
         import viser
     except ModuleNotFoundError as err:
-        raise ModuleNotFoundError(f'the flight viewer needs viser: pip install "{VIEWER_EXTRA}"',
-                                  name="viser") from err
+        raise ModuleNotFoundError(f'the flight viewer needs viser: pip install "{VIEWER_EXTRA}"', name="viser") from err
     return viser
 
 
@@ -102,8 +110,10 @@ class Flight:
         pos = _finite_array("pos", self.pos, "f[T, ..., D, 3] (m, world frame)", last=(3,))
         quat = _finite_array("quat", self.quat, "f[T, ..., D, 4] (x, y, z, w)", last=(4,))
         if quat.shape[:-1] != pos.shape[:-1]:
-            raise ValueError(f"quat must be f[T, ..., D, 4] with the leading axes of pos f{list(pos.shape)}, that is "
-                             f"f{list(pos.shape[:-1]) + [4]}; got f{list(quat.shape)}")
+            raise ValueError(
+                f"quat must be f[T, ..., D, 4] with the leading axes of pos f{list(pos.shape)}, that is "
+                f"f{list(pos.shape[:-1]) + [4]}; got f{list(quat.shape)}"
+            )
         norm = np.linalg.norm(quat, axis=-1, keepdims=True)
         if np.any(norm < 1e-9):
             raise ValueError("quat: every quaternion must be non-zero (x, y, z, w), body → world")
@@ -170,8 +180,10 @@ class Flight:
         pos = np.asarray(data["pos"])
         n_lead = pos.ndim - 2
         if isinstance(time_axis, bool) or not isinstance(time_axis, numbers.Integral) or not 0 <= time_axis < n_lead:
-            raise ValueError(f"time_axis must index a leading axis of pos f{list(pos.shape)} (0 <= time_axis < "
-                             f"{n_lead}), got {time_axis!r}")
+            raise ValueError(
+                f"time_axis must index a leading axis of pos f{list(pos.shape)} (0 <= time_axis < "
+                f"{n_lead}), got {time_axis!r}"
+            )
 
         def first_time(x):
             return np.moveaxis(np.asarray(x), time_axis, 0)
@@ -182,8 +194,14 @@ class Flight:
         else:
             scene = tuple(o for o in _resolve(env.config.obstacles) if o.shape != "urdf")
         images = None if data.get("images") is None else first_time(data["images"])
-        return cls(first_time(pos), first_time(data["quat"]), 1.0 / env.config.ctrl_freq, scene=scene,
-                   images=images, arm=float(np.max(np.asarray(data["arm"]))))
+        return cls(
+            first_time(pos),
+            first_time(data["quat"]),
+            1.0 / env.config.ctrl_freq,
+            scene=scene,
+            images=images,
+            arm=float(np.max(np.asarray(data["arm"]))),
+        )
 
 
 def flight_data(states) -> dict:
@@ -203,8 +221,13 @@ def flight_data(states) -> dict:
             images = states.obs[name]
             if images.ndim == pos.ndim + (2 if name == "rgb" else 1):  # [..., D, K, H, W(, C)]: the newest frame
                 images = images[(slice(None),) * (pos.ndim - 1) + (-1,)]
-    return {"pos": pos, "quat": states.sim.quat, "arm": states.params.arm,
-            "scene": getattr(states.task, "scene", None), "images": images}
+    return {
+        "pos": pos,
+        "quat": states.sim.quat,
+        "arm": states.params.arm,
+        "scene": getattr(states.task, "scene", None),
+        "images": images,
+    }
 
 
 def _finite_array(name: str, value, expected: str, last: tuple[int, ...]) -> np.ndarray:
@@ -213,9 +236,8 @@ def _finite_array(name: str, value, expected: str, last: tuple[int, ...]) -> np.
         x = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be a numeric array {expected}, got {type(value).__name__}") from None
-    if x.ndim < 3 or x.shape[-len(last):] != last or 0 in x.shape:
-        raise ValueError(f"{name} must be {expected} with T >= 1 frames and D >= 1 drones, got shape "
-                         f"{list(x.shape)}")
+    if x.ndim < 3 or x.shape[-len(last) :] != last or 0 in x.shape:
+        raise ValueError(f"{name} must be {expected} with T >= 1 frames and D >= 1 drones, got shape {list(x.shape)}")
     if not np.all(np.isfinite(x)):
         bad = np.argwhere(~np.isfinite(x))[0]
         raise ValueError(f"{name} must be finite; entry {tuple(int(i) for i in bad)} is {x[tuple(bad)]}")
@@ -244,10 +266,12 @@ def _check_scene(scene, lead: tuple[int, ...]):
     if scene_lead == ():
         return scene
     if scene_lead != lead:
-        raise ValueError(f"scene: a jaxdrones.cameras.Scene unbatched or with the flight's world axes {list(lead)} "
-                         f"(box.pos f[..., N, 3]), got world axes {list(scene_lead)}")
+        raise ValueError(
+            f"scene: a jaxdrones.cameras.Scene unbatched or with the flight's world axes {list(lead)} "
+            f"(box.pos f[..., N, 3]), got world axes {list(scene_lead)}"
+        )
     n = math.prod(lead)
-    return jax.tree.map(lambda x: x.reshape((n,) + x.shape[len(lead):]), scene)
+    return jax.tree.map(lambda x: x.reshape((n,) + x.shape[len(lead) :]), scene)
 
 
 def _check_images(images, lead: tuple[int, ...]):
@@ -256,8 +280,7 @@ def _check_images(images, lead: tuple[int, ...]):
         return None
     x = np.asarray(images)
     n = len(lead)
-    expected = (f"u8[T, ..., D, H, W, 3 or 4] (RGB/RGBA) or depth f[T, ..., D, H, W] m with T, ..., D = "
-                f"{list(lead)}")
+    expected = f"u8[T, ..., D, H, W, 3 or 4] (RGB/RGBA) or depth f[T, ..., D, H, W] m with T, ..., D = {list(lead)}"
     rgb = x.dtype == np.uint8 and x.ndim == n + 3 and x.shape[-1] in (3, 4)
     depth = np.issubdtype(x.dtype, np.floating) and x.ndim == n + 2
     if x.shape[:n] != lead or not (rgb or depth) or 0 in x.shape:
@@ -341,8 +364,11 @@ def _world_offsets(flight: Flight, spacing: float | None) -> np.ndarray:
         if not per_world:
             return np.zeros((n, 3))
         span = float(np.ptp(flight.pos[..., :2], axis=(0, 2)).max())
-        reach = [np.abs(c[:2] - flight.pos[0, w, :, :2].mean(0)).max() + 2 * np.max(s)
-                 for w in range(n) for _, c, _, s, _ in _primitives(flight.scene, w)]
+        reach = [
+            np.abs(c[:2] - flight.pos[0, w, :, :2].mean(0)).max() + 2 * np.max(s)
+            for w in range(n)
+            for _, c, _, s, _ in _primitives(flight.scene, w)
+        ]
         spacing = 2 * max([span, *reach]) + 1.0
     cols = math.ceil(math.sqrt(n))
     w = np.arange(n)
@@ -368,17 +394,28 @@ def _view(flight: Flight, offsets: np.ndarray, camera) -> tuple[np.ndarray, np.n
 
 
 # --------------------------------------------------------------------------------------------- HTML viewer
-def write_html(path: str | os.PathLike, flight: Flight, *, overwrite: bool = False, trail_s: float | None = 2.0,
-               max_fps: float = 30.0, spacing: float | None = None, camera=None, drone_scale: float = 1.0,
-               colors=None, dark_mode: bool = False) -> str:
+def write_html(
+    path: str | os.PathLike,
+    flight: Flight,
+    *,
+    overwrite: bool = False,
+    trail_s: float | None = 2.0,
+    max_fps: float = 30.0,
+    spacing: float | None = None,
+    camera=None,
+    drone_scale: float = 1.0,
+    colors=None,
+    dark_mode: bool = False,
+) -> str:
     """Write ``flight`` as one self-contained HTML file that plays offline (from ``file://``, no server).
 
     The file is viser's static client with the recorded scene embedded (no URL is fetched): the ground grid, the
     scene's boxes, spheres, cylinders and capsules, the drones as small quadrotors (a nose marks body +x) in a colour
-    per drone index (`DRONE_COLORS`), their trails, and with ``flight.images`` a panel per drone of world 0 showing
-    its camera frames beside the flight, facing the initial view. The page has play/pause (also the space bar), a
-    time slider, playback speed and a view to orbit, pan and zoom. Worlds are drawn at the same place unless the
-    scene differs per world, where they are laid out on a grid (see ``spacing``).
+    per drone index, or per world for flights of one drone (`DRONE_COLORS`), their trails, and with
+    ``flight.images`` a panel per drone of world 0 (`MAX_PANELS` at most) showing its camera frames beside the
+    flight, facing the initial view. The page has play/pause (also the space bar), a time slider, playback speed and
+    a view to orbit, pan and zoom. Worlds are drawn at the same place unless the scene differs per world, where they
+    are laid out on a grid (see ``spacing``).
 
     Args:
         path: the file to write (``.html``); parent folders are created.
@@ -392,7 +429,8 @@ def write_html(path: str | os.PathLike, flight: Flight, *, overwrite: bool = Fal
         camera: the initial view, ``(position, look_at)`` in m (world frame), z up, `VIEW_FOV` vertically; None:
             from the front left and above, framing the drones' paths.
         drone_scale: draw the drones this many times their size (> 0), e.g. to see small drones in a large arena.
-        colors: RGB 0-255 per drone index, a sequence of (r, g, b); default `DRONE_COLORS`.
+        colors: RGB 0-255 per drone index (per world with one drone), a sequence of (r, g, b), cycled; default
+            `DRONE_COLORS`.
         dark_mode: the viewer's dark theme.
 
     Returns:
@@ -406,8 +444,9 @@ def write_html(path: str | os.PathLike, flight: Flight, *, overwrite: bool = Fal
             two points, colours that are not RGB triples).
     """
     if not isinstance(flight, Flight):
-        raise TypeError(f"flight must be a jaxdrones.viz.Flight (e.g. Flight(pos, quat, dt)), got "
-                         f"{type(flight).__name__}")
+        raise TypeError(
+            f"flight must be a jaxdrones.viz.Flight (e.g. Flight(pos, quat, dt)), got {type(flight).__name__}"
+        )
     path = os.fspath(path)
     _check_target(path, overwrite)
     if trail_s is not None and not (isinstance(trail_s, numbers.Real) and 0 <= trail_s < math.inf):
@@ -448,6 +487,13 @@ def _palette(colors) -> np.ndarray:
     return palette.astype(np.uint8)
 
 
+def _colours(palette: np.ndarray, n_worlds: int, n_drones: int) -> np.ndarray:
+    """u8[W, D, 3]: the palette cycled over the drones of a world, or over the worlds when each has one drone."""
+    if n_drones == 1:
+        return palette[np.arange(n_worlds) % len(palette)][:, None]
+    return np.broadcast_to(palette[np.arange(n_drones) % len(palette)], (n_worlds, n_drones, 3))
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -473,28 +519,52 @@ def _build(server, flight: Flight, offsets, eye, target, trail_s, max_fps, drone
     n_w, n_d = flight.n_worlds, flight.n_drones
     pos = flight.pos + offsets[None, :, None, :]  # [T, W, D, 3]
     n = n_w * n_d
-    colours = np.tile(palette[np.arange(n_d) % len(palette)], (n_w, 1))  # [W*D, 3], per drone index
+    colours = _colours(palette, n_w, n_d).reshape(n, 3)
     corners = [pos.reshape(-1, 3), target[None]]
-    corners += [(c + offsets[w] + np.abs(r) @ h)[None] for w in range(n_w) for _, c, r, h, _ in
-                _primitives(flight.scene, w)]
-    corners += [(c + offsets[w] - np.abs(r) @ h)[None] for w in range(n_w) for _, c, r, h, _ in
-                _primitives(flight.scene, w)]
+    corners += [
+        (c + offsets[w] + np.abs(r) @ h)[None] for w in range(n_w) for _, c, r, h, _ in _primitives(flight.scene, w)
+    ]
+    corners += [
+        (c + offsets[w] - np.abs(r) @ h)[None] for w in range(n_w) for _, c, r, h, _ in _primitives(flight.scene, w)
+    ]
     lo, hi = np.concatenate(corners).min(0) - 0.5, np.concatenate(corners).max(0) + 0.5
     size = float(np.ceil(max(hi[0] - lo[0], hi[1] - lo[1], 2.0)))
-    scene.add_grid("/ground", width=size, height=size, plane="xy", cell_size=0.25, section_size=1.0,
-                   position=(float(round((lo[0] + hi[0]) / 2)), float(round((lo[1] + hi[1]) / 2)), 0.0),
-                   shadow_opacity=0.0)
+    scene.add_grid(
+        "/ground",
+        width=size,
+        height=size,
+        plane="xy",
+        cell_size=0.25,
+        section_size=1.0,
+        position=(float(round((lo[0] + hi[0]) / 2)), float(round((lo[1] + hi[1]) / 2)), 0.0),
+        shadow_opacity=0.0,
+    )
     for w in range(n_w):
         if w > 0 and (flight.scene is None or flight.scene.box.pos.ndim == 2) and not np.any(offsets[w]):
             break  # one scene for all worlds drawn at one place: once
         for k, (shape, centre, rot, half, rgb) in enumerate(_primitives(flight.scene, w)):
-            _add_primitive(scene, f"/scene/w{w}/{shape}{k}", shape, centre + offsets[w], rot, half,
-                           tuple(int(c) for c in np.round(255 * np.clip(rgb, 0, 1))))
+            _add_primitive(
+                scene,
+                f"/scene/w{w}/{shape}{k}",
+                shape,
+                centre + offsets[w],
+                rot,
+                half,
+                tuple(int(c) for c in np.round(255 * np.clip(rgb, 0, 1))),
+            )
     vertices, faces = _drone_mesh(flight.arm * drone_scale)
     drones = scene.add_batched_meshes_simple(
-        "/drones", vertices, faces, batched_wxyzs=_wxyz(flight.quat[0]).reshape(n, 4),
-        batched_positions=pos[0].reshape(n, 3), batched_colors=colours, lod="off", material="toon3",
-        cast_shadow=False, receive_shadow=False)  # toon: saturated colours under viser's bright default lights
+        "/drones",
+        vertices,
+        faces,
+        batched_wxyzs=_wxyz(flight.quat[0]).reshape(n, 4),
+        batched_positions=pos[0].reshape(n, 3),
+        batched_colors=colours,
+        lod="off",
+        material="toon3",
+        cast_shadow=False,
+        receive_shadow=False,
+    )  # toon: saturated colours under viser's bright default lights
     server.initial_camera.position = tuple(eye)
     server.initial_camera.look_at = tuple(target)
     server.initial_camera.up = (0.0, 0.0, 1.0)
@@ -514,8 +584,15 @@ def _build(server, flight: Flight, offsets, eye, target, trail_s, max_fps, drone
             drones.batched_wxyzs = _wxyz(flight.quat[t]).reshape(n, 4)
             if keep != 0:
                 segment = np.stack([pos[frames[i - 1]], pos[t]], axis=-2).reshape(n, 2, 3)
-                trails.append(scene.add_line_segments(f"/trails/{i}", segment, colors=np.repeat(colours[:, None], 2, 1),
-                                                      thickness=1.5, thickness_units="screen"))
+                trails.append(
+                    scene.add_line_segments(
+                        f"/trails/{i}",
+                        segment,
+                        colors=np.repeat(colours[:, None], 2, 1),
+                        thickness=1.5,
+                        thickness_units="screen",
+                    )
+                )
                 if keep is not None and len(trails) > keep:
                     trails.pop(0).remove()
         for d, panel in enumerate(panels):
@@ -535,14 +612,21 @@ def _add_primitive(scene, name: str, shape: str, centre, rot, half, rgb) -> None
     elif shape == "sphere":
         scene.add_icosphere(name, radius=float(half[0]), color=rgb, position=centre)
     elif shape == "cylinder":
-        scene.add_cylinder(name, radius=float(half[0]), height=2 * float(half[1]), color=rgb, wxyz=wxyz,
-                           position=centre)
+        scene.add_cylinder(
+            name, radius=float(half[0]), height=2 * float(half[1]), color=rgb, wxyz=wxyz, position=centre
+        )
     else:
         import trimesh
 
         mesh = trimesh.creation.capsule(height=2 * float(half[1]), radius=float(half[0]))  # along z, centred
-        scene.add_mesh_simple(name, np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32),
-                              color=rgb, wxyz=wxyz, position=centre)
+        scene.add_mesh_simple(
+            name,
+            np.asarray(mesh.vertices, np.float32),
+            np.asarray(mesh.faces, np.int32),
+            color=rgb,
+            wxyz=wxyz,
+            position=centre,
+        )
 
 
 #: Camera panels drawn at most (world 0's first drones).
@@ -572,58 +656,273 @@ def _add_panels(scene, flight: Flight, eye, target, lo, hi) -> list:
     middle[2] = max(middle[2], 1.1 * height * count / 2 + 0.05)  # the lowest panel above the ground
     for d in range(count):
         centre = middle + up * (height * 1.1 * ((count - 1) / 2 - d))
-        panels.append(scene.add_image(f"/cameras/drone{d}", flight.images[0, 0, d], width, height, format="png",
-                                      wxyz=wxyz, position=tuple(centre), cast_shadow=False, receive_shadow=False))
+        panels.append(
+            scene.add_image(
+                f"/cameras/drone{d}",
+                flight.images[0, 0, d],
+                width,
+                height,
+                format="png",
+                wxyz=wxyz,
+                position=tuple(centre),
+                cast_shadow=False,
+                receive_shadow=False,
+            )
+        )
     return panels
 
 
-# --------------------------------------------------------------------------------------------- a training run
-#: Evaluation episodes `view_run` flies by default (and ``jaxdrones train`` shows in its flight.html).
+#: Evaluation episodes ``jaxdrones view`` flies by default, and ``jaxdrones train`` shows in its flight.html.
 VIEW_EPISODES = 4
 
 
-def view_run(run: str | os.PathLike, out: str | os.PathLike | None = None, *, n_episodes: int = VIEW_EPISODES,
-             seed: int = 0, overwrite: bool = False, **options) -> str:
-    """Fly a training run's policy for a few evaluation episodes on the JAX backend and write them with `write_html`
-    (what ``jaxdrones view RUN`` runs).
+# --------------------------------------------------------------------------------------------- video
+#: Sky colour of `write_video` (RGB 0-255), where a ray meets nothing.
+SKY_RGB = (200, 222, 240)
 
-    The policy is loaded with `jaxdrones.training.load_policy` and flown deterministically from ``n_episodes``
-    random starts (keys split from ``seed``) in the env it was trained on, or, for a run of the PyBullet backend, in
-    the same task on the JAX backend. Episodes are worlds of one flight (`Flight.from_states`): overlaid, or side by
-    side where each has its own scene (a gate or obstacles drawn per episode).
+
+def write_video(
+    path: str | os.PathLike,
+    flight: Flight,
+    *,
+    camera="chase",
+    world: int = 0,
+    drone: int = 0,
+    width: int = 320,
+    height: int = 240,
+    fov: float = 60.0,
+    max_fps: float = 30.0,
+    trail_s: float | None = 2.0,
+    chase: tuple[float, float] = (1.0, 0.4),
+    colors=None,
+    overwrite: bool = False,
+) -> str:
+    """Draw one world of ``flight`` with the JAX cameras (`jaxdrones.cameras.render`, no PyBullet) and write it as an
+    MP4 or GIF (`jaxdrones.video.VideoWriter`).
+
+    The view is a pinhole camera (the cameras' model, `jaxdrones.cameras.CameraSpec`) placed by ``camera``; it sees
+    the ground, the scene's primitives in their colours, and the drones as the cameras draw them (dark plates and
+    propeller disks). Each drone's trail is drawn over the image as a line in its colour (`DRONE_COLORS`; not hidden
+    behind obstacles); the sky is `SKY_RGB`. Frames are skipped to stay at or below ``max_fps`` and the video plays in
+    real time.
 
     Args:
-        run: a run folder of ``jaxdrones train`` (or its ``policy.pkl``).
-        out: the HTML file (default ``RUN/flight.html``).
-        n_episodes: episodes to fly (>= 1).
-        seed: the seed of their random starts.
-        overwrite: replace an existing ``out``.
-        **options: `write_html`'s options (``trail_s``, ``spacing``, ``camera``, ...).
+        path: ``.mp4`` or ``.gif``; parent folders are created.
+        flight: the `Flight`.
+        camera: ``"chase"``: ``chase[0]`` m behind drone ``drone`` along its heading (body +x in the horizontal
+            plane, smoothed over about 0.5 s) and ``chase[1]`` m above it, looking at it; ``"fixed"``: one view of the
+            whole flight from the front left and above; or ``(position, look_at)``, two points in m (world frame).
+        world: the world to draw.
+        drone: the drone the chase camera follows.
+        width, height: pixels.
+        fov: vertical field of view, degrees.
+        max_fps: the video's frame rate at most, Hz.
+        trail_s: how far back the trails reach, s; None: the whole flight; 0: no trails.
+        chase: (distance behind, height above) of the chase camera, m.
+        colors: the trails' RGB 0-255 per drone index, as `write_html`'s.
+        overwrite: replace an existing file.
 
     Returns:
         The path written.
 
     Raises:
-        ModuleNotFoundError: viser is not installed (``pip install "jaxdrones[viewer]"``).
-        FileExistsError: ``out`` exists and not ``overwrite`` (checked before flying).
-        ValueError: no policy at ``run``, or a bad option.
+        FileExistsError: ``path`` exists and not ``overwrite``.
+        ValueError: an extension other than .mp4/.gif, a world or drone out of range, an unknown camera, or a bad
+            size, field of view or frame rate.
     """
     import jax
+    import jax.numpy as jnp
 
-    from jaxdrones.envs import make
-    from jaxdrones.training import load_policy, rollout_policy
-    from jaxdrones.training.checkpoint import read_payload
+    from jaxdrones.cameras import CameraSpec, drone_primitives, make_scene, render
+    from jaxdrones.params import load_params
+    from jaxdrones.rotations import quat_to_rotmat
+    from jaxdrones.video import VideoWriter, video_format
 
-    if isinstance(n_episodes, bool) or not isinstance(n_episodes, numbers.Integral) or n_episodes < 1:
-        raise ValueError(f"n_episodes must be an integer >= 1, got {n_episodes!r}")
-    path, payload = read_payload(run)
-    out = os.path.join(os.path.dirname(path), "flight.html") if out is None else os.fspath(out)
-    _check_target(out, overwrite)
-    _viser()
-    env = None
-    if payload["env_overrides"].get("backend", "jax") != "jax":
-        env = make(payload["env_name"], **{**payload["env_overrides"], "backend": "jax"})
-    env, policy = load_policy(path, env=env)
-    keys = jax.random.split(jax.random.key(seed), n_episodes)
-    states = jax.jit(jax.vmap(lambda k: rollout_policy(env, policy, k)))(keys)
-    return write_html(out, Flight.from_states(env, states, time_axis=1), overwrite=overwrite, **options)
+    if not isinstance(flight, Flight):
+        raise TypeError(f"flight must be a jaxdrones.viz.Flight, got {type(flight).__name__}")
+    path = os.fspath(path)
+    video_format(path)
+    _check_target(path, overwrite)
+    for name, value, n in (("world", world, flight.n_worlds), ("drone", drone, flight.n_drones)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not 0 <= value < n:
+            raise ValueError(f"{name} must be an index in [0, {n}), got {value!r}")
+    if isinstance(max_fps, bool) or not isinstance(max_fps, numbers.Real) or not 0 < max_fps < math.inf:
+        raise ValueError(f"max_fps must be a finite number > 0, got {max_fps!r}")
+    if trail_s is not None and not (isinstance(trail_s, numbers.Real) and 0 <= trail_s < math.inf):
+        raise ValueError(f"trail_s must be None or a finite number of seconds >= 0, got {trail_s!r}")
+    spec = CameraSpec(width=width, height=height, fov=fov, near=0.05, far=100.0, mount_pos=(0.0, 0.0, 0.0))
+    frames, stride = _frames(flight, max_fps)
+    pos = flight.pos[:, world]  # [T, D, 3]
+    eyes, axes = _video_cameras(flight, world, drone, camera, chase, frames)
+    scale = flight.arm / CF2X_ARM
+    base = load_params("cf2x")
+    params = base.replace(
+        arm=base.arm * scale,
+        prop_pos=base.prop_pos * scale,
+        prop_radius=base.prop_radius * scale,
+        collision_radius=base.collision_radius * scale,
+    )
+    scene = flight.scene
+    if scene is None:
+        scene = make_scene(())
+    elif scene.box.pos.ndim == 3:
+        scene = jax.tree.map(lambda x: x[world], scene)
+    scene = jax.tree.map(jnp.asarray, scene)
+    cam_quat = np.stack([_xyzw_from_rotmat(r) for r in axes]).astype(np.float32)
+
+    def frame(p, q, eye, cam):  # the drones join the scene as primitives; the camera is the one body rendering
+        drones = drone_primitives(params, p, quat_to_rotmat(q), DRONE_SEG)
+        join = functools.partial(jax.tree.map, lambda a, b: jnp.concatenate([a, b.astype(a.dtype)]))
+        seen = scene.replace(box=join(scene.box, drones["box"]), cylinder=join(scene.cylinder, drones["cylinder"]))
+        return render(spec, seen, params, eye[None], cam[None], kinds=("depth", "seg"))
+
+    draw = jax.jit(jax.vmap(frame))
+    drone_pos = pos[frames].astype(np.float32)
+    drone_quat = flight.quat[frames, world].astype(np.float32)
+    eyes32 = eyes.astype(np.float32)
+    colours = _colours(_palette(colors), 1, flight.n_drones)[0]
+    lookup = _seg_colours(scene, colours)
+    keep = None if trail_s is None else math.ceil(trail_s / (stride * flight.dt))
+    with VideoWriter(path, fps=1.0 / (stride * flight.dt), overwrite=overwrite) as video:
+        for start in range(0, len(frames), 16):
+            chunk = slice(start, start + 16)
+            out = draw(drone_pos[chunk], drone_quat[chunk], eyes32[chunk], cam_quat[chunk])
+            depth, seg = np.asarray(out["depth"][:, 0]), np.asarray(out["seg"][:, 0])
+            for k in range(len(seg)):
+                i = start + k
+                image = _shade(spec, depth[k], seg[k], eyes[i], axes[i], lookup)
+                if keep != 0:
+                    first = 0 if keep is None else max(0, i - keep)
+                    image = _draw_trails(image, pos[frames[first : i + 1]], eyes[i], axes[i], spec, colours)
+                video.append(image)
+    return path
+
+
+#: The segmentation id of drone 0 in `write_video`'s renders (above any obstacle's).
+DRONE_SEG = 1 << 20
+
+
+def _seg_colours(scene, colours: np.ndarray) -> dict:
+    """Colour (RGB 0-1) of each segmentation id of `write_video`'s renders: the ground (0) `GROUND_RGB`, the
+    scene's primitives their own, drone d (`DRONE_SEG` + d) its trail's colour."""
+    from jaxdrones.cameras import GROUND_RGB, SHAPES
+
+    lookup = {0: np.asarray(GROUND_RGB)}
+    for shape in SHAPES:
+        p = getattr(scene, shape)
+        for i in np.flatnonzero(np.asarray(p.valid)):
+            lookup[int(p.seg[i])] = np.asarray(p.rgb[i], np.float64)
+    for d, c in enumerate(colours):
+        lookup[DRONE_SEG + d] = np.asarray(c) / 255.0
+    return lookup
+
+
+def _shade(spec, depth: np.ndarray, seg: np.ndarray, eye, axes, lookup: dict) -> np.ndarray:
+    """u8[H, W, 3]: a depth and segmentation render coloured by id (``lookup``), Lambert-shaded with the normals of
+    the depth map's surface (the cameras' `LIGHT` and `AMBIENT`), the ground with lines every 0.5 m up to 6 m, the sky
+    `SKY_RGB`; depth and ids are `render`'s fast path, many times faster than its RGB path."""
+    from jaxdrones.cameras import AMBIENT, LIGHT
+
+    rays = spec.pixel_rays().astype(np.float64) @ np.asarray(axes).T  # [H, W, 3] world, forward component 1
+    points = eye + depth[..., None] * rays
+    normal = np.cross(np.gradient(points, axis=1), np.gradient(points, axis=0))
+    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+    normal *= np.where(np.sum(normal * rays, -1, keepdims=True) > 0, -1.0, 1.0)  # facing the camera
+    shade = AMBIENT + (1 - AMBIENT) * np.maximum(0.0, normal @ np.asarray(LIGHT))
+    base = np.zeros(depth.shape + (3,))
+    for sid in np.unique(seg):
+        if sid >= 0:
+            base[seg == sid] = lookup.get(int(sid), (0.5, 0.5, 0.5))
+    ground = seg == 0
+    shade = np.where(ground, 1.0, shade)  # flat ground: its lines give the depth cue
+    cell = points[..., :2] / 0.5
+    near = np.min(np.abs(cell - np.round(cell)), axis=-1) * 0.5 < 0.004 * np.maximum(depth, 1.0)
+    lines = ground & near & (depth < 6.0)  # farther, lines every 0.5 m alias into moiré
+    base[lines] *= 0.75
+    image = np.clip(np.round(255 * base * shade[..., None]), 0, 255).astype(np.uint8)
+    image[seg < 0] = SKY_RGB
+    return image
+
+
+def _frames(flight: Flight, max_fps: float) -> tuple[list[int], int]:
+    """The frames kept at ``max_fps`` at most (the last one always), and the stride between them."""
+    stride = max(1, math.ceil(1.0 / (flight.dt * max_fps)))
+    frames = list(range(0, flight.n_frames, stride))
+    if frames[-1] != flight.n_frames - 1:
+        frames.append(flight.n_frames - 1)
+    return frames, stride
+
+
+def _look(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """f[3, 3]: camera axes (columns forward, left, up; world frame) looking from ``eye`` at ``target``, z up."""
+    forward = target - eye
+    forward = forward / np.linalg.norm(forward)
+    left = np.cross((0.0, 0.0, 1.0), forward)
+    if np.linalg.norm(left) < 1e-6:  # looking straight up or down: any horizontal left
+        left = np.array([0.0, 1.0, 0.0])
+    left = left / np.linalg.norm(left)
+    return np.stack([forward, left, np.cross(forward, left)], axis=1)
+
+
+def _video_cameras(flight: Flight, world: int, drone: int, camera, chase, frames) -> tuple[np.ndarray, np.ndarray]:
+    """Eyes f[F, 3] m and camera axes f[F, 3, 3] of `write_video`'s frames."""
+    n = len(frames)
+    if isinstance(camera, str) and camera not in VIDEO_CAMERAS:
+        raise ValueError(f"camera must be one of {VIDEO_CAMERAS} or (position, look_at), got {camera!r}")
+    if isinstance(camera, str) and camera == "fixed":
+        one = Flight(flight.pos[:, world : world + 1], flight.quat[:, world : world + 1], flight.dt)
+        eye, target = _view(one, np.zeros((1, 3)), None)
+        return np.tile(eye, (n, 1)), np.tile(_look(eye, target), (n, 1, 1))
+    if isinstance(camera, str) and camera == "chase":
+        try:
+            behind, above = (float(v) for v in chase)
+        except (TypeError, ValueError):
+            behind = above = math.nan
+        if not (math.isfinite(behind) and math.isfinite(above) and (behind > 0 or above > 0)):
+            raise ValueError(
+                f"chase must be (distance behind, height above) in m, finite, not both <= 0, got {chase!r}"
+            )
+        target = flight.pos[frames, world, drone]
+        x, y, z, w = np.moveaxis(flight.quat[frames, world, drone], -1, 0)
+        heading = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z)], -1)  # body x in the horizontal plane
+        smooth = np.zeros(2)
+        alpha = min(1.0, (frames[1] - frames[0]) * flight.dt / 0.5) if n > 1 else 1.0
+        eyes, axes = np.zeros((n, 3)), np.zeros((n, 3, 3))
+        for i in range(n):
+            smooth = heading[i] if i == 0 else (1 - alpha) * smooth + alpha * heading[i]
+            h = smooth / np.linalg.norm(smooth) if np.linalg.norm(smooth) > 1e-6 else np.array([1.0, 0.0])
+            eyes[i] = target[i] - behind * np.array([h[0], h[1], 0.0]) + (0.0, 0.0, above)
+            axes[i] = _look(eyes[i], target[i])
+        return eyes, axes
+    eye, target = _view(flight, np.zeros((flight.n_worlds, 3)), camera)
+    return np.tile(eye, (n, 1)), np.tile(_look(eye, target), (n, 1, 1))
+
+
+def _xyzw_from_rotmat(r: np.ndarray) -> np.ndarray:
+    """A rotation matrix f[3, 3] as a unit quaternion (x, y, z, w)."""
+    w, x, y, z = _wxyz_from_rotmat(r)
+    return np.array([x, y, z, w])
+
+
+def _draw_trails(image: np.ndarray, path: np.ndarray, eye, axes, spec, colours) -> np.ndarray:
+    """``image`` with each drone's ``path`` f[K, D, 3] (m, world) drawn as a line, projected with the cameras'
+    pinhole model (`jaxdrones.cameras`: pixel (i, j) looks along forward plus
+    ((i + ½ − W/2)·right + (H/2 − j − ½)·up) / f); segments with an end behind the near plane are left out."""
+    if len(path) < 2:
+        return image
+    from PIL import Image, ImageDraw
+
+    rel = (path - eye) @ axes  # [K, D, 3]: forward, left, up
+    f = spec.focal
+    ahead = rel[..., 0] > spec.near
+    depth = np.where(ahead, rel[..., 0], 1.0)
+    col = spec.width / 2 - 0.5 - f * rel[..., 1] / depth
+    row = spec.height / 2 - 0.5 - f * rel[..., 2] / depth
+    picture = Image.fromarray(image)
+    pen = ImageDraw.Draw(picture)
+    for d in range(path.shape[1]):
+        colour = tuple(int(c) for c in colours[d])
+        for k in range(len(path) - 1):
+            if ahead[k, d] and ahead[k + 1, d]:
+                pen.line([(col[k, d], row[k, d]), (col[k + 1, d], row[k + 1, d])], fill=colour, width=2)
+    return np.asarray(picture)

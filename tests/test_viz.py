@@ -24,8 +24,9 @@ from jaxdrones import viz
 from jaxdrones.scene import Obstacle
 from jaxdrones.viz import Flight
 
-needs_viser = pytest.mark.skipif(not viz.viewer_available(), reason='viser is not installed (pip install '
-                                                                    '"jaxdrones[viewer]")')
+needs_viser = pytest.mark.skipif(
+    not viz.viewer_available(), reason='viser is not installed (pip install "jaxdrones[viewer]")'
+)
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
 
 
@@ -47,25 +48,35 @@ def circle(n_frames: int = 60, n_worlds: int = 2, n_drones: int = 3) -> tuple[np
 
 
 # --------------------------------------------------------------------------------------------- input checks
-@pytest.mark.parametrize(("change", "message"), [
-    ({'pos': np.zeros((10, 2))}, r"pos must be f\[T, \.\.\., D, 3\]"),
-    ({'pos': np.zeros((10, 2, 4))}, r"pos must be f\[T, \.\.\., D, 3\]"),
-    ({'quat': np.zeros((10, 2, 3))}, r"quat must be f\[T, \.\.\., D, 4\]"),
-    ({'quat': np.ones((10, 3, 4))}, (r"quat must be f\[T, \.\.\., D, 4\] with the leading axes of pos "
-                                     r"f\[10, 2, 3\], that is f\[10, 2, 4\]")),
-    ({'quat': np.zeros((10, 2, 4))}, "non-zero"),
-    ({'pos': np.full((10, 2, 3), np.nan)}, r"pos must be finite; entry \(0, 0, 0\) is nan"),
-    ({'quat': np.full((10, 2, 4), np.inf)}, "quat must be finite"),
-    ({'pos': "abc"}, "numeric array"),
-    ({'dt': 0.0}, "dt must be"), ({'dt': float("nan")}, "dt must be"), ({'dt': True}, "dt must be"),
-    ({'arm': -1.0}, "arm must be"),
-    ({'images': np.zeros((10, 2, 48, 64, 3), np.uint8)[:, :1]}, r"images must be u8\[T, \.\.\., D, H, W, 3 or 4\]"),
-    ({'images': np.zeros((10, 2, 48, 64, 2), np.uint8)}, r"images must be"),
-    ({'images': np.zeros((9, 2, 48, 64), np.float32)}, r"with T, \.\.\., D = \[10, 2\]"),
-    ({'scene': [Obstacle("box")], 'images': np.zeros((10, 2, 48, 64, 3), np.int64)}, "images must be"),
-])
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"pos": np.zeros((10, 2))}, r"pos must be f\[T, \.\.\., D, 3\]"),
+        ({"pos": np.zeros((10, 2, 4))}, r"pos must be f\[T, \.\.\., D, 3\]"),
+        ({"quat": np.zeros((10, 2, 3))}, r"quat must be f\[T, \.\.\., D, 4\]"),
+        (
+            {"quat": np.ones((10, 3, 4))},
+            (
+                r"quat must be f\[T, \.\.\., D, 4\] with the leading axes of pos "
+                r"f\[10, 2, 3\], that is f\[10, 2, 4\]"
+            ),
+        ),
+        ({"quat": np.zeros((10, 2, 4))}, "non-zero"),
+        ({"pos": np.full((10, 2, 3), np.nan)}, r"pos must be finite; entry \(0, 0, 0\) is nan"),
+        ({"quat": np.full((10, 2, 4), np.inf)}, "quat must be finite"),
+        ({"pos": "abc"}, "numeric array"),
+        ({"dt": 0.0}, "dt must be"),
+        ({"dt": float("nan")}, "dt must be"),
+        ({"dt": True}, "dt must be"),
+        ({"arm": -1.0}, "arm must be"),
+        ({"images": np.zeros((10, 2, 48, 64, 3), np.uint8)[:, :1]}, r"images must be u8\[T, \.\.\., D, H, W, 3 or 4\]"),
+        ({"images": np.zeros((10, 2, 48, 64, 2), np.uint8)}, r"images must be"),
+        ({"images": np.zeros((9, 2, 48, 64), np.float32)}, r"with T, \.\.\., D = \[10, 2\]"),
+        ({"scene": [Obstacle("box")], "images": np.zeros((10, 2, 48, 64, 3), np.int64)}, "images must be"),
+    ],
+)
 def test_flight_rejects_bad_input(change, message):
-    args = {'pos': np.zeros((10, 2, 3)), 'quat': np.tile([0.0, 0.0, 0.0, 1.0], (10, 2, 1)), 'dt': 0.02}
+    args = {"pos": np.zeros((10, 2, 3)), "quat": np.tile([0.0, 0.0, 0.0, 1.0], (10, 2, 1)), "dt": 0.02}
     args.update(change)
     with pytest.raises(ValueError, match=message):
         Flight(**args)
@@ -88,8 +99,15 @@ def test_scene_of_obstacles_and_per_world_scenes():
     from jaxdrones.cameras import make_scene
 
     pos, quat = circle(4, 2, 1)
-    flight = Flight(pos, quat, 0.1, scene=[Obstacle("box", size=(0.2, 0.4, 0.6), pos=(1.0, 2.0, 0.3)),
-                                          Obstacle("urdf", urdf=__file__, pos=(0, 0, 0))])  # a mesh: not drawn
+    flight = Flight(
+        pos,
+        quat,
+        0.1,
+        scene=[
+            Obstacle("box", size=(0.2, 0.4, 0.6), pos=(1.0, 2.0, 0.3)),
+            Obstacle("urdf", urdf=__file__, pos=(0, 0, 0)),
+        ],
+    )  # a mesh: not drawn
     prims = viz._primitives(flight.scene, 0)
     assert [p[0] for p in prims] == ["box"]
     np.testing.assert_allclose(prims[0][1], (1.0, 2.0, 0.3))
@@ -109,10 +127,15 @@ def test_scene_of_obstacles_and_per_world_scenes():
 
 def test_write_html_rejects_bad_options(tmp_path):
     flight = level(3, [[0, 0, 1]])
-    for kwargs, message in [({'trail_s': -1.0}, "trail_s"), ({'max_fps': 0}, "max_fps"),
-                            ({'drone_scale': float("inf")}, "drone_scale"), ({'spacing': -1}, "spacing"),
-                            ({'colors': [(300, 0, 0)]}, "colors"), ({'camera': ((0, 0, 1), (0, 0, 1))}, "differ"),
-                            ({'camera': ((0, 0), (0, 0, 1))}, "camera must be")]:
+    for kwargs, message in [
+        ({"trail_s": -1.0}, "trail_s"),
+        ({"max_fps": 0}, "max_fps"),
+        ({"drone_scale": float("inf")}, "drone_scale"),
+        ({"spacing": -1}, "spacing"),
+        ({"colors": [(300, 0, 0)]}, "colors"),
+        ({"camera": ((0, 0, 1), (0, 0, 1))}, "differ"),
+        ({"camera": ((0, 0), (0, 0, 1))}, "camera must be"),
+    ]:
         with pytest.raises(ValueError, match=message):
             viz.write_html(tmp_path / "f.html", flight, **kwargs)
     with pytest.raises(TypeError, match="Flight"):
@@ -134,25 +157,38 @@ def test_train_without_viser_prints_how_to_get_it(tmp_path, monkeypatch, capsys)
 
     monkeypatch.setattr(viz, "viewer_available", lambda: False)
     run._write_viewer(None, {"viewer": {}}, str(tmp_path))
-    assert capsys.readouterr().out.strip() == ('flight.html not written: the flight viewer needs viser (pip install '
-                                              '"jaxdrones[viewer]")')
+    assert capsys.readouterr().out.strip() == (
+        'flight.html not written: the flight viewer needs viser (pip install "jaxdrones[viewer]")'
+    )
     assert list(tmp_path.iterdir()) == []
 
 
 # --------------------------------------------------------------------------------------------- the HTML file
 #: URLs a page loads: script/link/img/iframe sources, CSS url(...) and @import, fetch/import of a literal URL.
-FETCHED = re.compile(r"""(?:<(?:script|link|img|iframe|source|video|audio)\b[^>]*\b(?:src|href)\s*=\s*["']?\s*"""
-                     r"""https?:|url\(\s*["']?https?:|@import\s+["']https?:|fetch\(\s*["'`]https?:|"""
-                     r"""import\(\s*["'`]https?:)""", re.IGNORECASE)
+FETCHED = re.compile(
+    r"""(?:<(?:script|link|img|iframe|source|video|audio)\b[^>]*\b(?:src|href)\s*=\s*["']?\s*"""
+    r"""https?:|url\(\s*["']?https?:|@import\s+["']https?:|fetch\(\s*["'`]https?:|"""
+    r"""import\(\s*["'`]https?:)""",
+    re.IGNORECASE,
+)
 
 
 @needs_viser
 def test_html_is_self_contained_and_never_overwritten(tmp_path):
     pos, quat = circle(90, 2, 3)
     images = np.zeros((90, 2, 3, 12, 16, 4), np.uint8)
-    flight = Flight(pos, quat, 1 / 30, scene=[Obstacle("box", pos=(0, 0, 0.1)), Obstacle("capsule", size=(0.1, 0.3)),
-                                               Obstacle("cylinder", size=(0.1, 0.3)), Obstacle("sphere", size=(0.1,))],
-                    images=images)
+    flight = Flight(
+        pos,
+        quat,
+        1 / 30,
+        scene=[
+            Obstacle("box", pos=(0, 0, 0.1)),
+            Obstacle("capsule", size=(0.1, 0.3)),
+            Obstacle("cylinder", size=(0.1, 0.3)),
+            Obstacle("sphere", size=(0.1,)),
+        ],
+        images=images,
+    )
     path = tmp_path / "sub" / "flight.html"
     assert viz.write_html(path, flight) == str(path)
     html = path.read_text(encoding="utf-8")
@@ -183,11 +219,23 @@ def browse(url: str, width: int = 800, height: int = 600, wait_s: float = 6.0) -
     from websockets.sync.client import connect
 
     profile = tempfile.mkdtemp(prefix="jaxdrones-chromium-")
-    proc = subprocess.Popen([CHROMIUM, "--headless=new", "--no-sandbox", "--use-angle=swiftshader",
-                             "--enable-unsafe-swiftshader", "--no-first-run", "--no-default-browser-check",
-                             f"--user-data-dir={profile}", "--remote-debugging-port=0",
-                             f"--window-size={width},{height}", "about:blank"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [
+            CHROMIUM,
+            "--headless=new",
+            "--no-sandbox",
+            "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader",
+            "--no-first-run",
+            "--no-default-browser-check",
+            f"--user-data-dir={profile}",
+            "--remote-debugging-port=0",
+            f"--window-size={width},{height}",
+            "about:blank",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         port_file = pathlib.Path(profile, "DevToolsActivePort")
         deadline = time.monotonic() + 60
@@ -202,8 +250,11 @@ def browse(url: str, width: int = 800, height: int = 600, wait_s: float = 6.0) -
 
             def call(method, session=None, **params):
                 i = next(ids)
-                ws.send(json.dumps({"id": i, "method": method, "params": params,
-                                    **({"sessionId": session} if session else {})}))
+                ws.send(
+                    json.dumps(
+                        {"id": i, "method": method, "params": params, **({"sessionId": session} if session else {})}
+                    )
+                )
                 while True:
                     reply = json.loads(ws.recv(timeout=60))
                     if reply.get("id") == i:
@@ -216,8 +267,9 @@ def browse(url: str, width: int = 800, height: int = 600, wait_s: float = 6.0) -
             sid = call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
             for domain in ("Runtime", "Log", "Page", "Network"):
                 call(f"{domain}.enable", sid)
-            call("Emulation.setDeviceMetricsOverride", sid, width=width, height=height, deviceScaleFactor=1,
-                 mobile=False)
+            call(
+                "Emulation.setDeviceMetricsOverride", sid, width=width, height=height, deviceScaleFactor=1, mobile=False
+            )
             call("Page.navigate", sid, url=url)
             end = time.monotonic() + wait_s
             while (left := end - time.monotonic()) > 0:
@@ -226,10 +278,15 @@ def browse(url: str, width: int = 800, height: int = 600, wait_s: float = 6.0) -
                 except TimeoutError:
                     break
             png = base64.b64decode(call("Page.captureScreenshot", sid, format="png")["data"])
-            boxes = call("Runtime.evaluate", sid, returnByValue=True, expression=(
-                "JSON.stringify(['canvas', '[class*=Notification-root]'].map(s => [...document.querySelectorAll(s)]"
-                ".map(c => {const r = c.getBoundingClientRect(); return [r.x, r.y, r.width, r.height]})))"
-            ))["result"]["value"]
+            boxes = call(
+                "Runtime.evaluate",
+                sid,
+                returnByValue=True,
+                expression=(
+                    "JSON.stringify(['canvas', '[class*=Notification-root]'].map(s => [...document.querySelectorAll(s)]"
+                    ".map(c => {const r = c.getBoundingClientRect(); return [r.x, r.y, r.width, r.height]})))"
+                ),
+            )["result"]["value"]
     finally:
         proc.terminate()
         proc.wait(30)
@@ -245,11 +302,20 @@ def browse(url: str, width: int = 800, height: int = 600, wait_s: float = 6.0) -
             errors.append(params["entry"]["text"])
         elif method == "Network.requestWillBeSent":
             requested.append(params["request"]["url"])
-    logs = [" ".join(str(a.get("value")) for a in e["params"].get("args", [])) for e in events
-            if e.get("method") == "Runtime.consoleAPICalled"]
+    logs = [
+        " ".join(str(a.get("value")) for a in e["params"].get("args", []))
+        for e in events
+        if e.get("method") == "Runtime.consoleAPICalled"
+    ]
     canvases, notices = json.loads(boxes)
-    return {"png": png, "errors": errors, "requested": requested, "canvases": canvases, "notices": notices,
-            "logs": logs}
+    return {
+        "png": png,
+        "errors": errors,
+        "requested": requested,
+        "canvases": canvases,
+        "notices": notices,
+        "logs": logs,
+    }
 
 
 def project(points, eye, target, fov_deg: float, width: float, height: float) -> np.ndarray:
@@ -274,8 +340,12 @@ def hue_mask(rgb: np.ndarray, hue_deg: float, tol_deg: float = 14.0) -> np.ndarr
 
 #: The browser test's drones: position (m), colour, and its hue as drawn under viser's lights (green's shifts to
 #: about 95°), far apart.
-MARKERS = (((-1.3, 0.2, 0.6), (0, 0, 255), 240.0), ((1.2, -0.3, 0.4), (0, 255, 0), 100.0),
-           ((0.2, 1.4, 1.1), (255, 0, 255), 303.0), ((0.4, -1.2, 0.9), (255, 255, 0), 59.0))
+MARKERS = (
+    ((-1.3, 0.2, 0.6), (0, 0, 255), 240.0),
+    ((1.2, -0.3, 0.4), (0, 255, 0), 100.0),
+    ((0.2, 1.4, 1.1), (255, 0, 255), 303.0),
+    ((0.4, -1.2, 0.9), (255, 255, 0), 59.0),
+)
 
 
 @pytest.mark.slow
@@ -288,26 +358,27 @@ def test_browser_shows_the_drones_where_the_rollout_puts_them(tmp_path):
     flight = level(40, positions)
     eye, target = np.array([0.5, -5.0, 3.5]), np.array([0.0, 0.0, 0.7])
     path = tmp_path / "four.html"
-    viz.write_html(path, flight, camera=(eye, target), trail_s=0, drone_scale=3.0,
-                   colors=[m[1] for m in MARKERS])
+    viz.write_html(path, flight, camera=(eye, target), trail_s=0, drone_scale=3.0, colors=[m[1] for m in MARKERS])
     page = browse(path.resolve().as_uri())
     assert page["errors"] == [], page["errors"]
     assert any("Embedded data loaded" in line for line in page["logs"]), page["logs"]
-    assert page["requested"] and all(u.startswith(("file:", "data:", "blob:")) for u in page["requested"]), \
-        page["requested"]
+    assert page["requested"] and all(u.startswith(("file:", "data:", "blob:")) for u in page["requested"]), page[
+        "requested"
+    ]
     x0, y0, w, h = max(page["canvases"], key=lambda b: b[2] * b[3])
     assert w == 800 and 500 < h <= 600  # the canvas above the playback bar
     shot = np.array(Image.open(io.BytesIO(page["png"])).convert("RGB"))
     for x, y, bw, bh in page["notices"]:  # a notice over the canvas is not the scene
-        shot[max(int(y), 0):int(y + bh) + 1, max(int(x), 0):int(x + bw) + 1] = 255
-    canvas = shot[int(y0):int(y0 + h), int(x0):int(x0 + w)]
+        shot[max(int(y), 0) : int(y + bh) + 1, max(int(x), 0) : int(x + bw) + 1] = 255
+    canvas = shot[int(y0) : int(y0 + h), int(x0) : int(x0 + w)]
     expected = project(positions, eye, target, viz.VIEW_FOV, w, h)
-    rows, cols = np.mgrid[0:canvas.shape[0], 0:canvas.shape[1]]
+    rows, cols = np.mgrid[0 : canvas.shape[0], 0 : canvas.shape[1]]
     for (where, _, hue), (u, v) in zip(MARKERS, expected, strict=True):
         mask = hue_mask(canvas, hue)
-        near = (cols - u) ** 2 + (rows - v) ** 2 < 35 ** 2
-        assert mask[near].sum() >= 25, f"drone at {where}: {mask[near].sum()} pixels of its colour near ({u:.0f}, " \
-                                       f"{v:.0f})"
+        near = (cols - u) ** 2 + (rows - v) ** 2 < 35**2
+        assert mask[near].sum() >= 25, (
+            f"drone at {where}: {mask[near].sum()} pixels of its colour near ({u:.0f}, {v:.0f})"
+        )
         assert mask[~near].sum() <= 5, f"drone at {where}: {mask[~near].sum()} pixels of its colour elsewhere"
         centre = np.array([cols[mask].mean(), rows[mask].mean()])
         assert np.linalg.norm(centre - (u, v)) < 12, f"drone at {where} drawn at {centre}, expected ({u:.0f}, {v:.0f})"
