@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -17,8 +18,11 @@ import numpy as np
 from jaxdrones.envs import rewards, terminations
 from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import POS_BOUND
-from jaxdrones.envs.task import Task
+from jaxdrones.envs.task import Task, TaskParams
 from jaxdrones.physics.state import DroneState
+
+if TYPE_CHECKING:
+    from jaxdrones.scene.primitives import Scene
 
 #: Obstacle colours, cycled (RGB in [0, 1]): greys and muted tones, distinct in the RGB image.
 COLOURS = ((0.55, 0.35, 0.25), (0.35, 0.45, 0.55), (0.5, 0.5, 0.45), (0.3, 0.5, 0.35))
@@ -130,13 +134,13 @@ class GoalTask(Task):
     success_threshold = 0.1
     success_unit = "share"
 
-    def data(self, config):
+    def data(self, config: TaskConfig) -> dict[str, np.ndarray]:
         return collision_data(config)
 
-    def privileged(self, config, task, sim):
+    def privileged(self, config: TaskConfig, task: TaskParams, sim: DroneState) -> jax.Array | None:
         return scene_clearances(task, sim)
 
-    def weights(self, config):
+    def weights(self, config: TaskConfig) -> dict[str, float]:
         # A crash costs 50: at 10 it cost less than the speed it bought (the progress term pays up to ~1.3 per step),
         # and trained policies flew fast and collided (``avoid``, asymmetric critic: 47 % success in a run where 50
         # gave 79 %); at 100 they learned to stay at the start (``avoid``: 0 %).
@@ -166,10 +170,10 @@ class Avoid(GoalTask):
     config_cls = AvoidConfig
     obs_size = 3
 
-    def obs_bound(self, config):
+    def obs_bound(self, config: AvoidConfig) -> np.ndarray:
         return np.array([POS_BOUND] * 3, np.float32)
 
-    def start_defaults(self, config):
+    def start_defaults(self, config: AvoidConfig) -> dict:
         return dict(
             pos=[[0.0, 0.0, config.flight_z]],
             pos_range=(0.0, config.start_y, 0.0),
@@ -179,15 +183,15 @@ class Avoid(GoalTask):
             ang_vel=0.0,
         )
 
-    def target(self, config):
+    def target(self, config: AvoidConfig) -> np.ndarray:
         return np.array([[config.goal_x, 0.0, config.flight_z]])
 
-    def scene(self, config):
+    def scene(self, config: AvoidConfig) -> Scene:
         from jaxdrones.scene.primitives import make_scene
 
         return make_scene((), capacity={"cylinder": config.n_cylinders, "box": config.n_boxes})
 
-    def sample(self, config, task, key):
+    def sample(self, config: AvoidConfig, task: TaskParams, key: jax.Array) -> TaskParams:
         k_goal, k_cyl, k_box = jax.random.split(key, 3)
         dtype = task.target.dtype
         goal_y = jax.random.uniform(k_goal, (), dtype, -config.goal_y, config.goal_y)
@@ -232,13 +236,15 @@ class Avoid(GoalTask):
         )
         return task.replace(target=task.target.at[..., 1].set(goal_y), scene=scene.replace(cylinder=cyl, box=box))
 
-    def observe(self, config, task, sim, steps):
+    def observe(self, config: AvoidConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> jax.Array:
         return task.target - sim.pos
 
-    def weights(self, config):
+    def weights(self, config: AvoidConfig) -> dict[str, float]:
         return {**super().weights(config), "proximity": -1.0}
 
-    def reward_terms(self, config, task, sim, action, steps):
+    def reward_terms(
+        self, config: AvoidConfig, task: TaskParams, sim: DroneState, action: jax.Array, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         dist = rewards.distance(sim.pos, task.target)
         clear = clearance(task, sim)
         crash = (clear < 0) | self._lost(config, task, sim)
@@ -249,14 +255,14 @@ class Avoid(GoalTask):
             "proximity": proximity(clear),
         }
 
-    def terminated(self, config, task, sim):
+    def terminated(self, config: AvoidConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         return jnp.any(collided(task, sim) | self._lost(config, task, sim))
 
-    def reached(self, config, task, sim):
+    def reached(self, config: AvoidConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         near = rewards.distance(sim.pos, task.target) < config.goal_radius
         return jnp.all(near) & ~self.terminated(config, task, sim)
 
-    def metrics(self, config, task, sim, steps):
+    def metrics(self, config: AvoidConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> dict[str, jax.Array]:
         dist = rewards.distance(sim.pos, task.target)
         hit = jnp.any(collided(task, sim))
         reached = jnp.all(dist < config.goal_radius)
@@ -273,7 +279,7 @@ class Avoid(GoalTask):
         return terminations.crashed(sim, task.bounds, config.terminate_on_ground) | side
 
 
-def collision_data(config) -> dict:
+def collision_data(config: TaskConfig) -> dict[str, np.ndarray]:
     """`Task.data` of a task that detects collisions with its scene: each drone's collision radius (the URDF's),
     ``collision_radius`` f[D] m."""
     from jaxdrones.physics.params import load_params
@@ -282,7 +288,7 @@ def collision_data(config) -> dict:
     return {"collision_radius": np.array([float(load_params(m).collision_radius) for m in models])}
 
 
-def clearance(task, sim: DroneState) -> jax.Array:
+def clearance(task: TaskParams, sim: DroneState) -> jax.Array:
     """f[D] m: the gap between each drone's collision radius and the nearest obstacle of ``task.scene``
     (`jaxdrones.cameras.distance` less ``task.data["collision_radius"]``, `collision_data`); negative when they
     touch."""
@@ -298,7 +304,7 @@ SAMPLE_RANGES = (0.25, 0.5, 0.75, 1.0, 1.5)
 SAMPLE_CLIP_M = 1.0
 
 
-def scene_clearances(task, sim: DroneState) -> jax.Array:
+def scene_clearances(task: TaskParams, sim: DroneState) -> jax.Array:
     """f[D, 1 + 16·5] m: `clearance` at the drone's centre, then at 16 bearings × 5 distances around it in the
     horizontal plane at its altitude (`SAMPLE_BEARINGS`, `SAMPLE_RANGES`; bearing-major), clipped to
     [−`SAMPLE_CLIP_M`, `SAMPLE_CLIP_M`]: a map of the obstacles near the drone, in every direction, which its camera
@@ -313,7 +319,7 @@ def scene_clearances(task, sim: DroneState) -> jax.Array:
     return jnp.clip(clear, -SAMPLE_CLIP_M, SAMPLE_CLIP_M)
 
 
-def collided(task, sim: DroneState) -> jax.Array:
+def collided(task: TaskParams, sim: DroneState) -> jax.Array:
     """bool[D]: the drone's centre is within its collision radius of an obstacle of ``task.scene`` (`clearance`
     below 0)."""
     return clearance(task, sim) < 0

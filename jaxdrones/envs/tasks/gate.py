@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -18,10 +19,14 @@ import numpy as np
 from jaxdrones.envs import terminations
 from jaxdrones.envs.actions import Reference
 from jaxdrones.envs.config import TaskConfig
+from jaxdrones.envs.task import Task, TaskParams
 from jaxdrones.envs.tasks.avoid import GoalTask, collided, progress
 from jaxdrones.envs.tasks.single import ReferenceTask, hover_weights
 from jaxdrones.physics.state import DEFAULT_START_Z, DroneState
 from jaxdrones.scene import Obstacle
+
+if TYPE_CHECKING:
+    from jaxdrones.scene.primitives import Scene
 
 #: The paper's gate (FlyThruGateAviary): at y = −1 m, two 0.05 m columns 0.5 m tall at x = ±0.3 m and a
 #: 0.8 × 0.05 × 0.05 m architrave at z = 0.55 m, on the ground: its boxes as (centre, size) in the gate's frame
@@ -119,23 +124,23 @@ class FlyThruGate(ReferenceTask):
     success_at = "mean"
     success_threshold = 0.1
 
-    def variant(self, config):
+    def variant(self, config: GateConfig) -> Task:
         if config.gate_pose == "random":
             return GATE_PASS
         return self
 
-    def start_defaults(self, config):
+    def start_defaults(self, config: GateConfig) -> dict:
         return dict(
             pos=[[0.0, 0.0, DEFAULT_START_Z]], pos_range=(0.05, 0.05, 0.0), tilt=0.0, yaw=math.pi, vel=0.0, ang_vel=0.0
         )
 
-    def target(self, config):
+    def target(self, config: GateConfig) -> np.ndarray:
         return np.array([[0.0, GATE_REF_DY, GATE_REF_Z]])
 
-    def weights(self, config):
+    def weights(self, config: GateConfig) -> dict[str, float]:
         return hover_weights(config, {"distance_sq": -10.0})
 
-    def reference(self, config, task, steps):
+    def reference(self, config: GateConfig, task: TaskParams, steps: jax.Array) -> Reference:
         duration = config.episode_len_s
         tau = jnp.minimum(steps / config.ctrl_freq, duration) / duration
         start = task.target.at[..., 1].set(0.0)
@@ -175,7 +180,7 @@ class GatePass(GoalTask):
     config_cls = GateConfig
     obs_size = 0
 
-    def check(self, config):
+    def check(self, config: GateConfig) -> None:
         super().check(config)
         if not config.vision:
             raise ValueError(
@@ -183,24 +188,24 @@ class GatePass(GoalTask):
                 "vision, e.g. vision=('depth',)"
             )
 
-    def obs_bound(self, config):
+    def obs_bound(self, config: GateConfig) -> np.ndarray:
         return np.zeros(0, np.float32)
 
-    def start_defaults(self, config):
+    def start_defaults(self, config: GateConfig) -> dict:
         return dict(pos=[[0.0, 0.0, START_Z]], pos_range=(0.0, 0.1, 0.0), tilt=0.0, yaw=0.0, vel=0.0, ang_vel=0.0)
 
-    def target(self, config):
+    def target(self, config: GateConfig) -> np.ndarray:
         return np.array([[config.gate_distance[0] - AIM[1], AIM[0], AIM[2]]])
 
-    def data(self, config):
+    def data(self, config: GateConfig) -> dict[str, np.ndarray]:
         return {**super().data(config), "gate_pos": np.zeros(3), "gate_rot": np.eye(3)}
 
-    def scene(self, config):
+    def scene(self, config: GateConfig) -> Scene:
         from jaxdrones.scene.primitives import make_scene
 
         return make_scene((), capacity={"box": len(GATE_PARTS)})
 
-    def sample(self, config, task, key):
+    def sample(self, config: GateConfig, task: TaskParams, key: jax.Array) -> TaskParams:
         u = jax.random.uniform(key, (3,), task.target.dtype)
         lo, hi = config.gate_distance
         centre = jnp.stack([lo + (hi - lo) * u[1], config.gate_offset * (2 * u[0] - 1), jnp.zeros_like(u[0])])
@@ -224,10 +229,12 @@ class GatePass(GoalTask):
             data={**task.data, "gate_pos": centre, "gate_rot": rot},
         )
 
-    def observe(self, config, task, sim, steps):
+    def observe(self, config: GateConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> jax.Array:
         return jnp.zeros(sim.pos.shape[:-1] + (0,), sim.pos.dtype)
 
-    def reward_terms(self, config, task, sim, action, steps):
+    def reward_terms(
+        self, config: GateConfig, task: TaskParams, sim: DroneState, action: jax.Array, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         dtype = sim.pos.dtype
         return {
             "progress": progress(sim, task.target),
@@ -235,13 +242,13 @@ class GatePass(GoalTask):
             "crash": self._failed(config, task, sim).astype(dtype),
         }
 
-    def terminated(self, config, task, sim):
+    def terminated(self, config: GateConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         return jnp.any(self._failed(config, task, sim))
 
-    def reached(self, config, task, sim):
+    def reached(self, config: GateConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         return jnp.all(_through(task, sim)) & ~self.terminated(config, task, sim)
 
-    def metrics(self, config, task, sim, steps):
+    def metrics(self, config: GateConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> dict[str, jax.Array]:
         hit = jnp.any(collided(task, sim))
         passed = self.reached(config, task, sim)
         dtype = sim.pos.dtype

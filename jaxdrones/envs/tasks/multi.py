@@ -20,9 +20,9 @@ from jaxdrones.envs import rewards
 from jaxdrones.envs.actions import ACTION_SIZES, Reference
 from jaxdrones.envs.config import TaskConfig, _is_number
 from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
-from jaxdrones.envs.task import Task
+from jaxdrones.envs.task import Task, TaskParams
 from jaxdrones.envs.tasks.single import ANG_SPEED_WEIGHT, SPEED_WEIGHT
-from jaxdrones.physics.state import default_start_pos
+from jaxdrones.physics.state import DroneState, default_start_pos
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,10 +65,10 @@ class MultiTask(Task):
     nonnegative_reward = True
     obs_size = 3
 
-    def obs_bound(self, config):
+    def obs_bound(self, config: MultiConfig) -> np.ndarray:
         return np.full(3, POS_BOUND, np.float32)
 
-    def start_defaults(self, config):
+    def start_defaults(self, config: MultiConfig) -> dict:
         if ACTION_SIZES[config.action_type] == 1:  # 1-D actions (the paper's one_d_rpm) cannot level a tilted drone
             return dict(
                 pos=default_start_pos(config.n_drones),
@@ -87,19 +87,19 @@ class MultiTask(Task):
             ang_vel=0.1,
         )
 
-    def ref_points(self, config, task, sim) -> jax.Array:
+    def ref_points(self, config: MultiConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         """f[D, 3] m: where each drone should be, given the others (the shaped reward's target)."""
         return task.target
 
-    def observe(self, config, task, sim, steps):
+    def observe(self, config: MultiConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> jax.Array:
         return self.ref_points(config, task, sim) - sim.pos
 
-    def weights(self, config):
+    def weights(self, config: MultiConfig) -> dict[str, float]:
         if config.reward == "paper":
             return {"paper": 1.0}
         return {"closeness": 1.0, "speed_sq": -SPEED_WEIGHT, "ang_speed_sq": -ANG_SPEED_WEIGHT}
 
-    def shaped_terms(self, config, task, sim) -> dict:
+    def shaped_terms(self, config: MultiConfig, task: TaskParams, sim: DroneState) -> dict:
         points = self.ref_points(config, task, sim)
         return {
             "closeness": rewards.closeness(sim.pos, points),
@@ -107,12 +107,14 @@ class MultiTask(Task):
             "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel),
         }
 
-    def reward_terms(self, config, task, sim, action, steps):
+    def reward_terms(
+        self, config: MultiConfig, task: TaskParams, sim: DroneState, action: jax.Array, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         if config.reward == "paper":
             return {"paper": self.paper_reward(config, task, sim)}
         return self.shaped_terms(config, task, sim)
 
-    def metrics(self, config, task, sim, steps):
+    def metrics(self, config: MultiConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> dict[str, jax.Array]:
         return {"distance": jnp.mean(rewards.distance(sim.pos, self.ref_points(config, task, sim)))}
 
 
@@ -140,14 +142,16 @@ class MultiHover(MultiTask):
     success_metric = "max_distance"
     success_threshold = 0.1
 
-    def target(self, config):
+    def target(self, config: MultiHoverConfig) -> np.ndarray:
         n = config.n_drones
         return default_start_pos(n) + np.stack([np.zeros(n), np.zeros(n), 1.0 / (np.arange(n) + 1)], -1)
 
-    def paper_reward(self, config, task, sim):
+    def paper_reward(self, config: MultiHoverConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         return jnp.maximum(0.0, 2.0 - rewards.distance_sq(sim.pos, task.target) ** 2)
 
-    def metrics(self, config, task, sim, steps):
+    def metrics(
+        self, config: MultiHoverConfig, task: TaskParams, sim: DroneState, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         d = rewards.distance(sim.pos, task.target)
         return {"distance": jnp.mean(d), "max_distance": jnp.max(d)}
 
@@ -166,20 +170,20 @@ class LeaderFollower(MultiTask):
     name = "leader_follower"
     success_metric = "max_altitude_error"
 
-    def target(self, config):
+    def target(self, config: MultiConfig) -> np.ndarray:
         return np.broadcast_to([0.0, 0.0, 0.5], (config.n_drones, 3))
 
-    def ref_points(self, config, task, sim):
+    def ref_points(self, config: MultiConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         follow = sim.pos.at[..., 2].set(sim.pos[0, 2])
         return follow.at[0].set(task.target[0])
 
-    def paper_reward(self, config, task, sim):
+    def paper_reward(self, config: MultiConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         n = config.n_drones
         leader = -rewards.distance_sq(sim.pos[:1], task.target[:1])
         followers = -((sim.pos[1:, 2] - sim.pos[0, 2]) ** 2) / n
         return jnp.concatenate([leader, followers])
 
-    def metrics(self, config, task, sim, steps):
+    def metrics(self, config: MultiConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> dict[str, jax.Array]:
         leader = jnp.abs(sim.pos[0, 2] - task.target[0, 2])
         followers = jnp.abs(sim.pos[1:, 2] - sim.pos[0, 2])
         return {
@@ -206,28 +210,30 @@ class Flock(MultiTask):
     name = "flock"
     config_cls = FlockConfig
 
-    def target(self, config):
+    def target(self, config: FlockConfig) -> np.ndarray:
         return np.broadcast_to([0.0, 0.0, 1.0], (config.n_drones, 3))
 
-    def ref_points(self, config, task, sim):
+    def ref_points(self, config: FlockConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         above = jnp.concatenate([task.target[:1, 2], sim.pos[:-1, 2]])
         return sim.pos.at[..., 2].set(above).at[0].set(task.target[0])
 
-    def weights(self, config):
+    def weights(self, config: FlockConfig) -> dict[str, float]:
         if config.objective == "flocking":
             return {"alignment": 1.0, "flock_speed": 1.0, "spacing": -1.0, "spacing_variance": -1.0}
         return super().weights(config)
 
-    def reward_terms(self, config, task, sim, action, steps):
+    def reward_terms(
+        self, config: FlockConfig, task: TaskParams, sim: DroneState, action: jax.Array, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         if config.objective == "flocking":
             return flocking_terms(sim.pos, sim.vel)
         return super().reward_terms(config, task, sim, action, steps)
 
-    def paper_reward(self, config, task, sim):
+    def paper_reward(self, config: FlockConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         leader = -rewards.distance_sq(sim.pos[:1], task.target[:1])
         return jnp.concatenate([leader, -((sim.pos[:-1, 2] - sim.pos[1:, 2]) ** 2)])
 
-    def metrics(self, config, task, sim, steps):
+    def metrics(self, config: FlockConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> dict[str, jax.Array]:
         if config.objective == "flocking":
             terms = flocking_terms(sim.pos, sim.vel)
             return {
@@ -279,20 +285,20 @@ class Meetup(MultiTask):
     success_metric = "pair_distance"
     success_threshold = 0.1
 
-    def ref_points(self, config, task, sim):
+    def ref_points(self, config: MultiConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         n = config.n_drones
         partner = sim.pos[::-1]
         if n % 2:
             partner = partner.at[n // 2].set(jnp.mean(sim.pos, axis=0))
         return partner
 
-    def reference(self, config, task, steps):
+    def reference(self, config: MultiConfig, task: TaskParams, steps: jax.Array) -> Reference:
         return Reference(task.target, jnp.zeros_like(task.target))
 
-    def paper_reward(self, config, task, sim):
+    def paper_reward(self, config: MultiConfig, task: TaskParams, sim: DroneState) -> jax.Array:
         return -rewards.distance_sq(sim.pos, sim.pos[::-1])
 
-    def metrics(self, config, task, sim, steps):
+    def metrics(self, config: MultiConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> dict[str, jax.Array]:
         return {"pair_distance": jnp.mean(rewards.distance(sim.pos, sim.pos[::-1]))}
 
 
@@ -381,28 +387,28 @@ class Crossing(MultiTask):
     success_at = "max"
     obs_size = 6
 
-    def obs_bound(self, config):
+    def obs_bound(self, config: CrossingConfig) -> np.ndarray:
         return np.array([POS_BOUND] * 3 + [VEL_BOUND] * 3, np.float32)
 
-    def target(self, config):
+    def target(self, config: CrossingConfig) -> np.ndarray:
         n = config.n_drones
         z = CROSSING_BASE_Z + config.spacing * (n - 1 - np.arange(n))
         return np.stack([np.zeros(n), np.zeros(n), z], -1)
 
-    def data(self, config):
+    def data(self, config: CrossingConfig) -> dict[str, np.ndarray]:
         return {
             "amplitude": np.asarray(config.amplitude),
             "period": np.asarray(config.period_s),
             "phase": np.pi * np.arange(config.n_drones),
         }
 
-    def start_defaults(self, config):
+    def start_defaults(self, config: CrossingConfig) -> dict:
         start = super().start_defaults(config)
         phase = np.pi * np.arange(config.n_drones)
         start["pos"] = self.target(config) + np.stack([config.amplitude * np.cos(phase), 0 * phase, 0 * phase], -1)
         return start
 
-    def reference(self, config, task, steps):
+    def reference(self, config: CrossingConfig, task: TaskParams, steps: jax.Array) -> Reference:
         """Reference(pos f[D, 3] m, vel f[D, 3] m/s) at control step ``steps`` (see the class docstring)."""
         amplitude, period, phase = task.data["amplitude"], task.data["period"], task.data["phase"]
         omega = 2 * jnp.pi / period
@@ -412,16 +418,18 @@ class Crossing(MultiTask):
         vel = jnp.stack([-amplitude * omega * jnp.sin(theta), zero, zero], -1)
         return Reference(task.target + offset.astype(task.target.dtype), vel.astype(task.target.dtype))
 
-    def observe(self, config, task, sim, steps):
+    def observe(self, config: CrossingConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> jax.Array:
         ref = self.reference(config, task, steps)
         return jnp.concatenate([ref.pos - sim.pos, ref.vel], axis=-1)
 
-    def weights(self, config):
+    def weights(self, config: CrossingConfig) -> dict[str, float]:
         if config.reward == "paper":
             return {"paper": 1.0}
         return {"closeness": 1.0, "velocity_error_sq": -SPEED_WEIGHT, "ang_speed_sq": -ANG_SPEED_WEIGHT}
 
-    def reward_terms(self, config, task, sim, action, steps):
+    def reward_terms(
+        self, config: CrossingConfig, task: TaskParams, sim: DroneState, action: jax.Array, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         ref = self.reference(config, task, steps)
         if config.reward == "paper":
             return {"paper": jnp.maximum(0.0, 2.0 - rewards.distance_sq(sim.pos, ref.pos) ** 2)}
@@ -431,7 +439,9 @@ class Crossing(MultiTask):
             "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel),
         }
 
-    def metrics(self, config, task, sim, steps):
+    def metrics(
+        self, config: CrossingConfig, task: TaskParams, sim: DroneState, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         ref = self.reference(config, task, steps)
         altitude = jnp.abs(sim.pos[..., 2] - ref.pos[..., 2])
         return {

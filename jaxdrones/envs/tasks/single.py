@@ -20,7 +20,7 @@ from jaxdrones.envs import rewards
 from jaxdrones.envs.actions import ACTION_SIZES, Reference
 from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
-from jaxdrones.envs.task import Task
+from jaxdrones.envs.task import Task, TaskParams
 from jaxdrones.physics.state import DEFAULT_START_Z, DroneState
 
 #: Shaped hover-type rewards: r = max(0, closeness − SPEED_WEIGHT ‖v‖² − ANG_SPEED_WEIGHT ‖ω‖²) (see
@@ -116,10 +116,12 @@ class Hover(Task):
     def target(self, config: HoverConfig) -> np.ndarray:
         return np.asarray([config.target])
 
-    def weights(self, config):
+    def weights(self, config: HoverConfig) -> dict[str, float]:
         return hover_weights(config, {"distance_sq": -1.0})
 
-    def reward_terms(self, config, task, sim, action, steps):
+    def reward_terms(
+        self, config: HoverConfig, task: TaskParams, sim: DroneState, action: jax.Array, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         return _tracking_terms(config, task.target, sim)
 
 
@@ -146,7 +148,7 @@ class Takeoff(Task):
     config_cls = TakeoffConfig
     nonnegative_reward = True
 
-    def start_defaults(self, config):
+    def start_defaults(self, config: TakeoffConfig) -> dict:
         target = np.asarray(config.target)
         spread = 0.0 if _one_d(config) else 0.1
         return dict(
@@ -158,13 +160,15 @@ class Takeoff(Task):
             ang_vel=0.0,
         )
 
-    def target(self, config):
+    def target(self, config: TakeoffConfig) -> np.ndarray:
         return np.asarray([config.target])
 
-    def weights(self, config):
+    def weights(self, config: TakeoffConfig) -> dict[str, float]:
         return hover_weights(config, {"takeoff": 1.0})
 
-    def reward_terms(self, config, task, sim, action, steps):
+    def reward_terms(
+        self, config: TakeoffConfig, task: TaskParams, sim: DroneState, action: jax.Array, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         if config.reward == "paper":
             return {"takeoff": rewards.takeoff_paper(sim.pos[..., 2])}
         return _tracking_terms(config, task.target, sim)
@@ -216,40 +220,42 @@ class Velocity(Task):
     nonnegative_reward = True
     obs_size = 3
 
-    def obs_bound(self, config):
+    def obs_bound(self, config: VelocityConfig) -> np.ndarray:
         return np.full(3, VEL_BOUND, np.float32)
 
-    def start_defaults(self, config):
+    def start_defaults(self, config: VelocityConfig) -> dict:
         return dict(pos=[[0.0, 0.0, 2.0]], pos_range=(0.2, 0.2, 0.2), tilt=0.2, yaw=math.pi, vel=0.2, ang_vel=0.5)
 
-    def target(self, config):
+    def target(self, config: VelocityConfig) -> np.ndarray:
         return np.array([[0.0, 0.0, 2.0]])
 
-    def data(self, config):
+    def data(self, config: VelocityConfig) -> dict[str, np.ndarray]:
         return {"max_command": np.asarray(config.max_command), "target_vel": np.zeros((config.n_drones, 3))}
 
-    def weights(self, config):
+    def weights(self, config: VelocityConfig) -> dict[str, float]:
         if config.reward == "paper":
             return {"velocity_error_sq": -1.0}
         return {"velocity_tracking": 1.0, "altitude": 0.2, "ang_speed_sq": -ANG_SPEED_WEIGHT}
 
-    def sample(self, config, task, key):
+    def sample(self, config: VelocityConfig, task: TaskParams, key: jax.Array) -> TaskParams:
         cmd = task.data["max_command"] * jax.random.uniform(key, task.target.shape, task.target.dtype, -1.0, 1.0)
         return task.replace(data={**task.data, "target_vel": cmd})
 
-    def observe(self, config, task, sim, steps):
+    def observe(self, config: VelocityConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> jax.Array:
         return task.data["target_vel"]
 
-    def reference(self, config, task, steps):
+    def reference(self, config: VelocityConfig, task: TaskParams, steps: jax.Array) -> Reference:
         vel = task.data["target_vel"]
         return Reference(task.start.pos + vel * (steps / config.ctrl_freq), vel)
 
-    def loss_weights(self, config):
+    def loss_weights(self, config: VelocityConfig) -> dict[str, float]:
         # The reference position integrates the command from the start range's centre, not from the drone's own
         # start: only its velocity is tracked.
         return {"distance_sq": 0.0, "velocity_error_sq": 1.0, "ang_speed_sq": 0.01}
 
-    def reward_terms(self, config, task, sim, action, steps):
+    def reward_terms(
+        self, config: VelocityConfig, task: TaskParams, sim: DroneState, action: jax.Array, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         vel = task.data["target_vel"]
         if config.reward == "paper":
             return {"velocity_error_sq": rewards.velocity_error_sq(sim.vel, vel)}
@@ -260,7 +266,9 @@ class Velocity(Task):
             "ang_speed_sq": rewards.ang_speed_sq(sim.ang_vel),
         }
 
-    def metrics(self, config, task, sim, steps):
+    def metrics(
+        self, config: VelocityConfig, task: TaskParams, sim: DroneState, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         return {"velocity_error": jnp.mean(rewards.distance(sim.vel, task.data["target_vel"]))}
 
 
@@ -334,14 +342,16 @@ class ReferenceTask(Task):
     nonnegative_reward = True
     obs_size = 6
 
-    def obs_bound(self, config):
+    def obs_bound(self, config: TaskConfig) -> np.ndarray:
         return np.array([POS_BOUND] * 3 + [VEL_BOUND] * 3, np.float32)
 
-    def observe(self, config, task, sim, steps):
+    def observe(self, config: TaskConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> jax.Array:
         ref = self.reference(config, task, steps)
         return jnp.concatenate([ref.pos - sim.pos, ref.vel], axis=-1)
 
-    def reward_terms(self, config, task, sim, action, steps):
+    def reward_terms(
+        self, config: TaskConfig, task: TaskParams, sim: DroneState, action: jax.Array, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         return _tracking_terms(config, self.reference(config, task, steps).pos, sim)
 
 
@@ -361,13 +371,13 @@ class Waypoints(ReferenceTask):
     success_at = "mean"
     success_threshold = 0.1
 
-    def start_defaults(self, config):
+    def start_defaults(self, config: WaypointsConfig) -> dict:
         return dict(pos=[config.centre], pos_range=(0.1, 0.1, 0.1), tilt=0.1, yaw=math.pi, vel=0.1, ang_vel=0.2)
 
-    def target(self, config):
+    def target(self, config: WaypointsConfig) -> np.ndarray:
         return np.asarray([config.centre])
 
-    def data(self, config):
+    def data(self, config: WaypointsConfig) -> dict[str, np.ndarray]:
         n = int(round(config.episode_len_s * config.ctrl_freq)) + 2
         kind = {"circle": 0, "figure8": 1, "random": -1}[config.path]
         return {
@@ -376,10 +386,10 @@ class Waypoints(ReferenceTask):
             "radius": np.asarray(config.radius),
         }
 
-    def weights(self, config):
+    def weights(self, config: WaypointsConfig) -> dict[str, float]:
         return hover_weights(config, {"distance_sq": -1.0})
 
-    def sample(self, config, task, key):
+    def sample(self, config: WaypointsConfig, task: TaskParams, key: jax.Array) -> TaskParams:
         k_kind, k_r, k_phase, k_dir = jax.random.split(key, 4)
         dtype = task.target.dtype
         kind = jnp.where(
@@ -394,13 +404,15 @@ class Waypoints(ReferenceTask):
         start = task.start.replace(pos=points[0])
         return task.replace(start=start, data={**task.data, "waypoints": points})
 
-    def reference(self, config, task, steps):
+    def reference(self, config: WaypointsConfig, task: TaskParams, steps: jax.Array) -> Reference:
         points = task.data["waypoints"]
         k = jnp.minimum(steps, points.shape[0] - 2)
         pos, nxt = points[k], points[k + 1]
         return Reference(pos, (nxt - pos) * config.ctrl_freq)
 
-    def metrics(self, config, task, sim, steps):
+    def metrics(
+        self, config: WaypointsConfig, task: TaskParams, sim: DroneState, steps: jax.Array
+    ) -> dict[str, jax.Array]:
         return {"waypoint_distance": jnp.mean(rewards.distance(sim.pos, self.reference(config, task, steps).pos))}
 
 
