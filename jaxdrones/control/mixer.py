@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.typing import ArrayLike, DTypeLike
 
 from jaxdrones.physics.params import DroneParams, params_batch_shape
 
@@ -47,7 +48,7 @@ class RateGains:
     k_rate: jax.Array
 
     @classmethod
-    def flightmare(cls, dtype=None) -> RateGains:
+    def flightmare(cls, dtype: DTypeLike | None = None) -> RateGains:
         """K = diag(16.6, 16.6, 5.0) 1/s, in JAX's default float or ``dtype``.
 
         Source: the simple low-level controller of the Flightmare simulator (uzh-rpg/flightmare,
@@ -124,7 +125,7 @@ def _wrench_scale(params: DroneParams) -> jax.Array:
     return jnp.stack([1.0 / params.kf, arm, arm, 1.0 / params.km], axis=-1)
 
 
-def nnls_rpm_squared(params: DroneParams, wrench) -> jax.Array:
+def nnls_rpm_squared(params: DroneParams, wrench: ArrayLike) -> jax.Array:
     """Squared motor speeds for a desired wrench: the paper's DYN conversion (docs/physics.md §10.3), solved exactly.
 
     Minimises ‖W (A s − wrench)‖₂ over s ≥ 0, where A = `allocation_matrix` and W = diag(`wrench_scale`) =
@@ -157,7 +158,7 @@ def nnls_rpm_squared(params: DroneParams, wrench) -> jax.Array:
     return _nnls_rpm_squared(params, wrench)
 
 
-def wrench_to_rpm(params: DroneParams, wrench) -> jax.Array:
+def wrench_to_rpm(params: DroneParams, wrench: ArrayLike) -> jax.Array:
     """Motor speeds for a desired wrench: rpm = √s with s = `nnls_rpm_squared` (the paper's DYN action).
 
     Not clipped to ``max_rpm`` (the step clips). The square root is safe at 0: a motor at 0 RPM gets a zero, not
@@ -177,7 +178,9 @@ def wrench_to_rpm(params: DroneParams, wrench) -> jax.Array:
     return _wrench_to_rpm(params, wrench)
 
 
-def body_rate_torque(params: DroneParams, ang_vel, rate_cmd, gains: RateGains | None = None) -> jax.Array:
+def body_rate_torque(
+    params: DroneParams, ang_vel: ArrayLike, rate_cmd: ArrayLike, gains: RateGains | None = None
+) -> jax.Array:
     """Body torque of a proportional body-rate loop with gyroscopic feed-forward: τ = J K (ω* − ω) + ω × (J ω).
 
     With this torque the rigid body's Euler equation J ω̇ = τ − ω × (J ω) becomes ω̇ = K (ω* − ω): each body rate
@@ -201,7 +204,9 @@ def body_rate_torque(params: DroneParams, ang_vel, rate_cmd, gains: RateGains | 
     return _body_rate_torque(params, ang_vel, rate_cmd, gains)
 
 
-def body_rate_control(params: DroneParams, ang_vel, rate_cmd, thrust, gains: RateGains | None = None) -> jax.Array:
+def body_rate_control(
+    params: DroneParams, ang_vel: ArrayLike, rate_cmd: ArrayLike, thrust: ArrayLike, gains: RateGains | None = None
+) -> jax.Array:
     """Collective thrust and body rates (CTBR) to motor speeds: `body_rate_torque`, then `wrench_to_rpm`.
 
     The interface of real flight stacks (PX4's rate setpoint with collective thrust, Betaflight's acro mode): the

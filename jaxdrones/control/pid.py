@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.typing import ArrayLike, DTypeLike
 
 from jaxdrones.physics.params import DroneParams
 from jaxdrones.physics.rotations import quat_to_euler, quat_to_rotmat
@@ -92,7 +93,7 @@ class PIDGains:
     d_att: jax.Array
 
     @classmethod
-    def dsl(cls, dtype=None) -> PIDGains:
+    def dsl(cls, dtype: DTypeLike | None = None) -> PIDGains:
         """The DSL gains of the paper's controller (docs/physics.md §12.1), in JAX's default float or ``dtype``."""
         dtype = jnp.result_type(float) if dtype is None else dtype
         return cls(**{k: jnp.asarray(v, dtype=dtype) for k, v in DSL_GAINS.items()})
@@ -129,7 +130,7 @@ class PIDInfo(NamedTuple):
     thrust_pwm: jax.Array
 
 
-def pid_init(shape_or_state, dtype=None) -> PIDState:
+def pid_init(shape_or_state: DroneState | int | tuple[int, ...], dtype: DTypeLike | None = None) -> PIDState:
     """A zeroed `PIDState`, as after the original's ``reset()``.
 
     Args:
@@ -233,12 +234,12 @@ def pid_control(
     gains: PIDGains,
     pid_state: PIDState,
     state: DroneState,
-    target_pos,
+    target_pos: ArrayLike,
     *,
-    target_vel=None,
-    target_rpy=None,
-    target_rpy_rates=None,
-    ctrl_dt,
+    target_vel: ArrayLike | None = None,
+    target_rpy: ArrayLike | None = None,
+    target_rpy_rates: ArrayLike | None = None,
+    ctrl_dt: float | jax.Array,
 ) -> tuple[jax.Array, PIDState]:
     """One call of DSLPIDControl ``computeControl`` for every drone: motor speeds and the updated controller state.
 
@@ -266,12 +267,12 @@ def pid_compute(
     gains: PIDGains,
     pid_state: PIDState,
     state: DroneState,
-    target_pos,
+    target_pos: ArrayLike,
     *,
-    target_vel=None,
-    target_rpy=None,
-    target_rpy_rates=None,
-    ctrl_dt,
+    target_vel: ArrayLike | None = None,
+    target_rpy: ArrayLike | None = None,
+    target_rpy_rates: ArrayLike | None = None,
+    ctrl_dt: float | jax.Array,
 ) -> tuple[jax.Array, PIDState, PIDInfo]:
     """DSLPIDControl ``computeControl`` (docs/physics.md §12), batched.
 
@@ -401,7 +402,9 @@ def speed_limit(params: DroneParams) -> jax.Array:
     return 0.03 * params.max_speed_kmh * (1000.0 / 3600.0)
 
 
-def velocity_targets(state: DroneState, action, speed_limit) -> tuple[jax.Array, jax.Array, jax.Array]:
+def velocity_targets(
+    state: DroneState, action: ArrayLike, speed_limit: ArrayLike
+) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Map a desired-velocity action (vx, vy, vz, s) to PID targets (the VEL action, docs/physics.md §10.1-10.2).
 
     target position = current position; target velocity = speed_limit · |s| · (vx, vy, vz)/‖(vx, vy, vz)‖
@@ -438,7 +441,14 @@ def _velocity_targets(state, action, limit):
 
 
 def velocity_control(
-    params: DroneParams, gains: PIDGains, pid_state: PIDState, state: DroneState, action, *, ctrl_dt, limit=None
+    params: DroneParams,
+    gains: PIDGains,
+    pid_state: PIDState,
+    state: DroneState,
+    action: ArrayLike,
+    *,
+    ctrl_dt: float | jax.Array,
+    limit: ArrayLike | None = None,
 ) -> tuple[jax.Array, PIDState]:
     """Desired-velocity control (the paper's VEL action): `velocity_targets` followed by `pid_control`.
 

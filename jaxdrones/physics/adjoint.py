@@ -26,6 +26,7 @@ outside the substep (an input of it, differentiated by JAX), and a gradient with
 from __future__ import annotations
 
 import functools
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -47,8 +48,11 @@ from jaxdrones.physics.rotations import (
 )
 from jaxdrones.physics.state import Disturbance
 
+if TYPE_CHECKING:
+    from jaxdrones.physics.config import SimConfig
 
-def supported(config) -> bool:
+
+def supported(config: SimConfig) -> bool:
     """Whether a `jaxdrones.config.SimConfig` steps with `euler_substep_c`: ``adjoint=True`` with the Euler
     integrator and the kinks treated exactly (the defaults). Smooth and straight-through kinks (`jaxdrones.kinks`)
     and RK4 keep JAX's derived derivatives."""

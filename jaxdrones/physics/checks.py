@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike, DTypeLike
 
 from jaxdrones.physics.params import DroneParams, params_batch_shape
 from jaxdrones.physics.state import Disturbance, DroneState
@@ -16,7 +17,7 @@ if TYPE_CHECKING:
     from jaxdrones.physics.config import SimConfig
 
 
-def check_rpm(config: SimConfig, state: DroneState, rpm) -> jax.Array:
+def check_rpm(config: SimConfig, state: DroneState, rpm: ArrayLike) -> jax.Array | np.ndarray:
     """Validate an RPM command against the config and state; returns it as a float array of the state's dtype.
 
     Raises:
@@ -53,7 +54,7 @@ def check_state_shape(config: SimConfig, state: DroneState) -> tuple[int, ...]:
     return tuple(pos[:-1])
 
 
-def check_rpm_shape(config: SimConfig, state: DroneState, shape: tuple[int, ...], dtype) -> None:
+def check_rpm_shape(config: SimConfig, state: DroneState, shape: tuple[int, ...], dtype: DTypeLike) -> None:
     """Check an RPM command's shape and dtype (and the state's drone axis) against the config and state.
 
     Raises:
@@ -93,7 +94,7 @@ def check_params_batch(params: DroneParams, state: DroneState) -> None:
         )
 
 
-def check_disturbance(config: SimConfig, state: DroneState, disturbance) -> Disturbance | None:
+def check_disturbance(config: SimConfig, state: DroneState, disturbance: Disturbance | None) -> Disturbance | None:
     """Validate a step's `Disturbance` (or None); returns it with each given field broadcast to the state's
     ``[..., D, 3]`` in the state's dtype.
 

@@ -129,7 +129,7 @@ class SimConfig:
         )
 
 
-def downwash_model(value, name: str = "downwash") -> bool | str:
+def downwash_model(value: bool | str, name: str = "downwash") -> bool | str:
     """A downwash setting (`SimConfig.downwash`, `jaxdrones.envs.config.TaskConfig.downwash`) normalised: False
     (off), True (the paper's model, for True or ``"paper"``) or ``"per_rotor"``.
 

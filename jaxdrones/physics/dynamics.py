@@ -147,7 +147,7 @@ def accelerations_c(
     neighbors: jax.Array | None = None,
     downwash: jax.Array | None = None,
     disturbance: Disturbance | None = None,
-):
+) -> tuple[Components, Components]:
     """Linear (world, m/s²) and angular (body, rad/s²) accelerations, with the motors' output for the applied RPM
     (`motors_c`) and ``rpm_prev`` (4-tuple of f[..., D], the RPM of the previous substep, for drag only).
 
@@ -231,8 +231,8 @@ def add_downwash_c(lift: Components, downwash: jax.Array | Components | None) ->
 
 
 def euler_step_c(
-    params,
-    effects,
+    params: DroneParams,
+    effects: Effects,
     kin: Kinematics,
     motors: Motors,
     rpm_prev: Components,
@@ -257,8 +257,8 @@ def euler_step_c(
 
 
 def rk4_step_c(
-    params,
-    effects,
+    params: DroneParams,
+    effects: Effects,
     kin: Kinematics,
     motors: Motors,
     rpm_prev: Components,

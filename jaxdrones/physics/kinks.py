@@ -71,14 +71,14 @@ class Kinks:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
                 raise ValueError(f"Kinks.{name} (a smoothing band width) must be a number > 0, got {value!r}")
 
-    def maximum(self, x: jax.Array, floor, width: float) -> jax.Array:
+    def maximum(self, x: jax.Array, floor: jax.Array | float, width: float) -> jax.Array:
         """max(x, floor), treated by `mode` with band half-width ``width`` (x's units)."""
         exact = jnp.maximum(x, floor)
         if self.mode == "smooth":
             return floor + _soft_relu(x - floor, width)
         return _straight_through(x, exact) if self.mode == "straight_through" else exact
 
-    def clip(self, x: jax.Array, low, high, width: float) -> jax.Array:
+    def clip(self, x: jax.Array, low: jax.Array | float, high: jax.Array | float, width: float) -> jax.Array:
         """Clip x to [low, high], the kinks treated by `mode` with band half-width ``width`` at each bound
         (high - low > 2 width)."""
         exact = jnp.clip(x, low, high)
@@ -86,7 +86,7 @@ class Kinks:
             return low + _soft_relu(x - low, width) - _soft_relu(x - high, width)
         return _straight_through(x, exact) if self.mode == "straight_through" else exact
 
-    def choose(self, cond: jax.Array, weight: jax.Array, if_true, if_false: jax.Array) -> jax.Array:
+    def choose(self, cond: jax.Array, weight: jax.Array, if_true: jax.Array, if_false: jax.Array) -> jax.Array:
         """``where(cond, if_true, if_false)``: with ``mode="smooth"`` the blend by ``weight`` (the smooth degree of
         ``cond``, in [0, 1]); straight-through passes ``if_false``'s gradient as is."""
         if self.mode == "smooth":

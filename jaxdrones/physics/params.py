@@ -11,7 +11,9 @@ import dataclasses
 import math
 import os
 import xml.etree.ElementTree as ET
+from collections.abc import Callable, Sequence
 from importlib import resources
+from types import ModuleType
 from typing import NamedTuple
 
 import jax
@@ -149,7 +151,7 @@ def params_batch_shape(params: DroneParams) -> tuple[int, ...]:
     return batch
 
 
-def broadcast_params(params: DroneParams, lead: tuple[int, ...], xp=jnp) -> DroneParams:
+def broadcast_params(params: DroneParams, lead: tuple[int, ...], xp: ModuleType = jnp) -> DroneParams:
     """Broadcast every field of ``params`` to the batch shape ``lead`` (e.g. a state's ``[..., D]``).
 
     Args:
@@ -174,7 +176,9 @@ def broadcast_params(params: DroneParams, lead: tuple[int, ...], xp=jnp) -> Dron
     return DroneParams(**{f.name: widen(f.name, getattr(params, f.name)) for f in dataclasses.fields(params)})
 
 
-def pack_params(params: DroneParams, lead: tuple[int, ...]):
+def pack_params(
+    params: DroneParams, lead: tuple[int, ...]
+) -> tuple[jax.Array, Callable[[jax.Array | np.ndarray], DroneParams]]:
     """Pack params of batch shape ``lead`` into one array f[*lead, K], and return it with its inverse.
 
     Used to hand params to a host callback as a single array. The inverse takes an array f[*L, K] (``L`` may
@@ -186,7 +190,7 @@ def pack_params(params: DroneParams, lead: tuple[int, ...]):
     packed = jnp.concatenate([jnp.reshape(getattr(params, n), lead + (-1,)) for n in names], axis=-1)
     sizes = np.cumsum([math.prod(c) for c in cores])[:-1]
 
-    def unpack(array) -> DroneParams:
+    def unpack(array: jax.Array | np.ndarray) -> DroneParams:
         array = np.asarray(array)
         parts = np.split(array, sizes, axis=-1)
         return DroneParams(
@@ -405,7 +409,7 @@ class _PrimaryParams(NamedTuple):
     motor_tau_down: np.ndarray
 
 
-def derive_params(params, xp=jnp) -> dict:
+def derive_params(params: DroneParams, xp: ModuleType = jnp) -> dict:
     """The derived quantities of a model, recomputed from its primary fields (gym-pybullet-drones
     ``BaseAviary.__init__``, main ``envs/BaseAviary.py:117-128``; docs/physics.md §1.1).
 
@@ -446,7 +450,7 @@ def with_derived(params: DroneParams) -> DroneParams:
     return params.replace(**derive_params(params))
 
 
-def stack_params(models) -> DroneParams:
+def stack_params(models: Sequence[str | os.PathLike | DroneParams]) -> DroneParams:
     """Params of a team, one model per drone: every field gets a leading drone axis ``[D]``.
 
     Args:

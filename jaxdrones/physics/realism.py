@@ -17,12 +17,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.typing import ArrayLike, DTypeLike
 
 from jaxdrones._hints import did_you_mean
 from jaxdrones.physics.rotations import join, normalize_c, quat_integrate_c, split
@@ -195,7 +197,7 @@ PRESETS = {
 }
 
 
-def resolve(value) -> Realism | None:
+def resolve(value: Realism | str | Mapping[str, Any] | None) -> Realism | None:
     """A `Realism` from None (off), a preset name (`PRESETS`), a `Realism`, or a dict of its fields with an optional
     ``"preset"`` key whose settings the other keys override.
 
@@ -259,7 +261,9 @@ class RealismState:
     key: jax.Array
 
 
-def dryden_constants(turbulence, altitude, airspeed):
+def dryden_constants(
+    turbulence: ArrayLike, altitude: ArrayLike, airspeed: ArrayLike
+) -> tuple[tuple[ArrayLike, ArrayLike], tuple[jax.Array, jax.Array]]:
     """MIL-F-8785C's low-altitude Dryden constants (MIL-F-8785C §3.7.2.3; h < 1000 ft): σ_u = σ_v = ``turbulence``
     (m/s), σ_w = σ_u (0.177 + 0.000823 h)^0.4, L_u = L_v = h / (0.177 + 0.000823 h)^1.2, L_w = h (h in ft), and
     the filters' time constants T = L / V at the airspeed V = max(|mean wind|, `MIN_AIRSPEED`) m/s (the speed at
@@ -275,7 +279,7 @@ def dryden_constants(turbulence, altitude, airspeed):
     return (turbulence, turbulence * base**0.4), (length_u / speed, altitude / speed)
 
 
-def dryden_psd(omega, sigma, tau, longitudinal: bool):
+def dryden_psd(omega: ArrayLike, sigma: ArrayLike, tau: ArrayLike, longitudinal: bool) -> jax.Array | np.ndarray:
     """The Dryden spectra in time, two-sided, Φ(ω) with ∫ Φ dω / 2π = σ² (MIL-F-8785C's forms at airspeed V with
     T = L/V): Φ_u = σ² 2T / (1 + T²ω²); Φ_v = Φ_w = σ² T (1 + 3T²ω²) / (1 + T²ω²)². ω in rad/s."""
     x = (tau * omega) ** 2
@@ -338,7 +342,7 @@ class RealismModel:
 
     # -- reset ---------------------------------------------------------------------------------------------------
 
-    def reset(self, key: jax.Array, sim: DroneState, dtype) -> RealismState:
+    def reset(self, key: jax.Array, sim: DroneState, dtype: DTypeLike) -> RealismState:
         """The episode's draws and the buffers, filled with a zero action and the start state."""
         r, n = self.realism, self.n_drones
         k_values, k_bias, k_axis, k_dryden, k_dist, key = jax.random.split(key, 6)

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.typing import ArrayLike
 
 from jaxdrones.physics.rotations import quat_from_euler
 
@@ -78,7 +81,25 @@ def default_start_pos(n_drones: int) -> np.ndarray:
     return np.stack([4 * i * _CF2_ARM, 4 * i * _CF2_ARM, np.full(n_drones, DEFAULT_START_Z)], axis=-1)
 
 
-def init_state(config, *, pos=None, rpy=None, quat=None, vel=None, ang_vel=None, rpm=None) -> DroneState:
+class HasNDrones(Protocol):
+    """What `init_state` reads of its config: ``n_drones``, as a `jaxdrones.SimConfig` has it (the config module
+    imports this one, so the hint names the attribute rather than the class)."""
+
+    @property
+    def n_drones(self) -> int:
+        """The number of drones D."""
+
+
+def init_state(
+    config: HasNDrones,
+    *,
+    pos: ArrayLike | None = None,
+    rpy: ArrayLike | None = None,
+    quat: ArrayLike | None = None,
+    vel: ArrayLike | None = None,
+    ang_vel: ArrayLike | None = None,
+    rpm: ArrayLike | None = None,
+) -> DroneState:
     """Build a `DroneState` for ``config.n_drones`` drones, broadcasting the given fields to a common shape.
 
     Any field may carry leading world axes, e.g. ``pos`` f[W, D, 3]; all fields are broadcast to the same

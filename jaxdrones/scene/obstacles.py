@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 import os
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -96,7 +97,9 @@ PAPER_OBSTACLES = (
 )
 
 
-def resolve_obstacles(obstacles) -> tuple[Obstacle, ...]:
+def resolve_obstacles(
+    obstacles: bool | str | os.PathLike | Obstacle | Sequence[Obstacle | str | os.PathLike] | None,
+) -> tuple[Obstacle, ...]:
     """Normalise the ``obstacles`` argument of the PyBullet backend.
 
     Args:

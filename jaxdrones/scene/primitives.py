@@ -5,11 +5,16 @@ the drones drawn as the PyBullet backend draws them (`drone_primitives`). See `j
 from __future__ import annotations
 
 import numbers
+from collections.abc import Iterable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.typing import DTypeLike
+
+from jaxdrones.physics.params import DroneParams
+from jaxdrones.scene.obstacles import Obstacle
 
 __all__ = [
     "BODY_RGBA",
@@ -108,7 +113,7 @@ def _rotmat_from_rpy(rpy) -> np.ndarray:
     )
 
 
-def check_obstacles(obstacles) -> tuple:
+def check_obstacles(obstacles: Iterable[Obstacle]) -> tuple[Obstacle, ...]:
     """The obstacles as a tuple, or ValueError if one is not a primitive the JAX cameras draw (a URDF mesh: only
     Bullet draws those)."""
     obstacles = tuple(obstacles)
@@ -131,7 +136,12 @@ def _size(shape: str, size) -> tuple:
     return (size[0], 0.0, 0.0) if shape == "sphere" else (size[0], size[1] / 2, 0.0)
 
 
-def make_scene(obstacles=(), capacity: dict | int | None = None, ground: bool = True, dtype=jnp.float32) -> Scene:
+def make_scene(
+    obstacles: Iterable[Obstacle] = (),
+    capacity: dict[str, int] | int | None = None,
+    ground: bool = True,
+    dtype: DTypeLike = jnp.float32,
+) -> Scene:
     """A `Scene` from static obstacles, as the PyBullet backend takes them.
 
     Args:
@@ -236,7 +246,7 @@ def _safe_sqrt(x, ok):
     return jnp.sqrt(jnp.where(ok, x, 1.0))
 
 
-def drone_primitives(params, pos: jax.Array, rot: jax.Array, first_seg: int | jax.Array) -> dict:
+def drone_primitives(params: DroneParams, pos: jax.Array, rot: jax.Array, first_seg: int | jax.Array) -> dict:
     """The drones' visual shapes as primitives: per drone a box (the plate) and four cylinders (the propeller
     disks), with the drone's segmentation id ``first_seg + d``.
 

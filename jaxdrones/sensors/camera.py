@@ -42,11 +42,14 @@ import dataclasses
 import functools
 import math
 import numbers
+from collections.abc import Iterable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
+from jaxdrones.physics.params import DroneParams
 from jaxdrones.physics.rotations import quat_to_rotmat
 from jaxdrones.scene.primitives import (
     Scene,
@@ -114,7 +117,9 @@ ENV_IMAGES = {
 }  # body ids, -1: nothing seen
 
 
-def image_shapes(lead: tuple[int, ...], width: int, height: int, kinds=tuple(ENV_IMAGES)) -> dict:
+def image_shapes(
+    lead: tuple[int, ...], width: int, height: int, kinds: Iterable[str] = tuple(ENV_IMAGES)
+) -> dict[str, jax.ShapeDtypeStruct]:
     """``{kind: jax.ShapeDtypeStruct(lead + (height, width) + channels, dtype)}`` of `ENV_IMAGES`' ``kinds``."""
     return {
         k: jax.ShapeDtypeStruct(tuple(lead) + (height, width) + ENV_IMAGES[k].channels, ENV_IMAGES[k].dtype)
@@ -123,7 +128,7 @@ def image_shapes(lead: tuple[int, ...], width: int, height: int, kinds=tuple(ENV
 
 
 # --------------------------------------------------------------------------------------------- the camera spec
-def check_image_size(width, height) -> tuple[int, int]:
+def check_image_size(width: int, height: int) -> tuple[int, int]:
     """Width and height as positive ints (pixels), or ValueError."""
     for name, value in (("width", width), ("height", height)):
         if not isinstance(value, numbers.Integral) or isinstance(value, bool) or not 1 <= value <= 8192:
@@ -131,14 +136,16 @@ def check_image_size(width, height) -> tuple[int, int]:
     return int(width), int(height)
 
 
-def real(name: str, value) -> float:
+def real(name: str, value: ArrayLike) -> float:
     """``value`` as a Python float, or ValueError naming ``name`` if it is not a real scalar."""
     if isinstance(value, bool) or not isinstance(value, (numbers.Real, np.ndarray, jax.Array)) or np.ndim(value):
         raise ValueError(f"{name} must be a real number, got {value!r}")
     return float(value)
 
 
-def check_camera_args(width, height, fov, near, far) -> tuple[int, int, float, float | None, float]:
+def check_camera_args(
+    width: int, height: int, fov: float, near: float | None, far: float
+) -> tuple[int, int, float, float | None, float]:
     """Validate an onboard camera's settings; returns them as Python numbers.
 
     Raises:
@@ -224,7 +231,7 @@ class CameraSpec:
         return np.stack([np.ones_like(up), -right, up], -1).astype(np.float32)
 
 
-def camera_frames(spec: CameraSpec, params, pos: jax.Array, rot: jax.Array) -> tuple[jax.Array, jax.Array]:
+def camera_frames(spec: CameraSpec, params: DroneParams, pos: jax.Array, rot: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Each drone's eye f[..., D, 3] (m, world) and camera axes f[..., D, 3, 3] (world; columns forward, left, up),
     from its position, body → world rotation f[..., D, 3, 3] and ``spec`` (see the module docstring)."""
     dtype = pos.dtype
@@ -246,11 +253,11 @@ def camera_frames(spec: CameraSpec, params, pos: jax.Array, rot: jax.Array) -> t
 def render(
     spec: CameraSpec,
     scene: Scene,
-    params,
+    params: DroneParams,
     pos: jax.Array,
     quat: jax.Array,
     kinds: tuple[str, ...] = ("rgb", "depth", "seg"),
-) -> dict:
+) -> dict[str, jax.Array]:
     """Every drone's onboard camera images (see the module docstring for the camera model and the images).
 
     Each pixel's ray meets the primitives one after the other (the ground, then each slot of each shape), keeping
