@@ -10,6 +10,14 @@ a state's world axis over the devices, for a step or rollout to run on all of th
 from __future__ import annotations
 
 import socket
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, TypeVar
+
+if TYPE_CHECKING:
+    import jax
+
+#: A pytree type, kept through `shard_worlds`.
+Tree = TypeVar("Tree")
 
 #: Platforms `start` accepts for ``platform`` (JAX's names; ``gpu`` is CUDA or ROCm).
 PLATFORMS = ("cpu", "gpu", "cuda", "rocm", "tpu")
@@ -112,7 +120,7 @@ def _wait_for(host: str, port: int, timeout_s: int) -> None:
             time.sleep(0.2)
 
 
-def shard_worlds(tree, axis: int = 0, devices=None):
+def shard_worlds(tree: Tree, axis: int = 0, devices: Sequence[jax.Device] | None = None) -> Tree:
     """Spread the world axis of every array in ``tree`` over devices, for a step or rollout to run on all of them.
 
     Each leaf is placed with a `jax.sharding.NamedSharding` over a 1-D mesh ``("worlds",)``: device k holds a

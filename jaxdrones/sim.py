@@ -6,6 +6,8 @@ the same signature. Also re-exports the core's `rollout`, `SimConfig` and `StepF
 
 from __future__ import annotations
 
+from typing import Any
+
 from jaxdrones.backends import BACKENDS
 from jaxdrones.devices import shard_worlds
 from jaxdrones.physics.config import SimConfig
@@ -15,7 +17,7 @@ from jaxdrones.physics.step import JaxStep, StepFn, physics_substep_c, rollout
 __all__ = ["Disturbance", "JaxStep", "SimConfig", "StepFn", "make_step", "physics_substep_c", "rollout", "shard_worlds"]
 
 
-def make_step(config: SimConfig, backend: str = "jax", **options) -> StepFn:
+def make_step(config: SimConfig, backend: str = "jax", **options: Any) -> StepFn:
     """Build the control step ``step(params, state, rpm) -> state`` for a config.
 
     One call holds ``rpm`` over ``config.n_substeps`` physics substeps (run under ``lax.scan``). RPMs are clipped

@@ -5,6 +5,8 @@ Both are called as ``step(params, state, rpm) -> state`` and declare what else t
 `SimConfig`), ``has_cameras`` (whether ``camera_images`` and ``render`` exist) and ``close()``.
 """
 
+from types import ModuleType
+
 #: Physics backends accepted by `jaxdrones.sim.make_step`.
 BACKENDS = ("jax", "pybullet")
 #: Renderers of the PyBullet backend: TinyRenderer (CPU) or OpenGL through EGL (headless GPU).
@@ -18,7 +20,7 @@ PYBULLET_INSTALL = (
 )
 
 
-def require_pybullet():
+def require_pybullet() -> ModuleType:
     """Import and return the ``pybullet`` module, which only ``backend="pybullet"`` and the PyBullet examples use.
 
     Raises:

@@ -45,12 +45,15 @@ from __future__ import annotations
 
 import math
 import numbers
+from typing import Any
 
 import jax
 import numpy as np
+from jax.typing import ArrayLike
 
 from jaxdrones.backends import require_pybullet
 from jaxdrones.physics.checks import check_params_batch, check_state_shape
+from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.params import DroneParams, broadcast_params, pack_params
 from jaxdrones.physics.state import DroneState
 from jaxdrones.sensors.camera import ENV_IMAGES, EYE_MARGIN, check_camera_args, check_image_size, image_shapes
@@ -67,7 +70,7 @@ _BULLET_RENDERER = {"tiny": pybullet.ER_TINY_RENDERER, "egl": pybullet.ER_BULLET
 
 
 # --------------------------------------------------------------------------------------------- pure camera math
-def projection_matrix(fov: float, aspect: float, near, far: float) -> np.ndarray:
+def projection_matrix(fov: float, aspect: float, near: float | np.ndarray, far: float) -> np.ndarray:
     """OpenGL perspective projection matrices, as ``pybullet.computeProjectionMatrixFOV`` builds them.
 
     Args:
@@ -121,7 +124,7 @@ def onboard_view_matrices(pos: np.ndarray, quat: np.ndarray, offset: np.ndarray)
     return out
 
 
-def zbuffer_to_depth(z: np.ndarray, near, far: float) -> np.ndarray:
+def zbuffer_to_depth(z: np.ndarray, near: float | np.ndarray, far: float) -> np.ndarray:
     """Bullet's normalised z-buffer z ∈ [0, 1] → distance along the optical axis, m.
 
     depth = far·near / (far − (far − near)·z), the inverse of OpenGL's perspective depth mapping (z = 0 at the near
@@ -131,7 +134,7 @@ def zbuffer_to_depth(z: np.ndarray, near, far: float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------- argument checks
-def check_pose(config, state: DroneState) -> tuple[int, ...]:
+def check_pose(config: SimConfig, state: DroneState) -> tuple[int, ...]:
     """Check that ``state`` has real pos f[..., D, 3] and quat f[..., D, 4] with D = n_drones; returns [..., D].
 
     Raises:
@@ -151,7 +154,7 @@ def _is_traced(*xs) -> bool:
 
 # --------------------------------------------------------------------------------------------- onboard cameras
 def camera_images(
-    step,
+    step: Any,
     params: DroneParams,
     state: DroneState,
     *,
@@ -161,7 +164,8 @@ def camera_images(
     near: float | None = None,
     far: float = 100.0,
 ) -> dict:
-    """The onboard camera images of every drone; see ``PyBulletStep.camera_images``."""
+    """The onboard camera images of every drone; see ``PyBulletStep.camera_images`` (``step``: that
+    `jaxdrones.backends.pybullet.PyBulletStep`, which imports this module)."""
     step.check_open()
     width, height, fov, near, far = check_camera_args(width, height, fov, near, far)
     lead = check_pose(step.config, state)
@@ -281,19 +285,19 @@ def _capture_world(world, pos, quat, ok, views, projections, image, rgb, zbuf, s
 
 # --------------------------------------------------------------------------------------------- third-person view
 def render(
-    step,
+    step: Any,
     params: DroneParams,
     state: DroneState,
     *,
     world: int = 0,
     width: int = 640,
     height: int = 480,
-    target=None,
+    target: ArrayLike | None = None,
     distance: float = 1.5,
     yaw: float = -30.0,
     pitch: float = -30.0,
 ) -> np.ndarray:
-    """A third-person image of one world; see ``PyBulletStep.render``."""
+    """A third-person image of one world; see ``PyBulletStep.render`` (``step``: that `PyBulletStep`)."""
     step.check_open()
     width, height = check_image_size(width, height)
     lead = check_pose(step.config, state)
@@ -342,13 +346,20 @@ def render(
 
 
 def held_images(
-    step, params: DroneParams, sim: DroneState, due: jax.Array, held: dict, width: int, height: int, fov: float = 60.0
+    step: Any,
+    params: DroneParams,
+    sim: DroneState,
+    due: jax.Array,
+    held: dict,
+    width: int,
+    height: int,
+    fov: float = 60.0,
 ) -> dict:
     """One world's camera images on the PyBullet backend, as an env holds them (`jaxdrones.envs.env.TaskEnv`):
-    `camera_images` if the render is ``due`` (bool[]), else ``held`` (the last images, [D, H, W(, 4)]), in one host
-    callback, with vertical field of view ``fov`` (degrees). Under ``vmap`` (where `jax.lax.cond` runs both branches)
-    only the due worlds are rendered, and a world whose pose is not finite reads the blank images of `ENV_IMAGES`
-    (rgb 0, depth NaN, seg -1)."""
+    `camera_images` (``step``: the `PyBulletStep`) if the render is ``due`` (bool[]), else ``held`` (the last
+    images, [D, H, W(, 4)]), in one host callback, with vertical field of view ``fov`` (degrees). Under ``vmap``
+    (where `jax.lax.cond` runs both branches) only the due worlds are rendered, and a world whose pose is not finite
+    reads the blank images of `ENV_IMAGES` (rgb 0, depth NaN, seg -1)."""
     spec = image_shapes(np.shape(sim.pos)[:-1], width, height, tuple(held))
 
     def render(params, sim, due, held):

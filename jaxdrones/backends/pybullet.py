@@ -39,6 +39,7 @@ import weakref
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from jaxdrones.backends import RENDERERS, camera, require_pybullet, scene
 from jaxdrones.physics import aerodynamics
@@ -244,7 +245,7 @@ class PyBulletStep:
             callback, shapes, packed_params, kinematics, state.contact, rpm, *extra, vmap_method="broadcast_all"
         )
 
-    def host_params(self, params: DroneParams, pos, by_value: bool = False) -> dict:
+    def host_params(self, params: DroneParams, pos: jax.Array | np.ndarray, by_value: bool = False) -> dict:
         """The host-side params (`_host_params`) for drone positions ``pos`` f[*L, D, 3], cached: by identity of
         ``params`` (concrete inputs, whose batch is checked here), or ``by_value`` (the fresh NumPy arrays of a
         callback)."""
@@ -523,7 +524,7 @@ class PyBulletStep:
         world: int = 0,
         width: int = 640,
         height: int = 480,
-        target=None,
+        target: ArrayLike | None = None,
         distance: float = 1.5,
         yaw: float = -30.0,
         pitch: float = -30.0,

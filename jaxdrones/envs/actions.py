@@ -107,7 +107,7 @@ class ActionType:
         return pid_init(sim) if self.uses_pid else ()
 
     def to_rpm(
-        self, params: DroneParams, sim: DroneState, carry, action: jax.Array, ref: Reference, ctrl_dt: float
+        self, params: DroneParams, sim: DroneState, carry: Any, action: jax.Array, ref: Reference, ctrl_dt: float
     ) -> tuple[jax.Array, Any]:
         """Map ``action`` f[..., D, size] (already clipped to the box) to an RPM command.
 

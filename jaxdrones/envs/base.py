@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import abc
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 from flax import struct
 
 from jaxdrones.physics.params import DroneParams
 from jaxdrones.physics.state import DroneState
+
+if TYPE_CHECKING:
+    from jaxdrones.envs.task import TaskParams
 
 
 @struct.dataclass
@@ -95,7 +98,7 @@ class Env(abc.ABC):
         self.close()
 
     @property
-    def shared_params(self):
+    def shared_params(self) -> DroneParams | None:
         """The `DroneParams` (batch shape [D]) that every world and episode uses, or None when ``reset`` draws them
         (domain randomisation). Batched wrappers keep shared params once rather than once per world: a step that
         reads them per world is about a fifth slower on CPU."""
@@ -107,7 +110,7 @@ class Env(abc.ABC):
         return None
 
     @abc.abstractmethod
-    def reset(self, key: jax.Array, task=None) -> EnvState:
+    def reset(self, key: jax.Array, task: TaskParams | None = None) -> EnvState:
         """Start an episode from a PRNG key (typed ``jax.random.key`` or raw uint32)."""
 
     @abc.abstractmethod

@@ -14,6 +14,7 @@ from typing import Any
 
 import jax
 import numpy as np
+from jax.typing import ArrayLike
 
 from jaxdrones._hints import did_you_mean
 from jaxdrones.backends import BACKENDS, RENDERERS, require_pybullet
@@ -363,7 +364,7 @@ def _finite_tuple(name: str, value, n: int, nonneg: bool = False) -> tuple[float
     return tuple(float(v) for v in arr)
 
 
-def fixed_triples(name: str, value, n: int):
+def fixed_triples(name: str, value: ArrayLike | None, n: int) -> tuple[tuple[float, float, float], ...] | None:
     """A fixed start (``init_pos``, ``init_rpy``, or the compat aviaries' ``initial_xyzs``) as a hashable tuple of
     D triples, or None; a single triple is taken for D = 1.
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike, DTypeLike
 
 from jaxdrones._fork import check_not_forked
 from jaxdrones.envs import rewards
@@ -31,7 +32,7 @@ CLIP_TOLERANCE = 1e-6
 _REALISM_STREAM = 0x5EA1
 
 
-def outside_box(action, low, high):
+def outside_box(action: ArrayLike, low: ArrayLike, high: ArrayLike) -> jax.Array | np.ndarray:
     """bool[...]: the entries of ``action`` below ``low`` or above ``high`` by more than `CLIP_TOLERANCE` (NumPy or
     JAX arrays): those the env clips and counts, and ``strict_actions`` refuses."""
     return (action < low - CLIP_TOLERANCE) | (action > high + CLIP_TOLERANCE)
@@ -110,7 +111,7 @@ class TaskEnv(Env):
         return int(round(self.config.episode_len_s * self.config.ctrl_freq))
 
     @property
-    def dtype(self):
+    def dtype(self) -> np.dtype:
         return self.params.mass.dtype
 
     @property
@@ -122,7 +123,7 @@ class TaskEnv(Env):
         return None if drawn else self.params
 
     @property
-    def observation_spec(self):
+    def observation_spec(self) -> jax.ShapeDtypeStruct | dict[str, jax.ShapeDtypeStruct]:
         """Shape and dtype of the observation: a `jax.ShapeDtypeStruct`, or with vision a dict of them."""
         state = jax.ShapeDtypeStruct((self.n_drones, self.observation_size), self.dtype)
         if not self.config.vision:
@@ -419,7 +420,7 @@ class TaskEnv(Env):
         }
 
 
-def sample_start(key: jax.Array, start: StartRanges, dtype) -> DroneState:
+def sample_start(key: jax.Array, start: StartRanges, dtype: DTypeLike) -> DroneState:
     """A random start state of D drones, uniform in ``start`` (see `StartRanges`), at rest in the motors.
 
     Positions are kept at or above the resting height of the collision cylinder's base (z ≥ 0.0125 m is the

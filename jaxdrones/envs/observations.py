@@ -251,7 +251,7 @@ _LAYOUTS = {
 DEPTH_SCALE = 5.0
 
 
-def policy_input(obs):
+def policy_input(obs: jax.Array | dict[str, jax.Array]) -> jax.Array | dict[str, jax.Array]:
     """A world's observation as a policy takes it (brax's conventions; what `jaxdrones.adapters.brax.BraxEnv`
     gives its trainers and `jaxdrones.training.evaluation.act` gives a policy).
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import Any
 
 from jaxdrones._hints import unknown_option
 from jaxdrones.envs.config import TaskConfig
@@ -42,7 +43,7 @@ def get_task(name: str) -> Task:
     return _REGISTRY[name]
 
 
-def make_config(name: str, **overrides) -> TaskConfig:
+def make_config(name: str, **overrides: Any) -> TaskConfig:
     """The task's config with ``overrides`` (fields of its `TaskConfig` subclass, and `Realism` fields: see `make`).
 
     Raises:
@@ -60,7 +61,7 @@ def make_config(name: str, **overrides) -> TaskConfig:
     return task.config_cls(**overrides)
 
 
-def make(name: str, **overrides) -> TaskEnv:
+def make(name: str, **overrides: Any) -> TaskEnv:
     """Build a registered environment, e.g. ``jd.make("hover", action_type="one_d_rpm")`` or
     ``jd.make("leader_follower", n_drones=3)``.
 

@@ -10,7 +10,7 @@ termination (`jaxdrones.envs.terminations`) modules.
 from __future__ import annotations
 
 import abc
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -22,6 +22,9 @@ from jaxdrones.envs.actions import Reference
 from jaxdrones.envs.config import TaskConfig
 from jaxdrones.physics.state import DroneState
 from jaxdrones.scene import resolve_obstacles
+
+if TYPE_CHECKING:
+    from jaxdrones.scene.primitives import Scene
 
 
 @struct.dataclass
@@ -171,7 +174,7 @@ class Task(abc.ABC):
         """Per-episode randomness of the task params (default: none)."""
         return task
 
-    def scene(self, config: TaskConfig):
+    def scene(self, config: TaskConfig) -> Scene:
         """What the JAX backend's cameras see (`TaskParams.scene`), built once per env: by default the config's
         ``obstacles`` (`jaxdrones.cameras.make_scene`)."""
         from jaxdrones.scene.primitives import make_scene

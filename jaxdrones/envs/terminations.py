@@ -3,6 +3,8 @@ combine into the world's ``terminated`` (usually: any drone)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 
@@ -26,12 +28,13 @@ def not_finite(sim: DroneState) -> jax.Array:
     return ~jnp.all(jnp.stack([jnp.all(jnp.isfinite(x), axis=-1) for x in parts]), axis=0)
 
 
-def crashed(sim: DroneState, bounds, terminate_on_ground: bool) -> jax.Array:
+def crashed(sim: DroneState, bounds: Any, terminate_on_ground: bool) -> jax.Array:
     """Out of the arena, tilted beyond the limit, not finite or (if asked) touching the ground: bool[..., D].
 
     Args:
         sim: the drones' state.
-        bounds: `jaxdrones.envs.task.Bounds` (pos_low, pos_high f[3] m; max_tilt f[] rad).
+        bounds: a `jaxdrones.envs.task.Bounds` (pos_low, pos_high f[3] m; max_tilt f[] rad); typed `Any` as that
+            module imports this one.
         terminate_on_ground: count ground contact as a crash.
     """
     out = out_of_bounds(sim.pos, bounds.pos_low, bounds.pos_high) | tilted(sim.quat, bounds.max_tilt)

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 #: Rows of each column: (result key, column title, component labels, unit).
 _GROUPS = (
@@ -176,7 +177,16 @@ def plot_learning_curve(
     return _save(plt, fig, path, title)
 
 
-def plot_task_flight(times, pos, ref_pos, vel, rpm, path: str | os.PathLike, *, title: str | None = None) -> str:
+def plot_task_flight(
+    times: ArrayLike,
+    pos: ArrayLike,
+    ref_pos: ArrayLike,
+    vel: ArrayLike,
+    rpm: ArrayLike,
+    path: str | os.PathLike,
+    *,
+    title: str | None = None,
+) -> str:
     """An evaluation flight of a task: position against the task's reference, velocity and motor speeds.
 
     Args:
@@ -216,7 +226,14 @@ def plot_task_flight(times, pos, ref_pos, vel, rpm, path: str | os.PathLike, *, 
 
 
 def plot_hover_flight(
-    times, pos, vel, rpm, target_z: float, path: str | os.PathLike, *, title: str | None = None
+    times: ArrayLike,
+    pos: ArrayLike,
+    vel: ArrayLike,
+    rpm: ArrayLike,
+    target_z: float,
+    path: str | os.PathLike,
+    *,
+    title: str | None = None,
 ) -> str:
     """The paper's hover figure: altitude, vertical velocity and the four motor speeds against time.
 
@@ -253,7 +270,14 @@ def plot_hover_flight(
 
 
 def plot_velocity_tracking(
-    times, vel, vel_cmd, path: str | os.PathLike, *, settled=None, title: str | None = None, note: str | None = None
+    times: ArrayLike,
+    vel: ArrayLike,
+    vel_cmd: ArrayLike,
+    path: str | os.PathLike,
+    *,
+    settled: ArrayLike | None = None,
+    title: str | None = None,
+    note: str | None = None,
 ) -> str:
     """Commanded vs reached velocity: one row per drone, one column per world axis (vx, vy, vz).
 
@@ -301,9 +325,9 @@ def plot_velocity_tracking(
 
 
 def plot_takeoff_comparison(
-    times,
+    times: ArrayLike,
     runs: Mapping[str, Mapping],
-    target_z,
+    target_z: ArrayLike,
     path: str | os.PathLike,
     *,
     title: str | None = None,
@@ -351,13 +375,13 @@ def plot_takeoff_comparison(
 
 
 def plot_altitude_comparison(
-    times,
+    times: ArrayLike,
     runs: Mapping[str, np.ndarray],
-    target_z,
+    target_z: ArrayLike,
     path: str | os.PathLike,
     *,
-    drone_labels=None,
-    shade=None,
+    drone_labels: Sequence[str] | None = None,
+    shade: ArrayLike | None = None,
     title: str | None = None,
     note: str | None = None,
 ) -> str:
@@ -414,7 +438,14 @@ def _save_with_note(plt, fig, path: str | os.PathLike, title: str | None, note: 
 
 
 def render_state(
-    pos, quat, *, arm: float = 0.0397, targets=None, width: int = 480, height: int = 480, title: str | None = None
+    pos: ArrayLike,
+    quat: ArrayLike,
+    *,
+    arm: float = 0.0397,
+    targets: ArrayLike | None = None,
+    width: int = 480,
+    height: int = 480,
+    title: str | None = None,
 ) -> np.ndarray:
     """A 3-D view of drones drawn with matplotlib, as an RGB image (what ``render()`` shows on the JAX backend).
 

@@ -16,6 +16,7 @@ import os
 import warnings
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 #: File extensions and their formats.
 FORMATS = {".mp4": "mp4", ".gif": "gif"}
@@ -87,7 +88,7 @@ class VideoWriter:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def append(self, frame) -> None:
+    def append(self, frame: ArrayLike) -> None:
         """Add one frame, uint8[H, W, 3] RGB (NumPy or JAX array), row 0 at the top.
 
         Raises:

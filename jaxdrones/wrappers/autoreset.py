@@ -15,10 +15,15 @@ Two forms with the same result:
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import jax
 import jax.numpy as jnp
 
 from jaxdrones.envs.base import Env, EnvState, world_axes
+
+if TYPE_CHECKING:
+    from jaxdrones.envs.task import TaskParams
 
 #: What a world's state keeps from the step that ended its episode when it is reset in the same call (brax's
 #: convention): the reward, flags and metrics of that step, and the info with its final observation.
@@ -66,7 +71,7 @@ class AutoReset(_Wrapper):
     params are new, while the task params' ranges and weights carry over.
     """
 
-    def reset(self, key: jax.Array, task=None) -> EnvState:
+    def reset(self, key: jax.Array, task: TaskParams | None = None) -> EnvState:
         return _final_info(self.env.reset(key, task))
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
@@ -100,7 +105,7 @@ class VmapAutoReset(_Wrapper):
         """Whether the state's ``params`` are shared by every world (batch shape [D]) rather than per world."""
         return self.env.shared_params is not None
 
-    def reset(self, key: jax.Array, task=None) -> EnvState:
+    def reset(self, key: jax.Array, task: TaskParams | None = None) -> EnvState:
         """Start W episodes from keys [W] (typed or raw uint32 [W, 2]); ``task`` as in the env, with axis [W]."""
         axes = world_axes(self.params_shared)
         if task is None:
