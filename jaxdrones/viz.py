@@ -219,7 +219,7 @@ def flight_data(states) -> dict:
         name = "rgb" if "rgb" in states.obs else "depth" if "depth" in states.obs else None
         if name is not None:
             images = states.obs[name]
-            if images.ndim == pos.ndim + (2 if name == "rgb" else 1):  # [..., D, K, H, W(, C)]: the newest frame
+            if images.ndim == pos.ndim + (3 if name == "rgb" else 2):  # [..., D, K, H, W(, C)]: the newest frame
                 images = images[(slice(None),) * (pos.ndim - 1) + (-1,)]
     return {
         "pos": pos,

@@ -9,6 +9,7 @@ import colorsys
 import io
 import json
 import math
+import os
 import pathlib
 import re
 import shutil
@@ -382,3 +383,118 @@ def test_browser_shows_the_drones_where_the_rollout_puts_them(tmp_path):
         assert mask[~near].sum() <= 5, f"drone at {where}: {mask[~near].sum()} pixels of its colour elsewhere"
         centre = np.array([cols[mask].mean(), rows[mask].mean()])
         assert np.linalg.norm(centre - (u, v)) < 12, f"drone at {where} drawn at {centre}, expected ({u:.0f}, {v:.0f})"
+
+
+# --------------------------------------------------------------------------------------------- videos
+def test_video_draws_the_drone_where_it_is(tmp_path):
+    from PIL import Image
+
+    pos = np.array([[0.0, 0.0, 1.0], [0.0, 3.0, 1.0]]) + np.linspace(0, 0.3, 6)[:, None, None] * [1, 0, 0]
+    flight = Flight(pos, np.tile([0.0, 0, 0, 1], (6, 2, 1)), 1 / 30)  # drone 0 moves away along the optical axis
+    eye, target = np.array([-0.8, 0.0, 1.6]), np.array([0.0, 0.0, 1.0])  # drone 0 ahead, below; drone 1 out of view
+    path = viz.write_video(tmp_path / "v.gif", flight, camera=(eye, target), width=128, height=96, trail_s=0)
+    gif = Image.open(path)
+    assert gif.n_frames == 6 and gif.size == (128, 96)
+    frame = np.asarray(gif.convert("RGB")).astype(int)
+    blue = np.all(np.abs(frame - viz.DRONE_COLORS[0]) < 60, axis=-1)  # drone 0's colour, shaded
+    rows, cols = np.nonzero(blue)
+    assert blue.sum() >= 10 and abs(cols.mean() - 63.5) < 3 and abs(rows.mean() - 47.5) < 3  # at the image's centre
+    ground = np.all(frame == 184, axis=-1)  # GROUND_RGB 0.72 (the view looks down: no sky)
+    assert ground.mean() > 0.8 and not np.any(np.all(frame == viz.SKY_RGB, axis=-1))
+    with pytest.raises(FileExistsError):
+        viz.write_video(path, flight, camera="fixed")
+    chase = viz.write_video(tmp_path / "c.mp4", flight, camera="chase", drone=1, width=32, height=24)
+    assert os.path.getsize(chase) > 0
+
+
+def test_video_rejects_bad_options(tmp_path):
+    flight = level(3, [[0, 0, 1]])
+    for kwargs, message in [
+        ({"camera": "orbit"}, "camera must be one of"),
+        ({"world": 1}, r"world must be an index in \[0, 1\)"),
+        ({"drone": -1}, "drone must be"),
+        ({"chase": (0, 0)}, "chase must be"),
+        ({"width": 0}, "width"),
+        ({"max_fps": 0}, "max_fps"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            viz.write_video(tmp_path / "v.gif", flight, **kwargs)
+    with pytest.raises(ValueError, match="extension"):
+        viz.write_video(tmp_path / "v.avi", flight)
+    assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------------------------- envs and runs
+@pytest.mark.slow
+@needs_viser
+def test_flight_of_a_vision_env_with_a_gate_per_episode(tmp_path):
+    import jax
+
+    import jaxdrones as jd
+    from jaxdrones.training.run import VISION_ENV
+
+    env = jd.make("fly_thru_gate", **VISION_ENV["fly_thru_gate"], vision=("rgb",))
+
+    def episode(key):  # the reset state and 3 steps of a zero action
+        state = env.reset(key)
+
+        def step(s, _):
+            s = env.step(s, jax.numpy.zeros((env.n_drones, env.action_size)))
+            return s, s
+
+        _, states = jax.lax.scan(step, state, None, length=3)
+        return jax.tree.map(lambda a, b: jax.numpy.concatenate([a[None], b]), state, states)
+
+    states = jax.jit(jax.vmap(episode))(jax.random.split(jax.random.key(0), 2))
+    flight = Flight.from_states(env, states, time_axis=1)
+    assert (flight.n_frames, flight.n_worlds, flight.n_drones) == (4, 2, 1)
+    assert flight.dt == pytest.approx(1 / env.config.ctrl_freq)
+    assert flight.images.shape == (4, 2, 1, 48, 64, 3)
+    gates = [np.array([c for _, c, *_ in viz._primitives(flight.scene, w)]) for w in range(2)]
+    assert len(gates[0]) == 3 and not np.allclose(gates[0], gates[1])  # the gate's three boxes, drawn per episode
+    assert np.linalg.norm(viz._world_offsets(flight, None)[1]) > 2.0  # episodes side by side
+    html = tmp_path / "gate.html"
+    viz.write_html(html, flight)
+    assert html.stat().st_size > 100_000
+
+
+@pytest.mark.slow
+@needs_viser
+def test_train_writes_flight_html_and_view_writes_a_run(tmp_path, capsys):
+    from jaxdrones.cli import main
+    from jaxdrones.training import train_task
+    from jaxdrones.training.apg import APGConfig
+
+    out = str(tmp_path / "hover")
+    summary = train_task(
+        "hover",
+        out,
+        algo="apg",
+        config=APGConfig(num_timesteps=16_384, num_evals=1),
+        n_eval_episodes=64,
+        progress=False,
+    )
+    assert os.path.getsize(os.path.join(out, "flight.html")) > 100_000
+    assert summary["phases_s"]["viewer"] < 30
+    assert main(["view", out, "--episodes", "2", "--out", str(tmp_path / "v.html")]) == 0
+    assert "wrote" in capsys.readouterr().out and (tmp_path / "v.html").stat().st_size > 100_000
+    assert main(["view", out, "--episodes", "2", "--out", str(tmp_path / "v.html")]) == 2
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+    assert main(["view", str(tmp_path), "--out", str(tmp_path / "w.html")]) == 2  # no policy there
+    assert "no saved policy" in capsys.readouterr().err
+
+
+def test_flight_data_takes_the_newest_frame_of_a_stack():
+    from types import SimpleNamespace
+
+    pos, quat = circle(3, 1, 2)
+    sim = SimpleNamespace(pos=pos[:, 0], quat=quat[:, 0])  # [T, D, ...]
+    stack = np.zeros((3, 2, 4, 6, 8, 4), np.uint8)  # [T, D, K, H, W, 4]
+    stack[:, :, -1] = 200
+    states = SimpleNamespace(sim=sim, params=SimpleNamespace(arm=np.full(2, 0.05)), task=None, obs={"rgb": stack})
+    data = viz.flight_data(states)
+    assert data["images"].shape == (3, 2, 6, 8, 4) and np.all(data["images"] == 200) and data["scene"] is None
+    single = viz.flight_data(SimpleNamespace(**{**vars(states), "obs": {"rgb": stack[:, :, 0]}}))["images"]
+    assert single.shape == (3, 2, 6, 8, 4)
+    depth = viz.flight_data(SimpleNamespace(**{**vars(states), "obs": {"depth": np.ones((3, 2, 4, 6, 8))}}))["images"]
+    assert depth.shape == (3, 2, 6, 8)
