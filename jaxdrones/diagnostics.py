@@ -10,6 +10,7 @@ as in short-horizon actor-critic) can be chosen from data.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -18,7 +19,7 @@ import numpy as np
 from jaxdrones.envs.base import Env, EnvState
 
 
-def episode_return(env: Env, policy: Callable, policy_params, state: EnvState, horizon: int) -> jax.Array:
+def episode_return(env: Env, policy: Callable, policy_params: Any, state: EnvState, horizon: int) -> jax.Array:
     """Sum over ``horizon`` control steps of the drones' summed reward, the policy acting on the observation.
 
     Args:
@@ -42,7 +43,7 @@ def episode_return(env: Env, policy: Callable, policy_params, state: EnvState, h
 def return_gradient_stats(
     env: Env,
     policy: Callable,
-    policy_params,
+    policy_params: Any,
     key: jax.Array,
     horizons: Sequence[int] = (10, 30, 100, 300),
     n_starts: int = 64,

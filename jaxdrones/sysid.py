@@ -18,11 +18,13 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jax.typing import ArrayLike
 
 from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.params import DroneParams, with_derived
@@ -170,9 +172,9 @@ def fit(
     config: SimConfig,
     params0: DroneParams,
     init_state: DroneState,
-    rpms,
+    rpms: ArrayLike,
     observed: DroneState,
-    fields=("kf", "km", "drag_coeff"),
+    fields: Sequence[str] = ("kf", "km", "drag_coeff"),
     *,
     window: int = 10,
     noise: dict | None = None,

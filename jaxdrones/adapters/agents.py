@@ -6,6 +6,8 @@ Used by `jaxdrones.adapters.pettingzoo` and `jaxdrones.adapters.jaxmarl`; import
 
 from __future__ import annotations
 
+from typing import Any
+
 from jaxdrones.envs import MULTI_AGENT, SINGLE_AGENT, TaskEnv, make
 
 
@@ -14,7 +16,7 @@ def agent_names(n_drones: int) -> list[str]:
     return [f"drone_{i}" for i in range(n_drones)]
 
 
-def make_multi_agent(task: str, **options) -> TaskEnv:
+def make_multi_agent(task: str, **options: Any) -> TaskEnv:
     """``jaxdrones.make(task, **options)`` for a multi-agent task.
 
     Raises:
@@ -31,7 +33,7 @@ def make_multi_agent(task: str, **options) -> TaskEnv:
     return make(task, **options)
 
 
-def check_agent_keys(actions, agents: list[str]) -> None:
+def check_agent_keys(actions: object, agents: list[str]) -> None:
     """Check that ``actions`` is a dict with exactly one entry per agent of ``agents``.
 
     Raises:

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import contextlib
 import io
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -45,9 +47,10 @@ BRAX_REPLICATING_MODULES = (
 )
 
 
-def device_put_replicated(x, devices):
+def device_put_replicated(x: Any, devices: Sequence[jax.Device]) -> Any:
     """A copy of every leaf of ``x`` on each of ``devices``, stacked on a new leading axis that ``jax.pmap`` splits
-    over them: what ``jax.device_put_replicated`` did before jax 0.10 removed it."""
+    over them: what ``jax.device_put_replicated`` did before jax 0.10 removed it. ``x``: a pytree of arrays; returns
+    the same pytree, each leaf f[len(devices), ...]."""
     import numpy as np
 
     devices = list(devices)
@@ -195,7 +198,12 @@ class BraxEnv(BraxBaseEnv):
         return "jaxdrones"
 
 
-def wrap_for_brax_training(env, episode_length: int | None = None, action_repeat: int = 1, randomization_fn=None):
+def wrap_for_brax_training(
+    env: BraxEnv | Env,
+    episode_length: int | None = None,
+    action_repeat: int = 1,
+    randomization_fn: Callable | None = None,
+) -> brax_training.VmapWrapper:
     """``wrap_env_fn`` for brax's trainers: a `BraxEnv` (with our `AutoReset`) under brax's ``VmapWrapper``.
 
     Args:

@@ -27,6 +27,7 @@ started with ``spawn`` receive small, JAX-free payloads.
 from __future__ import annotations
 
 import warnings
+from typing import Any
 
 import gymnasium as gym
 import jax
@@ -34,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from gymnasium.vector import VectorEnv
 from gymnasium.vector.utils import batch_space
+from numpy.typing import ArrayLike
 
 try:
     from gymnasium.vector import AutoresetMode
@@ -43,7 +45,7 @@ except ImportError:  # gymnasium < 1.1, where `GymnasiumVectorEnv` refuses to ru
     _NEXT_STEP = "next_step"
 
 from jaxdrones._fork import check_not_forked
-from jaxdrones.envs.base import Env, world_axes
+from jaxdrones.envs.base import Env, EnvState, world_axes
 from jaxdrones.envs.env import outside_box
 from jaxdrones.envs.registry import make, registered, subscribe
 from jaxdrones.sensors.camera import ENV_IMAGES
@@ -112,7 +114,7 @@ def _to_numpy(obs, space: gym.Space, squeeze: bool):
 
 
 def check_action(
-    action, space: gym.spaces.Box, batch: tuple[int, ...] = (), strict: bool = False, name: str = "action"
+    action: ArrayLike, space: gym.spaces.Box, batch: tuple[int, ...] = (), strict: bool = False, name: str = "action"
 ) -> np.ndarray:
     """``action`` as f32 of shape ``batch + space.shape``, checked at the adapters' boundary.
 
@@ -181,7 +183,9 @@ class GymnasiumEnv(gym.Env):
     def __reduce__(self):
         return type(self), self._init_args
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
+    def reset(
+        self, *, seed: int | None = None, options: dict | None = None
+    ) -> tuple[np.ndarray | dict[str, np.ndarray], dict[str, Any]]:
         check_not_forked()
         super().reset(seed=seed)
         key = jax.random.key(int(self.np_random.integers(2**31)))
@@ -189,7 +193,7 @@ class GymnasiumEnv(gym.Env):
         self._show()
         return self._obs(), self._info()
 
-    def step(self, action):
+    def step(self, action: ArrayLike) -> tuple[np.ndarray | dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         check_not_forked()
         if self._state is None:
             raise RuntimeError("call reset() before step()")
@@ -199,7 +203,7 @@ class GymnasiumEnv(gym.Env):
         s = self._state
         return self._obs(), float(np.sum(s.reward)), bool(s.terminated), bool(s.truncated), self._info()
 
-    def render(self):
+    def render(self) -> np.ndarray | None:
         """An RGB frame u8[H, W, 3] of the current state with ``render_mode="rgb_array"``; None otherwise (with
         ``"human"``, `reset` and `step` show each frame)."""
         if self.render_mode != "rgb_array" or self._state is None:
@@ -274,14 +278,14 @@ class ImageObservation(gym.ObservationWrapper):
             }
         )
 
-    def observation(self, observation):
+    def observation(self, observation: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         if self._n_drones == 1:  # the gymnasium env drops the drone axis of one drone
             observation = {k: np.expand_dims(v, 0) for k, v in observation.items()}
         out = self._transform({k: v for k, v in observation.items() if k != "seg"})
         return {k: np.asarray(v, np.float32) for k, v in out.items()}
 
 
-def render_frame(env: Env, state, world: int = 0, shared_params: bool = False) -> np.ndarray:
+def render_frame(env: Env, state: EnvState, world: int = 0, shared_params: bool = False) -> np.ndarray:
     """An RGB frame u8[H, W, 3] of one world of ``state``: PyBullet's renderer on that backend, else matplotlib.
     ``shared_params``: ``state.params`` are those of every world (batch shape [D]), not per world."""
     lead = np.shape(state.sim.pos)[:-2]
@@ -399,7 +403,9 @@ class GymnasiumVectorEnv(VectorEnv):
     def __reduce__(self):
         return type(self), self._init_args
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
+    def reset(
+        self, *, seed: int | None = None, options: dict | None = None
+    ) -> tuple[np.ndarray | dict[str, np.ndarray], dict[str, np.ndarray]]:
         check_not_forked()
         super().reset(seed=seed)
         self._key = jax.random.key(int(self.np_random.integers(2**31)))
@@ -409,7 +415,9 @@ class GymnasiumVectorEnv(VectorEnv):
         self._show()
         return self._obs(), self._infos()
 
-    def step(self, actions):
+    def step(
+        self, actions: ArrayLike
+    ) -> tuple[np.ndarray | dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         check_not_forked()
         if self._state is None:
             raise RuntimeError("call reset() before step()")
@@ -424,14 +432,14 @@ class GymnasiumVectorEnv(VectorEnv):
         truncated = np.asarray(s.truncated) & ~reset
         return self._obs(), reward.astype(np.float32), terminated, truncated, self._infos()
 
-    def render(self):
+    def render(self) -> np.ndarray | None:
         """An RGB frame of world 0 with ``render_mode="rgb_array"``; None otherwise (with ``"human"``, `reset`
         and `step` show world 0)."""
         if self.render_mode != "rgb_array" or self._state is None:
             return None
         return self._frame()
 
-    def close_extras(self, **kwargs) -> None:
+    def close_extras(self, **kwargs: Any) -> None:
         if self._view is not None:
             self._view.close()
         self.env.close()
@@ -452,7 +460,7 @@ class GymnasiumVectorEnv(VectorEnv):
         return infos
 
 
-def make_env(task: str, render_mode: str | None = None, strict_actions: bool = False, **overrides) -> GymnasiumEnv:
+def make_env(task: str, render_mode: str | None = None, strict_actions: bool = False, **overrides: Any) -> GymnasiumEnv:
     """Entry point of ``gymnasium.make(GYM_IDS[task], **overrides)``; overrides are the task's config fields,
     ``strict_actions`` that of `GymnasiumEnv`."""
     _check_render_mode(render_mode)
@@ -460,7 +468,7 @@ def make_env(task: str, render_mode: str | None = None, strict_actions: bool = F
 
 
 def make_vector_env(
-    task: str, num_envs: int = 1, render_mode: str | None = None, strict_actions: bool = False, **overrides
+    task: str, num_envs: int = 1, render_mode: str | None = None, strict_actions: bool = False, **overrides: Any
 ) -> GymnasiumVectorEnv:
     """Vector entry point of ``gymnasium.make_vec(GYM_IDS[task], num_envs, vectorization_mode="vector_entry_point",
     **overrides)``."""

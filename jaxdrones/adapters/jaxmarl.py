@@ -19,6 +19,7 @@ JaxMARL is not a dependency: the spaces are this module's small jittable `Box` (
 from __future__ import annotations
 
 from functools import partial
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -110,7 +111,9 @@ class JaxMARLEnv:
         return self.get_obs(state), state
 
     @partial(jax.jit, static_argnums=(0,))
-    def step(self, key: jax.Array, state: EnvState, actions: dict[str, jax.Array]):
+    def step(
+        self, key: jax.Array, state: EnvState, actions: dict[str, jax.Array]
+    ) -> tuple[dict[str, jax.Array], EnvState, dict[str, jax.Array], dict[str, jax.Array], dict[str, Any]]:
         """Advance one control step, resetting the world if its episode ended.
 
         Args:
@@ -186,7 +189,7 @@ class JaxMARLEnv:
         return jnp.stack(rows)
 
 
-def make(task: str, strict_actions: bool = False, **options) -> JaxMARLEnv:
+def make(task: str, strict_actions: bool = False, **options: Any) -> JaxMARLEnv:
     """A multi-agent task as a `JaxMARLEnv`, e.g. ``make("flock", n_drones=5)``.
 
     Args:

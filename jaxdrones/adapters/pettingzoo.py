@@ -26,10 +26,13 @@ task, config and render mode (a copy is built anew, with no episode running), so
 
 from __future__ import annotations
 
+from typing import Any
+
 import gymnasium as gym
 import jax
 import numpy as np
 from gymnasium.utils import seeding
+from numpy.typing import ArrayLike
 from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
@@ -90,7 +93,9 @@ class PettingZooEnv(ParallelEnv):
     def __reduce__(self):
         return type(self), self._init_args
 
-    def reset(self, seed: int | None = None, options: dict | None = None):
+    def reset(
+        self, seed: int | None = None, options: dict | None = None
+    ) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
         """Start an episode; returns ``(observations, infos)``, one entry per agent."""
         check_not_forked()
         if seed is not None or self.np_random is None:
@@ -101,7 +106,9 @@ class PettingZooEnv(ParallelEnv):
         self._show()
         return self._observations(self.agents), self._infos(self.agents)
 
-    def step(self, actions: dict):
+    def step(
+        self, actions: dict[str, ArrayLike]
+    ) -> tuple[dict[str, Any], dict[str, float], dict[str, bool], dict[str, bool], dict[str, dict[str, Any]]]:
         """Advance every drone one control step.
 
         Returns:
@@ -144,7 +151,7 @@ class PettingZooEnv(ParallelEnv):
             self.agents = []
         return out
 
-    def render(self):
+    def render(self) -> np.ndarray | None:
         """An RGB frame u8[H, W, 3] of the current state with ``render_mode="rgb_array"``, else None."""
         if self.render_mode != "rgb_array" or self._state is None:
             return None
@@ -192,7 +199,9 @@ def _agent_obs(obs, space: gym.Space, i: int):
     return np.asarray(obs[i], space.dtype)
 
 
-def parallel_env(task: str, render_mode: str | None = None, strict_actions: bool = False, **options) -> PettingZooEnv:
+def parallel_env(
+    task: str, render_mode: str | None = None, strict_actions: bool = False, **options: Any
+) -> PettingZooEnv:
     """A multi-agent task as a PettingZoo ``ParallelEnv``, e.g. ``parallel_env("flock", n_drones=5)``.
 
     Args:
@@ -214,7 +223,7 @@ def parallel_env(task: str, render_mode: str | None = None, strict_actions: bool
     return PettingZooEnv(make_multi_agent(task, **options), render_mode=render_mode, strict_actions=strict_actions)
 
 
-def env(task: str, render_mode: str | None = None, strict_actions: bool = False, **options) -> AECEnv:
+def env(task: str, render_mode: str | None = None, strict_actions: bool = False, **options: Any) -> AECEnv:
     """A multi-agent task as a PettingZoo ``AECEnv`` (agents act in turn): PettingZoo's ``parallel_to_aec`` of
     `parallel_env` (same arguments and errors). The world steps once every live agent has acted; ``last()`` gives
     each agent its observation and the reward of the last world step.
