@@ -15,13 +15,16 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import jax
 import jax.numpy as jnp
 
 from jaxdrones.envs.base import Env
 from jaxdrones.training.common import Schedule, check_config, described, mlp, program_description, run_updates
+
+if TYPE_CHECKING:
+    from flax import linen
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,7 +70,7 @@ class APGConfig(Schedule):
     def steps_per_update(self) -> int:
         return self.num_envs * self.horizon
 
-    def schedule(self):
+    def schedule(self) -> float | Callable[[jax.Array], jax.Array]:
         """Adam's step size: ``learning_rate``, or its cosine decay over the run's updates."""
         import optax
 
@@ -76,7 +79,7 @@ class APGConfig(Schedule):
         return optax.cosine_decay_schedule(self.learning_rate, self.num_evals * self.updates_per_eval)
 
 
-def make_network(config: APGConfig, env: Env):
+def make_network(config: APGConfig, env: Env) -> linen.Module:
     """The policy network (flax): obs f[..., n_obs] -> action f[..., env.action_size] in (-1, 1)."""
     import flax.linen as nn
 
@@ -84,7 +87,7 @@ def make_network(config: APGConfig, env: Env):
     return mlp(config.hidden_layer_sizes, env.action_size, nn.initializers.normal(0.01), squash=True)
 
 
-def make_policy(network, params) -> Callable:
+def make_policy(network: linen.Module, params: Any) -> Callable:
     """``policy(obs, key) -> (action, {})``, deterministic, with the signature of brax's policies (on one drone's
     flat observation for the single-agent tasks)."""
 
@@ -100,7 +103,7 @@ def train(
     config: APGConfig = APGConfig(),
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable[..., dict] | None = None,
-):
+) -> tuple[linen.Module, Any]:
     """Train a policy on ``env`` (one world; D drones share the policy, each seeing its own observation).
 
     Args:

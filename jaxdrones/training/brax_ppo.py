@@ -7,12 +7,20 @@ import dataclasses
 import functools
 import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import jax
 import numpy as np
 
 from jaxdrones.envs.base import Env
 from jaxdrones.training.common import Interrupted
+
+if TYPE_CHECKING:
+    from brax.training.agents.ppo import networks as ppo_networks
+    from brax.training.agents.ppo import networks_vision
+
+    #: brax's PPO networks: on flat observations, or with cameras on `jaxdrones.training.encoders`' CNN.
+    PPONetworks = ppo_networks.PPONetworks | networks_vision.PPONetworks
 
 
 def _import_brax():
@@ -193,7 +201,7 @@ def default_config(task: str, vision: bool = False) -> BraxPPOConfig:
     )
 
 
-def make_network(config: BraxPPOConfig, env: Env):
+def make_network(config: BraxPPOConfig, env: Env) -> PPONetworks:
     """Brax's PPO networks for ``env`` (on the world's flat observation and action, normalised observations when
     ``config.normalize_observations``; with cameras, brax's vision PPO networks on our encoder
     (`jaxdrones.training.encoders.make_ppo_networks_vision`) reading `jaxdrones.envs.observations.policy_input`, the
@@ -224,7 +232,7 @@ def _brax_env(adapter, config: BraxPPOConfig, env: Env):
     return adapter.BraxEnv(env, privileged=_privileged(config, env))
 
 
-def make_policy(networks, params, deterministic: bool = True) -> Callable:
+def make_policy(networks: PPONetworks, params: Any, deterministic: bool = True) -> Callable:
     """``policy(obs, key) -> (action, extras)`` of brax's PPO networks and (normaliser, policy, value) params."""
     from brax.training.agents.ppo import networks as ppo_networks
 
@@ -237,7 +245,7 @@ def train(
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable | None = None,
     eval_env: Env | None = None,
-):
+) -> tuple[PPONetworks, Any]:
     """Train a policy on ``env`` with brax's PPO.
 
     Args:

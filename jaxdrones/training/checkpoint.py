@@ -7,17 +7,30 @@ from __future__ import annotations
 import dataclasses
 import os
 import pickle
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import jax
 
 from jaxdrones.envs.base import Env
 from jaxdrones.training.common import host_array
 
+if TYPE_CHECKING:
+    from jaxdrones.training.brax_ppo import BraxPPOConfig
+    from jaxdrones.training.common import Schedule
+
 #: Version of the checkpoint format (files from before it carry ``<algo>_config`` and no version; still loaded).
 FORMAT = 1
 
 
-def save(path: str | os.PathLike, algo: str, params, task: str, env_overrides: dict, config) -> str:
+def save(
+    path: str | os.PathLike,
+    algo: str,
+    params: Any,
+    task: str,
+    env_overrides: dict,
+    config: Schedule | BraxPPOConfig,
+) -> str:
     """Write a policy file (see the module doc); returns ``path``. ``params`` may live on any devices."""
     payload = {
         "format": FORMAT,
@@ -66,7 +79,7 @@ def read_payload(path: str | os.PathLike) -> tuple[str, dict]:
     return path, {**payload, "algo": algo}
 
 
-def load_policy(path: str | os.PathLike, deterministic: bool = True, env: Env | None = None):
+def load_policy(path: str | os.PathLike, deterministic: bool = True, env: Env | None = None) -> tuple[Env, Callable]:
     """Load a policy saved by ``jaxdrones train`` (any algorithm of `jaxdrones.training.trainers`).
 
     Args:

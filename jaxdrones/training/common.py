@@ -5,14 +5,27 @@ loop."""
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING, Any
 
 import jax
 import numpy as np
+from jax.typing import ArrayLike
+
+if TYPE_CHECKING:
+    from flax import linen
+
+    from jaxdrones.envs.base import Env
 
 
 def check_config(
-    config, *, integers: dict[str, int] | None = None, positive=(), nonnegative=(), fractions=(), open_fractions=()
+    config: object,
+    *,
+    integers: dict[str, int] | None = None,
+    positive: Iterable[str] = (),
+    nonnegative: Iterable[str] = (),
+    fractions: Iterable[str] = (),
+    open_fractions: Iterable[str] = (),
 ) -> None:
     """Raise ``ValueError`` naming the config class and field for a value out of range: ``integers`` maps fields to
     their least value; ``positive`` fields must be > 0, ``nonnegative`` ≥ 0, ``fractions`` in [0, 1] and
@@ -53,7 +66,9 @@ class Schedule:
         return self.num_evals * self.updates_per_eval * self.steps_per_update
 
 
-def mlp(hidden_layer_sizes: tuple[int, ...], out: int, last_init=None, squash: bool = False):
+def mlp(
+    hidden_layer_sizes: tuple[int, ...], out: int, last_init: Callable | None = None, squash: bool = False
+) -> linen.Module:
     """A flax MLP x f[..., n] -> f[..., out]: tanh hidden layers, a linear last layer with kernel initialiser
     ``last_init`` (default flax's LeCun normal; a small one makes the first outputs near 0), and a tanh on the
     output if ``squash``."""
@@ -84,7 +99,7 @@ class Interrupted(Exception):
         self.result, self.env_steps = result, env_steps
 
 
-def host_array(x) -> np.ndarray:
+def host_array(x: ArrayLike) -> np.ndarray:
     """A NumPy copy of a JAX array, also of one replicated over the devices of several processes (where
     ``np.asarray`` cannot gather it: each process holds a full copy)."""
     if isinstance(x, jax.Array) and not x.is_fully_addressable:
@@ -92,7 +107,7 @@ def host_array(x) -> np.ndarray:
     return np.asarray(x)
 
 
-def world_shardings(tree, n_worlds: int):
+def world_shardings(tree: Any, n_worlds: int) -> Any | None:
     """Shardings that spread a trainer's carry over the devices of every process (`jax.devices()`): each leaf whose
     leading axis has ``n_worlds`` entries (the worlds' states, observations, keys) split along it, every other leaf
     (parameters, optimiser state, shared env params) replicated. Uses the largest number of devices that divides
@@ -111,7 +126,7 @@ def world_shardings(tree, n_worlds: int):
     return jax.tree.map(lambda x: split if x.ndim and x.shape[0] == n_worlds else replicated, tree)
 
 
-def program_description(config, env) -> str:
+def program_description(config: object, env: Env) -> str:
     """What a trainer's chunk is built from, as text for `jaxdrones.training.programs`: the trainer's config and the
     env's task and config (its params follow from them)."""
     return f"{type(config).__module__}.{config!r}\n{type(env).__name__} {env.task.name} {env.config!r}"
@@ -132,7 +147,7 @@ def run_updates(
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable | None = None,
     description: str | None = None,
-):
+) -> Any:
     """The training loop of our trainers: three compiled programs, ``init``, a chunk of updates and the evaluation.
 
     ``init(key) -> carry`` builds the parameters, optimiser state and the worlds' states (jitted, with the carry

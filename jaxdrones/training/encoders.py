@@ -14,10 +14,14 @@ flattened and joined with the normalised state vector, then an MLP; tanh-normal 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 from flax import linen
+
+if TYPE_CHECKING:
+    from brax.training.agents.ppo import networks_vision
 
 
 def same_padding(size: int, kernel: int, stride: int) -> tuple[int, int]:
@@ -127,7 +131,7 @@ def make_ppo_networks_vision(
     cnn_kernel_size: Sequence[int] = (4, 3, 3),
     cnn_stride: Sequence[int] = (2, 2, 2),
     value_obs_key: str | None = None,
-):
+) -> networks_vision.PPONetworks:
     """Brax's PPO networks (``networks_vision.PPONetworks``: policy, value, tanh-normal action distribution) on
     `VisionMLP`: what brax's ``make_ppo_networks_vision`` builds with ``cnn_global_pool="none"`` and
     ``policy_obs_key = value_obs_key = state_key``, on `Conv`.

@@ -8,6 +8,8 @@ displays, learning curves and ``summary.json`` report.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,15 +17,19 @@ import numpy as np
 from jaxdrones.envs.base import Env, EnvState
 from jaxdrones.envs.observations import policy_input
 
+#: What `episode_outcomes` returns: (final metrics, episode-mean metrics, terminated, return, episode-max metrics),
+#: each with a leading episode axis.
+Outcomes = tuple[dict[str, jax.Array], dict[str, jax.Array], jax.Array, jax.Array, dict[str, jax.Array]]
 
-def act(env: Env, policy, obs, key: jax.Array) -> jax.Array:
+
+def act(env: Env, policy: Callable, obs: jax.Array | dict[str, jax.Array], key: jax.Array) -> jax.Array:
     """The policy's action f[D, n_act] for an observation f[D, n_obs] or a dict with camera images (policies see
     `jaxdrones.envs.observations.policy_input`: flat vectors, or brax's vision dict)."""
     action, _ = policy(policy_input(obs), key)
     return jnp.reshape(action, (env.n_drones, env.action_size))
 
 
-def rollout_policy(env: Env, policy, key: jax.Array, state: EnvState | None = None) -> EnvState:
+def rollout_policy(env: Env, policy: Callable, key: jax.Array, state: EnvState | None = None) -> EnvState:
     """Run one episode of ``policy`` under ``lax.scan``; the env freezes once the episode is done.
 
     Args:
@@ -47,7 +53,7 @@ def rollout_policy(env: Env, policy, key: jax.Array, state: EnvState | None = No
     return jax.tree.map(lambda first, rest: jnp.concatenate([first[None], rest]), state, states)
 
 
-def evaluate(env: Env, policy, key: jax.Array, n_episodes: int = 256) -> dict:
+def evaluate(env: Env, policy: Callable, key: jax.Array, n_episodes: int = 256) -> dict:
     """Statistics of ``n_episodes`` episodes from random starts (one jitted, vmapped call).
 
     Returns:
@@ -65,7 +71,7 @@ def evaluate(env: Env, policy, key: jax.Array, n_episodes: int = 256) -> dict:
     )
 
 
-def episode_outcomes(env: Env, policy, keys: jax.Array):
+def episode_outcomes(env: Env, policy: Callable, keys: jax.Array) -> Outcomes:
     """Traced part of `evaluate`: one episode per key; returns (final metrics, episode-mean metrics, terminated,
     return, episode-max metrics), each with a leading episode axis.
 
@@ -74,7 +80,7 @@ def episode_outcomes(env: Env, policy, keys: jax.Array):
     return outcomes_of(jax.vmap(lambda k: rollout_policy(env, policy, k))(keys))
 
 
-def outcomes_of(states: EnvState):
+def outcomes_of(states: EnvState) -> Outcomes:
     """`episode_outcomes` of episodes already flown: ``states`` with leading axes [episode, time] (`rollout_policy`
     vmapped)."""
     live = (states.steps[:, 1:] > states.steps[:, :-1]).astype(states.reward.dtype)
@@ -88,7 +94,7 @@ def outcomes_of(states: EnvState):
     return final, mean, states.terminated[:, -1], returns, maximum
 
 
-def episode_statistics(env: Env, outcomes) -> dict:
+def episode_statistics(env: Env, outcomes: Outcomes) -> dict:
     """Host part of `evaluate`: the statistics of `episode_outcomes` (see `evaluate`)."""
     final, mean, terminated, returns, maximum = jax.tree.map(lambda x: np.asarray(x, np.float64), outcomes)
     stats = {f"final_{k}": float(v.mean()) for k, v in final.items()}

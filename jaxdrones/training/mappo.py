@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -32,6 +33,9 @@ import numpy as np
 
 from jaxdrones.envs.base import Env, EnvState
 from jaxdrones.training.common import Schedule, check_config, described, program_description, run_updates
+
+if TYPE_CHECKING:
+    from flax import linen
 
 #: Critic inputs of `MAPPOConfig.critic`.
 CRITICS = ("central", "local")
@@ -128,7 +132,9 @@ class MAPPOConfig(Schedule):
         return self.num_envs * self.unroll_length
 
 
-def agent_mlp(hidden_layer_sizes: tuple[int, ...], out: int, n_ids: int, fan_in: int, last_init=None):
+def agent_mlp(
+    hidden_layer_sizes: tuple[int, ...], out: int, n_ids: int, fan_in: int, last_init: Callable | None = None
+) -> linen.Module:
     """An MLP on an agent's observation f[..., D, n], its agent id (0 .. D - 1, when ``n_ids``) and its world's
     features f[..., m] (or None), with tanh hidden layers and a linear output f[..., D, out].
 
@@ -262,7 +268,15 @@ def _log_prob(mean, log_std, action):
     return jnp.sum(-0.5 * ((action - mean) / jnp.exp(log_std)) ** 2 - log_std - 0.5 * np.log(2 * np.pi), axis=-1)
 
 
-def gae(rewards, values, bootstrap, terminated, ended, discounting, gae_lambda):
+def gae(
+    rewards: jax.Array,
+    values: jax.Array,
+    bootstrap: jax.Array,
+    terminated: jax.Array,
+    ended: jax.Array,
+    discounting: float,
+    gae_lambda: float,
+) -> jax.Array:
     """Generalised advantage estimates f[T, ...] (Schulman et al., 2016): δ_t = r_t + γ (1 - terminated_t) V'_t - V_t,
     where V'_t is the value of the state the step reached (before any reset), and A_t = δ_t + γλ (1 - ended_t)
     A_{t+1}."""
@@ -282,7 +296,7 @@ def train(
     config: MAPPOConfig = MAPPOConfig(),
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable[..., dict] | None = None,
-):
+) -> tuple[Networks, dict]:
     """Train the agents of ``env`` (D drones per world) with MAPPO or independent PPO (module doc).
 
     Args:

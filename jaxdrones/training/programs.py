@@ -20,6 +20,7 @@ import hashlib
 import os
 import pickle
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -58,7 +59,7 @@ def _is_key(x) -> bool:
     return jnp.issubdtype(x.dtype, jax.dtypes.prng_key)
 
 
-def cached_jit(fn: Callable, example, description: str) -> Callable:
+def cached_jit(fn: Callable, example: Any, description: str) -> Callable:
     """``jax.jit(fn)`` for inputs shaped like ``example`` (one pytree argument), read from the program cache when
     a process with the same key traced it before (see the module doc), else traced and saved there.
 

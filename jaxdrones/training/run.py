@@ -8,8 +8,13 @@ import json
 import math
 import os
 import time
+from typing import TYPE_CHECKING
 
 from jaxdrones.training.trainers import default_algo
+
+if TYPE_CHECKING:
+    from jaxdrones.training.brax_ppo import BraxPPOConfig
+    from jaxdrones.training.common import Schedule
 
 #: Task settings ``jaxdrones train`` uses unless told otherwise: the paper's multi-agent example trains
 #: leader-follower with one_d_rpm actions (docs: reference facts §11.4).
@@ -18,8 +23,16 @@ DEFAULT_ENV = {"leader_follower": {"action_type": "one_d_rpm"}}
 #: ``--vision`` flies through a gate drawn per episode (`jaxdrones.envs.tasks.gate.GatePass`) with ``avoid``'s
 #: actions and camera rate, on the paper's 64 × 48 images (at 32 × 24 the gate's 5 cm columns and architrave fall
 #: between the pixels' rays from 2 m).
-VISION_ENV = {"fly_thru_gate": {"gate_pose": "random", "action_type": "pid", "pid_target": "relative",
-                                "pid_scale": 0.3, "camera_freq": 15.0, "episode_len_s": 6.0}}
+VISION_ENV = {
+    "fly_thru_gate": {
+        "gate_pose": "random",
+        "action_type": "pid",
+        "pid_target": "relative",
+        "pid_scale": 0.3,
+        "camera_freq": 15.0,
+        "episode_len_s": 6.0,
+    }
+}
 #: Random starts ``jaxdrones train`` trains from in place of the task's own, for the fields a run does not set and
 #: actions of more than one entry (a 1-D action cannot level a drone); the evaluation and the saved policy's env keep
 #: the task's starts. In ``multi_hover`` the drone that climbs 1 m does so with its four RPM actions near their +5 %
@@ -58,17 +71,29 @@ def _eval_program(env, trainer, n_episodes: int, seed: int):
         flight = jax.tree.map(lambda x: x[0], states)  # the first episode, for the flight plot
         steps = jax.numpy.arange(env.episode_length + 1)
         ref = jax.vmap(lambda s: env.task.reference(env.config, jax.tree.map(lambda x: x[0], flight.task), s))(steps)
-        return {"outcomes": outcomes_of(states),
-                "flight": {"pos": flight.sim.pos, "ref": ref.pos, "vel": flight.sim.vel, "rpm": flight.sim.rpm},
-                "viewer": jax.tree.map(lambda x: x[:VIEW_EPISODES], flight_data(states))}  # for flight.html
+        return {
+            "outcomes": outcomes_of(states),
+            "flight": {"pos": flight.sim.pos, "ref": ref.pos, "vel": flight.sim.vel, "rpm": flight.sim.rpm},
+            "viewer": jax.tree.map(lambda x: x[:VIEW_EPISODES], flight_data(states)),
+        }  # for flight.html
 
     evaluate.description = f"evaluation {n_episodes} {seed} {trainer.name} {env.task.name} {env.config!r}"
     return evaluate
 
 
-def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool = False, algo: str | None = None,
-               config=None, env_overrides: dict | None = None, train_env_overrides: dict | None = None,
-               n_eval_episodes: int = 256, progress: bool = True, t_start: float | None = None) -> dict:
+def train_task(
+    task: str = "hover",
+    out: str | None = None,
+    *,
+    overwrite: bool = False,
+    algo: str | None = None,
+    config: Schedule | BraxPPOConfig | None = None,
+    env_overrides: dict | None = None,
+    train_env_overrides: dict | None = None,
+    n_eval_episodes: int = 256,
+    progress: bool = True,
+    t_start: float | None = None,
+) -> dict:
     """Train a policy on a task with a trainer of `jaxdrones.training.trainers` and save it with a learning curve,
     a flight plot and a summary.
 
@@ -127,8 +152,10 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     from jaxdrones.training.progress import AGGREGATES, ProgressLog
 
     if task not in registered():
-        raise ValueError(f"train: task must be one of {registered()} (a task of your own: register it with "
-                         f"jaxdrones.envs.register), got {task!r}")
+        raise ValueError(
+            f"train: task must be one of {registered()} (a task of your own: register it with "
+            f"jaxdrones.envs.register), got {task!r}"
+        )
     env_overrides = default_env(task, env_overrides)
     env = make(task, **env_overrides)
     vision = bool(env.config.vision)
@@ -161,8 +188,9 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
     t_train = time.perf_counter()
     interrupted = False
     try:
-        _, params = trainer.train(train_env, config, progress=report,
-                                  evaluate=_eval_program(env, trainer, n_eval_episodes, config.seed))
+        _, params = trainer.train(
+            train_env, config, progress=report, evaluate=_eval_program(env, trainer, n_eval_episodes, config.seed)
+        )
     except Interrupted as stop:
         (_, params), interrupted = stop.result, True
     finally:
@@ -196,8 +224,10 @@ def train_task(task: str = "hover", out: str | None = None, *, overwrite: bool =
         "success_unit": env.task.success_unit,
         "success_value": value,
         "success_threshold": env.task.success_threshold,
-        "success": bool(value < env.task.success_threshold
-                        and (env.task.success_counts_terminations or stats.get("terminated_rate", 1.0) == 0.0)),
+        "success": bool(
+            value < env.task.success_threshold
+            and (env.task.success_counts_terminations or stats.get("terminated_rate", 1.0) == 0.0)
+        ),
         "eval": stats,
         "out_dir": out,
         "env": json.loads(json.dumps(dataclasses.asdict(env.config), default=str)),
@@ -235,10 +265,23 @@ def _plot(env, task: str, algo: str, log, evaluation: dict | None, out: str) -> 
 
     title = f"{algo.upper()} on {task} ({env.config.model}, {env.config.action_type})"
     if log.history:
-        plot_learning_curve(log.history, os.path.join(out, "learning_curve.png"), metric="success_value",
-                            metric_label=f"evaluation {log.label}", threshold=env.task.success_threshold, title=title)
+        plot_learning_curve(
+            log.history,
+            os.path.join(out, "learning_curve.png"),
+            metric="success_value",
+            metric_label=f"evaluation {log.label}",
+            threshold=env.task.success_threshold,
+            title=title,
+        )
     if evaluation is not None:
         flight = evaluation["flight"]
         times = np.arange(env.episode_length + 1) / env.config.ctrl_freq
-        plot_task_flight(times, flight["pos"], flight["ref"], flight["vel"], flight["rpm"],
-                         os.path.join(out, "flight.png"), title=f"{task}: evaluation flight")
+        plot_task_flight(
+            times,
+            flight["pos"],
+            flight["ref"],
+            flight["vel"],
+            flight["rpm"],
+            os.path.join(out, "flight.png"),
+            title=f"{task}: evaluation flight",
+        )

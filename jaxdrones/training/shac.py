@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -27,6 +27,9 @@ import jax.numpy as jnp
 from jaxdrones.envs.base import Env
 from jaxdrones.training.apg import APGConfig, make_network
 from jaxdrones.training.common import check_config, described, mlp, program_description, run_updates
+
+if TYPE_CHECKING:
+    from flax import linen
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,7 +71,7 @@ class SHACConfig(APGConfig):
         )
 
 
-def make_critic(config: SHACConfig):
+def make_critic(config: SHACConfig) -> linen.Module:
     """The critic (flax): obs f[..., n_obs] -> value f[..., 1]."""
     return mlp(config.critic_hidden_layer_sizes, 1)
 
@@ -103,7 +106,7 @@ def train(
     config: SHACConfig = SHACConfig(),
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable[..., dict] | None = None,
-):
+) -> tuple[linen.Module, Any]:
     """Train a policy on ``env`` with SHAC (module doc; arguments and return as `jaxdrones.training.apg.train`).
 
     ``progress`` also reports ``train/critic_loss`` (the critic's mean squared error on the last window's targets,
