@@ -19,8 +19,15 @@ from __future__ import annotations
 import os
 import re
 import textwrap
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import onnx
+
+    from jaxdrones.envs.env import TaskEnv
 
 #: The trainers whose saved policy `export` writes: an MLP with tanh hidden layers and a tanh output.
 SUPPORTED = ("apg", "shac")
@@ -150,7 +157,7 @@ def _policy_env(payload: dict):
     return layers, env
 
 
-def sizes_of(layers) -> dict:
+def sizes_of(layers: Sequence[tuple[np.ndarray, np.ndarray]]) -> dict:
     """``{"n_obs", "n_act", "weight_bytes", "multiply_adds"}`` of an exported network (the bytes count the weights,
     the biases and the observation box's two bounds, float32)."""
     n_obs, n_act = layers[0][0].shape[0], layers[-1][0].shape[1]
@@ -162,7 +169,7 @@ def sizes_of(layers) -> dict:
     }
 
 
-def describe(payload: dict, env, layers) -> list[str]:
+def describe(payload: dict, env: TaskEnv, layers: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[str]:
     """What an exported policy computes and expects, as lines of text: its origin, its layers and sizes, the
     observation entry by entry (units, frames, the clip) and the action's mapping to motor commands."""
     sizes = sizes_of(layers)
@@ -237,7 +244,7 @@ def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
     return "\n".join(lines), sizes
 
 
-def onnx_model(payload: dict):
+def onnx_model(payload: dict) -> onnx.ModelProto:
     """The ONNX model (``onnx.ModelProto``, opset 17) of a saved policy: input ``obs`` f32[N, n_obs], output
     ``action`` f32[N, n_act]; Max/Min with the env's box, then Gemm and Tanh per layer. `describe`'s text is its
     ``doc_string``. Needs the ``onnx`` package (the ``export`` extra).

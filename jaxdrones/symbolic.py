@@ -33,14 +33,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.params import DroneParams
 from jaxdrones.physics.rotations import GIMBAL_SNAP, OMEGA_EPS, quat_mul_c, quat_to_rotmat_c
 from jaxdrones.physics.state import DroneState
+
+if TYPE_CHECKING:
+    import casadi  # optional (the casadi extra): named in the hints only
 
 __all__ = [
     "STATE_NAMES",
@@ -68,7 +73,7 @@ OBSERVATION_NAMES = ("x", "y", "z", "qx", "qy", "qz", "qw", "roll", "pitch", "ya
 RPM_TO_RAD_S = 2 * math.pi / 60
 
 
-def require_casadi():
+def require_casadi() -> ModuleType:
     """The ``casadi`` module, or a ModuleNotFoundError that names the extra to install."""
     try:
         import casadi
@@ -366,7 +371,7 @@ def state_vector(state: DroneState, rotor_state: bool = True) -> np.ndarray:
 
 def continuous_dynamics(
     params: DroneParams, config: SimConfig = SimConfig(), rotor_state: bool | None = None, kind: str = "SX"
-):
+) -> casadi.Function:
     """ẋ = f(x, u) of one drone as a ``casadi.Function`` ``f(x, u) -> xdot``.
 
     The explicit model of docs/physics.md §3-§4 (thrust kf·rpm², torques from the mixer's lever arms and the yaw
@@ -397,7 +402,9 @@ def continuous_dynamics(
     return cs.Function("f", [x, u], [_continuous_expression(a, config, x, u, rotor_state)], ["x", "u"], ["xdot"])
 
 
-def discrete_step(params: DroneParams, config: SimConfig, rotor_state: bool | None = None, kind: str = "SX"):
+def discrete_step(
+    params: DroneParams, config: SimConfig, rotor_state: bool | None = None, kind: str = "SX"
+) -> casadi.Function:
     """x⁺ = F(x, u): the JAX core's control step of ``1 / config.ctrl_freq`` s as a ``casadi.Function``.
 
     The same operations as `jaxdrones.sim.make_step`'s step (on one drone, no disturbance): the commands clipped to
@@ -424,7 +431,7 @@ def discrete_step(params: DroneParams, config: SimConfig, rotor_state: bool | No
     return cs.Function("F", [x, u], [_step_expression(a, config, x, u, rotor_state)], ["x", "u"], ["xf"])
 
 
-def observation(rotor_state: bool = False, kind: str = "SX"):
+def observation(rotor_state: bool = False, kind: str = "SX") -> casadi.Function:
     """Y = g(x): the paper's KIN observation of one drone (pos, quat, rpy as ``getEulerFromQuaternion``, vel,
     ang_vel; `OBSERVATION_NAMES`, docs/physics.md §8.2), as a ``casadi.Function`` ``g(x) -> y`` (16 outputs) of a
     state with or without the rotor speeds."""
@@ -540,18 +547,18 @@ def symbolic_dynamics(
     model_dist_f: bool = False,
     model_dist_t: bool = False,
     *,
-    mass,
-    L,
-    prop_inertia,
-    gravity_vec,
-    J,
-    J_inv,
-    rpm2thrust,
-    rpm2torque,
-    mixing_matrix,
-    rotor_dyn_coef,
-    drag_matrix,
-):
+    mass: float,
+    L: float,
+    prop_inertia: float,
+    gravity_vec: ArrayLike,
+    J: ArrayLike,
+    J_inv: ArrayLike,
+    rpm2thrust: ArrayLike,
+    rpm2torque: ArrayLike,
+    mixing_matrix: ArrayLike,
+    rotor_dyn_coef: ArrayLike,
+    drag_matrix: ArrayLike,
+) -> tuple[casadi.MX, casadi.MX, casadi.MX, casadi.MX]:
     """Crazyflow's (drone_models') first-principles ``symbolic_dynamics``: the same signature, state order and
     return value, so MPC code written against it runs here with `crazyflow_params`' parameter set.
 

@@ -8,7 +8,7 @@ import sys
 from jaxdrones.examples.camera_scene import BOX_DISTANCE, camera_scene, save_camera_images
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``camera`` subcommand (the scripted camera scene) to an argparse subparsers object."""
     parser = subparsers.add_parser(
         "camera",

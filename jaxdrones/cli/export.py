@@ -7,7 +7,7 @@ import argparse
 import sys
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``export`` subcommand to an argparse subparsers object."""
     parser = subparsers.add_parser(
         "export",

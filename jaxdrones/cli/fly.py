@@ -54,7 +54,7 @@ _CIRCLE_DEFAULT_NUM_DRONES = 4
 _CIRCLE_DEFAULT_DURATION_S = 12.0
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``fly`` subcommand (the paper's control examples) to an argparse subparsers object."""
     parser = subparsers.add_parser(
         "fly",

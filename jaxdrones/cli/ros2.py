@@ -6,7 +6,7 @@ import argparse
 import sys
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``ros2`` subcommand to an argparse subparsers object."""
     parser = subparsers.add_parser(
         "ros2",

@@ -14,7 +14,7 @@ from jaxdrones.training.run import default_env, train_task
 from jaxdrones.training.trainers import ALGOS, TRAINABLE, default_algo
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``train`` subcommand to an argparse subparsers object."""
     parser = subparsers.add_parser(
         "train",
@@ -254,7 +254,7 @@ _ENV_OPTIONS = {
 }
 
 
-def realism_options(preset: str | None, settings: list[str]):
+def realism_options(preset: str | None, settings: list[str]) -> str | dict | None:
     """``--realism`` and ``--realism-set``'s NAME=VALUE settings as a task config's ``realism`` (None, the preset's
     name, or a dict of `jaxdrones.realism.Realism` fields with the preset under ``"preset"``), kept as plain data
     so that the run's summary and checkpoint record it.

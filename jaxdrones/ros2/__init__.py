@@ -12,10 +12,12 @@ conversion (`jaxdrones.ros2.messages`) needs no ROS; the nodes need ``rclpy`` an
 
 from __future__ import annotations
 
+from types import ModuleType
+
 __all__ = ["require_rclpy"]
 
 
-def require_rclpy():
+def require_rclpy() -> ModuleType:
     """The ``rclpy`` module, or a ModuleNotFoundError naming the extra to install."""
     try:
         import rclpy

@@ -23,6 +23,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 #: The entries of the paper's ``obs`` array, per drone.
 OBS_NAMES = (
@@ -55,7 +56,9 @@ def time_fields(t: float) -> dict:
     return {"sec": nanoseconds // 1_000_000_000, "nanosec": nanoseconds % 1_000_000_000}
 
 
-def obs_vector(pos, quat, rpy, vel, ang_vel, rpm) -> np.ndarray:
+def obs_vector(
+    pos: ArrayLike, quat: ArrayLike, rpy: ArrayLike, vel: ArrayLike, ang_vel: ArrayLike, rpm: ArrayLike
+) -> np.ndarray:
     """The paper's observation of one drone, f32[20] (`OBS_NAMES`); ``rpy`` from
     `jaxdrones.rotations.quat_to_euler` (PyBullet's ``getEulerFromQuaternion``)."""
     return np.concatenate(
@@ -63,7 +66,7 @@ def obs_vector(pos, quat, rpy, vel, ang_vel, rpm) -> np.ndarray:
     ).astype(np.float32)
 
 
-def float_array_fields(data) -> dict:
+def float_array_fields(data: ArrayLike) -> dict:
     """``std_msgs/Float32MultiArray`` of a flat array (no layout dimensions, as gym-pybullet-drones' node)."""
     return {"layout": {"dim": [], "data_offset": 0}, "data": np.asarray(data, np.float32).ravel()}
 
@@ -82,12 +85,20 @@ def _vector(v) -> dict:
     return {"x": v[0], "y": v[1], "z": v[2]}
 
 
-def pose_fields(pos, quat, t: float, frame_id: str = "world") -> dict:
+def pose_fields(pos: ArrayLike, quat: ArrayLike, t: float, frame_id: str = "world") -> dict:
     """``geometry_msgs/PoseStamped`` of one drone: pos f[3] m and quat f[4] (x, y, z, w) in ``frame_id`` at t s."""
     return {"header": _header(t, frame_id), "pose": _pose(pos, quat)}
 
 
-def odometry_fields(pos, quat, vel, ang_vel, t: float, frame_id: str = "world", child_frame_id: str = "cf0") -> dict:
+def odometry_fields(
+    pos: ArrayLike,
+    quat: ArrayLike,
+    vel: ArrayLike,
+    ang_vel: ArrayLike,
+    t: float,
+    frame_id: str = "world",
+    child_frame_id: str = "cf0",
+) -> dict:
     """``nav_msgs/Odometry`` of one drone: the pose in ``frame_id``, the twist in the body frame ``child_frame_id``
     (linear Rᵀ v from the world-frame velocity ``vel``, angular ``ang_vel`` already body-frame), zero covariances."""
     x, y, z, w = np.asarray(quat, np.float64).ravel()
@@ -121,19 +132,20 @@ def _finite(values, what: str, size: int) -> np.ndarray:
     return array
 
 
-def rpm_command(data) -> np.ndarray:
+def rpm_command(data: ArrayLike) -> np.ndarray:
     """An ``action`` message's data (the paper's: 4 motor RPM) as f64[4]; the step clips to [0, max_rpm]."""
     return _finite(data, "an action message (4 motor RPM)", 4)
 
 
-def velocity_command(linear) -> np.ndarray:
+def velocity_command(linear: Any) -> np.ndarray:
     """A ``cmd_vel`` Twist's ``linear`` (an object with x, y, z, or a sequence of 3) as f64[3] m/s, world frame."""
     values = [linear.x, linear.y, linear.z] if hasattr(linear, "x") else linear
     return _finite(values, "a velocity setpoint (linear x, y, z in m/s)", 3)
 
 
-def position_command(pose) -> tuple[np.ndarray, float]:
-    """A ``cmd_position`` pose (with ``position`` and ``orientation``) as (f64[3] m, yaw rad)."""
+def position_command(pose: Any) -> tuple[np.ndarray, float]:
+    """A ``cmd_position`` pose (a ``geometry_msgs/Pose``, or any object with ``position`` and ``orientation``)
+    as (f64[3] m, yaw rad)."""
     p, q = pose.position, pose.orientation
     pos = _finite([p.x, p.y, p.z], "a position setpoint", 3)
     quat = _finite([q.x, q.y, q.z, q.w], "a position setpoint's orientation", 4)
@@ -159,7 +171,7 @@ def fill_rclpy(message: Any, fields: dict) -> Any:
     return message
 
 
-def build_rosbags(typestore, msgtype: str, fields: dict):
+def build_rosbags(typestore: Any, msgtype: str, fields: dict) -> Any:
     """A rosbags message of ``msgtype`` (e.g. ``"geometry_msgs/msg/PoseStamped"``) from a field tree, with
     ``typestore`` from ``rosbags.typesys.get_typestore``; serialise it with ``typestore.serialize_cdr``."""
     cls = typestore.types[msgtype]
