@@ -20,10 +20,15 @@ import json
 import math
 import numbers
 import os
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from jaxdrones.physics.params import DroneParams
 from jaxdrones.scene import Obstacle
+
+if TYPE_CHECKING:
+    from PIL import Image
 
 #: The drone's position, m, world frame (level, yaw 0: the camera looks along world +x).
 DRONE_POS = (0.0, 0.0, 0.5)
@@ -51,14 +56,14 @@ _SEG_COLOURS = (
 )
 
 
-def eye_position(params) -> np.ndarray:
+def eye_position(params: DroneParams) -> np.ndarray:
     """The camera's eye, f[3] m, world frame: `DRONE_POS` + (collision_radius + EYE_MARGIN, 0, 0)."""
     from jaxdrones.sensors.camera import EYE_MARGIN
 
     return np.asarray(DRONE_POS) + np.array([float(params.collision_radius) + EYE_MARGIN, 0.0, 0.0])
 
 
-def scene_obstacles(params, distance: float = BOX_DISTANCE) -> tuple:
+def scene_obstacles(params: DroneParams, distance: float = BOX_DISTANCE) -> tuple[Obstacle, Obstacle]:
     """The box (front face ``distance`` m ahead of the eye, centred on the optical axis) and the sphere.
 
     Raises:
@@ -172,7 +177,7 @@ def depth_to_mm(depth: np.ndarray, far: float) -> np.ndarray:
     return np.where(np.isfinite(depth) & (depth < far * (1 - 1e-6)), mm, 0).astype(np.uint16)
 
 
-def seg_image(seg: np.ndarray):
+def seg_image(seg: np.ndarray) -> Image.Image:
     """A Pillow image of segmentation ids int[H, W]: value id + 1 (0 = nothing), 8-bit palette if ids ≤ 254."""
     from PIL import Image
 

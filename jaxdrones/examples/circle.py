@@ -40,6 +40,7 @@ import dataclasses
 import math
 import os
 import time
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -59,7 +60,7 @@ from jaxdrones.examples.closed_loop import (
 from jaxdrones.io.video import VideoWriter, video_format
 from jaxdrones.physics.params import load_params
 from jaxdrones.physics.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, init_state
-from jaxdrones.scene import resolve_obstacles
+from jaxdrones.scene import Obstacle, resolve_obstacles
 from jaxdrones.sim import SimConfig, make_step
 
 #: Circle radius (m), first altitude (m) and altitude step between drones (m) of the paper's example (§13).
@@ -138,10 +139,10 @@ def check_flight(
     sim_freq: int = 240,
     ctrl_freq: int = 48,
     backend: str = "jax",
-    obstacles=None,
+    obstacles: bool | str | Sequence[Obstacle | str | os.PathLike] | None = None,
     gui: bool = False,
-    video=None,
-    video_size=DEFAULT_VIDEO_SIZE,
+    video: str | os.PathLike | None = None,
+    video_size: tuple[int, int] = DEFAULT_VIDEO_SIZE,
     video_fps: float = DEFAULT_VIDEO_FPS,
     drag: bool = False,
     ground_effect: bool = False,
@@ -217,7 +218,7 @@ def fly_circle(
     ctrl_freq: int = 48,
     gains: PIDGains | None = None,
     backend: str = "jax",
-    obstacles=None,
+    obstacles: bool | str | Sequence[Obstacle | str | os.PathLike] | None = None,
     gui: bool = False,
     video: str | os.PathLike | None = None,
     video_size: tuple[int, int] = DEFAULT_VIDEO_SIZE,

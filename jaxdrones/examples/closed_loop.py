@@ -24,6 +24,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from jaxdrones.control.pid import PIDGains, PIDState, pid_control, pid_init
 from jaxdrones.physics.params import DroneParams
@@ -42,7 +43,13 @@ Carry = tuple[DroneState, PIDState, jax.Array]
 
 
 def track_position(
-    params: DroneParams, gains: PIDGains, pid_state: PIDState, state: DroneState, x_k, fixed, ctrl_dt: float
+    params: DroneParams,
+    gains: PIDGains,
+    pid_state: PIDState,
+    state: DroneState,
+    x_k: tuple[jax.Array, jax.Array],
+    fixed: tuple[jax.Array, jax.Array],
+    ctrl_dt: float,
 ) -> tuple[jax.Array, PIDState]:
     """Position tracking with the DSL PID (the controller of the circle, ground-effect and downwash examples).
 
@@ -111,7 +118,7 @@ def jax_closed_loop(config: SimConfig, control: Control) -> Callable:
     return closed_loop(make_step(config), control)
 
 
-def initial_carry(state: DroneState, rpm=None) -> Carry:
+def initial_carry(state: DroneState, rpm: ArrayLike | None = None) -> Carry:
     """The loop's first carry: the start state, a zeroed `PIDState`, and the first step's RPM command f[..., D, 4]
     (default 0 RPM, as the original scripts apply on their first ``env.step``)."""
     first = jnp.zeros_like(state.rpm) if rpm is None else jnp.asarray(rpm, state.rpm.dtype)
@@ -124,11 +131,11 @@ def run_closed_loop(
     params: DroneParams,
     gains: PIDGains,
     carry: Carry,
-    xs,
-    fixed,
+    xs: Any,
+    fixed: Any,
     backend: str = "jax",
-    x_first=None,
-    **options,
+    x_first: Any = None,
+    **options: Any,
 ) -> tuple[DroneState, jax.Array]:
     """Fly one closed loop to the end on a backend; the PyBullet worlds are closed afterwards.
 
@@ -160,7 +167,7 @@ def run_closed_loop(
         step.close()
 
 
-def flight_arrays(states: DroneState, rpm_cmd, ctrl_freq: int) -> dict:
+def flight_arrays(states: DroneState, rpm_cmd: ArrayLike, ctrl_freq: int) -> dict:
     """A flight as NumPy arrays, one row per control step.
 
     Returns:

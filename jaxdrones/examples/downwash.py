@@ -26,6 +26,7 @@ on − off), and the upper drone's largest |z − z_target| over the flight (dow
 
 from __future__ import annotations
 
+import os
 import time
 
 import jax.numpy as jnp
@@ -256,7 +257,7 @@ def fly(
     }
 
 
-def plot(result: dict, path) -> str:
+def plot(result: dict, path: str | os.PathLike) -> str:
     """Plot a `fly` result: both drones' altitude in both runs against time, passes shaded; returns ``path``."""
     from jaxdrones.io.plotting import plot_altitude_comparison
 

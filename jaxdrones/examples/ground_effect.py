@@ -27,6 +27,7 @@ Metrics (``result["metrics"]``), for each run (``on``, ``off``) and their differ
 
 from __future__ import annotations
 
+import os
 import time
 
 import jax.numpy as jnp
@@ -203,7 +204,7 @@ def fly(
     }
 
 
-def plot(result: dict, path) -> str:
+def plot(result: dict, path: str | os.PathLike) -> str:
     """Plot a `fly` result: z, vz and the four motor speeds of both runs against time; returns ``path``."""
     from jaxdrones.io.plotting import plot_takeoff_comparison
 

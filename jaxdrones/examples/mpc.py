@@ -27,9 +27,12 @@ import math
 import os
 import sys
 import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 import numpy as np
+from numpy.typing import ArrayLike
 
 from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import check_steps, initial_carry, jax_closed_loop, track_position
@@ -38,6 +41,9 @@ from jaxdrones.physics.state import init_state
 from jaxdrones.sim import SimConfig, make_step
 from jaxdrones.symbolic import discrete_step, require_casadi, state_vector
 
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
 __all__ = ["FIGURE8", "MPC", "MPCWeights", "figure8", "fly_figure8", "plot_figure8", "main"]
 
 #: The figure-8 of the example: amplitude A (m), period (s), height (m).
@@ -45,7 +51,7 @@ FIGURE8 = {"amplitude": 0.5, "period_s": 6.0, "height": 0.5}
 
 
 def figure8(
-    times,
+    times: ArrayLike,
     amplitude: float = FIGURE8["amplitude"],
     period_s: float = FIGURE8["period_s"],
     height: float = FIGURE8["height"],
@@ -128,7 +134,7 @@ class MPC:
         self._solve = opti.to_function("mpc", [x0, ref_pos, ref_vel, x, du], [du[:, 0], x, du])
         self.reset()
 
-    def reset(self, x=None) -> None:
+    def reset(self, x: ArrayLike | None = None) -> None:
         """Forget the warm start (the next solve starts from hover at ``x``, or at the first call's state)."""
         self._x_guess = None if x is None else np.tile(np.asarray(x, np.float64)[:, None], (1, self.horizon + 1))
         self._du_guess = np.zeros((4, self.horizon))
@@ -163,7 +169,7 @@ def fly_figure8(
     params: DroneParams | None = None,
     model_drag: bool | None = None,
     model_ground_effect: bool | None = None,
-    **figure,
+    **figure: float,
 ) -> dict:
     """Fly the figure-8 with the MPC and with the DSL PID (position and velocity feed-forward) on the JAX core.
 
@@ -248,7 +254,7 @@ def fly_figure8(
     }
 
 
-def plot_figure8(result: dict, path: str | None = None):
+def plot_figure8(result: dict, path: str | None = None) -> Figure:
     """The flights' paths in the horizontal plane, their distance to the reference over time, and the MPC's solve
     time per step; saved to ``path`` (PNG) when given (refusing to overwrite a file). Returns the figure."""
     import matplotlib.pyplot as plt
@@ -301,7 +307,7 @@ def summary_lines(result: dict) -> list[str]:
     ]
 
 
-def main(argv=None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     """Fly the figure-8 with the MPC and the PID, print the summary and write the plot (``python -m
     jaxdrones.examples.mpc --help``); returns the exit status."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -27,6 +27,7 @@ response with time constant m/D = 0.027/0.2 ≈ 0.14 s horizontally, so 0.5 s is
 from __future__ import annotations
 
 import math
+import os
 import time
 
 import jax.numpy as jnp
@@ -293,7 +294,7 @@ def fly(
     return out
 
 
-def plot(result: dict, path) -> str:
+def plot(result: dict, path: str | os.PathLike) -> str:
     """Plot a `fly` result: commanded vs reached velocity components of each drone against time; returns ``path``."""
     from jaxdrones.io.plotting import plot_velocity_tracking
 
