@@ -649,10 +649,12 @@ def _add_panels(scene, flight: Flight, eye, target, lo, hi) -> list:
     extent = float(np.linalg.norm(hi - lo))
     height = max(0.5 * extent / MAX_PANELS, 0.15)
     width = height * w / h
-    half = float(np.abs(np.dot(hi - lo, right))) / 2
+    centre = (lo + hi) / 2
+    half = float(np.abs(right) @ (hi - lo)) / 2  # the box [lo, hi]'s half extent along the view's right
     panels = []
     count = min(flight.n_drones, MAX_PANELS)
-    middle = target + right * (half + 0.2 + width / 2)
+    middle = centre + right * (half + 0.2 + width / 2)
+    middle[2] = target[2]
     middle[2] = max(middle[2], 1.1 * height * count / 2 + 0.05)  # the lowest panel above the ground
     for d in range(count):
         centre = middle + up * (height * 1.1 * ((count - 1) / 2 - d))
