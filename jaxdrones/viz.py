@@ -30,10 +30,19 @@ import math
 import numbers
 import os
 import socket
+from collections.abc import Sequence
 from contextlib import redirect_stdout
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from jaxdrones.envs import EnvState, TaskEnv
+
+#: A view: (position, look_at), two (x, y, z) points in m, world frame.
+View = tuple[Sequence[float], Sequence[float]]
+#: Colours: (r, g, b) triples in 0-255.
+Colors = Sequence[Sequence[float]]
 
 #: The pip extra that brings viser (the HTML viewer's only optional dependency).
 VIEWER_EXTRA = "jaxdrones[viewer]"
@@ -146,7 +155,7 @@ class Flight:
         return self.pos.shape[2]
 
     @classmethod
-    def from_states(cls, env, states, time_axis: int = 0) -> Flight:
+    def from_states(cls, env: TaskEnv, states: EnvState, time_axis: int = 0) -> Flight:
         """The flight of env states with a time axis, e.g. `jaxdrones.training.rollout_policy`'s (time first) or
         those of several episodes vmapped (``time_axis=1``): `from_data` of `flight_data`.
 
@@ -161,7 +170,7 @@ class Flight:
         return cls.from_data(env, flight_data(states), time_axis)
 
     @classmethod
-    def from_data(cls, env, data: dict, time_axis: int = 0) -> Flight:
+    def from_data(cls, env: TaskEnv, data: dict, time_axis: int = 0) -> Flight:
         """The flight of `flight_data`'s arrays (taken inside a compiled program, e.g. an evaluation's).
 
         Takes the frame time ``1 / env.config.ctrl_freq``, and the config's obstacles where the states carry no
@@ -204,7 +213,7 @@ class Flight:
         )
 
 
-def flight_data(states) -> dict:
+def flight_data(states: EnvState) -> dict:
     """What a `Flight` needs from env states, as a dict of arrays; traceable, so that a compiled program (an
     evaluation) can return it: ``pos`` f[..., D, 3], ``quat`` f[..., D, 4], ``arm`` f[..., D] m, ``scene`` (the task
     params' `jaxdrones.cameras.Scene`, or None) and ``images`` (the observation's camera frames: RGB u8[..., D, H, W,
@@ -402,9 +411,9 @@ def write_html(
     trail_s: float | None = 2.0,
     max_fps: float = 30.0,
     spacing: float | None = None,
-    camera=None,
+    camera: View | None = None,
     drone_scale: float = 1.0,
-    colors=None,
+    colors: Colors | None = None,
     dark_mode: bool = False,
 ) -> str:
     """Write ``flight`` as one self-contained HTML file that plays offline (from ``file://``, no server).
@@ -687,7 +696,7 @@ def write_video(
     path: str | os.PathLike,
     flight: Flight,
     *,
-    camera="chase",
+    camera: str | View = "chase",
     world: int = 0,
     drone: int = 0,
     width: int = 320,
@@ -696,7 +705,7 @@ def write_video(
     max_fps: float = 30.0,
     trail_s: float | None = 2.0,
     chase: tuple[float, float] = (1.0, 0.4),
-    colors=None,
+    colors: Colors | None = None,
     overwrite: bool = False,
 ) -> str:
     """Draw one world of ``flight`` with the JAX cameras (`jaxdrones.cameras.render`, no PyBullet) and write it as an

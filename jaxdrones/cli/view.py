@@ -11,7 +11,7 @@ import sys
 from jaxdrones.viz import VIEW_EPISODES
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``view`` subcommand to an argparse subparsers object."""
     parser = subparsers.add_parser(
         "view",
@@ -55,7 +55,7 @@ def view_run(
     n_episodes: int = VIEW_EPISODES,
     seed: int = 0,
     overwrite: bool = False,
-    **options,
+    **options: object,
 ) -> str:
     """Fly a training run's policy for a few evaluation episodes on the JAX backend and write them with
     `jaxdrones.viz.write_html` (what ``jaxdrones view RUN`` runs).
