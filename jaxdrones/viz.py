@@ -5,7 +5,9 @@ cameras.
 obstacles and gates, and the onboard camera images when the env has cameras) with viser's scene serializer and
 writes viser's static client with the recording embedded: one ``.html`` file that opens from ``file://`` with no
 server and no network, with play/pause, a time slider, playback speed, trails behind the drones and a 3D view to
-orbit. It needs viser (``pip install "jaxdrones[viewer]"``).
+orbit. It needs viser (``pip install "jaxdrones[viewer]"``; viser's ``ViserServer.get_scene_serializer`` and
+``StateSerializer.as_html``, https://viser.studio): the scene is built in a viser server bound to localhost, which
+no client ever joins, and recorded message by message.
 
 `write_video` draws the same flight from a chase or fixed camera with the JAX ray caster
 (`jaxdrones.cameras.render`, no PyBullet) and writes a GIF or MP4 (`jaxdrones.video.VideoWriter`).
@@ -17,7 +19,7 @@ orbit. It needs viser (``pip install "jaxdrones[viewer]"``).
     write_html("flight.html", flight)
 
 Frames: positions are m in the world frame, z up; quaternions (x, y, z, w) rotate body to world, as everywhere in
-jaxdrones (`jaxdrones.types`).
+jaxdrones (`jaxdrones.DroneState`).
 """
 
 from __future__ import annotations
