@@ -49,7 +49,7 @@ from typing import Any
 
 import jax
 import numpy as np
-from jax.typing import ArrayLike
+from numpy.typing import ArrayLike
 
 from jaxdrones.backends import require_pybullet
 from jaxdrones.physics.checks import check_params_batch, check_state_shape

@@ -39,7 +39,7 @@ import weakref
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.typing import ArrayLike
+from numpy.typing import ArrayLike
 
 from jaxdrones.backends import RENDERERS, camera, require_pybullet, scene
 from jaxdrones.physics import aerodynamics

@@ -26,7 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from jax.typing import ArrayLike, DTypeLike
+from jax.typing import DTypeLike
+from numpy.typing import ArrayLike
 
 from jaxdrones.physics.params import DroneParams, params_batch_shape
 

@@ -14,7 +14,7 @@ from typing import Any
 
 import jax
 import numpy as np
-from jax.typing import ArrayLike
+from numpy.typing import ArrayLike
 
 from jaxdrones._hints import did_you_mean
 from jaxdrones.backends import BACKENDS, RENDERERS, require_pybullet

@@ -24,7 +24,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.typing import ArrayLike
+from numpy.typing import ArrayLike
 
 from jaxdrones.control.pid import PIDGains, PIDState, pid_control, pid_init
 from jaxdrones.physics.params import DroneParams
