@@ -39,7 +39,7 @@ def test_license_carries_the_models_notice():
 
 
 #: Modules the annotation test leaves out, with the reason: `jaxdrones.compat` mirrors gym-pybullet-drones' own
-#: untyped signatures; `jaxdrones.viz` and `jaxdrones.cli.view` (the flight viewer) are not annotated yet.
+#: untyped signatures; `jaxdrones.viz` and `jaxdrones.cli.view` (the flight viewer) have an API still changing.
 UNTYPED_MODULES = ("jaxdrones.compat", "jaxdrones.viz", "jaxdrones.cli.view")
 
 
@@ -107,7 +107,7 @@ def test_public_api_is_annotated():
     parameter and its return: the package ships ``py.typed`` (PEP 561), so type checkers read these hints as its
     API. Private modules (``_x.py``) and private names are left out, and so are `UNTYPED_MODULES`:
     ``jaxdrones.compat`` (it mirrors gym-pybullet-drones' untyped signatures), ``jaxdrones.viz`` and
-    ``jaxdrones.cli.view`` (the flight viewer, not annotated yet)."""
+    ``jaxdrones.cli.view`` (the flight viewer, whose API is still changing)."""
     functions = dict(item for module in _public_modules() for item in _public_functions(module))
     assert len(functions) > 300  # the walk found the package (not an empty or broken one)
     assert "jaxdrones.physics.state.init_state" in functions and "jaxdrones.envs.env.TaskEnv.step" in functions
