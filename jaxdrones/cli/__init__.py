@@ -10,6 +10,7 @@ import time
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``jaxdrones`` command line: its ``--version`` and one subcommand per job."""
     from jaxdrones import __version__
     from jaxdrones.cli import camera, export, fly, ros2, train, view
 
