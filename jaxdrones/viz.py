@@ -265,7 +265,7 @@ def _check_scene(scene, lead: tuple[int, ...]):
     """The `Flight.scene` argument as a `jaxdrones.cameras.Scene` of NumPy arrays, unbatched or [W], or None."""
     import jax
 
-    from jaxdrones.cameras import Scene, make_scene
+    from jaxdrones.scene.primitives import Scene, make_scene
 
     if scene is None or (isinstance(scene, (tuple, list)) and len(scene) == 0):
         return None
@@ -746,10 +746,11 @@ def write_video(
     import jax
     import jax.numpy as jnp
 
-    from jaxdrones.cameras import CameraSpec, drone_primitives, make_scene, render
-    from jaxdrones.params import load_params
-    from jaxdrones.rotations import quat_to_rotmat
-    from jaxdrones.video import VideoWriter, video_format
+    from jaxdrones.io.video import VideoWriter, video_format
+    from jaxdrones.physics.params import load_params
+    from jaxdrones.physics.rotations import quat_to_rotmat
+    from jaxdrones.scene.primitives import drone_primitives, make_scene
+    from jaxdrones.sensors.camera import CameraSpec, render
 
     if not isinstance(flight, Flight):
         raise TypeError(f"flight must be a jaxdrones.viz.Flight, got {type(flight).__name__}")
@@ -818,7 +819,7 @@ DRONE_SEG = 1 << 20
 def _seg_colours(scene, colours: np.ndarray) -> dict:
     """Colour (RGB 0-1) of each segmentation id of `write_video`'s renders: the ground (0) `GROUND_RGB`, the
     scene's primitives their own, drone d (`DRONE_SEG` + d) its trail's colour."""
-    from jaxdrones.cameras import GROUND_RGB, SHAPES
+    from jaxdrones.scene.primitives import GROUND_RGB, SHAPES
 
     lookup = {0: np.asarray(GROUND_RGB)}
     for shape in SHAPES:
@@ -834,7 +835,7 @@ def _shade(spec, depth: np.ndarray, seg: np.ndarray, eye, axes, lookup: dict) ->
     """u8[H, W, 3]: a depth and segmentation render coloured by id (``lookup``), Lambert-shaded with the normals of
     the depth map's surface (the cameras' `LIGHT` and `AMBIENT`), the ground with lines every 0.5 m up to 6 m, the sky
     `SKY_RGB`; depth and ids are `render`'s fast path, many times faster than its RGB path."""
-    from jaxdrones.cameras import AMBIENT, LIGHT
+    from jaxdrones.sensors.camera import AMBIENT, LIGHT
 
     rays = spec.pixel_rays().astype(np.float64) @ np.asarray(axes).T  # [H, W, 3] world, forward component 1
     points = eye + depth[..., None] * rays

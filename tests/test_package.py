@@ -39,8 +39,8 @@ def test_license_carries_the_models_notice():
 
 
 #: Modules the annotation test leaves out, with the reason: `jaxdrones.compat` mirrors gym-pybullet-drones' own
-#: untyped signatures; `jaxdrones.viz` and `jaxdrones.cli.view` (the flight viewer) have an API still changing.
-UNTYPED_MODULES = ("jaxdrones.compat", "jaxdrones.viz", "jaxdrones.cli.view")
+#: untyped signatures.
+UNTYPED_MODULES = ("jaxdrones.compat",)
 
 
 def _public_modules(package=jaxdrones):

@@ -12,10 +12,14 @@ import numpy as np
 import pytest
 from jax.experimental.compilation_cache import compilation_cache
 
+from jaxdrones import viz
 from jaxdrones.cli import main
 from jaxdrones.training import evaluate, load_policy
 
-TRAIN_OUTPUTS = ("policy.pkl", "learning_curve.png", "flight.png", "progress.json", "summary.json")
+#: What a training run writes; flight.html where viser (the viewer extra, in the test extra) is installed.
+TRAIN_OUTPUTS = ("policy.pkl", "learning_curve.png", "flight.png", "progress.json", "summary.json") + (
+    ("flight.html",) if viz.viewer_available() else ()
+)
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
