@@ -35,16 +35,33 @@ def main(argv=None) -> int:
     from crazyflow.sim import functional as F
     from crazyflow.sim import sim as sim_module
 
-    print("INFO " + json.dumps({"crazyflow": importlib.metadata.version("crazyflow"), "jax": jax.__version__,
-                                "dynamics": "first_principles", "control": "rotor_vel", "freq": SIM_FREQ}),
-          flush=True)
+    print(
+        "INFO "
+        + json.dumps(
+            {
+                "crazyflow": importlib.metadata.version("crazyflow"),
+                "jax": jax.__version__,
+                "dynamics": "first_principles",
+                "control": "rotor_vel",
+                "freq": SIM_FREQ,
+            }
+        ),
+        flush=True,
+    )
     for horizon in args.horizons:
         for worlds in args.worlds:
-            sim = Sim(n_worlds=worlds, n_drones=1, dynamics="first_principles", control="rotor_vel", freq=SIM_FREQ,
-                      device="gpu" if jax.default_backend() == "gpu" else "cpu")  # crazyflow's default: "cpu"
+            sim = Sim(
+                n_worlds=worlds,
+                n_drones=1,
+                dynamics="first_principles",
+                control="rotor_vel",
+                freq=SIM_FREQ,
+                device="gpu" if jax.default_backend() == "gpu" else "cpu",
+            )  # crazyflow's default: "cpu"
             constants = sim_module.load_dynamics_params(sim.dynamics, sim.drone)
-            hover = float(sim_module.motor_force2rotor_vel(np.asarray(constants["mass"] * 9.81 / 4),
-                                                           constants["rpm2thrust"]))
+            hover = float(
+                sim_module.motor_force2rotor_vel(np.asarray(constants["mass"] * 9.81 / 4), constants["rpm2thrust"])
+            )
             data = sim.data.replace(states=sim.data.states.replace(pos=jnp.asarray(start_positions(np, worlds))))
             state = {"pos": data.states.pos, "vel": data.states.vel}
             noise = np.random.default_rng(1).standard_normal((horizon, worlds, 1, 4))
@@ -60,8 +77,10 @@ def main(argv=None) -> int:
                 return trajectory_loss(jnp, pos, vel)
 
             result = measure(jax, loss, commands, state, horizon, worlds, args.repeats)
-            print("RESULT " + json.dumps({"sim": "crazyflow", "caller": "user_scan", "remat": False, **result}),
-                  flush=True)
+            print(
+                "RESULT " + json.dumps({"sim": "crazyflow", "caller": "user_scan", "remat": False, **result}),
+                flush=True,
+            )
     return 0
 
 

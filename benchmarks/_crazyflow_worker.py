@@ -1,10 +1,11 @@
 """Worker of `envs.py`: env-steps/s of crazyflow's gymnasium vector env, run in crazyflow's own venv.
 
-``gymnasium.make_vec("DroneReachPos-v0", num_envs=N, freq=<ctrl Hz>, device=<the JAX backend: "gpu" or "cpu">)`` (crazyflow's attitude control
-and default ``so_rpy`` model; its env class fixes the physics at 500 Hz, so a 30 Hz step is 500 // 30 = 16
-substeps, with a warning that 500 is not a multiple of 30), wrapped in crazyflow's ``NormalizeActions`` (actions in
-[-1, 1]) and gymnasium's ``JaxToNumpy`` (NumPy in and out), timed by `envs.time_vector_env`, the loop that times
-the jaxdrones vector env. Prints one ``INFO {json}`` line, then one ``RESULT {json}`` line per size.
+``gymnasium.make_vec("DroneReachPos-v0", num_envs=N, freq=<ctrl Hz>, device=<the JAX backend: "gpu" or "cpu">)``
+(crazyflow's attitude control and default ``so_rpy`` model; its env class fixes the physics at 500 Hz, so a 30 Hz
+step is 500 // 30 = 16 substeps, with a warning that 500 is not a multiple of 30), wrapped in crazyflow's
+``NormalizeActions`` (actions in [-1, 1]) and gymnasium's ``JaxToNumpy`` (NumPy in and out), timed by
+`envs.time_vector_env`, the loop that times the jaxdrones vector env. Prints one ``INFO {json}`` line, then one
+``RESULT {json}`` line per size.
 
 Usage (what `envs.py` runs)::
 
@@ -47,15 +48,26 @@ def main(argv=None) -> int:
     def make(n):
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Simulation frequency should be a multiple")
-            return JaxToNumpy(NormalizeActions(gymnasium.make_vec(ENV_ID, num_envs=n, freq=args.ctrl_freq,
-                                                                  device=DEVICE)))
+            return JaxToNumpy(
+                NormalizeActions(gymnasium.make_vec(ENV_ID, num_envs=n, freq=args.ctrl_freq, device=DEVICE))
+            )
 
     env = make(1)
     sim = env.unwrapped.sim
-    info = {"env_id": ENV_ID, "crazyflow": importlib.metadata.version("crazyflow"), "jax": jax.__version__,
-            "gymnasium": gymnasium.__version__, "backend": jax.default_backend(), "ctrl_freq": args.ctrl_freq,
-            "sim_freq": sim.freq, "substeps": env.unwrapped.n_substeps, "dynamics": str(sim.dynamics),
-            "drone": str(sim.drone), "control": str(sim.control), "wrappers": ["NormalizeActions", "JaxToNumpy"]}
+    info = {
+        "env_id": ENV_ID,
+        "crazyflow": importlib.metadata.version("crazyflow"),
+        "jax": jax.__version__,
+        "gymnasium": gymnasium.__version__,
+        "backend": jax.default_backend(),
+        "ctrl_freq": args.ctrl_freq,
+        "sim_freq": sim.freq,
+        "substeps": env.unwrapped.n_substeps,
+        "dynamics": str(sim.dynamics),
+        "drone": str(sim.drone),
+        "control": str(sim.control),
+        "wrappers": ["NormalizeActions", "JaxToNumpy"],
+    }
     env.close()
     print("INFO " + json.dumps(info), flush=True)
     for n in args.sizes:
@@ -64,8 +76,19 @@ def main(argv=None) -> int:
             result = time_vector_env(env, n, steps_for(n, args.steps, args.target), args.repeats)
         finally:
             env.close()
-        print("RESULT " + json.dumps({"env": "crazyflow", **result, "sim_freq": info["sim_freq"],
-                                      "ctrl_freq": args.ctrl_freq, "substeps": info["substeps"]}), flush=True)
+        print(
+            "RESULT "
+            + json.dumps(
+                {
+                    "env": "crazyflow",
+                    **result,
+                    "sim_freq": info["sim_freq"],
+                    "ctrl_freq": args.ctrl_freq,
+                    "substeps": info["substeps"],
+                }
+            ),
+            flush=True,
+        )
     return 0
 
 

@@ -50,25 +50,26 @@ def path_lengths(clear, goal_cell, margin):
     weight = (1.0 + 3.0 * np.clip((0.3 - clear) / 0.3, 0, 1)).ravel()
     rows, cols, lengths = [], [], []
     for di, dj in ((1, 0), (0, 1), (1, 1), (1, -1)):
-        a = idx[max(0, -di):nx - max(0, di), max(0, -dj):ny - max(0, dj)].ravel()
-        b = idx[max(0, di):nx + min(0, di), max(0, dj):ny + min(0, dj)].ravel()
+        a = idx[max(0, -di) : nx - max(0, di), max(0, -dj) : ny - max(0, dj)].ravel()
+        b = idx[max(0, di) : nx + min(0, di), max(0, dj) : ny + min(0, dj)].ravel()
         ok = free[a] & free[b]
         rows.append(a[ok])
         cols.append(b[ok])
         lengths.append(GRID_M * np.hypot(di, dj) * 0.5 * (weight[a] + weight[b])[ok])
-    graph = coo_matrix((np.concatenate(lengths), (np.concatenate(rows), np.concatenate(cols))),
-                       shape=(nx * ny, nx * ny)).tocsr()
+    graph = coo_matrix(
+        (np.concatenate(lengths), (np.concatenate(rows), np.concatenate(cols))), shape=(nx * ny, nx * ny)
+    ).tocsr()
     d = csgraph.dijkstra(graph, directed=False, indices=idx[goal_cell])
     return np.where(np.isfinite(d), d, 1e3).reshape(nx, ny)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    import jaxdrones as jd  # before JAX starts: its XLA flags
     import jax
     import jax.numpy as jnp
     import numpy as np
 
+    import jaxdrones as jd  # before JAX starts: its XLA flags
     from jaxdrones import cameras
 
     env = jd.make("avoid", image_size=(32, 24))
@@ -112,13 +113,17 @@ def main(argv=None) -> int:
 
     out = {"episodes": args.episodes, "margin_m": args.margin, "free_path": connected}
     for name, planned in (("planner", True), ("straight", False)):
-        metrics = jax.jit(jax.vmap(lambda s, f: episode(s, f, planned)))(starts, fields)
-        out[name] = {"success": 1 - float(jnp.mean(metrics["failure"])),
-                     "collision": float(jnp.mean(metrics["collision"]))}
-    print(f"avoid, {args.episodes} episodes: a free path with {args.margin} m of clearance in "
-          f"{100 * connected:.0f} %; the planner reached the goal in {100 * out['planner']['success']:.1f} % "
-          f"(collisions {100 * out['planner']['collision']:.1f} %); straight at the goal "
-          f"{100 * out['straight']['success']:.1f} % (collisions {100 * out['straight']['collision']:.1f} %)")
+        metrics = jax.jit(jax.vmap(lambda s, f, planned=planned: episode(s, f, planned)))(starts, fields)
+        out[name] = {
+            "success": 1 - float(jnp.mean(metrics["failure"])),
+            "collision": float(jnp.mean(metrics["collision"])),
+        }
+    print(
+        f"avoid, {args.episodes} episodes: a free path with {args.margin} m of clearance in "
+        f"{100 * connected:.0f} %; the planner reached the goal in {100 * out['planner']['success']:.1f} % "
+        f"(collisions {100 * out['planner']['collision']:.1f} %); straight at the goal "
+        f"{100 * out['straight']['success']:.1f} % (collisions {100 * out['straight']['collision']:.1f} %)"
+    )
     path = pathlib.Path(args.out)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1))

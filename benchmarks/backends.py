@@ -37,11 +37,11 @@ import time
 
 import jax
 import numpy as np
+import original
+from throughput import machine_info, write_report
 
 import jaxdrones as jd
 from jaxdrones.control import PIDGains, pid_control, pid_init
-import original
-from throughput import machine_info, write_report
 
 DEFAULT_OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "backends.json")
 DRONES = (1, 10, 80)
@@ -49,8 +49,9 @@ SIM_FREQ = 240
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--quick", action="store_true", help="fewer simulated seconds and 3 repeats")
     parser.add_argument("--drones", type=int, nargs="+", default=list(DRONES), help="drones per world")
     parser.add_argument("--seconds", type=float, default=None, help="simulated seconds per timed run (default 5)")
@@ -98,8 +99,11 @@ def hover_setup(n_drones: int, ctrl_freq: int):
 
 def rates(n_ctrl_steps: int, config, seconds: float) -> dict:
     physics = n_ctrl_steps * config.n_substeps / seconds
-    return {"physics_steps_per_s": physics, "drone_steps_per_s": physics * config.n_drones,
-            "real_time_factor": physics / config.sim_freq}
+    return {
+        "physics_steps_per_s": physics,
+        "drone_steps_per_s": physics * config.n_drones,
+        "real_time_factor": physics / config.sim_freq,
+    }
 
 
 def bench_physics(args, n_drones: int, ctrl_freq: int) -> list[dict]:
@@ -131,9 +135,20 @@ def bench_physics(args, n_drones: int, ctrl_freq: int) -> list[dict]:
         times = timed_together(loops, args.repeats)
     rows = []
     for (backend, kind), (best, median) in times.items():
-        rows.append({"measure": "physics", "backend": backend, "loop": kind, "drones": n_drones,
-                     "ctrl_freq": ctrl_freq, "ctrl_steps": n_steps, "best_s": best, "median_s": median,
-                     "best": rates(n_steps, config, best), "median": rates(n_steps, config, median)})
+        rows.append(
+            {
+                "measure": "physics",
+                "backend": backend,
+                "loop": kind,
+                "drones": n_drones,
+                "ctrl_freq": ctrl_freq,
+                "ctrl_steps": n_steps,
+                "best_s": best,
+                "median_s": median,
+                "best": rates(n_steps, config, best),
+                "median": rates(n_steps, config, median),
+            }
+        )
     return rows
 
 
@@ -146,6 +161,7 @@ def bench_pid_loop(args, n_drones: int, obstacles: bool) -> dict:
     np_state = jax.tree.map(np.asarray, state)
     controller = jax.jit(lambda pid, s: pid_control(params, gains, pid, s, target, ctrl_dt=config.ctrl_dt))
     with jd.make_step(config, backend="pybullet", obstacles="paper" if obstacles else None) as step:
+
         def loop():
             s, pid = np_state, pid_init(np_state)
             for _ in range(n_steps):
@@ -155,10 +171,19 @@ def bench_pid_loop(args, n_drones: int, obstacles: bool) -> dict:
 
         best, median = timed(loop, args.repeats)
         final = loop()
-    return {"measure": "pid_loop", "backend": "pybullet", "drones": n_drones, "obstacles": obstacles,
-            "ctrl_freq": ctrl_freq, "ctrl_steps": n_steps, "best_s": best, "median_s": median,
-            "best": rates(n_steps, config, best), "median": rates(n_steps, config, median),
-            "final_height_error_m": float(np.max(np.abs(final.pos[:, 2] - target[:, 2])))}
+    return {
+        "measure": "pid_loop",
+        "backend": "pybullet",
+        "drones": n_drones,
+        "obstacles": obstacles,
+        "ctrl_freq": ctrl_freq,
+        "ctrl_steps": n_steps,
+        "best_s": best,
+        "median_s": median,
+        "best": rates(n_steps, config, best),
+        "median": rates(n_steps, config, median),
+        "final_height_error_m": float(np.max(np.abs(final.pos[:, 2] - target[:, 2]))),
+    }
 
 
 def bench_camera(args, n_drones: int) -> dict:
@@ -166,6 +191,7 @@ def bench_camera(args, n_drones: int) -> dict:
     np_state = jax.tree.map(np.asarray, state)
     n_frames = max(5, int(args.seconds * 24))  # the original's 24 Hz capture rate
     with jd.make_step(config, backend="pybullet", obstacles="paper") as step:
+
         def capture():
             for _ in range(n_frames):
                 images = step.camera_images(params, np_state)
@@ -175,12 +201,21 @@ def bench_camera(args, n_drones: int) -> dict:
         images = capture()
     rgba_bytes = images["rgb"][..., 0, :, :, :].nbytes  # one drone's frame
     frames = n_frames * n_drones
-    return {"measure": "camera", "backend": "pybullet", "renderer": "tiny", "drones": n_drones,
-            "width": images["rgb"].shape[-2], "height": images["rgb"].shape[-3], "frames": frames,
-            "best_s": best, "median_s": median,
-            "frames_per_s_best": frames / best, "frames_per_s_median": frames / median,
-            "rgba_kB_per_s_best": frames * rgba_bytes / best / 1e3,
-            "rgba_kB_per_s_median": frames * rgba_bytes / median / 1e3}
+    return {
+        "measure": "camera",
+        "backend": "pybullet",
+        "renderer": "tiny",
+        "drones": n_drones,
+        "width": images["rgb"].shape[-2],
+        "height": images["rgb"].shape[-3],
+        "frames": frames,
+        "best_s": best,
+        "median_s": median,
+        "frames_per_s_best": frames / best,
+        "frames_per_s_median": frames / median,
+        "rgba_kB_per_s_best": frames * rgba_bytes / best / 1e3,
+        "rgba_kB_per_s_median": frames * rgba_bytes / median / 1e3,
+    }
 
 
 def main(argv=None) -> int:
@@ -189,32 +224,45 @@ def main(argv=None) -> int:
     info = machine_info(jax)
     print(f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, load {os.getloadavg()}")
     results = []
-    print(f"{'measure':<9} {'backend':<9} {'loop':<10} {'drones':>6} {'ctrl Hz':>7} {'physics steps/s':>16} "
-          f"{'median':>9} {'drone-steps/s':>14} {'x real time':>11}")
+    print(
+        f"{'measure':<9} {'backend':<9} {'loop':<10} {'drones':>6} {'ctrl Hz':>7} {'physics steps/s':>16} "
+        f"{'median':>9} {'drone-steps/s':>14} {'x real time':>11}"
+    )
     for n_drones in args.drones:
         for ctrl_freq in (240, 48):
             for row in bench_physics(args, n_drones, ctrl_freq):
                 results.append(row)
                 best = row["best"]
-                print(f"{'physics':<9} {row['backend']:<9} {row['loop']:<10} {n_drones:>6} {ctrl_freq:>7} "
-                      f"{best['physics_steps_per_s']:>16,.0f} {row['median']['physics_steps_per_s']:>9,.0f} "
-                      f"{best['drone_steps_per_s']:>14,.0f} {best['real_time_factor']:>11,.1f}")
+                print(
+                    f"{'physics':<9} {row['backend']:<9} {row['loop']:<10} {n_drones:>6} {ctrl_freq:>7} "
+                    f"{best['physics_steps_per_s']:>16,.0f} {row['median']['physics_steps_per_s']:>9,.0f} "
+                    f"{best['drone_steps_per_s']:>14,.0f} {best['real_time_factor']:>11,.1f}"
+                )
     for n_drones in (1, 10):
         for obstacles in (False, True):
             row = bench_pid_loop(args, n_drones, obstacles)
             results.append(row)
             best = row["best"]
             loop = "pid+obst" if obstacles else "pid"
-            print(f"{'pid_loop':<9} {'pybullet':<9} {loop:<10} {n_drones:>6} {48:>7} "
-                  f"{best['physics_steps_per_s']:>16,.0f} {row['median']['physics_steps_per_s']:>9,.0f} "
-                  f"{best['drone_steps_per_s']:>14,.0f} {best['real_time_factor']:>11,.1f}")
+            print(
+                f"{'pid_loop':<9} {'pybullet':<9} {loop:<10} {n_drones:>6} {48:>7} "
+                f"{best['physics_steps_per_s']:>16,.0f} {row['median']['physics_steps_per_s']:>9,.0f} "
+                f"{best['drone_steps_per_s']:>14,.0f} {best['real_time_factor']:>11,.1f}"
+            )
     for n_drones in (1, 10):
         row = bench_camera(args, n_drones)
         results.append(row)
-        print(f"camera    tiny      64x48     {n_drones:>6}: {row['frames_per_s_best']:,.0f} frames/s per process, "
-              f"{row['rgba_kB_per_s_best']:,.0f} kB/s RGBA (median {row['rgba_kB_per_s_median']:,.0f})")
-    write_report(args.out, "jaxdrones PyBullet backend vs JAX core", info,
-                 {k: v for k, v in vars(args).items() if k not in ("out", "original_module")}, results)
+        print(
+            f"camera    tiny      64x48     {n_drones:>6}: {row['frames_per_s_best']:,.0f} frames/s per process, "
+            f"{row['rgba_kB_per_s_best']:,.0f} kB/s RGBA (median {row['rgba_kB_per_s_median']:,.0f})"
+        )
+    write_report(
+        args.out,
+        "jaxdrones PyBullet backend vs JAX core",
+        info,
+        {k: v for k, v in vars(args).items() if k not in ("out", "original_module")},
+        results,
+    )
     return 0
 
 

@@ -36,8 +36,12 @@ def parse_args(argv=None):
     parser.add_argument("--primitives", type=int, nargs="+", default=[4, 16, 64])
     parser.add_argument("--kinds", nargs="+", default=["depth", "seg"], choices=["rgb", "depth", "seg"])
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--pybullet", action=argparse.BooleanOptionalAction, default=True,
-                        help="also time the PyBullet backend's cameras (TinyRenderer and EGL) on 16 worlds")
+    parser.add_argument(
+        "--pybullet",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also time the PyBullet backend's cameras (TinyRenderer and EGL) on 16 worlds",
+    )
     parser.add_argument("--out", default=DEFAULT_OUT)
     return parser.parse_args(argv)
 
@@ -57,7 +61,8 @@ def scene_obstacles(n: int, seed: int = 0):
         rpy = tuple(float(a) for a in rng.uniform(-0.5, 0.5, 3))
         shape = ("box", "sphere", "cylinder", "capsule")[k % 4]
         size = {"box": tuple(rng.uniform(0.1, 0.5, 3)), "sphere": (rng.uniform(0.1, 0.3),)}.get(
-            shape, (rng.uniform(0.05, 0.2), rng.uniform(0.2, 1.0)))
+            shape, (rng.uniform(0.05, 0.2), rng.uniform(0.2, 1.0))
+        )
         out.append(Obstacle(shape, size=tuple(float(s) for s in size), pos=pos, rpy=rpy))
     return out
 
@@ -89,17 +94,27 @@ def time_jax(worlds: int, n_primitives: int, kinds, repeats: int, packed: bool =
     scene = cameras.make_scene(scene_obstacles(n_primitives))
     state = poses(worlds)
     kinds = tuple(kinds)
-    render = (functools.partial(cameras.render, spec, kinds=kinds) if packed or "rgb" in kinds else
-              lambda *a: cameras._images(spec, kinds, *a, fast=False))
+    render = (
+        functools.partial(cameras.render, spec, kinds=kinds)
+        if packed or "rgb" in kinds
+        else lambda *a: cameras._images(spec, kinds, *a, fast=False)
+    )
     # The scene is an input (as a scene drawn per episode is), not a constant XLA would fold into the program.
     fn = jax.jit(jax.vmap(lambda s, p, q: render(s, params, p, q), in_axes=(None, 0, 0)))
     start = time.perf_counter()
     compiled = fn.lower(scene, state.pos, state.quat).compile()
     compile_s = time.perf_counter() - start
     best, s = timed(lambda: jax.block_until_ready(compiled(scene, state.pos, state.quat)), repeats)
-    return {"sim": "jaxdrones" if packed or "rgb" in kinds else "jaxdrones-apart", "worlds": worlds,
-            "primitives": n_primitives, "kinds": list(kinds), "s": s, "best_s": best, "compile_s": compile_s,
-            "frames_per_s": worlds / s}
+    return {
+        "sim": "jaxdrones" if packed or "rgb" in kinds else "jaxdrones-apart",
+        "worlds": worlds,
+        "primitives": n_primitives,
+        "kinds": list(kinds),
+        "s": s,
+        "best_s": best,
+        "compile_s": compile_s,
+        "frames_per_s": worlds / s,
+    }
 
 
 #: The envs timed with their cameras, and their primitives (besides the ground): the paper's gate (3 boxes) and the
@@ -125,8 +140,16 @@ def time_env(task: str, worlds: int, repeats: int, steps: int = 30) -> dict:
         return jax.lax.scan(lambda s, _: (jax.vmap(env.step)(s, actions), None), state, None, length=steps)[0]
 
     best, s = timed(lambda: jax.block_until_ready(run(state)), repeats)
-    return {"sim": "jaxdrones-env", "task": task, "worlds": worlds, "primitives": ENV_TASKS[task],
-            "kinds": ["depth", "seg"], "s": s / steps, "best_s": best / steps, "frames_per_s": worlds * steps / s}
+    return {
+        "sim": "jaxdrones-env",
+        "task": task,
+        "worlds": worlds,
+        "primitives": ENV_TASKS[task],
+        "kinds": ["depth", "seg"],
+        "s": s / steps,
+        "best_s": best / steps,
+        "frames_per_s": worlds * steps / s,
+    }
 
 
 def time_pybullet(worlds: int, n_primitives: int, renderer: str, repeats: int) -> dict:
@@ -140,14 +163,22 @@ def time_pybullet(worlds: int, n_primitives: int, renderer: str, repeats: int) -
     config = jd.SimConfig(n_drones=1)
     with jd.make_step(config, backend="pybullet", obstacles=scene_obstacles(n_primitives), renderer=renderer) as step:
         best, s = timed(lambda: step.camera_images(params, state), repeats)
-    return {"sim": f"pybullet-{renderer}", "worlds": worlds, "primitives": n_primitives,
-            "kinds": ["rgb", "depth", "seg"], "s": s, "best_s": best, "frames_per_s": worlds / s}
+    return {
+        "sim": f"pybullet-{renderer}",
+        "worlds": worlds,
+        "primitives": n_primitives,
+        "kinds": ["rgb", "depth", "seg"],
+        "s": s,
+        "best_s": best,
+        "frames_per_s": worlds / s,
+    }
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    import jaxdrones  # noqa: F401  (before JAX starts: its XLA flags)
     import jax
+
+    import jaxdrones  # noqa: F401  (before JAX starts: its XLA flags)
 
     load = os.getloadavg()
     print(f"jax {jax.__version__} on {jax.devices()[0].device_kind}, load {load}", flush=True)
@@ -157,8 +188,11 @@ def main(argv=None) -> int:
             for packed in (True, False) if "rgb" not in args.kinds else (True,):
                 r = time_jax(w, p, args.kinds, args.repeats, packed)
                 results.append(r)
-                print(f"jax cameras{'' if packed else ' (apart)'} P={p:3d} W={w:6d}: {r['frames_per_s']:12,.0f} "
-                      f"frames/s  ({r['s'] * 1e3:.1f} ms, compile {r['compile_s']:.1f} s)", flush=True)
+                print(
+                    f"jax cameras{'' if packed else ' (apart)'} P={p:3d} W={w:6d}: {r['frames_per_s']:12,.0f} "
+                    f"frames/s  ({r['s'] * 1e3:.1f} ms, compile {r['compile_s']:.1f} s)",
+                    flush=True,
+                )
         if args.pybullet:
             for renderer in ("tiny", "egl"):
                 try:
@@ -175,8 +209,17 @@ def main(argv=None) -> int:
             print(f"env {task}, depth+seg every step, W={w:6d}: {r['frames_per_s']:12,.0f} env-steps/s", flush=True)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
-        json.dump({"jax": jax.__version__, "device": str(jax.devices()[0]), "load_start": load,
-                   "load_end": os.getloadavg(), "results": results}, f, indent=1)
+        json.dump(
+            {
+                "jax": jax.__version__,
+                "device": str(jax.devices()[0]),
+                "load_start": load,
+                "load_end": os.getloadavg(),
+                "results": results,
+            },
+            f,
+            indent=1,
+        )
     return 0
 
 

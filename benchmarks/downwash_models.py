@@ -43,8 +43,7 @@ def pass_windows(times: np.ndarray, pos: np.ndarray) -> list[tuple[int, int]]:
     """[first, end) step ranges: each pass of the drones over each other and the `RECOVERY_S` after it."""
     from jaxdrones.examples.downwash import RECOVERY_S, find_passes
 
-    return [(first, int(np.searchsorted(times, times[last] + RECOVERY_S + 1e-9))) for first, last in
-            find_passes(pos)]
+    return [(first, int(np.searchsorted(times, times[last] + RECOVERY_S + 1e-9))) for first, last in find_passes(pos)]
 
 
 def response(result: dict) -> dict:
@@ -83,18 +82,34 @@ def run(models=MODELS, backends=BACKENDS, duration_s: float = 12.0) -> dict:
         for model in models:
             start = time.perf_counter()
             result = fly(duration_s, backend=backend, downwash=model)
-            rows.append({"model": model, "backend": backend, **response(result),
-                         "wall_s": round(time.perf_counter() - start, 2)})
-            print(f"{backend:8s} {model:9s} dip {100 * rows[-1]['dip_m']:6.2f} cm "
-                  f"(response {100 * rows[-1]['dip_response_m']:+6.2f} cm), peak pitch "
-                  f"{rows[-1]['peak_pitch_deg']:5.2f} deg (response {rows[-1]['pitch_response_deg']:5.2f} deg), "
-                  f"v_x response {rows[-1]['vx_response_mps']:.3f} m/s", flush=True)
+            rows.append(
+                {
+                    "model": model,
+                    "backend": backend,
+                    **response(result),
+                    "wall_s": round(time.perf_counter() - start, 2),
+                }
+            )
+            print(
+                f"{backend:8s} {model:9s} dip {100 * rows[-1]['dip_m']:6.2f} cm "
+                f"(response {100 * rows[-1]['dip_response_m']:+6.2f} cm), peak pitch "
+                f"{rows[-1]['peak_pitch_deg']:5.2f} deg (response {rows[-1]['pitch_response_deg']:5.2f} deg), "
+                f"v_x response {rows[-1]['vx_response_mps']:.3f} m/s",
+                flush=True,
+            )
     return {
         "what": __doc__.split("\n\n")[0],
         "definitions": "\n\n".join(__doc__.split("\n\n")[2:4]),
-        "settings": {"example": "downwash", "drone": "cf2x", "duration_s": duration_s, "sim_freq": 240,
-                     "ctrl_freq": 48, "dtype": "float64", "python": platform.python_version(),
-                     "jax": jax.__version__},
+        "settings": {
+            "example": "downwash",
+            "drone": "cf2x",
+            "duration_s": duration_s,
+            "sim_freq": 240,
+            "ctrl_freq": 48,
+            "dtype": "float64",
+            "python": platform.python_version(),
+            "jax": jax.__version__,
+        },
         "rows": rows,
     }
 

@@ -30,8 +30,20 @@ EPISODES = 256
 
 def train(downwash: bool, seed: int, steps: int | None, out: str) -> dict:
     """One ``jaxdrones train crossing`` process; its summary."""
-    command = [sys.executable, "-m", "jaxdrones.cli", "train", "crossing", "--seed", str(seed), "--out", out,
-               "--overwrite", "--no-progress", "--downwash" if downwash else "--no-downwash"]
+    command = [
+        sys.executable,
+        "-m",
+        "jaxdrones.cli",
+        "train",
+        "crossing",
+        "--seed",
+        str(seed),
+        "--out",
+        out,
+        "--overwrite",
+        "--no-progress",
+        "--downwash" if downwash else "--no-downwash",
+    ]
     if steps is not None:
         command += ["--steps", str(steps)]
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
@@ -46,8 +58,11 @@ def flown(env, policy) -> dict:
     from jaxdrones.training import evaluate
 
     stats = evaluate(env, policy, jax.random.key(1234), EPISODES)
-    return {"max_altitude_error_m": stats["success_value"], "tracking_error_m": stats["mean_tracking_error"],
-            "terminated_rate": stats["terminated_rate"]}
+    return {
+        "max_altitude_error_m": stats["success_value"],
+        "tracking_error_m": stats["mean_tracking_error"],
+        "terminated_rate": stats["terminated_rate"],
+    }
 
 
 def pid_policy(env):
@@ -65,8 +80,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--steps", type=int, default=None, help="env steps per training (default: the trainer's)")
-    parser.add_argument("--out", default=os.path.join(HERE, "results", "downwash_policies"),
-                        help="folder for the run folders and the JSON")
+    parser.add_argument(
+        "--out",
+        default=os.path.join(HERE, "results", "downwash_policies"),
+        help="folder for the run folders and the JSON",
+    )
     args = parser.parse_args(argv)
 
     import jaxdrones as jd
@@ -77,11 +95,15 @@ def main(argv: list[str] | None = None) -> int:
     print("policy                      flown with downwash   largest altitude error   tracking error  terminated")
 
     def report(name, trained_on, flown_with, result, **extra):
-        rows.append({"policy": name, "trained_with_downwash": trained_on, "flown_with_downwash": flown_with,
-                     **result, **extra})
-        print(f"{name:27s} {'on ' if flown_with else 'off'}                   "
-              f"{100 * result['max_altitude_error_m']:8.2f} cm           {100 * result['tracking_error_m']:6.2f} cm"
-              f"    {result['terminated_rate']:.1%}", flush=True)
+        rows.append(
+            {"policy": name, "trained_with_downwash": trained_on, "flown_with_downwash": flown_with, **result, **extra}
+        )
+        print(
+            f"{name:27s} {'on ' if flown_with else 'off'}                   "
+            f"{100 * result['max_altitude_error_m']:8.2f} cm           {100 * result['tracking_error_m']:6.2f} cm"
+            f"    {result['terminated_rate']:.1%}",
+            flush=True,
+        )
 
     for downwash in (True, False):
         env = jd.make("crossing", action_type="pid", downwash=downwash)
@@ -92,13 +114,28 @@ def main(argv: list[str] | None = None) -> int:
             summary = train(trained_on, seed, args.steps, run)
             for flown_with in (True, False):
                 env, policy = load_policy(run, env=jd.make("crossing", downwash=flown_with))
-                report(f"MAPPO, trained {'with' if trained_on else 'without'}", trained_on, flown_with,
-                       flown(env, policy), seed=seed, env_steps=summary["env_steps"],
-                       wall_time_s=summary["wall_time_s"])
+                report(
+                    f"MAPPO, trained {'with' if trained_on else 'without'}",
+                    trained_on,
+                    flown_with,
+                    flown(env, policy),
+                    seed=seed,
+                    env_steps=summary["env_steps"],
+                    wall_time_s=summary["wall_time_s"],
+                )
     path = os.path.join(args.out, "downwash_policies.json")
     with open(path, "w") as f:
-        json.dump({"rows": rows, "episodes": EPISODES, "machine": platform.platform(), "cpus": os.cpu_count(),
-                   "load_avg": os.getloadavg()}, f, indent=2)
+        json.dump(
+            {
+                "rows": rows,
+                "episodes": EPISODES,
+                "machine": platform.platform(),
+                "cpus": os.cpu_count(),
+                "load_avg": os.getloadavg(),
+            },
+            f,
+            indent=2,
+        )
     print(f"wrote {path}")
     return 0
 

@@ -42,7 +42,7 @@ def encoders():
     from jaxdrones.training.encoders import Conv
 
     config = BraxPPOConfig()
-    layers = list(zip(config.cnn_output_channels, config.cnn_kernel_size, config.cnn_stride))
+    layers = list(zip(config.cnn_output_channels, config.cnn_kernel_size, config.cnn_stride, strict=True))
 
     class Convolutions(linen.Module):  # the layers, each made by ``conv(features, kernel, stride)``, with ReLU
         conv: object
@@ -53,8 +53,10 @@ def encoders():
                 x = linen.relu(self.conv(f, k, s)(x))
             return x
 
-    return {"linen.Conv": Convolutions(lambda f, k, s: linen.Conv(f, (k, k), strides=(s, s), padding="SAME")),
-            "encoders.Conv": Convolutions(Conv)}
+    return {
+        "linen.Conv": Convolutions(lambda f, k, s: linen.Conv(f, (k, k), strides=(s, s), padding="SAME")),
+        "encoders.Conv": Convolutions(Conv),
+    }
 
 
 def programs(module, images):
@@ -76,8 +78,10 @@ def programs(module, images):
         return p
 
     unrolled = jax.jit(loop)
-    return {"scan": lambda: jax.block_until_ready(scanned(params, images)),
-            "unrolled": lambda: jax.block_until_ready(unrolled(params, images))}
+    return {
+        "scan": lambda: jax.block_until_ready(scanned(params, images)),
+        "unrolled": lambda: jax.block_until_ready(unrolled(params, images)),
+    }
 
 
 def main(argv=None):
@@ -85,19 +89,35 @@ def main(argv=None):
     import jax
     import numpy as np
 
-    images = jax.numpy.asarray(np.random.default_rng(0).random((args.minibatches, args.batch, 24, 32, 1)),
-                               jax.numpy.float32)
-    runs = {f"{name} {kind}": run for name, module in encoders().items()
-            for kind, run in programs(module, images).items()}
+    images = jax.numpy.asarray(
+        np.random.default_rng(0).random((args.minibatches, args.batch, 24, 32, 1)), jax.numpy.float32
+    )
+    runs = {
+        f"{name} {kind}": run for name, module in encoders().items() for kind, run in programs(module, images).items()
+    }
     times = timed_together(runs, args.repeats)
     samples = args.minibatches * args.batch
-    rows = [{"encoder": name.split()[0], "program": name.split()[1], "us_per_sample": 1e6 * median / samples,
-             "best_us_per_sample": 1e6 * best / samples} for name, (best, median) in times.items()]
+    rows = [
+        {
+            "encoder": name.split()[0],
+            "program": name.split()[1],
+            "us_per_sample": 1e6 * median / samples,
+            "best_us_per_sample": 1e6 * best / samples,
+        }
+        for name, (best, median) in times.items()
+    ]
     for row in rows:
-        print(f"{row['encoder']:>14} {row['program']:>9}: {row['us_per_sample']:7.1f} µs per sample "
-              f"(best {row['best_us_per_sample']:.1f})")
-    result = {"batch": args.batch, "minibatches": args.minibatches, "repeats": args.repeats,
-              "device": str(jax.devices()[0]), "rows": rows}
+        print(
+            f"{row['encoder']:>14} {row['program']:>9}: {row['us_per_sample']:7.1f} µs per sample "
+            f"(best {row['best_us_per_sample']:.1f})"
+        )
+    result = {
+        "batch": args.batch,
+        "minibatches": args.minibatches,
+        "repeats": args.repeats,
+        "device": str(jax.devices()[0]),
+        "rows": rows,
+    }
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(result, f, indent=2)

@@ -66,26 +66,47 @@ MIN_STEPS, MAX_STEPS = 20, 1000
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", type=int, nargs="+",
-                        help=f"numbers of worlds (default {SIZES}; the JAX-native env also {NATIVE_EXTRA})")
-    parser.add_argument("--steps", type=int, default=None,
-                        help=f"control steps per timed run (default: about {TARGET_ENV_STEPS:.0e} env-steps, "
-                             f"{MIN_STEPS} to {MAX_STEPS} steps)")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--sizes",
+        type=int,
+        nargs="+",
+        help=f"numbers of worlds (default {SIZES}; the JAX-native env also {NATIVE_EXTRA})",
+    )
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help=f"control steps per timed run (default: about {TARGET_ENV_STEPS:.0e} env-steps, "
+        f"{MIN_STEPS} to {MAX_STEPS} steps)",
+    )
     parser.add_argument("--repeats", type=int, default=None, help="timed runs per measurement (default 5; 3 quick)")
     parser.add_argument("--quick", action="store_true", help=f"sizes {QUICK_SIZES}, shorter runs, 3 repeats")
-    parser.add_argument("--crazyflow", action=argparse.BooleanOptionalAction, default=True,
-                        help=f"also measure {CRAZYFLOW} (installed into {os.path.relpath(CRAZYFLOW_VENV)} when "
-                             "missing; default on)")
+    parser.add_argument(
+        "--crazyflow",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help=f"also measure {CRAZYFLOW} (installed into {os.path.relpath(CRAZYFLOW_VENV)} when missing; default on)",
+    )
     parser.add_argument("--crazyflow-venv", default=CRAZYFLOW_VENV, help="its virtual environment (%(default)s)")
-    parser.add_argument("--profile-sizes", type=int, nargs="*", default=None,
-                        help=f"worlds at which to profile the vector env's step (default {PROFILE_SIZES}; none "
-                             "when --quick; give none to skip)")
-    parser.add_argument("--devices", type=int, default=1,
-                        help="CPU devices for the JAX-native env, its worlds sharded over them when their number "
-                             "divides evenly (more than 1 sets XLA_FLAGS before jax is imported; the vector envs "
-                             "use one device); default 1")
+    parser.add_argument(
+        "--profile-sizes",
+        type=int,
+        nargs="*",
+        default=None,
+        help=f"worlds at which to profile the vector env's step (default {PROFILE_SIZES}; none "
+        "when --quick; give none to skip)",
+    )
+    parser.add_argument(
+        "--devices",
+        type=int,
+        default=1,
+        help="CPU devices for the JAX-native env, its worlds sharded over them when their number "
+        "divides evenly (more than 1 sets XLA_FLAGS before jax is imported; the vector envs "
+        "use one device); default 1",
+    )
     parser.add_argument("--out", default=DEFAULT_OUT, help="JSON output path (default: %(default)s)")
     args = parser.parse_args(argv)
     explicit_sizes = args.sizes is not None
@@ -133,28 +154,45 @@ def time_vector_env(env, n: int, steps: int, repeats: int, seed: int = 0) -> dic
         times.append(time.perf_counter() - wall)
         cpu.append((time.process_time() - proc) / times[-1])
     obs = out[0]
-    return {"worlds": n, "steps": steps, "first_call_s": first_call_s, **rates(n * steps, times),
-            "cpu_util": statistics.median(cpu), "loadavg_1min": os.getloadavg()[0],
-            "obs_types": sorted({type(v).__name__ for v in (obs.values() if isinstance(obs, dict) else [obs])}),
-            "reward_type": type(out[1]).__name__}
+    return {
+        "worlds": n,
+        "steps": steps,
+        "first_call_s": first_call_s,
+        **rates(n * steps, times),
+        "cpu_util": statistics.median(cpu),
+        "loadavg_1min": os.getloadavg()[0],
+        "obs_types": sorted({type(v).__name__ for v in (obs.values() if isinstance(obs, dict) else [obs])}),
+        "reward_type": type(out[1]).__name__,
+    }
 
 
 def rates(env_steps: int, times: list[float]) -> dict:
-    return {"env_steps_per_run": env_steps, "times_s": times,
-            "median_env_steps_per_s": env_steps / statistics.median(times),
-            "best_env_steps_per_s": env_steps / min(times)}
+    return {
+        "env_steps_per_run": env_steps,
+        "times_s": times,
+        "median_env_steps_per_s": env_steps / statistics.median(times),
+        "best_env_steps_per_s": env_steps / min(times),
+    }
 
 
 def bench_vector(gymnasium, n: int, args) -> dict:
-    env = gymnasium.make_vec("jaxdrones/Hover-v0", num_envs=n, vectorization_mode="vector_entry_point",
-                             ctrl_freq=CTRL_FREQ)
+    env = gymnasium.make_vec(
+        "jaxdrones/Hover-v0", num_envs=n, vectorization_mode="vector_entry_point", ctrl_freq=CTRL_FREQ
+    )
     try:
         cfg = env.unwrapped.env.config
         result = time_vector_env(env, n, steps_for(n, args.steps, args.target), args.repeats)
     finally:
         env.close()
-    return {"env": "vector", **result, "sim_freq": cfg.sim_freq, "ctrl_freq": cfg.ctrl_freq,
-            "substeps": cfg.sim_freq // cfg.ctrl_freq, "obs_type": cfg.obs_type, "action_type": cfg.action_type}
+    return {
+        "env": "vector",
+        **result,
+        "sim_freq": cfg.sim_freq,
+        "ctrl_freq": cfg.ctrl_freq,
+        "substeps": cfg.sim_freq // cfg.ctrl_freq,
+        "obs_type": cfg.obs_type,
+        "action_type": cfg.action_type,
+    }
 
 
 def bench_native(jax, jd, n: int, args) -> dict:
@@ -174,13 +212,12 @@ def bench_native(jax, jd, n: int, args) -> dict:
         return jax.lax.scan(lambda s, a: (auto.step(s, a), None), state, actions)[0]
 
     state = jax.jit(auto.reset)(jax.random.split(jax.random.key(0), n))
-    devices = jax.devices()[:max(k for k in range(1, args.devices + 1) if n % k == 0)]
+    devices = jax.devices()[: max(k for k in range(1, args.devices + 1) if n % k == 0)]
     if len(devices) > 1:  # each device steps (and resets) its own slice of the worlds
         mesh = Mesh(np.array(devices), ("worlds",))
         state = jd.sim.shard_worlds(state, devices=devices)
         actions = jax.device_put(actions, NamedSharding(mesh, P(None, "worlds")))
-        rollout = jax.shard_map(rollout, mesh=mesh, in_specs=(P("worlds"), P(None, "worlds")),
-                                out_specs=P("worlds"))
+        rollout = jax.shard_map(rollout, mesh=mesh, in_specs=(P("worlds"), P(None, "worlds")), out_specs=P("worlds"))
     else:
         actions = jax.device_put(actions)  # on the device before the clock starts: no host copy in the timed call
     start = time.perf_counter()
@@ -193,13 +230,23 @@ def bench_native(jax, jd, n: int, args) -> dict:
         state = jax.block_until_ready(compiled(state, actions))
         times.append(time.perf_counter() - wall)
         cpu.append((time.process_time() - proc) / times[-1])
-    return {"env": "native", "worlds": n, "devices": len(devices), "steps": steps, "compile_s": compile_s,
-            **rates(n * steps, times), "cpu_util": statistics.median(cpu), "loadavg_1min": os.getloadavg()[0],
-            "sim_freq": env.config.sim_freq, "ctrl_freq": env.config.ctrl_freq,
-            "substeps": env.sim_config.n_substeps, "obs_type": env.config.obs_type,
-            "action_type": env.config.action_type, "obs_size": env.observation_size,
-            "state_bytes_per_world": sum(x.nbytes for x in jax.tree.leaves(state)
-                                         if hasattr(x, "nbytes")) / n}
+    return {
+        "env": "native",
+        "worlds": n,
+        "devices": len(devices),
+        "steps": steps,
+        "compile_s": compile_s,
+        **rates(n * steps, times),
+        "cpu_util": statistics.median(cpu),
+        "loadavg_1min": os.getloadavg()[0],
+        "sim_freq": env.config.sim_freq,
+        "ctrl_freq": env.config.ctrl_freq,
+        "substeps": env.sim_config.n_substeps,
+        "obs_type": env.config.obs_type,
+        "action_type": env.config.action_type,
+        "obs_size": env.observation_size,
+        "state_bytes_per_world": sum(x.nbytes for x in jax.tree.leaves(state) if hasattr(x, "nbytes")) / n,
+    }
 
 
 # -- crazyflow -----------------------------------------------------------------------------------------------------
@@ -218,10 +265,16 @@ def crazyflow_python(venv: str) -> tuple[str | None, str]:
     print(f"installing {CRAZYFLOW} into {venv} ...", flush=True)
     try:
         if not os.path.exists(python):
-            subprocess.run([sys.executable, "-m", "venv", venv], check=True, capture_output=True, text=True,
-                           timeout=300)
-        pip = subprocess.run([python, "-m", "pip", "install", "--disable-pip-version-check", CRAZYFLOW],
-                             check=False, capture_output=True, text=True, timeout=1800)
+            subprocess.run(
+                [sys.executable, "-m", "venv", venv], check=True, capture_output=True, text=True, timeout=300
+            )
+        pip = subprocess.run(
+            [python, "-m", "pip", "install", "--disable-pip-version-check", CRAZYFLOW],
+            check=False,
+            capture_output=True,
+            text=True,
+            timeout=1800,
+        )
     except (OSError, subprocess.SubprocessError) as e:
         return None, f"could not create {venv}: {e}"
     if pip.returncode != 0:
@@ -236,23 +289,40 @@ def crazyflow_python(venv: str) -> tuple[str | None, str]:
 def _crazyflow_version(python: str) -> str | None:
     if not os.path.exists(python):
         return None
-    probe = subprocess.run([python, "-c", "import importlib.metadata as m, crazyflow; print(m.version('crazyflow'))"],
-                           check=False, capture_output=True, text=True, timeout=300)
+    probe = subprocess.run(
+        [python, "-c", "import importlib.metadata as m, crazyflow; print(m.version('crazyflow'))"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     lines = probe.stdout.strip().splitlines()  # crazyflow prints import messages first
     return lines[-1] if probe.returncode == 0 and lines else None
 
 
 def bench_crazyflow(python: str, n: int, args) -> tuple[dict | None, dict, str | None]:
     """Run `_crazyflow_worker.py` at ``n`` worlds in crazyflow's venv; returns (result, its setup, error or None)."""
-    command = [python, CRAZYFLOW_WORKER, "--sizes", str(n), "--repeats", str(args.repeats),
-               "--target", str(args.target), "--ctrl-freq", str(CTRL_FREQ)]
+    command = [
+        python,
+        CRAZYFLOW_WORKER,
+        "--sizes",
+        str(n),
+        "--repeats",
+        str(args.repeats),
+        "--target",
+        str(args.target),
+        "--ctrl-freq",
+        str(CTRL_FREQ),
+    ]
     if args.steps:
         command += ["--steps", str(args.steps)]
     result, info = None, {}
     # stderr to a file (a full pipe would block the worker); run in the venv's folder, since MuJoCo writes
     # MUJOCO_LOG.TXT into the working directory.
-    with tempfile.TemporaryFile("w+") as err, subprocess.Popen(command, stdout=subprocess.PIPE, stderr=err, text=True,
-                                                               cwd=args.crazyflow_venv) as proc:
+    with (
+        tempfile.TemporaryFile("w+") as err,
+        subprocess.Popen(command, stdout=subprocess.PIPE, stderr=err, text=True, cwd=args.crazyflow_venv) as proc,
+    ):
         for line in proc.stdout:
             if line.startswith("RESULT "):
                 result = json.loads(line[7:])
@@ -284,8 +354,9 @@ def profile_vector_step(jax, gymnasium, n: int, calls: int = 100) -> dict:
     """
     from jaxdrones.adapters import gymnasium as adapter
 
-    venv = gymnasium.make_vec("jaxdrones/Hover-v0", num_envs=n, vectorization_mode="vector_entry_point",
-                              ctrl_freq=CTRL_FREQ).unwrapped
+    venv = gymnasium.make_vec(
+        "jaxdrones/Hover-v0", num_envs=n, vectorization_mode="vector_entry_point", ctrl_freq=CTRL_FREQ
+    ).unwrapped
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1.0, 1.0, (calls, n, 4)).astype(np.float32)
     venv.reset(seed=0)
@@ -303,8 +374,10 @@ def profile_vector_step(jax, gymnasium, n: int, calls: int = 100) -> dict:
         "reset_all_worlds": (jax.jit(jax.vmap(env.reset, out_axes=axes)), (state.key, state.task)),
         "select_reset_or_stepped": (jax.jit(_select), (worlds, worlds, venv._needs_reset)),
         "state_in_and_out": (jax.jit(lambda state, needs_reset: (state, needs_reset)), (state, venv._needs_reset)),
-        "vector_env_jitted_step": (jax.jit(venv._step_worlds),
-                                   (state, jax.numpy.asarray(actions[0]), venv._needs_reset)),
+        "vector_env_jitted_step": (
+            jax.jit(venv._step_worlds),
+            (state, jax.numpy.asarray(actions[0]), venv._needs_reset),
+        ),
     }
     for fn, inputs in pieces.values():
         jax.block_until_ready(fn(*inputs))
@@ -327,12 +400,18 @@ def profile_vector_step(jax, gymnasium, n: int, calls: int = 100) -> dict:
     jit_parts = {k: statistics.median(v) for k, v in jit_times.items()}
     venv.close()
     leaves = jax.tree.leaves(state)
-    return {"worlds": n, "calls": calls, "step_s": statistics.median(step_times),
-            "step_parts_s": {k: statistics.median(v) for k, v in parts.items()},
-            "step_parts_total_s": statistics.median(totals), "jit_parts_s": jit_parts,
-            "fraction_of_worlds_reset_per_step": statistics.mean(resetting),
-            "state_leaves": len(leaves), "state_bytes_per_world": sum(getattr(x, "nbytes", 0) for x in leaves) / n,
-            "loadavg_1min": os.getloadavg()[0]}
+    return {
+        "worlds": n,
+        "calls": calls,
+        "step_s": statistics.median(step_times),
+        "step_parts_s": {k: statistics.median(v) for k, v in parts.items()},
+        "step_parts_total_s": statistics.median(totals),
+        "jit_parts_s": jit_parts,
+        "fraction_of_worlds_reset_per_step": statistics.mean(resetting),
+        "state_leaves": len(leaves),
+        "state_bytes_per_world": sum(getattr(x, "nbytes", 0) for x in leaves) / n,
+        "loadavg_1min": os.getloadavg()[0],
+    }
 
 
 def _timed_step_body(jax, adapter, venv, actions, parts: dict) -> float:
@@ -371,17 +450,23 @@ def _select(fresh, stepped, needs_reset):
 
 def print_profile(p: dict) -> None:
     step = p["step_s"]
-    print(f"\nvector env step() at {p['worlds']} worlds: {step * 1e3:.2f} ms median "
-          f"({p['worlds'] / step:,.0f} env-steps/s); parts of a copy of its body "
-          f"(total {p['step_parts_total_s'] * 1e3:.2f} ms):")
+    print(
+        f"\nvector env step() at {p['worlds']} worlds: {step * 1e3:.2f} ms median "
+        f"({p['worlds'] / step:,.0f} env-steps/s); parts of a copy of its body "
+        f"(total {p['step_parts_total_s'] * 1e3:.2f} ms):"
+    )
     for k, v in p["step_parts_s"].items():
         print(f"  {k:<24} {v * 1e3:>8.3f} ms  {100 * v / p['step_parts_total_s']:>5.1f} %")
-    print(f"jitted pieces alone (one call each, to block_until_ready; the state has {p['state_leaves']} leaves, "
-          f"{p['state_bytes_per_world']:.0f} bytes per world):")
+    print(
+        f"jitted pieces alone (one call each, to block_until_ready; the state has {p['state_leaves']} leaves, "
+        f"{p['state_bytes_per_world']:.0f} bytes per world):"
+    )
     for k, v in p["jit_parts_s"].items():
         print(f"  {k:<24} {v * 1e3:>8.3f} ms  ({p['worlds'] / v:,.0f} env-steps/s)")
-    print(f"  ({100 * p['fraction_of_worlds_reset_per_step']:.1f} % of the worlds reset per step; the vector env "
-          f"resets only those, unless more than 1/16 of them need it)")
+    print(
+        f"  ({100 * p['fraction_of_worlds_reset_per_step']:.1f} % of the worlds reset per step; the vector env "
+        f"resets only those, unless more than 1/16 of them need it)"
+    )
 
 
 # -- report --------------------------------------------------------------------------------------------------------
@@ -391,17 +476,22 @@ LABELS = {"vector": "jaxdrones vector env", "native": "jaxdrones JAX-native", "c
 
 def print_row(r: dict) -> None:
     first = f"compile {r['compile_s']:.1f} s" if "compile_s" in r else f"first call {r['first_call_s']:.1f} s"
-    print(f"  {LABELS[r['env']]:<22} {r['worlds']:>6} worlds: {r['median_env_steps_per_s']:>13,.0f} env-steps/s "
-          f"median (best {r['best_env_steps_per_s']:,.0f}), {r['steps']} steps x {len(r['times_s'])}, {first}, "
-          f"cpu {r['cpu_util']:.2f}, load {r['loadavg_1min']:.2f}", flush=True)
+    print(
+        f"  {LABELS[r['env']]:<22} {r['worlds']:>6} worlds: {r['median_env_steps_per_s']:>13,.0f} env-steps/s "
+        f"median (best {r['best_env_steps_per_s']:,.0f}), {r['steps']} steps x {len(r['times_s'])}, {first}, "
+        f"cpu {r['cpu_util']:.2f}, load {r['loadavg_1min']:.2f}",
+        flush=True,
+    )
 
 
 def print_table(results: list[dict], crazyflow_note: str) -> None:
     by = {(r["env"], r["worlds"]): r for r in results}
     sizes = sorted({r["worlds"] for r in results})
     ours = next((r for r in results if "obs_type" in r), {})
-    print(f"\nmedian env-steps/s (hover, {CTRL_FREQ} Hz control, {ours.get('action_type')} actions drawn at random, "
-          f"{ours.get('obs_type')} observations)")
+    print(
+        f"\nmedian env-steps/s (hover, {CTRL_FREQ} Hz control, {ours.get('action_type')} actions drawn at random, "
+        f"{ours.get('obs_type')} observations)"
+    )
     print(f"{'worlds':>7} " + " ".join(f"{LABELS[e]:>22}" for e in LABELS))
     for n in sizes:
         cells = [f"{by[(e, n)]['median_env_steps_per_s']:>22,.0f}" if (e, n) in by else f"{'-':>22}" for e in LABELS]
@@ -424,10 +514,17 @@ def main(argv=None) -> int:
 
     info = machine_info(jax)
     load_start = os.getloadavg()
-    print(f"jax {info['jax']} on {info['backend']} (devices: {len(jax.devices())}), {info['cpu_model']}, "
-          f"{info['cpus_available']} cores, load {load_start}")
-    crazyflow = {"requested": args.crazyflow, "requirement": CRAZYFLOW, "venv": args.crazyflow_venv,
-                 "measured": False, "error": None}
+    print(
+        f"jax {info['jax']} on {info['backend']} (devices: {len(jax.devices())}), {info['cpu_model']}, "
+        f"{info['cpus_available']} cores, load {load_start}"
+    )
+    crazyflow = {
+        "requested": args.crazyflow,
+        "requirement": CRAZYFLOW,
+        "venv": args.crazyflow_venv,
+        "measured": False,
+        "error": None,
+    }
     python = None
     if args.crazyflow:
         python, crazyflow["setup"] = crazyflow_python(args.crazyflow_venv)
@@ -457,9 +554,11 @@ def main(argv=None) -> int:
     elif crazyflow["error"]:
         note = f"NOT MEASURED{' at every size' if crazyflow['measured'] else ''}: {crazyflow['error']}"
     else:
-        note = (f"{setup.get('env_id')} (crazyflow {setup.get('crazyflow')}, jax {setup.get('jax')}), "
-                f"{setup.get('control')} control, {setup.get('dynamics')} model, {setup.get('sim_freq')} Hz physics: "
-                f"{setup.get('substeps')} substeps per step")
+        note = (
+            f"{setup.get('env_id')} (crazyflow {setup.get('crazyflow')}, jax {setup.get('jax')}), "
+            f"{setup.get('control')} control, {setup.get('dynamics')} model, {setup.get('sim_freq')} Hz physics: "
+            f"{setup.get('substeps')} substeps per step"
+        )
 
     profile = []
     for n in args.profile_sizes:
@@ -467,8 +566,16 @@ def main(argv=None) -> int:
         print_profile(profile[-1])
     print_table(results, note)
     settings = {k: v for k, v in vars(args).items() if k != "out"} | {"ctrl_freq": CTRL_FREQ, "task": "hover"}
-    write_report(args.out, "jaxdrones env-steps per second: vector env, JAX-native env, crazyflow", info, settings,
-                 results, loadavg_start=load_start, crazyflow=crazyflow, profile=profile)
+    write_report(
+        args.out,
+        "jaxdrones env-steps per second: vector env, JAX-native env, crazyflow",
+        info,
+        settings,
+        results,
+        loadavg_start=load_start,
+        crazyflow=crazyflow,
+        profile=profile,
+    )
     return 0
 
 

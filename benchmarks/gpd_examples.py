@@ -74,14 +74,25 @@ def port(source: str, dest: str) -> int:
     return changed
 
 
-def run_script(python: str, path: str, calls: int, extra_path: str | None = None, kwargs: dict | None = None,
-               env: dict | None = None) -> dict:
+def run_script(
+    python: str,
+    path: str,
+    calls: int,
+    extra_path: str | None = None,
+    kwargs: dict | None = None,
+    env: dict | None = None,
+) -> dict:
     with tempfile.TemporaryDirectory() as folder:
         environ = {**os.environ, **(env or {})}
         if extra_path:
             environ["PYTHONPATH"] = os.pathsep.join([extra_path, environ.get("PYTHONPATH", "")])
-        done = subprocess.run([python, "-c", _DRIVER, path, str(calls), folder, json.dumps(kwargs or {})],
-                              capture_output=True, text=True, env=environ, cwd=folder)
+        done = subprocess.run(
+            [python, "-c", _DRIVER, path, str(calls), folder, json.dumps(kwargs or {})],
+            capture_output=True,
+            text=True,
+            env=environ,
+            cwd=folder,
+        )
     if done.returncode:
         raise SystemExit(f"{path} failed under {python}:\n{done.stderr[-3000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -90,8 +101,9 @@ def run_script(python: str, path: str, calls: int, extra_path: str | None = None
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--original", required=True, metavar="DIR", help="a checkout of gym-pybullet-drones")
-    parser.add_argument("--original-python", default=sys.executable,
-                        help="the interpreter that runs the original (default: this one)")
+    parser.add_argument(
+        "--original-python", default=sys.executable, help="the interpreter that runs the original (default: this one)"
+    )
     parser.add_argument("--repeats", type=int, default=3, help="processes per pid.py measurement (default 3)")
     parser.add_argument("--learn", action="store_true", help="also run the port of learn.py to its stop")
     parser.add_argument("--out", default=None, help="write the figures to this JSON file")
@@ -108,28 +120,37 @@ def main(argv=None) -> dict:
         shared = os.path.join(tmp, "cache")
         run_script(sys.executable, ported["pid"], 1, env={"JAXDRONES_CACHE_DIR": shared})  # fills the cache
         for k in range(args.repeats):  # interleaved, so that all see the same machine load
-            runs["original"].append(run_script(args.original_python, os.path.join(examples, "pid.py"), 2,
-                                               extra_path=os.path.abspath(args.original)))
-            runs["jaxdrones"].append(run_script(sys.executable, ported["pid"], 2,
-                                                env={"JAXDRONES_CACHE_DIR": shared}))
-            runs["jaxdrones_new_cache"].append(run_script(sys.executable, ported["pid"], 2, env={
-                "JAXDRONES_CACHE_DIR": os.path.join(tmp, f"empty{k}")}))
+            runs["original"].append(
+                run_script(
+                    args.original_python, os.path.join(examples, "pid.py"), 2, extra_path=os.path.abspath(args.original)
+                )
+            )
+            runs["jaxdrones"].append(run_script(sys.executable, ported["pid"], 2, env={"JAXDRONES_CACHE_DIR": shared}))
+            runs["jaxdrones_new_cache"].append(
+                run_script(
+                    sys.executable, ported["pid"], 2, env={"JAXDRONES_CACHE_DIR": os.path.join(tmp, f"empty{k}")}
+                )
+            )
         for impl, rs in runs.items():
             first = statistics.median(steps / r["times"][0] for r in rs)
             warm = statistics.median(steps / r["times"][1] for r in rs)
             results[f"pid_{impl}"] = {"first_call_steps_per_s": first, "warm_steps_per_s": warm}
-            print(f"pid.py {impl:>19}: {first:7.0f} control steps/s (first call), {warm:7.0f} (second call); "
-                  f"median of {len(rs)} processes")
+            print(
+                f"pid.py {impl:>19}: {first:7.0f} control steps/s (first call), {warm:7.0f} (second call); "
+                f"median of {len(rs)} processes"
+            )
         if args.learn:
-            scripts = {"jaxdrones": (sys.executable, ported["learn"], None),
-                       "original": (args.original_python, os.path.join(examples, "learn.py"),
-                                    os.path.abspath(args.original))}
+            scripts = {
+                "jaxdrones": (sys.executable, ported["learn"], None),
+                "original": (args.original_python, os.path.join(examples, "learn.py"), os.path.abspath(args.original)),
+            }
             for impl, (python, path, extra) in scripts.items():
-                r = run_script(python, path, 1, extra_path=extra, kwargs={"local": True},
-                               env={"OMP_NUM_THREADS": "1"})
+                r = run_script(python, path, 1, extra_path=extra, kwargs={"local": True}, env={"OMP_NUM_THREADS": "1"})
                 results[f"learn_{impl}"] = r
-                print(f"learn.py {impl:>9}: stopped={r['stopped']} at {r['last_eval_step']} steps, last evaluation "
-                      f"return {r['last_eval_return']}, run() {r['times'][0]:.0f} s")
+                print(
+                    f"learn.py {impl:>9}: stopped={r['stopped']} at {r['last_eval_step']} steps, last evaluation "
+                    f"return {r['last_eval_return']}, run() {r['times'][0]:.0f} s"
+                )
     if args.out:
         with open(args.out, "w") as f:
             json.dump(results, f, indent=2)

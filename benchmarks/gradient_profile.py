@@ -40,9 +40,9 @@ def main(argv=None) -> int:
     import jax
     import jax.numpy as jnp
     import numpy as np
+    from gradients import start_positions, trajectory_loss  # the work of benchmarks/gradients.py
 
     import jaxdrones as jd
-    from gradients import start_positions, trajectory_loss  # the work of benchmarks/gradients.py
 
     config = jd.make("hover").sim_config
     params = jd.load_params("cf2x")
@@ -60,8 +60,10 @@ def main(argv=None) -> int:
         _, (p, v) = jax.lax.scan(body, init, commands)
         return trajectory_loss(jnp, p, v)
 
-    compiled = {name: jax.jit(fn).lower(commands, init).compile()
-                for name, fn in (("forward", loss), ("gradient", jax.value_and_grad(loss)))}
+    compiled = {
+        name: jax.jit(fn).lower(commands, init).compile()
+        for name, fn in (("forward", loss), ("gradient", jax.value_and_grad(loss)))
+    }
     for fn in compiled.values():
         jax.block_until_ready(fn(commands, init))
     times = {name: [] for name in compiled}
@@ -70,10 +72,12 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             jax.block_until_ready(fn(commands, init))
             times[name].append(time.perf_counter() - t0)
-    ratio = statistics.median(g / f for g, f in zip(times["gradient"], times["forward"]))
-    print(f"jax {jax.__version__}; {config.n_substeps} substeps per control step, W={w}, T={t}: forward "
-          f"{1e3 * statistics.median(times['forward']):.1f} ms, value and gradient "
-          f"{1e3 * statistics.median(times['gradient']):.1f} ms ({ratio:.2f}x)")
+    ratio = statistics.median(g / f for g, f in zip(times["gradient"], times["forward"], strict=True))
+    print(
+        f"jax {jax.__version__}; {config.n_substeps} substeps per control step, W={w}, T={t}: forward "
+        f"{1e3 * statistics.median(times['forward']):.1f} ms, value and gradient "
+        f"{1e3 * statistics.median(times['gradient']):.1f} ms ({ratio:.2f}x)"
+    )
 
     with tempfile.TemporaryDirectory() as trace_dir:
         jax.profiler.start_trace(trace_dir, create_perfetto_trace=True)

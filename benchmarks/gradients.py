@@ -64,16 +64,22 @@ CRAZYFLOW_WORKER = os.path.join(HERE, "_crazyflow_gradients.py")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--horizons", type=int, nargs="+", help=f"control steps T (default {HORIZONS})")
     parser.add_argument("--worlds", type=int, nargs="+", help=f"worlds W (default {WORLDS})")
     parser.add_argument("--repeats", type=int, default=5, help="timed rounds per measurement (median; default 5)")
     parser.add_argument("--quick", action="store_true", help=f"horizons {QUICK_HORIZONS}, worlds {QUICK_WORLDS}")
-    parser.add_argument("--crazyflow", action=argparse.BooleanOptionalAction, default=True,
-                        help="also measure crazyflow 0.4.0 in its own venv (default on)")
-    parser.add_argument("--callers", nargs="+", choices=CALLERS, default=list(CALLERS),
-                        help="which callers to measure (default: all)")
+    parser.add_argument(
+        "--crazyflow",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also measure crazyflow 0.4.0 in its own venv (default on)",
+    )
+    parser.add_argument(
+        "--callers", nargs="+", choices=CALLERS, default=list(CALLERS), help="which callers to measure (default: all)"
+    )
     parser.add_argument("--out", default=DEFAULT_OUT, help="JSON output path (default: %(default)s)")
     args = parser.parse_args(argv)
     args.horizons = sorted(args.horizons or (QUICK_HORIZONS if args.quick else HORIZONS))
@@ -96,8 +102,11 @@ def time_calls(jax, calls: dict, repeats: int) -> dict:
         start = time.perf_counter()
         compiled[name] = jax.jit(fn).lower(*inputs).compile()
         memory = compiled[name].memory_analysis()
-        results[name] = {"times_s": [], "compile_s": time.perf_counter() - start,
-                         "temp_bytes": getattr(memory, "temp_size_in_bytes", None)}
+        results[name] = {
+            "times_s": [],
+            "compile_s": time.perf_counter() - start,
+            "temp_bytes": getattr(memory, "temp_size_in_bytes", None),
+        }
         jax.block_until_ready(compiled[name](*inputs))
     for _ in range(repeats):
         for name, (_, inputs) in calls.items():
@@ -113,21 +122,30 @@ def measure(jax, loss, commands, state, horizon: int, worlds: int, repeats: int,
     """Forward, gradient w.r.t. the commands and gradient w.r.t. the initial state of ``loss(commands, state)``,
     and the ``more`` calls (``"grad_<what>": (fn, inputs)``), timed in rounds (`time_calls`). ``ratio_<what>`` is
     the median over rounds of that gradient's time over the forward time of the same round."""
-    calls = {"forward": (loss, (commands, state)),
-             "grad_commands": (jax.value_and_grad(loss, argnums=0), (commands, state)),
-             "grad_initial_state": (jax.value_and_grad(loss, argnums=1), (commands, state)), **(more or {})}
+    calls = {
+        "forward": (loss, (commands, state)),
+        "grad_commands": (jax.value_and_grad(loss, argnums=0), (commands, state)),
+        "grad_initial_state": (jax.value_and_grad(loss, argnums=1), (commands, state)),
+        **(more or {}),
+    }
     results = time_calls(jax, calls, repeats)
     forward = results["forward"]["times_s"]
-    ratios = {"ratio_" + name.removeprefix("grad_"): statistics.median(t / f for t, f in zip(r["times_s"], forward))
-              for name, r in results.items() if name != "forward"}
+    ratios = {
+        "ratio_" + name.removeprefix("grad_"): statistics.median(
+            t / f for t, f in zip(r["times_s"], forward, strict=True)
+        )
+        for name, r in results.items()
+        if name != "forward"
+    }
     return {"horizon": horizon, "worlds": worlds, **results, **ratios}
 
 
 def start_positions(np, worlds: int):
     """f32[W, 1, 3]: x, y in ±1 m, z in 5-30 cm (in ground effect)."""
     rng = np.random.default_rng(0)
-    return np.concatenate([rng.uniform(-1, 1, (worlds, 1, 2)), rng.uniform(0.05, 0.3, (worlds, 1, 1))],
-                          axis=-1).astype(np.float32)
+    return np.concatenate([rng.uniform(-1, 1, (worlds, 1, 2)), rng.uniform(0.05, 0.3, (worlds, 1, 1))], axis=-1).astype(
+        np.float32
+    )
 
 
 def trajectory_loss(jnp, pos, vel):
@@ -155,8 +173,12 @@ def jaxdrones_case(jax, jd, np, horizon: int, worlds: int, repeats: int, remat: 
         states = jd.rollout(step, params, init.replace(**state), commands, remat=remat)
         return trajectory_loss(jax.numpy, states.pos, states.vel)
 
-    return {"sim": "jaxdrones", "caller": "rollout", "remat": remat,
-            **measure(jax, loss, commands, state, horizon, worlds, repeats)}
+    return {
+        "sim": "jaxdrones",
+        "caller": "rollout",
+        "remat": remat,
+        **measure(jax, loss, commands, state, horizon, worlds, repeats),
+    }
 
 
 def user_scan_case(jax, jd, np, horizon: int, worlds: int, repeats: int) -> dict:
@@ -171,8 +193,12 @@ def user_scan_case(jax, jd, np, horizon: int, worlds: int, repeats: int) -> dict
         _, (pos, vel) = jax.lax.scan(body, init.replace(**state), commands)
         return trajectory_loss(jax.numpy, pos, vel)
 
-    return {"sim": "jaxdrones", "caller": "user_scan", "remat": None,
-            **measure(jax, loss, commands, state, horizon, worlds, repeats)}
+    return {
+        "sim": "jaxdrones",
+        "caller": "user_scan",
+        "remat": None,
+        **measure(jax, loss, commands, state, horizon, worlds, repeats),
+    }
 
 
 def env_step_case(jax, jd, np, horizon: int, worlds: int, repeats: int) -> dict:
@@ -197,8 +223,16 @@ def env_step_case(jax, jd, np, horizon: int, worlds: int, repeats: int) -> dict:
         _, (pos, vel) = jax.lax.scan(body, start.replace(sim=init.replace(**state)), offsets)
         return trajectory_loss(jnp, pos, vel)
 
-    result = measure(jax, lambda offsets, state: loss_of(policy, offsets, state), offsets, state, horizon, worlds,
-                     repeats, more={"grad_policy": (jax.value_and_grad(loss_of), (policy, offsets, state))})
+    result = measure(
+        jax,
+        lambda offsets, state: loss_of(policy, offsets, state),
+        offsets,
+        state,
+        horizon,
+        worlds,
+        repeats,
+        more={"grad_policy": (jax.value_and_grad(loss_of), (policy, offsets, state))},
+    )
     return {"sim": "jaxdrones", "caller": "env_step", "remat": None, **result}
 
 
@@ -215,8 +249,10 @@ def default_env_case(jax, jd, np, horizon: int, worlds: int, repeats: int, reali
     env_loss = jax.vmap(env.loss, in_axes=(axes,))
     rng = np.random.default_rng(2)
     offsets = jnp.asarray(0.4 * rng.standard_normal((horizon, worlds, env.n_drones, env.action_size)), env.dtype)
-    policy = {"w": jnp.asarray(0.01 * rng.standard_normal((env.observation_size, env.action_size)), env.dtype),
-              "b": jnp.zeros(env.action_size, env.dtype)}
+    policy = {
+        "w": jnp.asarray(0.01 * rng.standard_normal((env.observation_size, env.action_size)), env.dtype),
+        "b": jnp.zeros(env.action_size, env.dtype),
+    }
     state = {k: getattr(start.sim, k) for k in ("pos", "quat", "vel", "ang_vel")}
 
     def loss_of(policy, offsets, state):
@@ -227,8 +263,16 @@ def default_env_case(jax, jd, np, horizon: int, worlds: int, repeats: int, reali
         _, losses = jax.lax.scan(body, start.replace(sim=start.sim.replace(**state)), offsets)
         return jnp.mean(losses)
 
-    result = measure(jax, lambda offsets, state: loss_of(policy, offsets, state), offsets, state, horizon, worlds,
-                     repeats, more={"grad_policy": (jax.value_and_grad(loss_of), (policy, offsets, state))})
+    result = measure(
+        jax,
+        lambda offsets, state: loss_of(policy, offsets, state),
+        offsets,
+        state,
+        horizon,
+        worlds,
+        repeats,
+        more={"grad_policy": (jax.value_and_grad(loss_of), (policy, offsets, state))},
+    )
     caller = "default_env" if realism is None else f"default_env_{realism}"
     return {"sim": "jaxdrones", "caller": caller, "remat": None, **result}
 
@@ -240,11 +284,21 @@ def run_crazyflow(args) -> tuple[list[dict], dict, str | None]:
     python, setup = crazyflow_python(CRAZYFLOW_VENV)
     if python is None:
         return [], {}, setup
-    command = [python, CRAZYFLOW_WORKER, "--horizons", *map(str, args.horizons), "--worlds",
-               *map(str, args.worlds), "--repeats", str(args.repeats)]
+    command = [
+        python,
+        CRAZYFLOW_WORKER,
+        "--horizons",
+        *map(str, args.horizons),
+        "--worlds",
+        *map(str, args.worlds),
+        "--repeats",
+        str(args.repeats),
+    ]
     results, info = [], {"setup": setup}
-    with tempfile.TemporaryFile("w+") as err, subprocess.Popen(command, stdout=subprocess.PIPE, stderr=err,
-                                                               text=True, cwd=CRAZYFLOW_VENV) as proc:
+    with (
+        tempfile.TemporaryFile("w+") as err,
+        subprocess.Popen(command, stdout=subprocess.PIPE, stderr=err, text=True, cwd=CRAZYFLOW_VENV) as proc,
+    ):
         for line in proc.stdout:
             if line.startswith("RESULT "):
                 results.append(json.loads(line[7:]))
@@ -262,12 +316,18 @@ def print_row(r: dict) -> None:
     mib = (r["grad_commands"]["temp_bytes"] or 0) / 2**20
     caller = r.get("caller", "rollout")
     label = f"{caller} remat={r['remat']}" if caller == "rollout" else caller
-    policy = (f", grad(policy) {r['grad_policy']['s'] * 1e3:9.2f} ms ({r['ratio_policy']:5.1f}x)"
-              if "grad_policy" in r else "")
-    print(f"  {r['sim']:<9} {label:<19} T={r['horizon']:>5} W={r['worlds']:>6}: forward "
-          f"{r['forward']['s'] * 1e3:9.2f} ms, grad(commands) {r['grad_commands']['s'] * 1e3:9.2f} ms "
-          f"({r['ratio_commands']:5.1f}x, {mib:,.0f} MiB), grad(initial state) "
-          f"{r['grad_initial_state']['s'] * 1e3:9.2f} ms ({r['ratio_initial_state']:5.1f}x){policy}", flush=True)
+    policy = (
+        f", grad(policy) {r['grad_policy']['s'] * 1e3:9.2f} ms ({r['ratio_policy']:5.1f}x)"
+        if "grad_policy" in r
+        else ""
+    )
+    print(
+        f"  {r['sim']:<9} {label:<19} T={r['horizon']:>5} W={r['worlds']:>6}: forward "
+        f"{r['forward']['s'] * 1e3:9.2f} ms, grad(commands) {r['grad_commands']['s'] * 1e3:9.2f} ms "
+        f"({r['ratio_commands']:5.1f}x, {mib:,.0f} MiB), grad(initial state) "
+        f"{r['grad_initial_state']['s'] * 1e3:9.2f} ms ({r['ratio_initial_state']:5.1f}x){policy}",
+        flush=True,
+    )
 
 
 def main(argv=None) -> int:
@@ -280,12 +340,19 @@ def main(argv=None) -> int:
 
     info = machine_info(jax)
     load_start = os.getloadavg()
-    print(f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, {info['cpus_available']} cores, "
-          f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}, load {load_start}", flush=True)
+    print(
+        f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, {info['cpus_available']} cores, "
+        f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}, load {load_start}",
+        flush=True,
+    )
     results = []
-    cases = {"rollout": [functools.partial(jaxdrones_case, remat=remat) for remat in (False, True)],
-             "user_scan": [user_scan_case], "env_step": [env_step_case], "default_env": [default_env_case],
-             "default_env_crazyflie": [functools.partial(default_env_case, realism="crazyflie")]}
+    cases = {
+        "rollout": [functools.partial(jaxdrones_case, remat=remat) for remat in (False, True)],
+        "user_scan": [user_scan_case],
+        "env_step": [env_step_case],
+        "default_env": [default_env_case],
+        "default_env_crazyflie": [functools.partial(default_env_case, realism="crazyflie")],
+    }
     for horizon in args.horizons:
         for worlds in args.worlds:
             for caller in args.callers:
@@ -299,9 +366,20 @@ def main(argv=None) -> int:
         if crazyflow["error"]:
             print(f"crazyflow: NOT MEASURED: {crazyflow['error']}", flush=True)
     settings = {k: v for k, v in vars(args).items() if k != "out"} | {
-        "sim_freq": SIM_FREQ, "ctrl_freq": CTRL_FREQ, "effects": ["drag", "ground_effect"], "model": "cf2x"}
-    write_report(args.out, "gradients through rollouts: forward vs gradient time", info, settings, results,
-                 loadavg_start=load_start, crazyflow=crazyflow)
+        "sim_freq": SIM_FREQ,
+        "ctrl_freq": CTRL_FREQ,
+        "effects": ["drag", "ground_effect"],
+        "model": "cf2x",
+    }
+    write_report(
+        args.out,
+        "gradients through rollouts: forward vs gradient time",
+        info,
+        settings,
+        results,
+        loadavg_start=load_start,
+        crazyflow=crazyflow,
+    )
     return 0
 
 

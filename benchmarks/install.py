@@ -35,11 +35,17 @@ def find_python(version: str) -> str | None:
     path = shutil.which(name)
     if path and subprocess.run([path, "--version"], capture_output=True).returncode == 0:
         return path
-    root = subprocess.run(["pyenv", "root"], capture_output=True, text=True).stdout.strip() if shutil.which(
-        "pyenv") else ""
-    versions = sorted((v for v in os.listdir(os.path.join(root, "versions")) if v.startswith(version + "."))
-                      if root and os.path.isdir(os.path.join(root, "versions")) else [],
-                      key=lambda v: tuple(int(p) for p in v.split(".") if p.isdigit()))
+    root = (
+        subprocess.run(["pyenv", "root"], capture_output=True, text=True).stdout.strip()
+        if shutil.which("pyenv")
+        else ""
+    )
+    versions = sorted(
+        (v for v in os.listdir(os.path.join(root, "versions")) if v.startswith(version + "."))
+        if root and os.path.isdir(os.path.join(root, "versions"))
+        else [],
+        key=lambda v: tuple(int(p) for p in v.split(".") if p.isdigit()),
+    )
     return os.path.join(root, "versions", versions[-1], "bin", name) if versions else None
 
 
@@ -54,14 +60,31 @@ def install(python: str, extras: str, jax: str | None, constraints: bool, source
         start = time.perf_counter()
         result = subprocess.run(pip, cwd=ROOT, capture_output=True, text=True)
         seconds = time.perf_counter() - start
-        versions = subprocess.run([os.path.join(venv, "bin", "python"), "-c",
-                                   "import sys, jax, jaxdrones; print(sys.version.split()[0], jax.__version__)"],
-                                  capture_output=True, text=True) if result.returncode == 0 else None
-        return {"python": python, "extras": extras, "jax_asked": jax, "constraints": constraints, "source": source,
-                "ok": result.returncode == 0 and versions.returncode == 0, "install_s": round(seconds, 1),
-                "python_version": versions.stdout.split()[0] if versions and versions.stdout else None,
-                "jax": versions.stdout.split()[1] if versions and versions.stdout else None,
-                "error": None if result.returncode == 0 else result.stderr.strip().splitlines()[-1:]}
+        versions = (
+            subprocess.run(
+                [
+                    os.path.join(venv, "bin", "python"),
+                    "-c",
+                    "import sys, jax, jaxdrones; print(sys.version.split()[0], jax.__version__)",
+                ],
+                capture_output=True,
+                text=True,
+            )
+            if result.returncode == 0
+            else None
+        )
+        return {
+            "python": python,
+            "extras": extras,
+            "jax_asked": jax,
+            "constraints": constraints,
+            "source": source,
+            "ok": result.returncode == 0 and versions.returncode == 0,
+            "install_s": round(seconds, 1),
+            "python_version": versions.stdout.split()[0] if versions and versions.stdout else None,
+            "jax": versions.stdout.split()[1] if versions and versions.stdout else None,
+            "error": None if result.returncode == 0 else result.stderr.strip().splitlines()[-1:],
+        }
 
 
 def main(argv=None) -> int:
@@ -78,11 +101,13 @@ def main(argv=None) -> int:
     for python in pythons:
         result = install(python, args.extras, args.jax, args.constraints, args.source)
         results.append(result)
-        print(f"{result['python_version'] or python}: pip install {'.[' + args.extras + ']' if args.extras else '.'}"
-              f"{' (source builds allowed)' if args.source else ''}"
-              f"{' jax==' + args.jax if args.jax else ''}: {'ok' if result['ok'] else 'FAILED'} in "
-              f"{result['install_s']} s, jax {result['jax']}" + (f" ({result['error']})" if result["error"] else ""),
-              flush=True)
+        print(
+            f"{result['python_version'] or python}: pip install {'.[' + args.extras + ']' if args.extras else '.'}"
+            f"{' (source builds allowed)' if args.source else ''}"
+            f"{' jax==' + args.jax if args.jax else ''}: {'ok' if result['ok'] else 'FAILED'} in "
+            f"{result['install_s']} s, jax {result['jax']}" + (f" ({result['error']})" if result["error"] else ""),
+            flush=True,
+        )
     if args.out:
         with open(args.out, "w") as f:
             json.dump(results, f, indent=2)

@@ -22,8 +22,6 @@ from __future__ import annotations
 import time
 
 T0 = time.perf_counter()
-import jaxdrones  # noqa: E402,F401  (first, so that the wall time counts its import, as a user's run does)
-
 import argparse  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
@@ -32,6 +30,7 @@ import sys  # noqa: E402
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
+import jaxdrones  # noqa: E402,F401  (first, so that the wall time counts its import, as a user's run does)
 from jaxdrones.adapters import jaxmarl as jd_marl  # noqa: E402
 from jaxdrones.training.evaluation import episode_outcomes, episode_statistics, rollout_policy  # noqa: E402
 
@@ -80,11 +79,20 @@ def main() -> None:
     stats = episode_statistics(env, jax.jit(lambda k: episode_outcomes(env, policy, k))(keys))
     final = jax.jit(jax.vmap(lambda k: rollout_policy(env, policy, k)))(keys).sim.pos[:, -1]
     steps = int(np.asarray(out["metrics"]["env_step"])[-1])
-    result = {"task": args.task, **options, "seed": args.seed, "env_steps": steps, "train_s": round(trained_s, 1),
-              "wall_time_s": round(time.perf_counter() - T0, 1), "success_metric": env.task.success_metric,
-              "success_value_m": stats.get("success_value"), "terminated_rate": stats["terminated_rate"],
-              "final_z_m": np.asarray(final[..., 2]).mean(0).round(4).tolist(), "jax": jax.__version__,
-              "jaxmarl": getattr(jaxmarl, "__version__", "?")}
+    result = {
+        "task": args.task,
+        **options,
+        "seed": args.seed,
+        "env_steps": steps,
+        "train_s": round(trained_s, 1),
+        "wall_time_s": round(time.perf_counter() - T0, 1),
+        "success_metric": env.task.success_metric,
+        "success_value_m": stats.get("success_value"),
+        "terminated_rate": stats["terminated_rate"],
+        "final_z_m": np.asarray(final[..., 2]).mean(0).round(4).tolist(),
+        "jax": jax.__version__,
+        "jaxmarl": getattr(jaxmarl, "__version__", "?"),
+    }
     print(json.dumps(result))
     os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
     name = f"jaxmarl_ippo_{args.task}_{options.get('action_type', 'rpm')}_s{args.seed}.json"

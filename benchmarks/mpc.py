@@ -43,17 +43,28 @@ def main(argv=None) -> int:
         weights = mpc.MPCWeights(horizon=options.pop("horizon", mpc.MPCWeights.horizon))
         result = mpc.fly_figure8(args.duration, weights=weights, **options)
         solve_ms = 1e3 * result["mpc"]["solve_s"]
-        rows.append({"setting": name, "rms_cm": 100 * result["mpc"]["rms"],
-                     "solve_ms_median": float(np.median(solve_ms)),
-                     "solve_ms_p95": float(np.percentile(solve_ms, 95)), "solve_ms_max": float(solve_ms.max())})
+        rows.append(
+            {
+                "setting": name,
+                "rms_cm": 100 * result["mpc"]["rms"],
+                "solve_ms_median": float(np.median(solve_ms)),
+                "solve_ms_p95": float(np.percentile(solve_ms, 95)),
+                "solve_ms_max": float(solve_ms.max()),
+            }
+        )
         pid = 100 * result["pid"]["rms"]
     rows.append({"setting": "DSL PID, velocity feed-forward", "rms_cm": pid})
-    print(f"figure-8 {mpc.FIGURE8}, {args.duration:g} s, 30 Hz control; {platform.processor() or platform.machine()}, "
-          f"{os.cpu_count()} cores")
+    print(
+        f"figure-8 {mpc.FIGURE8}, {args.duration:g} s, 30 Hz control; {platform.processor() or platform.machine()}, "
+        f"{os.cpu_count()} cores"
+    )
     print("| controller | RMS error | MPC solve per step: median / 95th percentile / max |\n|---|---|---|")
     for r in rows:
-        solve = (f"{r['solve_ms_median']:.1f} / {r['solve_ms_p95']:.1f} / {r['solve_ms_max']:.0f} ms"
-                 if "solve_ms_median" in r else "-")
+        solve = (
+            f"{r['solve_ms_median']:.1f} / {r['solve_ms_p95']:.1f} / {r['solve_ms_max']:.0f} ms"
+            if "solve_ms_median" in r
+            else "-"
+        )
         print(f"| {r['setting']} | {r['rms_cm']:.2f} cm | {solve} |")
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:

@@ -91,8 +91,9 @@ def physics_rate(n_drones: int, worlds: int, downwash: bool, steps: int, repeats
 
     import jaxdrones as jd
 
-    config = jd.SimConfig(n_drones=n_drones, sim_freq=240, ctrl_freq=30, downwash=downwash,
-                          downwash_radius=lists.get("downwash_radius"))
+    config = jd.SimConfig(
+        n_drones=n_drones, sim_freq=240, ctrl_freq=30, downwash=downwash, downwash_radius=lists.get("downwash_radius")
+    )
     step = jd.make_step(config)
     params = jd.load_params("cf2x")
     pos = swarm(n_drones, worlds)
@@ -132,11 +133,16 @@ def mappo_rate(n_drones: int, worlds: int, downwash: bool, repeats: int, lists: 
     from jaxdrones.training import mappo
 
     env = jd.make("multi_hover", n_drones=n_drones, obs_type="neighbors", downwash=downwash, **lists)
-    config = mappo.MAPPOConfig(num_envs=worlds, unroll_length=10, minibatches=min(8, worlds * 10),
-                               num_timesteps=worlds * 10 * 2 * (repeats + 1), num_evals=repeats + 2)
+    config = mappo.MAPPOConfig(
+        num_envs=worlds,
+        unroll_length=10,
+        minibatches=min(8, worlds * 10),
+        num_timesteps=worlds * 10 * 2 * (repeats + 1),
+        num_evals=repeats + 2,
+    )
     stamps = []
     mappo.train(env, config, progress=lambda steps, metrics: stamps.append((steps, time.perf_counter())))
-    rates = [(s1 - s0) * n_drones / (t1 - t0) for (s0, t0), (s1, t1) in zip(stamps[1:], stamps[2:])]
+    rates = [(s1 - s0) * n_drones / (t1 - t0) for (s0, t0), (s1, t1) in zip(stamps[1:], stamps[2:], strict=False)]
     return max(rates)
 
 
@@ -150,35 +156,56 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=os.path.join(HERE, "results", "multi_agent.json"))
     args = parser.parse_args(argv)
 
-    import jaxdrones  # noqa: F401  (first: it sets XLA's flags before JAX starts)
     import jax
 
+    import jaxdrones  # noqa: F401  (first: it sets XLA's flags before JAX starts)
+
     rows = []
-    print(f"jax {jax.__version__} on {jax.default_backend()}, {os.cpu_count()} cores; agent-steps/s "
-          f"(about {args.agents} drones at once)")
+    print(
+        f"jax {jax.__version__} on {jax.default_backend()}, {os.cpu_count()} cores; agent-steps/s "
+        f"(about {args.agents} drones at once)"
+    )
     print("  D worlds coupling downwash    physics (ns per drone-substep)        env      MAPPO  force error/weight")
     for n in args.drones:
         worlds = max(1, args.agents // n)
         for lists in ({}, LISTS):
             error = downwash_error(n, worlds) if lists else None
             for downwash in (False, True):
-                row = {"n_drones": n, "worlds": worlds, "lists": lists, "downwash": downwash,
-                       "physics": physics_rate(n, worlds, downwash, args.steps, args.repeats, lists),
-                       "env": env_rate(n, worlds, downwash, args.steps, args.repeats, lists),
-                       "mappo": None if args.no_mappo else mappo_rate(n, worlds, downwash, args.repeats, lists),
-                       "downwash_error_over_weight": error if downwash else None}
+                row = {
+                    "n_drones": n,
+                    "worlds": worlds,
+                    "lists": lists,
+                    "downwash": downwash,
+                    "physics": physics_rate(n, worlds, downwash, args.steps, args.repeats, lists),
+                    "env": env_rate(n, worlds, downwash, args.steps, args.repeats, lists),
+                    "mappo": None if args.no_mappo else mappo_rate(n, worlds, downwash, args.repeats, lists),
+                    "downwash_error_over_weight": error if downwash else None,
+                }
                 row["physics_ns_per_drone_substep"] = 1e9 / (row["physics"] * 8)
                 rows.append(row)
                 mappo_text = "-" if row["mappo"] is None else f"{row['mappo']:10.3g}"
                 coupling = "lists" if lists else "all"
                 error_text = f"{error:.2g}" if downwash and error is not None else "-"
-                print(f"{n:3d} {worlds:6d} {coupling:8s} {'on ' if downwash else 'off'}      {row['physics']:10.3g} "
-                      f"({row['physics_ns_per_drone_substep']:6.1f})                 {row['env']:10.3g} {mappo_text}"
-                      f"  {error_text}", flush=True)
+                print(
+                    f"{n:3d} {worlds:6d} {coupling:8s} {'on ' if downwash else 'off'}      {row['physics']:10.3g} "
+                    f"({row['physics_ns_per_drone_substep']:6.1f})                 {row['env']:10.3g} {mappo_text}"
+                    f"  {error_text}",
+                    flush=True,
+                )
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w") as f:
-        json.dump({"rows": rows, "machine": platform.platform(), "cpus": os.cpu_count(),
-                   "load_avg": os.getloadavg(), "agents": args.agents, "steps": args.steps}, f, indent=2)
+        json.dump(
+            {
+                "rows": rows,
+                "machine": platform.platform(),
+                "cpus": os.cpu_count(),
+                "load_avg": os.getloadavg(),
+                "agents": args.agents,
+                "steps": args.steps,
+            },
+            f,
+            indent=2,
+        )
     print(f"wrote {args.out}")
     return 0
 

@@ -18,9 +18,13 @@ import numpy as np
 
 
 def add_argument(parser) -> None:
-    parser.add_argument("--original", default=None, metavar="DIR",
-                        help="a checkout of gym-pybullet-drones (or 'installed') to time the original in the same "
-                             "run; see benchmarks/original.py")
+    parser.add_argument(
+        "--original",
+        default=None,
+        metavar="DIR",
+        help="a checkout of gym-pybullet-drones (or 'installed') to time the original in the same "
+        "run; see benchmarks/original.py",
+    )
 
 
 def load(path: str | None):
@@ -40,8 +44,10 @@ def load(path: str | None):
         import gym_pybullet_drones.envs.CtrlAviary  # noqa: F401
         from gym_pybullet_drones.control.DSLPIDControl import DSLPIDControl  # noqa: F401
     except ImportError as e:
-        raise SystemExit(f"--original: the original does not import ({e}); it needs pybullet, gymnasium, scipy, "
-                         f"pillow, transforms3d and setuptools<81 (pkg_resources)") from e
+        raise SystemExit(
+            f"--original: the original does not import ({e}); it needs pybullet, gymnasium, scipy, "
+            f"pillow, transforms3d and setuptools<81 (pkg_resources)"
+        ) from e
     import gym_pybullet_drones
 
     return gym_pybullet_drones
@@ -55,8 +61,14 @@ def ctrl_aviary(n_drones: int, ctrl_freq: int, obstacles: bool = False, sim_freq
     from gym_pybullet_drones.envs.CtrlAviary import CtrlAviary
 
     with contextlib.redirect_stdout(io.StringIO()):  # it prints its URDF's parameters
-        env = CtrlAviary(num_drones=n_drones, pyb_freq=sim_freq, ctrl_freq=ctrl_freq, gui=False, obstacles=obstacles,
-                         user_debug_gui=False)
+        env = CtrlAviary(
+            num_drones=n_drones,
+            pyb_freq=sim_freq,
+            ctrl_freq=ctrl_freq,
+            gui=False,
+            obstacles=obstacles,
+            user_debug_gui=False,
+        )
         env.reset()
     return env
 

@@ -153,16 +153,26 @@ def train_algos_args(ctx: Context) -> list[str]:
 def multi_agent_args(ctx: Context) -> list[str]:
     if ctx.quick:
         return ["--drones", "2", "8", "--agents", "256", "--no-mappo", "--repeats", "2"]
-    return ["--drones", "2", "8", "64", "256", "1024", "--agents", "65536"] if ctx.gpu else ["--drones", "2", "8", "64",
-                                                                                             "256"]
+    return (
+        ["--drones", "2", "8", "64", "256", "1024", "--agents", "65536"]
+        if ctx.gpu
+        else ["--drones", "2", "8", "64", "256"]
+    )
 
 
 def jaxmarl_args(ctx: Context) -> list[str] | str:
     if not ctx.jaxmarl_baselines:
         return "needs a JaxMARL checkout: --jaxmarl-baselines PATH/baselines/IPPO"
     # The quick run uses another seed than the README's (30), whose JSON in benchmarks/results it would replace.
-    return ["--baselines", ctx.jaxmarl_baselines, "--task", "leader_follower", "--action-type", "one_d_rpm",
-            *(["--seed", "0", "--steps", "1e5"] if ctx.quick else ["--seed", "30"])]
+    return [
+        "--baselines",
+        ctx.jaxmarl_baselines,
+        "--task",
+        "leader_follower",
+        "--action-type",
+        "one_d_rpm",
+        *(["--seed", "0", "--steps", "1e5"] if ctx.quick else ["--seed", "30"]),
+    ]
 
 
 def _json(name: str) -> Callable[[Context], str]:
@@ -170,36 +180,102 @@ def _json(name: str) -> Callable[[Context], str]:
 
 
 NO_PREALLOCATION = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
-BENCHMARKS = {b.name: b for b in (
-    Benchmark("throughput", True, lambda ctx: throughput_args(ctx) + ["--out", _json("throughput.json")(ctx)],
-              _json("throughput.json")),
-    Benchmark("envs", True, lambda ctx: envs_args(ctx) + ["--out", _json("envs.json")(ctx)], _json("envs.json"),
-              NO_PREALLOCATION),
-    Benchmark("gradients", True, lambda ctx: gradients_args(ctx) + ["--out", _json("gradients.json")(ctx)],
-              _json("gradients.json"), NO_PREALLOCATION),
-    Benchmark("backends", True, lambda ctx: (["--quick", "--drones", "1", "10"] if ctx.quick else [])
-              + ["--out", _json("backends.json")(ctx)], _json("backends.json")),
-    Benchmark("cameras", True, lambda ctx: cameras_args(ctx) + ["--out", _json("cameras.json")(ctx)],
-              _json("cameras.json"), NO_PREALLOCATION),
-    Benchmark("encoders", True, lambda ctx: (["--batch", "1024", "--repeats", "3"] if ctx.quick else [])
-              + ["--out", _json("encoders.json")(ctx)], _json("encoders.json")),
-    Benchmark("table2", True, lambda ctx: (["--seconds", "1", "--repeats", "1"] if ctx.quick else [])
-              + ["--out", _json("table2.json")(ctx)], _json("table2.json")),
-    Benchmark("train_algos", True, lambda ctx: train_algos_args(ctx) + ["--out", _json("train_algos_hover.json")(ctx)],
-              _json("train_algos_hover.json")),
-    Benchmark("sysid_noise", True, lambda ctx: ["--seeds", "0"] if ctx.quick else ["--seeds", "0", "1", "2"],
-              lambda ctx: None),
-    Benchmark("multi_agent", False, lambda ctx: multi_agent_args(ctx) + ["--out", _json("multi_agent.json")(ctx)],
-              _json("multi_agent.json")),
-    Benchmark("downwash_policies", False, lambda ctx: (["--steps", "200000"] if ctx.quick else [])
-              + ["--out", os.path.join(ctx.out, "downwash_policies")],
-              _json(os.path.join("downwash_policies", "downwash_policies.json"))),
-    Benchmark("sb3_hover", False, lambda ctx: ["--action-type", "one_d_rpm", "--out", _json("sb3_hover.json")(ctx)]
-              + (["--steps", "8192", "--eval-episodes", "2"] if ctx.quick else ["--steps", "200000", "--eval-every",
-                                                                                 "49152"]),
-              _json("sb3_hover.json")),
-    Benchmark("jaxmarl_ippo", False, jaxmarl_args, _json("jaxmarl_ippo.json")),
-)}
+BENCHMARKS = {
+    b.name: b
+    for b in (
+        Benchmark(
+            "throughput",
+            True,
+            lambda ctx: throughput_args(ctx) + ["--out", _json("throughput.json")(ctx)],
+            _json("throughput.json"),
+        ),
+        Benchmark(
+            "envs",
+            True,
+            lambda ctx: envs_args(ctx) + ["--out", _json("envs.json")(ctx)],
+            _json("envs.json"),
+            NO_PREALLOCATION,
+        ),
+        Benchmark(
+            "gradients",
+            True,
+            lambda ctx: gradients_args(ctx) + ["--out", _json("gradients.json")(ctx)],
+            _json("gradients.json"),
+            NO_PREALLOCATION,
+        ),
+        Benchmark(
+            "backends",
+            True,
+            lambda ctx: (
+                (["--quick", "--drones", "1", "10"] if ctx.quick else []) + ["--out", _json("backends.json")(ctx)]
+            ),
+            _json("backends.json"),
+        ),
+        Benchmark(
+            "cameras",
+            True,
+            lambda ctx: cameras_args(ctx) + ["--out", _json("cameras.json")(ctx)],
+            _json("cameras.json"),
+            NO_PREALLOCATION,
+        ),
+        Benchmark(
+            "encoders",
+            True,
+            lambda ctx: (
+                (["--batch", "1024", "--repeats", "3"] if ctx.quick else []) + ["--out", _json("encoders.json")(ctx)]
+            ),
+            _json("encoders.json"),
+        ),
+        Benchmark(
+            "table2",
+            True,
+            lambda ctx: (
+                (["--seconds", "1", "--repeats", "1"] if ctx.quick else []) + ["--out", _json("table2.json")(ctx)]
+            ),
+            _json("table2.json"),
+        ),
+        Benchmark(
+            "train_algos",
+            True,
+            lambda ctx: train_algos_args(ctx) + ["--out", _json("train_algos_hover.json")(ctx)],
+            _json("train_algos_hover.json"),
+        ),
+        Benchmark(
+            "sysid_noise",
+            True,
+            lambda ctx: ["--seeds", "0"] if ctx.quick else ["--seeds", "0", "1", "2"],
+            lambda ctx: None,
+        ),
+        Benchmark(
+            "multi_agent",
+            False,
+            lambda ctx: multi_agent_args(ctx) + ["--out", _json("multi_agent.json")(ctx)],
+            _json("multi_agent.json"),
+        ),
+        Benchmark(
+            "downwash_policies",
+            False,
+            lambda ctx: (
+                (["--steps", "200000"] if ctx.quick else []) + ["--out", os.path.join(ctx.out, "downwash_policies")]
+            ),
+            _json(os.path.join("downwash_policies", "downwash_policies.json")),
+        ),
+        Benchmark(
+            "sb3_hover",
+            False,
+            lambda ctx: (
+                ["--action-type", "one_d_rpm", "--out", _json("sb3_hover.json")(ctx)]
+                + (
+                    ["--steps", "8192", "--eval-episodes", "2"]
+                    if ctx.quick
+                    else ["--steps", "200000", "--eval-every", "49152"]
+                )
+            ),
+            _json("sb3_hover.json"),
+        ),
+        Benchmark("jaxmarl_ippo", False, jaxmarl_args, _json("jaxmarl_ippo.json")),
+    )
+}
 
 
 # -- running -------------------------------------------------------------------------------------------------------
@@ -220,11 +296,18 @@ print("PROBE " + json.dumps({"jax": jax.__version__, "jaxlib": jaxlib.__version_
 def probe(env: dict) -> dict:
     """JAX's version, backend and devices as a benchmark process sees them (a short process of its own, so that this
     one never holds the device), with the host's CPU and the git commit."""
-    info = {"cpu_model": _cpu_model(), "cpu_count": os.cpu_count(), "cpus_available": len(os.sched_getaffinity(0)),
-            "platform": platform.platform(), "python": platform.python_version(), "git_commit": _git_commit()}
+    info = {
+        "cpu_model": _cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "cpus_available": len(os.sched_getaffinity(0)),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "git_commit": _git_commit(),
+    }
     try:
-        proc = subprocess.run([sys.executable, "-c", PROBE], env=env, capture_output=True, text=True, timeout=600,
-                              cwd=ROOT, check=False)
+        proc = subprocess.run(
+            [sys.executable, "-c", PROBE], env=env, capture_output=True, text=True, timeout=600, cwd=ROOT, check=False
+        )
         line = next((x for x in proc.stdout.splitlines() if x.startswith("PROBE ")), None)
         if line is None:
             return info | {"backend": "unknown", "probe_error": " | ".join(proc.stderr.strip().splitlines()[-3:])}
@@ -243,10 +326,17 @@ def _cpu_model() -> str:
 
 def _git_commit() -> str | None:
     try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=ROOT, timeout=10,
-                                check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, cwd=ROOT, timeout=10, check=True).stdout.strip()
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=ROOT, timeout=10, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=10,
+            check=True,
+        ).stdout.strip()
         return commit + ("+modified" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         return None
@@ -262,8 +352,11 @@ def run_benchmark(bench: Benchmark, ctx: Context, env: dict, timeout: float) -> 
     command = [sys.executable, os.path.join(HERE, f"{bench.name}.py"), *args]
     extra = bench.gpu_env if ctx.gpu else {}
     shown = [os.path.relpath(a, ROOT) if os.path.isabs(a) and a.startswith(ROOT + os.sep) else a for a in args]
-    record |= {"command": "python " + shlex.join([os.path.relpath(command[1], ROOT), *shown]), "env": extra,
-               "output": bench.output(ctx)}
+    record |= {
+        "command": "python " + shlex.join([os.path.relpath(command[1], ROOT), *shown]),
+        "env": extra,
+        "output": bench.output(ctx),
+    }
     logs = os.path.join(ctx.out, "logs")
     os.makedirs(logs, exist_ok=True)
     stdout_path, stderr_path = (os.path.join(logs, f"{bench.name}.{k}.txt") for k in ("stdout", "stderr"))
@@ -271,8 +364,15 @@ def run_benchmark(bench: Benchmark, ctx: Context, env: dict, timeout: float) -> 
     start = time.perf_counter()
     timed_out = threading.Event()
     with open(stdout_path, "w") as out, open(stderr_path, "w") as err:
-        proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=err, text=True, cwd=ROOT,
-                                env=env | extra | {"PYTHONUNBUFFERED": "1"}, start_new_session=True)
+        proc = subprocess.Popen(
+            command,
+            stdout=subprocess.PIPE,
+            stderr=err,
+            text=True,
+            cwd=ROOT,
+            env=env | extra | {"PYTHONUNBUFFERED": "1"},
+            start_new_session=True,
+        )
         timer = threading.Timer(timeout, _stop, (proc, timed_out))
         timer.start()
         try:
@@ -285,9 +385,13 @@ def run_benchmark(bench: Benchmark, ctx: Context, env: dict, timeout: float) -> 
             raise
         finally:
             timer.cancel()
-    record |= {"wall_s": time.perf_counter() - start, "loadavg_after": list(os.getloadavg()),
-               "returncode": proc.returncode, "stdout_log": os.path.relpath(stdout_path, ctx.out),
-               "stderr_log": os.path.relpath(stderr_path, ctx.out)}
+    record |= {
+        "wall_s": time.perf_counter() - start,
+        "loadavg_after": list(os.getloadavg()),
+        "returncode": proc.returncode,
+        "stdout_log": os.path.relpath(stdout_path, ctx.out),
+        "stderr_log": os.path.relpath(stderr_path, ctx.out),
+    }
     with open(stderr_path) as f:
         stderr = f.read().strip().splitlines()
     ok = proc.returncode == 0 and not timed_out.is_set()
@@ -300,12 +404,16 @@ def run_benchmark(bench: Benchmark, ctx: Context, env: dict, timeout: float) -> 
         ok, stderr = False, stderr + [f"(it exited 0 but did not write {record['output']})"]
     record["status"] = "ok" if ok else ("timed out" if timed_out.is_set() else "failed")
     if not ok:
-        record["stderr_tail"] = stderr[-25:] + ([f"(stopped after --timeout {timeout:g} s)"] if timed_out.is_set()
-                                                else [])
+        record["stderr_tail"] = stderr[-25:] + (
+            [f"(stopped after --timeout {timeout:g} s)"] if timed_out.is_set() else []
+        )
         with open(stdout_path) as f:
             record["stdout_tail"] = f.read().strip().splitlines()[-10:]
-    print(f"== {bench.name}: {record['status']} in {record['wall_s']:.0f} s, load "
-          f"{record['loadavg_before'][0]:.2f} -> {record['loadavg_after'][0]:.2f}", flush=True)
+    print(
+        f"== {bench.name}: {record['status']} in {record['wall_s']:.0f} s, load "
+        f"{record['loadavg_before'][0]:.2f} -> {record['loadavg_after'][0]:.2f}",
+        flush=True,
+    )
     if not ok:
         print("\n".join(f"   | {line}" for line in stderr[-10:]), flush=True)
     return record
@@ -372,8 +480,11 @@ def load_text(load) -> str:
 
 
 def settings_text(settings: dict) -> str:
-    items = [f"`{k}`={json.dumps(v) if not isinstance(v, str) else v}" for k, v in settings.items()
-             if v not in (None, [], {}) and len(json.dumps(v)) < 200]
+    items = [
+        f"`{k}`={json.dumps(v) if not isinstance(v, str) else v}"
+        for k, v in settings.items()
+        if v not in (None, [], {}) and len(json.dumps(v)) < 200
+    ]
     return "; ".join(items)
 
 
@@ -381,8 +492,10 @@ def machine_text(m: dict) -> str:
     """One line of what a benchmark's JSON says about its machine (`throughput.machine_info`)."""
     parts = []
     if m.get("backend"):
-        parts.append(f"backend {m['backend']} ({', '.join(m.get('devices', [])[:4])}"
-                     f"{', ...' if len(m.get('devices', [])) > 4 else ''})")
+        parts.append(
+            f"backend {m['backend']} ({', '.join(m.get('devices', [])[:4])}"
+            f"{', ...' if len(m.get('devices', [])) > 4 else ''})"
+        )
     if m.get("jax"):
         parts.append(f"jax {m['jax']}" + (f" (jaxlib {m['jaxlib']})" if m.get("jaxlib") else ""))
     if m.get("cpu_model"):
@@ -418,29 +531,62 @@ def render_throughput(data: dict, out: str) -> str:
     combos = sorted({(r["drones"], r["effects"]) for r in rows})
     by = {(r["worlds"], r["drones"], r["effects"]): r for r in rows}
     worlds = sorted({r["worlds"] for r in rows})
-    pivot = table(["worlds"] + [f"{d} drone{'s' * (d > 1)}, effects {e}" for d, e in combos],
-                  [[num(w)] + [num(by[(w, d, e)]["median_drone_steps_per_s"]) if (w, d, e) in by else None
-                               for d, e in combos] for w in worlds])
-    detail = table(["worlds", "drones", "effects", "devices", "steps × substeps", "compile s", "best", "median",
-                    "state MB", "XLA temp MB", "RSS peak MB", "load"],
-                   [[num(r["worlds"]), r["drones"], r["effects"], r.get("devices"),
-                     f"{r['control_steps']} × {r['substeps']}", num(r.get("compile_s"), 2),
-                     num(r["best_drone_steps_per_s"]), num(r["median_drone_steps_per_s"]), num(r.get("state_mb"), 2),
-                     num(r.get("xla_temp_mb"), 2), num(r.get("rss_peak_mb")), num(r.get("loadavg_1min"), 2)]
-                    for r in sorted(rows, key=lambda r: (r["worlds"], r["drones"], r["effects"]))])
+    pivot = table(
+        ["worlds"] + [f"{d} drone{'s' * (d > 1)}, effects {e}" for d, e in combos],
+        [
+            [num(w)] + [num(by[(w, d, e)]["median_drone_steps_per_s"]) if (w, d, e) in by else None for d, e in combos]
+            for w in worlds
+        ],
+    )
+    detail = table(
+        [
+            "worlds",
+            "drones",
+            "effects",
+            "devices",
+            "steps × substeps",
+            "compile s",
+            "best",
+            "median",
+            "state MB",
+            "XLA temp MB",
+            "RSS peak MB",
+            "load",
+        ],
+        [
+            [
+                num(r["worlds"]),
+                r["drones"],
+                r["effects"],
+                r.get("devices"),
+                f"{r['control_steps']} × {r['substeps']}",
+                num(r.get("compile_s"), 2),
+                num(r["best_drone_steps_per_s"]),
+                num(r["median_drone_steps_per_s"]),
+                num(r.get("state_mb"), 2),
+                num(r.get("xla_temp_mb"), 2),
+                num(r.get("rss_peak_mb")),
+                num(r.get("loadavg_1min"), 2),
+            ]
+            for r in sorted(rows, key=lambda r: (r["worlds"], r["drones"], r["effects"]))
+        ],
+    )
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     for d, e in combos:
-        pts = sorted((r["worlds"], r["median_drone_steps_per_s"]) for r in rows
-                     if (r["drones"], r["effects"]) == (d, e))
+        pts = sorted(
+            (r["worlds"], r["median_drone_steps_per_s"]) for r in rows if (r["drones"], r["effects"]) == (d, e)
+        )
         ax.loglog(*zip(*pts, strict=True), "o-" if e == "on" else "s--", label=f"{d} drone(s), effects {e}")
     ax.set(xlabel="worlds", ylabel="drone-steps/s (median)", title="JAX physics core throughput")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     plot = _save(fig, out, "throughput.png")
-    return (f"Median drone-steps/s (one drone-step: one {rows[0].get('integrator', '')} physics substep of one "
-            f"drone):\n\n{pivot}\n\nAll measurements (drone-steps/s, best and median of the timed calls):\n\n"
-            f"{detail}\n\n{plot}")
+    return (
+        f"Median drone-steps/s (one drone-step: one {rows[0].get('integrator', '')} physics substep of one "
+        f"drone):\n\n{pivot}\n\nAll measurements (drone-steps/s, best and median of the timed calls):\n\n"
+        f"{detail}\n\n{plot}"
+    )
 
 
 ENV_LABELS = {"vector": "jaxdrones vector env", "native": "jaxdrones JAX-native", "crazyflow": "crazyflow vector env"}
@@ -451,14 +597,22 @@ def render_envs(data: dict, out: str) -> str:
     envs = [e for e in ENV_LABELS if any(r["env"] == e for r in rows)]
     by = {(r["env"], r["worlds"]): r for r in rows}
     sizes = sorted({r["worlds"] for r in rows})
-    median = table(["worlds"] + [ENV_LABELS[e] for e in envs],
-                   [[num(n)] + [num(by[(e, n)]["median_env_steps_per_s"]) if (e, n) in by else None for e in envs]
-                    for n in sizes])
-    first = table(["worlds"] + [f"{ENV_LABELS[e]}: {'compile' if e == 'native' else 'first call'} s" for e in envs]
-                  + ["load"],
-                  [[num(n)] + [num(by[(e, n)].get("compile_s", by[(e, n)].get("first_call_s")), 2) if (e, n) in by
-                               else None for e in envs]
-                   + [num(max(by[(e, n)].get("loadavg_1min", 0) for e in envs if (e, n) in by), 2)] for n in sizes])
+    median = table(
+        ["worlds"] + [ENV_LABELS[e] for e in envs],
+        [[num(n)] + [num(by[(e, n)]["median_env_steps_per_s"]) if (e, n) in by else None for e in envs] for n in sizes],
+    )
+    first = table(
+        ["worlds"] + [f"{ENV_LABELS[e]}: {'compile' if e == 'native' else 'first call'} s" for e in envs] + ["load"],
+        [
+            [num(n)]
+            + [
+                num(by[(e, n)].get("compile_s", by[(e, n)].get("first_call_s")), 2) if (e, n) in by else None
+                for e in envs
+            ]
+            + [num(max(by[(e, n)].get("loadavg_1min", 0) for e in envs if (e, n) in by), 2)]
+            for n in sizes
+        ],
+    )
     crazyflow = data.get("crazyflow") or {}
     if not crazyflow.get("requested", True):
         note = "crazyflow: not requested (`--no-crazyflow`)."
@@ -467,21 +621,30 @@ def render_envs(data: dict, out: str) -> str:
         note = f"crazyflow: **not measured**{where}: {crazyflow['error']}"
     else:
         setup = crazyflow.get("setup_in_worker") or {}
-        note = (f"crazyflow: {setup.get('env_id')} (crazyflow {setup.get('crazyflow')}, jax {setup.get('jax')}), "
-                f"{setup.get('control')} control, {setup.get('dynamics')} model, {setup.get('sim_freq')} Hz physics "
-                f"({setup.get('substeps')} substeps per step).")
+        note = (
+            f"crazyflow: {setup.get('env_id')} (crazyflow {setup.get('crazyflow')}, jax {setup.get('jax')}), "
+            f"{setup.get('control')} control, {setup.get('dynamics')} model, {setup.get('sim_freq')} Hz physics "
+            f"({setup.get('substeps')} substeps per step)."
+        )
     ctrl_freq = data["settings"].get("ctrl_freq", 30)
-    sections = [(f"Median env-steps/s (one env-step: one {ctrl_freq} Hz control step of one "
-                f"world of hover, random actions):\n\n{median}\n\n{note}\n\nCompile (JAX-native) or first-call "
-                f"(vector envs) time:\n\n{first}")]
+    sections = [
+        (
+            f"Median env-steps/s (one env-step: one {ctrl_freq} Hz control step of one "
+            f"world of hover, random actions):\n\n{median}\n\n{note}\n\nCompile (JAX-native) or first-call "
+            f"(vector envs) time:\n\n{first}"
+        )
+    ]
     for p in data.get("profile") or []:
-        parts = [[k, num(1e3 * v, 3), f"{100 * v / p['step_parts_total_s']:.1f} %"]
-                 for k, v in p["step_parts_s"].items()]
+        parts = [
+            [k, num(1e3 * v, 3), f"{100 * v / p['step_parts_total_s']:.1f} %"] for k, v in p["step_parts_s"].items()
+        ]
         jit = [[k, num(1e3 * v, 3), num(p["worlds"] / v)] for k, v in p["jit_parts_s"].items()]
-        sections.append(f"Vector env `step()` at {num(p['worlds'])} worlds: {1e3 * p['step_s']:.2f} ms median. "
-                        f"Parts of "
-                        f"a copy of its body:\n\n{table(['part', 'ms', 'share'], parts)}\n\nJitted pieces alone:\n\n"
-                        f"{table(['piece', 'ms', 'env-steps/s'], jit)}")
+        sections.append(
+            f"Vector env `step()` at {num(p['worlds'])} worlds: {1e3 * p['step_s']:.2f} ms median. "
+            f"Parts of "
+            f"a copy of its body:\n\n{table(['part', 'ms', 'share'], parts)}\n\nJitted pieces alone:\n\n"
+            f"{table(['piece', 'ms', 'env-steps/s'], jit)}"
+        )
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     for e in envs:
@@ -526,11 +689,18 @@ def render_gradients(data: dict, out: str) -> str:
             cells.append(None if s is None else f"{1e3 * s:.2f}{ratio}")
         temps = [(r.get(m) or {}).get("temp_bytes") for m in grads]
         temps = [t for t in temps if t is not None]
-        body.append([r.get("horizon"), num(r.get("worlds")), _gradient_label(r)] + cells
-                    + [num(max(temps) / 2**20, 1) if temps else None])
-    main = table(["T", "W", "simulator, caller"] + [f"{m} ms" + (" (÷ forward)" if m != "forward" else "")
-                                                    for m in measures] + ["largest temp MiB"], body, "rrl" + "r" * (
-                     len(measures) + 1))
+        body.append(
+            [r.get("horizon"), num(r.get("worlds")), _gradient_label(r)]
+            + cells
+            + [num(max(temps) / 2**20, 1) if temps else None]
+        )
+    main = table(
+        ["T", "W", "simulator, caller"]
+        + [f"{m} ms" + (" (÷ forward)" if m != "forward" else "") for m in measures]
+        + ["largest temp MiB"],
+        body,
+        "rrl" + "r" * (len(measures) + 1),
+    )
     crazyflow = data.get("crazyflow") or {}
     note = ""
     if crazyflow.get("requested") is False:
@@ -538,23 +708,29 @@ def render_gradients(data: dict, out: str) -> str:
     elif crazyflow.get("error"):
         note = f"crazyflow: **not measured**: {crazyflow['error']}"
     plot = _gradient_plot(rows, grads, out) if grads else ""
-    return (f"Forward and gradient times (medians of the timed calls) and the gradient's cost in forward passes (the "
-            f"median over rounds of one call of each, in turn); memory is XLA's temporary buffers of the compiled "
-            f"call:\n\n{main}\n\n{note}\n\n{plot}")
+    return (
+        f"Forward and gradient times (medians of the timed calls) and the gradient's cost in forward passes (the "
+        f"median over rounds of one call of each, in turn); memory is XLA's temporary buffers of the compiled "
+        f"call:\n\n{main}\n\n{note}\n\n{plot}"
+    )
 
 
 def _gradient_plot(rows: list[dict], grads: list[str], out: str) -> str:
     plt = _plt()
     horizons = sorted({r["horizon"] for r in rows if "horizon" in r})
-    fig, axes = plt.subplots(len(grads), len(horizons), figsize=(3.6 * len(horizons), 3.0 * len(grads)),
-                             squeeze=False, sharey=True)
+    fig, axes = plt.subplots(
+        len(grads), len(horizons), figsize=(3.6 * len(horizons), 3.0 * len(grads)), squeeze=False, sharey=True
+    )
     labels = sorted({_gradient_label(r) for r in rows})
     for i, m in enumerate(grads):
         for j, t in enumerate(horizons):
             ax = axes[i][j]
             for label in labels:
-                pts = sorted((r["worlds"], r[m]["s"] / r["forward"]["s"]) for r in rows
-                             if r.get("horizon") == t and _gradient_label(r) == label and r.get(m) and r.get("forward"))
+                pts = sorted(
+                    (r["worlds"], r[m]["s"] / r["forward"]["s"])
+                    for r in rows
+                    if r.get("horizon") == t and _gradient_label(r) == label and r.get(m) and r.get("forward")
+                )
                 if pts:
                     ax.semilogx(*zip(*pts, strict=True), "o-", label=label)
             ax.set(title=f"{m}, T={t}", xlabel="worlds W", ylabel="gradient ÷ forward" if j == 0 else None)
@@ -570,21 +746,59 @@ def render_backends(data: dict, out: str) -> str:
     camera = [r for r in rows if r.get("measure") == "camera"]
     sections = []
     if physics:
-        sections.append("Physics, one world, best of the timed runs:\n\n" + table(
-            ["drones", "ctrl Hz", "backend", "loop", "physics steps/s", "drone-steps/s", "× real time"],
-            [[r["drones"], r["ctrl_freq"], r["backend"], r["loop"], num(r["best"]["physics_steps_per_s"]),
-              num(r["best"]["drone_steps_per_s"]), num(r["best"]["real_time_factor"], 1)] for r in physics],
-            "rrllrrr"))
+        sections.append(
+            "Physics, one world, best of the timed runs:\n\n"
+            + table(
+                ["drones", "ctrl Hz", "backend", "loop", "physics steps/s", "drone-steps/s", "× real time"],
+                [
+                    [
+                        r["drones"],
+                        r["ctrl_freq"],
+                        r["backend"],
+                        r["loop"],
+                        num(r["best"]["physics_steps_per_s"]),
+                        num(r["best"]["drone_steps_per_s"]),
+                        num(r["best"]["real_time_factor"], 1),
+                    ]
+                    for r in physics
+                ],
+                "rrllrrr",
+            )
+        )
     if pid:
-        sections.append("DSL PID at 48 Hz in the loop, PyBullet backend:\n\n" + table(
-            ["drones", "obstacles", "physics steps/s", "× real time", "final height error m"],
-            [[r["drones"], r["obstacles"], num(r["best"]["physics_steps_per_s"]), num(r["best"]["real_time_factor"], 1),
-              sig(r.get("final_height_error_m"))] for r in pid]))
+        sections.append(
+            "DSL PID at 48 Hz in the loop, PyBullet backend:\n\n"
+            + table(
+                ["drones", "obstacles", "physics steps/s", "× real time", "final height error m"],
+                [
+                    [
+                        r["drones"],
+                        r["obstacles"],
+                        num(r["best"]["physics_steps_per_s"]),
+                        num(r["best"]["real_time_factor"], 1),
+                        sig(r.get("final_height_error_m")),
+                    ]
+                    for r in pid
+                ],
+            )
+        )
     if camera:
-        sections.append("Camera captures (TinyRenderer, RGBA + depth + segmentation), per process:\n\n" + table(
-            ["drones", "size", "frames/s (best)", "frames/s (median)", "kB/s RGBA (median)"],
-            [[r["drones"], f"{r['width']}×{r['height']}", num(r["frames_per_s_best"]), num(r["frames_per_s_median"]),
-              num(r["rgba_kB_per_s_median"])] for r in camera]))
+        sections.append(
+            "Camera captures (TinyRenderer, RGBA + depth + segmentation), per process:\n\n"
+            + table(
+                ["drones", "size", "frames/s (best)", "frames/s (median)", "kB/s RGBA (median)"],
+                [
+                    [
+                        r["drones"],
+                        f"{r['width']}×{r['height']}",
+                        num(r["frames_per_s_best"]),
+                        num(r["frames_per_s_median"]),
+                        num(r["rgba_kB_per_s_median"]),
+                    ]
+                    for r in camera
+                ],
+            )
+        )
     if physics:
         plt = _plt()
         fig, ax = plt.subplots(figsize=(7, 4.2))
@@ -592,12 +806,16 @@ def render_backends(data: dict, out: str) -> str:
         kinds = sorted({(r["backend"], r["loop"]) for r in physics})
         width = 0.8 / len(kinds)
         for k, kind in enumerate(kinds):
-            best = {(r["drones"], r["ctrl_freq"]): r["best"]["drone_steps_per_s"] for r in physics
-                    if (r["backend"], r["loop"]) == kind}
+            best = {
+                (r["drones"], r["ctrl_freq"]): r["best"]["drone_steps_per_s"]
+                for r in physics
+                if (r["backend"], r["loop"]) == kind
+            }
             values = [best.get(g, 0) for g in groups]
             ax.bar([i + k * width for i in range(len(groups))], values, width, label=f"{kind[0]}, {kind[1]} loop")
-        ax.set_xticks([i + width * (len(kinds) - 1) / 2 for i in range(len(groups))],
-                      [f"{d} drones\n{f} Hz" for d, f in groups])
+        ax.set_xticks(
+            [i + width * (len(kinds) - 1) / 2 for i in range(len(groups))], [f"{d} drones\n{f} Hz" for d, f in groups]
+        )
         ax.set(yscale="log", ylabel="drone-steps/s (best)", title="PyBullet backend vs JAX core, one world")
         ax.legend(fontsize=8)
         sections.append(_save(fig, out, "backends.png"))
@@ -607,32 +825,58 @@ def render_backends(data: dict, out: str) -> str:
 def render_table2(data: dict, out: str) -> str:
     rows = data["results"]
     backends = [b for b in ("jax", "pybullet", "original") if any(f"{b}_speedup" in r for r in rows)]
-    return ("The paper's Table II: speed-up over the wall clock (240 Hz physics, 48 Hz PID, obstacles; vision: "
-            "64×48 RGB, depth and segmentation at 24 Hz), with the paper's published speed-ups:\n\n"
-            + table(["configuration"] + backends + ["paper (i7-8850H)", "paper (i7-1068NG7)"],
-                    [[r["row"]] + [f"{num(r[f'{b}_speedup'], 1)}×" for b in backends]
-                     + [f"{r['paper_speedup'][0]}×", f"{r['paper_speedup'][1]}×"] for r in rows]))
+    return (
+        "The paper's Table II: speed-up over the wall clock (240 Hz physics, 48 Hz PID, obstacles; vision: "
+        "64×48 RGB, depth and segmentation at 24 Hz), with the paper's published speed-ups:\n\n"
+        + table(
+            ["configuration"] + backends + ["paper (i7-8850H)", "paper (i7-1068NG7)"],
+            [
+                [r["row"]]
+                + [f"{num(r[f'{b}_speedup'], 1)}×" for b in backends]
+                + [f"{r['paper_speedup'][0]}×", f"{r['paper_speedup'][1]}×"]
+                for r in rows
+            ],
+        )
+    )
 
 
 def render_cameras(data: dict, out: str) -> str:
     rows = data["results"]
     cams = [r for r in rows if r["sim"] != "jaxdrones-env"]
     env = [r for r in rows if r["sim"] == "jaxdrones-env"]
-    sections = ["Onboard cameras, 64 × 48, frames/s (median), by scene size P (primitives besides the ground):\n\n"
-                + table(["renderer", "images", "P", "worlds", "frames/s", "ms per call"],
-                        [[r["sim"], "+".join(r["kinds"]), r["primitives"], r["worlds"], num(r["frames_per_s"]),
-                          num(1e3 * r["s"], 1)] for r in cams], "llrrrr")]
+    sections = [
+        "Onboard cameras, 64 × 48, frames/s (median), by scene size P (primitives besides the ground):\n\n"
+        + table(
+            ["renderer", "images", "P", "worlds", "frames/s", "ms per call"],
+            [
+                [
+                    r["sim"],
+                    "+".join(r["kinds"]),
+                    r["primitives"],
+                    r["worlds"],
+                    num(r["frames_per_s"]),
+                    num(1e3 * r["s"], 1),
+                ]
+                for r in cams
+            ],
+            "llrrrr",
+        )
+    ]
     if env:
-        sections.append("Envs with depth and segmentation cameras at every 30 Hz control step, JAX backend:\n\n"
-                        + table(["task", "P", "worlds", "env steps/s"],
-                                [[r.get("task", "fly_thru_gate"), r["primitives"], r["worlds"], num(r["frames_per_s"])]
-                                 for r in env], "lrrr"))
+        sections.append(
+            "Envs with depth and segmentation cameras at every 30 Hz control step, JAX backend:\n\n"
+            + table(
+                ["task", "P", "worlds", "env steps/s"],
+                [[r.get("task", "fly_thru_gate"), r["primitives"], r["worlds"], num(r["frames_per_s"])] for r in env],
+                "lrrr",
+            )
+        )
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7, 4.2))
     for sim in sorted({r["sim"] for r in cams}):
         for p in sorted({r["primitives"] for r in cams if r["sim"] == sim}):
             pts = sorted((r["worlds"], r["frames_per_s"]) for r in cams if r["sim"] == sim and r["primitives"] == p)
-            ax.plot(*zip(*pts), marker="o", label=f"{sim}, P={p}")
+            ax.plot(*zip(*pts, strict=True), marker="o", label=f"{sim}, P={p}")
     ax.set(xscale="log", yscale="log", xlabel="worlds", ylabel="frames/s", title="Onboard cameras, 64 × 48")
     ax.legend(fontsize=8)
     sections.append(_save(fig, out, "cameras.png"))
@@ -640,10 +884,15 @@ def render_cameras(data: dict, out: str) -> str:
 
 
 def render_encoders(data: dict, out: str) -> str:
-    return (f"The vision encoder's gradient, {data['minibatches']} minibatches of {data['batch']} 24 × 32 images, "
-            f"µs per sample (median), on {data['device']}:\n\n"
-            + table(["convolution", "program", "µs per sample"],
-                    [[r["encoder"], r["program"], num(r["us_per_sample"], 1)] for r in data["rows"]], "llr"))
+    return (
+        f"The vision encoder's gradient, {data['minibatches']} minibatches of {data['batch']} 24 × 32 images, "
+        f"µs per sample (median), on {data['device']}:\n\n"
+        + table(
+            ["convolution", "program", "µs per sample"],
+            [[r["encoder"], r["program"], num(r["us_per_sample"], 1)] for r in data["rows"]],
+            "llr",
+        )
+    )
 
 
 def render_train_algos(data: dict, out: str) -> str:
@@ -664,15 +913,38 @@ def render_train_algos(data: dict, out: str) -> str:
         p = r.get("phases_s") or {}
         return " / ".join(f"{p[k]:.1f}" for k in ("setup", "train", "save", "plots") if k in p) or None
 
-    runs = table(["algo", "budget", "cache", "env steps", "wall s (outside)", "wall s (summary)",
-                  "setup / train / save / plots s", "solved at s (env steps)", metric, "terminated", "solved"],
-                 [[r["algo"], budget(r), r["cache"], num(r.get("env_steps")), num(r.get("wall_time_s"), 1),
-                   num(r.get("summary_wall_time_s"), 1), phases(r),
-                   None if r.get("solved_at_s") is None
-                   else f"{r['solved_at_s']:.1f} ({num(r['solved_at_env_steps'])})",
-                   value(r), None if r.get("terminated_rate") is None else f"{r['terminated_rate']:.1%}",
-                   "**failed**: " + r["error"][:120] if r.get("error") else ("yes" if r.get("solved") else "no")]
-                  for r in rows], "llllrrrrrrl")
+    runs = table(
+        [
+            "algo",
+            "budget",
+            "cache",
+            "env steps",
+            "wall s (outside)",
+            "wall s (summary)",
+            "setup / train / save / plots s",
+            "solved at s (env steps)",
+            metric,
+            "terminated",
+            "solved",
+        ],
+        [
+            [
+                r["algo"],
+                budget(r),
+                r["cache"],
+                num(r.get("env_steps")),
+                num(r.get("wall_time_s"), 1),
+                num(r.get("summary_wall_time_s"), 1),
+                phases(r),
+                None if r.get("solved_at_s") is None else f"{r['solved_at_s']:.1f} ({num(r['solved_at_env_steps'])})",
+                value(r),
+                None if r.get("terminated_rate") is None else f"{r['terminated_rate']:.1%}",
+                "**failed**: " + r["error"][:120] if r.get("error") else ("yes" if r.get("solved") else "no"),
+            ]
+            for r in rows
+        ],
+        "llllrrrrrrl",
+    )
     first = data.get("first_solved") or {}
     solved = []
     for algo in algos:
@@ -680,11 +952,31 @@ def render_train_algos(data: dict, out: str) -> str:
         if cold is None:
             solved.append([algo, "not solved", None, None, None, None, None, None])
             continue
-        solved.append([algo, budget(cold), num(cold.get("env_steps")), num(cold.get("wall_time_s"), 1),
-                       num((warm or {}).get("wall_time_s"), 1), num(cold.get("solved_at_s"), 1),
-                       num((warm or {}).get("solved_at_s"), 1), value(cold)])
-    solved_table = table(["algo", "smallest budget that solved", "env steps", "cold wall s", "warm wall s",
-                          "cold: solved at s", "warm: solved at s", metric], solved)
+        solved.append(
+            [
+                algo,
+                budget(cold),
+                num(cold.get("env_steps")),
+                num(cold.get("wall_time_s"), 1),
+                num((warm or {}).get("wall_time_s"), 1),
+                num(cold.get("solved_at_s"), 1),
+                num((warm or {}).get("solved_at_s"), 1),
+                value(cold),
+            ]
+        )
+    solved_table = table(
+        [
+            "algo",
+            "smallest budget that solved",
+            "env steps",
+            "cold wall s",
+            "warm wall s",
+            "cold: solved at s",
+            "warm: solved at s",
+            metric,
+        ],
+        solved,
+    )
     env_alone = {r["worlds"]: r["median_env_steps_per_s"] for r in data.get("env_rates") or []}
     speed, speed_plot = [], []
     for algo in algos:
@@ -694,19 +986,40 @@ def render_train_algos(data: dict, out: str) -> str:
         r = max(mine, key=lambda r: (r["env_steps"], r["cache"] == "warm"))
         env = env_alone.get(r.get("num_envs"))
         after = r.get("trainer_env_steps_per_s_after_first_eval")
-        speed.append([algo, num(r.get("num_envs")), f"{budget(r)}, {r['cache']}", num(r.get("trainer_env_steps_per_s")),
-                      num(after), num(env), None if not (env and after) else f"{after / env:.2f}"])
+        speed.append(
+            [
+                algo,
+                num(r.get("num_envs")),
+                f"{budget(r)}, {r['cache']}",
+                num(r.get("trainer_env_steps_per_s")),
+                num(after),
+                num(env),
+                None if not (env and after) else f"{after / env:.2f}",
+            ]
+        )
         speed_plot.append((algo, after, env, r.get("num_envs")))
-    speed_table = table(["algo", "worlds", "run", "trainer env-steps/s (train phase)", "after the first evaluation",
-                         "env alone (JAX-native, same worlds)", "trainer ÷ env"], speed)
+    speed_table = table(
+        [
+            "algo",
+            "worlds",
+            "run",
+            "trainer env-steps/s (train phase)",
+            "after the first evaluation",
+            "env alone (JAX-native, same worlds)",
+            "trainer ÷ env",
+        ],
+        speed,
+    )
     plot = _train_plot(rows, algos, first, speed_plot, out)
-    return (f"Each run a fresh `jaxdrones train` process; *cold*: an empty `JAXDRONES_CACHE_DIR`, *warm*: the same "
-            f"command again with the cache the cold run filled. Wall time outside: around the process; summary: "
-            f"the command's own count from its process start. *Solved at*: from the process start to the first "
-            f"evaluation meeting the threshold ({metric} < {threshold} {unit}, none terminated).\n\n{runs}\n\n"
-            f"Time to a solved {data.get('task', 'task')}:\n\n{solved_table}\n\nTraining speed next to the env's "
-            f"own (the run with the most env steps per algorithm; *after the first evaluation* excludes the "
-            f"compilation):\n\n{speed_table}\n\n{plot}")
+    return (
+        f"Each run a fresh `jaxdrones train` process; *cold*: an empty `JAXDRONES_CACHE_DIR`, *warm*: the same "
+        f"command again with the cache the cold run filled. Wall time outside: around the process; summary: "
+        f"the command's own count from its process start. *Solved at*: from the process start to the first "
+        f"evaluation meeting the threshold ({metric} < {threshold} {unit}, none terminated).\n\n{runs}\n\n"
+        f"Time to a solved {data.get('task', 'task')}:\n\n{solved_table}\n\nTraining speed next to the env's "
+        f"own (the run with the most env steps per algorithm; *after the first evaluation* excludes the "
+        f"compilation):\n\n{speed_table}\n\n{plot}"
+    )
 
 
 def _train_plot(rows: list[dict], algos: list[str], first: dict, speed: list[tuple], out: str) -> str:
@@ -726,24 +1039,48 @@ def _train_plot(rows: list[dict], algos: list[str], first: dict, speed: list[tup
                 runs = [r for r in rows if r["algo"] == algo and r["cache"] == cache and r.get("wall_time_s")]
                 row = max(runs, key=lambda r: r.get("env_steps") or 0, default={})
             x = i + 0.4 * k
-            ax.bar(x, row.get("wall_time_s", 0), 0.4, color=colors[cache], hatch="" if solved else "//",
-                   edgecolor="black" if not solved else None)
+            ax.bar(
+                x,
+                row.get("wall_time_s", 0),
+                0.4,
+                color=colors[cache],
+                hatch="" if solved else "//",
+                edgecolor="black" if not solved else None,
+            )
             if row.get("solved_at_s") is not None:
                 ax.plot(x, row["solved_at_s"], "k.", markersize=9)
     ax.set_xticks([i + 0.2 for i in range(len(algos))], algos)
     ax.set_ylim(0, 1.5 * max([bar.get_height() for bar in ax.patches] + [1]))  # room for the legend
     ax.set(ylabel="s from the process start", title="time to a solved hover")
-    ax.legend(handles=[Patch(color=colors["cold"], label="wall time, empty cache"),
-                       Patch(color=colors["warm"], label="wall time, warm cache"),
-                       Patch(facecolor="white", edgecolor="black", hatch="//", label="not solved (largest run)"),
-                       plt.Line2D([], [], color="k", marker=".", linestyle="", markersize=9,
-                                  label="first evaluation that met the threshold")], fontsize=8)
+    ax.legend(
+        handles=[
+            Patch(color=colors["cold"], label="wall time, empty cache"),
+            Patch(color=colors["warm"], label="wall time, warm cache"),
+            Patch(facecolor="white", edgecolor="black", hatch="//", label="not solved (largest run)"),
+            plt.Line2D(
+                [],
+                [],
+                color="k",
+                marker=".",
+                linestyle="",
+                markersize=9,
+                label="first evaluation that met the threshold",
+            ),
+        ],
+        fontsize=8,
+    )
     names = [s[0] for s in speed]
-    for k, (label, values) in enumerate((("trainer, after its first evaluation", [s[1] or 0 for s in speed]),
-                                         ("env alone, same worlds", [s[2] or 0 for s in speed]))):
+    for k, (label, values) in enumerate(
+        (
+            ("trainer, after its first evaluation", [s[1] or 0 for s in speed]),
+            ("env alone, same worlds", [s[2] or 0 for s in speed]),
+        )
+    ):
         ax2.bar([i + 0.4 * k for i in range(len(names))], values, 0.4, label=label)
-    ax2.set_xticks([i + 0.2 for i in range(len(names))], [f"{n}\n{w} worlds" for n, w in zip(
-        names, [s[3] for s in speed], strict=True)])
+    ax2.set_xticks(
+        [i + 0.2 for i in range(len(names))],
+        [f"{n}\n{w} worlds" for n, w in zip(names, [s[3] for s in speed], strict=True)],
+    )
     ax2.set(yscale="log", ylabel="env-steps/s", title="training speed and the env's own")
     ax2.legend(fontsize=8)
     return _save(fig, out, "train_algos.png")
@@ -755,20 +1092,47 @@ def render_sysid_noise(record: dict, out: str) -> str:
 
 def render_multi_agent(data: dict, out: str) -> str:
     rows = data["rows"]
-    main = table(["D", "worlds", "coupling", "downwash", "physics agent-steps/s", "ns per drone-substep",
-                  "env agent-steps/s", "MAPPO agent-steps/s", "force error ÷ weight"],
-                 [[r["n_drones"], num(r["worlds"]), "lists" if r["lists"] else "all", "on" if r["downwash"] else "off",
-                   num(r["physics"]), num(r.get("physics_ns_per_drone_substep"), 1), num(r["env"]), num(r.get("mappo")),
-                   sig(r.get("downwash_error_over_weight"), 2)] for r in rows], "rrllrrrrr")
+    main = table(
+        [
+            "D",
+            "worlds",
+            "coupling",
+            "downwash",
+            "physics agent-steps/s",
+            "ns per drone-substep",
+            "env agent-steps/s",
+            "MAPPO agent-steps/s",
+            "force error ÷ weight",
+        ],
+        [
+            [
+                r["n_drones"],
+                num(r["worlds"]),
+                "lists" if r["lists"] else "all",
+                "on" if r["downwash"] else "off",
+                num(r["physics"]),
+                num(r.get("physics_ns_per_drone_substep"), 1),
+                num(r["env"]),
+                num(r.get("mappo")),
+                sig(r.get("downwash_error_over_weight"), 2),
+            ]
+            for r in rows
+        ],
+        "rrllrrrrr",
+    )
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     for lists in (False, True):
         for downwash in (False, True):
-            pts = sorted((r["n_drones"], r["env"]) for r in rows
-                         if bool(r["lists"]) == lists and r["downwash"] == downwash)
+            pts = sorted(
+                (r["n_drones"], r["env"]) for r in rows if bool(r["lists"]) == lists and r["downwash"] == downwash
+            )
             if pts:
-                ax.loglog(*zip(*pts, strict=True), "o-" if downwash else "s--",
-                          label=f"env, {'lists' if lists else 'all pairs'}, downwash {'on' if downwash else 'off'}")
+                ax.loglog(
+                    *zip(*pts, strict=True),
+                    "o-" if downwash else "s--",
+                    label=f"env, {'lists' if lists else 'all pairs'}, downwash {'on' if downwash else 'off'}",
+                )
     ax.set(xlabel="drones per world D", ylabel="agent-steps/s", title="multi_hover env throughput")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
@@ -778,36 +1142,75 @@ def render_multi_agent(data: dict, out: str) -> str:
 def render_downwash_policies(data: dict, out: str) -> str:
     return f"{data.get('episodes')} episodes per evaluation:\n\n" + table(
         ["policy", "seed", "flown with downwash", "largest altitude error cm", "tracking error cm", "terminated"],
-        [[r["policy"], r.get("seed"), "on" if r["flown_with_downwash"] else "off",
-          num(100 * r["max_altitude_error_m"], 2), num(100 * r["tracking_error_m"], 2), f"{r['terminated_rate']:.1%}"]
-         for r in data["rows"]], "lrlrrr")
+        [
+            [
+                r["policy"],
+                r.get("seed"),
+                "on" if r["flown_with_downwash"] else "off",
+                num(100 * r["max_altitude_error_m"], 2),
+                num(100 * r["tracking_error_m"], 2),
+                f"{r['terminated_rate']:.1%}",
+            ]
+            for r in data["rows"]
+        ],
+        "lrlrrr",
+    )
 
 
 def render_sb3_hover(data: dict, out: str) -> str:
-    return (f"{data.get('algorithm')}, {data.get('n_envs')} envs, {data.get('env_kwargs')}, "
-            f"{data.get('eval_episodes')} evaluation episodes:\n\n" + table(
-                ["env steps", "train s", "train CPU s", "env-steps/s", "final distance cm (mean / median / max)",
-                 "return", "terminated early"],
-                [[num(c["env_steps"]), num(c["train_wall_s"], 1), num(c["train_cpu_s"], 1),
-                  num(c["env_steps"] / c["train_wall_s"]),
-                  " / ".join(f"{100 * c[k]:.2f}" for k in ("final_distance_mean_m", "final_distance_median_m",
-                                                          "final_distance_max_m")),
-                  num(c["episode_return_mean"], 1), c["terminated_early"]] for c in data["checkpoints"]]))
+    return (
+        f"{data.get('algorithm')}, {data.get('n_envs')} envs, {data.get('env_kwargs')}, "
+        f"{data.get('eval_episodes')} evaluation episodes:\n\n"
+        + table(
+            [
+                "env steps",
+                "train s",
+                "train CPU s",
+                "env-steps/s",
+                "final distance cm (mean / median / max)",
+                "return",
+                "terminated early",
+            ],
+            [
+                [
+                    num(c["env_steps"]),
+                    num(c["train_wall_s"], 1),
+                    num(c["train_cpu_s"], 1),
+                    num(c["env_steps"] / c["train_wall_s"]),
+                    " / ".join(
+                        f"{100 * c[k]:.2f}"
+                        for k in ("final_distance_mean_m", "final_distance_median_m", "final_distance_max_m")
+                    ),
+                    num(c["episode_return_mean"], 1),
+                    c["terminated_early"],
+                ]
+                for c in data["checkpoints"]
+            ],
+        )
+    )
 
 
 def render_jaxmarl_ippo(data: dict, out: str) -> str:
     keys = [k for k in data if not isinstance(data[k], (dict, list))] + ["final_z_m"]
-    return table(keys, [[json.dumps(data[k]) if isinstance(data.get(k), list) else data.get(k) for k in keys]],
-                 "l" * len(keys))
+    return table(
+        keys, [[json.dumps(data[k]) if isinstance(data.get(k), list) else data.get(k) for k in keys]], "l" * len(keys)
+    )
 
 
-RENDERERS = {"throughput": render_throughput, "envs": render_envs, "gradients": render_gradients,
-             "backends": render_backends, "cameras": render_cameras, "encoders": render_encoders,
-             "table2": render_table2,
-             "train_algos": render_train_algos,
-             "multi_agent": render_multi_agent,
-             "downwash_policies": render_downwash_policies, "sb3_hover": render_sb3_hover,
-             "jaxmarl_ippo": render_jaxmarl_ippo}
+RENDERERS = {
+    "throughput": render_throughput,
+    "envs": render_envs,
+    "gradients": render_gradients,
+    "backends": render_backends,
+    "cameras": render_cameras,
+    "encoders": render_encoders,
+    "table2": render_table2,
+    "train_algos": render_train_algos,
+    "multi_agent": render_multi_agent,
+    "downwash_policies": render_downwash_policies,
+    "sb3_hover": render_sb3_hover,
+    "jaxmarl_ippo": render_jaxmarl_ippo,
+}
 
 
 def render_section(record: dict, out: str) -> str:
@@ -816,17 +1219,38 @@ def render_section(record: dict, out: str) -> str:
     lines = [f"## {name}", ""]
     if record["status"] == "skipped":
         return "\n".join(lines + [f"Skipped: {record['reason']}.", ""])
-    lines.append(f"- Command: `{record['command']}`" + (
-        f" with {' '.join(f'{k}={v}' for k, v in record['env'].items())}" if record.get("env") else ""))
-    lines.append(f"- Run {record['date']}, {record.get('wall_s', 0):.0f} s; load average (1, 5, 15 min) before "
-                 f"{load_text(record['loadavg_before'])}, after {load_text(record['loadavg_after'])}.")
+    lines.append(
+        f"- Command: `{record['command']}`"
+        + (f" with {' '.join(f'{k}={v}' for k, v in record['env'].items())}" if record.get("env") else "")
+    )
+    lines.append(
+        f"- Run {record['date']}, {record.get('wall_s', 0):.0f} s; load average (1, 5, 15 min) before "
+        f"{load_text(record['loadavg_before'])}, after {load_text(record['loadavg_after'])}."
+    )
     if record["status"] != "ok":
         tail = "\n".join(record.get("stderr_tail") or [])
         out_tail = "\n".join(record.get("stdout_tail") or [])
-        return "\n".join(lines + ["", (f"**{record['status'].upper()}** (exit status {record.get('returncode')}); the "
-                                      f"last lines of its stderr ({record.get('stderr_log')}):"), "", "```", tail,
-                                  "```", "", f"and of its stdout ({record.get('stdout_log')}):", "", "```", out_tail,
-                                  "```", ""])
+        return "\n".join(
+            lines
+            + [
+                "",
+                (
+                    f"**{record['status'].upper()}** (exit status {record.get('returncode')}); the "
+                    f"last lines of its stderr ({record.get('stderr_log')}):"
+                ),
+                "",
+                "```",
+                tail,
+                "```",
+                "",
+                f"and of its stdout ({record.get('stdout_log')}):",
+                "",
+                "```",
+                out_tail,
+                "```",
+                "",
+            ]
+        )
     try:
         if record["output"] is None:
             return "\n".join(lines + ["", render_sysid_noise(record, out), ""])
@@ -838,8 +1262,10 @@ def render_section(record: dict, out: str) -> str:
         elif machine:
             lines.append(f"- Machine: {machine}, {data.get('cpus')} CPUs.")
         if data.get("loadavg_start") or data.get("loadavg_end"):
-            lines.append(f"- Load average recorded by the benchmark: start {load_text(data.get('loadavg_start'))}, end "
-                         f"{load_text(data.get('loadavg_end'))}.")
+            lines.append(
+                f"- Load average recorded by the benchmark: start {load_text(data.get('loadavg_start'))}, end "
+                f"{load_text(data.get('loadavg_end'))}."
+            )
         if isinstance(data.get("versions"), dict):
             lines.append(f"- Versions: {', '.join(f'{k} {v}' for k, v in data['versions'].items())}.")
         if data.get("settings"):
@@ -853,23 +1279,48 @@ def render_section(record: dict, out: str) -> str:
 def write_report(records: dict, probe_info: dict, out: str, invocation: str) -> str:
     """Write ``REPORT.md`` (and the plots) in ``out`` from the run records; returns its path."""
     p = probe_info
-    device = (f"backend **{p.get('backend')}**, {len(p.get('devices', []))} device(s) ({p.get('device_kind', '?')}"
-              + (f", {p['device_memory_gb']:.0f} GiB" if p.get("device_memory_gb") else "") + ")")
-    lines = ["# jaxdrones benchmarks", "",
-             f"Generated by `{invocation}` on {_now()}.", "",
-             f"- Device: {device}; jax {p.get('jax')} (jaxlib {p.get('jaxlib')}).",
-             (f"- CPU: {p.get('cpu_model')}, {p.get('cpus_available')} of {p.get('cpu_count')} cores available; "
-             f"{p.get('platform')}; Python {p.get('python')}."),
-             f"- Source: commit {p.get('git_commit')}.",
-             (f"- Load average (1, 5, 15 min) at the start: {load_text(p.get('loadavg_start'))}; at the end: "
-             f"{load_text(p.get('loadavg_end'))}. The timings are wall-clock: a busy machine slows them."), ""]
+    device = (
+        f"backend **{p.get('backend')}**, {len(p.get('devices', []))} device(s) ({p.get('device_kind', '?')}"
+        + (f", {p['device_memory_gb']:.0f} GiB" if p.get("device_memory_gb") else "")
+        + ")"
+    )
+    lines = [
+        "# jaxdrones benchmarks",
+        "",
+        f"Generated by `{invocation}` on {_now()}.",
+        "",
+        f"- Device: {device}; jax {p.get('jax')} (jaxlib {p.get('jaxlib')}).",
+        (
+            f"- CPU: {p.get('cpu_model')}, {p.get('cpus_available')} of {p.get('cpu_count')} cores available; "
+            f"{p.get('platform')}; Python {p.get('python')}."
+        ),
+        f"- Source: commit {p.get('git_commit')}.",
+        (
+            f"- Load average (1, 5, 15 min) at the start: {load_text(p.get('loadavg_start'))}; at the end: "
+            f"{load_text(p.get('loadavg_end'))}. The timings are wall-clock: a busy machine slows them."
+        ),
+        "",
+    ]
     if p.get("probe_error"):
         lines += [f"The device probe failed: {p['probe_error']}", ""]
     ordered = [records[name] for name in BENCHMARKS if name in records]
-    lines += [table(["benchmark", "status", "run", "wall time", "load before → after (1 min)"],
-                    [[f"[{r['name']}](#{r['name']})", r["status"], r["date"],
-                      None if "wall_s" not in r else f"{r['wall_s']:.0f} s",
-                      f"{r['loadavg_before'][0]:.2f} → {r['loadavg_after'][0]:.2f}"] for r in ordered], "lllrr"), ""]
+    lines += [
+        table(
+            ["benchmark", "status", "run", "wall time", "load before → after (1 min)"],
+            [
+                [
+                    f"[{r['name']}](#{r['name']})",
+                    r["status"],
+                    r["date"],
+                    None if "wall_s" not in r else f"{r['wall_s']:.0f} s",
+                    f"{r['loadavg_before'][0]:.2f} → {r['loadavg_after'][0]:.2f}",
+                ]
+                for r in ordered
+            ],
+            "lllrr",
+        ),
+        "",
+    ]
     lines += [render_section(r, out) for r in ordered]
     path = os.path.join(out, "REPORT.md")
     with open(path, "w") as f:
@@ -881,22 +1332,34 @@ def write_report(records: dict, probe_info: dict, out: str, invocation: str) -> 
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     names = list(BENCHMARKS)
     parser.add_argument("--quick", action="store_true", help="small grids: a smoke run (output in results/quick)")
     parser.add_argument("--only", nargs="+", choices=names, metavar="NAME", help=f"run only these: {names}")
     parser.add_argument("--skip", nargs="+", choices=names, default=[], metavar="NAME", help="do not run these")
     parser.add_argument("--all", action="store_true", help="also the benchmarks left out of the default run")
-    parser.add_argument("--out", default=None, help="output folder (default benchmarks/results, or "
-                        "benchmarks/results/quick with --quick)")
-    parser.add_argument("--cpu", action="store_true", help="run on the CPU even where a GPU is present "
-                        "(JAX_PLATFORMS=cpu)")
-    parser.add_argument("--timeout", type=float, default=4 * 3600, help="seconds per benchmark before it is stopped "
-                        "and reported as timed out (default 4 h)")
+    parser.add_argument(
+        "--out",
+        default=None,
+        help="output folder (default benchmarks/results, or benchmarks/results/quick with --quick)",
+    )
+    parser.add_argument(
+        "--cpu", action="store_true", help="run on the CPU even where a GPU is present (JAX_PLATFORMS=cpu)"
+    )
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=4 * 3600,
+        help="seconds per benchmark before it is stopped and reported as timed out (default 4 h)",
+    )
     parser.add_argument("--jaxmarl-baselines", default=None, help="JaxMARL's baselines/IPPO folder, for jaxmarl_ippo")
-    parser.add_argument("--render-only", action="store_true",
-                        help="run nothing: rebuild REPORT.md and the plots from the results already in --out")
+    parser.add_argument(
+        "--render-only",
+        action="store_true",
+        help="run nothing: rebuild REPORT.md and the plots from the results already in --out",
+    )
     args = parser.parse_args(argv)
     args.out = os.path.abspath(args.out or (os.path.join(RESULTS, "quick") if args.quick else RESULTS))
     chosen = args.only or [n for n, b in BENCHMARKS.items() if b.default or args.all]
@@ -924,13 +1387,21 @@ def main(argv=None) -> int:
         return 0
     info = probe(env) | {"loadavg_start": list(os.getloadavg())}
     gpu = info.get("backend") == "gpu"
-    print(f"device: {info.get('backend')} {info.get('devices')}, jax {info.get('jax')}, {info['cpu_model']} "
-          f"({info['cpus_available']} cores), load {load_text(info['loadavg_start'])}; running "
-          f"{', '.join(args.selected)}{' (quick)' if args.quick else ''} into {args.out}", flush=True)
+    print(
+        f"device: {info.get('backend')} {info.get('devices')}, jax {info.get('jax')}, {info['cpu_model']} "
+        f"({info['cpus_available']} cores), load {load_text(info['loadavg_start'])}; running "
+        f"{', '.join(args.selected)}{' (quick)' if args.quick else ''} into {args.out}",
+        flush=True,
+    )
     if info.get("probe_error"):
         print(f"device probe failed: {info['probe_error']}", flush=True)
-    ctx = Context(quick=args.quick, gpu=gpu, out=args.out, crazyflow_ready=os.path.exists(
-        os.path.join(CRAZYFLOW_VENV, "bin", "python")), jaxmarl_baselines=args.jaxmarl_baselines)
+    ctx = Context(
+        quick=args.quick,
+        gpu=gpu,
+        out=args.out,
+        crazyflow_ready=os.path.exists(os.path.join(CRAZYFLOW_VENV, "bin", "python")),
+        jaxmarl_baselines=args.jaxmarl_baselines,
+    )
     path = write_report(records, info, args.out, invocation)
     for name in args.selected:
         records[name] = run_benchmark(BENCHMARKS[name], ctx, env, args.timeout)

@@ -55,10 +55,18 @@ TRAIN = {
     "paper": {},
     "crazyflie": {"realism": "crazyflie"},
     "crazyflie_dr": {
-        "realism": {**_PRESET, "motor_tau_up": (0.075, 0.3), "motor_tau_down": (0.075, 0.3),
-                    "obs_noise_pos": (0.0, 0.002), "obs_noise_att": (0.0, 0.002), "obs_noise_vel": (0.0, 0.004),
-                    "obs_noise_ang_vel": (0.0, 0.004), "disturbance_force": (0.0, 0.0265),
-                    "disturbance_torque": (0.0, 5.3e-5), "obs_delay": (0, 1)},
+        "realism": {
+            **_PRESET,
+            "motor_tau_up": (0.075, 0.3),
+            "motor_tau_down": (0.075, 0.3),
+            "obs_noise_pos": (0.0, 0.002),
+            "obs_noise_att": (0.0, 0.002),
+            "obs_noise_vel": (0.0, 0.004),
+            "obs_noise_ang_vel": (0.0, 0.004),
+            "disturbance_force": (0.0, 0.0265),
+            "disturbance_torque": (0.0, 5.3e-5),
+            "obs_delay": (0, 1),
+        },
         "randomize": {"mass": 0.1, "inertia": 0.1, "kf": 0.1, "km": 0.1},
     },
 }
@@ -81,14 +89,22 @@ def train_and_evaluate(task: str, setting: str, seed: int, steps: int | None, ev
     t0 = time.perf_counter()
     network, weights = apg.train(env, config)
     jax.block_until_ready(weights)
-    record = {"task": task, "train": setting, "seed": seed, "env_steps": config.num_timesteps,
-              "train_wall_s": time.perf_counter() - t0, "eval": {}}
+    record = {
+        "task": task,
+        "train": setting,
+        "seed": seed,
+        "env_steps": config.num_timesteps,
+        "train_wall_s": time.perf_counter() - t0,
+        "eval": {},
+    }
     threshold = jd.envs.get_task(task).success_threshold
     for name in EVAL:
         stats = evaluators[task, name](network, weights)
         record["eval"][name] = {
-            "success_value": stats["success_value"], "terminated_rate": stats["terminated_rate"],
-            "success": bool(stats["success_value"] < threshold and stats["terminated_rate"] == 0.0)}
+            "success_value": stats["success_value"],
+            "terminated_rate": stats["terminated_rate"],
+            "success": bool(stats["success_value"] < threshold and stats["terminated_rate"] == 0.0),
+        }
     return record
 
 
@@ -117,8 +133,10 @@ def table(records: list[dict]) -> str:
     """The markdown table: one row per task and training setting, one column per evaluation setting."""
     import jaxdrones as jd
 
-    lines = ["| task | trained with | " + " | ".join(f"evaluated: {e}" for e in EVAL) + " |",
-             "|---|---|" + "---|" * len(EVAL)]
+    lines = [
+        "| task | trained with | " + " | ".join(f"evaluated: {e}" for e in EVAL) + " |",
+        "|---|---|" + "---|" * len(EVAL),
+    ]
     for task in dict.fromkeys(r["task"] for r in records):
         unit = "m" if task == "hover" else "m/s"
         threshold = jd.envs.get_task(task).success_threshold
@@ -131,8 +149,10 @@ def table(records: list[dict]) -> str:
                 values = [r["eval"][name]["success_value"] for r in rows]
                 crashed = [r["eval"][name]["terminated_rate"] for r in rows]
                 solved = sum(r["eval"][name]["success"] for r in rows)
-                cells.append(f"{statistics.median(values):.3g} {unit} ({' / '.join(f'{v:.3g}' for v in values)}); "
-                             f"terminated {statistics.median(crashed):.1%}; solved {solved}/{len(rows)}")
+                cells.append(
+                    f"{statistics.median(values):.3g} {unit} ({' / '.join(f'{v:.3g}' for v in values)}); "
+                    f"terminated {statistics.median(crashed):.1%}; solved {solved}/{len(rows)}"
+                )
             lines.append(f"| {task} (< {threshold:g} {unit}) | {setting} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -62,10 +62,15 @@ def evaluate(model, env_kwargs: dict, n_episodes: int, seed: int) -> dict:
         obs, info = env.reset()
     env.close()
     final = np.asarray(final)
-    return {"final_distance_mean_m": float(final.mean()), "final_distance_median_m": float(np.median(final)),
-            "final_distance_max_m": float(final.max()), "final_distance_m": final.tolist(),
-            "episode_return_mean": float(np.mean(returns)), "episode_length_mean": float(np.mean(lengths)),
-            "terminated_early": terminated_early}
+    return {
+        "final_distance_mean_m": float(final.mean()),
+        "final_distance_median_m": float(np.median(final)),
+        "final_distance_max_m": float(final.max()),
+        "final_distance_m": final.tolist(),
+        "episode_return_mean": float(np.mean(returns)),
+        "episode_length_mean": float(np.mean(lengths)),
+        "terminated_early": terminated_early,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -73,13 +78,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--action-type", default="one_d_rpm", help="one_d_rpm (1-D, level starts) or rpm (3-D)")
     parser.add_argument("--obs-type", default=None, help="observation type (default: the env's, kin_rotmat)")
     parser.add_argument("--steps", type=int, default=200_000, help="at most this many env steps (default 200000)")
-    parser.add_argument("--eval-every", type=int, default=None, help="env steps between evaluations "
-                        "(default: only at the end)")
+    parser.add_argument(
+        "--eval-every", type=int, default=None, help="env steps between evaluations (default: only at the end)"
+    )
     parser.add_argument("--eval-episodes", type=int, default=10, help="evaluation episodes (default 10)")
     parser.add_argument("--n-envs", type=int, default=4, help="envs of make_vec_env (default 4)")
     parser.add_argument("--seed", type=int, default=0, help="seed of PPO and of the envs (default 0)")
-    parser.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (default 1; 0: "
-                        "torch's default)")
+    parser.add_argument(
+        "--torch-threads", type=int, default=1, help="torch intra-op threads (default 1; 0: torch's default)"
+    )
     parser.add_argument("--out", default=None, help="JSON file (default benchmarks/results/sb3_hover_<action>.json)")
     args = parser.parse_args(argv)
 
@@ -108,21 +115,41 @@ def main(argv: list[str] | None = None) -> int:
 
     result = {
         "command": "python benchmarks/sb3_hover.py " + " ".join(sys.argv[1:] if argv is None else argv),
-        "env_id": ENV_ID, "env_kwargs": env_kwargs, "n_envs": venv.num_envs, "seed": args.seed,
+        "env_id": ENV_ID,
+        "env_kwargs": env_kwargs,
+        "n_envs": venv.num_envs,
+        "seed": args.seed,
         "algorithm": "PPO (stable-baselines3 defaults, MlpPolicy)",
-        "ppo": {"n_steps": model.n_steps, "batch_size": model.batch_size, "n_epochs": model.n_epochs,
-                "learning_rate": model.learning_rate, "gamma": model.gamma, "gae_lambda": model.gae_lambda},
+        "ppo": {
+            "n_steps": model.n_steps,
+            "batch_size": model.batch_size,
+            "n_epochs": model.n_epochs,
+            "learning_rate": model.learning_rate,
+            "gamma": model.gamma,
+            "gae_lambda": model.gae_lambda,
+        },
         "eval_episodes": args.eval_episodes,
-        "versions": {"python": platform.python_version(), "stable_baselines3": stable_baselines3.__version__,
-                     "torch": torch.__version__, "gymnasium": gym.__version__, "jaxdrones": jaxdrones.__version__,
-                     "jax": __import__("jax").__version__},
-        "machine": {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-                    "load_average_at_start": list(os.getloadavg())},
+        "versions": {
+            "python": platform.python_version(),
+            "stable_baselines3": stable_baselines3.__version__,
+            "torch": torch.__version__,
+            "gymnasium": gym.__version__,
+            "jaxdrones": jaxdrones.__version__,
+            "jax": __import__("jax").__version__,
+        },
+        "machine": {
+            "cpus": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
+            "load_average_at_start": list(os.getloadavg()),
+        },
         "setup_s": time.perf_counter() - t0,
         "checkpoints": [],
     }
-    print(f"SB3 PPO on {ENV_ID} {env_kwargs}, {venv.num_envs} envs, {total:,} env steps "
-          f"(rollouts of {rollout}), evaluations at {[f'{c:,}' for c in checkpoints]}", flush=True)
+    print(
+        f"SB3 PPO on {ENV_ID} {env_kwargs}, {venv.num_envs} envs, {total:,} env steps "
+        f"(rollouts of {rollout}), evaluations at {[f'{c:,}' for c in checkpoints]}",
+        flush=True,
+    )
 
     train_s = eval_s = train_cpu_s = 0.0
     for target in checkpoints:
@@ -133,17 +160,26 @@ def main(argv: list[str] | None = None) -> int:
         t = time.perf_counter()
         stats = evaluate(model, env_kwargs, args.eval_episodes, seed=10_000 + args.seed)
         eval_s += time.perf_counter() - t
-        row = {"env_steps": int(model.num_timesteps), "train_wall_s": train_s, "train_cpu_s": train_cpu_s,
-               "eval_wall_s": eval_s, "load_average": list(os.getloadavg()), **stats}
+        row = {
+            "env_steps": int(model.num_timesteps),
+            "train_wall_s": train_s,
+            "train_cpu_s": train_cpu_s,
+            "eval_wall_s": eval_s,
+            "load_average": list(os.getloadavg()),
+            **stats,
+        }
         result["checkpoints"].append(row)
         result["final"] = row
         with open(out, "w") as f:
             json.dump(result, f, indent=2)
-        print(f"{row['env_steps']:>9,} steps  train {train_s:7.1f} s (CPU {train_cpu_s:7.1f} s)  "
-              f"({row['env_steps'] / train_s:,.0f} steps/s)  mean final distance "
-              f"{100 * stats['final_distance_mean_m']:.2f} cm (median {100 * stats['final_distance_median_m']:.2f}, "
-              f"max {100 * stats['final_distance_max_m']:.2f})  return {stats['episode_return_mean']:.1f}  "
-              f"terminated early {stats['terminated_early']}/{args.eval_episodes}", flush=True)
+        print(
+            f"{row['env_steps']:>9,} steps  train {train_s:7.1f} s (CPU {train_cpu_s:7.1f} s)  "
+            f"({row['env_steps'] / train_s:,.0f} steps/s)  mean final distance "
+            f"{100 * stats['final_distance_mean_m']:.2f} cm (median {100 * stats['final_distance_median_m']:.2f}, "
+            f"max {100 * stats['final_distance_max_m']:.2f})  return {stats['episode_return_mean']:.1f}  "
+            f"terminated early {stats['terminated_early']}/{args.eval_episodes}",
+            flush=True,
+        )
     venv.close()
     print(f"wrote {out}")
     return 0

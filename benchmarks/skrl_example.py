@@ -37,8 +37,13 @@ import numpy as np
 def port(source: str, dest: str) -> int:
     text = open(source).read()
     new = re.sub(r'^task_name = "Pendulum"$', 'task_name = "jaxdrones/Hover"', text, count=1, flags=re.M)
-    new = re.sub(r"^import gymnasium as gym$", "import gymnasium as gym\nimport jaxdrones  # registers the ids",
-                 new, count=1, flags=re.M)
+    new = re.sub(
+        r"^import gymnasium as gym$",
+        "import gymnasium as gym\nimport jaxdrones  # registers the ids",
+        new,
+        count=1,
+        flags=re.M,
+    )
     if new.count("jaxdrones") != 2:
         raise SystemExit(f"{source}: not skrl's Pendulum PPO example (no task_name or gymnasium import to change)")
     with open(dest, "w") as f:
@@ -55,9 +60,14 @@ def evaluate(checkpoint: str, episodes: int = 64, seed: int = 0) -> dict:
 
     data = torch.load(checkpoint, map_location="cpu", weights_only=False)
     policy, scaler = data["policy"], data["observation_preprocessor"]
-    net = torch.nn.Sequential(torch.nn.Linear(policy["net.0.weight"].shape[1], 64), torch.nn.ReLU(),
-                              torch.nn.Linear(64, 64), torch.nn.ReLU(),
-                              torch.nn.Linear(64, policy["net.4.weight"].shape[0]), torch.nn.Tanh())
+    net = torch.nn.Sequential(
+        torch.nn.Linear(policy["net.0.weight"].shape[1], 64),
+        torch.nn.ReLU(),
+        torch.nn.Linear(64, 64),
+        torch.nn.ReLU(),
+        torch.nn.Linear(64, policy["net.4.weight"].shape[0]),
+        torch.nn.Tanh(),
+    )
     net.load_state_dict({k.removeprefix("net."): v for k, v in policy.items() if k.startswith("net.")})
     mean, std = scaler["running_mean"].float(), torch.sqrt(scaler["running_variance"].float()) + 1e-8
     env = gym.make_vec("jaxdrones/Hover-v0", episodes, vectorization_mode="vector_entry_point")
@@ -89,14 +99,20 @@ def main(argv=None) -> dict:
         script = os.path.join(tmp, "hover_ppo.py")
         print(f"{port(args.example, script)} lines changed")
         start = time.perf_counter()
-        done = subprocess.run([sys.executable, script, "--headless", "--num_envs", str(args.num_envs), "--seed",
-                               "42"], cwd=tmp, capture_output=True, text=True)
+        done = subprocess.run(
+            [sys.executable, script, "--headless", "--num_envs", str(args.num_envs), "--seed", "42"],
+            cwd=tmp,
+            capture_output=True,
+            text=True,
+        )
         results["train_s"] = time.perf_counter() - start
         if done.returncode:
             raise SystemExit(f"the example failed:\n{done.stderr[-3000:]}")
         print(f"trained: {results['train_s']:.0f} s ({args.num_envs} envs, 100k timesteps)")
-        checkpoints = sorted(glob.glob(os.path.join(tmp, "runs", "**", "agent_*.pt"), recursive=True),
-                             key=lambda p: int(re.findall(r"agent_(\d+)\.pt", p)[0]))
+        checkpoints = sorted(
+            glob.glob(os.path.join(tmp, "runs", "**", "agent_*.pt"), recursive=True),
+            key=lambda p: int(re.findall(r"agent_(\d+)\.pt", p)[0]),
+        )
         results["checkpoints"] = {}
         for path in checkpoints:
             step = int(re.findall(r"agent_(\d+)\.pt", path)[0])

@@ -24,8 +24,9 @@ VALUES = ("kf", "km", "drag_x", "drag_y", "drag_z")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="noise seeds (default 0 1 2)")
     parser.add_argument("--pos", type=float, default=1e-3, help="position noise std, m (default 1e-3)")
     parser.add_argument("--att", type=float, default=1e-2, help="attitude noise std per axis, rad (default 1e-2)")
@@ -55,28 +56,53 @@ def main(argv=None) -> None:
     guess = with_derived(true.replace(kf=true.kf * 1.2, km=true.km * 0.8, drag_coeff=true.drag_coeff * 1.3))
     clean = excitation_flight(config, true, args.duration)
     flat = lambda params: np.concatenate([np.ravel(getattr(params, f)) for f in ("kf", "km", "drag_coeff")])  # noqa: E731
-    print(f"noise: pos {args.pos} m, att {args.att} rad, vel {args.vel} m/s, ang_vel {args.ang_vel} rad/s"
-          f"{' (off)' if args.noise_free else ''}; {args.duration} s, window {args.window}, defect {args.defect}")
-    print(f"{'seed':>4} {'starts':>9} " + " ".join(f"{v + ' %':>9}" for v in VALUES)
-          + "  max |err| %  " + " ".join(f"{'σ ' + v:>9}" for v in VALUES) + "  steps   time s")
+    print(
+        f"noise: pos {args.pos} m, att {args.att} rad, vel {args.vel} m/s, ang_vel {args.ang_vel} rad/s"
+        f"{' (off)' if args.noise_free else ''}; {args.duration} s, window {args.window}, defect {args.defect}"
+    )
+    print(
+        f"{'seed':>4} {'starts':>9} "
+        + " ".join(f"{v + ' %':>9}" for v in VALUES)
+        + "  max |err| %  "
+        + " ".join(f"{'σ ' + v:>9}" for v in VALUES)
+        + "  steps   time s"
+    )
     worst = {}
     for seed in args.seeds:
-        flight = clean if seed is None else add_noise(clean, jax.random.key(seed), pos=args.pos, att=args.att,
-                                                      vel=args.vel, ang_vel=args.ang_vel)
+        flight = (
+            clean
+            if seed is None
+            else add_noise(clean, jax.random.key(seed), pos=args.pos, att=args.att, vel=args.vel, ang_vel=args.ang_vel)
+        )
         for estimate in (True, False):
             start = time.perf_counter()
-            params, report = fit(config, guess, flight.init_state, flight.rpms, flight.observed,
-                                 window=args.window, defect=args.defect, estimate_starts=estimate)
+            params, report = fit(
+                config,
+                guess,
+                flight.init_state,
+                flight.rpms,
+                flight.observed,
+                window=args.window,
+                defect=args.defect,
+                estimate_starts=estimate,
+            )
             seconds = time.perf_counter() - start
             error = 100 * (flat(params) / flat(true) - 1)
             std = 100 * np.concatenate([np.ravel(report["std"][f]) for f in ("kf", "km", "drag_coeff")]) / flat(true)
             method = "estimated" if estimate else "observed"
             worst[method] = max(worst.get(method, 0.0), float(np.abs(error).max()))
-            print(f"{str(seed):>4} {method:>9} " + " ".join(f"{e:9.3f}" for e in error)
-                  + f"  {np.abs(error).max():11.3f}  " + " ".join(f"{s:9.3f}" for s in std)
-                  + f"  {report['steps']:5d}  {seconds:7.2f}", flush=True)
-    print("largest |relative error| over the seeds, %: "
-          + ", ".join(f"starts {method} {value:.2f}" for method, value in worst.items()))
+            print(
+                f"{str(seed):>4} {method:>9} "
+                + " ".join(f"{e:9.3f}" for e in error)
+                + f"  {np.abs(error).max():11.3f}  "
+                + " ".join(f"{s:9.3f}" for s in std)
+                + f"  {report['steps']:5d}  {seconds:7.2f}",
+                flush=True,
+            )
+    print(
+        "largest |relative error| over the seeds, %: "
+        + ", ".join(f"starts {method} {value:.2f}" for method, value in worst.items())
+    )
 
 
 if __name__ == "__main__":

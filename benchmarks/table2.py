@@ -39,32 +39,35 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-import jaxdrones as jd
 import original
 from backends import timed
-from jaxdrones import cameras
-from jaxdrones.scene import PAPER_OBSTACLES
-from jaxdrones.control import PIDGains, pid_control, pid_init
 from throughput import machine_info, write_report
+
+import jaxdrones as jd
+from jaxdrones import cameras
+from jaxdrones.control import PIDGains, pid_control, pid_init
+from jaxdrones.scene import PAPER_OBSTACLES
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_OUT = os.path.join(HERE, "results", "table2.json")
 SIM_FREQ, CTRL_FREQ, CAMERA_FREQ = 240, 48, 24
 #: (label, drones per env, envs, vision) and the paper's speed-ups (i7-8850H/P2000, MacBook i7-1068NG7).
-ROWS = (("1 drone, no vision", 1, 1, False, (15.5, 16.8)),
-        ("1 drone, vision", 1, 1, True, (10.8, 1.3)),
-        ("10 drones, no vision", 10, 1, False, (2.1, 2.3)),
-        ("5 drones, vision", 5, 1, True, (2.5, 0.2)),
-        ("80 drones in 4 envs, no vision", 20, 4, False, (0.8, 0.95)))
+ROWS = (
+    ("1 drone, no vision", 1, 1, False, (15.5, 16.8)),
+    ("1 drone, vision", 1, 1, True, (10.8, 1.3)),
+    ("10 drones, no vision", 10, 1, False, (2.1, 2.3)),
+    ("5 drones, vision", 5, 1, True, (2.5, 0.2)),
+    ("80 drones in 4 envs, no vision", 20, 4, False, (0.8, 0.95)),
+)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=4.0, help="simulated seconds per timed run")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--backends", nargs="+", default=["jax", "pybullet", "original"],
-                        choices=["jax", "pybullet", "original"])
+    parser.add_argument(
+        "--backends", nargs="+", default=["jax", "pybullet", "original"], choices=["jax", "pybullet", "original"]
+    )
     parser.add_argument("--out", default=DEFAULT_OUT)
     original.add_argument(parser)
     return parser.parse_args(argv)
@@ -97,8 +100,9 @@ def run_jax(n_drones: int, n_envs: int, vision: bool, n_steps: int):
         rpm, pid = pid_control(params, gains, pid, s, target, ctrl_dt=config.ctrl_dt)
         s = step(params, s, rpm)
         if vision:
-            images = jax.lax.cond(t % every == 0, lambda: cameras.render(spec, scene, params, s.pos, s.quat),
-                                  lambda: seen)
+            images = jax.lax.cond(
+                t % every == 0, lambda: cameras.render(spec, scene, params, s.pos, s.quat), lambda: seen
+            )
             seen = images
         return (s, pid, seen), None
 
@@ -147,8 +151,9 @@ def original_loop(n_drones: int, vision: bool, n_steps: int, path: str) -> float
     for t in range(n_steps):
         obs, *_ = env.step(action)
         for i in range(n_drones):
-            action[i], _, _ = ctrls[i].computeControlFromState(control_timestep=env.CTRL_TIMESTEP, state=obs[i],
-                                                               target_pos=targets[i])
+            action[i], _, _ = ctrls[i].computeControlFromState(
+                control_timestep=env.CTRL_TIMESTEP, state=obs[i], target_pos=targets[i]
+            )
         if vision and t % every == 0:
             for i in range(n_drones):
                 env._getDroneImages(i, segmentation=True)
@@ -184,8 +189,14 @@ def main(argv=None) -> int:
     print(f"{'configuration':<32} " + " ".join(f"{b:>10}" for b in args.backends) + f" {'paper':>14}")
     results = []
     for label, n_drones, n_envs, vision, paper in ROWS:
-        row = {"row": label, "drones": n_drones, "envs": n_envs, "vision": vision, "sim_s": args.seconds,
-               "paper_speedup": paper}
+        row = {
+            "row": label,
+            "drones": n_drones,
+            "envs": n_envs,
+            "vision": vision,
+            "sim_s": args.seconds,
+            "paper_speedup": paper,
+        }
         for backend in args.backends:
             if backend == "jax":
                 seconds = median_time(run_jax(n_drones, n_envs, vision, n_steps), args.repeats)
@@ -196,10 +207,19 @@ def main(argv=None) -> int:
             row[f"{backend}_wall_s"] = seconds
             row[f"{backend}_speedup"] = args.seconds / seconds
         results.append(row)
-        print(f"{label:<32} " + " ".join(f"{row[f'{b}_speedup']:>9,.1f}x" for b in args.backends)
-              + f" {paper[0]:>6.1f}x {paper[1]:>5.2f}x", flush=True)
-    write_report(args.out, "the paper's Table II: speed-up over the wall clock", info,
-                 {k: v for k, v in vars(args).items() if k != "out"}, results)
+        print(
+            f"{label:<32} "
+            + " ".join(f"{row[f'{b}_speedup']:>9,.1f}x" for b in args.backends)
+            + f" {paper[0]:>6.1f}x {paper[1]:>5.2f}x",
+            flush=True,
+        )
+    write_report(
+        args.out,
+        "the paper's Table II: speed-up over the wall clock",
+        info,
+        {k: v for k, v in vars(args).items() if k != "out"},
+        results,
+    )
     return 0
 
 

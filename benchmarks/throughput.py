@@ -45,23 +45,36 @@ TARGET_DRONE_STEPS = 2_000_000
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true",
-                        help=f"smaller grid (worlds {QUICK_WORLDS}) and 5 repeats")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--quick", action="store_true", help=f"smaller grid (worlds {QUICK_WORLDS}) and 5 repeats")
     parser.add_argument("--worlds", type=int, nargs="+", help=f"numbers of worlds (default {WORLDS})")
     parser.add_argument("--drones", type=int, nargs="+", help=f"drones per world (default {DRONES})")
-    parser.add_argument("--effects", choices=("on", "off"), nargs="+", default=["on", "off"],
-                        help="aerodynamic effects: on = drag, ground effect and downwash (a no-op with one drone)")
+    parser.add_argument(
+        "--effects",
+        choices=("on", "off"),
+        nargs="+",
+        default=["on", "off"],
+        help="aerodynamic effects: on = drag, ground effect and downwash (a no-op with one drone)",
+    )
     parser.add_argument("--integrator", choices=("euler", "rk4"), default="euler")
     parser.add_argument("--sim-freq", type=int, default=240, help="physics rate, Hz")
     parser.add_argument("--ctrl-freq", type=int, default=48, help="control rate, Hz (sim_freq/ctrl_freq substeps)")
-    parser.add_argument("--steps", type=int, default=None,
-                        help="control steps per timed call (default: chosen per size, about "
-                             f"{TARGET_DRONE_STEPS:.0e} drone-steps per call)")
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="control steps per timed call (default: chosen per size, about "
+        f"{TARGET_DRONE_STEPS:.0e} drone-steps per call)",
+    )
     parser.add_argument("--repeats", type=int, default=None, help="timed calls per measurement (default 10; 5 quick)")
-    parser.add_argument("--devices", type=int, default=None,
-                        help="CPU devices to create (default: one per core, or what XLA_FLAGS says)")
+    parser.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        help="CPU devices to create (default: one per core, or what XLA_FLAGS says)",
+    )
     parser.add_argument("--out", default=DEFAULT_OUT, help="JSON output path (default: %(default)s)")
     args = parser.parse_args(argv)
     args.worlds = args.worlds or (QUICK_WORLDS if args.quick else WORLDS)
@@ -93,11 +106,17 @@ def machine_info(jax) -> dict:
     except (OSError, StopIteration):
         pass
     try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
-                                cwd=os.path.dirname(os.path.abspath(__file__))).stdout.strip()
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=os.path.dirname(os.path.abspath(__file__)),
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         commit = None
     import jaxlib
+
     return {
         "cpu_count": os.cpu_count(),
         "cpus_available": len(os.sched_getaffinity(0)),
@@ -117,9 +136,15 @@ def measure(jax, jd, args, n_worlds: int, n_drones: int, effects_on: bool) -> di
     import jax.numpy as jnp
     import numpy as np
 
-    config = jd.SimConfig(n_drones=n_drones, sim_freq=args.sim_freq, ctrl_freq=args.ctrl_freq,
-                          drag=effects_on, ground_effect=effects_on, downwash=effects_on,
-                          integrator=args.integrator)
+    config = jd.SimConfig(
+        n_drones=n_drones,
+        sim_freq=args.sim_freq,
+        ctrl_freq=args.ctrl_freq,
+        drag=effects_on,
+        ground_effect=effects_on,
+        downwash=effects_on,
+        integrator=args.integrator,
+    )
     substeps = config.n_substeps
     steps = args.steps or int(np.clip(TARGET_DRONE_STEPS // (n_worlds * n_drones * substeps), 2, 2000))
     params = jd.load_params("cf2x")
@@ -188,14 +213,19 @@ def _maxrss_mb() -> float:
 
 def print_row(r: dict | None) -> None:
     if r is None:
-        print(f"{'worlds':>7} {'drones':>6} {'effects':>7} {'dev':>3} {'steps':>9} {'compile s':>9} "
-              f"{'best steps/s':>13} {'median':>10} {'state MB':>8} {'temp MB':>8} {'RSS MB':>7} {'load':>5}")
+        print(
+            f"{'worlds':>7} {'drones':>6} {'effects':>7} {'dev':>3} {'steps':>9} {'compile s':>9} "
+            f"{'best steps/s':>13} {'median':>10} {'state MB':>8} {'temp MB':>8} {'RSS MB':>7} {'load':>5}"
+        )
         return
-    print(f"{r['worlds']:>7} {r['drones']:>6} {r['effects']:>7} {r['devices']:>3} "
-          f"{r['control_steps']:>5}×{r['substeps']:<3} {r['compile_s']:>9.2f} "
-          f"{r['best_drone_steps_per_s']:>13.3e} {r['median_drone_steps_per_s']:>10.2e} "
-          f"{r['state_mb']:>8.2f} {r.get('xla_temp_mb', float('nan')):>8.2f} {r['rss_peak_mb']:>7.0f} "
-          f"{r['loadavg_1min']:>5.2f}", flush=True)
+    print(
+        f"{r['worlds']:>7} {r['drones']:>6} {r['effects']:>7} {r['devices']:>3} "
+        f"{r['control_steps']:>5}×{r['substeps']:<3} {r['compile_s']:>9.2f} "
+        f"{r['best_drone_steps_per_s']:>13.3e} {r['median_drone_steps_per_s']:>10.2e} "
+        f"{r['state_mb']:>8.2f} {r.get('xla_temp_mb', float('nan')):>8.2f} {r['rss_peak_mb']:>7.0f} "
+        f"{r['loadavg_1min']:>5.2f}",
+        flush=True,
+    )
 
 
 def main(argv=None) -> int:
@@ -206,8 +236,10 @@ def main(argv=None) -> int:
     import jaxdrones as jd
 
     info = machine_info(jax)
-    print(f"jax {info['jax']} on {info['backend']}: {len(jax.devices())} devices, {info['cpu_model']}, "
-          f"XLA_FLAGS={xla_flags!r}, load {os.getloadavg()}")
+    print(
+        f"jax {info['jax']} on {info['backend']}: {len(jax.devices())} devices, {info['cpu_model']}, "
+        f"XLA_FLAGS={xla_flags!r}, load {os.getloadavg()}"
+    )
     load_start = os.getloadavg()
     results = []
     print_row(None)
@@ -217,8 +249,10 @@ def main(argv=None) -> int:
         results.append(result)
         print_row(result)
 
-    settings = {k: v for k, v in vars(args).items() if k != "out"} | {"worlds": list(args.worlds),
-                                                                    "drones": list(args.drones)}
+    settings = {k: v for k, v in vars(args).items() if k != "out"} | {
+        "worlds": list(args.worlds),
+        "drones": list(args.drones),
+    }
     write_report(args.out, "jaxdrones physics core throughput", info, settings, results, loadavg_start=load_start)
     return 0
 
@@ -227,7 +261,7 @@ def write_report(path: str, benchmark: str, info: dict, settings: dict, results:
     """Write a benchmark's JSON report (name, date, machine, load, settings, results) to ``path``."""
     report = {
         "benchmark": benchmark,
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "machine": info,
         **extra,
         "loadavg_end": os.getloadavg(),

@@ -65,21 +65,35 @@ def budget(text: str) -> int | None:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--task", default="hover")
-    parser.add_argument("--algos", nargs="+", default=list(ALGOS), help="algorithms of jaxdrones train --algo "
-                        "(default: %(default)s)")
-    parser.add_argument("--budgets", nargs="+", type=budget, default=[int(b) for b in BUDGETS],
-                        help="env steps per run, or 'default' for the trainer's own (default 5e5 1e6 2e6 3e6)")
+    parser.add_argument(
+        "--algos", nargs="+", default=list(ALGOS), help="algorithms of jaxdrones train --algo (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--budgets",
+        nargs="+",
+        type=budget,
+        default=[int(b) for b in BUDGETS],
+        help="env steps per run, or 'default' for the trainer's own (default 5e5 1e6 2e6 3e6)",
+    )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--stop-at-solved", action="store_true",
-                        help="per algorithm, skip the budgets after the first one that solved the task")
-    parser.add_argument("--env-repeats", type=int, default=5,
-                        help="timed runs of the env-alone measurement (0 skips it; default 5)")
-    parser.add_argument("--train-args", default="", metavar="ARGS",
-                        help="more arguments for every jaxdrones train command, e.g. '--realism crazyflie "
-                             "--action-type ctbr'")
+    parser.add_argument(
+        "--stop-at-solved",
+        action="store_true",
+        help="per algorithm, skip the budgets after the first one that solved the task",
+    )
+    parser.add_argument(
+        "--env-repeats", type=int, default=5, help="timed runs of the env-alone measurement (0 skips it; default 5)"
+    )
+    parser.add_argument(
+        "--train-args",
+        default="",
+        metavar="ARGS",
+        help="more arguments for every jaxdrones train command, e.g. '--realism crazyflie --action-type ctbr'",
+    )
     parser.add_argument("--out", default=None, help="JSON output (default benchmarks/results/train_algos_TASK.json)")
     args = parser.parse_args(argv)
     args.out = args.out or os.path.join(HERE, "results", f"train_algos_{args.task}.json")
@@ -93,20 +107,37 @@ def parse_args(argv=None) -> argparse.Namespace:
 def run_once(task: str, algo: str, steps: int | None, seed: int, cache_dir: str, extra: str = "") -> dict:
     """One ``jaxdrones train`` process with ``JAXDRONES_CACHE_DIR=cache_dir`` (and the arguments ``extra``); a row
     of the results."""
-    row = {"algo": algo, "budget": steps, "cache_dir_entries_before": _entries(cache_dir),
-           "loadavg_before": list(os.getloadavg())}
+    row = {
+        "algo": algo,
+        "budget": steps,
+        "cache_dir_entries_before": _entries(cache_dir),
+        "loadavg_before": list(os.getloadavg()),
+    }
     with tempfile.TemporaryDirectory() as out:
-        command = [sys.executable, "-m", "jaxdrones.cli", "train", task, "--algo", algo, "--seed", str(seed),
-                   "--out", os.path.join(out, "run"), "--no-progress"]
+        command = [
+            sys.executable,
+            "-m",
+            "jaxdrones.cli",
+            "train",
+            task,
+            "--algo",
+            algo,
+            "--seed",
+            str(seed),
+            "--out",
+            os.path.join(out, "run"),
+            "--no-progress",
+        ]
         if steps is not None:
             command += ["--steps", str(steps)]
         command += shlex.split(extra)
         start = time.perf_counter()
-        proc = subprocess.run(command, env=os.environ | {"JAXDRONES_CACHE_DIR": cache_dir}, capture_output=True,
-                              text=True, check=False)
+        proc = subprocess.run(
+            command, env=os.environ | {"JAXDRONES_CACHE_DIR": cache_dir}, capture_output=True, text=True, check=False
+        )
         row["wall_time_s"] = time.perf_counter() - start
         row["loadavg_after"] = list(os.getloadavg())
-        shown = command[3:command.index("--out")] + command[command.index("--out") + 3:]  # no temporary folder
+        shown = command[3 : command.index("--out")] + command[command.index("--out") + 3 :]  # no temporary folder
         row["command"] = "jaxdrones " + " ".join(shown)
         row["stdout_tail"] = proc.stdout.strip().splitlines()[-2:]
         try:
@@ -117,7 +148,8 @@ def run_once(task: str, algo: str, steps: int | None, seed: int, cache_dir: str,
         except OSError as err:
             summary = progress = None
             row["error"] = f"exit {proc.returncode}, no summary ({err.strerror}): " + " | ".join(
-                proc.stderr.strip().splitlines()[-5:])
+                proc.stderr.strip().splitlines()[-5:]
+            )
     row["cache_dir_entries_after"] = _entries(cache_dir)
     row["cache_dir_mb_after"] = _size_mb(cache_dir)
     if summary is not None:
@@ -135,17 +167,31 @@ def from_summary(summary: dict, progress: list[dict]) -> dict:
     env_steps = summary.get("env_steps")
     train_s = phases.get("train", summary.get("train_time_s"))
     threshold = summary.get("success_threshold")
-    row = {"env_steps": env_steps, "summary_wall_time_s": summary.get("wall_time_s"),
-           "train_time_s": summary.get("train_time_s"), "phases_s": phases, "num_envs": config.get("num_envs"),
-           "success_metric": summary.get("success_metric"), "success_value": summary.get("success_value"),
-           "success_unit": summary.get("success_unit"), "success_threshold": threshold,
-           "terminated_rate": evaluation.get("terminated_rate"),
-           "solved": summary.get("success"), "interrupted": summary.get("interrupted"),
-           "trainer_env_steps_per_s": env_steps / train_s if env_steps and train_s else None,
-           "trainer_env_steps_per_s_after_first_eval": None, "first_eval_s": None, "evaluations": len(progress),
-           "solved_at_env_steps": None, "solved_at_s": None, "config": config,
-           "provenance": {k: (summary.get("provenance") or {}).get(k)
-                          for k in ("versions", "backend", "devices", "device_kind", "git_commit", "loadavg")}}
+    row = {
+        "env_steps": env_steps,
+        "summary_wall_time_s": summary.get("wall_time_s"),
+        "train_time_s": summary.get("train_time_s"),
+        "phases_s": phases,
+        "num_envs": config.get("num_envs"),
+        "success_metric": summary.get("success_metric"),
+        "success_value": summary.get("success_value"),
+        "success_unit": summary.get("success_unit"),
+        "success_threshold": threshold,
+        "terminated_rate": evaluation.get("terminated_rate"),
+        "solved": summary.get("success"),
+        "interrupted": summary.get("interrupted"),
+        "trainer_env_steps_per_s": env_steps / train_s if env_steps and train_s else None,
+        "trainer_env_steps_per_s_after_first_eval": None,
+        "first_eval_s": None,
+        "evaluations": len(progress),
+        "solved_at_env_steps": None,
+        "solved_at_s": None,
+        "config": config,
+        "provenance": {
+            k: (summary.get("provenance") or {}).get(k)
+            for k in ("versions", "backend", "devices", "device_kind", "git_commit", "loadavg")
+        },
+    }
     # progress.json's time_s counts from the end of the setup phase; the summary's wall time from the process start.
     offset = None
     if summary.get("wall_time_s") is not None and phases:
@@ -154,10 +200,19 @@ def from_summary(summary: dict, progress: list[dict]) -> dict:
         first, last = progress[0], progress[-1]
         row["first_eval_s"] = None if offset is None else offset + first["time_s"]
         if last["time_s"] > first["time_s"] and last["env_steps"] > first["env_steps"]:
-            row["trainer_env_steps_per_s_after_first_eval"] = ((last["env_steps"] - first["env_steps"])
-                                                               / (last["time_s"] - first["time_s"]))
-        met = next((r for r in progress if threshold is not None and r.get("success_value", math.nan) < threshold
-                    and r.get("terminated_rate", 1.0) == 0.0), None)
+            row["trainer_env_steps_per_s_after_first_eval"] = (last["env_steps"] - first["env_steps"]) / (
+                last["time_s"] - first["time_s"]
+            )
+        met = next(
+            (
+                r
+                for r in progress
+                if threshold is not None
+                and r.get("success_value", math.nan) < threshold
+                and r.get("terminated_rate", 1.0) == 0.0
+            ),
+            None,
+        )
         if met is not None:
             row["solved_at_env_steps"] = met["env_steps"]
             row["solved_at_s"] = None if offset is None else offset + met["time_s"]
@@ -187,11 +242,27 @@ def env_rates(task: str, worlds: list[int], repeats: int) -> list[dict]:
     rows = []
     for n in worlds:
         result = bench_native(jax, jd, n, settings)
-        rows.append({k: result[k] for k in ("env", "worlds", "steps", "compile_s", "median_env_steps_per_s",
-                                            "best_env_steps_per_s", "cpu_util", "loadavg_1min")}
-                    | {"task": "hover", "max_steps": MAX_STEPS})
-        print(f"env alone (JAX-native hover, lax.scan, random actions) at {n} worlds: "
-              f"{result['median_env_steps_per_s']:,.0f} env-steps/s median", flush=True)
+        rows.append(
+            {
+                k: result[k]
+                for k in (
+                    "env",
+                    "worlds",
+                    "steps",
+                    "compile_s",
+                    "median_env_steps_per_s",
+                    "best_env_steps_per_s",
+                    "cpu_util",
+                    "loadavg_1min",
+                )
+            }
+            | {"task": "hover", "max_steps": MAX_STEPS}
+        )
+        print(
+            f"env alone (JAX-native hover, lax.scan, random actions) at {n} worlds: "
+            f"{result['median_env_steps_per_s']:,.0f} env-steps/s median",
+            flush=True,
+        )
     return rows
 
 
@@ -206,21 +277,27 @@ def print_row(row: dict) -> None:
         return f"{'-' if value is None else format(value, spec):>{width}}"
 
     row = row | {"train_s": (row.get("phases_s") or {}).get("train")}
-    print(f"{head} {row['env_steps']:>10,d} {cell('wall_time_s', '.1f', 8)} {cell('summary_wall_time_s', '.1f', 8)} "
-          f"{cell('train_s', '.1f', 7)} {cell('solved_at_s', '.1f', 9)} {cell('success_value', '.4g', 9)} "
-          f"{cell('terminated_rate', '.1%', 6)} {cell('trainer_env_steps_per_s_after_first_eval', ',.0f', 10)} "
-          f"{'solved' if row.get('solved') else '-'}{'  (' + row['error'] + ')' if row.get('error') else ''}",
-          flush=True)
+    print(
+        f"{head} {row['env_steps']:>10,d} {cell('wall_time_s', '.1f', 8)} {cell('summary_wall_time_s', '.1f', 8)} "
+        f"{cell('train_s', '.1f', 7)} {cell('solved_at_s', '.1f', 9)} {cell('success_value', '.4g', 9)} "
+        f"{cell('terminated_rate', '.1%', 6)} {cell('trainer_env_steps_per_s_after_first_eval', ',.0f', 10)} "
+        f"{'solved' if row.get('solved') else '-'}{'  (' + row['error'] + ')' if row.get('error') else ''}",
+        flush=True,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     load_start = os.getloadavg()
     rows = []
-    print(f"{args.task}, seed {args.seed}: wall s (outside / summary), train s, solved at s (first evaluation "
-          f"meeting the threshold, from the process start), env-steps/s after the first evaluation")
-    print(f"{'algo':<9} {'budget':>9} {'cache':<5} {'env steps':>10} {'wall s':>8} {'summary':>8} {'train':>7} "
-          f"{'solved at':>9} {'metric':>9} {'term.':>6} {'steps/s':>10}")
+    print(
+        f"{args.task}, seed {args.seed}: wall s (outside / summary), train s, solved at s (first evaluation "
+        f"meeting the threshold, from the process start), env-steps/s after the first evaluation"
+    )
+    print(
+        f"{'algo':<9} {'budget':>9} {'cache':<5} {'env steps':>10} {'wall s':>8} {'summary':>8} {'train':>7} "
+        f"{'solved at':>9} {'metric':>9} {'term.':>6} {'steps/s':>10}"
+    )
     with tempfile.TemporaryDirectory(prefix="jaxdrones-cache-") as caches:
         for algo in args.algos:
             for steps in args.budgets:
@@ -236,10 +313,16 @@ def main(argv: list[str] | None = None) -> int:
     first = first_solved(rows, args.algos)
     for algo, by_cache in first.items():
         cold, warm = by_cache.get("cold"), by_cache.get("warm")
-        print(f"{algo}: " + (f"solved with {cold['env_steps']:,} env steps in {cold['wall_time_s']:.1f} s with an "
-                             f"empty cache, " + (f"{warm['wall_time_s']:.1f} s with a warm one" if warm else
-                                                 "the warm run did not solve it")
-                             if cold else "not solved within the budgets"))
+        print(
+            f"{algo}: "
+            + (
+                f"solved with {cold['env_steps']:,} env steps in {cold['wall_time_s']:.1f} s with an "
+                f"empty cache, "
+                + (f"{warm['wall_time_s']:.1f} s with a warm one" if warm else "the warm run did not solve it")
+                if cold
+                else "not solved within the budgets"
+            )
+        )
     worlds = sorted({r["num_envs"] for r in rows if r.get("num_envs")})
     env_alone = env_rates(args.task, worlds, args.env_repeats) if args.env_repeats > 0 and worlds else []
 
@@ -247,10 +330,20 @@ def main(argv: list[str] | None = None) -> int:
     from throughput import machine_info, write_report
 
     settings = {k: v for k, v in vars(args).items() if k != "out"} | {
-        "eval_episodes": 256, "cache_dirs": "a new empty folder per algorithm and budget, reused by its warm run"}
-    write_report(args.out, f"time to solve {args.task} with each jaxdrones train algorithm, empty and warm "
-                 "compilation cache", machine_info(jax), settings, rows, loadavg_start=load_start, task=args.task,
-                 first_solved=first, env_rates=env_alone)
+        "eval_episodes": 256,
+        "cache_dirs": "a new empty folder per algorithm and budget, reused by its warm run",
+    }
+    write_report(
+        args.out,
+        f"time to solve {args.task} with each jaxdrones train algorithm, empty and warm compilation cache",
+        machine_info(jax),
+        settings,
+        rows,
+        loadavg_start=load_start,
+        task=args.task,
+        first_solved=first,
+        env_rates=env_alone,
+    )
     return 0
 
 
@@ -258,8 +351,10 @@ def first_solved(rows: list[dict], algos: list[str]) -> dict:
     """Per algorithm and cache, the row of the smallest budget that solved the task (None if none did)."""
     out = {}
     for algo in algos:
-        out[algo] = {cache: next((r for r in rows if r["algo"] == algo and r["cache"] == cache and r.get("solved")),
-                                 None) for cache in CACHES}
+        out[algo] = {
+            cache: next((r for r in rows if r["algo"] == algo and r["cache"] == cache and r.get("solved")), None)
+            for cache in CACHES
+        }
     return out
 
 

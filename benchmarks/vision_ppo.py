@@ -37,19 +37,23 @@ def parse_args(argv=None):
     parser.add_argument("--task", default="avoid", choices=("avoid", "fly_thru_gate"))
     parser.add_argument("--epochs", type=int, default=4, help="epochs timed (the first two compile)")
     parser.add_argument("--iterations", type=int, default=2, help="PPO iterations per epoch")
-    parser.add_argument("--critic", choices=("both", "privileged", "images"), default="both",
-                        help="the critic(s) to time (default both)")
+    parser.add_argument(
+        "--critic",
+        choices=("both", "privileged", "images"),
+        default="both",
+        help="the critic(s) to time (default both)",
+    )
     parser.add_argument("--out", default=DEFAULT_OUT)
     return parser.parse_args(argv)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    import jaxdrones as jd  # before JAX starts: its XLA flags
     import jax
     import numpy as np
     from brax.training.agents.ppo import train as ppo
 
+    import jaxdrones as jd  # before JAX starts: its XLA flags
     from jaxdrones.adapters import brax as adapter
     from jaxdrones.training import brax_ppo
     from jaxdrones.training.run import default_env
@@ -57,34 +61,50 @@ def main(argv=None) -> int:
     env = jd.make(args.task, **default_env(args.task, {"vision": ("depth",)}))
     base = brax_ppo.default_config(args.task, vision=True)
     per_iteration = base.batch_size * base.unroll_length * base.num_minibatches
-    base = dataclasses.replace(base, num_timesteps=per_iteration * args.iterations * args.epochs,
-                               num_evals=args.epochs + 1)
-    kwargs = {f.name: getattr(base, f.name) for f in dataclasses.fields(base)
-              if f.name not in brax_ppo.NETWORK_FIELDS}
+    base = dataclasses.replace(
+        base, num_timesteps=per_iteration * args.iterations * args.epochs, num_evals=args.epochs + 1
+    )
+    kwargs = {f.name: getattr(base, f.name) for f in dataclasses.fields(base) if f.name not in brax_ppo.NETWORK_FIELDS}
 
     def time_training(privileged: bool):
         config = dataclasses.replace(base, privileged_critic=privileged)
         stamps = []
         start = time.perf_counter()
-        ppo.train(brax_ppo._brax_env(adapter, config, env), episode_length=env.episode_length,
-                  wrap_env_fn=adapter.wrap_for_brax_training, vision=True, run_evals=False,
-                  network_factory=brax_ppo._network_factory(config, True, brax_ppo._privileged(config, env)),
-                  progress_fn=lambda steps, metrics: stamps.append((int(steps), time.perf_counter())), **kwargs)
+        ppo.train(
+            brax_ppo._brax_env(adapter, config, env),
+            episode_length=env.episode_length,
+            wrap_env_fn=adapter.wrap_for_brax_training,
+            vision=True,
+            run_evals=False,
+            network_factory=brax_ppo._network_factory(config, True, brax_ppo._privileged(config, env)),
+            progress_fn=lambda steps, metrics: stamps.append((int(steps), time.perf_counter())),
+            **kwargs,
+        )
         epochs = np.diff([start] + [t for _, t in stamps])[1:]  # the first call comes before any training
         return epochs, epochs[2:] / args.iterations
 
     critics = ("privileged", "images") if args.critic == "both" else (args.critic,)
     load = os.getloadavg()
     results = {critic: time_training(critic == "privileged") for critic in critics}
-    print(f"jax {jax.__version__} on {jax.devices()[0].device_kind}, load {load}; {args.task}, image "
-          f"{env.config.image_size}, {per_iteration:,} env steps an iteration")
-    out = {"task": args.task, "image_size": list(env.config.image_size), "per_iteration": per_iteration,
-           "iterations_per_epoch": args.iterations, "jax": jax.__version__, "load_start": load, "critics": {}}
+    print(
+        f"jax {jax.__version__} on {jax.devices()[0].device_kind}, load {load}; {args.task}, image "
+        f"{env.config.image_size}, {per_iteration:,} env steps an iteration"
+    )
+    out = {
+        "task": args.task,
+        "image_size": list(env.config.image_size),
+        "per_iteration": per_iteration,
+        "iterations_per_epoch": args.iterations,
+        "jax": jax.__version__,
+        "load_start": load,
+        "critics": {},
+    }
     for critic, (epochs, steady) in results.items():
         print(f"critic: {critic}")
         for k, t in enumerate(epochs):
-            print(f"  epoch {k + 1}: {t:.1f} s ({t / args.iterations:.1f} s an iteration)"
-                  f"{' (compiles)' if k < 2 else ''}")
+            print(
+                f"  epoch {k + 1}: {t:.1f} s ({t / args.iterations:.1f} s an iteration){' (compiles)' if k < 2 else ''}"
+            )
         median = float(np.median(steady)) if steady.size else None
         if median:
             print(f"  steady: median {median:.2f} s an iteration, {per_iteration / median:,.0f} env steps/s")

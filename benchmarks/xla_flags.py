@@ -31,15 +31,22 @@ def main(argv=None) -> int:
     first, cached = [], []
     for _ in range(args.runs):
         with tempfile.TemporaryDirectory() as cache:
-            out = subprocess.run([sys.executable, "-c", CODE], env={**os.environ, "XDG_CACHE_HOME": cache},
-                                 capture_output=True, text=True, check=True).stdout.split()
+            out = subprocess.run(
+                [sys.executable, "-c", CODE],
+                env={**os.environ, "XDG_CACHE_HOME": cache},
+                capture_output=True,
+                text=True,
+                check=True,
+            ).stdout.split()
         first.append(float(out[0]))
         cached.append(float(out[1]))
         accepted = out[2:]
     import jax
 
-    print(f"jax {jax.__version__}: accepted {accepted}; first check {statistics.median(first):.2f} s, "
-          f"cached {1e3 * statistics.median(cached):.1f} ms (medians of {args.runs})")
+    print(
+        f"jax {jax.__version__}: accepted {accepted}; first check {statistics.median(first):.2f} s, "
+        f"cached {1e3 * statistics.median(cached):.1f} ms (medians of {args.runs})"
+    )
     return 0
 
 
