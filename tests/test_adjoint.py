@@ -52,7 +52,9 @@ def _cotangent(out, rng):
 
 
 @pytest.mark.parametrize("substeps", [1, 4])
-@pytest.mark.parametrize("effects", list(EFFECTS))
+# The cases with downwash (3 drones per world, the per-rotor jets) compile for 20-60 s each: slow.
+@pytest.mark.parametrize("effects", [pytest.param(e, marks=pytest.mark.slow) if "downwash" in EFFECTS[e] else e
+                                     for e in EFFECTS])
 def test_adjoint_matches_derived_derivative(x64, effects, substeps):
     """float64: values equal to rounding and the cotangents of the state, the command and every param within
     1e-10 relative (params go through JAX's derived pass inside the adjoint's rule)."""

@@ -149,6 +149,7 @@ def test_symmetry_no_torque_below_pitch_and_roll_aside(x64, model):
         assert abs(across) <= 1e-9 * abs(along)
 
 
+@pytest.mark.slow
 def test_check_grads_rollout(x64):
     """check_grads (float64, order 1, rev: through the hand-written adjoint, which takes the thrust changes as an
     input) of a 10-step rollout of 3 drones at 240 Hz with the per-rotor downwash, drag and ground effect, w.r.t. the
@@ -178,6 +179,7 @@ def test_check_grads_rollout(x64):
     check_grads(f, args, order=1, modes=("rev",), eps=1e-5, atol=1e-6, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_jit_vmap_and_the_derived_derivative_agree(x64):
     """vmap of the step over worlds equals stepping each world; the hand-written adjoint's gradient equals JAX's
     derived one (``adjoint=False``) to 1e-10."""
@@ -201,6 +203,7 @@ def test_jit_vmap_and_the_derived_derivative_agree(x64):
     np.testing.assert_allclose(grads[0], grads[1], rtol=1e-10, atol=1e-12 * float(jnp.max(jnp.abs(grads[1]))))
 
 
+@pytest.mark.slow
 def test_neighbor_list_matches_all_pairs(x64, rng):
     """With ``downwash_radius`` the cell list (shorter than the team) gives the all-pairs thrust changes of a
     256-drone swarm 0.12 m apart with that cut-off to 1e-12, and the step's state and gradient are those of the

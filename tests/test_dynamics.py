@@ -506,7 +506,8 @@ def test_drag_uses_previous_substep_rpm(x64):
 # ------------------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("integrator, adjoint", [("euler", True), ("euler", False), ("rk4", True)])
+@pytest.mark.parametrize("integrator, adjoint", [("euler", True), ("euler", False),
+                                                  pytest.param("rk4", True, marks=pytest.mark.slow)])
 def test_check_grads_full_step(integrator, adjoint, x64):
     """check_grads (float64, order 1) through a 2-substep step of 3 drones with all effects on, w.r.t. pos, vel,
     quat, ang_vel, the previous RPM (drag), the RPM command, mass, kf and km: reverse mode through the hand-written

@@ -84,6 +84,7 @@ def _args(start, actions):
     return (actions, sim.pos, sim.vel, sim.quat, sim.ang_vel)
 
 
+@pytest.mark.slow
 def test_gradients_of_rollout_user_scan_and_env_step_agree(x64):
     """float64: the same loss and the same gradients w.r.t. the actions and the initial pos, vel, quat and ang_vel,
     whichever caller; the drones stay off the ground (contact is not smooth) but feel ground effect."""
@@ -115,6 +116,7 @@ def test_user_scan_and_env_step_gradients_match_finite_differences(x64, caller, 
     check_grads(loss, _args(start, actions), order=1, modes=modes, eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_gradients_of_the_callers_agree_in_float32():
     """float32, as the callers run by default (on CPU the components are computed by integer matrix products and
     the steps rematerialised): the gradients agree within float32 rounding."""

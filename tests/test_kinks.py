@@ -130,6 +130,7 @@ def test_smooth_treatment_agrees_with_finite_differences_across_its_kink(kink, x
     assert min(abs(secant - g_left), abs(secant - g_right)) > 0.05 * scale, (kink, secant, g_left, g_right)
 
 
+@pytest.mark.slow
 def test_straight_through_keeps_the_forward_pass_and_passes_the_gradient_through(x64):
     exact, straight = Kinks("exact"), Kinks("straight_through")
     for make_f, center, band in KINKS.values():

@@ -101,7 +101,7 @@ def test_disturbance_force_torque_and_wind(x64):
                                atol=1e-15)
 
 
-@pytest.mark.parametrize("downwash, substeps", [("paper", 1), ("per_rotor", 4)])
+@pytest.mark.parametrize("downwash, substeps", [("paper", 1), pytest.param("per_rotor", 4, marks=pytest.mark.slow)])
 def test_adjoint_with_motor_dynamics_and_disturbance(x64, downwash, substeps):
     """The hand-written adjoint with every core option on (motor dynamics, force, torque, wind, drag, ground
     effect, either downwash model) agrees with JAX's derived derivative for the state, the command, the
@@ -379,6 +379,7 @@ def test_gusts_follow_their_shape_and_rate():
     assert abs(rate / 0.2 - 1) < 0.15, rate
 
 
+@pytest.mark.slow
 def test_env_gradients_with_every_option(x64):
     """Float64 `check_grads` (reverse mode, against finite differences) of a 20-step rollout's loss w.r.t. the
     actions, with every option on: motor lag, both delays, noise and bias, constant wind, gusts, turbulence and

@@ -54,6 +54,7 @@ np.savez(sys.argv[2], **out)
 
 
 @pytest.mark.slow
+@pytest.mark.devices
 def test_every_trainer_gives_one_devices_result_on_two_devices(tmp_path):
     """PPO, MAPPO, APG and SHAC spread their worlds over 2 forced CPU devices (parameters replicated on both) and
     train the policy of one device: its actions on 64 observations agree to 1e-4 and the evaluation after the last
@@ -97,6 +98,7 @@ def _train_args(out, *extra) -> list[str]:
 
 
 @pytest.mark.slow
+@pytest.mark.devices
 def test_two_processes_train_one_process_result(tmp_path):
     """``jaxdrones train hover`` over 2 processes joined by ``--coordinator`` (each with its 8 of the 16 worlds on
     its own CPU device, collectives over loopback) trains the policy that one process with 16 worlds trains:
