@@ -40,8 +40,11 @@ def kernel_for_this_interpreter():
     with tempfile.TemporaryDirectory() as tmp:
         spec_dir = pathlib.Path(tmp) / "kernels" / KERNEL_NAME
         spec_dir.mkdir(parents=True)
-        spec = {"argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
-                "display_name": "Python (jaxdrones notebooks)", "language": "python"}
+        spec = {
+            "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
+            "display_name": "Python (jaxdrones notebooks)",
+            "language": "python",
+        }
         (spec_dir / "kernel.json").write_text(json.dumps(spec))
         previous = os.environ.get("JUPYTER_PATH")
         os.environ["JUPYTER_PATH"] = tmp
@@ -54,8 +57,9 @@ def kernel_for_this_interpreter():
                 os.environ["JUPYTER_PATH"] = previous
 
 
-def execute(nb: nbformat.NotebookNode, kernel_name: str, workdir: str | os.PathLike,
-            timeout_s: int = TIMEOUT_S) -> nbformat.NotebookNode:
+def execute(
+    nb: nbformat.NotebookNode, kernel_name: str, workdir: str | os.PathLike, timeout_s: int = TIMEOUT_S
+) -> nbformat.NotebookNode:
     """Run ``nb`` (in place) from top to bottom with the kernel ``kernel_name``, in the folder ``workdir``, keeping
     its kernelspec metadata and recording no timestamps. The kernel inherits this process's environment (e.g.
     ``JAXDRONES_NB_STEPS``).
@@ -64,8 +68,13 @@ def execute(nb: nbformat.NotebookNode, kernel_name: str, workdir: str | os.PathL
         nbclient.exceptions.CellExecutionError: a cell raised (the error names the cell).
     """
     kernelspec = nb.metadata.get("kernelspec")
-    nbclient.NotebookClient(nb, timeout=timeout_s, kernel_name=kernel_name, record_timing=False,
-                            resources={"metadata": {"path": str(workdir)}}).execute()
+    nbclient.NotebookClient(
+        nb,
+        timeout=timeout_s,
+        kernel_name=kernel_name,
+        record_timing=False,
+        resources={"metadata": {"path": str(workdir)}},
+    ).execute()
     if kernelspec is not None:
         nb.metadata["kernelspec"] = kernelspec
     return nb
@@ -86,8 +95,10 @@ def main(argv: list[str] | None = None) -> int:
             with tempfile.TemporaryDirectory() as workdir:
                 execute(nb, kernel_name, workdir)
             nbformat.write(nb, path)
-            print(f"{path.name}: ran in {time.perf_counter() - start:.0f} s, saved ({path.stat().st_size:,} bytes)",
-                  flush=True)
+            print(
+                f"{path.name}: ran in {time.perf_counter() - start:.0f} s, saved ({path.stat().st_size:,} bytes)",
+                flush=True,
+            )
     return 0
 
 

@@ -28,11 +28,21 @@ from optional import MISSING, installed  # noqa: E402
 #: the hand-written adjoint, kinks, sim-to-real options), the drone parameters, the mixer and the PID, the three ways
 #: of differentiating the simulator, and the checks of bad input and configs. Their tests that are not marked slow,
 #: pybullet, torch or ros2 are the ``fast`` tier: ``python -m pytest -m fast``.
-FAST_MODULES = frozenset({
-    "test_action_clipping.py", "test_adjoint.py", "test_bad_input.py", "test_downwash_per_rotor.py",
-    "test_dynamics.py", "test_gradient_callers.py", "test_kinks.py", "test_mixer.py", "test_params.py", "test_pid.py",
-    "test_realism.py",
-})
+FAST_MODULES = frozenset(
+    {
+        "test_action_clipping.py",
+        "test_adjoint.py",
+        "test_bad_input.py",
+        "test_downwash_per_rotor.py",
+        "test_dynamics.py",
+        "test_gradient_callers.py",
+        "test_kinks.py",
+        "test_mixer.py",
+        "test_params.py",
+        "test_pid.py",
+        "test_realism.py",
+    }
+)
 #: Markers that keep a test out of the ``fast`` tier.
 NOT_FAST = ("slow", "pybullet", "torch", "ros2")
 

@@ -16,9 +16,9 @@ from jaxdrones.backends import PYBULLET_INSTALL
 #: both on Python 3.11 only, where PyPI has wheels that fit (pyproject.toml, the test extra).
 MISSING = {
     "pybullet": "pybullet is not installed: PyPI has no pybullet wheel for Python >= 3.12, so the test extra installs "
-                f"it on 3.11 only; {PYBULLET_INSTALL}",
+    f"it on 3.11 only; {PYBULLET_INSTALL}",
     "torch": "torch is not installed: PyPI's torch for Python >= 3.12 on Linux is a CUDA build of several GB, so "
-             "the test extra installs torch and stable-baselines3 on 3.11 only (the CPU build)",
+    "the test extra installs torch and stable-baselines3 on 3.11 only (the CPU build)",
 }
 
 

@@ -63,25 +63,41 @@ class Airframe:
 
     @property
     def gnd_eff_h_clip(self) -> float:
-        return (self.prop_radius / 4) * math.sqrt(15 * self.max_rpm**2 * self.kf * self.gnd_eff_coeff
-                                                  / self.max_thrust)
+        return (self.prop_radius / 4) * math.sqrt(15 * self.max_rpm**2 * self.kf * self.gnd_eff_coeff / self.max_thrust)
 
 
 AIRFRAMES = {
     "cf2x": Airframe("cf2x", 0.027, 0.0397, (1.4e-5, 1.4e-5, 2.17e-5), 3.16e-10, 7.94e-12, 2.25, 2.31348e-2),
-    "cf2p": Airframe("cf2p", 0.027, 0.0397, (2.3951e-5, 2.3951e-5, 3.2347e-5), 3.16e-10, 7.94e-12, 2.25,
-                     2.31348e-2),
+    "cf2p": Airframe("cf2p", 0.027, 0.0397, (2.3951e-5, 2.3951e-5, 3.2347e-5), 3.16e-10, 7.94e-12, 2.25, 2.31348e-2),
     "racer": Airframe("racer", 0.830, 0.109, (0.003113, 0.003113, 0.003113), 8.47e-9, 2.13e-11, 4.17, 12.7e-2),
 }
 
 #: The §1.1 derived-constant table, as printed in docs/physics.md.
 DERIVED_TABLE = {
-    "cf2x": dict(hover_rpm=14468.4292, max_rpm=21702.6438, max_thrust=0.59535, max_xy_torque=8.35637e-3,
-                 max_z_torque=7.47956e-3, gnd_eff_h_clip=0.0377637),
-    "cf2p": dict(hover_rpm=14468.4292, max_rpm=21702.6438, max_thrust=0.59535, max_xy_torque=5.90885e-3,
-                 max_z_torque=7.47956e-3, gnd_eff_h_clip=0.0377637),
-    "racer": dict(hover_rpm=15494.6005, max_rpm=31640.8696, max_thrust=33.91878, max_xy_torque=1.307139,
-                  max_z_torque=4.264876e-2, gnd_eff_h_clip=0.2073064),
+    "cf2x": dict(
+        hover_rpm=14468.4292,
+        max_rpm=21702.6438,
+        max_thrust=0.59535,
+        max_xy_torque=8.35637e-3,
+        max_z_torque=7.47956e-3,
+        gnd_eff_h_clip=0.0377637,
+    ),
+    "cf2p": dict(
+        hover_rpm=14468.4292,
+        max_rpm=21702.6438,
+        max_thrust=0.59535,
+        max_xy_torque=5.90885e-3,
+        max_z_torque=7.47956e-3,
+        gnd_eff_h_clip=0.0377637,
+    ),
+    "racer": dict(
+        hover_rpm=15494.6005,
+        max_rpm=31640.8696,
+        max_thrust=33.91878,
+        max_xy_torque=1.307139,
+        max_z_torque=4.264876e-2,
+        gnd_eff_h_clip=0.2073064,
+    ),
 }
 
 #: §2, the positive-torque RPM patterns of the mixers: raise the + motors, lower the - motors.
@@ -118,11 +134,13 @@ def forces_torques(frame: Airframe, rpm: np.ndarray) -> tuple[float, np.ndarray]
 def rotmat(q: np.ndarray) -> np.ndarray:
     """Rotation matrix (world = R @ body) of an (x, y, z, w) quaternion, normalised first (§0.3)."""
     x, y, z, w = q / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def integrate_quat(q: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
@@ -131,12 +149,14 @@ def integrate_quat(q: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
     if np.isclose(norm, 0):
         return q
     wx, wy, wz = omega
-    lam = 0.5 * np.array([
-        [0, wz, -wy, wx],
-        [-wz, 0, wx, wy],
-        [wy, -wx, 0, wz],
-        [-wx, -wy, -wz, 0],
-    ])
+    lam = 0.5 * np.array(
+        [
+            [0, wz, -wy, wx],
+            [-wz, 0, wx, wy],
+            [wy, -wx, 0, wz],
+            [-wx, -wy, -wz, 0],
+        ]
+    )
     theta = norm * dt / 2
     return (np.eye(4) * math.cos(theta) + 2 / norm * lam * math.sin(theta)) @ q
 
@@ -172,6 +192,6 @@ def simulate(frame: Airframe, pos, quat, vel, ang_vel, rpms, sim_freq: int, ctrl
     for rpm in rpms:
         for _ in range(sim_freq // ctrl_freq):
             state = step(frame, *state, rpm, dt)
-        for k, v in zip(out, state):
+        for k, v in zip(out, state, strict=True):
             out[k].append(v)
     return {k: np.stack(v) for k, v in out.items()}

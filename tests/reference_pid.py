@@ -31,11 +31,13 @@ AIRFRAMES = {"cf2x": (0.027, 3.16e-10), "cf2p": (0.027, 3.16e-10)}
 def matrix_from_quaternion(q) -> np.ndarray:
     """``getMatrixFromQuaternion``: the rotation matrix of (x, y, z, w), normalised first (§0.3)."""
     x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def euler_from_quaternion(q) -> np.ndarray:
@@ -46,11 +48,13 @@ def euler_from_quaternion(q) -> np.ndarray:
         return np.array([0.0, -math.pi / 2, 2 * math.atan2(x, -y)])
     if s >= 0.99999:
         return np.array([0.0, math.pi / 2, 2 * math.atan2(-x, y)])
-    return np.array([
-        math.atan2(2 * (y * z + w * x), w * w - x * x - y * y + z * z),
-        math.asin(s),
-        math.atan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z),
-    ])
+    return np.array(
+        [
+            math.atan2(2 * (y * z + w * x), w * w - x * x - y * y + z * z),
+            math.asin(s),
+            math.atan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z),
+        ]
+    )
 
 
 class DSLPIDControl:
@@ -80,12 +84,28 @@ class DSLPIDControl:
         self.integral_pos_e = np.zeros(3)
         self.integral_rpy_e = np.zeros(3)
 
-    def computeControl(self, control_timestep, cur_pos, cur_quat, cur_vel, cur_ang_vel, target_pos,
-                       target_rpy=np.zeros(3), target_vel=np.zeros(3), target_rpy_rates=np.zeros(3)):
+    def computeControl(
+        self,
+        control_timestep,
+        cur_pos,
+        cur_quat,
+        cur_vel,
+        cur_ang_vel,
+        target_pos,
+        target_rpy=np.zeros(3),
+        target_vel=np.zeros(3),
+        target_rpy_rates=np.zeros(3),
+    ):
         """Returns (rpm (4), pos_e (3), yaw error)."""
-        thrust, target_euler, pos_e = self._position(control_timestep, np.asarray(cur_pos), cur_quat,
-                                                     np.asarray(cur_vel), np.asarray(target_pos),
-                                                     np.asarray(target_rpy), np.asarray(target_vel))
+        thrust, target_euler, pos_e = self._position(
+            control_timestep,
+            np.asarray(cur_pos),
+            cur_quat,
+            np.asarray(cur_vel),
+            np.asarray(target_pos),
+            np.asarray(target_rpy),
+            np.asarray(target_vel),
+        )
         rpm = self._attitude(control_timestep, thrust, cur_quat, target_euler, np.asarray(target_rpy_rates))
         cur_rpy = euler_from_quaternion(cur_quat)
         return rpm, pos_e, target_euler[2] - cur_rpy[2]
@@ -97,8 +117,12 @@ class DSLPIDControl:
         self.integral_pos_e = self.integral_pos_e + pos_e * dt
         self.integral_pos_e = np.clip(self.integral_pos_e, -2.0, 2.0)
         self.integral_pos_e[2] = np.clip(self.integral_pos_e[2], -0.15, 0.15)
-        target_thrust = (self.P_COEFF_FOR * pos_e + self.I_COEFF_FOR * self.integral_pos_e
-                         + self.D_COEFF_FOR * vel_e + np.array([0.0, 0.0, self.GRAVITY]))
+        target_thrust = (
+            self.P_COEFF_FOR * pos_e
+            + self.I_COEFF_FOR * self.integral_pos_e
+            + self.D_COEFF_FOR * vel_e
+            + np.array([0.0, 0.0, self.GRAVITY])
+        )
         scalar_thrust = max(0.0, float(np.dot(target_thrust, cur_rotation[:, 2])))
         thrust = (math.sqrt(scalar_thrust / (4 * self.KF)) - self.PWM2RPM_CONST) / self.PWM2RPM_SCALE
         target_z_ax = target_thrust / np.linalg.norm(target_thrust)
@@ -122,8 +146,9 @@ class DSLPIDControl:
         self.integral_rpy_e = self.integral_rpy_e - rot_e * dt
         self.integral_rpy_e = np.clip(self.integral_rpy_e, -1500.0, 1500.0)
         self.integral_rpy_e[0:2] = np.clip(self.integral_rpy_e[0:2], -1.0, 1.0)
-        target_torques = (-self.P_COEFF_TOR * rot_e + self.D_COEFF_TOR * rpy_rates_e
-                          + self.I_COEFF_TOR * self.integral_rpy_e)
+        target_torques = (
+            -self.P_COEFF_TOR * rot_e + self.D_COEFF_TOR * rpy_rates_e + self.I_COEFF_TOR * self.integral_rpy_e
+        )
         target_torques = np.clip(target_torques, -3200, 3200)
         pwm = thrust + self.MIXER_MATRIX @ target_torques
         pwm = np.clip(pwm, self.MIN_PWM, self.MAX_PWM)

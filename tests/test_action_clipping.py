@@ -101,7 +101,9 @@ def test_gaussian_policy_on_jaxmarl_vmapped():
     strict = jaxmarl.make("multi_hover", n_drones=2, strict_actions=True)
     keys = jax.random.split(jax.random.key(0), 3)
     _, state = jax.vmap(env.reset)(keys)
-    actions = {a: SIGMA * jax.random.normal(k, (3, 4)) for a, k in zip(env.agents, jax.random.split(keys[0]))}
+    actions = {
+        a: SIGMA * jax.random.normal(k, (3, 4)) for a, k in zip(env.agents, jax.random.split(keys[0]), strict=True)
+    }
     step = jax.jit(jax.vmap(env.step))
     _, _, rewards, dones, infos = step(keys, state, actions)
     clipped = {a: jnp.clip(v, -1, 1) for a, v in actions.items()}

@@ -36,9 +36,13 @@ def _case(effects: dict, substeps: int, seed: int = 0):
     pos[:2, 0, 2] = [0.0125, 0.005]  # at the rest height, below it, and falling
     vel = rng.normal(size=(WORLDS, n, 3))
     vel[:2, 0, 2] = -1.0
-    state = jd.init_state(config, pos=pos, vel=vel,
-                          ang_vel=rng.normal(size=(WORLDS, n, 3)),
-                          rpm=float(params.hover_rpm) * (1 + 0.1 * rng.normal(size=(WORLDS, n, 4))))
+    state = jd.init_state(
+        config,
+        pos=pos,
+        vel=vel,
+        ang_vel=rng.normal(size=(WORLDS, n, 3)),
+        rpm=float(params.hover_rpm) * (1 + 0.1 * rng.normal(size=(WORLDS, n, 4))),
+    )
     quat = rng.normal(size=(WORLDS, n, 4)) * 0.1 + [0.0, 0.0, 0.0, 1.3]
     state = state.replace(quat=jnp.asarray(quat, state.quat.dtype))
     rpm = float(params.hover_rpm) * (1 + 0.1 * rng.normal(size=(WORLDS, n, 4)))
@@ -47,14 +51,21 @@ def _case(effects: dict, substeps: int, seed: int = 0):
 
 
 def _cotangent(out, rng):
-    return jax.tree.map(lambda x: np.zeros(x.shape, jax.dtypes.float0) if x.dtype == jnp.int32
-                        else jnp.asarray(rng.normal(size=x.shape), x.dtype), out)
+    return jax.tree.map(
+        lambda x: (
+            np.zeros(x.shape, jax.dtypes.float0)
+            if x.dtype == jnp.int32
+            else jnp.asarray(rng.normal(size=x.shape), x.dtype)
+        ),
+        out,
+    )
 
 
 @pytest.mark.parametrize("substeps", [1, 4])
 # The cases with downwash (3 drones per world, the per-rotor jets) compile for 20-60 s each: slow.
-@pytest.mark.parametrize("effects", [pytest.param(e, marks=pytest.mark.slow) if "downwash" in EFFECTS[e] else e
-                                     for e in EFFECTS])
+@pytest.mark.parametrize(
+    "effects", [pytest.param(e, marks=pytest.mark.slow) if "downwash" in EFFECTS[e] else e for e in EFFECTS]
+)
 def test_adjoint_matches_derived_derivative(x64, effects, substeps):
     """float64: values equal to rounding and the cotangents of the state, the command and every param within
     1e-10 relative (params go through JAX's derived pass inside the adjoint's rule)."""

@@ -8,26 +8,33 @@ import pytest
 
 import jaxdrones as jd
 from jaxdrones import cameras
-from jaxdrones.scene import Obstacle
 from jaxdrones.envs.observations import DEPTH_SCALE, policy_input
+from jaxdrones.scene import Obstacle
 
 
 def test_distance_is_each_shapes_signed_distance():
     """Hand-derived distances to a box, a sphere, a cylinder and a lying capsule, outside and inside."""
-    scene = cameras.make_scene([
-        Obstacle("box", size=(1.0, 2.0, 3.0), pos=(5.0, 0.0, 0.0)),
-        Obstacle("sphere", size=(0.5,), pos=(0.0, 5.0, 0.0)),
-        Obstacle("cylinder", size=(0.2, 2.0), pos=(0.0, 0.0, 5.0)),
-        Obstacle("capsule", size=(0.1, 1.0), pos=(-5.0, 0.0, 0.0), rpy=(np.pi / 2, 0.0, 0.0))])
-    points = jnp.array([[3.0, 0, 0], [5, 0, 0], [0, 6, 0], [0, 0.5, 5], [0, 0, 7], [-5, 0, 1.0], [-5, 0.2, 0],
-                        [4.0, 2.0, 0.0]])
-    expected = [1.5,  # to the box's x face at 4.5
-                -0.5,  # its centre, 0.5 inside its nearest face
-                0.5, 0.3,  # sphere of radius 0.5; cylinder side, radius 0.2
-                1.0,  # above the cylinder's top at z = 6
-                0.9,  # 1 m from the capsule's axis (along y after the roll), radius 0.1
-                -0.1,  # on its axis
-                np.hypot(0.5, 1.0)]  # to the box's edge at (4.5, 1)
+    scene = cameras.make_scene(
+        [
+            Obstacle("box", size=(1.0, 2.0, 3.0), pos=(5.0, 0.0, 0.0)),
+            Obstacle("sphere", size=(0.5,), pos=(0.0, 5.0, 0.0)),
+            Obstacle("cylinder", size=(0.2, 2.0), pos=(0.0, 0.0, 5.0)),
+            Obstacle("capsule", size=(0.1, 1.0), pos=(-5.0, 0.0, 0.0), rpy=(np.pi / 2, 0.0, 0.0)),
+        ]
+    )
+    points = jnp.array(
+        [[3.0, 0, 0], [5, 0, 0], [0, 6, 0], [0, 0.5, 5], [0, 0, 7], [-5, 0, 1.0], [-5, 0.2, 0], [4.0, 2.0, 0.0]]
+    )
+    expected = [
+        1.5,  # to the box's x face at 4.5
+        -0.5,  # its centre, 0.5 inside its nearest face
+        0.5,
+        0.3,  # sphere of radius 0.5; cylinder side, radius 0.2
+        1.0,  # above the cylinder's top at z = 6
+        0.9,  # 1 m from the capsule's axis (along y after the roll), radius 0.1
+        -0.1,  # on its axis
+        np.hypot(0.5, 1.0),
+    ]  # to the box's edge at (4.5, 1)
     np.testing.assert_allclose(np.asarray(cameras.distance(scene, points)), expected, atol=1e-6)
     empty = cameras.make_scene([], capacity=2)
     assert np.all(np.isinf(np.asarray(cameras.distance(empty, points))))
@@ -53,8 +60,11 @@ def test_avoid_draws_a_field_per_episode_that_only_the_camera_sees(env):
     # The state observation is the kinematics and the goal offset only: 21 + 3 entries; the depth image sees the
     # obstacles (ids 1..16; the ground is 0).
     assert states.obs["state"].shape == (4, 1, 24) and states.obs["depth"].shape == (4, 1, 16, 64)
-    np.testing.assert_allclose(np.asarray(states.obs["state"][:, 0, 21:]),
-                               np.asarray(states.task.target[:, 0] - states.sim.pos[:, 0]), atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(states.obs["state"][:, 0, 21:]),
+        np.asarray(states.task.target[:, 0] - states.sim.pos[:, 0]),
+        atol=1e-6,
+    )
     spec = cameras.CameraSpec(*env.config.image_size, fov=env.config.camera_fov)  # the env's own camera
     seg = cameras.render(spec, scene, env.params, states.sim.pos, states.sim.quat, kinds=("seg",))["seg"]
     assert np.any(np.asarray(seg) >= 1)
@@ -84,8 +94,11 @@ def test_policy_input_and_the_brax_view(env):
     state = jax.jit(env.reset)(jax.random.key(0))
     seen = policy_input(state.obs)
     assert set(seen) == {"state", "pixels/depth"} and seen["pixels/depth"].shape == (16, 64, 1)
-    np.testing.assert_allclose(np.asarray(seen["pixels/depth"][..., 0]),
-                               np.clip(np.asarray(state.obs["depth"][0]) / DEPTH_SCALE, 0, 1), rtol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(seen["pixels/depth"][..., 0]),
+        np.clip(np.asarray(state.obs["depth"][0]) / DEPTH_SCALE, 0, 1),
+        rtol=1e-6,
+    )
     from jaxdrones.adapters.brax import BraxEnv
 
     assert BraxEnv(env).observation_size == {"state": (24,), "pixels/depth": (16, 64, 1)}
@@ -113,13 +126,16 @@ def test_flying_straight_at_the_goal_mostly_fails(env):
     assert 0.05 <= success <= 0.35 and collided >= 0.6, (success, collided)
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(backend="pybullet"), "backend='jax'"),
-    (dict(field_x=(0.1, 3.0)), "clear"),
-    (dict(field_x=(4.0, 1.0)), "low <= high"),
-    (dict(n_cylinders=-1), "n_cylinders"),
-    (dict(goal_radius=float("nan")), "goal_radius"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(backend="pybullet"), "backend='jax'"),
+        (dict(field_x=(0.1, 3.0)), "clear"),
+        (dict(field_x=(4.0, 1.0)), "low <= high"),
+        (dict(n_cylinders=-1), "n_cylinders"),
+        (dict(goal_radius=float("nan")), "goal_radius"),
+    ],
+)
 def test_bad_settings(kwargs, match):
     with pytest.raises(ValueError, match=match):
         jd.make("avoid", **kwargs)
@@ -139,8 +155,11 @@ def test_brax_vision_networks_act_on_the_camera_observation(env):
     state = jax.jit(env.reset)(jax.random.key(0))
     seen = policy_input(state.obs)
     normalizer = running_statistics.init_state({"state": jax.ShapeDtypeStruct(seen["state"].shape, jnp.float32)})
-    params = (normalizer, networks.policy_network.init(jax.random.key(1)), networks.value_network.init(
-        jax.random.key(2)))
+    params = (
+        normalizer,
+        networks.policy_network.init(jax.random.key(1)),
+        networks.value_network.init(jax.random.key(2)),
+    )
     conv = [k for k in params[1]["params"] if "CNN" in k or "Conv" in k]
     assert conv, sorted(params[1]["params"])  # the image goes through convolutions
     policy = brax_ppo.make_policy(networks, params)
@@ -155,8 +174,9 @@ def test_scene_clearances_map_the_obstacles_around_the_drone(env):
     from jaxdrones.envs.tasks.avoid import SAMPLE_BEARINGS, SAMPLE_RANGES, scene_clearances
 
     state = jax.jit(env.reset)(jax.random.key(0))
-    scene = cameras.make_scene([Obstacle("cylinder", size=(0.1, 4.0), pos=(1.0, 0.0, 2.0))],
-                               capacity={"cylinder": 12, "box": 4})
+    scene = cameras.make_scene(
+        [Obstacle("cylinder", size=(0.1, 4.0), pos=(1.0, 0.0, 2.0))], capacity={"cylinder": 12, "box": 4}
+    )
     task = state.task.replace(scene=scene)
     sim = state.sim.replace(pos=jnp.asarray([[0.0, 0.0, 1.0]]))
     radius = float(task.data["collision_radius"][0])
@@ -182,15 +202,19 @@ def test_the_brax_view_with_a_privileged_critic(env):
     brax_env = BraxEnv(env, privileged=True)
     assert brax_env.observation_size == {"state": (24,), "pixels/depth": (16, 64, 1), "privileged_state": (81,)}
     state = jax.jit(brax_env.reset)(jax.random.key(0))
-    np.testing.assert_allclose(np.asarray(state.obs["privileged_state"]),
-                               np.asarray(env.privileged(state.pipeline_state)).reshape(-1))
+    np.testing.assert_allclose(
+        np.asarray(state.obs["privileged_state"]), np.asarray(env.privileged(state.pipeline_state)).reshape(-1)
+    )
     stepped = jax.jit(brax_env.step)(state, jnp.zeros(3))
-    np.testing.assert_allclose(np.asarray(stepped.obs["privileged_state"]),
-                               np.asarray(env.privileged(stepped.pipeline_state)).reshape(-1))
-    nets = make_ppo_networks_vision(brax_env.observation_size, 3, running_statistics.normalize,
-                                    value_obs_key="privileged_state")
-    stats = running_statistics.init_state({k: jax.ShapeDtypeStruct(v, jnp.float32)
-                                           for k, v in brax_env.observation_size.items() if k[:7] != "pixels/"})
+    np.testing.assert_allclose(
+        np.asarray(stepped.obs["privileged_state"]), np.asarray(env.privileged(stepped.pipeline_state)).reshape(-1)
+    )
+    nets = make_ppo_networks_vision(
+        brax_env.observation_size, 3, running_statistics.normalize, value_obs_key="privileged_state"
+    )
+    stats = running_statistics.init_state(
+        {k: jax.ShapeDtypeStruct(v, jnp.float32) for k, v in brax_env.observation_size.items() if k[:7] != "pixels/"}
+    )
     value = nets.value_network.init(jax.random.key(1))
     assert not [k for k in value["params"] if "CNN" in k]  # no convolutions in the critic
     policy = nets.policy_network.init(jax.random.key(2))

@@ -57,7 +57,7 @@ def test_rpm_int_accepted_and_cast(setup):
     as_int = step(params, state, np.full((2, 4), 14468, dtype=np.int32))
     as_float = step(params, state, np.full((2, 4), 14468.0, dtype=np.float32))
     assert as_int.rpm.dtype == state.pos.dtype
-    for a, b in zip(jax.tree.leaves(as_int), jax.tree.leaves(as_float)):
+    for a, b in zip(jax.tree.leaves(as_int), jax.tree.leaves(as_float), strict=True):
         np.testing.assert_array_equal(a, b)
     python_list = step(params, state, [[14468] * 4] * 2)
     np.testing.assert_array_equal(python_list.pos, as_float.pos)
@@ -111,8 +111,11 @@ def test_make_step_bad_arguments():
 
 @pytest.mark.parametrize("sim_freq, ctrl_freq", [(240, 50), (240, 7), (100, 240)])
 def test_sim_freq_not_multiple_of_ctrl_freq(sim_freq, ctrl_freq):
-    with pytest.raises(ValueError, match=rf"sim_freq \({sim_freq} Hz\) must be a multiple of ctrl_freq "
-                                         rf"\({ctrl_freq} Hz\)"):
+    with pytest.raises(
+        ValueError,
+        match=rf"sim_freq \({sim_freq} Hz\) must be a multiple of ctrl_freq "
+        rf"\({ctrl_freq} Hz\)",
+    ):
         jd.SimConfig(sim_freq=sim_freq, ctrl_freq=ctrl_freq)
 
 
@@ -121,8 +124,9 @@ def test_unknown_integrator():
         jd.SimConfig(integrator="rk45")
 
 
-@pytest.mark.parametrize("field, value", [("n_drones", 0), ("n_drones", 1.5), ("sim_freq", -240),
-                                          ("ctrl_freq", True), ("ctrl_freq", "48")])
+@pytest.mark.parametrize(
+    "field, value", [("n_drones", 0), ("n_drones", 1.5), ("sim_freq", -240), ("ctrl_freq", True), ("ctrl_freq", "48")]
+)
 def test_non_positive_or_non_integer_counts(field, value):
     with pytest.raises(ValueError, match=f"SimConfig.{field} must be a positive integer"):
         jd.SimConfig(**{field: value})
@@ -180,10 +184,13 @@ def test_urdf_missing_elements(tmp_path):
         jd.load_params(write_urdf(tmp_path, no_prop3))
 
 
-@pytest.mark.parametrize("text, match", [
-    (' kf="abc"', "properties/@kf must be a number, got 'abc'"),
-    (' kf="nan"', "properties/@kf must be finite"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        (' kf="abc"', "properties/@kf must be a number, got 'abc'"),
+        (' kf="nan"', "properties/@kf must be finite"),
+    ],
+)
 def test_urdf_non_numeric_property(tmp_path, text, match):
     with pytest.raises(ValueError, match=re.escape(match)):
         jd.load_params(write_urdf(tmp_path, edit(' kf="3.16e-10"', text)))
@@ -195,24 +202,30 @@ def test_mass_not_positive(tmp_path, mass):
         jd.load_params(write_urdf(tmp_path, edit('<mass value="0.027"/>', f'<mass value="{mass}"/>')))
 
 
-@pytest.mark.parametrize("inertia", [
-    'ixx="-1.4e-05" ixy="0.0" ixz="0.0" iyy="1.4e-05" iyz="0.0" izz="2.17e-05"',  # negative diagonal
-    'ixx="1.4e-05" ixy="0.0" ixz="0.0" iyy="1.4e-05" iyz="0.0" izz="0"',  # singular
-    'ixx="1.4e-05" ixy="3e-05" ixz="0.0" iyy="1.4e-05" iyz="0.0" izz="2.17e-05"',  # indefinite
-])
+@pytest.mark.parametrize(
+    "inertia",
+    [
+        'ixx="-1.4e-05" ixy="0.0" ixz="0.0" iyy="1.4e-05" iyz="0.0" izz="2.17e-05"',  # negative diagonal
+        'ixx="1.4e-05" ixy="0.0" ixz="0.0" iyy="1.4e-05" iyz="0.0" izz="0"',  # singular
+        'ixx="1.4e-05" ixy="3e-05" ixz="0.0" iyy="1.4e-05" iyz="0.0" izz="2.17e-05"',  # indefinite
+    ],
+)
 def test_inertia_not_positive_definite(tmp_path, inertia):
     shipped = 'ixx="1.4e-05" ixy="0.0" ixz="0.0" iyy="1.4e-05" iyz="0.0" izz="2.17e-05"'
     with pytest.raises(ValueError, match="inertia must be symmetric positive definite"):
         jd.load_params(write_urdf(tmp_path, edit(shipped, inertia)))
 
 
-@pytest.mark.parametrize("old, new, match", [
-    (' thrust2weight="2.25"', ' thrust2weight="0.9"', "thrust2weight must be > 1"),
-    (' kf="3.16e-10"', ' kf="-3.16e-10"', "kf must be > 0"),
-    (' frame="x"', ' frame="y"', "frame must be 'x' or '\\+'"),
-    (' prop_spin="1 -1 1 -1"', ' prop_spin="1 -1 1"', "prop_spin must be 4 values of \\+1 or -1"),
-    (' prop_spin="1 -1 1 -1"', ' prop_spin="1 -1 2 -1"', "prop_spin must be 4 values"),
-])
+@pytest.mark.parametrize(
+    "old, new, match",
+    [
+        (' thrust2weight="2.25"', ' thrust2weight="0.9"', "thrust2weight must be > 1"),
+        (' kf="3.16e-10"', ' kf="-3.16e-10"', "kf must be > 0"),
+        (' frame="x"', ' frame="y"', "frame must be 'x' or '\\+'"),
+        (' prop_spin="1 -1 1 -1"', ' prop_spin="1 -1 1"', "prop_spin must be 4 values of \\+1 or -1"),
+        (' prop_spin="1 -1 1 -1"', ' prop_spin="1 -1 2 -1"', "prop_spin must be 4 values"),
+    ],
+)
 def test_urdf_physically_invalid(tmp_path, old, new, match):
     with pytest.raises(ValueError, match=match):
         jd.load_params(write_urdf(tmp_path, edit(old, new)))
@@ -223,15 +236,18 @@ def test_urdf_physically_invalid(tmp_path, old, new, match):
 # ------------------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("field, value, match", [
-    ("pos", np.zeros((3, 3)), r"pos must have shape \[\.\.\., 2, 3\] for n_drones=2, got \(3, 3\)"),
-    ("pos", np.zeros(3), r"pos must have shape \[\.\.\., 2, 3\].*got \(3,\)"),
-    ("vel", np.zeros((2, 4)), r"vel must have shape \[\.\.\., 2, 3\].*got \(2, 4\)"),
-    ("ang_vel", np.zeros((2, 2)), r"ang_vel must have shape \[\.\.\., 2, 3\]"),
-    ("rpm", np.zeros((2, 3)), r"rpm must have shape \[\.\.\., 2, 4\].*got \(2, 3\)"),
-    ("quat", np.zeros((2, 3)), r"quat must have shape \[\.\.\., 2, 4\]"),
-    ("rpy", np.zeros((2, 4)), r"rpy must have shape \[\.\.\., 2, 3\]"),
-])
+@pytest.mark.parametrize(
+    "field, value, match",
+    [
+        ("pos", np.zeros((3, 3)), r"pos must have shape \[\.\.\., 2, 3\] for n_drones=2, got \(3, 3\)"),
+        ("pos", np.zeros(3), r"pos must have shape \[\.\.\., 2, 3\].*got \(3,\)"),
+        ("vel", np.zeros((2, 4)), r"vel must have shape \[\.\.\., 2, 3\].*got \(2, 4\)"),
+        ("ang_vel", np.zeros((2, 2)), r"ang_vel must have shape \[\.\.\., 2, 3\]"),
+        ("rpm", np.zeros((2, 3)), r"rpm must have shape \[\.\.\., 2, 4\].*got \(2, 3\)"),
+        ("quat", np.zeros((2, 3)), r"quat must have shape \[\.\.\., 2, 4\]"),
+        ("rpy", np.zeros((2, 4)), r"rpy must have shape \[\.\.\., 2, 3\]"),
+    ],
+)
 def test_init_state_wrong_shapes(field, value, match):
     with pytest.raises(ValueError, match=match):
         jd.init_state(jd.SimConfig(n_drones=2), **{field: value})
@@ -256,13 +272,16 @@ def test_init_state_valid_batched_input_broadcasts():
     np.testing.assert_allclose(jnp.linalg.norm(state.quat, axis=-1), 1.0, rtol=1e-6)
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(num_envs=0), "num_envs must be an integer >= 1"),
-    (dict(num_envs=3), "multiple of num_envs"),
-    (dict(learning_rate_schedule="cosine"), "learning_rate_schedule must be None, 'NONE' or 'ADAPTIVE_KL'"),
-    (dict(desired_kl=0.0), "desired_kl must be a finite number > 0"),
-    (dict(privileged_critic="yes"), "privileged_critic must be True or False"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(num_envs=0), "num_envs must be an integer >= 1"),
+        (dict(num_envs=3), "multiple of num_envs"),
+        (dict(learning_rate_schedule="cosine"), "learning_rate_schedule must be None, 'NONE' or 'ADAPTIVE_KL'"),
+        (dict(desired_kl=0.0), "desired_kl must be a finite number > 0"),
+        (dict(privileged_critic="yes"), "privileged_critic must be True or False"),
+    ],
+)
 def test_brax_ppo_config_out_of_range(kwargs, match):
     from jaxdrones.training.brax_ppo import BraxPPOConfig
 

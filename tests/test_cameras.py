@@ -9,8 +9,8 @@ from scipy.ndimage import maximum_filter, minimum_filter
 
 import jaxdrones as jd
 from jaxdrones import cameras
-from jaxdrones.scene import Obstacle
 from jaxdrones.envs.observations import DEPTH_SCALE, policy_input
+from jaxdrones.scene import Obstacle
 from jaxdrones.sensors import raycast
 
 PARAMS = jd.load_params("cf2x")
@@ -25,7 +25,8 @@ def pose(pos, rpy, dtype=np.float32):
 
 def render(obstacles, pos, rpy, spec=cameras.CameraSpec(), **kwargs):
     return jax.jit(lambda p, q: cameras.render(spec, cameras.make_scene(obstacles), PARAMS, p, q, **kwargs))(
-        *pose(pos, rpy))
+        *pose(pos, rpy)
+    )
 
 
 def test_hand_derived_box_ground_and_sky():
@@ -59,8 +60,12 @@ def test_near_plane_and_own_body():
     img = render([], [[0.0, 0.0, 1.0]], LEVEL, spec=spec)
     assert np.all(np.asarray(img["seg"]) == 0)  # only the ground, never drone 1 (its own id)
     np.testing.assert_allclose(np.asarray(img["depth"])[0, 23:25, 31:33], 1.1, rtol=1e-5)
-    clipped = render([Obstacle("box", size=(0.2, 0.2, 0.2), pos=(0.1, 0.0, 1.0))], [[0.0, 0.0, 1.0]], LEVEL,
-                     spec=cameras.CameraSpec(near=0.5))
+    clipped = render(
+        [Obstacle("box", size=(0.2, 0.2, 0.2), pos=(0.1, 0.0, 1.0))],
+        [[0.0, 0.0, 1.0]],
+        LEVEL,
+        spec=cameras.CameraSpec(near=0.5),
+    )
     assert not np.any(np.asarray(clipped["seg"]) == 1)
 
 
@@ -68,21 +73,38 @@ def _cross_scenes():
     gate = [Obstacle("box", size=(0.05, 0.05, 0.5), pos=(x, -1.0, 0.25)) for x in (-0.3, 0.3)]
     gate.append(Obstacle("box", size=(0.65, 0.05, 0.05), pos=(0.0, -1.0, 0.525)))
     return {
-        "box and sphere": ([Obstacle("box", size=(0.4, 0.3, 0.6), pos=(1.5, 0.2, 0.8), rpy=(0, 0, 0.4)),
-                            Obstacle("sphere", size=(0.25,), pos=(1.2, -0.6, 1.1))], [[0, 0, 1.0]], LEVEL),
+        "box and sphere": (
+            [
+                Obstacle("box", size=(0.4, 0.3, 0.6), pos=(1.5, 0.2, 0.8), rpy=(0, 0, 0.4)),
+                Obstacle("sphere", size=(0.25,), pos=(1.2, -0.6, 1.1)),
+            ],
+            [[0, 0, 1.0]],
+            LEVEL,
+        ),
         "cylinder and capsule, tilted drone": (
-            [Obstacle("cylinder", size=(0.2, 1.0), pos=(1.4, 0.4, 0.7), rpy=(0.3, 0, 0)),
-             Obstacle("capsule", size=(0.15, 0.6), pos=(1.0, -0.5, 1.0), rpy=(0, 1.2, 0.3))],
-            [[0, 0, 1.0]], [[0.2, -0.25, 0.1]]),
-        "three drones": ([], [[0, 0, 1.0], [0.6, 0.05, 1.02], [0.9, -0.2, 0.95]],
-                         [[0, 0, 0], [0.1, 0.2, 2.0], [0, 0, 3.0]]),
+            [
+                Obstacle("cylinder", size=(0.2, 1.0), pos=(1.4, 0.4, 0.7), rpy=(0.3, 0, 0)),
+                Obstacle("capsule", size=(0.15, 0.6), pos=(1.0, -0.5, 1.0), rpy=(0, 1.2, 0.3)),
+            ],
+            [[0, 0, 1.0]],
+            [[0.2, -0.25, 0.1]],
+        ),
+        "three drones": (
+            [],
+            [[0, 0, 1.0], [0.6, 0.05, 1.02], [0.9, -0.2, 0.95]],
+            [[0, 0, 0], [0.1, 0.2, 2.0], [0, 0, 3.0]],
+        ),
         "the paper's gate": (gate, [[0, 0, 0.4]], [[0, 0, -np.pi / 2]]),
         "every shape, two tilted drones": (
-            [Obstacle("box", size=(0.3, 0.3, 0.3), pos=(1.0, 0.0, 0.3)),
-             Obstacle("cylinder", size=(0.1, 0.8), pos=(-1.0, 0.3, 0.4)),
-             Obstacle("sphere", size=(0.2,), pos=(0.1, 1.2, 0.6)),
-             Obstacle("capsule", size=(0.1, 0.5), pos=(0.0, -1.2, 0.5), rpy=(1.5, 0, 0))],
-            [[0, 0, 0.6], [0.2, 0.3, 0.7]], [[0, 0.35, 0.2], [-0.3, 0.1, 1.8]]),
+            [
+                Obstacle("box", size=(0.3, 0.3, 0.3), pos=(1.0, 0.0, 0.3)),
+                Obstacle("cylinder", size=(0.1, 0.8), pos=(-1.0, 0.3, 0.4)),
+                Obstacle("sphere", size=(0.2,), pos=(0.1, 1.2, 0.6)),
+                Obstacle("capsule", size=(0.1, 0.5), pos=(0.0, -1.2, 0.5), rpy=(1.5, 0, 0)),
+            ],
+            [[0, 0, 0.6], [0.2, 0.3, 0.7]],
+            [[0, 0.35, 0.2], [-0.3, 0.1, 1.8]],
+        ),
     }
 
 
@@ -102,16 +124,21 @@ def test_matches_the_pybullet_backend(name):
     with jd.make_step(config, backend="pybullet", obstacles=obstacles, renderer="egl") as step:
         ref = step.camera_images(PARAMS, state)
         ids = step.body_ids()
-    ours = {-1: -1, ids["ground"]: 0, **{b: k + 1 for k, b in enumerate(ids["obstacles"])},
-            **{b: len(obstacles) + 1 + d for d, b in enumerate(ids["drones"])}}
+    ours = {
+        -1: -1,
+        ids["ground"]: 0,
+        **{b: k + 1 for k, b in enumerate(ids["obstacles"])},
+        **{b: len(obstacles) + 1 + d for d, b in enumerate(ids["drones"])},
+    }
     ref_seg = np.vectorize(lambda v: ours[int(v)])(ref["seg"])
     img = render(obstacles, pos, rpy)
     seg, depth = np.asarray(img["seg"]), np.asarray(img["depth"])
     for d in range(len(pos)):
         same = seg[d] == ref_seg[d]
         assert same.mean() >= 0.99, (d, same.mean())
-        interior = ((minimum_filter(seg[d], 3) == maximum_filter(seg[d], 3))
-                    & (minimum_filter(ref_seg[d], 3) == maximum_filter(ref_seg[d], 3)))
+        interior = (minimum_filter(seg[d], 3) == maximum_filter(seg[d], 3)) & (
+            minimum_filter(ref_seg[d], 3) == maximum_filter(ref_seg[d], 3)
+        )
         assert np.all(same[interior])
         curved = [k + 1 for k, o in enumerate(obstacles) if o.shape != "box"]
         hit = interior & same & (seg[d] >= 0)
@@ -125,13 +152,19 @@ def test_matches_the_pybullet_backend(name):
 def test_batched_scenes_and_worlds():
     """A scene per world (the same capacity, other obstacles) under vmap gives each world's unbatched render."""
     a = cameras.make_scene([Obstacle("box", size=(0.3, 0.3, 0.3), pos=(1.0, 0.0, 1.0))], capacity=2)
-    b = cameras.make_scene([Obstacle("sphere", size=(0.2,), pos=(1.0, 0.2, 1.0)),
-                            Obstacle("box", size=(0.3, 0.3, 0.3), pos=(1.0, -0.3, 1.0))], capacity=2)
+    b = cameras.make_scene(
+        [
+            Obstacle("sphere", size=(0.2,), pos=(1.0, 0.2, 1.0)),
+            Obstacle("box", size=(0.3, 0.3, 0.3), pos=(1.0, -0.3, 1.0)),
+        ],
+        capacity=2,
+    )
     both = jax.tree.map(lambda x, y: jnp.stack([x, y]), a, b)
     p, q = pose([[0, 0, 1.0], [0.3, 0.0, 1.0]], [[0, 0, 0], [0, 0.1, 0]])
     spec = cameras.CameraSpec(width=32, height=24)
     batched = jax.jit(jax.vmap(lambda s, p, q: cameras.render(spec, s, PARAMS, p, q)))(
-        both, jnp.stack([p, p + 0.1]), jnp.stack([q, q]))
+        both, jnp.stack([p, p + 0.1]), jnp.stack([q, q])
+    )
     for w, (scene, shift) in enumerate(((a, 0.0), (b, 0.1))):
         single = cameras.render(spec, scene, PARAMS, p + shift, q)
         np.testing.assert_allclose(np.asarray(batched["depth"][w]), np.asarray(single["depth"]), rtol=1e-5)
@@ -150,10 +183,12 @@ def test_depth_gradient_matches_finite_differences(x64):
         weights = jnp.asarray(np.random.default_rng(0).uniform(size=(1, 12, 16)))
 
         def loss(shift, centre):
-            obstacles = [Obstacle("box", size=(0.5, 0.6, 0.7), pos=(2.0, 0.1, 1.0), rpy=(0.1, 0.2, 0.3)),
-                         Obstacle("sphere", size=(0.2,), pos=(1.2, -0.5, 1.2)),
-                         Obstacle("cylinder", size=(0.15, 0.8), pos=(1.5, 0.6, 0.8), rpy=(0.4, 0.0, 0.0)),
-                         Obstacle("capsule", size=(0.1, 0.4), pos=(1.0, 0.0, 0.3), rpy=(0.0, 1.4, 0.0))]
+            obstacles = [
+                Obstacle("box", size=(0.5, 0.6, 0.7), pos=(2.0, 0.1, 1.0), rpy=(0.1, 0.2, 0.3)),
+                Obstacle("sphere", size=(0.2,), pos=(1.2, -0.5, 1.2)),
+                Obstacle("cylinder", size=(0.15, 0.8), pos=(1.5, 0.6, 0.8), rpy=(0.4, 0.0, 0.0)),
+                Obstacle("capsule", size=(0.1, 0.4), pos=(1.0, 0.0, 0.3), rpy=(0.0, 1.4, 0.0)),
+            ]
             scene = cameras.make_scene(obstacles, dtype=jnp.float64)
             scene = scene.replace(box=scene.box.replace(pos=scene.box.pos.at[0].set(centre)))
             depth = cameras.render(spec, scene, params, p0 + shift, q0, kinds=("depth",))["depth"]
@@ -162,7 +197,7 @@ def test_depth_gradient_matches_finite_differences(x64):
         shift, centre = jnp.zeros(3), jnp.asarray([2.0, 0.1, 1.0])
         grads = jax.grad(loss, argnums=(0, 1))(shift, centre)
         h = 1e-6
-        for arg, g in zip((0, 1), grads):
+        for arg, g in zip((0, 1), grads, strict=True):
             for i in range(3):
                 e = jnp.zeros(3).at[i].set(h)
                 args_p = [shift, centre]
@@ -173,10 +208,18 @@ def test_depth_gradient_matches_finite_differences(x64):
         assert np.all(np.abs(np.asarray(grads[1])) > 0)
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"width": 0}, "width"), ({"height": 9000}, "height"), ({"fov": 0.0}, "fov"), ({"fov": 180.0}, "fov"),
-    ({"near": 2.0, "far": 1.0}, "near"), ({"far": -1.0}, "far"), ({"mount_pos": (0.0, 1.0)}, "mount_pos"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"width": 0}, "width"),
+        ({"height": 9000}, "height"),
+        ({"fov": 0.0}, "fov"),
+        ({"fov": 180.0}, "fov"),
+        ({"near": 2.0, "far": 1.0}, "near"),
+        ({"far": -1.0}, "far"),
+        ({"mount_pos": (0.0, 1.0)}, "mount_pos"),
+    ],
+)
 def test_bad_camera_spec(kwargs, match):
     with pytest.raises(ValueError, match=match):
         cameras.CameraSpec(**kwargs)
@@ -205,8 +248,15 @@ def test_env_images_match_across_backends(fov):
     states = {}
     for backend in ("jax", "pybullet"):
         extra = {"renderer": "egl"} if backend == "pybullet" else {}
-        env = jd.make("fly_thru_gate", backend=backend, vision=("depth", "seg"), init_pos=[[0.05, -0.45, 0.45]],
-                      init_rpy=[[0.1, -0.05, -1.5]], camera_fov=fov, **extra)
+        env = jd.make(
+            "fly_thru_gate",
+            backend=backend,
+            vision=("depth", "seg"),
+            init_pos=[[0.05, -0.45, 0.45]],
+            init_rpy=[[0.1, -0.05, -1.5]],
+            camera_fov=fov,
+            **extra,
+        )
         states[backend] = env.reset(jax.random.key(0)).obs
         env.close()
     seg_j, seg_p = np.asarray(states["jax"]["seg"][0]), np.asarray(states["pybullet"]["seg"][0])
@@ -261,13 +311,17 @@ def test_frame_stack_holds_the_last_captures_oldest_first():
             captures.append(a.obs)
         expected = ([captures[0]] * 3 + captures[1:])[-3:]  # the last three captures, oldest first
         for name in ("depth", "rgb"):
-            np.testing.assert_array_equal(np.asarray(b.obs[name]),
-                                          np.stack([np.asarray(c[name]) for c in expected], axis=1))
+            np.testing.assert_array_equal(
+                np.asarray(b.obs[name]), np.stack([np.asarray(c[name]) for c in expected], axis=1)
+            )
     assert len({np.asarray(c["depth"]).tobytes() for c in captures}) == len(captures)  # every capture new
     seen = policy_input(b.obs)
     assert seen["pixels/depth"].shape == (12, 16, 6) and seen["pixels/rgb"].shape == (12, 16, 18)
-    np.testing.assert_allclose(np.asarray(seen["pixels/depth"][..., 4]),  # drone 1, frame 1
-                               np.clip(np.asarray(b.obs["depth"][1, 1]) / DEPTH_SCALE, 0, 1), rtol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(seen["pixels/depth"][..., 4]),  # drone 1, frame 1
+        np.clip(np.asarray(b.obs["depth"][1, 1]) / DEPTH_SCALE, 0, 1),
+        rtol=1e-6,
+    )
     import gymnasium as gym
 
     env = gym.make("jaxdrones/Hover-v0", vision=("depth",), frame_stack=4, image_size=(16, 12))
@@ -282,10 +336,15 @@ def test_scenes_larger_than_one_step_trace_as_unrolled(monkeypatch):
     (ids 23 and 24) but not themselves."""
     monkeypatch.setattr(raycast, "SLOTS_PER_STEP", 2)
     rng = np.random.default_rng(0)
-    obstacles = [Obstacle(("box", "sphere", "cylinder", "capsule")[k % 4],
-                          size=(0.2, 0.3, 0.4) if k % 4 == 0 else (0.2,) if k % 4 == 1 else (0.1, 0.5),
-                          pos=(float(rng.uniform(0.8, 3)), float(rng.uniform(-2, 2)), float(rng.uniform(0.2, 1.5))),
-                          rpy=tuple(float(a) for a in rng.uniform(-0.5, 0.5, 3))) for k in range(22)]
+    obstacles = [
+        Obstacle(
+            ("box", "sphere", "cylinder", "capsule")[k % 4],
+            size=(0.2, 0.3, 0.4) if k % 4 == 0 else (0.2,) if k % 4 == 1 else (0.1, 0.5),
+            pos=(float(rng.uniform(0.8, 3)), float(rng.uniform(-2, 2)), float(rng.uniform(0.2, 1.5))),
+            rpy=tuple(float(a) for a in rng.uniform(-0.5, 0.5, 3)),
+        )
+        for k in range(22)
+    ]
     scene = cameras.make_scene(obstacles)
     p, q = pose([[0.0, 0.0, 1.0], [0.6, 0.05, 0.92]], [[0.0, 0.0, 0.0], [0.0, 0.0, np.pi]])
     spec = cameras.CameraSpec(width=32, height=24)

@@ -50,7 +50,8 @@ def test_default_flight_tracks_within_5cm(flights):
 
 
 def test_without_feedforward_lags_like_the_original(flights):
-    """The original (no feed-forward) lags its moving way-point by ≈ 9 cm (docs/physics.md §12) but stays on the circle."""
+    """The original (no feed-forward) lags its moving way-point by ≈ 9 cm (docs/physics.md §12) but stays on the
+    circle."""
     m = flights[False]["metrics"]
     assert 0.07 < m["waypoint_rms_m"] < 0.11, m
     assert m["cross_track_rms_m"] < TOLERANCE_M, m
@@ -76,8 +77,9 @@ def test_cli_writes_a_new_run_folder(tmp_path, flights, capsys):
     assert os.path.getsize(new / "flight.png") > 10_000
     metrics = json.loads((new / "metrics.json").read_text())
     assert metrics["settings"]["num_drones"] == 4 and metrics["settings"]["feedforward"] == circle.DEFAULT_FEEDFORWARD
-    assert metrics["metrics"]["waypoint_rms_m"] == pytest.approx(flights[circle.DEFAULT_FEEDFORWARD]["metrics"]
-                                                                  ["waypoint_rms_m"])
+    assert metrics["metrics"]["waypoint_rms_m"] == pytest.approx(
+        flights[circle.DEFAULT_FEEDFORWARD]["metrics"]["waypoint_rms_m"]
+    )
     printed = capsys.readouterr().out
     assert "overall" in printed and "drone 3" in printed
 

@@ -42,9 +42,10 @@ def test_hover_aviary_layout_reward_and_episode_length():
         state = env._getDroneStateVector(0)
         assert reward == pytest.approx(max(0.0, 2 - np.linalg.norm(state[:3] - [0, 0, 1]) ** 4))
         # KIN: pos, rpy, vel, world-frame angular velocity, then the last 15 actions, oldest first
-        np.testing.assert_allclose(obs[0, :12], np.concatenate([state[0:3], state[7:10], state[10:13],
-                                                                state[13:16]]), rtol=1e-6, atol=1e-6)
-        np.testing.assert_allclose(obs[0, 12:][-min(steps, 15):], actions[max(0, steps - 15):steps], atol=1e-7)
+        np.testing.assert_allclose(
+            obs[0, :12], np.concatenate([state[0:3], state[7:10], state[10:13], state[13:16]]), rtol=1e-6, atol=1e-6
+        )
+        np.testing.assert_allclose(obs[0, 12:][-min(steps, 15) :], actions[max(0, steps - 15) : steps], atol=1e-7)
         done = terminated or truncated
     assert steps == 242 and truncated and not terminated
 
@@ -96,28 +97,43 @@ def test_dsl_pid_control_equals_the_batched_pid():
         quat /= np.linalg.norm(quat)
         state20 = np.concatenate([pos, quat, np.zeros(3), vel, np.zeros(3), np.zeros(4)])
         rpm, pos_e, yaw_e = ctrl.computeControlFromState(1 / 48, state20, target, target_rpy=[0, 0, 0.3])
-        state = DroneState(pos=pos[None], quat=quat[None], vel=vel[None], ang_vel=np.zeros((1, 3)),
-                           rpm=np.zeros((1, 4)), contact=np.zeros(1, np.int32))
-        ref, pid_state = pid_control(params, PIDGains.dsl(), pid_state, state, target[None],
-                                     target_rpy=[[0, 0, 0.3]], ctrl_dt=1 / 48)
+        state = DroneState(
+            pos=pos[None],
+            quat=quat[None],
+            vel=vel[None],
+            ang_vel=np.zeros((1, 3)),
+            rpm=np.zeros((1, 4)),
+            contact=np.zeros(1, np.int32),
+        )
+        ref, pid_state = pid_control(
+            params, PIDGains.dsl(), pid_state, state, target[None], target_rpy=[[0, 0, 0.3]], ctrl_dt=1 / 48
+        )
         np.testing.assert_allclose(rpm, np.asarray(ref)[0], rtol=1e-6)
         np.testing.assert_allclose(pos_e, target - pos, rtol=1e-5, atol=1e-6)
     assert ctrl.control_counter == 3 and np.any(ctrl.integral_pos_e != 0)
     ctrl.reset()
     assert ctrl.control_counter == 0 and np.all(ctrl.integral_pos_e == 0)
-    np.testing.assert_array_equal(ctrl.MIXER_MATRIX, [[-0.5, -0.5, -1], [-0.5, 0.5, 1], [0.5, 0.5, -1],
-                                                      [0.5, -0.5, 1]])
+    np.testing.assert_array_equal(ctrl.MIXER_MATRIX, [[-0.5, -0.5, -1], [-0.5, 0.5, 1], [0.5, 0.5, -1], [0.5, -0.5, 1]])
 
 
 def test_ctrl_aviary_with_the_pid_flies_a_circle():
     """pid.py's loop, 3 drones for 4 s: each tracks its moving waypoint within a few centimetres."""
     n, r, freq = 3, 0.3, 48
-    init = np.array([[r * np.cos(i / 6 * 2 * np.pi + np.pi / 2), r * np.sin(i / 6 * 2 * np.pi + np.pi / 2) - r,
-                      0.1 + 0.05 * i] for i in range(n)])
+    init = np.array(
+        [
+            [r * np.cos(i / 6 * 2 * np.pi + np.pi / 2), r * np.sin(i / 6 * 2 * np.pi + np.pi / 2) - r, 0.1 + 0.05 * i]
+            for i in range(n)
+        ]
+    )
     env = CtrlAviary(num_drones=n, initial_xyzs=init, physics=Physics("pyb"), ctrl_freq=freq)
     ctrls = [DSLPIDControl(drone_model=DroneModel.CF2X) for _ in range(n)]
-    waypoints = [[r * np.cos(k / (10 * freq) * 2 * np.pi + np.pi / 2) + init[0, 0],
-                  r * np.sin(k / (10 * freq) * 2 * np.pi + np.pi / 2) - r + init[0, 1]] for k in range(10 * freq)]
+    waypoints = [
+        [
+            r * np.cos(k / (10 * freq) * 2 * np.pi + np.pi / 2) + init[0, 0],
+            r * np.sin(k / (10 * freq) * 2 * np.pi + np.pi / 2) - r + init[0, 1],
+        ]
+        for k in range(10 * freq)
+    ]
     counters = [int(i * 10 * freq / 6) for i in range(n)]
     action, errors = np.zeros((n, 4)), []
     for t in range(4 * freq):
@@ -125,8 +141,7 @@ def test_ctrl_aviary_with_the_pid_flies_a_circle():
         assert obs.shape == (n, 20) and reward == -1 and not (terminated or truncated) and info == {"answer": 42}
         for j in range(n):
             target = np.hstack([waypoints[counters[j]], init[j, 2]])
-            action[j], _, _ = ctrls[j].computeControlFromState(env.CTRL_TIMESTEP, obs[j], target,
-                                                                target_rpy=[0, 0, 0])
+            action[j], _, _ = ctrls[j].computeControlFromState(env.CTRL_TIMESTEP, obs[j], target, target_rpy=[0, 0, 0])
             if t > 2 * freq:
                 errors.append(np.linalg.norm(obs[j, :3] - target))
             counters[j] = (counters[j] + 1) % (10 * freq)
@@ -135,15 +150,21 @@ def test_ctrl_aviary_with_the_pid_flies_a_circle():
 
 
 def test_physics_members_set_the_aerodynamics():
-    for physics, flags in ((Physics.PYB, (False, False, False)), (Physics.PYB_GND, (False, True, False)),
-                           (Physics.PYB_GND_DRAG_DW, (True, True, True))):
+    for physics, flags in (
+        (Physics.PYB, (False, False, False)),
+        (Physics.PYB_GND, (False, True, False)),
+        (Physics.PYB_GND_DRAG_DW, (True, True, True)),
+    ):
         env = CtrlAviary(num_drones=2, physics=physics)
         assert (env._config.drag, env._config.ground_effect, env._config.downwash) == flags
 
 
 def test_mistyped_keywords_get_a_hint():
-    with pytest.raises(TypeError, match=r"HoverAviary\(\) got an unexpected keyword argument 'ctrl_fre' \(did you "
-                                        r"mean 'ctrl_freq'\?\)"):
+    with pytest.raises(
+        TypeError,
+        match=r"HoverAviary\(\) got an unexpected keyword argument 'ctrl_fre' \(did you "
+        r"mean 'ctrl_freq'\?\)",
+    ):
         HoverAviary(ctrl_fre=30)
     with pytest.raises(TypeError, match=r"did you mean 'num_drones'"):
         MultiHoverAviary(num_drone=2)
@@ -184,13 +205,20 @@ def test_logger_saves_without_overwriting(tmp_path):
 def test_jax_backend_prints_no_pybullet_banner():
     """Building and stepping the JAX envs (the functional one and the compat aviaries) imports no PyBullet, so its
     "pybullet build time" banner never shows."""
-    code = ("import jax, numpy as np, jaxdrones as jd\n"
-            "env = jd.make('hover'); s = env.reset(jax.random.key(0)); env.step(s, np.zeros((1, 4)))\n"
-            "from jaxdrones.compat.gym_pybullet_drones import HoverAviary, CtrlAviary\n"
-            "e = HoverAviary(); e.reset(); e.step(np.zeros((1, 4))); CtrlAviary().step(np.zeros((1, 4)))\n"
-            "import sys; print('pybullet' in sys.modules)\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                         env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    code = (
+        "import jax, numpy as np, jaxdrones as jd\n"
+        "env = jd.make('hover'); s = env.reset(jax.random.key(0)); env.step(s, np.zeros((1, 4)))\n"
+        "from jaxdrones.compat.gym_pybullet_drones import HoverAviary, CtrlAviary\n"
+        "e = HoverAviary(); e.reset(); e.step(np.zeros((1, 4))); CtrlAviary().step(np.zeros((1, 4)))\n"
+        "import sys; print('pybullet' in sys.modules)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "JAX_PLATFORMS": "cpu"},
+    )
     assert out.returncode == 0, out.stderr
     assert "pybullet build time" not in out.stdout + out.stderr
     assert out.stdout.strip().splitlines()[-1] == "False"
@@ -241,12 +269,14 @@ def test_an_aviary_subclassed_as_for_the_original_runs():
 
 
 def test_float64_with_x64():
-    code = ("import jax; jax.config.update('jax_enable_x64', True)\n"
-            "import numpy as np\n"
-            "from jaxdrones.compat.gym_pybullet_drones import CtrlAviary, DSLPIDControl\n"
-            "env = CtrlAviary(); obs, _ = env.reset(); ctrl = DSLPIDControl()\n"
-            "rpm, _, _ = ctrl.computeControlFromState(env.CTRL_TIMESTEP, obs[0], [0, 0, 0.5])\n"
-            "obs, *_ = env.step(rpm[None]); print(env._state.pos.dtype, obs.dtype)\n")
+    code = (
+        "import jax; jax.config.update('jax_enable_x64', True)\n"
+        "import numpy as np\n"
+        "from jaxdrones.compat.gym_pybullet_drones import CtrlAviary, DSLPIDControl\n"
+        "env = CtrlAviary(); obs, _ = env.reset(); ctrl = DSLPIDControl()\n"
+        "rpm, _, _ = ctrl.computeControlFromState(env.CTRL_TIMESTEP, obs[0], [0, 0, 0.5])\n"
+        "obs, *_ = env.step(rpm[None]); print(env._state.pos.dtype, obs.dtype)\n"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["float64", "float64"]
@@ -265,8 +295,9 @@ def test_pybullet_backend():
         for _ in range(96):
             obs, *_ = env.step(action)
             for j in range(2):
-                action[j], _, _ = ctrls[j].computeControlFromState(env.CTRL_TIMESTEP, obs[j],
-                                                                    env.INIT_XYZS[j] + [0, 0, 0.4])
+                action[j], _, _ = ctrls[j].computeControlFromState(
+                    env.CTRL_TIMESTEP, obs[j], env.INIT_XYZS[j] + [0, 0, 0.4]
+                )
         finals[backend] = obs[:, :3]
         assert (env.getPyBulletClient() >= 0) == (backend == "pybullet")
         env.close()

@@ -82,8 +82,9 @@ def test_hand_computed_forces_and_torque(x64):
     out = jd.make_step(config)(params, state, state.rpm)
     off = jd.make_step(dataclasses.replace(config, downwash=False))(params, state, state.rpm)
     dt, inertia = config.dt, np.asarray(params.inertia)
-    np.testing.assert_allclose(np.asarray(out.ang_vel[1]), dt * np.linalg.solve(inertia, [*torque, 0.0]),
-                               rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(out.ang_vel[1]), dt * np.linalg.solve(inertia, [*torque, 0.0]), rtol=1e-9, atol=1e-15
+    )
     lift = float(np.sum(np.asarray(thrust[1])) + np.sum(expected[1]))
     acc = np.asarray(rotmat[1])[:, 2] * lift / float(params.mass) - [0.0, 0.0, float(params.gravity)]
     np.testing.assert_allclose(np.asarray(out.vel[1]), dt * acc, rtol=1e-9, atol=1e-15)
@@ -99,10 +100,17 @@ def test_half_metre_figure(x64):
     change = _thrust_changes(params, state, thrust, rotmat)
     total = float(np.sum(change[1]))
     paper = float(aerodynamics.downwash_force(params, state.pos)[1])
-    on_axis = 0.07 * float(aerodynamics.jet_speed(jnp.asarray(0.5), 0.0, aerodynamics.hover_induced_velocity(params),
-                                                  2 * params.arm)) * float(params.weight)
-    print(f"\nMEASURED per-rotor downwash 0.5 m below: {total:.4f} N (4 × {change[1, 0]:.5f} N), on the axis "
-          f"{on_axis:.4f} N, paper's model {paper:.4f} N")
+    on_axis = (
+        0.07
+        * float(
+            aerodynamics.jet_speed(jnp.asarray(0.5), 0.0, aerodynamics.hover_induced_velocity(params), 2 * params.arm)
+        )
+        * float(params.weight)
+    )
+    print(
+        f"\nMEASURED per-rotor downwash 0.5 m below: {total:.4f} N (4 × {change[1, 0]:.5f} N), on the axis "
+        f"{on_axis:.4f} N, paper's model {paper:.4f} N"
+    )
     np.testing.assert_allclose(total, -0.04938, rtol=1e-3)
     np.testing.assert_allclose(change[1], total / 4, rtol=1e-12)
     assert abs(abs(total) - 0.06) <= 0.25 * 0.06
@@ -116,8 +124,12 @@ def test_nothing_on_the_upper_drone_or_far_away(x64):
     params, state, thrust, rotmat = _pair(BELOW)
     assert np.all(_thrust_changes(params, state, thrust, rotmat)[0] == 0.0)
     weight = float(params.weight)
-    for pos, bound in ((((0.0, 0.0, 1.0), (0.3, 0.0, 1.0)), 0.0), (((0.0, 0.0, 0.5), (0.0, 0.0, 1.0)), None),
-                       (((0.0, 0.0, 1.0), (10.5, 0.0, 0.5)), 0.0), (((0.0, 0.0, 1.0), (3.0, 0.0, 0.5)), 1e-6)):
+    for pos, bound in (
+        (((0.0, 0.0, 1.0), (0.3, 0.0, 1.0)), 0.0),
+        (((0.0, 0.0, 0.5), (0.0, 0.0, 1.0)), None),
+        (((0.0, 0.0, 1.0), (10.5, 0.0, 0.5)), 0.0),
+        (((0.0, 0.0, 1.0), (3.0, 0.0, 0.5)), 1e-6),
+    ):
         params, state, thrust, rotmat = _pair(pos)
         change = _thrust_changes(params, state, thrust, rotmat)
         lower = int(np.argmin(np.asarray(state.pos[:, 2])))
@@ -154,15 +166,19 @@ def test_check_grads_rollout(x64):
     """check_grads (float64, order 1, rev: through the hand-written adjoint, which takes the thrust changes as an
     input) of a 10-step rollout of 3 drones at 240 Hz with the per-rotor downwash, drag and ground effect, w.r.t. the
     RPM commands, the initial state and mass and kf. The lower drones sit in the upper ones' jets, off their axes."""
-    config = jd.SimConfig(n_drones=3, sim_freq=240, ctrl_freq=240, drag=True, ground_effect=True,
-                          downwash="per_rotor")
+    config = jd.SimConfig(n_drones=3, sim_freq=240, ctrl_freq=240, drag=True, ground_effect=True, downwash="per_rotor")
     step = jd.make_step(config)
     p0 = jd.load_params("cf2x")
     hover = float(p0.hover_rpm)
     rng = np.random.default_rng(7)
-    state0 = jd.init_state(config, pos=[[0.0, 0.0, 0.3], [0.03, 0.02, 0.6], [0.05, -0.03, 0.95]],
-                           rpy=rng.uniform(-0.2, 0.2, (3, 3)), vel=rng.uniform(-0.2, 0.2, (3, 3)),
-                           ang_vel=rng.uniform(-0.3, 0.3, (3, 3)), rpm=hover * np.ones((3, 4)))
+    state0 = jd.init_state(
+        config,
+        pos=[[0.0, 0.0, 0.3], [0.03, 0.02, 0.6], [0.05, -0.03, 0.95]],
+        rpy=rng.uniform(-0.2, 0.2, (3, 3)),
+        vel=rng.uniform(-0.2, 0.2, (3, 3)),
+        ang_vel=rng.uniform(-0.3, 0.3, (3, 3)),
+        rpm=hover * np.ones((3, 4)),
+    )
     steps = 10
     rpms = jnp.asarray(hover * (1.01 + 0.01 * rng.uniform(-1, 1, (steps, 3, 4))))
 
@@ -198,8 +214,10 @@ def test_jit_vmap_and_the_derived_derivative_agree(x64):
         out = step(params, state, rpm)
         return jnp.sum(out.ang_vel[..., 1] + out.pos[..., 0])
 
-    grads = [jax.grad(functools.partial(loss, jd.make_step(dataclasses.replace(config, adjoint=a))))(rpm)
-             for a in (True, False)]
+    grads = [
+        jax.grad(functools.partial(loss, jd.make_step(dataclasses.replace(config, adjoint=a))))(rpm)
+        for a in (True, False)
+    ]
     np.testing.assert_allclose(grads[0], grads[1], rtol=1e-10, atol=1e-12 * float(jnp.max(jnp.abs(grads[1]))))
 
 
@@ -221,8 +239,12 @@ def test_neighbor_list_matches_all_pairs(x64, rng):
     near = aerodynamics.downwash_thrust(params, jnp.asarray(pos), rotmat, thrust, neighbors=cand, cutoff=0.25)
     assert float(jnp.min(full)) < -1e-3
     np.testing.assert_allclose(near, full, rtol=1e-12, atol=1e-18)
-    configs = [jd.SimConfig(n_drones=n, sim_freq=240, ctrl_freq=120, downwash="per_rotor", downwash_radius=0.25,
-                            cell_capacity=c) for c in (16, 1000)]  # a list, and every drone (9 × 1000 ≥ n - 1)
+    configs = [
+        jd.SimConfig(
+            n_drones=n, sim_freq=240, ctrl_freq=120, downwash="per_rotor", downwash_radius=0.25, cell_capacity=c
+        )
+        for c in (16, 1000)
+    ]  # a list, and every drone (9 × 1000 ≥ n - 1)
     assert configs[0].effects.downwash_neighbors(tuple(jnp.asarray(pos[:, k]) for k in range(3))) is not None
     assert configs[1].effects.downwash_neighbors(tuple(jnp.asarray(pos[:, k]) for k in range(3))) is None
     state = jd.init_state(configs[0], pos=pos)
@@ -256,9 +278,11 @@ def test_jax_and_pybullet_agree(x64, model):
     pos_err = np.max(np.abs(s.pos - np.asarray(jax_states.pos[-1])))
     angle = 2 * np.arccos(np.clip(np.abs(np.sum(s.quat * np.asarray(jax_states.quat[-1]), -1)), 0.0, 1.0))
     tilt = float(np.arccos(np.asarray(quat_to_rotmat(jnp.asarray(s.quat)))[1, 2, 2]))
-    print(f"\nMEASURED per-rotor downwash, {model}, JAX vs PyBullet after 0.25 s: position {pos_err:.1e} m, "
-          f"attitude {np.max(angle):.1e} rad; lower drone tilted {np.degrees(tilt):.1f} deg, moved "
-          f"{s.pos[1, 0] - 0.03:+.4f} m in x")
+    print(
+        f"\nMEASURED per-rotor downwash, {model}, JAX vs PyBullet after 0.25 s: position {pos_err:.1e} m, "
+        f"attitude {np.max(angle):.1e} rad; lower drone tilted {np.degrees(tilt):.1f} deg, moved "
+        f"{s.pos[1, 0] - 0.03:+.4f} m in x"
+    )
     assert pos_err <= 1e-9 and np.max(angle) <= 1e-7
     assert tilt > 0.01 and s.pos[1, 0] < 0.03 - 1e-4
 
@@ -274,8 +298,14 @@ def test_choices_and_bad_input():
     assert TaskConfig(downwash="paper") == TaskConfig(downwash=True)
     assert TaskConfig(downwash="per_rotor").sim_config().downwash == "per_rotor"
     choices = r"False \(off\), True or 'paper' \(the paper's model\) or 'per_rotor'"
-    for value, hint in (("per-rotor", "did you mean 'per_rotor'"), ("Paper", "did you mean 'paper'"),
-                        ("rotor", None), (None, None), (1, None), (0.5, None)):
+    for value, hint in (
+        ("per-rotor", "did you mean 'per_rotor'"),
+        ("Paper", "did you mean 'paper'"),
+        ("rotor", None),
+        (None, None),
+        (1, None),
+        (0.5, None),
+    ):
         match = rf"SimConfig.downwash must be {choices}.*got {value!r}" + (rf".*{hint}" if hint else "")
         with pytest.raises(ValueError, match=match):
             jd.SimConfig(downwash=value)
@@ -301,7 +331,8 @@ def test_smooth_onset_and_rk4(x64):
     assert float(loss(onset - 1e-6, exact)) == 0.0 and float(loss(onset + 1e-6, exact)) < -0.1 * float(params.weight)
     width = smooth.downwash
     assert float(loss(onset + 1e-6, smooth)) > -1e-6 and float(loss(onset + 2 * width + 1e-6, smooth)) == float(
-        loss(onset + 2 * width + 1e-6, exact))
+        loss(onset + 2 * width + 1e-6, exact)
+    )
     for dz in (onset + 0.3 * width, onset + width, onset + 1.7 * width, 0.3):
         grad = float(jax.grad(loss)(jnp.asarray(dz), smooth))
         h = 1e-7

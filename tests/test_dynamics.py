@@ -13,12 +13,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference_dyn as ref
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from jax.test_util import check_grads
 
 import jaxdrones as jd
-import reference_dyn as ref
 from jaxdrones import aerodynamics
 from jaxdrones.adjoint import supported as adjoint_supported
 from jaxdrones.rotations import quat_mul, quat_to_rotmat
@@ -31,7 +31,7 @@ REF_RTOL = 1e-6
 START = (0.3, -0.2, 100.0)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def stepper(config: jd.SimConfig):
     """One step function per config, so that its jit cache is reused across tests."""
     return jd.make_step(config)
@@ -62,8 +62,9 @@ def rpm_sequence(model: str, pattern: str, n_steps: int, rng: np.random.Generato
 def initial_conditions(pattern: str, rng: np.random.Generator) -> dict:
     """Start pose and rates: at rest and level (with some yaw) except for 'random', which starts tumbling."""
     if pattern == "random":
-        return dict(pos=[START], rpy=[rng.uniform(-0.5, 0.5, 3)], vel=[rng.uniform(-1, 1, 3)],
-                    ang_vel=[rng.uniform(-2, 2, 3)])
+        return dict(
+            pos=[START], rpy=[rng.uniform(-0.5, 0.5, 3)], vel=[rng.uniform(-1, 1, 3)], ang_vel=[rng.uniform(-2, 2, 3)]
+        )
     return dict(pos=[START], rpy=[[0.0, 0.0, 0.4]], vel=[[0.0, 0.0, 0.0]], ang_vel=[[0.0, 0.0, 0.0]])
 
 
@@ -90,12 +91,22 @@ def compare_with_reference(model: str, pattern: str, ctrl_freq: int, n_physics: 
     np.testing.assert_allclose(ref.rotmat(np.asarray(state.quat[0])), euler_matrix(ic["rpy"][0]), atol=1e-15)
 
     out = jd.rollout(stepper(config), params, state, rpms[:, None, :])
-    expected = ref.simulate(ref.AIRFRAMES[model], np.asarray(state.pos[0]), np.asarray(state.quat[0]),
-                            np.asarray(state.vel[0]), np.asarray(state.ang_vel[0]), rpms, 240, ctrl_freq)
+    expected = ref.simulate(
+        ref.AIRFRAMES[model],
+        np.asarray(state.pos[0]),
+        np.asarray(state.quat[0]),
+        np.asarray(state.vel[0]),
+        np.asarray(state.ang_vel[0]),
+        rpms,
+        240,
+        ctrl_freq,
+    )
     errors = {name: rel_err(getattr(out, name)[:, 0], expected[name]) for name in expected}
     assert expected["pos"][:, 2].min() > 1.0, "the reference run must stay clear of the ground"
-    print(f"MEASURED reference {model:5s} {pattern:6s} ctrl={ctrl_freq:3d} Hz: "
-          + " ".join(f"{k}={v:.1e}" for k, v in errors.items()))
+    print(
+        f"MEASURED reference {model:5s} {pattern:6s} ctrl={ctrl_freq:3d} Hz: "
+        + " ".join(f"{k}={v:.1e}" for k, v in errors.items())
+    )
     return errors
 
 
@@ -130,8 +141,9 @@ def test_out_of_range_rpm_is_clipped_like_the_reference(model, x64, rng):
     state = jd.init_state(config, pos=[START])
     out = jd.rollout(stepper(config), params, state, rpms[:, None, :])
     np.testing.assert_allclose(out.rpm[:, 0], np.clip(rpms, 0, frame.max_rpm), rtol=1e-15)
-    expected = ref.simulate(frame, np.asarray(state.pos[0]), np.asarray(state.quat[0]), np.zeros(3), np.zeros(3),
-                            rpms, 240, 240)
+    expected = ref.simulate(
+        frame, np.asarray(state.pos[0]), np.asarray(state.quat[0]), np.zeros(3), np.zeros(3), rpms, 240, 240
+    )
     errors = {name: rel_err(getattr(out, name)[:, 0], expected[name]) for name in expected}
     assert max(errors.values()) < REF_RTOL, errors
 
@@ -247,8 +259,11 @@ MOTOR_XY = {
     "cf2p": [(0.0397, 0), (0, 0.0397), (-0.0397, 0), (0, -0.0397)],
     "racer": [(0.085, 0.0675), (-0.085, 0.0675), (-0.085, -0.0675), (0.085, -0.0675)],
 }
-MOTOR_CCW = {"cf2x": (True, False, True, False), "cf2p": (True, False, True, False),
-             "racer": (False, True, False, True)}
+MOTOR_CCW = {
+    "cf2x": (True, False, True, False),
+    "cf2p": (True, False, True, False),
+    "racer": (False, True, False, True),
+}
 
 
 @pytest.mark.parametrize("model", MODELS)
@@ -258,7 +273,7 @@ def test_single_motor_torque_signs(model, x64):
     params = jd.load_params(model)
     state = jd.init_state(config, pos=[START])
     step = stepper(config)
-    for i, ((x, y), ccw) in enumerate(zip(MOTOR_XY[model], MOTOR_CCW[model])):
+    for i, ((x, y), ccw) in enumerate(zip(MOTOR_XY[model], MOTOR_CCW[model], strict=True)):
         rpm = np.full((1, 4), float(params.hover_rpm))
         rpm[0, i] *= 1.02
         w = np.asarray(step(params, state, rpm).ang_vel[0])
@@ -380,8 +395,9 @@ def test_downwash_unit():
     assert inside < -1e-6 and outside == 0.0
     # β = 0 at Δz = 0.6875 m: zero off-axis, the d → 0 limit (-α, finite) on the axis.
     assert force([0, 0, 0.0], [0.01, 0, 0.6875])[0] == 0.0
-    np.testing.assert_allclose(force([0, 0, 0.0], [0, 0, 0.6875])[0], -2267.18 * (radius / (4 * 0.6875)) ** 2,
-                               rtol=1e-5)
+    np.testing.assert_allclose(
+        force([0, 0, 0.0], [0, 0, 0.6875])[0], -2267.18 * (radius / (4 * 0.6875)) ** 2, rtol=1e-5
+    )
     # Several drones above add up.
     three = force([0, 0, 0.0], [0.05, 0, 0.8], [-0.03, 0.02, 1.3])
     pair_a = force([0, 0, 0.0], [0.05, 0, 0.8])[0]
@@ -437,7 +453,8 @@ def test_downwash_cell_list(x64, rng):
     column = jnp.asarray(np.stack([0.01 * np.arange(20), np.zeros(20), 0.5 + 0.5 * np.arange(20)], -1))
     short = cell_candidates(column[:, 0], column[:, 1], 1.0, 8)
     assert float(aerodynamics.downwash_force(params, column, neighbors=short, cutoff=1.0)[0]) > float(
-        aerodynamics.downwash_force(params, column, cutoff=1.0)[0])
+        aerodynamics.downwash_force(params, column, cutoff=1.0)[0]
+    )
 
 
 def test_downwash_radius_step_matches_all_pairs(x64, rng):
@@ -448,7 +465,10 @@ def test_downwash_radius_step_matches_all_pairs(x64, rng):
     pos = np.stack([_swarm(rng) for _ in range(2)])
     configs = [jd.SimConfig(n_drones=256, ctrl_freq=30, downwash=True, downwash_radius=r) for r in (None, 1.0)]
     assert configs[1].effects.downwash_neighbors(tuple(jnp.asarray(pos[..., k]) for k in range(3))).shape == (
-        2, 256, 72)
+        2,
+        256,
+        72,
+    )
     state = jd.init_state(configs[0], pos=pos)
     rpm = jnp.full((2, 256, 4), float(params.hover_rpm))
     full, near = (stepper(c)(params, state, rpm) for c in configs)
@@ -506,8 +526,9 @@ def test_drag_uses_previous_substep_rpm(x64):
 # ------------------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("integrator, adjoint", [("euler", True), ("euler", False),
-                                                  pytest.param("rk4", True, marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "integrator, adjoint", [("euler", True), ("euler", False), pytest.param("rk4", True, marks=pytest.mark.slow)]
+)
 def test_check_grads_full_step(integrator, adjoint, x64):
     """check_grads (float64, order 1) through a 2-substep step of 3 drones with all effects on, w.r.t. pos, vel,
     quat, ang_vel, the previous RPM (drag), the RPM command, mass, kf and km: reverse mode through the hand-written
@@ -515,16 +536,29 @@ def test_check_grads_full_step(integrator, adjoint, x64):
 
     Drones sit at 0.15-0.75 m (props above the ground-effect clip, 0.0378 m, and above the contact height),
     offset horizontally by ~0.1 m at different heights (downwash active), with RPM inside (0, max_rpm)."""
-    config = jd.SimConfig(n_drones=3, sim_freq=240, ctrl_freq=120, drag=True, ground_effect=True, downwash=True,
-                          integrator=integrator, adjoint=adjoint)
+    config = jd.SimConfig(
+        n_drones=3,
+        sim_freq=240,
+        ctrl_freq=120,
+        drag=True,
+        ground_effect=True,
+        downwash=True,
+        integrator=integrator,
+        adjoint=adjoint,
+    )
     step = jd.make_step(config)
     p0 = jd.load_params("cf2x")
     assert p0.mass.dtype == jnp.float64
     hover = float(p0.hover_rpm)
     rng = np.random.default_rng(4)
-    state0 = jd.init_state(config, pos=[[0.0, 0.0, 0.15], [0.1, 0.02, 0.45], [-0.03, 0.1, 0.75]],
-                           rpy=rng.uniform(-0.2, 0.2, (3, 3)), vel=rng.uniform(-0.5, 0.5, (3, 3)),
-                           ang_vel=rng.uniform(-1, 1, (3, 3)), rpm=hover * (1 + 0.05 * rng.uniform(-1, 1, (3, 4))))
+    state0 = jd.init_state(
+        config,
+        pos=[[0.0, 0.0, 0.15], [0.1, 0.02, 0.45], [-0.03, 0.1, 0.75]],
+        rpy=rng.uniform(-0.2, 0.2, (3, 3)),
+        vel=rng.uniform(-0.5, 0.5, (3, 3)),
+        ang_vel=rng.uniform(-1, 1, (3, 3)),
+        rpm=hover * (1 + 0.05 * rng.uniform(-1, 1, (3, 4))),
+    )
     rpm_base = hover * (1 + 0.05 * rng.uniform(-1, 1, (3, 4)))
 
     def f(pos, vel, quat, ang_vel, rpm_prev_scale, rpm_scale, mass_scale, kf_scale, km_scale):
@@ -579,9 +613,14 @@ ALL_EFFECTS = jd.SimConfig(n_drones=4, sim_freq=240, ctrl_freq=48, drag=True, gr
 
 def _world_states(rng, n_worlds):
     pos = rng.uniform([-0.3, -0.3, 0.1], [0.3, 0.3, 1.2], (n_worlds, 4, 3))
-    return jd.init_state(ALL_EFFECTS, pos=pos, rpy=rng.uniform(-0.3, 0.3, (n_worlds, 4, 3)),
-                         vel=rng.uniform(-1, 1, (n_worlds, 4, 3)), ang_vel=rng.uniform(-2, 2, (n_worlds, 4, 3)),
-                         rpm=rng.uniform(1e4, 2e4, (n_worlds, 4, 4)))
+    return jd.init_state(
+        ALL_EFFECTS,
+        pos=pos,
+        rpy=rng.uniform(-0.3, 0.3, (n_worlds, 4, 3)),
+        vel=rng.uniform(-1, 1, (n_worlds, 4, 3)),
+        ang_vel=rng.uniform(-2, 2, (n_worlds, 4, 3)),
+        rpm=rng.uniform(1e4, 2e4, (n_worlds, 4, 4)),
+    )
 
 
 def _assert_states_close(a, b, rtol=1e-5, atol=1e-6):
@@ -659,17 +698,24 @@ def test_permuting_drones_permutes_outputs(rng):
 
 def test_heterogeneous_team_equals_individual_drones(x64, rng):
     """Params with a drone axis ([D]) fly a cf2x, a cf2p and a racer in one world (no coupling effects on)."""
-    config, single = jd.SimConfig(n_drones=3, drag=True, ground_effect=True), jd.SimConfig(drag=True,
-                                                                                           ground_effect=True)
+    config, single = (
+        jd.SimConfig(n_drones=3, drag=True, ground_effect=True),
+        jd.SimConfig(drag=True, ground_effect=True),
+    )
     models = [jd.load_params(m) for m in MODELS]
     team = jax.tree.map(lambda *xs: jnp.stack(xs), *models)
-    state = jd.init_state(config, pos=[[0, 0, 0.3], [1, 0, 0.5], [0, 1, 2.0]], rpy=rng.uniform(-0.3, 0.3, (3, 3)),
-                          ang_vel=rng.uniform(-1, 1, (3, 3)), rpm=rng.uniform(1e4, 1.5e4, (3, 4)))
+    state = jd.init_state(
+        config,
+        pos=[[0, 0, 0.3], [1, 0, 0.5], [0, 1, 2.0]],
+        rpy=rng.uniform(-0.3, 0.3, (3, 3)),
+        ang_vel=rng.uniform(-1, 1, (3, 3)),
+        rpm=rng.uniform(1e4, 1.5e4, (3, 4)),
+    )
     rpm = np.stack([float(m.hover_rpm) * (1 + 0.05 * rng.uniform(-1, 1, 4)) for m in models])
     out = stepper(config)(team, state, rpm)
     for d, model in enumerate(models):
-        one = stepper(single)(model, jax.tree.map(lambda x: x[d:d + 1], state), rpm[d:d + 1])
-        _assert_states_close(jax.tree.map(lambda x: x[d:d + 1], out), one, rtol=1e-12, atol=1e-14)
+        one = stepper(single)(model, jax.tree.map(lambda x: x[d : d + 1], state), rpm[d : d + 1])
+        _assert_states_close(jax.tree.map(lambda x: x[d : d + 1], out), one, rtol=1e-12, atol=1e-14)
 
 
 @settings(max_examples=15, deadline=None)
@@ -735,17 +781,25 @@ def test_rk4_converges_with_fourth_order_and_agrees_with_fine_euler(x64):
 
     def final(integrator, sim_freq):
         config = jd.SimConfig(sim_freq=sim_freq, ctrl_freq=240, integrator=integrator)
-        state = jd.init_state(config, pos=[START], rpy=[[0.2, -0.1, 0.5]], vel=[[0.5, 0.0, -0.2]],
-                              ang_vel=[[1.0, -0.6, 0.8]], rpm=rpm[None])
+        state = jd.init_state(
+            config,
+            pos=[START],
+            rpy=[[0.2, -0.1, 0.5]],
+            vel=[[0.5, 0.0, -0.2]],
+            ang_vel=[[1.0, -0.6, 0.8]],
+            rpm=rpm[None],
+        )
         out = jd.rollout(stepper(config), params, state, rpms)
         return np.concatenate([np.asarray(getattr(out, k)[-1, 0]) for k in ("pos", "quat", "vel", "ang_vel")])
 
     truth = final("rk4", 240 * 8)
     rk4 = {f: np.abs(final("rk4", f) - truth).max() for f in (240, 480)}
     euler = {f: np.abs(final("euler", f) - truth).max() for f in (240, 240 * 8)}
-    print(f"MEASURED rk4 error vs fine rk4 (1920 Hz) after 2 s: 240 Hz {rk4[240]:.2e}, 480 Hz {rk4[480]:.2e} "
-          f"(ratio {rk4[240] / rk4[480]:.1f}); euler 240 Hz {euler[240]:.2e}, 1920 Hz {euler[1920]:.2e} "
-          f"(ratio {euler[240] / euler[1920]:.1f})")
+    print(
+        f"MEASURED rk4 error vs fine rk4 (1920 Hz) after 2 s: 240 Hz {rk4[240]:.2e}, 480 Hz {rk4[480]:.2e} "
+        f"(ratio {rk4[240] / rk4[480]:.1f}); euler 240 Hz {euler[240]:.2e}, 1920 Hz {euler[1920]:.2e} "
+        f"(ratio {euler[240] / euler[1920]:.1f})"
+    )
     assert 12 < rk4[240] / rk4[480] < 20  # fourth order: 16
     assert rk4[240] < 1e-6
     assert 6 < euler[240] / euler[1920] < 10  # first order: 8
@@ -767,29 +821,39 @@ def test_quaternion_update_gradient_at_rest_is_first_order(x64):
     # With respect to q itself: the identity at rest, as just above the threshold (q's own derivative counted once).
     by_quat = jax.jacobian(lambda q: quat_integrate(q, jnp.zeros(3), dt))(quat)
     np.testing.assert_allclose(by_quat, np.eye(4), atol=1e-12)
-    np.testing.assert_allclose(by_quat, jax.jacobian(lambda q: quat_integrate(q, jnp.full(3, 1e-6), dt))(quat),
-                               atol=1e-8)  # off the diagonal, ½ dt |ω| = 2e-9 just above
+    np.testing.assert_allclose(
+        by_quat, jax.jacobian(lambda q: quat_integrate(q, jnp.full(3, 1e-6), dt))(quat), atol=1e-8
+    )  # off the diagonal, ½ dt |ω| = 2e-9 just above
 
 
 @pytest.mark.parametrize("steps", [10, 100])
 def test_check_grads_rollout(steps, x64):
     """check_grads (float64, order 1, rev: the hand-written adjoint) through `jd.rollout` of 10 and 100 control
-    steps of 3 drones at 240 Hz with drag, ground effect and downwash on, w.r.t. the RPM commands, the initial state and mass, kf, km
-    and the drag coefficients (the rollout steps the component form, with each step rematerialised)."""
+    steps of 3 drones at 240 Hz with drag, ground effect and downwash on, w.r.t. the RPM commands, the initial state
+    and mass, kf, km and the drag coefficients (the rollout steps the component form, with each step rematerialised)."""
     config = jd.SimConfig(n_drones=3, sim_freq=240, ctrl_freq=240, drag=True, ground_effect=True, downwash=True)
     step = jd.make_step(config)
     p0 = jd.load_params("cf2x")
     hover = float(p0.hover_rpm)
     rng = np.random.default_rng(5)
     # 0.3 m apart horizontally: the lower drones feel the upper ones' downwash (up to 0.009 N) without falling.
-    state0 = jd.init_state(config, pos=[[0.0, 0.0, 0.3], [0.3, 0.02, 0.5], [0.6, 0.1, 0.8]],
-                           rpy=rng.uniform(-0.2, 0.2, (3, 3)), vel=rng.uniform(-0.2, 0.2, (3, 3)),
-                           ang_vel=rng.uniform(-0.3, 0.3, (3, 3)), rpm=hover * np.ones((3, 4)))
+    state0 = jd.init_state(
+        config,
+        pos=[[0.0, 0.0, 0.3], [0.3, 0.02, 0.5], [0.6, 0.1, 0.8]],
+        rpy=rng.uniform(-0.2, 0.2, (3, 3)),
+        vel=rng.uniform(-0.2, 0.2, (3, 3)),
+        ang_vel=rng.uniform(-0.3, 0.3, (3, 3)),
+        rpm=hover * np.ones((3, 4)),
+    )
     rpms = jnp.asarray(hover * (1.01 + 0.01 * rng.uniform(-1, 1, (steps, 3, 4))))
 
     def f(rpm_scale, pos, vel, quat, ang_vel, scales):
-        params = p0.replace(mass=p0.mass * (1 + scales[0]), kf=p0.kf * (1 + scales[1]), km=p0.km * (1 + scales[2]),
-                            drag_coeff=p0.drag_coeff * (1 + scales[3]))
+        params = p0.replace(
+            mass=p0.mass * (1 + scales[0]),
+            kf=p0.kf * (1 + scales[1]),
+            km=p0.km * (1 + scales[2]),
+            drag_coeff=p0.drag_coeff * (1 + scales[3]),
+        )
         state = state0.replace(pos=pos, vel=vel, quat=quat, ang_vel=ang_vel)
         out = jd.rollout(step, params, state, rpms * (1 + rpm_scale))
         return jnp.concatenate([out.pos[-1].ravel(), out.quat[-1].ravel(), out.vel[::7].ravel()])
@@ -814,8 +878,9 @@ def test_gradients_stay_finite_through_contact_flips_and_crashes():
     rng = np.random.default_rng(6)
     n, steps = 10_000, 60
     pos = np.concatenate([rng.uniform(-0.1, 0.1, (n, 2, 2)), rng.uniform(0.0, 0.5, (n, 2, 1))], axis=-1)
-    state = jd.init_state(config, pos=pos, rpy=rng.uniform(-1.5, 1.5, (n, 2, 3)),
-                          ang_vel=rng.uniform(-20, 20, (n, 2, 3)))
+    state = jd.init_state(
+        config, pos=pos, rpy=rng.uniform(-1.5, 1.5, (n, 2, 3)), ang_vel=rng.uniform(-20, 20, (n, 2, 3))
+    )
     rpms = jnp.asarray(rng.uniform(0, 1, (steps, n, 2, 4)) * float(params.max_rpm), jnp.float32)
 
     def loss(rpms, pos, ang_vel):
@@ -824,8 +889,21 @@ def test_gradients_stay_finite_through_contact_flips_and_crashes():
 
     states = jd.rollout(step, params, state, rpms)
     assert float(jnp.mean(states.ground_contact.any(axis=0))) > 0.1  # many drones touched the ground
-    assert float(jnp.mean(jnp.min(states.quat[..., 3] ** 2 - states.quat[..., 0] ** 2 - states.quat[..., 1] ** 2
-                                  + states.quat[..., 2] ** 2, axis=0) < 0)) > 0.1  # ... and many turned over
+    assert (
+        float(
+            jnp.mean(
+                jnp.min(
+                    states.quat[..., 3] ** 2
+                    - states.quat[..., 0] ** 2
+                    - states.quat[..., 1] ** 2
+                    + states.quat[..., 2] ** 2,
+                    axis=0,
+                )
+                < 0
+            )
+        )
+        > 0.1
+    )  # ... and many turned over
     grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))(rpms, state.pos, state.ang_vel)
     for g in grads:
         assert bool(jnp.all(jnp.isfinite(g))) and float(jnp.max(jnp.abs(g))) > 0

@@ -9,15 +9,18 @@ from flax import linen
 from jaxdrones.training.encoders import Conv, same_padding
 
 
-@pytest.mark.parametrize("shape,features,kernel,stride", [
-    ((2, 24, 32, 1), 8, 4, 2),   # the default encoder's layers
-    ((2, 12, 16, 8), 16, 3, 2),
-    ((2, 6, 8, 16), 16, 3, 2),
-    ((3, 7, 5, 2), 4, 3, 1),     # odd sizes, stride 1
-    ((1, 9, 11, 3), 5, 5, 3),    # kernel wider than the stride, sizes not multiples of it
-    ((2, 7, 9, 1), 3, 4, 2),     # an odd total padding (one more pixel at the high end)
-    ((2, 4, 3, 24, 32, 1), 8, 4, 2),  # two leading axes (brax's [batch, unroll] minibatches)
-])
+@pytest.mark.parametrize(
+    "shape,features,kernel,stride",
+    [
+        ((2, 24, 32, 1), 8, 4, 2),  # the default encoder's layers
+        ((2, 12, 16, 8), 16, 3, 2),
+        ((2, 6, 8, 16), 16, 3, 2),
+        ((3, 7, 5, 2), 4, 3, 1),  # odd sizes, stride 1
+        ((1, 9, 11, 3), 5, 5, 3),  # kernel wider than the stride, sizes not multiples of it
+        ((2, 7, 9, 1), 3, 4, 2),  # an odd total padding (one more pixel at the high end)
+        ((2, 4, 3, 24, 32, 1), 8, 4, 2),  # two leading axes (brax's [batch, unroll] minibatches)
+    ],
+)
 def test_conv_computes_flax_conv(shape, features, kernel, stride):
     """Same parameters, same outputs and same gradients as ``linen.Conv(padding="SAME")``."""
     x = jax.random.normal(jax.random.key(0), shape)
@@ -33,9 +36,11 @@ def test_conv_computes_flax_conv(shape, features, kernel, stride):
     def loss(module):
         return lambda p, x: jnp.sum(jnp.sin(module.apply(p, x)))
 
-    g_ours, g_theirs = jax.grad(loss(ours), argnums=(0, 1))(params, x), jax.grad(loss(theirs), argnums=(0, 1))(
-        params, x)
-    for a, b in zip(jax.tree.leaves(g_ours), jax.tree.leaves(g_theirs)):
+    g_ours, g_theirs = (
+        jax.grad(loss(ours), argnums=(0, 1))(params, x),
+        jax.grad(loss(theirs), argnums=(0, 1))(params, x),
+    )
+    for a, b in zip(jax.tree.leaves(g_ours), jax.tree.leaves(g_theirs), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
 
 

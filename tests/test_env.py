@@ -46,8 +46,16 @@ def test_contract(task, action_type, obs_type, buffer):
     episodes ending and auto-resetting with fresh starts."""
     n = 3 if task in MULTI_AGENT else 1
     cameras = {"vision": ()} if task == "avoid" else {}  # the state contract (images: tests/test_cameras.py)
-    env = jd.make(task, n_drones=n, action_type=action_type, obs_type=obs_type, action_buffer=buffer,
-                  episode_len_s=2.0, ctrl_freq=30, **cameras)
+    env = jd.make(
+        task,
+        n_drones=n,
+        action_type=action_type,
+        obs_type=obs_type,
+        action_buffer=buffer,
+        episode_len_s=2.0,
+        ctrl_freq=30,
+        **cameras,
+    )
     auto = AutoReset(env)
     low, high = env.observation_bounds()
     a_low, a_high = env.action_bounds()
@@ -64,8 +72,9 @@ def test_contract(task, action_type, obs_type, buffer):
         return state.obs, jax.lax.scan(body, state, actions)[1]
 
     keys = jax.random.split(jax.random.key(0), N_WORLDS)
-    actions = jax.random.uniform(jax.random.key(1), (CONTRACT_STEPS, N_WORLDS, n, env.action_size),
-                                 minval=a_low, maxval=a_high)
+    actions = jax.random.uniform(
+        jax.random.key(1), (CONTRACT_STEPS, N_WORLDS, n, env.action_size), minval=a_low, maxval=a_high
+    )
     outputs = jax.tree.map(np.asarray, jax.jit(run)(keys, actions))
     first, (obs, reward, done, steps, pos, final_obs, terminated) = outputs
     assert first.shape == (N_WORLDS, n, env.observation_size)
@@ -146,10 +155,11 @@ def test_shaped_reward_matches_documented_formula(hover):
     d = np.linalg.norm(np.asarray(s1.sim.pos[:, 0]) - [0, 0, 1], axis=-1)
     v2 = np.sum(np.asarray(s1.sim.vel[:, 0]) ** 2, -1)
     w2 = np.sum(np.asarray(s1.sim.ang_vel[:, 0]) ** 2, -1)
-    expected = np.maximum(0, np.exp(-d / 0.3) + 2 * np.exp(-(d / 0.03) ** 2) - 0.1 * v2 - 0.01 * w2)
+    expected = np.maximum(0, np.exp(-d / 0.3) + 2 * np.exp(-((d / 0.03) ** 2)) - 0.1 * v2 - 0.01 * w2)
     np.testing.assert_allclose(s1.reward[:, 0], expected, rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(s1.metrics["reward/closeness"], np.exp(-d / 0.3) + 2 * np.exp(-(d / 0.03) ** 2),
-                               rtol=1e-5)
+    np.testing.assert_allclose(
+        s1.metrics["reward/closeness"], np.exp(-d / 0.3) + 2 * np.exp(-((d / 0.03) ** 2)), rtol=1e-5
+    )
 
 
 def test_paper_rewards():
@@ -163,15 +173,18 @@ def test_paper_rewards():
     env = jd.make("leader_follower", n_drones=3, reward="paper")
     s = env.step(env.reset(jax.random.key(0)), jnp.zeros((3, 4)))
     p = np.asarray(s.sim.pos)
-    expected = [-np.sum((p[0] - [0, 0, 0.5]) ** 2), -(p[1, 2] - p[0, 2]) ** 2 / 3, -(p[2, 2] - p[0, 2]) ** 2 / 3]
+    expected = [-np.sum((p[0] - [0, 0, 0.5]) ** 2), -((p[1, 2] - p[0, 2]) ** 2) / 3, -((p[2, 2] - p[0, 2]) ** 2) / 3]
     np.testing.assert_allclose(s.reward, expected, rtol=1e-5)
 
 
-@pytest.mark.parametrize("action_type, action, factor", [
-    ("rpm", [[0.0, 1.0, -1.0, 0.5]], [1.0, 1.05, 0.95, 1.025]),
-    ("rpm", [[3.0, -3.0, 0.0, 0.0]], [1.05, 0.95, 1.0, 1.0]),  # clipped to the box
-    ("one_d_rpm", [[-0.4]], [0.98] * 4),
-])
+@pytest.mark.parametrize(
+    "action_type, action, factor",
+    [
+        ("rpm", [[0.0, 1.0, -1.0, 0.5]], [1.0, 1.05, 0.95, 1.025]),
+        ("rpm", [[3.0, -3.0, 0.0, 0.0]], [1.05, 0.95, 1.0, 1.0]),  # clipped to the box
+        ("one_d_rpm", [[-0.4]], [0.98] * 4),
+    ],
+)
 def test_rpm_action_mappings(action_type, action, factor):
     env = jd.make("hover", action_type=action_type)
     s = env.step(env.reset(jax.random.key(0)), jnp.asarray(action, jnp.float32))
@@ -189,13 +202,19 @@ def test_truncation_exactly_at_episode_length():
     assert bool(s.truncated) and not bool(s.terminated) and int(s.steps) == 150
 
 
-@pytest.mark.parametrize("pos, vel", [([1.49, 0, 1], [3, 0, 0]), ([0, 0, 2.45], [0, 0, 3]),
-                                      ([0, -1.49, 1], [0, -3, 0])])
+@pytest.mark.parametrize(
+    "pos, vel", [([1.49, 0, 1], [3, 0, 0]), ([0, 0, 2.45], [0, 0, 3]), ([0, -1.49, 1], [0, -3, 0])]
+)
 def test_leaving_the_arena_terminates(hover, pos, vel):
     env, _, step = hover
     s = env.reset(jax.random.key(0))
-    s = s.replace(sim=s.sim.replace(pos=jnp.asarray([pos], jnp.float32), vel=jnp.asarray([vel], jnp.float32),
-                                    quat=quat_from_euler(jnp.zeros((1, 3)))))
+    s = s.replace(
+        sim=s.sim.replace(
+            pos=jnp.asarray([pos], jnp.float32),
+            vel=jnp.asarray([vel], jnp.float32),
+            quat=quat_from_euler(jnp.zeros((1, 3))),
+        )
+    )
     s = step(s, jnp.zeros((1, 4)))
     assert bool(s.terminated) and not bool(s.truncated) and float(s.metrics["crash"]) == 1.0
 
@@ -246,8 +265,9 @@ def test_observation_types():
     rot = jd.make("hover")
     s = rot.reset(jax.random.key(2))
     assert rot.config.obs_type == "kin_rotmat" and rot.observation_size == 21
-    np.testing.assert_allclose(np.asarray(s.obs[0, 12:]).reshape(3, 3),
-                               np.asarray(jax.vmap(quat_to_rotmat)(s.sim.quat))[0], atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(s.obs[0, 12:]).reshape(3, 3), np.asarray(jax.vmap(quat_to_rotmat)(s.sim.quat))[0], atol=1e-6
+    )
     norm = jd.make("hover", obs_type="kin_norm")
     s = norm.reset(jax.random.key(1))
     s = s.replace(sim=s.sim.replace(vel=jnp.asarray([[0.3, -6.0, 0.5]], jnp.float32)))
@@ -258,11 +278,14 @@ def test_observation_types():
 def test_nearest_neighbors_observation():
     """max_neighbors=k: the k nearest drones, nearest first, flagged within the radius; the size stays 12 + 4k + 3
     whatever the team; k >= D - 1 holds everyone. downwash_radius reaches the physics."""
-    env = jd.make("multi_hover", n_drones=16, obs_type="neighbors", max_neighbors=3, neighbor_radius=0.5,
-                  downwash_radius=1.0)
+    env = jd.make(
+        "multi_hover", n_drones=16, obs_type="neighbors", max_neighbors=3, neighbor_radius=0.5, downwash_radius=1.0
+    )
     assert env.observation_size == 12 + 4 * 3 + 3 and env.sim_config.downwash_radius == 1.0
-    assert jd.make("multi_hover", n_drones=64, obs_type="neighbors", max_neighbors=3).observation_size == \
-        env.observation_size
+    assert (
+        jd.make("multi_hover", n_drones=64, obs_type="neighbors", max_neighbors=3).observation_size
+        == env.observation_size
+    )
     s = env.reset(jax.random.key(0))
     pos = np.asarray(s.sim.pos, np.float64)
     np.testing.assert_allclose(s.obs[:, :12], kinematic_obs(s.sim), rtol=1e-6, atol=1e-7)
@@ -293,8 +316,11 @@ def test_domain_randomisation_recomputes_derived_params():
     assert np.ptp(kf) > 0.1 * float(base.kf[0])
     hover_rpm = np.sqrt(mass * 9.8 / (4 * kf))
     np.testing.assert_allclose(s.params.hover_rpm[:, 0], hover_rpm, rtol=1e-5)
-    np.testing.assert_allclose(np.asarray(s.params.inertia_inv[:, 0]) @ np.asarray(s.params.inertia[:, 0]),
-                               np.broadcast_to(np.eye(3), (256, 3, 3)), atol=1e-4)
+    np.testing.assert_allclose(
+        np.asarray(s.params.inertia_inv[:, 0]) @ np.asarray(s.params.inertia[:, 0]),
+        np.broadcast_to(np.eye(3), (256, 3, 3)),
+        atol=1e-4,
+    )
     # with_derived recomputes the derived fields of edited params.
     edited = with_derived(base.replace(mass=base.mass * 2))
     np.testing.assert_allclose(edited.hover_rpm, base.hover_rpm * np.sqrt(2), rtol=1e-6)
@@ -393,30 +419,33 @@ def test_brax_rejects_randomization_fn():
 # ------------------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name, overrides, message", [
-    ("flyaway", {}, "unknown task 'flyaway'"),
-    ("hover", {"action_type": "warp"}, "unknown action_type 'warp'"),
-    ("hover", {"obs_type": "lidar"}, "unknown obs_type 'lidar'"),
-    ("hover", {"n_drones": 2}, "hover: n_drones must be exactly 1"),
-    ("leader_follower", {"n_drones": 1}, "leader_follower: n_drones must be 2 or more"),
-    ("hover", {"init_pos": [[0, 0, 1], [1, 0, 1]]}, r"init_pos must be f\[1, 3\]"),
-    ("multi_hover", {"n_drones": 3, "init_pos": [0, 0, 1]}, r"init_pos must be f\[3, 3\]"),
-    ("hover", {"randomize": {"mass": 1.0}}, "non-positive mass"),
-    ("hover", {"randomize": {"mass": -0.1}}, "randomize.mass"),
-    ("hover", {"target": (0, 0, -1)}, "above the ground"),
-    ("hover", {"wind": 3}, r"unknown option 'wind'; valid options are"),
-    ("hover", {"ctrl_fre": 3}, r"unknown option 'ctrl_fre' \(did you mean 'ctrl_freq'\?\)"),
-    ("hover", {"obs": "kin"}, r"'obs' is gym-pybullet-drones' name: here obs_type.*jaxdrones.compat"),
-    ("hover", {"model": "cf3"}, "unknown drone model 'cf3'"),
-    ("multi_hover", {"n_drones": 3, "model": ("cf2x", "racer")}, "one per drone"),
-    ("hover", {"vision": ("rgb",), "renderer": "egl"}, "renderer needs backend='pybullet'"),
-    ("hover", {"vision": ("depth",), "obstacles": "paper"}, "URDF mesh"),
-    ("tune", {"action_type": "rpm"}, "tune: action_type must be 'tun'"),
-    ("hover", {"start_tilt": -1.0}, "start_tilt"),
-    ("hover", {"episode_len_s": 0.0}, "episode_len_s"),
-    ("hover", {"action_type": "pid", "pid_target": "relative", "pid_scale": 0.0}, r"pid_scale .* \(0, 1.0\]"),
-    ("hover", {"pid_scale": "far"}, "pid_scale"),
-])
+@pytest.mark.parametrize(
+    "name, overrides, message",
+    [
+        ("flyaway", {}, "unknown task 'flyaway'"),
+        ("hover", {"action_type": "warp"}, "unknown action_type 'warp'"),
+        ("hover", {"obs_type": "lidar"}, "unknown obs_type 'lidar'"),
+        ("hover", {"n_drones": 2}, "hover: n_drones must be exactly 1"),
+        ("leader_follower", {"n_drones": 1}, "leader_follower: n_drones must be 2 or more"),
+        ("hover", {"init_pos": [[0, 0, 1], [1, 0, 1]]}, r"init_pos must be f\[1, 3\]"),
+        ("multi_hover", {"n_drones": 3, "init_pos": [0, 0, 1]}, r"init_pos must be f\[3, 3\]"),
+        ("hover", {"randomize": {"mass": 1.0}}, "non-positive mass"),
+        ("hover", {"randomize": {"mass": -0.1}}, "randomize.mass"),
+        ("hover", {"target": (0, 0, -1)}, "above the ground"),
+        ("hover", {"wind": 3}, r"unknown option 'wind'; valid options are"),
+        ("hover", {"ctrl_fre": 3}, r"unknown option 'ctrl_fre' \(did you mean 'ctrl_freq'\?\)"),
+        ("hover", {"obs": "kin"}, r"'obs' is gym-pybullet-drones' name: here obs_type.*jaxdrones.compat"),
+        ("hover", {"model": "cf3"}, "unknown drone model 'cf3'"),
+        ("multi_hover", {"n_drones": 3, "model": ("cf2x", "racer")}, "one per drone"),
+        ("hover", {"vision": ("rgb",), "renderer": "egl"}, "renderer needs backend='pybullet'"),
+        ("hover", {"vision": ("depth",), "obstacles": "paper"}, "URDF mesh"),
+        ("tune", {"action_type": "rpm"}, "tune: action_type must be 'tun'"),
+        ("hover", {"start_tilt": -1.0}, "start_tilt"),
+        ("hover", {"episode_len_s": 0.0}, "episode_len_s"),
+        ("hover", {"action_type": "pid", "pid_target": "relative", "pid_scale": 0.0}, r"pid_scale .* \(0, 1.0\]"),
+        ("hover", {"pid_scale": "far"}, "pid_scale"),
+    ],
+)
 def test_make_bad_input(name, overrides, message):
     with pytest.raises(ValueError, match=message):
         jd.make(name, **overrides)
@@ -463,19 +492,23 @@ def _pid_case(action_type, action, pos=(0.2, -0.1, 0.8), **options):
     return env, s, rpm, carry
 
 
-@pytest.mark.parametrize("action_type, action, pos, target, options", [
-    ("pid", [0.5, 0.3, 0.9], (0.2, -0.1, 0.8), [0.5, 0.3, 0.9], {}),  # within 1 m: the target itself
-    ("pid", [-1.0, 0.0, 1.0], (2.0, 0.0, 1.0), [1.0, 0.0, 1.0], {}),  # 3 m away: 1 m towards it
-    ("pid", [0.5, -1.0, 1.0], (0.2, -0.1, 0.8), [0.25, -0.2, 0.9], {"pid_target": "relative"}),  # pos + 0.1 a
-    ("pid", [0.5, -1.0, 1.0], (0.2, -0.1, 0.8), [0.35, -0.4, 1.1], {"pid_target": "relative", "pid_scale": 0.3}),
-    ("one_d_pid", [0.6], (0.2, -0.1, 0.8), [0.2, -0.1, 0.86], {}),  # pos + (0, 0, 0.1 a)
-])
+@pytest.mark.parametrize(
+    "action_type, action, pos, target, options",
+    [
+        ("pid", [0.5, 0.3, 0.9], (0.2, -0.1, 0.8), [0.5, 0.3, 0.9], {}),  # within 1 m: the target itself
+        ("pid", [-1.0, 0.0, 1.0], (2.0, 0.0, 1.0), [1.0, 0.0, 1.0], {}),  # 3 m away: 1 m towards it
+        ("pid", [0.5, -1.0, 1.0], (0.2, -0.1, 0.8), [0.25, -0.2, 0.9], {"pid_target": "relative"}),  # pos + 0.1 a
+        ("pid", [0.5, -1.0, 1.0], (0.2, -0.1, 0.8), [0.35, -0.4, 1.1], {"pid_target": "relative", "pid_scale": 0.3}),
+        ("one_d_pid", [0.6], (0.2, -0.1, 0.8), [0.2, -0.1, 0.86], {}),  # pos + (0, 0, 0.1 a)
+    ],
+)
 def test_pid_actions_follow_the_original_target_rules(action_type, action, pos, target, options):
     from jaxdrones.control.pid import PIDGains, pid_control
 
     env, s, rpm, carry = _pid_case(action_type, action, pos, **options)
-    expected, state = pid_control(s.params, PIDGains.dsl(), s.ctrl, s.sim, jnp.asarray([target], jnp.float32),
-                                  ctrl_dt=1 / 30)
+    expected, state = pid_control(
+        s.params, PIDGains.dsl(), s.ctrl, s.sim, jnp.asarray([target], jnp.float32), ctrl_dt=1 / 30
+    )
     np.testing.assert_allclose(rpm, expected, rtol=1e-5)
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), carry, state)
 
@@ -484,14 +517,19 @@ def test_vel_and_tun_actions_drive_the_dsl_pid():
     from jaxdrones.control.pid import PIDGains, pid_control, velocity_control
 
     env, s, rpm, _ = _pid_case("vel", [0.0, 1.0, 0.0, 0.5])
-    expected, _ = velocity_control(s.params, PIDGains.dsl(), s.ctrl, s.sim, jnp.asarray([[0.0, 1.0, 0.0, 0.5]]),
-                                   ctrl_dt=1 / 30)
+    expected, _ = velocity_control(
+        s.params, PIDGains.dsl(), s.ctrl, s.sim, jnp.asarray([[0.0, 1.0, 0.0, 0.5]]), ctrl_dt=1 / 30
+    )
     np.testing.assert_allclose(rpm, expected, rtol=1e-5)
     scale = np.array([0.5, -0.2, 0.1, 0.3, 0.0, -0.4], np.float32)
     env, s, rpm, _ = _pid_case("tun", scale)
     base = PIDGains.dsl()
-    gains = PIDGains(*(g * (1 + scale[k]) for k, g in enumerate(
-        (base.p_pos, base.i_pos, base.d_pos, base.p_att, base.i_att, base.d_att))))
+    gains = PIDGains(
+        *(
+            g * (1 + scale[k])
+            for k, g in enumerate((base.p_pos, base.i_pos, base.d_pos, base.p_att, base.i_att, base.d_att))
+        )
+    )
     expected, _ = pid_control(s.params, gains, s.ctrl, s.sim, s.task.target, ctrl_dt=1 / 30)
     np.testing.assert_allclose(rpm, expected, rtol=1e-5)
 
@@ -505,10 +543,13 @@ def test_thrust_actions_use_the_nnls_mixer():
     rpm, _ = env.action_type.to_rpm(s.params, s.sim, s.ctrl, a, None, 1 / 30)
     wrench = np.asarray(allocation_matrix(s.params)[0]) @ np.asarray(rpm[0], np.float64) ** 2
     p = s.params
-    expected = [1.1 * float(p.weight[0]), 0.05 * 0.5 * float(p.max_xy_torque[0]),
-                -0.05 * 0.3 * float(p.max_xy_torque[0]), 0.05 * 0.2 * float(p.max_z_torque[0])]
+    expected = [
+        1.1 * float(p.weight[0]),
+        0.05 * 0.5 * float(p.max_xy_torque[0]),
+        -0.05 * 0.3 * float(p.max_xy_torque[0]),
+        0.05 * 0.2 * float(p.max_z_torque[0]),
+    ]
     np.testing.assert_allclose(wrench, expected, rtol=2e-4, atol=1e-9)
     env = jd.make("hover", action_type="one_d_thrust")
     rpm, _ = env.action_type.to_rpm(s.params, s.sim, s.ctrl, jnp.asarray([[-0.6]], jnp.float32), None, 1 / 30)
-    np.testing.assert_allclose(rpm[0], np.full(4, np.sqrt(0.97 * float(p.weight[0]) / (4 * float(p.kf[0])))),
-                               rtol=1e-5)
+    np.testing.assert_allclose(rpm[0], np.full(4, np.sqrt(0.97 * float(p.weight[0]) / (4 * float(p.kf[0])))), rtol=1e-5)

@@ -67,8 +67,9 @@ def test_policy_gradient_through_every_task_matches_finite_differences(x64, task
     rng = np.random.default_rng(1)
     init_pos = np.c_[rng.uniform(-0.3, 0.3, (n, 2)), rng.uniform(0.5, 1.0, n)] + np.c_[np.arange(n), np.zeros((n, 2))]
     cameras = {"vision": ()} if task == "avoid" else {}  # a linear policy of the state (images: test_cameras.py)
-    env = jd.make(task, n_drones=n, reward="paper", init_pos=init_pos, init_rpy=rng.uniform(-0.3, 0.3, (n, 3)),
-                  **cameras)
+    env = jd.make(
+        task, n_drones=n, reward="paper", init_pos=init_pos, init_rpy=rng.uniform(-0.3, 0.3, (n, 3)), **cameras
+    )
     state0 = env.reset(jax.random.key(2))
     weights = jnp.asarray(0.05 * rng.standard_normal((env.observation_size, env.action_size)))
     loss = jax.jit(policy_loss(env, state0))

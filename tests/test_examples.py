@@ -171,19 +171,25 @@ def test_dip_metrics_on_a_synthetic_pass():
     assert m["upper_max_error_m"] == 0.0
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--example", "velocity", "--num-drones", "3"], "--num-drones does not apply to --example velocity"),
-    (["--example", "ground-effect", "--ground-effect"], "--ground-effect does not apply to --example ground-effect"),
-    (["--example", "ground-effect", "--downwash", "--settle", "1"], "--downwash, --settle do not apply"),
-    (["--example", "downwash", "--downwash"], "--downwash does not apply to --example downwash"),
-    (["--example", "downwash", "--backend", "pybullet", "--video", "v.mp4"], "--video does not apply"),
-    (["--example", "velocity", "--no-feedforward"], "--feedforward/--no-feedforward does not apply"),
-    (["--example", "ground-effect", "--duration", "0.25"], "must cover the figure's 0.5 s window"),
-    (["--example", "velocity", "--duration", "1", "--settle", "0.9"], "leaves no settled sample"),
-    (["--example", "velocity", "--settle", "-1"], "settle_s must be a non-negative"),
-    (["--example", "downwash", "--model", "nope"], "drone model"),
-    (["--example", "downwash", "--duration", "0"], "duration_s must be at least one control step"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--example", "velocity", "--num-drones", "3"], "--num-drones does not apply to --example velocity"),
+        (
+            ["--example", "ground-effect", "--ground-effect"],
+            "--ground-effect does not apply to --example ground-effect",
+        ),
+        (["--example", "ground-effect", "--downwash", "--settle", "1"], "--downwash, --settle do not apply"),
+        (["--example", "downwash", "--downwash"], "--downwash does not apply to --example downwash"),
+        (["--example", "downwash", "--backend", "pybullet", "--video", "v.mp4"], "--video does not apply"),
+        (["--example", "velocity", "--no-feedforward"], "--feedforward/--no-feedforward does not apply"),
+        (["--example", "ground-effect", "--duration", "0.25"], "must cover the figure's 0.5 s window"),
+        (["--example", "velocity", "--duration", "1", "--settle", "0.9"], "leaves no settled sample"),
+        (["--example", "velocity", "--settle", "-1"], "settle_s must be a non-negative"),
+        (["--example", "downwash", "--model", "nope"], "drone model"),
+        (["--example", "downwash", "--duration", "0"], "duration_s must be at least one control step"),
+    ],
+)
 def test_bad_input_is_rejected_before_flying(tmp_path, capsys, argv, message):
     out = tmp_path / "out"
     assert main(["fly", *argv, "--out", str(out)]) == 2

@@ -62,8 +62,9 @@ def test_exported_c_policy_matches_jax(tmp_path, overrides):
     assert main(["export", run]) == 0
     shutil.copy(os.path.join(run, "jaxdrones_policy.c"), tmp_path / "policy.c")
     (tmp_path / "harness.c").write_text(HARNESS)
-    subprocess.run([CC, "-O2", "-std=c99", "-Wall", "-Werror", "harness.c", "-o", "harness", "-lm"], cwd=tmp_path,
-                   check=True)
+    subprocess.run(
+        [CC, "-O2", "-std=c99", "-Wall", "-Werror", "harness.c", "-o", "harness", "-lm"], cwd=tmp_path, check=True
+    )
     env, policy = checkpoint.load_policy(run)
     obs = _observations(env, 1000)
     obs[:5, 0] = [50.0, -50.0, 1e9, -1e9, 25.0]  # beyond the box: the C function clips as the env does
@@ -78,8 +79,12 @@ def test_exported_c_policy_matches_jax(tmp_path, overrides):
 def test_export_header_sizes_and_bad_input(tmp_path, capsys):
     run = _saved_policy(str(tmp_path / "run"))
     source, sizes = c_source(load_payload(run))
-    assert sizes == {"n_obs": 21, "n_act": 4, "multiply_adds": 21 * 64 + 64 * 64 + 64 * 4,
-                     "weight_bytes": 4 * (21 * 64 + 64 * 64 + 64 * 4 + 64 + 64 + 4 + 2 * 21)}
+    assert sizes == {
+        "n_obs": 21,
+        "n_act": 4,
+        "multiply_adds": 21 * 64 + 64 * 64 + 64 * 4,
+        "weight_bytes": 4 * (21 * 64 + 64 * 64 + 64 * 4 + 64 + 64 + 4 + 2 * 21),
+    }
     assert "[ 9] wx (rad/s, body)" in source and "hover_rpm = 14468" in source
     assert main(["export", run]) == 0 and main(["export", run]) == 2  # never overwritten without asking
     assert "exists; pass --overwrite" in capsys.readouterr().err

@@ -38,9 +38,12 @@ def test_the_gate_is_drawn_per_episode_and_only_the_camera_sees_it(env):
     boxes = np.asarray(states.task.scene.box.pos)  # the columns and the architrave, in the gate's frame
     local = np.einsum("wni,wij->wnj", boxes - gate[:, None], np.asarray(states.task.data["gate_rot"]))
     np.testing.assert_allclose(local[0], [[-0.3, 0.0, 0.245], [0.3, 0.0, 0.245], [0.0, 0.0, 0.55]], atol=1e-6)
-    seg = cameras.render(cameras.CameraSpec(), states.task.scene, env.params, states.sim.pos,
-                         states.sim.quat, kinds=("seg",))["seg"]
-    assert all(np.isin([1, 2, 3], np.asarray(seg[w])).all() for w in range(8))  # each world's camera sees its gate (64 × 48)
+    seg = cameras.render(
+        cameras.CameraSpec(), states.task.scene, env.params, states.sim.pos, states.sim.quat, kinds=("seg",)
+    )["seg"]
+    assert all(
+        np.isin([1, 2, 3], np.asarray(seg[w])).all() for w in range(8)
+    )  # each world's camera sees its gate (64 × 48)
 
 
 def test_passing_missing_and_hitting_the_gate(env):
@@ -88,13 +91,16 @@ def test_the_image_carries_what_the_policy_needs(env):
     assert fly(env, "straight") <= 0.7
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(gate_pose="moving"), "gate_pose"),
-    (dict(gate_pose="random", backend="pybullet", vision=("depth",)), "backend='jax'"),
-    (dict(gate_pose="random"), "vision"),
-    (dict(gate_pose="random", vision=("depth",), gate_distance=(0.5, 2.0)), "gate_distance"),
-    (dict(gate_pose="random", vision=("depth",), gate_yaw=-0.1), "gate_yaw"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(gate_pose="moving"), "gate_pose"),
+        (dict(gate_pose="random", backend="pybullet", vision=("depth",)), "backend='jax'"),
+        (dict(gate_pose="random"), "vision"),
+        (dict(gate_pose="random", vision=("depth",), gate_distance=(0.5, 2.0)), "gate_distance"),
+        (dict(gate_pose="random", vision=("depth",), gate_yaw=-0.1), "gate_yaw"),
+    ],
+)
 def test_bad_settings(kwargs, match):
     with pytest.raises(ValueError, match=match):
         jd.make("fly_thru_gate", **kwargs)

@@ -27,9 +27,13 @@ def _case(dtype, adjoint: bool = True):
     env = jd.make("hover", ctrl_freq=240, drag=True, ground_effect=True, adjoint=adjoint)
     rng = np.random.default_rng(3)
     config = env.sim_config
-    sim = jd.init_state(config, pos=np.c_[rng.uniform(-0.5, 0.5, (WORLDS, 2)), rng.uniform(0.06, 0.2, WORLDS)][:, None],
-                        rpy=rng.uniform(-0.2, 0.2, (WORLDS, 1, 3)), vel=rng.uniform(-0.3, 0.3, (WORLDS, 1, 3)),
-                        ang_vel=rng.uniform(-0.5, 0.5, (WORLDS, 1, 3)))
+    sim = jd.init_state(
+        config,
+        pos=np.c_[rng.uniform(-0.5, 0.5, (WORLDS, 2)), rng.uniform(0.06, 0.2, WORLDS)][:, None],
+        rpy=rng.uniform(-0.2, 0.2, (WORLDS, 1, 3)),
+        vel=rng.uniform(-0.3, 0.3, (WORLDS, 1, 3)),
+        ang_vel=rng.uniform(-0.5, 0.5, (WORLDS, 1, 3)),
+    )
     axes = world_axes(env.shared_params is not None)
     start = jax.vmap(env.reset, out_axes=axes)(jax.random.split(jax.random.key(0), WORLDS)).replace(sim=sim)
     actions = jnp.asarray(rng.uniform(-0.6, 0.6, (STEPS, WORLDS, 1, 4)), dtype)
@@ -44,8 +48,12 @@ def _losses(env, start, axes):
     env_step = jax.vmap(env.step, in_axes=(axes, 0), out_axes=axes)
 
     def loss_of(pos, vel, quat, ang_vel):
-        return (jnp.mean(jnp.sum((pos - jnp.asarray([0.0, 0.0, 1.0])) ** 2, -1)) + 0.1 * jnp.mean(vel**2)
-                + 0.01 * jnp.mean(ang_vel**2) + jnp.mean(quat[..., :3] ** 2))
+        return (
+            jnp.mean(jnp.sum((pos - jnp.asarray([0.0, 0.0, 1.0])) ** 2, -1))
+            + 0.1 * jnp.mean(vel**2)
+            + 0.01 * jnp.mean(ang_vel**2)
+            + jnp.mean(quat[..., :3] ** 2)
+        )
 
     def commands(actions):
         return params.hover_rpm[..., None] * (1.0 + RPM_ACTION_SCALE * actions)
@@ -75,8 +83,7 @@ def _losses(env, start, axes):
 
         return loss_of(*jax.lax.scan(body, start.replace(sim=state(*s)), actions)[1])
 
-    return {"rollout": rollout(True), "rollout_stored": rollout(False), "user_scan": user_scan,
-            "env_step": through_env}
+    return {"rollout": rollout(True), "rollout_stored": rollout(False), "user_scan": user_scan, "env_step": through_env}
 
 
 def _args(start, actions):
@@ -100,8 +107,12 @@ def test_gradients_of_rollout_user_scan_and_env_step_agree(x64):
         for g, ref in zip(grads[name], grads["rollout"], strict=True):
             np.testing.assert_allclose(g, ref, rtol=1e-9, atol=1e-12)
     assert all(np.any(np.asarray(g) != 0) for g in grads["rollout"])
-    out = jd.rollout(jd.make_step(env.sim_config), start.params, start.sim,
-                     start.params.hover_rpm[..., None] * (1.0 + RPM_ACTION_SCALE * actions))
+    out = jd.rollout(
+        jd.make_step(env.sim_config),
+        start.params,
+        start.sim,
+        start.params.hover_rpm[..., None] * (1.0 + RPM_ACTION_SCALE * actions),
+    )
     assert not bool(out.ground_contact.any()) and float(out.pos[..., 2].min()) < 0.2  # in ground effect
 
 
@@ -137,9 +148,14 @@ def test_split_and_join_are_exact(x64, dtype, contiguous):
     derivatives are those of the identity, in forward and reverse mode."""
     tiny = np.finfo(dtype).smallest_subnormal
     x = np.array([[[1.5, -0.0, np.nan], [np.inf, tiny, -3.25]], [[0.0, -np.inf, 7.0], [-tiny, 1e30, -1e-30]]], dtype)
-    x[0, 0, 2] = np.frombuffer(np.array(0x7FC00123 if dtype == np.float32 else 0x7FF8000000000123,
-                                        np.uint32 if dtype == np.float32 else np.uint64).tobytes(), dtype)[0]
+    x[0, 0, 2] = np.frombuffer(
+        np.array(
+            0x7FC00123 if dtype == np.float32 else 0x7FF8000000000123, np.uint32 if dtype == np.float32 else np.uint64
+        ).tobytes(),
+        dtype,
+    )[0]
     bits = np.uint32 if dtype == np.float32 else np.uint64
+
     def identity(a):
         return join(split(a, contiguous), contiguous)
 

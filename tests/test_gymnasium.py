@@ -10,8 +10,12 @@ import jaxdrones  # noqa: F401  (registers the ids)
 from jaxdrones.adapters.gymnasium import GYM_IDS
 
 #: Non-default action and observation types checked on each id.
-VARIANTS = [{}, {"action_type": "one_d_rpm", "obs_type": "kin_norm"}, {"action_type": "pid", "action_buffer": True},
-            {"action_type": "ctbr", "obs_type": "neighbors"}]
+VARIANTS = [
+    {},
+    {"action_type": "one_d_rpm", "obs_type": "kin_norm"},
+    {"action_type": "pid", "action_buffer": True},
+    {"action_type": "ctbr", "obs_type": "neighbors"},
+]
 
 
 @pytest.mark.slow
@@ -110,8 +114,9 @@ def test_image_observation_gives_policy_input_images():
     raw = gym.make("jaxdrones/Avoid-v0", image_size=(16, 12), vision=("depth", "seg"))
     obs, _ = raw.reset(seed=3)
     for channels_first, shape in ((False, (12, 16, 1)), (True, (1, 12, 16))):
-        env = ImageObservation(gym.make("jaxdrones/Avoid-v0", image_size=(16, 12), vision=("depth", "seg")),
-                               channels_first=channels_first)
+        env = ImageObservation(
+            gym.make("jaxdrones/Avoid-v0", image_size=(16, 12), vision=("depth", "seg")), channels_first=channels_first
+        )
         assert set(env.observation_space.spaces) == {"state", "depth"}
         assert env.observation_space["depth"].shape == shape
         seen, _ = env.reset(seed=3)

@@ -24,8 +24,9 @@ def _one_step(kinks, n_drones=1, **effects):
     config = jd.SimConfig(n_drones=n_drones, sim_freq=240, ctrl_freq=240, kinks=kinks, **effects)
     step = jd.make_step(config)
     state0 = jd.init_state(config, rpm=float(P.hover_rpm) * np.ones((n_drones, 4)))
-    return lambda **fields: step(P, state0.replace(**{k: v for k, v in fields.items() if k != "rpm"}),
-                                 fields.get("rpm", state0.rpm))
+    return lambda **fields: step(
+        P, state0.replace(**{k: v for k, v in fields.items() if k != "rpm"}), fields.get("rpm", state0.rpm)
+    )
 
 
 def _rpm_clip(kinks):
@@ -38,8 +39,11 @@ def _contact_height(kinks):
     step = _one_step(kinks)
 
     def f(z):  # hover thrust: no net acceleration; landing at 0.1 m/s, sliding and spinning
-        s = step(pos=jnp.stack([0.0, 0.0, z])[None], vel=jnp.asarray([[0.1, -0.2, -0.1]]),
-                 ang_vel=jnp.asarray([[0.3, 0.2, -0.1]]))
+        s = step(
+            pos=jnp.stack([0.0, 0.0, z])[None],
+            vel=jnp.asarray([[0.1, -0.2, -0.1]]),
+            ang_vel=jnp.asarray([[0.3, 0.2, -0.1]]),
+        )
         return s.pos[0, 2] + jnp.sum(s.vel) + jnp.sum(s.ang_vel)
 
     return f
@@ -136,6 +140,7 @@ def test_straight_through_keeps_the_forward_pass_and_passes_the_gradient_through
     for make_f, center, band in KINKS.values():
         xs = jnp.asarray(center + band(exact) * np.linspace(-3.0, 3.0, 13))
         np.testing.assert_array_equal(jax.vmap(make_f(straight))(xs), jax.vmap(make_f(exact))(xs))
+
     # A saturated command still moves the thrust, at the slope it has at max_rpm (the clipped command's).
     def vz_after(kinks):
         step = _one_step(kinks)
@@ -155,11 +160,16 @@ def test_straight_through_keeps_the_forward_pass_and_passes_the_gradient_through
 def test_check_grads_rollout_with_smooth_kinks_through_contact_and_saturation(x64):
     """check_grads through 20 steps of smooth physics in which drones saturate, land and sit in each other's
     downwash, with every effect on."""
-    config = jd.SimConfig(n_drones=2, sim_freq=240, ctrl_freq=240, drag=True, ground_effect=True, downwash=True,
-                          kinks="smooth")
+    config = jd.SimConfig(
+        n_drones=2, sim_freq=240, ctrl_freq=240, drag=True, ground_effect=True, downwash=True, kinks="smooth"
+    )
     step = jd.make_step(config)
-    state0 = jd.init_state(config, pos=[[0.0, 0.0, REST + 2e-4], [0.05, 0.0, 0.15]], vel=[[0.1, 0.0, -0.05],
-                           [0.0, 0.0, 0.0]], rpm=float(P.hover_rpm) * np.ones((2, 4)))
+    state0 = jd.init_state(
+        config,
+        pos=[[0.0, 0.0, REST + 2e-4], [0.05, 0.0, 0.15]],
+        vel=[[0.1, 0.0, -0.05], [0.0, 0.0, 0.0]],
+        rpm=float(P.hover_rpm) * np.ones((2, 4)),
+    )
     rng = np.random.default_rng(0)
     rpms = jnp.asarray(P.max_rpm * rng.uniform(0.2, 1.01, (20, 2, 4)))
     out = jd.rollout(step, P, state0, rpms)
@@ -169,8 +179,7 @@ def test_check_grads_rollout_with_smooth_kinks_through_contact_and_saturation(x6
         out = jd.rollout(step, P, state0.replace(pos=pos, vel=vel), rpms)
         return jnp.concatenate([out.pos[-1].ravel(), out.vel[::5].ravel()])
 
-    check_grads(f, (rpms, state0.pos, state0.vel), order=1, modes=("fwd", "rev"), eps=1e-6,
-                              atol=1e-5, rtol=1e-5)
+    check_grads(f, (rpms, state0.pos, state0.vel), order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-5, rtol=1e-5)
 
 
 def test_kinks_bad_input():

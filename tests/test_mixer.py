@@ -35,14 +35,22 @@ MODELS = ("cf2x", "cf2p", "racer")
 F64_RTOL = 1e-12
 F32_RTOL_SQUARED = 2e-6
 F32_RTOL_RPM = 1e-5
-#: The scaled allocation matrices W A (rows T, τx, τy, τz) that docs/physics.md §3.1 and §10.3 give: cf2x with main's motor
-#: order (the paper's matrix is for its own order), cf2p exactly the paper's, racer with its mirrored spins.
+#: The scaled allocation matrices W A (rows T, τx, τy, τz) that docs/physics.md §3.1 and §10.3 give: cf2x with main's
+#: motor order (the paper's matrix is for its own order), cf2p exactly the paper's, racer with its mirrored spins.
 SCALED = {
-    "cf2x": [[1, 1, 1, 1], [-1 / math.sqrt(2), -1 / math.sqrt(2), 1 / math.sqrt(2), 1 / math.sqrt(2)],
-             [-1 / math.sqrt(2), 1 / math.sqrt(2), 1 / math.sqrt(2), -1 / math.sqrt(2)], [-1, 1, -1, 1]],
+    "cf2x": [
+        [1, 1, 1, 1],
+        [-1 / math.sqrt(2), -1 / math.sqrt(2), 1 / math.sqrt(2), 1 / math.sqrt(2)],
+        [-1 / math.sqrt(2), 1 / math.sqrt(2), 1 / math.sqrt(2), -1 / math.sqrt(2)],
+        [-1, 1, -1, 1],
+    ],
     "cf2p": [[1, 1, 1, 1], [0, 1, 0, -1], [-1, 0, 1, 0], [-1, 1, -1, 1]],
-    "racer": [[1, 1, 1, 1], [1 / math.sqrt(2), 1 / math.sqrt(2), -1 / math.sqrt(2), -1 / math.sqrt(2)],
-              [-1 / math.sqrt(2), 1 / math.sqrt(2), 1 / math.sqrt(2), -1 / math.sqrt(2)], [1, -1, 1, -1]],
+    "racer": [
+        [1, 1, 1, 1],
+        [1 / math.sqrt(2), 1 / math.sqrt(2), -1 / math.sqrt(2), -1 / math.sqrt(2)],
+        [-1 / math.sqrt(2), 1 / math.sqrt(2), 1 / math.sqrt(2), -1 / math.sqrt(2)],
+        [1, -1, 1, -1],
+    ],
 }
 
 
@@ -193,22 +201,35 @@ def test_jit_vmap_and_batched_params(x64, rng, strict_ranks):
     """Under jit as eager; vmap over worlds as the batched call; params [W, D] and [W, 1] broadcast."""
     names = [["cf2x", "cf2p", "racer"], ["racer", "cf2x", "cf2p"]]
     params = stacked_params(names)
-    wrench = np.stack([[np.concatenate([[rng.uniform(0.2, 1.0) * float(params.max_thrust[w, d])],
-                                        rng.uniform(-1, 1, 3) * 0.3 * float(params.max_z_torque[w, d])])
-                        for d in range(3)] for w in range(2)])
+    wrench = np.stack(
+        [
+            [
+                np.concatenate(
+                    [
+                        [rng.uniform(0.2, 1.0) * float(params.max_thrust[w, d])],
+                        rng.uniform(-1, 1, 3) * 0.3 * float(params.max_z_torque[w, d]),
+                    ]
+                )
+                for d in range(3)
+            ]
+            for w in range(2)
+        ]
+    )
     batched = wrench_to_rpm(params, wrench)
     assert batched.shape == (2, 3, 4)
     for w, row in enumerate(names):
         for d, name in enumerate(row):
-            np.testing.assert_allclose(batched[w, d], wrench_to_rpm(jd.load_params(name), wrench[w, d][None])[0],
-                                       rtol=1e-14)
+            np.testing.assert_allclose(
+                batched[w, d], wrench_to_rpm(jd.load_params(name), wrench[w, d][None])[0], rtol=1e-14
+            )
     np.testing.assert_array_equal(jax.jit(wrench_to_rpm)(params, wrench), batched)
     np.testing.assert_allclose(jax.vmap(wrench_to_rpm)(params, wrench), batched, rtol=1e-14)
     per_world = stacked_params([["racer"], ["cf2x"]])
     racer_then_cf2x = wrench_to_rpm(per_world, np.broadcast_to(wrench[:, :1], (2, 3, 4)))
     assert racer_then_cf2x.shape == (2, 3, 4)
-    np.testing.assert_allclose(racer_then_cf2x[0, 2], wrench_to_rpm(jd.load_params("racer"), wrench[:1, 0])[0],
-                               rtol=1e-14)
+    np.testing.assert_allclose(
+        racer_then_cf2x[0, 2], wrench_to_rpm(jd.load_params("racer"), wrench[:1, 0])[0], rtol=1e-14
+    )
     lone = nnls_rpm_squared(jd.load_params("cf2x"), wrench[0, 0])
     assert lone.shape == (4,)
 
@@ -230,8 +251,9 @@ def test_gradients(x64, strict_ranks):
     def squared(u, c):
         return nnls_rpm_squared(params.replace(kf=params.kf * c), targets * u) / params.hover_rpm**2
 
-    check_grads(squared, (jnp.ones((2, 4)), jnp.array(1.0)), order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-7,
-                rtol=1e-7)
+    check_grads(
+        squared, (jnp.ones((2, 4)), jnp.array(1.0)), order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-7, rtol=1e-7
+    )
 
     rpm = wrench_to_rpm(params, targets)
     assert float(jnp.min(rpm[0])) > 0 and float(jnp.min(rpm[1])) == 0.0
@@ -243,8 +265,15 @@ def test_gradients(x64, strict_ranks):
     np.testing.assert_array_equal(jac[1][np.asarray(rpm[1]) == 0], 0.0)
 
     ang_vel, rate_cmd = jnp.array([[0.5, -0.3, 0.2], [0.0, 0.1, -0.4]]), jnp.array([[0.2, 0.1, 0.0], [-0.3, 0.0, 0.6]])
-    check_grads(lambda w, c: body_rate_control(params, w, c, params.weight * jnp.ones(2)) / params.hover_rpm,
-                (ang_vel, rate_cmd), order=1, modes=("rev",), eps=1e-6, atol=1e-7, rtol=1e-7)
+    check_grads(
+        lambda w, c: body_rate_control(params, w, c, params.weight * jnp.ones(2)) / params.hover_rpm,
+        (ang_vel, rate_cmd),
+        order=1,
+        modes=("rev",),
+        eps=1e-6,
+        atol=1e-7,
+        rtol=1e-7,
+    )
 
 
 def test_non_finite_wrench_gives_nan(strict_ranks):
@@ -295,8 +324,9 @@ def test_body_rate_loop_gives_first_order_rate_dynamics(model, x64, rng):
     rate_cmd = ang_vel + rng.uniform(-1, 1, (n, 3))  # rate errors the motors can correct without saturating
     thrust = float(params.weight) * rng.uniform(0.8, 1.5, n)
     inertia = np.asarray(params.inertia)
-    expected_torque = ((np.asarray(gains.k_rate) * (rate_cmd - ang_vel)) @ inertia.T
-                       + np.cross(ang_vel, ang_vel @ inertia.T))
+    expected_torque = (np.asarray(gains.k_rate) * (rate_cmd - ang_vel)) @ inertia.T + np.cross(
+        ang_vel, ang_vel @ inertia.T
+    )
     np.testing.assert_allclose(body_rate_torque(params, ang_vel, rate_cmd), expected_torque, rtol=1e-12)
     with jax.numpy_rank_promotion("raise"):
         rpm = body_rate_control(params, ang_vel, rate_cmd, thrust, gains)
@@ -356,15 +386,17 @@ def test_rate_step_is_tracked_at_30_hz(model):
     command = np.array([1.0, -0.6, 0.8])
     params = jd.load_params(model)
     rates, _, _, rpms = run_rate_loop(model, command)
-    rates, rpms = rates[:CTRL_FREQ + 1], rpms[:CTRL_FREQ]  # the first second
+    rates, rpms = rates[: CTRL_FREQ + 1], rpms[:CTRL_FREQ]  # the first second
     k = np.asarray(RateGains.flightmare().k_rate, np.float64)
     n = np.arange(len(rates))[:, None]
     predicted = command * (1 - (1 - k / CTRL_FREQ) ** n)
     deviation = np.max(np.abs(rates - predicted)) / np.max(np.abs(command))
     overshoot = np.max((rates - command) * np.sign(command)) / np.max(np.abs(command))
     final = np.max(np.abs(rates[-1] - command)) / np.max(np.abs(command))
-    print(f"MEASURED {model} rate step at 30 Hz: max deviation from first order {deviation:.1e}, overshoot "
-          f"{overshoot:.1e}, error after 1 s {final:.1e} (of the step)")
+    print(
+        f"MEASURED {model} rate step at 30 Hz: max deviation from first order {deviation:.1e}, overshoot "
+        f"{overshoot:.1e}, error after 1 s {final:.1e} (of the step)"
+    )
     assert deviation < 0.02 and overshoot < 0.01 and final < 0.01
     assert np.max(rpms) < float(params.max_rpm) and np.min(rpms) > 0
 
@@ -379,8 +411,10 @@ def test_hover_thrust_and_zero_rates_hold_attitude(model):
     rpy0 = (0.3, -0.2, 1.0)
     rates, quats, _, _ = run_rate_loop(model, (0.0, 0.0, 0.0), rpy0=rpy0)
     drift = float(np.max(np.abs(quats - quats[0])))
-    print(f"MEASURED {model} zero rates, hover thrust, tilted: quaternion drift {drift:.1e} in 2 s, "
-          f"max rate {np.max(np.abs(rates)):.1e} rad/s")
+    print(
+        f"MEASURED {model} zero rates, hover thrust, tilted: quaternion drift {drift:.1e} in 2 s, "
+        f"max rate {np.max(np.abs(rates)):.1e} rad/s"
+    )
     assert drift < 1e-5 and np.max(np.abs(rates)) < 1e-4
 
     _, quats, pos, _ = run_rate_loop(model, (0.0, 0.0, 0.0))

@@ -268,8 +268,7 @@ def test_jaxmarl_baselines_reshape_every_info_leaf_per_actor():
         return (obs, state), info
 
     n_steps = 2 * view._env.env.episode_length
-    _, infos = jax.jit(lambda k: jax.lax.scan(env_step, (obs, state), jax.random.split(k, n_steps)))(
-        jax.random.key(1))
+    _, infos = jax.jit(lambda k: jax.lax.scan(env_step, (obs, state), jax.random.split(k, n_steps)))(jax.random.key(1))
     assert all(v.shape == (n_steps, n_actors) for v in jax.tree.leaves(infos))
     ended = np.asarray(infos["returned_episode"])
     assert ended[view._env.env.episode_length - 1].all() and ended.sum() == 2 * n_actors

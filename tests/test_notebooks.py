@@ -68,14 +68,23 @@ EXPECTED_OUTPUT = {
         r"PID: RMS error [\d.]+ cm",
     ],
 }
-EXPECTED_FIGURES = {"01_quickstart.ipynb": 2, "02_stable_baselines3.ipynb": 1, "03_gradients.ipynb": 2,
-                    "04_multi_agent.ipynb": 1, "05_vision.ipynb": 1, "06_sim_to_real.ipynb": 2, "07_mpc.ipynb": 1}
+EXPECTED_FIGURES = {
+    "01_quickstart.ipynb": 2,
+    "02_stable_baselines3.ipynb": 1,
+    "03_gradients.ipynb": 2,
+    "04_multi_agent.ipynb": 1,
+    "05_vision.ipynb": 1,
+    "06_sim_to_real.ipynb": 2,
+    "07_mpc.ipynb": 1,
+}
 #: Per notebook: environment variables of its kernel (tiny training budgets for the training notebooks).
-NOTEBOOK_ENV = {"02_stable_baselines3.ipynb": {"JAXDRONES_NB_STEPS": "2000"},
-                "03_gradients.ipynb": {"JAXDRONES_NB_STEPS": "20000"},
-                "04_multi_agent.ipynb": {"JAXDRONES_NB_STEPS": "20000"},
-                "05_vision.ipynb": {"JAXDRONES_NB_STEPS": "2048"},
-                "06_sim_to_real.ipynb": {"JAXDRONES_NB_STEPS": "20000"}}
+NOTEBOOK_ENV = {
+    "02_stable_baselines3.ipynb": {"JAXDRONES_NB_STEPS": "2000"},
+    "03_gradients.ipynb": {"JAXDRONES_NB_STEPS": "20000"},
+    "04_multi_agent.ipynb": {"JAXDRONES_NB_STEPS": "20000"},
+    "05_vision.ipynb": {"JAXDRONES_NB_STEPS": "2048"},
+    "06_sim_to_real.ipynb": {"JAXDRONES_NB_STEPS": "20000"},
+}
 #: The notebooks that train with Stable-Baselines3, which needs torch (the test extra installs it on Python 3.11).
 SB3_NOTEBOOKS = ("02_stable_baselines3.ipynb", "05_vision.ipynb")
 
@@ -87,8 +96,11 @@ def kernel_for_this_interpreter(tmp_path, monkeypatch):
 
     spec_dir = tmp_path / "jupyter" / "kernels" / KERNEL_NAME
     spec_dir.mkdir(parents=True)
-    spec = {"argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
-            "display_name": "Python (tests)", "language": "python"}
+    spec = {
+        "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
+        "display_name": "Python (tests)",
+        "language": "python",
+    }
     (spec_dir / "kernel.json").write_text(json.dumps(spec))
     monkeypatch.setenv("JUPYTER_PATH", str(tmp_path / "jupyter"))
     from jupyter_client.kernelspec import KernelSpecManager
@@ -129,16 +141,20 @@ def test_stored_outputs_are_one_whole_run(path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("path", [pytest.param(p, marks=[pytest.mark.torch] * (p.name in SB3_NOTEBOOKS))
-                                  for p in NOTEBOOKS], ids=[p.name for p in NOTEBOOKS])
+@pytest.mark.parametrize(
+    "path",
+    [pytest.param(p, marks=[pytest.mark.torch] * (p.name in SB3_NOTEBOOKS)) for p in NOTEBOOKS],
+    ids=[p.name for p in NOTEBOOKS],
+)
 def test_notebook_runs(path, tmp_path, monkeypatch, kernel_for_this_interpreter):
     for name, value in NOTEBOOK_ENV.get(path.name, {}).items():
         monkeypatch.setenv(name, value)  # the kernel inherits this process's environment
     nb = nbformat.read(path, as_version=4)
     workdir = tmp_path / "work"
     workdir.mkdir()
-    client = nbclient.NotebookClient(nb, timeout=TIMEOUT_S, kernel_name=kernel_for_this_interpreter,
-                                     resources={"metadata": {"path": str(workdir)}})
+    client = nbclient.NotebookClient(
+        nb, timeout=TIMEOUT_S, kernel_name=kernel_for_this_interpreter, resources={"metadata": {"path": str(workdir)}}
+    )
     client.execute()  # raises CellExecutionError, naming the cell, on any error
 
     errors = [out for cell in nb.cells for out in cell.get("outputs", []) if out.output_type == "error"]

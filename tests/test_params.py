@@ -9,9 +9,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference_dyn as ref
 
 import jaxdrones as jd
-import reference_dyn as ref
 from jaxdrones.params import model_path
 
 MODELS = ("cf2x", "cf2p", "racer")
@@ -107,15 +107,18 @@ def test_torque_arm_matches_explicit_mixer(model, x64):
     _, torque = ref.forces_torques(ref.AIRFRAMES[model], rpm)
     np.testing.assert_allclose(np.asarray(params.torque_arm) @ (params.kf * rpm**2), torque[:2], rtol=1e-14)
     # The maximum xy torque is the arm times the thrust of two motors at max rpm (docs/physics.md §1.1).
-    np.testing.assert_allclose(np.abs(np.asarray(params.torque_arm)).sum(1) / 2 * params.kf * params.max_rpm**2,
-                               params.max_xy_torque, rtol=1e-14)
+    np.testing.assert_allclose(
+        np.abs(np.asarray(params.torque_arm)).sum(1) / 2 * params.kf * params.max_rpm**2,
+        params.max_xy_torque,
+        rtol=1e-14,
+    )
 
 
 def test_load_by_path_equals_load_by_name(x64):
     by_name = jd.load_params("cf2p")
     for path in (model_path("cf2p"), pathlib.Path(model_path("cf2p"))):
         by_path = jd.load_params(path)
-        for a, b in zip(jax.tree.leaves(by_name), jax.tree.leaves(by_path)):
+        for a, b in zip(jax.tree.leaves(by_name), jax.tree.leaves(by_path), strict=True):
             np.testing.assert_array_equal(a, b)
 
 
@@ -148,8 +151,9 @@ def test_default_start_pose(x64):
     """docs/physics.md §1.1: drone i starts at (4iL, 4iL, collision_height/2 + 0.1), L = 0.0397 m, level, at rest."""
     state = jd.init_state(jd.SimConfig(n_drones=3))
     i = np.arange(3)[:, None]
-    np.testing.assert_allclose(state.pos, np.concatenate([4 * i * 0.0397, 4 * i * 0.0397, 0.1125 + 0 * i], 1),
-                               rtol=1e-15)
+    np.testing.assert_allclose(
+        state.pos, np.concatenate([4 * i * 0.0397, 4 * i * 0.0397, 0.1125 + 0 * i], 1), rtol=1e-15
+    )
     np.testing.assert_array_equal(state.quat, np.tile([0.0, 0.0, 0.0, 1.0], (3, 1)))
     for field in (state.vel, state.ang_vel, state.rpm, state.contact):
         np.testing.assert_array_equal(field, 0)

@@ -6,9 +6,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference_pid as ref
 from scipy.spatial.transform import Rotation
 
-import reference_pid as ref
 from jaxdrones.control import pid
 from jaxdrones.params import load_params
 from jaxdrones.state import DroneState
@@ -32,14 +32,18 @@ def _random_state(rng, lead, tilt=0.6):
     pos = rng.uniform(-1, 1, (n, 3)) + np.array([0, 0, 1.0])
     vel = rng.uniform(-1, 1, (n, 3))
     ang_vel = rng.uniform(-3, 3, (n, 3))
-    return {k: v.reshape(lead + (v.shape[-1],)) for k, v in
-            dict(pos=pos, quat=quat, vel=vel, ang_vel=ang_vel).items()}
+    return {k: v.reshape(lead + (v.shape[-1],)) for k, v in dict(pos=pos, quat=quat, vel=vel, ang_vel=ang_vel).items()}
 
 
 def _drone_state(arrays, lead):
-    return DroneState(pos=jnp.asarray(arrays["pos"]), quat=jnp.asarray(arrays["quat"]),
-                      vel=jnp.asarray(arrays["vel"]), ang_vel=jnp.asarray(arrays["ang_vel"]),
-                      rpm=jnp.zeros(lead + (4,)), contact=jnp.zeros(lead, dtype=jnp.int32))
+    return DroneState(
+        pos=jnp.asarray(arrays["pos"]),
+        quat=jnp.asarray(arrays["quat"]),
+        vel=jnp.asarray(arrays["vel"]),
+        ang_vel=jnp.asarray(arrays["ang_vel"]),
+        rpm=jnp.zeros(lead + (4,)),
+        contact=jnp.zeros(lead, dtype=jnp.int32),
+    )
 
 
 def _random_targets(rng, lead, scale):
@@ -73,16 +77,29 @@ def test_matches_reference_over_a_sequence(model):
         for dt, scale in schedule:
             arrays = _random_state(rng, lead)
             targets = _random_targets(rng, lead, scale)
-            rpm, state_j, info = step(params, gains, state_j, _drone_state(arrays, lead),
-                                      **{k: jnp.asarray(v) for k, v in targets.items()}, ctrl_dt=dt)
+            rpm, state_j, info = step(
+                params,
+                gains,
+                state_j,
+                _drone_state(arrays, lead),
+                **{k: jnp.asarray(v) for k, v in targets.items()},
+                ctrl_dt=dt,
+            )
             assert rpm.dtype == jnp.float64
             for w in range(lead[0]):
                 for d in range(lead[1]):
                     c = refs[w][d]
                     r_rpm, r_pos_e, r_yaw_e = c.computeControl(
-                        dt, arrays["pos"][w, d], arrays["quat"][w, d], arrays["vel"][w, d], arrays["ang_vel"][w, d],
-                        targets["target_pos"][w, d], target_rpy=targets["target_rpy"][w, d],
-                        target_vel=targets["target_vel"][w, d], target_rpy_rates=targets["target_rpy_rates"][w, d])
+                        dt,
+                        arrays["pos"][w, d],
+                        arrays["quat"][w, d],
+                        arrays["vel"][w, d],
+                        arrays["ang_vel"][w, d],
+                        targets["target_pos"][w, d],
+                        target_rpy=targets["target_rpy"][w, d],
+                        target_vel=targets["target_vel"][w, d],
+                        target_rpy_rates=targets["target_rpy_rates"][w, d],
+                    )
                     np.testing.assert_allclose(rpm[w, d], r_rpm, rtol=0, atol=RPM_ATOL)
                     np.testing.assert_allclose(info.pos_err[w, d], r_pos_e, rtol=0, atol=1e-15)
                     np.testing.assert_allclose(info.yaw_err[w, d], r_yaw_e, rtol=0, atol=ANGLE_ATOL)
@@ -91,8 +108,12 @@ def test_matches_reference_over_a_sequence(model):
                     np.testing.assert_allclose(state_j.last_rpy[w, d], c.last_rpy, rtol=0, atol=ANGLE_ATOL)
                     saw["pwm_clip"] |= bool(np.any(np.isclose(r_rpm, 9440.3) | np.isclose(r_rpm, 21666.4475)))
                     saw["z_integral_clip"] |= abs(c.integral_pos_e[2]) == 0.15
-            saw["torque_clip"] |= bool(np.any(np.abs(np.asarray(rpm) - np.asarray(rpm).mean(-1, keepdims=True))
-                                              > 3000 * ref.DSLPIDControl.PWM2RPM_SCALE))
+            saw["torque_clip"] |= bool(
+                np.any(
+                    np.abs(np.asarray(rpm) - np.asarray(rpm).mean(-1, keepdims=True))
+                    > 3000 * ref.DSLPIDControl.PWM2RPM_SCALE
+                )
+            )
     assert all(saw.values()), saw
 
 
@@ -109,11 +130,19 @@ def test_circle_like_call_matches_reference(rng):
             arrays = _random_state(rng, lead, tilt=0.05)
             arrays["vel"] *= 0.2
             target_pos = arrays["pos"] + rng.uniform(-0.05, 0.05, lead + (3,))
-            rpm, state_j = pid.pid_control(params, gains, state_j, _drone_state(arrays, lead), target_pos,
-                                           target_rpy=target_rpy, ctrl_dt=1 / 48)
+            rpm, state_j = pid.pid_control(
+                params, gains, state_j, _drone_state(arrays, lead), target_pos, target_rpy=target_rpy, ctrl_dt=1 / 48
+            )
             for d, c in enumerate(refs):
-                r_rpm, _, _ = c.computeControl(1 / 48, arrays["pos"][d], arrays["quat"][d], arrays["vel"][d],
-                                               arrays["ang_vel"][d], target_pos[d], target_rpy=target_rpy[d])
+                r_rpm, _, _ = c.computeControl(
+                    1 / 48,
+                    arrays["pos"][d],
+                    arrays["quat"][d],
+                    arrays["vel"][d],
+                    arrays["ang_vel"][d],
+                    target_pos[d],
+                    target_rpy=target_rpy[d],
+                )
                 np.testing.assert_allclose(rpm[d], r_rpm, rtol=0, atol=RPM_ATOL)
 
 
@@ -121,8 +150,14 @@ def test_hover_at_target_gives_hover_pwm():
     """Level, at rest, on target: thrust PWM 38726.7 (docs/physics.md §12.2) and four equal hover-ish RPMs."""
     with jax.enable_x64(True):
         params, gains = load_params("cf2x"), pid.PIDGains.dsl()
-        state = DroneState(pos=jnp.array([[0.0, 0, 1]]), quat=jnp.array([[0.0, 0, 0, 1]]), vel=jnp.zeros((1, 3)),
-                           ang_vel=jnp.zeros((1, 3)), rpm=jnp.zeros((1, 4)), contact=jnp.zeros(1, jnp.int32))
+        state = DroneState(
+            pos=jnp.array([[0.0, 0, 1]]),
+            quat=jnp.array([[0.0, 0, 0, 1]]),
+            vel=jnp.zeros((1, 3)),
+            ang_vel=jnp.zeros((1, 3)),
+            rpm=jnp.zeros((1, 4)),
+            contact=jnp.zeros(1, jnp.int32),
+        )
         rpm, _, info = pid.pid_compute(params, gains, pid.pid_init(state), state, state.pos, ctrl_dt=1 / 48)
         np.testing.assert_allclose(info.thrust_pwm, [38726.7], atol=0.05)
         np.testing.assert_allclose(rpm, np.full((1, 4), 0.2685 * float(info.thrust_pwm[0]) + 4070.3), atol=1e-9)
@@ -158,8 +193,9 @@ def test_velocity_targets_match_reference(rng):
         pos, vel, rpy = pid.velocity_targets(_drone_state(arrays, lead), action, limit)
         for w in range(lead[0]):
             for d in range(lead[1]):
-                r_pos, r_vel, r_rpy = ref.velocity_targets(arrays["pos"][w, d], arrays["quat"][w, d],
-                                                           action[w, d], limit)
+                r_pos, r_vel, r_rpy = ref.velocity_targets(
+                    arrays["pos"][w, d], arrays["quat"][w, d], action[w, d], limit
+                )
                 np.testing.assert_allclose(pos[w, d], r_pos, atol=0)
                 np.testing.assert_allclose(vel[w, d], r_vel, atol=1e-15)
                 np.testing.assert_allclose(rpy[w, d], r_rpy, atol=1e-15)
@@ -175,12 +211,21 @@ def test_velocity_control_matches_reference(rng):
         for _ in range(3):
             arrays = _random_state(rng, lead, tilt=0.2)
             action = rng.uniform(-1, 1, lead + (4,))
-            rpm, state_j = pid.velocity_control(params, gains, state_j, _drone_state(arrays, lead), action,
-                                                ctrl_dt=1 / 240)
+            rpm, state_j = pid.velocity_control(
+                params, gains, state_j, _drone_state(arrays, lead), action, ctrl_dt=1 / 240
+            )
             for d, c in enumerate(refs):
                 t_pos, t_vel, t_rpy = ref.velocity_targets(arrays["pos"][d], arrays["quat"][d], action[d], 0.25)
-                r_rpm, _, _ = c.computeControl(1 / 240, arrays["pos"][d], arrays["quat"][d], arrays["vel"][d],
-                                               arrays["ang_vel"][d], t_pos, target_rpy=t_rpy, target_vel=t_vel)
+                r_rpm, _, _ = c.computeControl(
+                    1 / 240,
+                    arrays["pos"][d],
+                    arrays["quat"][d],
+                    arrays["vel"][d],
+                    arrays["ang_vel"][d],
+                    t_pos,
+                    target_rpy=t_rpy,
+                    target_vel=t_vel,
+                )
                 np.testing.assert_allclose(rpm[d], r_rpm, rtol=0, atol=RPM_ATOL)
 
 
@@ -206,8 +251,17 @@ def test_vmap_and_float32(rng):
     per_world = jax.vmap(lambda p, s, t: pid.pid_control(params, gains, p, s, t, ctrl_dt=1 / 48))(ps, state, target)
     np.testing.assert_allclose(per_world[0], rpm, rtol=1e-6)
     ref_ctrl = [ref.DSLPIDControl("cf2x") for _ in range(4)]
-    expected = [c.computeControl(1 / 48, arrays["pos"][0, d], arrays["quat"][0, d], arrays["vel"][0, d],
-                                 arrays["ang_vel"][0, d], target[0, d])[0] for d, c in enumerate(ref_ctrl)]
+    expected = [
+        c.computeControl(
+            1 / 48,
+            arrays["pos"][0, d],
+            arrays["quat"][0, d],
+            arrays["vel"][0, d],
+            arrays["ang_vel"][0, d],
+            target[0, d],
+        )[0]
+        for d, c in enumerate(ref_ctrl)
+    ]
     np.testing.assert_allclose(rpm[0], np.array(expected), rtol=0, atol=1.0)  # float32: ~1e-4 relative
 
 
@@ -231,17 +285,24 @@ def test_gradient_wrt_gains(rng):
         eps = 1e-6
         shifted = [jax.tree_util.tree_map(lambda g, d, s=s: g + s * eps * d, gains, direction) for s in (1, -1)]
         fd = (f(shifted[0]) - f(shifted[1])) / (2 * eps)
-        analytic = sum(jnp.vdot(g, d) for g, d in zip(jax.tree_util.tree_leaves(grad),
-                                                      jax.tree_util.tree_leaves(direction)))
+        analytic = sum(
+            jnp.vdot(g, d)
+            for g, d in zip(jax.tree_util.tree_leaves(grad), jax.tree_util.tree_leaves(direction), strict=True)
+        )
         assert np.isfinite(float(analytic))
         np.testing.assert_allclose(float(analytic), float(fd), rtol=1e-5)
 
 
 def test_bad_inputs_raise():
     params, gains = load_params("cf2x"), pid.PIDGains.dsl()
-    state = DroneState(pos=jnp.zeros((4, 3)), quat=jnp.tile(jnp.array([0.0, 0, 0, 1]), (4, 1)),
-                       vel=jnp.zeros((4, 3)), ang_vel=jnp.zeros((4, 3)), rpm=jnp.zeros((4, 4)),
-                       contact=jnp.zeros(4, jnp.int32))
+    state = DroneState(
+        pos=jnp.zeros((4, 3)),
+        quat=jnp.tile(jnp.array([0.0, 0, 0, 1]), (4, 1)),
+        vel=jnp.zeros((4, 3)),
+        ang_vel=jnp.zeros((4, 3)),
+        rpm=jnp.zeros((4, 4)),
+        contact=jnp.zeros(4, jnp.int32),
+    )
     ps = pid.pid_init(state)
     with pytest.raises(ValueError, match="target_pos"):
         pid.pid_control(params, gains, ps, state, jnp.zeros((3, 3)), ctrl_dt=1 / 48)

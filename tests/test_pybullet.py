@@ -7,17 +7,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from optional import needs
 
 needs("pybullet")
 pytestmark = pytest.mark.pybullet
 
 import pybullet  # noqa: E402
+
 import jaxdrones as jd  # noqa: E402
 from jaxdrones.backends.pybullet import PyBulletStep  # noqa: E402
-from jaxdrones.scene import PAPER_OBSTACLES, Obstacle  # noqa: E402
 from jaxdrones.rotations import quat_to_rotmat  # noqa: E402
+from jaxdrones.scene import PAPER_OBSTACLES, Obstacle  # noqa: E402
 from jaxdrones.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE  # noqa: E402
 
 MODELS = ("cf2x", "cf2p", "racer")
@@ -38,15 +38,16 @@ def free_flight(model, effects):
     With effects on, drone 0 starts 8 cm above the ground (ground effect), drone 1 0.4 m above it and 0.15 m
     aside (downwash on drone 0), and drone 2 moves at 1-2 m/s (drag).
     """
-    config = jd.SimConfig(n_drones=3, sim_freq=240, ctrl_freq=48, drag=effects, ground_effect=effects,
-                          downwash=effects)
+    config = jd.SimConfig(n_drones=3, sim_freq=240, ctrl_freq=48, drag=effects, ground_effect=effects, downwash=effects)
     params = jd.load_params(model)
     low = 0.08 if effects else 1.0
     state = jd.init_state(
-        config, pos=np.array([[0.0, 0.0, low], [0.15, -0.02, low + 0.4], [1.0, 1.0, 1.5]]),
+        config,
+        pos=np.array([[0.0, 0.0, low], [0.15, -0.02, low + 0.4], [1.0, 1.0, 1.5]]),
         rpy=np.array([[0.05, -0.04, 0.3], [0.1, 0.05, -0.2], [-0.2, 0.1, 1.0]]),
         vel=np.array([[0.1, 0.0, 0.05], [0.0, 0.2, 0.0], [1.5, -1.0, 0.3]]),
-        ang_vel=np.array([[0.3, -0.2, 0.5], [0.0, 0.4, -1.0], [1.0, 0.5, 2.0]]))
+        ang_vel=np.array([[0.3, -0.2, 0.5], [0.0, 0.4, -1.0], [1.0, 0.5, 2.0]]),
+    )
     steps = config.ctrl_freq
     phase = np.random.default_rng(0).uniform(0, 2 * np.pi, (1, 3, 4))
     # drone 0 near hover RPM: it lifts off slowly in ground effect and stays below drone 1 (the racer's larger
@@ -72,8 +73,10 @@ def test_backends_agree_in_free_flight(x64, model, effects):
     pos_err = np.max(np.linalg.norm(s.pos - np.asarray(jax_states.pos[-1]), axis=-1))
     att_err = np.max(angle_between(s.quat, np.asarray(jax_states.quat[-1])))
     vel_err = np.max(np.abs(s.vel - np.asarray(jax_states.vel[-1])))
-    print(f"\nMEASURED {model} effects={effects}: after 1 s, position {pos_err:.2e} m, attitude {att_err:.2e} rad, "
-          f"velocity {vel_err:.2e} m/s; travelled {np.linalg.norm(s.pos - np.asarray(state.pos), axis=-1).max():.2f} m")
+    print(
+        f"\nMEASURED {model} effects={effects}: after 1 s, position {pos_err:.2e} m, attitude {att_err:.2e} rad, "
+        f"velocity {vel_err:.2e} m/s; travelled {np.linalg.norm(s.pos - np.asarray(state.pos), axis=-1).max():.2f} m"
+    )
     assert pos_err <= 1e-3 and att_err <= 0.01
     assert pos_err <= 1e-9 and att_err <= 1e-7  # what is reached: float64 round-off
     if effects:  # the effects were actually in play
@@ -140,6 +143,7 @@ def test_concrete_inputs_give_numpy():
 
 
 # ------------------------------------------------------------------------------------------------ collisions
+
 
 def fly(step, params, state, rpm, n):
     states = []
@@ -247,6 +251,7 @@ def test_params_changes_reach_the_bodies(x64):
 
 # ------------------------------------------------------------------------------------------------ resources
 
+
 def open_fds() -> int:
     return len(os.listdir("/proc/self/fd"))
 
@@ -273,8 +278,10 @@ def test_no_leaked_clients_or_files_over_1000_cycles():
         assert not step.clients
     probe = pybullet.connect(pybullet.DIRECT)
     pybullet.disconnect(probe)
-    print(f"\nMEASURED 1000 create/step/close cycles: {len(clients)} distinct client ids used, open files "
-          f"{fds} -> {open_fds()}, next new client id {probe}")
+    print(
+        f"\nMEASURED 1000 create/step/close cycles: {len(clients)} distinct client ids used, open files "
+        f"{fds} -> {open_fds()}, next new client id {probe}"
+    )
     assert probe <= 1, f"a new client got id {probe}: earlier clients were not released"
     assert open_fds() <= fds
     assert clients and all(not pybullet.isConnected(c) for c in clients)
@@ -312,6 +319,7 @@ def test_a_failing_world_does_not_take_the_others_down():
 
 
 # ------------------------------------------------------------------------------------------------ bad input
+
 
 def test_bad_options_and_calls():
     config = jd.SimConfig(n_drones=2)

@@ -9,18 +9,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from PIL import Image
-
 from optional import needs
+from PIL import Image
 
 needs("pybullet")
 pytestmark = pytest.mark.pybullet
 
 import pybullet  # noqa: E402
+
 import jaxdrones as jd  # noqa: E402
 from jaxdrones.backends import camera  # noqa: E402
-from jaxdrones.scene import Obstacle  # noqa: E402
 from jaxdrones.examples import camera_scene as cs  # noqa: E402
+from jaxdrones.scene import Obstacle  # noqa: E402
 from jaxdrones.video import VideoWriter  # noqa: E402
 
 W, H = 320, 240
@@ -47,7 +47,7 @@ def grow(mask, k=1):
         out = np.zeros_like(out)
         for dr in (0, 1, 2):
             for dc in (0, 1, 2):
-                out |= padded[dr:dr + mask.shape[0], dc:dc + mask.shape[1]]
+                out |= padded[dr : dr + mask.shape[0], dc : dc + mask.shape[1]]
     return out
 
 
@@ -95,7 +95,7 @@ def check_scene(scene, width=W, height=H, fov=60.0, distance=cs.BOX_DISTANCE, co
     # right half (no sphere there), outside the box: nothing above the horizon, the ground below it
     outside = ~grow(expected, 2)
     right = np.zeros_like(expected)
-    right[:, width // 2 + 2:] = True
+    right[:, width // 2 + 2 :] = True
     above = np.arange(height)[:, None] < height / 2 - 1
     below = np.arange(height)[:, None] > height / 2 + 2
     assert np.all(seg[right & outside & above] == -1)
@@ -148,8 +148,11 @@ def test_view_and_projection_matrices_equal_pybullets(rng):
         expected = pybullet.computeViewMatrix(eye.tolist(), (eye + R[:, 0]).tolist(), R[:, 2].tolist())
         np.testing.assert_allclose(camera.onboard_view_matrices(p, q, offset), expected, atol=1e-6)
     for fov, aspect, near, far in [(60.0, 4 / 3, 0.0397, 100.0), (90.0, 1.0, 0.01, 1000.0)]:
-        np.testing.assert_allclose(camera.projection_matrix(fov, aspect, near, far),
-                                   pybullet.computeProjectionMatrixFOV(fov, aspect, near, far), rtol=1e-6)
+        np.testing.assert_allclose(
+            camera.projection_matrix(fov, aspect, near, far),
+            pybullet.computeProjectionMatrixFOV(fov, aspect, near, far),
+            rtol=1e-6,
+        )
     z = camera.projection_matrix(60.0, 1.0, 0.05, 10.0).reshape(4, 4).T @ np.array([0.0, 0.0, -2.5, 1.0])
     assert camera.zbuffer_to_depth((z[2] / z[3] + 1) / 2, 0.05, 10.0) == pytest.approx(2.5)
 
@@ -238,7 +241,7 @@ def test_camera_follows_the_body_and_leaves_the_step_unchanged():
         seg = step.camera_images(params, state)["seg"][0]
         assert seg[24, 32] == step.body_ids()["obstacles"][0]  # yawed 90°: the camera looks along world +y
         after = step(params, state, rpm)
-    for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(after)):
+    for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(after), strict=True):
         np.testing.assert_array_equal(a, b)
 
 
@@ -248,8 +251,17 @@ def test_render():
         frame = step.render(params, state, world=1, width=160, height=120)
         assert frame.shape == (120, 160, 3) and frame.dtype == np.uint8
         assert frame.std() > 10  # not a blank image
-        frame_jax = step.render(params, jax.tree.map(jnp.asarray, state), world=1, width=160, height=120,
-                                target=(0.5, 0.0, 0.6), distance=2.0, yaw=30.0, pitch=-20.0)
+        frame_jax = step.render(
+            params,
+            jax.tree.map(jnp.asarray, state),
+            world=1,
+            width=160,
+            height=120,
+            target=(0.5, 0.0, 0.6),
+            distance=2.0,
+            yaw=30.0,
+            pitch=-20.0,
+        )
         assert isinstance(frame_jax, np.ndarray) and frame_jax.shape == (120, 160, 3)
         with pytest.raises(ValueError, match="world"):
             step.render(params, state, world=2)
@@ -261,11 +273,23 @@ def test_render():
             jax.jit(lambda s: step.render(params, s))(jax.tree.map(jnp.asarray, state))
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"width": 0}, "width"), ({"width": 64.0}, "width"), ({"height": -3}, "height"), ({"height": True}, "height"),
-    ({"fov": 0.0}, "fov"), ({"fov": 180.0}, "fov"), ({"fov": "wide"}, "fov"), ({"far": -1.0}, "far"),
-    ({"far": np.inf}, "far"), ({"near": 0.0}, "near"), ({"near": 200.0}, "near"), ({"near": np.nan}, "near"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"width": 0}, "width"),
+        ({"width": 64.0}, "width"),
+        ({"height": -3}, "height"),
+        ({"height": True}, "height"),
+        ({"fov": 0.0}, "fov"),
+        ({"fov": 180.0}, "fov"),
+        ({"fov": "wide"}, "fov"),
+        ({"far": -1.0}, "far"),
+        ({"far": np.inf}, "far"),
+        ({"near": 0.0}, "near"),
+        ({"near": 200.0}, "near"),
+        ({"near": np.nan}, "near"),
+    ],
+)
 def test_bad_camera_arguments(kwargs, match):
     config, params, state = two_drone_worlds(1)
     with jd.make_step(config, backend="pybullet") as step:
@@ -306,8 +330,13 @@ def test_gui_without_display_raises():
                 print("RuntimeError:", err)
     """)
     if sys.platform.startswith("linux"):
-        result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                                env={k: v for k, v in os.environ.items() if k != "DISPLAY"})
+        result = subprocess.run(
+            [sys.executable, "-c", code],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env={k: v for k, v in os.environ.items() if k != "DISPLAY"},
+        )
         assert result.returncode == 0, result.stderr
         lines = [line for line in result.stdout.splitlines() if line.startswith("RuntimeError")]
         assert len(lines) == 2 and "DISPLAY is not set" in lines[0] and "':97'" in lines[1]
@@ -316,8 +345,10 @@ def test_gui_without_display_raises():
 def frames(n, h, w):
     """n smooth, distinct RGB frames (a moving colour gradient)."""
     y, x = np.mgrid[0:h, 0:w]
-    return [np.stack([(x * 255 // w + 20 * i) % 256, y * 255 // h, np.full_like(x, 40 * i % 256)],
-                     -1).astype(np.uint8) for i in range(n)]
+    return [
+        np.stack([(x * 255 // w + 20 * i) % 256, y * 255 // h, np.full_like(x, 40 * i % 256)], -1).astype(np.uint8)
+        for i in range(n)
+    ]
 
 
 # imageio-ffmpeg starts ffmpeg with fork + exec, which JAX's generic fork warning flags; nothing runs in between.

@@ -18,18 +18,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from optional import needs
 
 needs("pybullet")
 pytestmark = pytest.mark.pybullet
 
 import jaxdrones as jd  # noqa: E402
-from jaxdrones.scene import Obstacle  # noqa: E402
 from jaxdrones.cameras import EYE_MARGIN  # noqa: E402
 from jaxdrones.cli import main  # noqa: E402
 from jaxdrones.envs.observations import kinematic_obs  # noqa: E402
 from jaxdrones.examples import circle  # noqa: E402
+from jaxdrones.scene import Obstacle  # noqa: E402
 
 #: How far apart the RMS tracking errors of the two backends may be, overall and per drone, m. The two float32
 #: flights agree to 1e-6 m for their first 10 steps, then the closed loop amplifies the engines' different round-off
@@ -49,15 +48,19 @@ HOVER_TOLERANCE_M = 0.003
 @pytest.fixture(scope="module")
 def circles():
     """The 4-drone circle for 4 s on JAX, and on PyBullet among the example's obstacles."""
-    return {"jax": circle.fly_circle(num_drones=4, duration_s=4.0),
-            "pybullet": circle.fly_circle(num_drones=4, duration_s=4.0, backend="pybullet", obstacles=True)}
+    return {
+        "jax": circle.fly_circle(num_drones=4, duration_s=4.0),
+        "pybullet": circle.fly_circle(num_drones=4, duration_s=4.0, backend="pybullet", obstacles=True),
+    }
 
 
 def test_circle_tracks_alike_on_both_backends(circles):
     jx, pb = circles["jax"], circles["pybullet"]
-    print(f"\nMEASURED circle, 4 drones, 4 s: waypoint RMS jax {jx['metrics']['waypoint_rms_m'] * 100:.2f} cm, "
-          f"pybullet among obstacles {pb['metrics']['waypoint_rms_m'] * 100:.2f} cm; cross-track "
-          f"{jx['metrics']['cross_track_rms_m'] * 100:.2f} / {pb['metrics']['cross_track_rms_m'] * 100:.2f} cm")
+    print(
+        f"\nMEASURED circle, 4 drones, 4 s: waypoint RMS jax {jx['metrics']['waypoint_rms_m'] * 100:.2f} cm, "
+        f"pybullet among obstacles {pb['metrics']['waypoint_rms_m'] * 100:.2f} cm; cross-track "
+        f"{jx['metrics']['cross_track_rms_m'] * 100:.2f} / {pb['metrics']['cross_track_rms_m'] * 100:.2f} cm"
+    )
     assert pb["pos"].shape == jx["pos"].shape == (192, 4, 3) and np.all(np.isfinite(pb["pos"]))
     # The same model: step by step, the flights start identical to float32 rounding.
     np.testing.assert_allclose(pb["pos"][:10], jx["pos"][:10], atol=1e-6)
@@ -65,8 +68,11 @@ def test_circle_tracks_alike_on_both_backends(circles):
     for name in ("waypoint_rms_m", "cross_track_rms_m"):
         assert pb["metrics"][name] < 0.02 and jx["metrics"][name] < 0.02, (name, pb["metrics"], jx["metrics"])
         assert abs(pb["metrics"][name] - jx["metrics"][name]) < CIRCLE_RMS_TOLERANCE_M, name
-    np.testing.assert_allclose(pb["metrics"]["waypoint_rms_per_drone_m"], jx["metrics"]["waypoint_rms_per_drone_m"],
-                               atol=CIRCLE_RMS_PER_DRONE_TOLERANCE_M)
+    np.testing.assert_allclose(
+        pb["metrics"]["waypoint_rms_per_drone_m"],
+        jx["metrics"]["waypoint_rms_per_drone_m"],
+        atol=CIRCLE_RMS_PER_DRONE_TOLERANCE_M,
+    )
     # Among the obstacles, placed around the circle: no drone touches anything.
     contacts = pb["contacts"]
     assert contacts["modelled"] == ["ground", "obstacle", "drone"]
@@ -125,14 +131,19 @@ def test_trained_hover_policy_flies_alike_on_both_backends():
     with jd.make("hover", action_type="one_d_rpm", obs_type="kin", backend="pybullet") as env_pb:
         for name, env in (("jax", env_jax), ("pybullet", env_pb)):
             episodes = jax.jit(jax.vmap(lambda k, env=env: rollout_policy(env, policy, k)))(keys)
-            runs[name] = {"terminated": np.asarray(episodes.terminated), "truncated": np.asarray(episodes.truncated),
-                          "distance": np.asarray(episodes.metrics["distance"]),
-                          "pos": np.asarray(episodes.sim.pos[:, :, 0])}
+            runs[name] = {
+                "terminated": np.asarray(episodes.terminated),
+                "truncated": np.asarray(episodes.truncated),
+                "distance": np.asarray(episodes.metrics["distance"]),
+                "pos": np.asarray(episodes.sim.pos[:, :, 0]),
+            }
     jx, pb = runs["jax"], runs["pybullet"]
     last = slice(-env_jax.config.ctrl_freq, None)
-    print(f"\nMEASURED hover policy, {len(keys)} starts: mean distance over the last second jax "
-          f"{jx['distance'][:, last].mean() * 1e3:.1f} mm, pybullet {pb['distance'][:, last].mean() * 1e3:.1f} mm; "
-          f"final {jx['distance'][:, -1].mean() * 1e3:.1f} / {pb['distance'][:, -1].mean() * 1e3:.1f} mm")
+    print(
+        f"\nMEASURED hover policy, {len(keys)} starts: mean distance over the last second jax "
+        f"{jx['distance'][:, last].mean() * 1e3:.1f} mm, pybullet {pb['distance'][:, last].mean() * 1e3:.1f} mm; "
+        f"final {jx['distance'][:, -1].mean() * 1e3:.1f} / {pb['distance'][:, -1].mean() * 1e3:.1f} mm"
+    )
     np.testing.assert_array_equal(pb["pos"][:, 0], jx["pos"][:, 0])  # the same reset
     np.testing.assert_allclose(pb["pos"][:, 1], jx["pos"][:, 1], atol=1e-6)  # the same first step
     last_second = slice(-env_jax.config.ctrl_freq, None)
@@ -152,10 +163,12 @@ def test_hover_env_agrees_step_by_step():
     out = {}
     for backend in ("jax", "pybullet"):
         with jd.make("hover", action_type="one_d_rpm", backend=backend) as env:
+
             def episode(k, env=env):
                 def body(s, _):
                     s = env.step(s, pd_hold(s.obs))
                     return s, s.sim.pos[0]
+
                 return jax.lax.scan(body, env.reset(k), None, length=60)[1]
 
             out[backend] = np.asarray(jax.jit(jax.vmap(episode))(keys))
@@ -170,8 +183,15 @@ def test_hover_env_agrees_step_by_step():
 @pytest.fixture(scope="module")
 def vision_env():
     """Hover on PyBullet among the obstacles with all three images at 48 Hz control: a render every 2 steps."""
-    env = jd.make("hover", action_type="one_d_rpm", backend="pybullet", obstacles=True,
-                  vision=("rgb", "depth", "seg"), ctrl_freq=48, init_pos=[[0.0, 0.0, 0.5]])
+    env = jd.make(
+        "hover",
+        action_type="one_d_rpm",
+        backend="pybullet",
+        obstacles=True,
+        vision=("rgb", "depth", "seg"),
+        ctrl_freq=48,
+        init_pos=[[0.0, 0.0, 0.5]],
+    )
     yield env
     env.close()
 
@@ -188,8 +208,11 @@ def test_vision_obs_shapes_and_render_schedule(vision_env):
     assert env.config.camera_period == 2
     spec = env.observation_spec
     assert {k: (v.shape, np.dtype(v.dtype)) for k, v in spec.items()} == {
-        "state": ((1, 21), np.dtype(np.float32)), "rgb": ((1, 48, 64, 4), np.dtype(np.uint8)),
-        "depth": ((1, 48, 64), np.dtype(np.float32)), "seg": ((1, 48, 64), np.dtype(np.int32))}
+        "state": ((1, 21), np.dtype(np.float32)),
+        "rgb": ((1, 48, 64, 4), np.dtype(np.uint8)),
+        "depth": ((1, 48, 64), np.dtype(np.float32)),
+        "seg": ((1, 48, 64), np.dtype(np.int32)),
+    }
     n = 3
     reset, step = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.step))
     state = reset(jax.random.split(jax.random.key(0), n))
@@ -280,8 +303,15 @@ def test_vision_options_are_checked():
 def test_frame_stack_on_pybullet():
     """``frame_stack=2`` on the PyBullet backend: the reset's capture twice, then after one camera period the reset's
     capture first and the new one last."""
-    env = jd.make("hover", backend="pybullet", vision=("depth", "seg"), frame_stack=2, image_size=(16, 12),
-                  ctrl_freq=30, camera_freq=15)
+    env = jd.make(
+        "hover",
+        backend="pybullet",
+        vision=("depth", "seg"),
+        frame_stack=2,
+        image_size=(16, 12),
+        ctrl_freq=30,
+        camera_freq=15,
+    )
     state = env.reset(jax.random.key(0))
     first = np.asarray(state.obs["depth"][0, 1])
     assert state.obs["depth"].shape == (1, 2, 12, 16) and state.obs["seg"].shape == (1, 2, 12, 16)
@@ -314,8 +344,23 @@ def test_fly_cli_pybullet_writes_a_video(tmp_path, capsys):
     import imageio.v2 as imageio
 
     out = tmp_path / "fly"
-    args = ["fly", "--backend", "pybullet", "--obstacles", "--num-drones", "2", "--duration", "1.5", "--settle",
-            "0.5", "--video-size", "160x120", "--no-progress", "--out", str(out)]
+    args = [
+        "fly",
+        "--backend",
+        "pybullet",
+        "--obstacles",
+        "--num-drones",
+        "2",
+        "--duration",
+        "1.5",
+        "--settle",
+        "0.5",
+        "--video-size",
+        "160x120",
+        "--no-progress",
+        "--out",
+        str(out),
+    ]
     assert main(args) == 0
     printed = capsys.readouterr().out
     assert "on pybullet" in printed and "contacts with obstacles or other drones: none" in printed

@@ -97,8 +97,9 @@ def test_disturbance_force_torque_and_wind(x64):
     np.testing.assert_allclose(np.asarray(out.ang_vel), dt * torque @ np.asarray(params.inertia_inv).T, rtol=1e-9)
     out = step(params, state, rpm, Disturbance(wind=wind))
     omega = 4 * hover * 2 * np.pi / 60
-    np.testing.assert_allclose(np.asarray(out.vel), dt * omega * np.asarray(params.drag_coeff) * wind / m, rtol=1e-9,
-                               atol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(out.vel), dt * omega * np.asarray(params.drag_coeff) * wind / m, rtol=1e-9, atol=1e-15
+    )
 
 
 @pytest.mark.parametrize("downwash, substeps", [("paper", 1), pytest.param("per_rotor", 4, marks=pytest.mark.slow)])
@@ -107,19 +108,33 @@ def test_adjoint_with_motor_dynamics_and_disturbance(x64, downwash, substeps):
     effect, either downwash model) agrees with JAX's derived derivative for the state, the command, the
     disturbance and the params (the time constants included), within 1e-10 relative."""
     n, worlds = 3, 4
-    config = jd.SimConfig(n_drones=n, sim_freq=240 * substeps, ctrl_freq=240, drag=True, ground_effect=True,
-                          downwash=downwash, motor_dynamics=True)
+    config = jd.SimConfig(
+        n_drones=n,
+        sim_freq=240 * substeps,
+        ctrl_freq=240,
+        drag=True,
+        ground_effect=True,
+        downwash=downwash,
+        motor_dynamics=True,
+    )
     params = _lagged()
     rng = np.random.default_rng(3)
     hover = float(params.hover_rpm)
     heights = np.array([0.1, 0.4, 0.7])[:, None] + rng.uniform(-0.02, 0.02, (worlds, n, 1))  # stacked: downwash acts
     pos = np.concatenate([rng.uniform(-0.04, 0.04, (worlds, n, 2)), heights], -1)
-    state = jd.init_state(config, pos=pos, vel=rng.normal(size=(worlds, n, 3)), ang_vel=rng.normal(size=(worlds, n, 3)),
-                          rpm=hover * (1 + 0.1 * rng.normal(size=(worlds, n, 4))))
+    state = jd.init_state(
+        config,
+        pos=pos,
+        vel=rng.normal(size=(worlds, n, 3)),
+        ang_vel=rng.normal(size=(worlds, n, 3)),
+        rpm=hover * (1 + 0.1 * rng.normal(size=(worlds, n, 4))),
+    )
     rpm = jnp.asarray(hover * (1 + 0.2 * rng.normal(size=(worlds, n, 4))))
-    dist = Disturbance(force=jnp.asarray(0.02 * rng.normal(size=(worlds, n, 3))),
-                       torque=jnp.asarray(3e-5 * rng.normal(size=(worlds, n, 3))),
-                       wind=jnp.asarray(rng.normal(size=(worlds, n, 3))))
+    dist = Disturbance(
+        force=jnp.asarray(0.02 * rng.normal(size=(worlds, n, 3))),
+        torque=jnp.asarray(3e-5 * rng.normal(size=(worlds, n, 3))),
+        wind=jnp.asarray(rng.normal(size=(worlds, n, 3))),
+    )
     results = []
     for use in (False, True):
         step = jd.make_step(dataclasses.replace(config, adjoint=use))
@@ -127,8 +142,14 @@ def test_adjoint_with_motor_dynamics_and_disturbance(x64, downwash, substeps):
     (out_ref, vjp_ref), (out, vjp) = results
     for a, b in zip(jax.tree.leaves(out_ref), jax.tree.leaves(out), strict=True):
         np.testing.assert_allclose(b, a, rtol=1e-13, atol=1e-14)
-    ct = jax.tree.map(lambda x: np.zeros(x.shape, jax.dtypes.float0) if x.dtype == jnp.int32
-                      else jnp.asarray(rng.normal(size=x.shape), x.dtype), out_ref)
+    ct = jax.tree.map(
+        lambda x: (
+            np.zeros(x.shape, jax.dtypes.float0)
+            if x.dtype == jnp.int32
+            else jnp.asarray(rng.normal(size=x.shape), x.dtype)
+        ),
+        out_ref,
+    )
     checked = set()
     for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(vjp_ref(ct)), jax.tree.leaves(vjp(ct)), strict=True):
         if a.dtype == jax.dtypes.float0:
@@ -173,8 +194,11 @@ def test_urdf_motor_time_constant_must_be_a_number_at_least_zero(tmp_path, bad):
 
 
 def test_urdf_motor_time_constants_are_read(tmp_path):
-    text = open(jd.params.model_path("cf2x")).read().replace(
-        "<properties ", '<properties motor_tau_up="0.05" motor_tau_down="0.2" ', 1)
+    text = (
+        open(jd.params.model_path("cf2x"))
+        .read()
+        .replace("<properties ", '<properties motor_tau_up="0.05" motor_tau_down="0.2" ', 1)
+    )
     path = tmp_path / "lagged.urdf"
     path.write_text(text)
     params = jd.load_params(str(path))
@@ -191,8 +215,9 @@ def test_pybullet_backend_follows_motor_dynamics_and_disturbance(x64):
     params = _lagged()
     config = jd.SimConfig(ctrl_freq=30, drag=True, motor_dynamics=True)
     state = jd.init_state(config, pos=[[0.0, 0.0, 1.0]])
-    dist = Disturbance(force=np.array([[0.01, 0.0, 0.0]]), torque=np.array([[0.0, 1e-6, 0.0]]),
-                       wind=np.array([[0.0, 1.0, 0.0]]))
+    dist = Disturbance(
+        force=np.array([[0.01, 0.0, 0.0]]), torque=np.array([[0.0, 1e-6, 0.0]]), wind=np.array([[0.0, 1.0, 0.0]])
+    )
     rpm = np.full((1, 4), 1.02 * float(params.hover_rpm))
     jax_step = jd.make_step(config)
     with jd.make_step(config, backend="pybullet") as bullet:
@@ -278,8 +303,9 @@ def test_observation_noise_statistics():
     steps (correlation below 0.05)."""
     realism = PRESETS["crazyflie"]
     errors = _observe_many(realism)
-    sigma = np.array([realism.obs_noise_pos[0], realism.obs_noise_att[0], realism.obs_noise_vel[0],
-                      realism.obs_noise_ang_vel[0]])
+    sigma = np.array(
+        [realism.obs_noise_pos[0], realism.obs_noise_att[0], realism.obs_noise_vel[0], realism.obs_noise_ang_vel[0]]
+    )
     n = errors.shape[0] * errors.shape[1]
     flat = errors.reshape(n, 4, 3)
     assert np.all(np.abs(flat.mean(0)) < 4 * sigma[:, None] / np.sqrt(n))
@@ -333,8 +359,11 @@ def test_dryden_spectra_match_the_model():
     v = gust[..., 0] * -along_axis[..., 1] + gust[..., 1] * along_axis[..., 0]
     w = gust[..., 2]
     (sigma_u, sigma_w), (tau_u, tau_w) = (tuple(map(float, x)) for x in dryden_constants(1.0, 2.0, 5.0))
-    for name, x, sigma, tau, longitudinal in (("u", u, sigma_u, tau_u, True), ("v", v, sigma_u, tau_u, False),
-                                              ("w", w, sigma_w, tau_w, False)):
+    for name, x, sigma, tau, longitudinal in (
+        ("u", u, sigma_u, tau_u, True),
+        ("v", v, sigma_u, tau_u, False),
+        ("w", w, sigma_w, tau_w, False),
+    ):
         freqs, psd = welch(x, fs=30.0, nperseg=1024, axis=-1)
         psd = psd.mean(0)
         for f in (0.1, 0.3, 1.0):
@@ -386,10 +415,24 @@ def test_env_gradients_with_every_option(x64):
     disturbances (the noise is drawn from the state's key, so the rollout is a deterministic function)."""
     from jax.test_util import check_grads
 
-    realism = Realism(motor_tau_up=0.06, motor_tau_down=0.2, action_delay=1, obs_delay=1, obs_noise_pos=0.001,
-                      obs_noise_att=0.001, obs_noise_vel=0.002, obs_noise_ang_vel=0.002, obs_bias_pos=0.001,
-                      wind_speed=1.0, gust_speed=1.0, gust_rate=1.0, turbulence=0.5, disturbance_force=0.01,
-                      disturbance_torque=1e-5, disturbance_hold=0.2)
+    realism = Realism(
+        motor_tau_up=0.06,
+        motor_tau_down=0.2,
+        action_delay=1,
+        obs_delay=1,
+        obs_noise_pos=0.001,
+        obs_noise_att=0.001,
+        obs_noise_vel=0.002,
+        obs_noise_ang_vel=0.002,
+        obs_bias_pos=0.001,
+        wind_speed=1.0,
+        gust_speed=1.0,
+        gust_rate=1.0,
+        turbulence=0.5,
+        disturbance_force=0.01,
+        disturbance_torque=1e-5,
+        disturbance_hold=0.2,
+    )
     env = jd.make("hover", realism=realism, init_pos=[[0.0, 0.0, 1.0]])
     state = env.reset(jax.random.key(0))
     weights = jnp.asarray(np.random.default_rng(0).normal(size=(env.observation_size, 4)) * 0.01)
@@ -421,19 +464,22 @@ def test_presets_and_options():
     assert jd.make("hover").config.realism is None
 
 
-@pytest.mark.parametrize("options, match", [
-    ({"realism": "crazyfly"}, "did you mean 'crazyflie'"),
-    ({"realism": {"action_dealy": 1}}, "did you mean 'action_delay'"),
-    ({"motor_tau_up": -0.1}, "motor_tau_up must be finite, >= 0"),
-    ({"motor_tau_down": math.nan}, "motor_tau_down must be finite"),
-    ({"obs_noise_pos": math.inf}, "obs_noise_pos must be finite"),
-    ({"action_delay": 1.5}, "action_delay must be an integer"),
-    ({"obs_delay": -1}, "obs_delay must be finite, >= 0"),
-    ({"wind_speed": (2.0, 1.0)}, "low <= high"),
-    ({"turbulence": "strong"}, "turbulence must be a number"),
-    ({"disturbance_force": True}, "disturbance_force must be a number"),
-    ({"realism": 3}, "realism must be None, a preset name"),
-])
+@pytest.mark.parametrize(
+    "options, match",
+    [
+        ({"realism": "crazyfly"}, "did you mean 'crazyflie'"),
+        ({"realism": {"action_dealy": 1}}, "did you mean 'action_delay'"),
+        ({"motor_tau_up": -0.1}, "motor_tau_up must be finite, >= 0"),
+        ({"motor_tau_down": math.nan}, "motor_tau_down must be finite"),
+        ({"obs_noise_pos": math.inf}, "obs_noise_pos must be finite"),
+        ({"action_delay": 1.5}, "action_delay must be an integer"),
+        ({"obs_delay": -1}, "obs_delay must be finite, >= 0"),
+        ({"wind_speed": (2.0, 1.0)}, "low <= high"),
+        ({"turbulence": "strong"}, "turbulence must be a number"),
+        ({"disturbance_force": True}, "disturbance_force must be a number"),
+        ({"realism": 3}, "realism must be None, a preset name"),
+    ],
+)
 def test_realism_bad_input(options, match):
     with pytest.raises(ValueError, match=match):
         jd.make("hover", **options)
@@ -451,8 +497,12 @@ def test_gymnasium_ids_and_command_line_take_the_options():
     assert env.reset(seed=0)[0].shape == (21,)
     assert realism_options(None, []) is None and realism_options("crazyflie", []) == "crazyflie"
     options = realism_options("crazyflie", ["action_delay=1", "motor_tau_up=0.05,0.2", "disturbance_hold=inf"])
-    assert options == {"preset": "crazyflie", "action_delay": 1, "motor_tau_up": (0.05, 0.2),
-                       "disturbance_hold": math.inf}
+    assert options == {
+        "preset": "crazyflie",
+        "action_delay": 1,
+        "motor_tau_up": (0.05, 0.2),
+        "disturbance_hold": math.inf,
+    }
     assert jd.make("hover", realism=options).config.realism.motor_tau_up == (0.05, 0.2)
     for bad in ("action_delay", "turbulence=strong", "wind_speed=1,2,3"):
         with pytest.raises(ValueError, match="--realism-set takes NAME=VALUE"):

@@ -14,7 +14,7 @@ from jaxdrones.envs import get_task, is_multi_agent, register, registered
 from jaxdrones.envs.tasks.single import Hover, HoverConfig
 
 #: A module of a user's own: a hover task 0.5 m higher, registered on import.
-USER_MODULE = textwrap.dedent('''
+USER_MODULE = textwrap.dedent("""
     import dataclasses
 
     from jaxdrones.envs import register
@@ -32,7 +32,7 @@ USER_MODULE = textwrap.dedent('''
 
 
     HIGH_HOVER = register(TallHover())
-''')
+""")
 
 
 @pytest.fixture(autouse=True)
@@ -99,8 +99,30 @@ def test_train_cli_trains_a_task_of_your_own(tmp_path, monkeypatch, capsys):
     assert main(["train", "tall_hover", "--no-progress"]) == 2  # not registered without the module
     assert "tall_hover" in capsys.readouterr().err
     run = tmp_path / "run"
-    assert main(["train", "tall_hover", "--import", "my_tasks", "--algo", "ppo", "--steps", "20000", "--num-envs",
-                 "16", "--num-evals", "1", "--out", str(run), "--no-progress", "--eval-episodes", "64"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "tall_hover",
+                "--import",
+                "my_tasks",
+                "--algo",
+                "ppo",
+                "--steps",
+                "20000",
+                "--num-envs",
+                "16",
+                "--num-evals",
+                "1",
+                "--out",
+                str(run),
+                "--no-progress",
+                "--eval-episodes",
+                "64",
+            ]
+        )
+        == 0
+    )
     summary = json.loads((run / "summary.json").read_text())
     assert summary["task"] == "tall_hover" and summary["env_steps"] >= 20_000
     env, _ = jd.training.load_policy(run)

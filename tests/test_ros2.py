@@ -65,8 +65,9 @@ def test_pose_odometry_clock_through_cdr(typestore, rng):
     assert (pose.header.stamp.sec, pose.header.stamp.nanosec, pose.header.frame_id) == (12, 345678901, "world")
     p, q = pose.pose.position, pose.pose.orientation
     np.testing.assert_array_equal([p.x, p.y, p.z, q.x, q.y, q.z, q.w], np.r_[pos, quat])
-    odom, _ = cdr_round_trip(typestore, "nav_msgs/msg/Odometry",
-                             messages.odometry_fields(pos, quat, vel, ang_vel, t, child_frame_id="cf3"))
+    odom, _ = cdr_round_trip(
+        typestore, "nav_msgs/msg/Odometry", messages.odometry_fields(pos, quat, vel, ang_vel, t, child_frame_id="cf3")
+    )
     assert odom.child_frame_id == "cf3" and odom.pose.covariance.shape == (36,)
     rot = np.asarray(jd.rotations.quat_to_rotmat(jnp.asarray(quat, jnp.float32)), np.float64)
     linear = odom.twist.twist.linear  # body frame: R v_body = v_world
@@ -143,8 +144,9 @@ class StandInNode:
 def test_crazyswarm2_backend_against_its_interface():
     node, params = StandInNode(), jd.load_params("cf2x")
     yaw90 = np.array([np.sqrt(0.5), 0, 0, np.sqrt(0.5)])  # w, x, y, z
-    backend = Backend(node, ["cf1", "cf2"], [State(np.array([0.0, 0.0, 1.0]), quat=yaw90), State([1.0, 0.0, 0.0])],
-                      clock_type=Clock)
+    backend = Backend(
+        node, ["cf1", "cf2"], [State(np.array([0.0, 0.0, 1.0]), quat=yaw90), State([1.0, 0.0, 0.0])], clock_type=Clock
+    )
     hover = float(params.hover_rpm)
     for _ in range(250):  # 0.5 s at 500 Hz: the first hovers at 1 m, the second rests on the ground with motors off
         states = backend.step([None, None], [Action([hover] * 4), Action([0.0] * 4)])
@@ -193,10 +195,14 @@ def test_rclpy_messages_equal_rosbags(typestore, rng):
 
     pos, quat, vel, ang_vel, rpm = a_drone(rng)
     for cls, msgtype, fields in (
-            (Float32MultiArray, "std_msgs/msg/Float32MultiArray",
-             messages.float_array_fields(messages.obs_vector(pos, quat, np.zeros(3), vel, ang_vel, rpm))),
-            (PoseStamped, "geometry_msgs/msg/PoseStamped", messages.pose_fields(pos, quat, 3.25)),
-            (Odometry, "nav_msgs/msg/Odometry", messages.odometry_fields(pos, quat, vel, ang_vel, 3.25))):
+        (
+            Float32MultiArray,
+            "std_msgs/msg/Float32MultiArray",
+            messages.float_array_fields(messages.obs_vector(pos, quat, np.zeros(3), vel, ang_vel, rpm)),
+        ),
+        (PoseStamped, "geometry_msgs/msg/PoseStamped", messages.pose_fields(pos, quat, 3.25)),
+        (Odometry, "nav_msgs/msg/Odometry", messages.odometry_fields(pos, quat, vel, ang_vel, 3.25)),
+    ):
         _, raw = cdr_round_trip(typestore, msgtype, fields)
         # rclpy's bytes, read by rosbags and written again (CDR's alignment padding zeroed), are rosbags' own.
         from_rclpy = typestore.deserialize_cdr(serialize_message(messages.fill_rclpy(cls(), fields)), msgtype)
@@ -286,8 +292,12 @@ def serve_while(node, arguments: list[str], timeout_s: float = 120.0) -> str:
     until it exits; then destroy the node and shut rclpy down. Returns the process's output; fails on an error."""
     import rclpy
 
-    server = subprocess.Popen([sys.executable, "-m", "jaxdrones.cli", "ros2", *arguments], stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True)
+    server = subprocess.Popen(
+        [sys.executable, "-m", "jaxdrones.cli", "ros2", *arguments],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         deadline = time.monotonic() + timeout_s
         while server.poll() is None and time.monotonic() < deadline:
@@ -327,9 +337,14 @@ def test_two_processes_close_the_loop_with_the_pid(ros_env):
         nonlocal pid_state, target
         obs = np.asarray(msg.data, np.float64)
         received.append(obs)
-        state = jd.DroneState(pos=jnp.asarray(obs[None, 0:3]), quat=jnp.asarray(obs[None, 3:7]),
-                              vel=jnp.asarray(obs[None, 10:13]), ang_vel=jnp.asarray(obs[None, 13:16]),
-                              rpm=jnp.asarray(obs[None, 16:20]), contact=jnp.zeros(1, jnp.int32))
+        state = jd.DroneState(
+            pos=jnp.asarray(obs[None, 0:3]),
+            quat=jnp.asarray(obs[None, 3:7]),
+            vel=jnp.asarray(obs[None, 10:13]),
+            ang_vel=jnp.asarray(obs[None, 13:16]),
+            rpm=jnp.asarray(obs[None, 16:20]),
+            contact=jnp.zeros(1, jnp.int32),
+        )
         if pid_state is None:
             pid_state, target = pid_init(state), obs[0:3].copy()
         rpm, pid_state = pid_control(params, PIDGains.dsl(), pid_state, state, target[None], ctrl_dt=1 / freq)
@@ -359,8 +374,9 @@ def test_real_time_node_publishes_at_its_rate(ros_env):
     rclpy.init()
     node = rclpy.create_node("listener")
     arrivals = []
-    node.create_subscription(Float32MultiArray, "/cf0/obs",
-                             lambda msg: arrivals.append((time.monotonic(), float(msg.data[2]))), 10)
+    node.create_subscription(
+        Float32MultiArray, "/cf0/obs", lambda msg: arrivals.append((time.monotonic(), float(msg.data[2]))), 10
+    )
     output = serve_while(node, ["hover", "--ctrl-freq", "48", "--duration", "4"])
     assert "stopped after 192 steps" in output, output
     times, heights = np.array(arrivals).T
@@ -376,8 +392,12 @@ def test_ctrl_c_stops_the_node_cleanly(ros_env):
     """SIGINT (Ctrl-C) while the node steps: exit status 0, no traceback, a last line saying how far it got."""
     import signal
 
-    server = subprocess.Popen([sys.executable, "-m", "jaxdrones.cli", "ros2", "hover"], stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True)
+    server = subprocess.Popen(
+        [sys.executable, "-m", "jaxdrones.cli", "ros2", "hover"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     assert "Ctrl-C stops" in server.stdout.readline()  # started: the node steps on its timer
     time.sleep(1.0)
     server.send_signal(signal.SIGINT)

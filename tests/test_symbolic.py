@@ -53,9 +53,14 @@ def jax_step_of_vectors(config: jd.SimConfig, params):
     step = jd.make_step(config)
 
     def f(x, u):
-        state = jd.DroneState(pos=x[..., None, 0:3], quat=x[..., None, 3:7], vel=x[..., None, 7:10],
-                              ang_vel=x[..., None, 10:13], rpm=x[..., None, 13:17],
-                              contact=jnp.zeros(x.shape[:-1] + (1,), jnp.int32))
+        state = jd.DroneState(
+            pos=x[..., None, 0:3],
+            quat=x[..., None, 3:7],
+            vel=x[..., None, 7:10],
+            ang_vel=x[..., None, 10:13],
+            rpm=x[..., None, 13:17],
+            contact=jnp.zeros(x.shape[:-1] + (1,), jnp.int32),
+        )
         out = step(params, state, u[..., None, :])
         return jnp.concatenate([out.pos, out.quat, out.vel, out.ang_vel, out.rpm], -1)[..., 0, :]
 
@@ -79,7 +84,7 @@ def test_discrete_step_equals_the_jax_step(x64, rng, name):
     jax_next = np.asarray(jax_step_of_vectors(config, params)(jnp.asarray(with_rotors(x, params)), jnp.asarray(u)))
     touched = jax_next[:, 2] <= 0.5 * float(params.collision_height)
     assert 0 < touched.sum() < N  # some states go through the ground contact, most do not
-    np.testing.assert_allclose(symbolic_next, jax_next[:, :symbolic_next.shape[1]], rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(symbolic_next, jax_next[:, : symbolic_next.shape[1]], rtol=1e-10, atol=1e-10)
 
 
 @pytest.mark.parametrize("name", ["euler_drag_ground", "euler_motor_dynamics"])
@@ -93,7 +98,8 @@ def test_discrete_jacobians_equal_jacfwd(x64, rng, name):
     u = rng.uniform(0.3, 0.95, (n, 4)) * float(params.max_rpm)  # inside the clip
     dfdx, dfdu = (np.asarray(j).reshape(17, n, -1).transpose(1, 0, 2) for j in model.dfd_func.map(n)(x.T, u.T))
     jac_x, jac_u = jax.jit(jax.vmap(jax.jacfwd(jax_step_of_vectors(config, params), argnums=(0, 1))))(
-        jnp.asarray(x), jnp.asarray(u))
+        jnp.asarray(x), jnp.asarray(u)
+    )
     np.testing.assert_allclose(dfdx, jac_x, rtol=1e-8, atol=1e-8)
     max_rpm = float(params.max_rpm)  # the input Jacobian per unit of full-scale command
     np.testing.assert_allclose(dfdu * max_rpm, np.asarray(jac_u) * max_rpm, rtol=1e-8, atol=1e-8)
@@ -110,16 +116,22 @@ def test_continuous_dynamics_equal_the_core_accelerations(x64, rng, name):
     speeds = x[:, 13:17] if config.motor_dynamics else rpm
     kin = dynamics.Kinematics(*(split(jnp.asarray(x[:, None, a:b])) for a, b in ((0, 3), (3, 7), (7, 10), (10, 13))))
     speeds_c = split(jnp.asarray(speeds[:, None]))
-    acc, ang_acc = dynamics.accelerations_c(params, dynamics.Effects(config.drag, config.ground_effect), kin,
-                                            dynamics.motors_c(params, speeds_c), speeds_c)
+    acc, ang_acc = dynamics.accelerations_c(
+        params, dynamics.Effects(config.drag, config.ground_effect), kin, dynamics.motors_c(params, speeds_c), speeds_c
+    )
     np.testing.assert_allclose(xdot[:, 0:3], x[:, 7:10], rtol=1e-12)
     np.testing.assert_allclose(xdot[:, 7:10], np.stack([a[:, 0] for a in acc], -1), rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(xdot[:, 10:13], np.stack([a[:, 0] for a in ang_acc], -1), rtol=1e-10, atol=1e-9)
     q, w = x[:, 3:7], x[:, 10:13]  # q̇ = ½ q ⊗ (ω, 0), by the Hamilton product written out
-    expected = 0.5 * np.stack([q[:, 3] * w[:, 0] + q[:, 1] * w[:, 2] - q[:, 2] * w[:, 1],
-                               q[:, 3] * w[:, 1] - q[:, 0] * w[:, 2] + q[:, 2] * w[:, 0],
-                               q[:, 3] * w[:, 2] + q[:, 0] * w[:, 1] - q[:, 1] * w[:, 0],
-                               -q[:, 0] * w[:, 0] - q[:, 1] * w[:, 1] - q[:, 2] * w[:, 2]], -1)
+    expected = 0.5 * np.stack(
+        [
+            q[:, 3] * w[:, 0] + q[:, 1] * w[:, 2] - q[:, 2] * w[:, 1],
+            q[:, 3] * w[:, 1] - q[:, 0] * w[:, 2] + q[:, 2] * w[:, 0],
+            q[:, 3] * w[:, 2] + q[:, 0] * w[:, 1] - q[:, 1] * w[:, 0],
+            -q[:, 0] * w[:, 0] - q[:, 1] * w[:, 1] - q[:, 2] * w[:, 2],
+        ],
+        -1,
+    )
     np.testing.assert_allclose(xdot[:, 3:7], expected, rtol=1e-12, atol=1e-15)
     if config.motor_dynamics:  # τ ṙpm = cmd - rpm, τ by the sign of the error
         error = rpm - x[:, 13:17]
@@ -153,8 +165,13 @@ def test_hover_is_an_equilibrium_and_the_model_has_safe_control_gyms_shape(x64):
 def test_observation_is_the_papers_kin(x64, rng):
     params = jd.load_params("cf2x")
     x, _ = random_states(rng, params, N, False)
-    x[:5, 3:7] = [[0.5, 0.5, 0.5, 0.5], [0.0, np.sqrt(0.5), 0.0, np.sqrt(0.5)], [0.0, -np.sqrt(0.5), 0.0, np.sqrt(0.5)],
-                  [0.0, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0]]  # gimbal lock at pitch ±π/2, level, upside down
+    x[:5, 3:7] = [
+        [0.5, 0.5, 0.5, 0.5],
+        [0.0, np.sqrt(0.5), 0.0, np.sqrt(0.5)],
+        [0.0, -np.sqrt(0.5), 0.0, np.sqrt(0.5)],
+        [0.0, 0.0, 0.0, 1.0],
+        [1.0, 0.0, 0.0, 0.0],
+    ]  # gimbal lock at pitch ±π/2, level, upside down
     y = np.asarray(symbolic.observation().map(N)(x.T)).T
     assert y.shape == (N, 16)
     np.testing.assert_array_equal(y[:, 0:7], x[:, 0:7])

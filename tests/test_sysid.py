@@ -33,12 +33,21 @@ def test_fit_recovers_kf_km_and_drag_from_noise_free_closed_loop_flight(flight, 
     true = jd.load_params("cf2x")
     speed = np.linalg.norm(np.asarray(flight.observed.vel), axis=-1)
     assert 0.5 < speed.max() < 1.2 and np.ptp(np.asarray(flight.observed.pos[..., 2])) > 0.4  # climbs and turns
-    params, report = fit(CONFIG, _guess(true), flight.init_state, flight.rpms, flight.observed, fields=FIELDS,
-                         estimate_starts=estimate_starts)
+    params, report = fit(
+        CONFIG,
+        _guess(true),
+        flight.init_state,
+        flight.rpms,
+        flight.observed,
+        fields=FIELDS,
+        estimate_starts=estimate_starts,
+    )
     for name in FIELDS:
         error = np.asarray(getattr(params, name)) / np.asarray(getattr(true, name)) - 1
-        print(f"\nMEASURED sysid {name}: relative error {np.abs(error).max():.2e} (guess off by 20-30 %, "
-              f"estimate_starts={estimate_starts})")
+        print(
+            f"\nMEASURED sysid {name}: relative error {np.abs(error).max():.2e} (guess off by 20-30 %, "
+            f"estimate_starts={estimate_starts})"
+        )
         assert np.all(np.abs(error) < 0.02), (name, error)
         assert np.all(np.isfinite(report["std"][name]))
     assert len(report["loss"]) == 2 and report["loss"][-1] < 1e-6 * report["loss"][0] and report["windows"] == 24
@@ -61,8 +70,10 @@ def test_fit_recovers_kf_km_and_drag_within_10_percent_from_noisy_flight(flight,
     for name in FIELDS:
         error = np.asarray(getattr(params, name)) / np.asarray(getattr(true, name)) - 1
         std = report["std"][name] / np.asarray(getattr(true, name))
-        print(f"\nMEASURED sysid noisy {name}: relative error {np.array2string(error, precision=4)} "
-              f"(standard error {np.array2string(std, precision=4)}; {case} noise, seed {seed})")
+        print(
+            f"\nMEASURED sysid noisy {name}: relative error {np.array2string(error, precision=4)} "
+            f"(standard error {np.array2string(std, precision=4)}; {case} noise, seed {seed})"
+        )
         assert np.all(np.abs(error) < 0.10), (name, error)
         assert np.all(np.abs(error) < 4 * std), (name, error, std)  # the standard errors are honest
     # At the fit, the residuals are the noise: in noise units, mean square 1 for the noisy position and attitude.

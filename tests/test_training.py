@@ -26,8 +26,10 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 @pytest.fixture
 def compile_cache(tmp_path_factory):
     """A persistent compilation cache for this test only, so repeated identical runs skip XLA compilation."""
-    saved = {name: getattr(jax.config, name) for name in
-             ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")}
+    saved = {
+        name: getattr(jax.config, name)
+        for name in ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    }
     compilation_cache.reset_cache()
     jax.config.update("jax_compilation_cache_dir", str(tmp_path_factory.mktemp("xla_cache")))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
@@ -43,8 +45,20 @@ def snapshot(folder):
 
 
 def train_args(out, *extra):
-    return ["train", "hover", "--steps", "100000", "--num-envs", "64", "--out", str(out), "--no-progress",
-            "--eval-episodes", "64", *extra]
+    return [
+        "train",
+        "hover",
+        "--steps",
+        "100000",
+        "--num-envs",
+        "64",
+        "--out",
+        str(out),
+        "--no-progress",
+        "--eval-episodes",
+        "64",
+        *extra,
+    ]
 
 
 @pytest.mark.slow
@@ -107,14 +121,17 @@ def test_train_cli_outputs_run_folders_and_reload(tmp_path, capsys, compile_cach
     assert not (tmp_path / "run-2").exists()
 
 
-@pytest.mark.parametrize("extra, message", [
-    (("--eval-episodes", "10"), "n_eval_episodes must be >= 64"),
-    (("--steps", "-5"), "--steps must be a positive integer"),
-    (("--num-envs", "0"), "--num-envs must be a positive integer"),
-    (("--target", "0", "0", "-1"), "above the ground"),
-    (("--action-type", "warp"), "unknown action_type 'warp'"),
-    (("--num-drones", "2"), "n_drones must be exactly 1"),
-])
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (("--eval-episodes", "10"), "n_eval_episodes must be >= 64"),
+        (("--steps", "-5"), "--steps must be a positive integer"),
+        (("--num-envs", "0"), "--num-envs must be a positive integer"),
+        (("--target", "0", "0", "-1"), "above the ground"),
+        (("--action-type", "warp"), "unknown action_type 'warp'"),
+        (("--num-drones", "2"), "n_drones must be exactly 1"),
+    ],
+)
 def test_train_cli_bad_input(tmp_path, capsys, extra, message):
     args = train_args(tmp_path / "run")
     assert main(args + list(extra)) == 2
@@ -164,8 +181,21 @@ def test_train_cli_gradient_algos_learn_save_and_reload(algo, tmp_path, capsys):
     simulator: the evaluation distance falls, the outputs are PPO's, and the saved policy reproduces the run's
     evaluation."""
     run = tmp_path / algo
-    args = ["train", "hover", "--algo", algo, "--steps", "100000", "--num-envs", "8", "--out", str(run),
-            "--no-progress", "--eval-episodes", "64"]
+    args = [
+        "train",
+        "hover",
+        "--algo",
+        algo,
+        "--steps",
+        "100000",
+        "--num-envs",
+        "8",
+        "--out",
+        str(run),
+        "--no-progress",
+        "--eval-episodes",
+        "64",
+    ]
     assert main(args) == 0
     assert f"in {run}" in capsys.readouterr().out
     assert sorted(p.name for p in run.iterdir()) == sorted(TRAIN_OUTPUTS)
@@ -187,8 +217,28 @@ def test_train_cli_ppo_trainers_save_and_reload(algo, tmp_path, capsys):
     """``--algo ppo`` (ours) and ``--algo brax_ppo`` (brax's, through the adapter): a short run writes the outputs,
     its summary names the trainer, and the saved policy reproduces the run's last evaluation."""
     run = tmp_path / algo
-    assert main(["train", "hover", "--algo", algo, "--steps", "20000", "--num-envs", "16", "--num-evals", "2",
-                 "--out", str(run), "--no-progress", "--eval-episodes", "64"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "hover",
+                "--algo",
+                algo,
+                "--steps",
+                "20000",
+                "--num-envs",
+                "16",
+                "--num-evals",
+                "2",
+                "--out",
+                str(run),
+                "--no-progress",
+                "--eval-episodes",
+                "64",
+            ]
+        )
+        == 0
+    )
     assert f"in {run}" in capsys.readouterr().out
     assert sorted(p.name for p in run.iterdir()) == sorted(TRAIN_OUTPUTS)
     summary = json.loads((run / "summary.json").read_text())
@@ -214,8 +264,9 @@ def test_td_lambda_returns_by_hand():
     lam = 0.5
     g2 = 3 + g * 30
     g1 = 2 + g * ((1 - lam) * 20 + lam * g2)
-    np.testing.assert_allclose(td_lambda_returns(r, v, ended, g, lam), [1 + g * ((1 - lam) * 10 + lam * g1), g1, g2],
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        td_lambda_returns(r, v, ended, g, lam), [1 + g * ((1 - lam) * 10 + lam * g1), g1, g2], rtol=1e-6
+    )
     cut = td_lambda_returns(r, np.array([0.0, 20.0, 30.0]), np.array([True, False, False]), g, lam)
     np.testing.assert_allclose(cut, [1.0, g1, g2], rtol=1e-6)
 
@@ -300,15 +351,22 @@ def test_agent_mlp_first_layer_is_the_concatenated_dense():
     params = net.init(jax.random.key(0), obs, world)
     p = params["params"]
     kernel = np.concatenate([p["Dense_0"]["kernel"], p["Embed_0"]["embedding"], p["Dense_1"]["kernel"]])
-    joint = np.concatenate([obs, np.broadcast_to(np.eye(n_agents), (4, n_agents, n_agents)),
-                            np.broadcast_to(world[:, None], (4, n_agents, n_world))], -1)
+    joint = np.concatenate(
+        [
+            obs,
+            np.broadcast_to(np.eye(n_agents), (4, n_agents, n_agents)),
+            np.broadcast_to(world[:, None], (4, n_agents, n_world)),
+        ],
+        -1,
+    )
     hidden = np.tanh(np.tanh(joint @ kernel + p["Dense_0"]["bias"]) @ p["Dense_2"]["kernel"] + p["Dense_2"]["bias"])
     expected = hidden @ p["Dense_3"]["kernel"] + p["Dense_3"]["bias"]
     np.testing.assert_allclose(net.apply(params, obs, world), expected, rtol=2e-5, atol=2e-6)
 
 
-@pytest.mark.parametrize("kwargs", [dict(critic="central", share_params=True),
-                                    dict(critic="local", share_params=False)])
+@pytest.mark.parametrize(
+    "kwargs", [dict(critic="central", share_params=True), dict(critic="local", share_params=False)]
+)
 def test_mappo_variants_train_on_three_drones(kwargs):
     """MAPPO (shared networks with agent ids, central critic) and IPPO with per-agent networks run on a 3-drone team
     and give a policy of the team's joint action shape; the per-agent parameters carry an agent axis."""
@@ -316,8 +374,9 @@ def test_mappo_variants_train_on_three_drones(kwargs):
     from jaxdrones.training import mappo
 
     env = jd.make("leader_follower", n_drones=3, action_type="one_d_rpm")
-    config = mappo.MAPPOConfig(num_timesteps=2 * 8 * 4, num_envs=8, unroll_length=4, minibatches=2, num_evals=2,
-                               **kwargs)
+    config = mappo.MAPPOConfig(
+        num_timesteps=2 * 8 * 4, num_envs=8, unroll_length=4, minibatches=2, num_evals=2, **kwargs
+    )
     seen = []
     nets, params = mappo.train(env, config, progress=lambda steps, metrics: seen.append((steps, metrics)))
     assert [s for s, _ in seen] == [config.total_steps // 2, config.total_steps]
@@ -334,8 +393,19 @@ def test_train_cli_mappo_leader_follower_saves_and_reloads(tmp_path, capsys):
     """``jaxdrones train leader_follower``: MAPPO by default, the paper's one_d_rpm actions, every drone in the flight
     plot; the evaluation error falls and the saved policy reproduces the run's evaluation."""
     run = tmp_path / "lf"
-    args = ["train", "leader_follower", "--steps", "150000", "--num-envs", "64", "--out", str(run), "--no-progress",
-            "--eval-episodes", "64"]
+    args = [
+        "train",
+        "leader_follower",
+        "--steps",
+        "150000",
+        "--num-envs",
+        "64",
+        "--out",
+        str(run),
+        "--no-progress",
+        "--eval-episodes",
+        "64",
+    ]
     assert main(args) == 0
     assert f"in {run}" in capsys.readouterr().out
     assert sorted(p.name for p in run.iterdir()) == sorted(TRAIN_OUTPUTS)
@@ -363,12 +433,21 @@ def test_train_multi_hover_trains_from_wider_starts_and_evaluates_the_tasks(tmp_
     real_train = mappo.train
     monkeypatch.setattr(mappo, "train", lambda env, *a, **k: trained_in.append(env) or real_train(env, *a, **k))
     tiny = mappo.MAPPOConfig(num_timesteps=8, num_envs=4, unroll_length=2, minibatches=1, num_evals=2)
-    cases = [({"n_drones": 3}, TRAIN_STARTS["multi_hover"]),
-             ({"n_drones": 3, "start_ang_vel": 0.5}, {}),
-             ({"n_drones": 3, "action_type": "one_d_rpm"}, {})]
+    cases = [
+        ({"n_drones": 3}, TRAIN_STARTS["multi_hover"]),
+        ({"n_drones": 3, "start_ang_vel": 0.5}, {}),
+        ({"n_drones": 3, "action_type": "one_d_rpm"}, {}),
+    ]
     for i, (overrides, expected) in enumerate(cases):
-        summary = train_task("multi_hover", str(tmp_path / f"run{i}"), env_overrides=overrides, progress=False,
-                             algo="mappo", config=tiny, n_eval_episodes=64)
+        summary = train_task(
+            "multi_hover",
+            str(tmp_path / f"run{i}"),
+            env_overrides=overrides,
+            progress=False,
+            algo="mappo",
+            config=tiny,
+            n_eval_episodes=64,
+        )
         assert summary["train_env_overrides"] == expected
         for field in ("start_tilt", "start_ang_vel"):
             want = expected.get(field, overrides.get(field))
@@ -388,8 +467,25 @@ def test_train_cli_crossing_without_downwash(tmp_path, capsys):
     """``jaxdrones train crossing --no-downwash``: the flag turns the task's default downwash off, MAPPO trains it,
     and the summary judges the largest altitude error over the episode."""
     run = tmp_path / "crossing"
-    assert main(["train", "crossing", "--no-downwash", "--steps", "2000", "--num-envs", "16", "--out", str(run),
-                 "--no-progress", "--eval-episodes", "64"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "crossing",
+                "--no-downwash",
+                "--steps",
+                "2000",
+                "--num-envs",
+                "16",
+                "--out",
+                str(run),
+                "--no-progress",
+                "--eval-episodes",
+                "64",
+            ]
+        )
+        == 0
+    )
     summary = json.loads((run / "summary.json").read_text())
     assert summary["algo"] == "mappo" and summary["env"]["downwash"] is False
     assert summary["success_metric"] == "max_altitude_error (max over episode)"
@@ -413,8 +509,9 @@ def test_load_policy_into_another_env_checks_the_team(tmp_path):
     env = jd.make("leader_follower", n_drones=3, action_type="one_d_rpm")
     config = mappo.MAPPOConfig(num_timesteps=8, num_envs=4, unroll_length=2, minibatches=1, num_evals=2)
     nets, params = mappo.train(env, config)
-    checkpoint.save(tmp_path / "policy.pkl", "mappo", params, "leader_follower",
-                    {"n_drones": 3, "action_type": "one_d_rpm"}, config)
+    checkpoint.save(
+        tmp_path / "policy.pkl", "mappo", params, "leader_follower", {"n_drones": 3, "action_type": "one_d_rpm"}, config
+    )
     coupled = jd.make("leader_follower", n_drones=3, action_type="one_d_rpm", downwash=True)
     got, policy = load_policy(tmp_path, env=coupled)
     assert got is coupled and got.config.downwash

@@ -61,9 +61,12 @@ def test_every_trainer_gives_one_devices_result_on_two_devices(tmp_path):
     chunk (final distances of 8 episodes, flown in closed loop) to 1e-3 relative."""
     results, runs = {}, {}
     for devices in ("1", "2"):  # both at once (each mostly compiles, on one core)
-        runs[devices] = subprocess.Popen([sys.executable, "-c", _TRAIN_ON_DEVICES, devices,
-                                          str(tmp_path / f"devices_{devices}.npz")],
-                                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        runs[devices] = subprocess.Popen(
+            [sys.executable, "-c", _TRAIN_ON_DEVICES, devices, str(tmp_path / f"devices_{devices}.npz")],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
     for devices, run in runs.items():
         _, err = run.communicate(timeout=900)
         assert run.returncode == 0, err[-3000:]
@@ -77,8 +80,9 @@ def test_every_trainer_gives_one_devices_result_on_two_devices(tmp_path):
         np.testing.assert_allclose(results["2"][algo], results["1"][algo], rtol=1e-4, atol=1e-4, err_msg=algo)
         # The evaluation flies each policy 150 steps in closed loop, which amplifies float32 rounding: seen 2e-6
         # relative for one drone, 1.4e-4 for MAPPO's 3 drones following a leader (jax 0.10.2): 1e-3 relative.
-        np.testing.assert_allclose(results["2"][algo + "_eval"], results["1"][algo + "_eval"], rtol=1e-3, atol=1e-6,
-                                   err_msg=algo)
+        np.testing.assert_allclose(
+            results["2"][algo + "_eval"], results["1"][algo + "_eval"], rtol=1e-3, atol=1e-6, err_msg=algo
+        )
 
 
 def _free_port() -> int:
@@ -93,8 +97,22 @@ def _cli(*args: str) -> list[str]:
 
 def _train_args(out, *extra) -> list[str]:
     """A short run: 2 updates of 16 worlds (one evaluation, after them)."""
-    return ["train", "hover", "--steps", "320", "--num-envs", "16", "--num-evals", "1", "--eval-episodes", "64",
-            "--no-progress", "--out", str(out), *extra]
+    return [
+        "train",
+        "hover",
+        "--steps",
+        "320",
+        "--num-envs",
+        "16",
+        "--num-evals",
+        "1",
+        "--eval-episodes",
+        "64",
+        "--no-progress",
+        "--out",
+        str(out),
+        *extra,
+    ]
 
 
 @pytest.mark.slow
@@ -107,9 +125,25 @@ def test_two_processes_train_one_process_result(tmp_path):
     one = subprocess.run(_cli(*_train_args(tmp_path / "one")), capture_output=True, text=True, timeout=600)
     assert one.returncode == 0, one.stderr[-3000:]
     port = _free_port()
-    procs = [subprocess.Popen(_cli(*_train_args(tmp_path / "two", "--coordinator", f"127.0.0.1:{port}",
-                                                "--num-processes", "2", "--process-id", str(k))),
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for k in (0, 1)]
+    procs = [
+        subprocess.Popen(
+            _cli(
+                *_train_args(
+                    tmp_path / "two",
+                    "--coordinator",
+                    f"127.0.0.1:{port}",
+                    "--num-processes",
+                    "2",
+                    "--process-id",
+                    str(k),
+                )
+            ),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for k in (0, 1)
+    ]
     outputs = [p.communicate(timeout=600) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], [err[-3000:] for _, err in outputs]
     summary_one = json.loads((tmp_path / "one" / "summary.json").read_text())
@@ -122,12 +156,18 @@ def test_two_processes_train_one_process_result(tmp_path):
     assert "saved policy.pkl" in outputs[0][0] and "saved" not in outputs[1][0]  # process 0 writes the run
 
 
-@pytest.mark.parametrize("extra, message", [
-    (("--coordinator", "127.0.0.1:1", "--num-processes", "2", "--process-id", "2"), "--process-id must be in [0, 1]"),
-    (("--coordinator", "127.0.0.1:1", "--num-processes", "2"), "go together"),
-    (("--coordinator", "nohost", "--num-processes", "2", "--process-id", "1"), "HOST:PORT"),
-    (("--device", "abacus"), "unknown device 'abacus'"),
-])
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (
+            ("--coordinator", "127.0.0.1:1", "--num-processes", "2", "--process-id", "2"),
+            "--process-id must be in [0, 1]",
+        ),
+        (("--coordinator", "127.0.0.1:1", "--num-processes", "2"), "go together"),
+        (("--coordinator", "nohost", "--num-processes", "2", "--process-id", "1"), "HOST:PORT"),
+        (("--device", "abacus"), "unknown device 'abacus'"),
+    ],
+)
 def test_bad_device_and_process_settings(tmp_path, capsys, extra, message):
     assert main(_train_args(tmp_path / "run", *extra)) == 2
     err = capsys.readouterr().err
@@ -140,9 +180,24 @@ def test_unreachable_coordinator_fails_within_the_timeout(tmp_path):
     ``--distributed-timeout`` (2 s here), not a hang."""
     port = _free_port()
     start = time.perf_counter()
-    run = subprocess.run(_cli(*_train_args(tmp_path / "run", "--coordinator", f"127.0.0.1:{port}", "--num-processes",
-                                           "2", "--process-id", "1", "--distributed-timeout", "2")),
-                         capture_output=True, text=True, timeout=120)
+    run = subprocess.run(
+        _cli(
+            *_train_args(
+                tmp_path / "run",
+                "--coordinator",
+                f"127.0.0.1:{port}",
+                "--num-processes",
+                "2",
+                "--process-id",
+                "1",
+                "--distributed-timeout",
+                "2",
+            )
+        ),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 2 and f"127.0.0.1:{port} could not be reached within 2 s" in run.stderr
     assert time.perf_counter() - start < 60
     assert not (tmp_path / "run").exists()
@@ -158,12 +213,28 @@ def test_ctrl_c_saves_the_policy_so_far(tmp_path):
     run = tmp_path / "run"
     # Chunks of 50k env steps (100 evaluations), so that the first is soon shown and the one running at Ctrl-C
     # soon ends.
-    args = ["train", "hover", "--steps", "5000000", "--num-envs", "64", "--num-evals", "100", "--out", str(run),
-            "--eval-episodes", "64"]
+    args = [
+        "train",
+        "hover",
+        "--steps",
+        "5000000",
+        "--num-envs",
+        "64",
+        "--num-evals",
+        "100",
+        "--out",
+        str(run),
+        "--eval-episodes",
+        "64",
+    ]
     # SIGINT's default action restored in the child: test runners' workers may ignore it, and children inherit that.
-    proc = subprocess.Popen(_cli(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = subprocess.Popen(
+        _cli(*args),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     os.set_blocking(proc.stderr.fileno(), False)
     seen, deadline = "", time.monotonic() + 300
     while "final distance" not in seen:  # the progress bar shows a first evaluation: a chunk has finished
@@ -196,12 +267,30 @@ def test_second_run_loads_the_traced_program_and_trains_the_same(tmp_path):
     of its own; a damaged file is traced anew."""
     cache = tmp_path / "cache"
     env = {**os.environ, "JAXDRONES_CACHE_DIR": str(cache)}
-    args = ["train", "hover", "--algo", "apg", "--steps", "2048", "--num-envs", "8", "--num-evals", "2",
-            "--eval-episodes", "64", "--no-progress"]
+    args = [
+        "train",
+        "hover",
+        "--algo",
+        "apg",
+        "--steps",
+        "2048",
+        "--num-envs",
+        "8",
+        "--num-evals",
+        "2",
+        "--eval-episodes",
+        "64",
+        "--no-progress",
+    ]
 
     def run(name, *extra):
-        done = subprocess.run(_cli(*args, "--out", str(tmp_path / name), *extra), capture_output=True, text=True,
-                              env={**env, "JAX_LOG_COMPILES": "1"}, timeout=600)
+        done = subprocess.run(
+            _cli(*args, "--out", str(tmp_path / name), *extra),
+            capture_output=True,
+            text=True,
+            env={**env, "JAX_LOG_COMPILES": "1"},
+            timeout=600,
+        )
         assert done.returncode == 0, done.stderr[-3000:]
         return json.loads((tmp_path / name / "summary.json").read_text()), done.stderr
 

@@ -28,8 +28,9 @@ def run_script(tmp_path, source: str, *args: str, timeout: float) -> subprocess.
     script = tmp_path / "script.py"
     script.write_text(textwrap.dedent(source))
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "MPLBACKEND": "Agg"}
-    return subprocess.run([sys.executable, str(script), *args], cwd=tmp_path, capture_output=True, text=True,
-                          timeout=timeout, env=env)
+    return subprocess.run(
+        [sys.executable, str(script), *args], cwd=tmp_path, capture_output=True, text=True, timeout=timeout, env=env
+    )
 
 
 #: PettingZoo's SB3 tutorial (tutorials/SB3/waterworld/sb3_waterworld_vector.py) with this package as its env
@@ -136,15 +137,23 @@ def test_a_process_forked_after_jax_started_is_refused_at_every_entry(monkeypatc
     pz_env = jd_pettingzoo.parallel_env("multi_hover")
     gym_env.reset(seed=0)
     monkeypatch.setattr(_fork, "_forked_after_jax", True)
-    for call in (lambda: jd.make("hover"), lambda: pickle.loads(pickle.dumps(gym_env)), gym_env.reset,
-                 lambda: gym_env.step(gym_env.action_space.sample()), vec_env.reset, pz_env.reset):
+    for call in (
+        lambda: jd.make("hover"),
+        lambda: pickle.loads(pickle.dumps(gym_env)),
+        gym_env.reset,
+        lambda: gym_env.step(gym_env.action_space.sample()),
+        vec_env.reset,
+        pz_env.reset,
+    ):
         with pytest.raises(RuntimeError, match=f"{FORK_MESSAGE}.*num_cpus=0.*spawn.*vector_entry_point"):
             call()
 
 
 def test_fork_before_jax_started_is_allowed(tmp_path):
     # Only a fork after JAX started is refused: a parent that imported jaxdrones but computed nothing may fork.
-    done = run_script(tmp_path, """
+    done = run_script(
+        tmp_path,
+        """
         import os
         import jaxdrones as jd
         pid = os.fork()
@@ -154,15 +163,21 @@ def test_fork_before_jax_started_is_allowed(tmp_path):
             os._exit(0)
         _, status = os.waitpid(pid, 0)
         print("child exit", os.waitstatus_to_exitcode(status))
-    """, timeout=120)
+    """,
+        timeout=120,
+    )
     assert done.returncode == 0 and "child exit 0" in done.stdout, done.stderr[-2000:]
 
 
-@pytest.mark.parametrize("make", [
-    lambda: GymnasiumEnv(jd.make("hover", ctrl_freq=48), render_mode="rgb_array"),
-    lambda: GymnasiumVectorEnv(jd.make("velocity"), num_envs=3),
-    lambda: jd_pettingzoo.parallel_env("leader_follower", n_drones=3, action_type="one_d_rpm"),
-], ids=["gymnasium", "vector", "pettingzoo"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: GymnasiumEnv(jd.make("hover", ctrl_freq=48), render_mode="rgb_array"),
+        lambda: GymnasiumVectorEnv(jd.make("velocity"), num_envs=3),
+        lambda: jd_pettingzoo.parallel_env("leader_follower", n_drones=3, action_type="one_d_rpm"),
+    ],
+    ids=["gymnasium", "vector", "pettingzoo"],
+)
 def test_envs_pickle_as_their_task_and_options(make):
     env = make()
     env.reset(seed=1)
@@ -206,15 +221,18 @@ def test_human_render_mode_shows_each_step(monkeypatch):
     import matplotlib.pyplot as plt
 
     monkeypatch.setattr(plt, "pause", lambda interval: None)  # headless: nothing to wait for
-    for env in (gym.make("jaxdrones/Hover-v0", render_mode="human").unwrapped,
-                jd_pettingzoo.parallel_env("multi_hover", render_mode="human")):
+    for env in (
+        gym.make("jaxdrones/Hover-v0", render_mode="human").unwrapped,
+        jd_pettingzoo.parallel_env("multi_hover", render_mode="human"),
+    ):
         env.reset(seed=0)
         figure = env._view._figure
         assert figure is not None and plt.fignum_exists(figure.number)
         assert env.render() is None  # gymnasium's convention: human mode draws in reset/step
         before = np.array(figure.axes[0].images[0].get_array())
-        action = (env.action_space.sample() if isinstance(env, gym.Env)
-                  else {a: np.ones(4, np.float32) for a in env.agents})
+        action = (
+            env.action_space.sample() if isinstance(env, gym.Env) else {a: np.ones(4, np.float32) for a in env.agents}
+        )
         for _ in range(5):
             env.step(action)
         after = np.array(figure.axes[0].images[0].get_array())
@@ -265,13 +283,23 @@ CLEANRL_029 = """
 @pytest.mark.slow
 def test_gymnasium_029_registers_the_ids_for_cleanrl(tmp_path):
     target = tmp_path / "gymnasium029"
-    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--target", str(target),
-                          "gymnasium==0.29.1"], capture_output=True, text=True, timeout=300)
+    pip = subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--target", str(target), "gymnasium==0.29.1"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert pip.returncode == 0, pip.stderr
     script = tmp_path / "cleanrl.py"
     script.write_text(textwrap.dedent(CLEANRL_029))
-    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300, cwd=tmp_path,
-                         env={**os.environ, "PYTHONPATH": str(target)})
+    run = subprocess.run(
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(target)},
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     assert "gymnasium 0.29.1" in run.stdout
     assert "obs (2, 21) episodes 2" in run.stdout  # 15-step episodes: each of the 2 envs ended one

@@ -19,8 +19,13 @@ FUSION = "--xla_cpu_use_fusion_emitters=false"
 
 def run_python(code: str, **env) -> subprocess.CompletedProcess:
     environ = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env={**environ, **env},
-                          capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        env={**environ, **env},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def has_fusion_flag() -> bool:
