@@ -104,7 +104,12 @@ def test_site_builds_strict(site):
     print(f"mkdocs build --strict: {seconds:.1f} s")
     assert result.returncode == 0, result.stderr[-4000:]
     assert (out / "index.html").is_file()
-    assert "WARNING" not in result.stderr, result.stderr[-4000:]
+    # nbconvert's lab template (mkdocs-jupyter renders the notebooks with it) writes no alt text for a PNG output and
+    # logs this for every figure; nothing in a notebook can supply one. Any other warning fails the test.
+    warnings = [
+        line for line in result.stderr.splitlines() if "WARNING" in line and "Alternative text is missing" not in line
+    ]
+    assert not warnings, result.stderr[-4000:]
 
 
 @pytest.mark.slow
