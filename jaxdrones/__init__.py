@@ -40,46 +40,25 @@ def _register_gymnasium() -> None:
 _register_gymnasium()
 
 
-# The modules' paths before they moved into the physics and io packages keep importing (``import jaxdrones.dynamics``,
-# ``from jaxdrones.params import load_params``, and the pickles of runs that name them): ``import jaxdrones.<name>``
-# runs this file first, which binds them.
+#: The modules that moved into a subpackage, by subpackage: their old paths keep importing (``import
+#: jaxdrones.dynamics``, ``from jaxdrones.params import load_params``, and the pickles of runs that name them).
+_MOVED = {
+    "physics": ("adjoint", "aerodynamics", "checks", "config", "dynamics", "kinks", "neighbors", "params", "realism",
+                "rotations", "state"),
+    "io": ("plotting", "runs", "video"),
+}  # fmt: skip
+
+
 def _alias_moved_modules() -> None:
+    """Bind each moved module under its old path too (``import jaxdrones.<name>`` runs this file first)."""
+    import importlib
     import sys
 
-    from jaxdrones.io import plotting, runs, video
-    from jaxdrones.physics import (
-        adjoint,
-        aerodynamics,
-        checks,
-        config,
-        dynamics,
-        kinks,
-        neighbors,
-        params,
-        realism,
-        rotations,
-        state,
-    )
-
-    for module in (
-        adjoint,
-        aerodynamics,
-        checks,
-        config,
-        dynamics,
-        kinks,
-        neighbors,
-        params,
-        realism,
-        rotations,
-        state,
-        plotting,
-        runs,
-        video,
-    ):
-        name = module.__name__.rsplit(".", 1)[1]
-        sys.modules[f"{__name__}.{name}"] = module
-        globals()[name] = module
+    for package, names in _MOVED.items():
+        for name in names:
+            module = importlib.import_module(f"{__name__}.{package}.{name}")
+            sys.modules[f"{__name__}.{name}"] = module
+            globals()[name] = module
 
 
 _alias_moved_modules()
