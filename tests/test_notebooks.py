@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
-import json
+import importlib.util
 import pathlib
 import re
 import sys
 
-import nbclient
 import nbformat
 import pytest
 
-NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
-KERNEL_NAME = "jaxdrones-tests-python"
+NOTEBOOKS_DIR = pathlib.Path(__file__).resolve().parents[1] / "notebooks"
+#: notebooks/execute.py, which runs and saves the stored notebooks: the suite runs them the same way.
+_spec = importlib.util.spec_from_file_location("notebooks_execute", NOTEBOOKS_DIR / "execute.py")
+RUNNER = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(RUNNER)
+
+NOTEBOOKS = sorted(NOTEBOOKS_DIR.glob("*.ipynb"))
 TIMEOUT_S = 600  # per cell
 
 #: Per notebook: regular expressions that its outputs must match, and the number of figures it must show.
@@ -90,23 +94,14 @@ SB3_NOTEBOOKS = ("02_stable_baselines3.ipynb", "05_vision.ipynb")
 
 
 @pytest.fixture
-def kernel_for_this_interpreter(tmp_path, monkeypatch):
-    """A kernelspec that starts ``sys.executable``, found first through a temporary JUPYTER_PATH."""
+def kernel_for_this_interpreter():
+    """A kernelspec that starts ``sys.executable`` (notebooks/execute.py's, which saves the stored notebooks)."""
     import ipykernel  # noqa: F401  (the kernel runs in this interpreter, so it must have ipykernel)
-
-    spec_dir = tmp_path / "jupyter" / "kernels" / KERNEL_NAME
-    spec_dir.mkdir(parents=True)
-    spec = {
-        "argv": [sys.executable, "-m", "ipykernel_launcher", "-f", "{connection_file}"],
-        "display_name": "Python (tests)",
-        "language": "python",
-    }
-    (spec_dir / "kernel.json").write_text(json.dumps(spec))
-    monkeypatch.setenv("JUPYTER_PATH", str(tmp_path / "jupyter"))
     from jupyter_client.kernelspec import KernelSpecManager
 
-    assert KernelSpecManager().get_kernel_spec(KERNEL_NAME).argv[0] == sys.executable
-    return KERNEL_NAME
+    with RUNNER.kernel_for_this_interpreter() as name:
+        assert KernelSpecManager().get_kernel_spec(name).argv[0] == sys.executable
+        yield name
 
 
 def output_text(nb) -> str:
@@ -152,10 +147,7 @@ def test_notebook_runs(path, tmp_path, monkeypatch, kernel_for_this_interpreter)
     nb = nbformat.read(path, as_version=4)
     workdir = tmp_path / "work"
     workdir.mkdir()
-    client = nbclient.NotebookClient(
-        nb, timeout=TIMEOUT_S, kernel_name=kernel_for_this_interpreter, resources={"metadata": {"path": str(workdir)}}
-    )
-    client.execute()  # raises CellExecutionError, naming the cell, on any error
+    RUNNER.execute(nb, kernel_for_this_interpreter, workdir, TIMEOUT_S)  # raises CellExecutionError, naming the cell
 
     errors = [out for cell in nb.cells for out in cell.get("outputs", []) if out.output_type == "error"]
     assert not errors
