@@ -314,23 +314,10 @@ def _wxyz(xyzw: np.ndarray) -> np.ndarray:
 
 
 def _wxyz_from_rotmat(r: np.ndarray) -> np.ndarray:
-    """A rotation matrix f[3, 3] as a unit quaternion (w, x, y, z) (Shepperd's method)."""
-    r = np.asarray(r, np.float64)
-    tr = np.trace(r)
-    if tr > 0:
-        s = 2 * math.sqrt(1 + tr)
-        q = (0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s)
-    else:
-        i = int(np.argmax(np.diag(r)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2 * math.sqrt(max(1 + r[i, i] - r[j, j] - r[k, k], 1e-12))
-        q = np.zeros(4)
-        q[0] = (r[k, j] - r[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (r[j, i] + r[i, j]) / s
-        q[1 + k] = (r[k, i] + r[i, k]) / s
-    q = np.asarray(q)
-    return q / np.linalg.norm(q)
+    """A rotation matrix f[3, 3] as a unit quaternion (w, x, y, z) (SciPy's, a dependency of JAX)."""
+    from scipy.spatial.transform import Rotation
+
+    return _wxyz(Rotation.from_matrix(np.asarray(r, np.float64)).as_quat())
 
 
 def _primitives(scene, world: int) -> list[tuple]:
