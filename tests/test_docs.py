@@ -153,7 +153,21 @@ def test_few_blocks_left_unrun():
     assert len(blocks("py-norun")) <= MAX_NORUN
 
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=markers(c), id=n) for n, c in blocks("python")])
+def readme_blocks() -> set[str]:
+    """The README's Python blocks, whitespace-normalised: tests/test_readme.py runs them, so a page that shows one
+    again is not run twice."""
+    readme = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), flags=re.S)
+    return {" ".join(code.split()) for code in readme}
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(n, marks=markers(c), id=n)
+        for n, c in blocks("python")
+        if " ".join(c.split()) not in readme_blocks()
+    ],
+)
 def test_docs_example_runs(name, capsys):
     code = dict(blocks("python"))[name]
     exec(compile(code, f"docs/{name} (python block)", "exec"), {})
