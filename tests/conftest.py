@@ -14,6 +14,9 @@ from jaxdrones import _xla
 # passes, and XLA:CPU's classic emitters up to jaxlib 0.10; tests/test_avoid.py and tests/test_gate.py in 45-50 s
 # instead of 65-67 s). ``JAXDRONES_XLA_FLAGS=0`` runs it with XLA's defaults.
 _xla.add_flags(_xla.CLI_FLAGS)
+# Every broadcast between arrays of different ranks is written out (``x[None]``, `jnp.broadcast_to`,
+# `jaxdrones.physics.params.align_params`): JAX raises on an implicit one, here and in the suite's subprocesses.
+os.environ.setdefault("JAX_NUMPY_RANK_PROMOTION", "raise")
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
@@ -96,3 +99,14 @@ def x64():
         yield
     finally:
         jax.config.update("jax_enable_x64", previous)
+
+
+@pytest.fixture
+def users_rank_promotion(monkeypatch):
+    """Run a user's code as users run it, with JAX's default rank promotion (``"allow"``), in this process and in
+    the processes it starts (a notebook's kernel): the README's, the docs' and the notebooks' examples write
+    ``pos - target`` for f[..., D, 3] and f[3] arrays, as NumPy users do. The library they call is held to
+    ``"raise"`` by the rest of the suite."""
+    monkeypatch.setenv("JAX_NUMPY_RANK_PROMOTION", "allow")
+    with jax.numpy_rank_promotion("allow"):
+        yield

@@ -84,7 +84,7 @@ def test_collision_terminates_and_the_goal_succeeds(env):
     assert bool(there.terminated) and float(there.metrics["failure"]) == 0.0
     assert float(there.metrics["crash"]) == 0.0 and float(there.metrics["collision"]) == 0.0
     assert float(there.reward[0]) > 5.0  # the reached term, weight 10
-    near = state.replace(sim=state.sim.replace(pos=state.task.target - jnp.asarray([0.7, 0.0, 0.0])))
+    near = state.replace(sim=state.sim.replace(pos=state.task.target - jnp.asarray([[0.7, 0.0, 0.0]])))
     assert not bool(step(near, hold).terminated)  # 0.7 m short of the goal (radius 0.5 m): flying on
     side = state.replace(sim=state.sim.replace(pos=jnp.asarray([[0.5, env.config.field_y + 0.7, 1.0]])))
     assert bool(step(side, hold).terminated)  # left the field's side

@@ -191,7 +191,7 @@ def test_depth_gradient_matches_finite_differences(x64):
             ]
             scene = cameras.make_scene(obstacles, dtype=jnp.float64)
             scene = scene.replace(box=scene.box.replace(pos=scene.box.pos.at[0].set(centre)))
-            depth = cameras.render(spec, scene, params, p0 + shift, q0, kinds=("depth",))["depth"]
+            depth = cameras.render(spec, scene, params, p0 + shift[None], q0, kinds=("depth",))["depth"]
             return jnp.sum(jnp.where(depth < spec.far, depth, 0.0) * weights)
 
         shift, centre = jnp.zeros(3), jnp.asarray([2.0, 0.1, 1.0])

@@ -168,7 +168,7 @@ def readme_blocks() -> set[str]:
         if " ".join(c.split()) not in readme_blocks()
     ],
 )
-def test_docs_example_runs(name, capsys):
+def test_docs_example_runs(name, capsys, users_rank_promotion):
     code = dict(blocks("python"))[name]
     exec(compile(code, f"docs/{name} (python block)", "exec"), {})
     if "print(touched)" in code:  # the PyBullet backend's collision report

@@ -69,7 +69,7 @@ def fly(env, policy: str, n: int = 64) -> float:
     def episode(key):
         def body(state, _):
             if policy == "knows":
-                local = (state.sim.pos - state.task.data["gate_pos"]) @ state.task.data["gate_rot"]
+                local = (state.sim.pos - state.task.data["gate_pos"][None]) @ state.task.data["gate_rot"]
                 before = state.task.data["gate_pos"] + state.task.data["gate_rot"] @ jnp.asarray([0.0, 0.4, 0.25])
                 aim = jnp.where(local[:, 1:2] > 0.45, before, state.task.target)
                 d = aim - state.sim.pos

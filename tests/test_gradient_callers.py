@@ -49,14 +49,14 @@ def _losses(env, start, axes):
 
     def loss_of(pos, vel, quat, ang_vel):
         return (
-            jnp.mean(jnp.sum((pos - jnp.asarray([0.0, 0.0, 1.0])) ** 2, -1))
+            jnp.mean(jnp.sum(pos.at[..., 2].add(-1.0) ** 2, -1))
             + 0.1 * jnp.mean(vel**2)
             + 0.01 * jnp.mean(ang_vel**2)
             + jnp.mean(quat[..., :3] ** 2)
         )
 
     def commands(actions):
-        return params.hover_rpm[..., None] * (1.0 + RPM_ACTION_SCALE * actions)
+        return jnp.broadcast_to(params.hover_rpm[..., None], actions.shape) * (1.0 + RPM_ACTION_SCALE * actions)
 
     def state(pos, vel, quat, ang_vel):
         return start.sim.replace(pos=pos, vel=vel, quat=quat, ang_vel=ang_vel)
@@ -111,7 +111,7 @@ def test_gradients_of_rollout_user_scan_and_env_step_agree(x64):
         jd.make_step(env.sim_config),
         start.params,
         start.sim,
-        start.params.hover_rpm[..., None] * (1.0 + RPM_ACTION_SCALE * actions),
+        jnp.broadcast_to(start.params.hover_rpm[..., None], actions.shape) * (1.0 + RPM_ACTION_SCALE * actions),
     )
     assert not bool(out.ground_contact.any()) and float(out.pos[..., 2].min()) < 0.2  # in ground effect
 

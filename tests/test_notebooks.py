@@ -141,7 +141,7 @@ def test_stored_outputs_are_one_whole_run(path):
     [pytest.param(p, marks=[pytest.mark.torch] * (p.name in SB3_NOTEBOOKS)) for p in NOTEBOOKS],
     ids=[p.name for p in NOTEBOOKS],
 )
-def test_notebook_runs(path, tmp_path, monkeypatch, kernel_for_this_interpreter):
+def test_notebook_runs(path, tmp_path, monkeypatch, kernel_for_this_interpreter, users_rank_promotion):
     for name, value in NOTEBOOK_ENV.get(path.name, {}).items():
         monkeypatch.setenv(name, value)  # the kernel inherits this process's environment
     nb = nbformat.read(path, as_version=4)

@@ -23,7 +23,7 @@ def markers(code: str) -> list:
 
 
 @pytest.mark.parametrize("index", [pytest.param(i, marks=markers(code)) for i, code in enumerate(python_blocks())])
-def test_readme_example_runs(index, capsys):
+def test_readme_example_runs(index, capsys, users_rank_promotion):
     code = python_blocks()[index]
     exec(compile(code, f"README.md python block {index}", "exec"), {})
     if "print(touched)" in code:  # the PyBullet example's collision report

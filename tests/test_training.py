@@ -349,7 +349,7 @@ def test_agent_mlp_first_layer_is_the_concatenated_dense():
     net = agent_mlp((16, 8), 3, n_agents, n_obs + n_agents + n_world)
     obs, world = rng.normal(size=(4, n_agents, n_obs)), rng.normal(size=(4, n_world))
     params = net.init(jax.random.key(0), obs, world)
-    p = params["params"]
+    p = jax.tree.map(np.asarray, params["params"])
     kernel = np.concatenate([p["Dense_0"]["kernel"], p["Embed_0"]["embedding"], p["Dense_1"]["kernel"]])
     joint = np.concatenate(
         [

@@ -29,7 +29,7 @@ from flax import struct
 from jax.typing import DTypeLike
 from numpy.typing import ArrayLike
 
-from jaxdrones.physics.params import DroneParams, params_batch_shape
+from jaxdrones.physics.params import DroneParams, align_params, params_batch_shape
 
 #: The 16 passive sets of the 4-motor NNLS problem, bool[16, 4] (True = the motor's s_i is free, False = held at
 #: 0). Row 0 is the empty set (s = 0, always feasible).
@@ -367,8 +367,7 @@ def _broadcast_params(params: DroneParams, lead: tuple[int, ...], name: str) -> 
             f"leading shape {lead} (batched params are right-aligned with the drone axis: per-drone "
             f"[D] or [W, D], per-world [W, 1])"
         ) from None
-    extra = (1,) * (len(full) - len(batch))
-    return full, jax.tree.map(lambda leaf: jnp.reshape(leaf, extra + leaf.shape), params)
+    return full, align_params(params, len(full))
 
 
 def _prepare(params: DroneParams, wrench, min_ndim: int, name: str) -> tuple[jax.Array, DroneParams]:

@@ -36,7 +36,7 @@ from flax import struct
 from jax.typing import DTypeLike
 from numpy.typing import ArrayLike
 
-from jaxdrones.physics.params import DroneParams
+from jaxdrones.physics.params import DroneParams, align_params
 from jaxdrones.physics.rotations import quat_to_euler, quat_to_rotmat
 from jaxdrones.physics.state import DroneState
 
@@ -338,6 +338,9 @@ def _host_array(value):
 
 def _pid_compute(params, gains, pid_state, state, target_pos, target_vel, target_rpy, target_rpy_rates, ctrl_dt):
     """`pid_compute` on validated, broadcast inputs."""
+    shape = state.pos.shape
+    params = align_params(params, len(shape) - 1)
+    gains = jax.tree.map(lambda g: jnp.broadcast_to(g, shape), gains)
     rotmat = quat_to_rotmat(state.quat)
     with jax.named_scope("pid_position"):
         thrust_pwm, target_euler, pos_err, integral_pos_e = _position_loop(
@@ -358,7 +361,7 @@ def _position_loop(params, gains, integral_pos_e, rotmat, state, target_pos, tar
     """``_dslPIDPositionControl`` (docs/physics.md §12.2; main, control/DSLPIDControl.py:187-208)."""
     pos_err = target_pos - state.pos
     vel_err = target_vel - state.vel
-    limit = jnp.asarray(POS_INTEGRAL_LIMIT, dtype=pos_err.dtype)
+    limit = jnp.broadcast_to(jnp.asarray(POS_INTEGRAL_LIMIT, dtype=pos_err.dtype), pos_err.shape)
     integral = jnp.clip(integral_pos_e + pos_err * dt, -limit, limit)
     weight = params.mass * params.gravity
     gravity = jnp.stack([jnp.zeros_like(weight), jnp.zeros_like(weight), weight], axis=-1)
@@ -385,7 +388,7 @@ def _attitude_loop(params, gains, pid_state, rotmat, quat, thrust_pwm, target_eu
     err = jnp.swapaxes(target_rotmat, -1, -2) @ rotmat - jnp.swapaxes(rotmat, -1, -2) @ target_rotmat
     rot_err = jnp.stack([err[..., 2, 1], err[..., 0, 2], err[..., 1, 0]], axis=-1)
     rate_err = target_rpy_rates - (rpy - pid_state.last_rpy) / dt
-    limit = jnp.asarray(ATT_INTEGRAL_LIMIT, dtype=rot_err.dtype)
+    limit = jnp.broadcast_to(jnp.asarray(ATT_INTEGRAL_LIMIT, dtype=rot_err.dtype), rot_err.shape)
     integral = jnp.clip(pid_state.integral_rpy_e - rot_err * dt, -limit, limit)
     torque = -gains.p_att * rot_err + gains.d_att * rate_err + gains.i_att * integral
     torque = jnp.clip(torque, -MAX_TORQUE_PWM, MAX_TORQUE_PWM)
@@ -435,7 +438,7 @@ def _velocity_targets(state, action, limit):
     sq = jnp.sum(direction**2, axis=-1, keepdims=True)
     nonzero = sq > 0
     unit = jnp.where(nonzero, direction / jnp.sqrt(jnp.where(nonzero, sq, 1.0)), 0.0)
-    target_vel = limit[..., None] * jnp.abs(action[..., 3:4]) * unit
+    target_vel = jnp.broadcast_to(limit, action.shape[:-1])[..., None] * jnp.abs(action[..., 3:4]) * unit
     yaw = quat_to_euler(state.quat)[..., 2]
     target_rpy = jnp.stack([jnp.zeros_like(yaw), jnp.zeros_like(yaw), yaw], axis=-1)
     return state.pos, target_vel, target_rpy

@@ -165,7 +165,7 @@ def _tun(kind, params, sim, carry, action, ref, ctrl_dt):
     scale = action + 1.0
     gains = PIDGains(
         *(
-            g * scale[..., k : k + 1]
+            jnp.broadcast_to(g, scale.shape[:-1] + g.shape) * scale[..., k : k + 1]
             for k, g in enumerate((base.p_pos, base.i_pos, base.d_pos, base.p_att, base.i_att, base.d_att))
         )
     )

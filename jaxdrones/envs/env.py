@@ -148,7 +148,8 @@ class TaskEnv(Env):
         if not self.task.obs_size:
             return obs
         bound = jnp.asarray(self.task.obs_bound(self.config), obs.dtype)
-        extra = jnp.clip(self.task.observe(self.config, task, sim, steps), -bound, bound)
+        extra = self.task.observe(self.config, task, sim, steps)
+        extra = jnp.clip(extra, -jnp.broadcast_to(bound, extra.shape), jnp.broadcast_to(bound, extra.shape))
         return jnp.concatenate([obs, extra.astype(obs.dtype)], axis=-1)
 
     def privileged(self, state: EnvState) -> jax.Array | None:
@@ -430,7 +431,7 @@ def sample_start(key: jax.Array, start: StartRanges, dtype: DTypeLike) -> DroneS
     """
     n = start.pos.shape[-2]
     u = jax.random.uniform(key, (n, 12), dtype, -1.0, 1.0)
-    pos = start.pos + start.pos_range * u[:, 0:3]
+    pos = start.pos + start.pos_range[None] * u[:, 0:3]
     pos = jnp.concatenate([pos[:, :2], jnp.maximum(pos[:, 2:], 0.0)], axis=-1)
     tilt = start.tilt * 0.5 * (u[:, 3] + 1.0)
     phi = jnp.pi * (u[:, 4] + 1.0)
@@ -439,8 +440,8 @@ def sample_start(key: jax.Array, start: StartRanges, dtype: DTypeLike) -> DroneS
     return DroneState(
         pos=pos,
         quat=quat_from_euler(rpy),
-        vel=start.vel * u[:, 6:9],
-        ang_vel=start.ang_vel * u[:, 9:12],
+        vel=start.vel[None] * u[:, 6:9],
+        ang_vel=start.ang_vel[None] * u[:, 9:12],
         rpm=jnp.zeros((n, 4), dtype),
         contact=jnp.zeros((n,), jnp.int32),
     )

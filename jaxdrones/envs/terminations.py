@@ -14,6 +14,7 @@ from jaxdrones.physics.state import DroneState
 
 def out_of_bounds(pos: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
     """Whether a drone left the box [low, high] (f[..., 3] m, world frame)."""
+    low, high = (jnp.broadcast_to(b, pos.shape) for b in (low, high))
     return jnp.any((pos < low) | (pos > high), axis=-1)
 
 

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 
 from jaxdrones.physics.kinks import Kinks
 from jaxdrones.physics.neighbors import gather
-from jaxdrones.physics.params import DroneParams
+from jaxdrones.physics.params import DroneParams, align_params
 from jaxdrones.physics.rotations import GIMBAL_SNAP, Components, dot, join, split
 
 #: The downwash models of `jaxdrones.config.SimConfig.downwash`: the paper's one force at the lower drone's centre
@@ -59,6 +59,7 @@ def drag_force(params: DroneParams, vel: jax.Array, rpm_prev: jax.Array) -> jax.
     Returns:
         f[..., D, 3] N, world frame.
     """
+    params = align_params(params, vel.ndim - 1)
     return join(drag_force_c(params, split(vel), split(rpm_prev)))
 
 
@@ -96,6 +97,7 @@ def ground_effect_thrust(
         f[..., D, 4] N, extra thrust of each motor.
     """
     rotmat_z = split(rotmat[..., 2, :])
+    params = align_params(params, pos.ndim - 1)
     return join(ground_effect_thrust_c(params, pos[..., 2], rotmat_z, split(thrust), kinks))
 
 
@@ -158,6 +160,7 @@ def downwash_force(
     Returns:
         f[..., D] N, force along each drone's body z (negative: pushes down).
     """
+    params = align_params(params, pos.ndim - 1)
     return downwash_force_c(params, split(pos), kinks, neighbors, cutoff)
 
 
@@ -262,6 +265,7 @@ def downwash_thrust(
         f[..., D, 4] N, the change of each rotor's thrust along its drone's body +z (negative: a loss).
     """
     rows = tuple(split(rotmat[..., r, :]) for r in range(3))
+    params = align_params(params, pos.ndim - 1)
     return join(downwash_thrust_c(params, split(pos), rows, split(thrust), kinks, neighbors, cutoff))
 
 

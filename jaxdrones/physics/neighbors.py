@@ -81,10 +81,10 @@ def cell_candidates(x: jax.Array, y: jax.Array, radius: float, capacity: int) ->
         count = jnp.zeros(buckets, jnp.int32).at[own].add(1)
         start = jnp.cumsum(count) - count
         block = jnp.stack([bucket(cx + dx, cy + dy) for dx, dy in _BLOCK], -1)  # [D, 9]
-        seen_before = jnp.any((block[:, :, None] == block[:, None, :]) & jnp.tri(9, k=-1, dtype=bool), -1)
+        seen_before = jnp.any((block[:, :, None] == block[:, None, :]) & jnp.tri(9, k=-1, dtype=bool)[None], -1)
         slot = jnp.arange(capacity)
-        valid = (slot < count[block][..., None]) & ~seen_before[..., None]  # [D, 9, C]
-        index = order[jnp.minimum(start[block][..., None] + slot, n - 1)]
+        valid = (slot[None, None] < count[block][..., None]) & ~seen_before[..., None]  # [D, 9, C]
+        index = order[jnp.minimum(start[block][..., None] + slot[None, None], n - 1)]
         self_index = jnp.arange(n)[:, None, None]
         return jnp.where(valid, index, self_index).reshape(n, 9 * capacity)
 

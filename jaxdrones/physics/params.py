@@ -176,6 +176,29 @@ def broadcast_params(params: DroneParams, lead: tuple[int, ...], xp: ModuleType 
     return DroneParams(**{f.name: widen(f.name, getattr(params, f.name)) for f in dataclasses.fields(params)})
 
 
+def align_params(params: DroneParams, ndim: int) -> DroneParams:
+    """``params`` with singleton axes prepended to each field's batch shape up to ``ndim`` axes (nothing is copied).
+
+    Per-model params ``()`` and per-drone params ``[D]`` then combine with a state's f[..., D] components at one
+    rank, as `jax.numpy`'s strict rank promotion (``jax_numpy_rank_promotion="raise"``) asks; the sizes still
+    broadcast right-aligned, e.g. ``[D]`` becomes ``[1, D]`` against ``[W, D]``.
+
+    Args:
+        params: DroneParams whose batch shape has at most ``ndim`` axes.
+        ndim: the rank of the batch shape to reach, e.g. ``state.pos.ndim - 1``.
+
+    Raises:
+        ValueError: if the params' batch shape has more than ``ndim`` axes.
+    """
+    batch = params_batch_shape(params)
+    if len(batch) > ndim:
+        raise ValueError(f"params have batch shape {batch}, more than the {ndim} axes of the state's [..., D]")
+    extra = (1,) * (ndim - len(batch))
+    if not extra:
+        return params
+    return jax.tree.map(lambda leaf: jnp.reshape(leaf, extra + jnp.shape(leaf)), params)
+
+
 def pack_params(
     params: DroneParams, lead: tuple[int, ...]
 ) -> tuple[jax.Array, Callable[[jax.Array | np.ndarray], DroneParams]]:

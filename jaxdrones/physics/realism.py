@@ -361,7 +361,7 @@ class RealismModel:
             else:
                 values[f.name] = jax.random.uniform(k, (), dtype, low, high)
         sigma = jnp.stack([values[f"obs_bias_{k}"] for k in OBSERVED])
-        bias = jax.random.normal(k_bias, (n, 4, 3), dtype) * sigma[:, None]
+        bias = jax.random.normal(k_bias, (n, 4, 3), dtype) * sigma[None, :, None]
         angle = jax.random.uniform(k_axis, (), dtype, 0.0, 2 * jnp.pi)
         axis = jnp.stack([jnp.cos(angle), jnp.sin(angle)])
         draws = jax.random.normal(k_dryden, (5,), dtype)  # from the filters' stationary distributions
@@ -389,7 +389,7 @@ class RealismModel:
         sigma = jnp.concatenate(
             [jnp.broadcast_to(values["disturbance_force"], (3,)), jnp.broadcast_to(values["disturbance_torque"], (3,))]
         )
-        draw = jax.random.normal(k_force, (self.n_drones, 6), dtype) * sigma
+        draw = jax.random.normal(k_force, (self.n_drones, 6), dtype) * sigma[None]
         mean = values["disturbance_hold"]
         hold = jnp.where(jnp.isinf(mean), jnp.inf, mean * jax.random.exponential(k_hold, (), dtype))
         return draw, hold
@@ -489,7 +489,7 @@ class RealismModel:
         if r.obs_noise:
             key, k_noise = jax.random.split(state.key)
             sigma = jnp.stack([state.values[f"obs_noise_{k}"] for k in OBSERVED])
-            error = error + jax.random.normal(k_noise, error.shape, error.dtype) * sigma[:, None]
+            error = error + jax.random.normal(k_noise, error.shape, error.dtype) * sigma[None, :, None]
             state = state.replace(key=key)
         return _with_error(seen, error), state
 

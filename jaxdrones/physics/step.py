@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from jaxdrones.physics import adjoint, dynamics
 from jaxdrones.physics.checks import check_disturbance, check_motor_time_constants, check_params_batch, check_rpm
 from jaxdrones.physics.config import SimConfig
-from jaxdrones.physics.params import DroneParams
+from jaxdrones.physics.params import DroneParams, align_params
 from jaxdrones.physics.rotations import join, normalize_c, split
 from jaxdrones.physics.state import CONTACT_GROUND, Disturbance, DroneState
 
@@ -188,6 +188,7 @@ class JaxStep:
     ) -> DroneState:
         rpm = check_rpm(self.config, state, rpm)
         check_params_batch(params, state)
+        params = align_params(params, state.pos.ndim - 1)
         if self.config.motor_dynamics:
             check_motor_time_constants(params)
         if disturbance is None:
@@ -242,6 +243,7 @@ def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Arra
         )
     if isinstance(step, JaxStep):
         check_params_batch(params, state)
+        params = align_params(params, state.pos.ndim - 1)
         return _rollout_c(step, params, state, rpms.astype(state.pos.dtype), bool(remat))
     return _rollout(step, params, state, rpms, bool(remat))
 

@@ -207,6 +207,8 @@ def distance(scene: Scene, points: jax.Array) -> jax.Array:
         prims = getattr(scene, shape)
         if prims.valid.shape[-1] == 0:
             continue
+        extra = (1,) * max(0, points.ndim - 1 - prims.valid.ndim)  # a scene shared by every point: [1..., N]
+        prims = jax.tree.map(lambda x, extra=extra: jnp.reshape(x, extra + x.shape), prims)
         rel = points[..., :, None, :] - prims.pos[..., None, :, :]  # [..., P, N, 3]
         local = jnp.einsum("...nji,...pnj->...pni", prims.rot, rel)  # Rᵀ (p − c), the shape's frame
         size = prims.size[..., None, :, :]
@@ -261,7 +263,7 @@ def drone_primitives(params: DroneParams, pos: jax.Array, rot: jax.Array, first_
     dtype = pos.dtype
     n = pos.shape[-2]
     arm = jnp.broadcast_to(jnp.asarray(params.arm, dtype), pos.shape[:-1])
-    seg = jnp.broadcast_to(first_seg + jnp.arange(n, dtype=jnp.int32), pos.shape[:-1])
+    seg = jnp.broadcast_to(first_seg, pos.shape[:-1]) + jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), pos.shape[:-1])
     side = BODY_SIDE_PER_ARM * arm / 2
     plate = Primitives(
         pos=pos,
@@ -272,7 +274,7 @@ def drone_primitives(params: DroneParams, pos: jax.Array, rot: jax.Array, first_
         valid=jnp.ones(pos.shape[:-1], bool),
     )
     prop_pos = jnp.broadcast_to(jnp.asarray(params.prop_pos, dtype), pos.shape[:-1] + (4, 3))
-    prop_pos = prop_pos + jnp.asarray([0.0, 0.0, PROP_Z], dtype)
+    prop_pos = prop_pos.at[..., 2].add(PROP_Z)
     centres = pos[..., None, :] + jnp.einsum("...ij,...kj->...ki", rot, prop_pos)  # [..., D, 4, 3]
     radius = jnp.broadcast_to(jnp.asarray(params.prop_radius, dtype), pos.shape[:-1])
     lead = pos.shape[:-2]

@@ -262,7 +262,7 @@ def _hit(shape, prim, seen_by, eye, ray, near):
     t_in, t_out = _HIT[shape](o, d, size)
     hit = (t_in <= t_out) & (t_in >= near) & prim.valid[..., None, None, None]
     if seen_by is not None:
-        hit = hit & seen_by[:, None, None]
+        hit = hit & jnp.broadcast_to(seen_by[:, None, None], hit.shape)
     return t_in, hit, (o, d, size, rot)
 
 

@@ -124,17 +124,36 @@ def _network_factory(config: BraxPPOConfig, vision: bool = False, privileged: bo
         value_hidden_layer_sizes=tuple(config.value_hidden_layer_sizes),
     )
     if not vision:
-        return functools.partial(ppo_networks.make_ppo_networks, **layers)
-    from jaxdrones.training.encoders import make_ppo_networks_vision
+        make = functools.partial(ppo_networks.make_ppo_networks, **layers)
+    else:
+        from jaxdrones.training.encoders import make_ppo_networks_vision
 
-    return functools.partial(
-        make_ppo_networks_vision,
-        **layers,
-        cnn_output_channels=tuple(config.cnn_output_channels),
-        cnn_kernel_size=tuple(config.cnn_kernel_size),
-        cnn_stride=tuple(config.cnn_stride),
-        value_obs_key="privileged_state" if privileged else None,
-    )
+        make = functools.partial(
+            make_ppo_networks_vision,
+            **layers,
+            cnn_output_channels=tuple(config.cnn_output_channels),
+            cnn_kernel_size=tuple(config.cnn_kernel_size),
+            cnn_stride=tuple(config.cnn_stride),
+            value_obs_key="privileged_state" if privileged else None,
+        )
+
+    def factory(*args, preprocess_observations_fn=lambda x, _: x, **kwargs):
+        return make(*args, preprocess_observations_fn=_rank_promotion_allowed(preprocess_observations_fn), **kwargs)
+
+    return factory
+
+
+def _rank_promotion_allowed(fn: Callable) -> Callable:
+    """``fn`` run with JAX's implicit rank promotion allowed: brax's PPO and its observation normaliser
+    (``running_statistics``) subtract f[n_obs] statistics from f[..., n_obs] observations without expanding them,
+    which raises where the user set ``jax_numpy_rank_promotion="raise"``."""
+
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        with jax.numpy_rank_promotion("allow"):
+            return fn(*args, **kwargs)
+
+    return wrapped
 
 
 def default_config(task: str, vision: bool = False) -> BraxPPOConfig:
@@ -285,7 +304,7 @@ def train(
 
     try:
         vision = bool(env.config.vision)
-        _, params, _ = ppo.train(
+        _, params, _ = _rank_promotion_allowed(ppo.train)(
             _brax_env(adapter, config, env),
             episode_length=env.episode_length,
             wrap_env_fn=adapter.wrap_for_brax_training,

@@ -61,7 +61,8 @@ class Conv(linen.Module):
         k, c = self.kernel_size, x.shape[-1]
         kernel = self.param("kernel", self.kernel_init, (k, k, c, self.features))
         bias = self.param("bias", jax.nn.initializers.zeros, (self.features,))
-        return patches(x, k, self.stride) @ kernel.reshape(k * k * c, self.features) + bias
+        y = patches(x, k, self.stride) @ kernel.reshape(k * k * c, self.features)
+        return y + jnp.reshape(bias, (1,) * (y.ndim - 1) + (-1,))
 
 
 class CNN(linen.Module):

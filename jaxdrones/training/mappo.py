@@ -154,7 +154,7 @@ def agent_mlp(
             width = hidden_layer_sizes[0]
             x = nn.Dense(width, kernel_init=first)(obs)
             if n_ids:
-                x = x + nn.Embed(n_ids, width, embedding_init=first)(jnp.arange(n_ids))
+                x = x + jnp.broadcast_to(nn.Embed(n_ids, width, embedding_init=first)(jnp.arange(n_ids)), x.shape)
             if world is not None:
                 x = x + nn.Dense(width, use_bias=False, kernel_init=first)(world)[..., None, :]
             x = nn.tanh(x)
@@ -206,7 +206,8 @@ class Networks:
     def normalize(params: dict, x: jax.Array) -> jax.Array:
         """X standardised by the running statistics ``params["norm"]`` (`update_norm`), clipped to ±10."""
         norm = params["norm"]
-        return jnp.clip((x - norm["mean"]) / jnp.sqrt(norm["var"] + 1e-6), -10.0, 10.0)
+        mean, var = (jnp.broadcast_to(norm[k], x.shape) for k in ("mean", "var"))
+        return jnp.clip((x - mean) / jnp.sqrt(var + 1e-6), -10.0, 10.0)
 
     def _apply(self, mlp, params, x, world=None):
         """``mlp`` on x f[..., D, n] (and the world's features f[..., m]): shared or one parameter set per agent."""
@@ -265,6 +266,7 @@ def make_policy(networks: Networks, params: dict) -> Callable:
 
 
 def _log_prob(mean, log_std, action):
+    log_std = jnp.broadcast_to(log_std, mean.shape)
     return jnp.sum(-0.5 * ((action - mean) / jnp.exp(log_std)) ** 2 - log_std - 0.5 * np.log(2 * np.pi), axis=-1)
 
 
@@ -330,7 +332,8 @@ def train(
         def body(state, key):
             world = features(state)
             mean = nets.actor(params, state.obs)
-            action = mean + jnp.exp(params["log_std"]) * jax.random.normal(key, mean.shape, mean.dtype)
+            std = jnp.broadcast_to(jnp.exp(params["log_std"]), mean.shape)
+            action = mean + std * jax.random.normal(key, mean.shape, mean.dtype)
             ended, nxt = auto.step_ended(state, jnp.tanh(action) if config.squash else action)
             sample = {
                 "obs": state.obs,
@@ -352,7 +355,7 @@ def train(
         mean = nets.actor(params, batch["obs"])
         ratio = jnp.exp(_log_prob(mean, params["log_std"], batch["action"]) - batch["log_prob"])
         adv = batch["advantage"]  # [B, D], standardised per agent: each drone's role weighs the same
-        adv = (adv - adv.mean(axis=0)) / (adv.std(axis=0) + 1e-8)
+        adv = (adv - adv.mean(axis=0, keepdims=True)) / (adv.std(axis=0, keepdims=True) + 1e-8)
         clipped = jnp.clip(ratio, 1 - config.clip, 1 + config.clip)
         policy_loss = -jnp.mean(jnp.minimum(ratio * adv, clipped * adv))
         value_loss = jnp.mean((nets.critic(params, batch["obs"], batch["world"]) - batch["return"]) ** 2)

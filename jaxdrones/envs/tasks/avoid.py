@@ -314,7 +314,8 @@ def scene_clearances(task: TaskParams, sim: DroneState) -> jax.Array:
     bearing = np.asarray(SAMPLE_BEARINGS)[:, None]
     ranges = np.asarray(SAMPLE_RANGES)[None, :]
     offsets = np.stack([np.cos(bearing) * ranges, np.sin(bearing) * ranges, 0 * bearing * ranges], -1)
-    points = jnp.concatenate([sim.pos[..., None, :], sim.pos[..., None, :] + offsets.reshape(-1, 3)], axis=-2)
+    around = sim.pos[..., None, :] + offsets.reshape((1,) * (sim.pos.ndim - 1) + (-1, 3))
+    points = jnp.concatenate([sim.pos[..., None, :], around], axis=-2)
     clear = distance(task.scene, points) - task.data["collision_radius"][..., None]
     return jnp.clip(clear, -SAMPLE_CLIP_M, SAMPLE_CLIP_M)
 

@@ -215,7 +215,7 @@ class GatePass(GoalTask):
         local = jnp.asarray([p for p, _ in GATE_PARTS], centre.dtype)
         half = jnp.asarray([size for _, size in GATE_PARTS], centre.dtype) / 2
         box = task.scene.box.replace(
-            pos=centre + local @ rot.T,
+            pos=centre[None] + local @ rot.T,
             rot=jnp.broadcast_to(rot, (len(GATE_PARTS), 3, 3)),
             size=half,
             seg=1 + jnp.arange(len(GATE_PARTS), dtype=jnp.int32),
@@ -268,7 +268,7 @@ class GatePass(GoalTask):
 
 def _in_gate_frame(task, sim: DroneState) -> jax.Array:
     """f[D, 3]: the drones' positions in the gate's frame (x along the architrave, y across, z up)."""
-    return (sim.pos - task.data["gate_pos"]) @ task.data["gate_rot"]
+    return (sim.pos - jnp.broadcast_to(task.data["gate_pos"], sim.pos.shape)) @ task.data["gate_rot"]
 
 
 def _crossed(task, sim: DroneState) -> tuple[jax.Array, jax.Array]:

@@ -238,7 +238,8 @@ class Velocity(Task):
         return {"velocity_tracking": 1.0, "altitude": 0.2, "ang_speed_sq": -ANG_SPEED_WEIGHT}
 
     def sample(self, config: VelocityConfig, task: TaskParams, key: jax.Array) -> TaskParams:
-        cmd = task.data["max_command"] * jax.random.uniform(key, task.target.shape, task.target.dtype, -1.0, 1.0)
+        u = jax.random.uniform(key, task.target.shape, task.target.dtype, -1.0, 1.0)
+        cmd = jnp.broadcast_to(task.data["max_command"], u.shape) * u
         return task.replace(data={**task.data, "target_vel": cmd})
 
     def observe(self, config: VelocityConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> jax.Array:
@@ -332,7 +333,8 @@ def path_points(
         [jnp.sin(theta) - jnp.sin(phase), jnp.sin(theta) * jnp.cos(theta) - jnp.sin(phase) * jnp.cos(phase)], axis=-1
     )
     xy = radius * jnp.where(kind == 0, circle, eight)
-    return centre + jnp.concatenate([xy, jnp.zeros_like(xy[:, :1])], axis=-1)
+    offset = jnp.concatenate([xy, jnp.zeros_like(xy[:, :1])], axis=-1)
+    return jnp.broadcast_to(centre, offset.shape) + offset
 
 
 class ReferenceTask(Task):
