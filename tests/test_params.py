@@ -147,6 +147,35 @@ def test_params_are_a_stackable_pytree():
     np.testing.assert_allclose(team.mass, [0.027, 0.027, 0.830], rtol=1e-6)
 
 
+def test_align_params_prepends_singleton_batch_axes_and_steps_any_batch_shape():
+    """`align_params` gives params the state's batch rank without copying or changing a value, so that a step with
+    params of batch shape (), [D] or [W, D] on a [W, D] state needs no implicit rank promotion (the suite runs with
+    ``jax_numpy_rank_promotion="raise"``); more batch axes than the state has raise a ValueError."""
+    from jaxdrones.physics.params import align_params
+
+    one = jd.load_params("cf2x")
+    aligned = align_params(one, 2)
+    assert (
+        aligned.mass.shape == (1, 1) and aligned.inertia.shape == (1, 1, 3, 3) and aligned.dw_coeff.shape == (1, 1, 3)
+    )
+    np.testing.assert_array_equal(aligned.prop_pos[0, 0], one.prop_pos)
+    team = jax.tree.map(lambda x: jnp.stack([x, x]), one)  # [D = 2]
+    assert align_params(team, 2).mass.shape == (1, 2) and align_params(team, 1) is team
+    with pytest.raises(ValueError, match=r"batch shape \(2,\), more than the 0 axes"):
+        align_params(team, 0)
+
+    config = jd.SimConfig(n_drones=2, downwash=True)
+    step = jd.make_step(config)
+    state = jd.init_state(config)
+    worlds = jax.tree.map(lambda x: jnp.stack([x, x, x]), state)  # [W = 3, D = 2]
+    rpm = jnp.full((3, 2, 4), float(one.hover_rpm))
+    with jax.numpy_rank_promotion("raise"):
+        outs = [step(p, worlds, rpm) for p in (one, team, jax.tree.map(lambda x: jnp.stack([x, x, x]), team))]
+    for out in outs[1:]:
+        np.testing.assert_array_equal(out.pos, outs[0].pos)
+    np.testing.assert_array_equal(outs[0].pos[1], step(one, state, rpm[0]).pos)
+
+
 def test_default_start_pose(x64):
     """docs/physics.md §1.1: drone i starts at (4iL, 4iL, collision_height/2 + 0.1), L = 0.0397 m, level, at rest."""
     state = jd.init_state(jd.SimConfig(n_drones=3))
