@@ -140,6 +140,21 @@ def measure(jax, loss, commands, state, horizon: int, worlds: int, repeats: int,
     return {"horizon": horizon, "worlds": worlds, **results, **ratios}
 
 
+def measure_policy(jax, loss_of, policy, offsets, state, horizon: int, worlds: int, repeats: int) -> dict:
+    """`measure` of ``loss_of(policy, offsets, state)`` as a function of the per-step offsets (the commands) and the
+    start, with ``grad_policy``: the loss and its gradient w.r.t. the policy's parameters."""
+    return measure(
+        jax,
+        lambda offsets, state: loss_of(policy, offsets, state),
+        offsets,
+        state,
+        horizon,
+        worlds,
+        repeats,
+        more={"grad_policy": (jax.value_and_grad(loss_of), (policy, offsets, state))},
+    )
+
+
 def start_positions(np, worlds: int):
     """f32[W, 1, 3]: x, y in ±1 m, z in 5-30 cm (in ground effect)."""
     rng = np.random.default_rng(0)
@@ -223,16 +238,7 @@ def env_step_case(jax, jd, np, horizon: int, worlds: int, repeats: int) -> dict:
         _, (pos, vel) = jax.lax.scan(body, start.replace(sim=init.replace(**state)), offsets)
         return trajectory_loss(jnp, pos, vel)
 
-    result = measure(
-        jax,
-        lambda offsets, state: loss_of(policy, offsets, state),
-        offsets,
-        state,
-        horizon,
-        worlds,
-        repeats,
-        more={"grad_policy": (jax.value_and_grad(loss_of), (policy, offsets, state))},
-    )
+    result = measure_policy(jax, loss_of, policy, offsets, state, horizon, worlds, repeats)
     return {"sim": "jaxdrones", "caller": "env_step", "remat": None, **result}
 
 
@@ -263,16 +269,7 @@ def default_env_case(jax, jd, np, horizon: int, worlds: int, repeats: int, reali
         _, losses = jax.lax.scan(body, start.replace(sim=start.sim.replace(**state)), offsets)
         return jnp.mean(losses)
 
-    result = measure(
-        jax,
-        lambda offsets, state: loss_of(policy, offsets, state),
-        offsets,
-        state,
-        horizon,
-        worlds,
-        repeats,
-        more={"grad_policy": (jax.value_and_grad(loss_of), (policy, offsets, state))},
-    )
+    result = measure_policy(jax, loss_of, policy, offsets, state, horizon, worlds, repeats)
     caller = "default_env" if realism is None else f"default_env_{realism}"
     return {"sim": "jaxdrones", "caller": caller, "remat": None, **result}
 

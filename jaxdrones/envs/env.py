@@ -147,9 +147,9 @@ class TaskEnv(Env):
         obs = self.obs_type.observe(sim, history)
         if not self.task.obs_size:
             return obs
-        bound = jnp.asarray(self.task.obs_bound(self.config), obs.dtype)
         extra = self.task.observe(self.config, task, sim, steps)
-        extra = jnp.clip(extra, -jnp.broadcast_to(bound, extra.shape), jnp.broadcast_to(bound, extra.shape))
+        bound = jnp.broadcast_to(jnp.asarray(self.task.obs_bound(self.config), obs.dtype), extra.shape)
+        extra = jnp.clip(extra, -bound, bound)
         return jnp.concatenate([obs, extra.astype(obs.dtype)], axis=-1)
 
     def privileged(self, state: EnvState) -> jax.Array | None:

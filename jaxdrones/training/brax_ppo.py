@@ -124,23 +124,17 @@ def _network_factory(config: BraxPPOConfig, vision: bool = False, privileged: bo
         value_hidden_layer_sizes=tuple(config.value_hidden_layer_sizes),
     )
     if not vision:
-        make = functools.partial(ppo_networks.make_ppo_networks, **layers)
-    else:
-        from jaxdrones.training.encoders import make_ppo_networks_vision
+        return functools.partial(ppo_networks.make_ppo_networks, **layers)
+    from jaxdrones.training.encoders import make_ppo_networks_vision
 
-        make = functools.partial(
-            make_ppo_networks_vision,
-            **layers,
-            cnn_output_channels=tuple(config.cnn_output_channels),
-            cnn_kernel_size=tuple(config.cnn_kernel_size),
-            cnn_stride=tuple(config.cnn_stride),
-            value_obs_key="privileged_state" if privileged else None,
-        )
-
-    def factory(*args, preprocess_observations_fn=lambda x, _: x, **kwargs):
-        return make(*args, preprocess_observations_fn=_rank_promotion_allowed(preprocess_observations_fn), **kwargs)
-
-    return factory
+    return functools.partial(
+        make_ppo_networks_vision,
+        **layers,
+        cnn_output_channels=tuple(config.cnn_output_channels),
+        cnn_kernel_size=tuple(config.cnn_kernel_size),
+        cnn_stride=tuple(config.cnn_stride),
+        value_obs_key="privileged_state" if privileged else None,
+    )
 
 
 def _rank_promotion_allowed(fn: Callable) -> Callable:
@@ -228,7 +222,9 @@ def make_network(config: BraxPPOConfig, env: Env) -> PPONetworks:
     adapter = _import_brax()
     from brax.training.acme import running_statistics
 
-    preprocess = running_statistics.normalize if config.normalize_observations else (lambda x, _: x)
+    preprocess = (
+        _rank_promotion_allowed(running_statistics.normalize) if config.normalize_observations else (lambda x, _: x)
+    )
     return _network_factory(config, bool(env.config.vision), _privileged(config, env))(
         _brax_env(adapter, config, env).observation_size,
         env.n_drones * env.action_size,
