@@ -1,8 +1,10 @@
 """The hand-written adjoint of the Euler substep (`jaxdrones.adjoint`): the control step that uses it
 (``SimConfig(adjoint=True)``, the default) has the values and the reverse-mode derivatives of JAX's derived ones
-(``adjoint=False``), for the state, the command and the params, with and without drag, ground effect and downwash
-(the paper's force and the per-rotor thrust changes), over one or several substeps, across the RPM clip and the
-ground contact; forward mode is refused with JAX's own error and works with ``adjoint=False``."""
+(``adjoint=False``): for the state and the command through the hand-written pass (params closed over), with and
+without drag, ground effect and downwash (the paper's force and the per-rotor thrust changes), over one or several
+substeps, across the RPM clip and the ground contact; for the params too through the rule's fallback to JAX's
+derived pass (differentiating the params selects it); forward mode is refused with JAX's own error and works with
+``adjoint=False``."""
 
 from __future__ import annotations
 
@@ -61,6 +63,36 @@ def _cotangent(out, rng):
     )
 
 
+def _compare_vjps(config, params, state, rpm, with_params: bool, rng) -> set[str]:
+    """The control step's values and cotangents with the hand-written adjoint (the default config) against JAX's
+    derived ones (``adjoint=False``), float64: values equal to rounding, cotangents within 1e-10 relative. Without
+    ``with_params`` the params are closed over, so the rule's hand-written pass runs; with it they are differentiated
+    too, which makes the rule fall back to JAX's derived pass (system identification). Returns the paths of the
+    nonzero cotangents checked."""
+    assert adjoint.supported(config) and not adjoint.supported(dataclasses.replace(config, adjoint=False))
+    results = []
+    for use in (False, True):
+        step = jd.make_step(dataclasses.replace(config, adjoint=use))
+        if with_params:
+            results.append(jax.vjp(lambda s, r, p, step=step: step(p, s, r), state, rpm, params))
+        else:
+            results.append(jax.vjp(lambda s, r, step=step: step(params, s, r), state, rpm))
+    (out_ref, vjp_ref), (out, vjp) = results
+    for a, b in zip(jax.tree.leaves(out_ref), jax.tree.leaves(out), strict=True):
+        np.testing.assert_allclose(b, a, rtol=1e-14, atol=1e-15)
+    assert bool(out.ground_contact[:2, 0].all()), "the drones at and below the rest height touch the ground"
+    ct = _cotangent(out_ref, rng)
+    checked = set()
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(vjp_ref(ct)), jax.tree.leaves(vjp(ct)), strict=True):
+        if a.dtype == jax.dtypes.float0:
+            continue
+        scale = float(jnp.max(jnp.abs(a)))
+        np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-12 * scale, err_msg=jax.tree_util.keystr(path))
+        if scale > 0:
+            checked.add(jax.tree_util.keystr(path))
+    return checked
+
+
 # The cases with downwash (3 drones per world, the per-rotor jets) compile for 20-60 s each: slow, and run with 4
 # substeps only (which run the single substep's pass 4 times, and the loop around it).
 @pytest.mark.parametrize(
@@ -73,27 +105,23 @@ def _cotangent(out, rng):
     ],
 )
 def test_adjoint_matches_derived_derivative(x64, effects, substeps):
-    """float64: values equal to rounding and the cotangents of the state, the command and every param within
-    1e-10 relative (params go through JAX's derived pass inside the adjoint's rule)."""
+    """float64, the hand-written pass (params closed over): values equal to rounding and the cotangents of the
+    state and the command within 1e-10 relative of JAX's derived ones."""
     config, params, state, rpm = _case(EFFECTS[effects], substeps)
-    assert adjoint.supported(config) and not adjoint.supported(dataclasses.replace(config, adjoint=False))
-    results = []
-    for use in (False, True):
-        step = jd.make_step(dataclasses.replace(config, adjoint=use))
-        results.append(jax.vjp(lambda s, r, p, step=step: step(p, s, r), state, rpm, params))
-    (out_ref, vjp_ref), (out, vjp) = results
-    for a, b in zip(jax.tree.leaves(out_ref), jax.tree.leaves(out), strict=True):
-        np.testing.assert_allclose(b, a, rtol=1e-14, atol=1e-15)
-    assert bool(out.ground_contact[:2, 0].all()), "the drones at and below the rest height touch the ground"
-    ct = _cotangent(out_ref, np.random.default_rng(1))
-    checked = 0
-    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(vjp_ref(ct)), jax.tree.leaves(vjp(ct)), strict=True):
-        if a.dtype == jax.dtypes.float0:
-            continue
-        scale = float(jnp.max(jnp.abs(a)))
-        np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-12 * scale, err_msg=jax.tree_util.keystr(path))
-        checked += scale > 0
-    assert checked >= 12  # state, command and params cotangents, not all zero
+    checked = _compare_vjps(config, params, state, rpm, False, np.random.default_rng(1))
+    expected = {"[0].pos", "[0].quat", "[0].vel", "[0].ang_vel", "[1]"}
+    if config.drag:  # drag acts on the previous substep's speeds: the state's RPM
+        expected.add("[0].rpm")
+    assert checked == expected, checked
+
+
+@pytest.mark.parametrize("effects, substeps", [("drag_ground", 4)])
+def test_params_cotangents_fall_back_to_the_derived_derivative(x64, effects, substeps):
+    """float64, params differentiated too (system identification): the rule's fallback to JAX's derived pass gives
+    every cotangent, the params' included, within 1e-10 relative of ``adjoint=False``."""
+    config, params, state, rpm = _case(EFFECTS[effects], substeps)
+    checked = _compare_vjps(config, params, state, rpm, True, np.random.default_rng(1))
+    assert {"[2].mass", "[2].kf", "[2].km", "[2].drag_coeff", "[2].inertia", "[0].pos", "[1]"} <= checked, checked
 
 
 def test_adjoint_gradient_without_params_matches_derived_in_float32():
