@@ -8,17 +8,21 @@ rounds (medians, and their ratio); then ``jax.profiler`` traces ``--traced`` gra
 operations (XLA's thunks: fusions, loops, copies) are summed per call, by name with the numeric suffix dropped,
 and listed by the share of the time they take. On jax >= 0.11 each inner ``while`` loop (the substeps) runs as one
 ``call``; on jax 0.10 the loops' own fusions appear (and the profiler's per-operation overhead inflates them).
+``--caller default_env`` traces the whole env step instead (`benchmarks/gradients.py`'s ``default_env`` caller:
+``jd.make("hover")``'s vmapped step, a linear tanh policy, the env's loss), differentiated w.r.t. the offsets.
 
 Usage::
 
     python benchmarks/gradient_profile.py                    # W = 1024, T = 100
     python benchmarks/gradient_profile.py --worlds 4096 --top 30
+    python benchmarks/gradient_profile.py --caller default_env
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import glob
 import gzip
 import json
@@ -35,30 +39,45 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=7, help="timed rounds (median)")
     parser.add_argument("--traced", type=int, default=3, help="gradient calls traced by the profiler")
     parser.add_argument("--top", type=int, default=20, help="operations listed")
+    parser.add_argument(
+        "--caller",
+        choices=("physics", "default_env", "default_env_crazyflie"),
+        default="physics",
+        help="physics: a scan over the default env's step function (default); default_env(_crazyflie): the whole "
+        "env step with a policy, as benchmarks/gradients.py's callers of that name",
+    )
     args = parser.parse_args(argv)
 
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from gradients import start_positions, trajectory_loss  # the work of benchmarks/gradients.py
+    from gradients import default_env_setup, start_positions, trajectory_loss  # benchmarks/gradients.py's work
 
     import jaxdrones as jd
 
-    config = jd.make("hover").sim_config
-    params = jd.load_params("cf2x")
     w, t = args.worlds, args.horizon
-    init = jd.init_state(config, pos=jnp.asarray(start_positions(np, w)))
-    step = jd.make_step(config)
-    noise = np.random.default_rng(1).standard_normal((t, w, 1, 4))
-    commands = jnp.asarray(float(params.hover_rpm) * (1 + 0.02 * noise), jnp.float32)
+    if args.caller == "physics":
+        config = jd.make("hover").sim_config
+        params = jd.load_params("cf2x")
+        init = jd.init_state(config, pos=jnp.asarray(start_positions(np, w)))
+        step = jd.make_step(config)
+        noise = np.random.default_rng(1).standard_normal((t, w, 1, 4))
+        commands = jnp.asarray(float(params.hover_rpm) * (1 + 0.02 * noise), jnp.float32)
 
-    def loss(commands, init):
-        def body(s, rpm):
-            s = step(params, s, rpm)
-            return s, (s.pos, s.vel)
+        def loss(commands, init):
+            def body(s, rpm):
+                s = step(params, s, rpm)
+                return s, (s.pos, s.vel)
 
-        _, (p, v) = jax.lax.scan(body, init, commands)
-        return trajectory_loss(jnp, p, v)
+            _, (p, v) = jax.lax.scan(body, init, commands)
+            return trajectory_loss(jnp, p, v)
+
+        what = f"{config.n_substeps} substeps per control step"
+    else:
+        realism = None if args.caller == "default_env" else args.caller.removeprefix("default_env_")
+        loss_of, policy, commands, init = default_env_setup(jax, jd, np, t, w, realism)
+        loss = functools.partial(loss_of, policy)
+        what = f"caller {args.caller}, the gradient w.r.t. the per-step offsets"
 
     compiled = {
         name: jax.jit(fn).lower(commands, init).compile()
@@ -74,7 +93,7 @@ def main(argv=None) -> int:
             times[name].append(time.perf_counter() - t0)
     ratio = statistics.median(g / f for g, f in zip(times["gradient"], times["forward"], strict=True))
     print(
-        f"jax {jax.__version__}; {config.n_substeps} substeps per control step, W={w}, T={t}: forward "
+        f"jax {jax.__version__}; {what}, W={w}, T={t}: forward "
         f"{1e3 * statistics.median(times['forward']):.1f} ms, value and gradient "
         f"{1e3 * statistics.median(times['gradient']):.1f} ms ({ratio:.2f}x)"
     )

@@ -242,9 +242,11 @@ def env_step_case(jax, jd, np, horizon: int, worlds: int, repeats: int) -> dict:
     return {"sim": "jaxdrones", "caller": "env_step", "remat": None, **result}
 
 
-def default_env_case(jax, jd, np, horizon: int, worlds: int, repeats: int, realism: str | None = None) -> dict:
-    """``caller: default_env`` / ``default_env_<realism>``: ``lax.scan`` over ``jd.make("hover", realism=realism)``'s
-    vmapped ``step`` at its defaults, a linear tanh policy, the env's loss (see above)."""
+def default_env_setup(jax, jd, np, horizon: int, worlds: int, realism: str | None = None):
+    """``(loss_of, policy, offsets, state)`` of the ``default_env`` callers: ``loss_of(policy, offsets, state)`` is
+    the env's loss over a ``lax.scan`` of ``horizon`` steps of ``jd.make("hover", realism=realism)``'s vmapped
+    ``step`` at its defaults for ``worlds`` worlds, the action a linear tanh policy of the observation plus a
+    per-step offset; ``state`` the start's pos, quat, vel and ang_vel."""
     from jaxdrones.envs.base import world_axes
 
     jnp = jax.numpy
@@ -269,6 +271,12 @@ def default_env_case(jax, jd, np, horizon: int, worlds: int, repeats: int, reali
         _, losses = jax.lax.scan(body, start.replace(sim=start.sim.replace(**state)), offsets)
         return jnp.mean(losses)
 
+    return loss_of, policy, offsets, state
+
+
+def default_env_case(jax, jd, np, horizon: int, worlds: int, repeats: int, realism: str | None = None) -> dict:
+    """``caller: default_env`` / ``default_env_<realism>``: `default_env_setup`'s loss, timed (see above)."""
+    loss_of, policy, offsets, state = default_env_setup(jax, jd, np, horizon, worlds, realism)
     result = measure_policy(jax, loss_of, policy, offsets, state, horizon, worlds, repeats)
     caller = "default_env" if realism is None else f"default_env_{realism}"
     return {"sim": "jaxdrones", "caller": caller, "remat": None, **result}
