@@ -31,6 +31,9 @@ import statistics
 import tempfile
 import time
 
+#: Trace events that are the profiler's or the runtime's own bookkeeping, not operations of the program.
+_PROFILER_EVENTS = ("$", "ThunkExecutor", "PjitFunction", "end:", "ThreadpoolListener")
+
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -98,27 +101,40 @@ def main(argv=None) -> int:
         f"{1e3 * statistics.median(times['gradient']):.1f} ms ({ratio:.2f}x)"
     )
 
-    with tempfile.TemporaryDirectory() as trace_dir:
-        jax.profiler.start_trace(trace_dir, create_perfetto_trace=True)
-        for _ in range(args.traced):
-            jax.block_until_ready(compiled["gradient"](commands, init))
-        jax.profiler.stop_trace()
-        path = sorted(glob.glob(f"{trace_dir}/**/*.trace.json.gz", recursive=True))[-1]
-        events = json.load(gzip.open(path))["traceEvents"]
-    total, count = collections.Counter(), collections.Counter()
-    for event in events:
-        name = event.get("name", "")
-        if event.get("ph") != "X" or name.startswith(("$", "ThunkExecutor", "PjitFunction", "end:")):
-            continue
-        key = re.sub(r"\.\d+$", "", name)
-        total[key] += event.get("dur", 0) / args.traced / 1e3
-        count[key] += 1 / args.traced
+    profiles = {name: operations(jax, fn, (commands, init), args.traced) for name, fn in compiled.items()}
+    runs = {name: sum(count.values()) for name, (_, count) in profiles.items()}
+    print(
+        f"operations run per call (XLA's thunks, the profiler's own events left out): forward {runs['forward']:,.0f}, "
+        f"value and gradient {runs['gradient']:,.0f} ({runs['gradient'] / runs['forward']:.2f}x)"
+    )
+    total, count = profiles["gradient"]
     overall = sum(total.values())
     print(f"traced operations, per gradient call: {overall:.1f} ms in all")
     print("| operation | ms per call | share | runs per call |\n|---|---|---|---|")
     for key, ms in total.most_common(args.top):
         print(f"| {key} | {ms:.2f} | {100 * ms / overall:.1f} % | {count[key]:.0f} |")
     return 0
+
+
+def operations(jax, fn, inputs, traced: int) -> tuple[collections.Counter, collections.Counter]:
+    """Milliseconds and runs per call of each operation of ``traced`` calls of the compiled ``fn``, by name with
+    the numeric suffix dropped, from a ``jax.profiler`` trace."""
+    with tempfile.TemporaryDirectory() as trace_dir:
+        jax.profiler.start_trace(trace_dir, create_perfetto_trace=True)
+        for _ in range(traced):
+            jax.block_until_ready(fn(*inputs))
+        jax.profiler.stop_trace()
+        path = sorted(glob.glob(f"{trace_dir}/**/*.trace.json.gz", recursive=True))[-1]
+        events = json.load(gzip.open(path))["traceEvents"]
+    total, count = collections.Counter(), collections.Counter()
+    for event in events:
+        name = event.get("name", "")
+        if event.get("ph") != "X" or name.startswith(_PROFILER_EVENTS):
+            continue
+        key = re.sub(r"\.\d+$", "", name)
+        total[key] += event.get("dur", 0) / traced / 1e3
+        count[key] += 1 / traced
+    return total, count
 
 
 if __name__ == "__main__":
