@@ -287,6 +287,52 @@ def test_velocity_and_position_setpoints_fly_the_pid(ros_env):
         rclpy.shutdown()
 
 
+@pytest.mark.ros2
+@needs_rclpy
+def test_sync_node_publishes_the_start_once_to_a_late_controller(ros_env):
+    """A sync node started before its controller: the start states reach the controller once, however long it takes
+    to answer (a second copy would be answered too, each answer counting as a step's command, and put the
+    controller's commands a step behind for the rest of the run); its one answer makes one step."""
+    import rclpy
+    from std_msgs.msg import Float32MultiArray
+
+    from jaxdrones.ros2.node import EnvNode
+
+    rclpy.init()
+    try:
+        env_node = EnvNode("hover", realtime=False, sync=True, namespace="late", node_name="env", discovery_s=0.1)
+        controller = rclpy.create_node("controller")
+        received = []
+        controller.create_subscription(Float32MultiArray, "/late0/obs", lambda msg: received.append(msg.data), 10)
+        publisher = controller.create_publisher(Float32MultiArray, "/late0/action", 10)
+        deadline = time.monotonic() + 10
+        while not received and time.monotonic() < deadline:  # discovery, then the start states again
+            env_node.tick()
+            rclpy.spin_once(controller, timeout_sec=0.01)
+        assert len(received) == 1 and env_node.steps == 0
+        for _ in range(100):  # a slow controller: 1 s or more without an answer
+            env_node.tick()
+            rclpy.spin_once(controller, timeout_sec=0.01)
+        assert len(received) == 1 and env_node.steps == 0
+        command = Float32MultiArray()
+        command.data = [14000.0] * 4
+        publisher.publish(command)
+        deadline = time.monotonic() + 10
+        while len(received) < 2 and time.monotonic() < deadline:
+            rclpy.spin_once(env_node.node, timeout_sec=0.01)
+            env_node.tick()
+            rclpy.spin_once(controller, timeout_sec=0.01)
+        for _ in range(20):
+            env_node.tick()
+            rclpy.spin_once(controller, timeout_sec=0.01)
+        assert env_node.steps == 1 and len(received) == 2
+        np.testing.assert_array_equal(received[1][16:20], [14000.0] * 4)  # the step applied the answer
+        controller.destroy_node()
+        env_node.close()
+    finally:
+        rclpy.shutdown()
+
+
 def serve_while(node, arguments: list[str], timeout_s: float = 120.0) -> str:
     """Run ``jaxdrones ros2 ARGUMENTS`` in its own process while spinning ``node`` (an rclpy node of this process)
     until it exits; then destroy the node and shut rclpy down. Returns the process's output; fails on an error."""
@@ -331,7 +377,7 @@ def test_two_processes_close_the_loop_with_the_pid(ros_env):
     rclpy.init()
     node = rclpy.create_node("pid_client")
     publisher = node.create_publisher(Float32MultiArray, "/cf0/action", 10)
-    received, pid_state, target = [], None, None
+    received, sent, pid_state, target = [], [], None, None
 
     def on_obs(msg):
         nonlocal pid_state, target
@@ -350,13 +396,16 @@ def test_two_processes_close_the_loop_with_the_pid(ros_env):
         rpm, pid_state = pid_control(params, PIDGains.dsl(), pid_state, state, target[None], ctrl_dt=1 / freq)
         out = Float32MultiArray()
         out.data = np.asarray(rpm[0], np.float64).tolist()
+        sent.append(np.asarray(out.data, np.float32))
         publisher.publish(out)
 
     node.create_subscription(Float32MultiArray, "/cf0/obs", on_obs, 10)
     output = serve_while(node, ["hover", "--ctrl-freq", str(freq), "--duration", str(duration_s), "--fast", "--sync"])
     assert f"stopped after {int(duration_s * freq)} steps" in output
     positions = np.array([obs[0:3] for obs in received])
-    assert len(positions) >= int(duration_s * freq) + 1  # the start's and every step's observation arrived
+    assert len(positions) == int(duration_s * freq) + 1  # the start's and every step's observation, each once
+    # lockstep: each step applied the command computed from the observation before it (the obs' last RPM)
+    np.testing.assert_array_equal(np.array([obs[16:20] for obs in received[1:]], np.float32), np.array(sent[:-1]))
     np.testing.assert_allclose(target, np.asarray(start.pos[0]), atol=1e-6)  # the task's start, seed 0
     error = np.linalg.norm(positions[-freq:] - target, axis=-1)  # the last second
     print(f"two-process PID hover: largest distance to the target over the last second {100 * error.max():.2f} cm")

@@ -223,8 +223,8 @@ class EnvNode:
         first command, the start states only; in sync mode, nothing until every drone has a new command)."""
         if self.sync:
             if not self._fresh.all():
-                if self.steps == 0 and not self._fresh.any() and time.monotonic() - self._published > 0.1:
-                    self.publish()  # the start states again, for controllers that connected after the first
+                if self.steps == 0:
+                    self._publish_start_to_new_subscribers()
                 return
             self._fresh[:] = False
         self.waiting = self.waiting and not self.mode.any()
@@ -248,17 +248,35 @@ class EnvNode:
         self.time_s = self.steps * self.ctrl_dt
         self.publish()
 
-    def publish(self) -> None:
-        """Publish every drone's ``obs``, ``pose`` and ``odom`` (and ``/clock`` when not in real time)."""
+    def _obs_subscribers(self) -> np.ndarray:
+        """The number of subscriptions matched to each drone's ``obs`` topic, i64[D]."""
+        return np.array([publishers["obs"].get_subscription_count() for publishers in self._publishers])
+
+    def _publish_start_to_new_subscribers(self) -> None:
+        """Sync mode, before the first step: the start states again for each drone that has no command yet and
+        whose ``obs`` gained a subscriber since they were last published (a controller that connected after them).
+        Not on a timer: a controller answers every ``obs`` it receives, and each answer counts as a step's command,
+        so a start state it received twice would put its commands one step behind the states for the whole run."""
+        count = self._obs_subscribers()
+        new = (count > self._start_subscribers) & ~self._fresh
+        self._start_subscribers = count
+        if new.any():
+            self.publish(np.flatnonzero(new))
+
+    def publish(self, drones: np.ndarray | None = None) -> None:
+        """Publish the ``obs``, ``pose`` and ``odom`` of every drone (or of the indices ``drones``), and ``/clock``
+        when not in real time."""
         fill, t = messages.fill_rclpy, self.time_s
-        self._published = time.monotonic()
+        if self.steps == 0:
+            self._start_subscribers = self._obs_subscribers()
         if self._clock is not None:
             self._clock.publish(fill(self._types["clock"](), messages.clock_fields(t)))
         pos, quat, vel, ang_vel, rpm = (
             np.asarray(getattr(self.state, k), np.float64) for k in ("pos", "quat", "vel", "ang_vel", "rpm")
         )
         rpy = np.asarray(quat_to_euler(self.state.quat), np.float64)
-        for i, publishers in enumerate(self._publishers):
+        for i in range(self.n_drones) if drones is None else drones:
+            publishers = self._publishers[i]
             obs = messages.obs_vector(pos[i], quat[i], rpy[i], vel[i], ang_vel[i], rpm[i])
             publishers["obs"].publish(fill(self._types["obs"](), messages.float_array_fields(obs)))
             publishers["pose"].publish(fill(self._types["pose"](), messages.pose_fields(pos[i], quat[i], t)))
