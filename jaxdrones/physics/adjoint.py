@@ -128,6 +128,7 @@ def _substep_bwd(effects, dt, residuals, cotangent):
     kin_b, motors_b, rpm_prev_b, downwash_b, disturbance_b = substep_vjp(
         params, effects, kin, motors, rpm_prev, downwash, dt, ct_kin, disturbance
     )
+    rpm_prev_b = rpm_prev_b if effects.drag else None  # unread without drag: a symbolic zero
     return None, kin_b, motors_b, rpm_prev_b, None if downwash is None else downwash_b, disturbance_b
 
 
@@ -233,9 +234,12 @@ def substep_vjp(
     # p ← p + dt v.
     vel_b = tuple(a + dt * b for a, b in zip(vel_b, pos_b, strict=True))
     # q ← normalise(q ⊗ delta(ω)), delta = (sin(θ) ω / |ω|, cos θ), θ = ½ dt |ω| (½ dt ω, 1 below OMEGA_EPS).
-    unit = tuple(u / length for u in unnormalised)
+    # One reciprocal rather than a division per component: XLA:CPU runs each division that several loops read as
+    # a loop of its own.
+    inv_length = 1 / length
+    unit = tuple(u * inv_length for u in unnormalised)
     along = dot(unit, quat_b)
-    unnormalised_b = tuple((b - u * along) / length for b, u in zip(quat_b, unit, strict=True))
+    unnormalised_b = tuple((b - u * along) * inv_length for b, u in zip(quat_b, unit, strict=True))
     q_b = quat_mul_c(unnormalised_b, _conj(delta))  # the transpose of q ↦ q ⊗ delta
     delta_b = quat_mul_c(_conj(q), unnormalised_b)  # the transpose of delta ↦ q ⊗ delta
     radial = jnp.where(
@@ -255,7 +259,8 @@ def substep_vjp(
             ang_vel_b, cross(inertia_w, gyro_b), _matvec_t(params.inertia, cross(gyro_b, w)), strict=True
         )
     )
-    force_b = tuple(dt * b / params.mass for b in vel_b)
+    dt_over_mass = dt / params.mass
+    force_b = tuple(dt_over_mass * b for b in vel_b)
     v_b = vel_b
     # τ = (torque_arm @ lift, yaw); F = R (0, 0, Σ lift + downwash) - m g e_z + drag.
     lift_b = tuple(params.torque_arm[..., 0, i] * tau_b[0] + params.torque_arm[..., 1, i] * tau_b[1] for i in range(4))
