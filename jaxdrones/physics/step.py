@@ -110,12 +110,7 @@ def _core_step_c(config: SimConfig):
         rpm_before = state.rpm
 
         def substep(s, first):
-            # Only drag reads the previous substep's RPM; without it the held command stands in (unread).
-            rpm_prev = (
-                tuple(jnp.where(first, before, now) for before, now in zip(rpm_before, rpm, strict=True))
-                if config.drag
-                else rpm
-            )
+            rpm_prev = tuple(jnp.where(first, before, now) for before, now in zip(rpm_before, rpm, strict=True))
             s = physics_substep_c(config, params, s.replace(rpm=rpm_prev), rpm, motors, True, neighbors, disturbance)
             return s.replace(rpm=()), None
 

@@ -176,6 +176,7 @@ class EnvNode:
                 )
         self._check_clash(discovery_s)
         self._timer = self.node.create_timer(self.ctrl_dt, self.tick) if self.realtime else None
+        self._start_subscribers = self._obs_subscribers()  # who has the start states (sync mode)
         self.publish()
 
     def topic(self, drone: int, name: str) -> str:
@@ -267,8 +268,6 @@ class EnvNode:
         """Publish the ``obs``, ``pose`` and ``odom`` of every drone (or of the indices ``drones``), and ``/clock``
         when not in real time."""
         fill, t = messages.fill_rclpy, self.time_s
-        if self.steps == 0:
-            self._start_subscribers = self._obs_subscribers()
         if self._clock is not None:
             self._clock.publish(fill(self._types["clock"](), messages.clock_fields(t)))
         pos, quat, vel, ang_vel, rpm = (
