@@ -9,13 +9,15 @@ operations (XLA's thunks: fusions, loops, copies) are summed per call, by name w
 and listed by the share of the time they take. On jax >= 0.11 each inner ``while`` loop (the substeps) runs as one
 ``call``; on jax 0.10 the loops' own fusions appear (and the profiler's per-operation overhead inflates them).
 ``--caller default_env`` traces the whole env step instead (`benchmarks/gradients.py`'s ``default_env`` caller:
-``jd.make("hover")``'s vmapped step, a linear tanh policy, the env's loss), differentiated w.r.t. the offsets.
+``jd.make("hover")``'s vmapped step, a linear tanh policy, the env's loss), differentiated w.r.t. the offsets, or
+w.r.t. the policy's parameters with ``--wrt policy`` (the ``grad(policy)`` column of `benchmarks/gradients.py`).
 
 Usage::
 
     python benchmarks/gradient_profile.py                    # W = 1024, T = 100
     python benchmarks/gradient_profile.py --worlds 4096 --top 30
     python benchmarks/gradient_profile.py --caller default_env
+    python benchmarks/gradient_profile.py --caller default_env --wrt policy
 """
 
 from __future__ import annotations
@@ -49,7 +51,15 @@ def main(argv=None) -> int:
         help="physics: a scan over the default env's step function (default); default_env(_crazyflie): the whole "
         "env step with a policy, as benchmarks/gradients.py's callers of that name",
     )
+    parser.add_argument(
+        "--wrt",
+        choices=("commands", "policy"),
+        default="commands",
+        help="default_env callers: differentiate w.r.t. the per-step offsets (default) or the policy's parameters",
+    )
     args = parser.parse_args(argv)
+    if args.wrt == "policy" and args.caller == "physics":
+        parser.error("--wrt policy needs a default_env caller (the physics caller has no policy)")
 
     import jax
     import jax.numpy as jnp
@@ -79,20 +89,26 @@ def main(argv=None) -> int:
     else:
         realism = None if args.caller == "default_env" else args.caller.removeprefix("default_env_")
         loss_of, policy, commands, init = default_env_setup(jax, jd, np, t, w, realism)
-        loss = functools.partial(loss_of, policy)
-        what = f"caller {args.caller}, the gradient w.r.t. the per-step offsets"
+        if args.wrt == "policy":
+            loss, inputs = loss_of, (policy, commands, init)
+            what = f"caller {args.caller}, the gradient w.r.t. the policy's parameters"
+        else:
+            loss = functools.partial(loss_of, policy)
+            what = f"caller {args.caller}, the gradient w.r.t. the per-step offsets"
+    if args.wrt == "commands":
+        inputs = (commands, init)
 
     compiled = {
-        name: jax.jit(fn).lower(commands, init).compile()
+        name: jax.jit(fn).lower(*inputs).compile()
         for name, fn in (("forward", loss), ("gradient", jax.value_and_grad(loss)))
     }
     for fn in compiled.values():
-        jax.block_until_ready(fn(commands, init))
+        jax.block_until_ready(fn(*inputs))
     times = {name: [] for name in compiled}
     for _ in range(args.repeats):
         for name, fn in compiled.items():
             t0 = time.perf_counter()
-            jax.block_until_ready(fn(commands, init))
+            jax.block_until_ready(fn(*inputs))
             times[name].append(time.perf_counter() - t0)
     ratio = statistics.median(g / f for g, f in zip(times["gradient"], times["forward"], strict=True))
     print(
@@ -101,7 +117,7 @@ def main(argv=None) -> int:
         f"{1e3 * statistics.median(times['gradient']):.1f} ms ({ratio:.2f}x)"
     )
 
-    profiles = {name: operations(jax, fn, (commands, init), args.traced) for name, fn in compiled.items()}
+    profiles = {name: operations(jax, fn, inputs, args.traced) for name, fn in compiled.items()}
     runs = {name: sum(count.values()) for name, (_, count) in profiles.items()}
     print(
         f"operations run per call (XLA's thunks, the profiler's own events left out): forward {runs['forward']:,.0f}, "
