@@ -192,7 +192,7 @@ def test_check_grads_rollout(x64):
     change = aerodynamics.downwash_thrust(p0, out.pos, quat_to_rotmat(out.quat), jnp.ones((steps, 3, 4)))
     assert float(jnp.max(jnp.abs(change[:, 2]))) == 0.0 and float(jnp.max(change[:, :2])) < -0.01  # ≥ 1 % loss
     args = (jnp.zeros((steps, 3, 4)), state0.pos, state0.vel, state0.quat, state0.ang_vel, jnp.zeros(2))
-    check_grads(f, args, order=1, modes=("rev",), eps=1e-5, atol=1e-6, rtol=1e-5)
+    check_grads(jax.jit(f), args, order=1, modes=("rev",), eps=1e-5, atol=1e-6, rtol=1e-5)
 
 
 @pytest.mark.slow

@@ -576,7 +576,7 @@ def test_check_grads_full_step(integrator, adjoint, x64):
     assert float(aerodynamics.downwash_force(p0, state0.pos)[1]) < -1e-3
     assert not bool(step(p0, state0, rpm_base).ground_contact.any())
     modes = ("rev",) if adjoint_supported(config) else ("fwd", "rev")
-    check_grads(f, args, order=1, modes=modes, eps=1e-5, atol=1e-6, rtol=1e-6)
+    check_grads(jax.jit(f), args, order=1, modes=modes, eps=1e-5, atol=1e-6, rtol=1e-6)
 
 
 def test_closed_form_jacobians(x64):
@@ -865,7 +865,7 @@ def test_check_grads_rollout(steps, x64):
     gain = aerodynamics.ground_effect_thrust(p0, out.pos, quat_to_rotmat(out.quat), jnp.ones((steps, 3, 4)))
     assert float(gain.min()) > 5e-4 and float(jnp.max(aerodynamics.downwash_force(p0, out.pos))) <= 0.0
     assert float(jnp.min(aerodynamics.downwash_force(p0, out.pos))) < -1e-3
-    check_grads(f, args, order=1, modes=("rev",), eps=1e-5, atol=1e-6, rtol=1e-5)
+    check_grads(jax.jit(f), args, order=1, modes=("rev",), eps=1e-5, atol=1e-6, rtol=1e-5)
 
 
 def test_gradients_stay_finite_through_contact_flips_and_crashes():

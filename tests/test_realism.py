@@ -454,7 +454,7 @@ def test_env_gradients_with_every_option(x64):
         return jnp.sum(jax.lax.scan(body, state, offsets)[1])
 
     offsets = jnp.asarray(np.random.default_rng(1).uniform(-0.2, 0.2, (20, 1, 4)))
-    check_grads(loss, (offsets,), order=1, modes=["rev"], eps=1e-6, atol=1e-6, rtol=1e-5)
+    check_grads(jax.jit(loss), (offsets,), order=1, modes=["rev"], eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
 def test_presets_and_options():
