@@ -26,6 +26,8 @@ cleanly.
 from __future__ import annotations
 
 import re
+import signal
+import threading
 import time
 
 import jax
@@ -154,8 +156,8 @@ class EnvNode:
         self._rclpy = rclpy
         self._owns_context = not rclpy.ok()  # shut rclpy down on close only if this node started it
         if self._owns_context:
-            # Ctrl-C raises KeyboardInterrupt (Python's own handler), which `spin` turns into a clean close, rather
-            # than rclpy's handler shutting the context down under a node that is still starting.
+            # Ctrl-C while starting raises KeyboardInterrupt (Python's own handler), and during `spin` stops its loop,
+            # rather than rclpy's handler shutting the context down under a node that is still starting.
             from rclpy.signals import SignalHandlerOptions
 
             rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
@@ -289,17 +291,27 @@ class EnvNode:
             )
 
     def spin(self, duration_s: float | None = None) -> None:
-        """Run until ``duration_s`` of simulated time (None: until Ctrl-C), then close the node."""
+        """Run until ``duration_s`` of simulated time (None: until Ctrl-C), then close the node.
+
+        Called from the main thread, Ctrl-C (SIGINT) sets a flag that the loop reads between two waits of at most one
+        control step, rather than raising KeyboardInterrupt wherever the interpreter happens to be (inside an rclpy
+        callback, the executor could swallow it and spin on); the previous handler is restored on return."""
+        stop = threading.Event()
+        previous = None
+        if threading.current_thread() is threading.main_thread():
+            previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
         try:
-            while self._rclpy.ok() and (duration_s is None or self.time_s < duration_s - 1e-9):
+            while not stop.is_set() and self._rclpy.ok() and (duration_s is None or self.time_s < duration_s - 1e-9):
                 if self.realtime:
                     self._rclpy.spin_once(self.node, timeout_sec=self.ctrl_dt)
                 else:
                     self._rclpy.spin_once(self.node, timeout_sec=0.01 if self.sync else 0)
                     self.tick()
-        except KeyboardInterrupt:
+        except KeyboardInterrupt:  # from another thread's handler, or raised before ours was set
             pass
         finally:
+            if previous is not None:
+                signal.signal(signal.SIGINT, previous)
             self.close()
 
     def close(self) -> None:
