@@ -89,14 +89,12 @@ def main(argv=None) -> int:
     else:
         realism = None if args.caller == "default_env" else args.caller.removeprefix("default_env_")
         loss_of, policy, commands, init = default_env_setup(jax, jd, np, t, w, realism)
-        if args.wrt == "policy":
-            loss, inputs = loss_of, (policy, commands, init)
-            what = f"caller {args.caller}, the gradient w.r.t. the policy's parameters"
-        else:
-            loss = functools.partial(loss_of, policy)
-            what = f"caller {args.caller}, the gradient w.r.t. the per-step offsets"
-    if args.wrt == "commands":
-        inputs = (commands, init)
+        by_policy = args.wrt == "policy"
+        loss = loss_of if by_policy else functools.partial(loss_of, policy)
+        what = f"caller {args.caller}, the gradient w.r.t. the " + (
+            "policy's parameters" if by_policy else "per-step offsets"
+        )
+    inputs = (policy, commands, init) if args.wrt == "policy" else (commands, init)
 
     compiled = {
         name: jax.jit(fn).lower(*inputs).compile()
