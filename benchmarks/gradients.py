@@ -242,26 +242,40 @@ def env_step_case(jax, jd, np, horizon: int, worlds: int, repeats: int) -> dict:
     return {"sim": "jaxdrones", "caller": "env_step", "remat": None, **result}
 
 
-def default_env_setup(jax, jd, np, horizon: int, worlds: int, realism: str | None = None):
-    """``(loss_of, policy, offsets, state)`` of the ``default_env`` callers: ``loss_of(policy, offsets, state)`` is
-    the env's loss over a ``lax.scan`` of ``horizon`` steps of ``jd.make("hover", realism=realism)``'s vmapped
-    ``step`` at its defaults for ``worlds`` worlds, the action a linear tanh policy of the observation plus a
-    per-step offset; ``state`` the start's pos, quat, vel and ang_vel."""
+def default_env_parts(jax, jd, np, horizon: int, worlds: int, realism: str | None = None) -> dict:
+    """What the ``default_env`` callers are built of: ``env`` (``jd.make("hover", realism=realism)``), ``start``
+    (its vmapped reset for ``worlds`` worlds), ``step`` and ``env_loss`` (its ``step`` and ``loss`` vmapped over the
+    worlds), ``offsets`` f[horizon, W, D, n_act] (0.4 N(0, 1)), ``policy`` (a linear policy's ``w`` f[n_obs, n_act],
+    0.01 N(0, 1), and ``b``, zeros) and ``state`` (the start's pos, quat, vel and ang_vel)."""
     from jaxdrones.envs.base import world_axes
 
     jnp = jax.numpy
     env = jd.make("hover", realism=realism)
     axes = world_axes(env.shared_params is not None)
     start = jax.vmap(env.reset, out_axes=axes)(jax.random.split(jax.random.key(0), worlds))
-    step = jax.vmap(env.step, in_axes=(axes, 0), out_axes=axes)
-    env_loss = jax.vmap(env.loss, in_axes=(axes,))
     rng = np.random.default_rng(2)
-    offsets = jnp.asarray(0.4 * rng.standard_normal((horizon, worlds, env.n_drones, env.action_size)), env.dtype)
-    policy = {
-        "w": jnp.asarray(0.01 * rng.standard_normal((env.observation_size, env.action_size)), env.dtype),
-        "b": jnp.zeros(env.action_size, env.dtype),
+    return {
+        "env": env,
+        "start": start,
+        "step": jax.vmap(env.step, in_axes=(axes, 0), out_axes=axes),
+        "env_loss": jax.vmap(env.loss, in_axes=(axes,)),
+        "offsets": jnp.asarray(0.4 * rng.standard_normal((horizon, worlds, env.n_drones, env.action_size)), env.dtype),
+        "policy": {
+            "w": jnp.asarray(0.01 * rng.standard_normal((env.observation_size, env.action_size)), env.dtype),
+            "b": jnp.zeros(env.action_size, env.dtype),
+        },
+        "state": {k: getattr(start.sim, k) for k in ("pos", "quat", "vel", "ang_vel")},
     }
-    state = {k: getattr(start.sim, k) for k in ("pos", "quat", "vel", "ang_vel")}
+
+
+def default_env_setup(jax, jd, np, horizon: int, worlds: int, realism: str | None = None):
+    """``(loss_of, policy, offsets, state)`` of the ``default_env`` callers: ``loss_of(policy, offsets, state)`` is
+    the env's loss over a ``lax.scan`` of ``horizon`` steps of ``jd.make("hover", realism=realism)``'s vmapped
+    ``step`` at its defaults for ``worlds`` worlds, the action a linear tanh policy of the observation plus a
+    per-step offset; ``state`` the start's pos, quat, vel and ang_vel (`default_env_parts`)."""
+    jnp = jax.numpy
+    parts = default_env_parts(jax, jd, np, horizon, worlds, realism)
+    start, step, env_loss = parts["start"], parts["step"], parts["env_loss"]
 
     def loss_of(policy, offsets, state):
         def body(s, offset):
@@ -271,7 +285,7 @@ def default_env_setup(jax, jd, np, horizon: int, worlds: int, realism: str | Non
         _, losses = jax.lax.scan(body, start.replace(sim=start.sim.replace(**state)), offsets)
         return jnp.mean(losses)
 
-    return loss_of, policy, offsets, state
+    return loss_of, parts["policy"], parts["offsets"], parts["state"]
 
 
 def default_env_case(jax, jd, np, horizon: int, worlds: int, repeats: int, realism: str | None = None) -> dict:
