@@ -88,18 +88,12 @@ def main(argv=None) -> int:
 
     import jax
     import numpy as np
-    from gradients import time_calls
-    from throughput import machine_info, write_report
+    from gradients import machine_header, time_calls
+    from throughput import write_report
 
     import jaxdrones as jd
 
-    info = machine_info(jax)
-    load_start = os.getloadavg()
-    print(
-        f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, {info['cpus_available']} cores, "
-        f"load {load_start}; T={args.horizon}, W={args.worlds}",
-        flush=True,
-    )
+    info, load_start = machine_header(jax, f"; T={args.horizon}, W={args.worlds}")
     variants, inputs = losses(jax, jd, np, args.horizon, args.worlds)
     calls = {}
     for name, loss_of in variants.items():

@@ -331,6 +331,21 @@ def run_crazyflow(args) -> tuple[list[dict], dict, str | None]:
     return results, info, error
 
 
+def machine_header(jax, more: str = "") -> tuple[dict, tuple]:
+    """Print the run's JAX, backend, CPU, cores, ``XLA_FLAGS`` and load average (then ``more``); return the
+    machine's info (`throughput.machine_info`) and the load average at the start."""
+    from throughput import machine_info
+
+    info = machine_info(jax)
+    load_start = os.getloadavg()
+    print(
+        f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, {info['cpus_available']} cores, "
+        f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}, load {load_start}{more}",
+        flush=True,
+    )
+    return info, load_start
+
+
 def print_row(r: dict) -> None:
     mib = (r["grad_commands"]["temp_bytes"] or 0) / 2**20
     caller = r.get("caller", "rollout")
@@ -353,17 +368,11 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     import jax
     import numpy as np
-    from throughput import machine_info, write_report
+    from throughput import write_report
 
     import jaxdrones as jd
 
-    info = machine_info(jax)
-    load_start = os.getloadavg()
-    print(
-        f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, {info['cpus_available']} cores, "
-        f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}, load {load_start}",
-        flush=True,
-    )
+    info, load_start = machine_header(jax)
     results = []
     cases = {
         "rollout": [functools.partial(jaxdrones_case, remat=remat) for remat in (False, True)],
