@@ -5,8 +5,8 @@ control, 8 physics substeps per step; T control steps of W worlds; per-step offs
 averaged over the steps), built up one layer at a time. Each variant is a ``lax.scan`` of T steps:
 
 - ``physics``: the env's physics step alone (``jd.make_step(env.sim_config)``, ``env.params``), commanded
-  ``hover_rpm (1 + 0.05 tanh(offset))`` (the hover env's RPM action of ``tanh(offset)``), the env's loss of the
-  state;
+  ``hover_rpm (1 + 0.05 tanh(offset))`` (the hover env's RPM action of ``tanh(offset)``: 0.05 is
+  ``jaxdrones.envs.actions.RPM_ACTION_SCALE``), the env's loss of the state;
 - ``open_loop``: the env's ``step`` with the action ``tanh(offset)``. Nothing reads the observation, so XLA leaves
   it out of both passes: this is the env layer (action clip and mapping, reward, termination) around the physics;
 - ``policy``: the env's ``step`` with the action ``tanh(obs @ w + b + offset)``, the ``default_env`` caller itself;
@@ -40,6 +40,8 @@ def losses(jax, jd, np, horizon: int, worlds: int) -> tuple[dict, tuple]:
     """``({variant: loss_of(policy, offsets, state)}, (policy, offsets, state))`` of `VARIANTS` (see above)."""
     from gradients import default_env_parts
 
+    from jaxdrones.envs.actions import RPM_ACTION_SCALE
+
     jnp = jax.numpy
     parts = default_env_parts(jax, jd, np, horizon, worlds)
     env, start, step, env_loss = parts["env"], parts["start"], parts["step"], parts["env_loss"]
@@ -48,7 +50,7 @@ def losses(jax, jd, np, horizon: int, worlds: int) -> tuple[dict, tuple]:
 
     def physics(policy, offsets, state):
         def body(sim, offset):
-            sim = physics_step(env.params, sim, hover_rpm * (1.0 + 0.05 * jnp.tanh(offset)))
+            sim = physics_step(env.params, sim, hover_rpm * (1.0 + RPM_ACTION_SCALE * jnp.tanh(offset)))
             return sim, jnp.mean(env_loss(start.replace(sim=sim)))
 
         return jnp.mean(jax.lax.scan(body, start.sim.replace(**state), offsets)[1])
