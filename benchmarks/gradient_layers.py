@@ -27,6 +27,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import statistics
 import sys
@@ -38,13 +39,13 @@ VARIANTS = ("physics", "open_loop", "policy", "policy_obs_stopped")
 
 def losses(jax, jd, np, horizon: int, worlds: int) -> tuple[dict, tuple]:
     """``({variant: loss_of(policy, offsets, state)}, (policy, offsets, state))`` of `VARIANTS` (see above)."""
-    from gradients import default_env_parts
+    from gradients import default_env_parts, env_scan_loss, linear_tanh_policy
 
     from jaxdrones.envs.actions import RPM_ACTION_SCALE
 
     jnp = jax.numpy
     parts = default_env_parts(jax, jd, np, horizon, worlds)
-    env, start, step, env_loss = parts["env"], parts["start"], parts["step"], parts["env_loss"]
+    env, start, env_loss = parts["env"], parts["start"], parts["env_loss"]
     physics_step = jd.make_step(env.sim_config)
     hover_rpm = env.params.hover_rpm[:, None]
 
@@ -55,22 +56,14 @@ def losses(jax, jd, np, horizon: int, worlds: int) -> tuple[dict, tuple]:
 
         return jnp.mean(jax.lax.scan(body, start.sim.replace(**state), offsets)[1])
 
-    def env_scan(action_of):
-        def loss_of(policy, offsets, state):
-            def body(s, offset):
-                s = step(s, action_of(policy, s.obs, offset))
-                return s, jnp.mean(env_loss(s))
-
-            return jnp.mean(jax.lax.scan(body, start.replace(sim=start.sim.replace(**state)), offsets)[1])
-
-        return loss_of
-
     variants = {
         "physics": physics,
-        "open_loop": env_scan(lambda policy, obs, offset: jnp.tanh(offset)),
-        "policy": env_scan(lambda policy, obs, offset: jnp.tanh(obs @ policy["w"] + policy["b"] + offset)),
-        "policy_obs_stopped": env_scan(
-            lambda policy, obs, offset: jnp.tanh(jax.lax.stop_gradient(obs) @ policy["w"] + policy["b"] + offset)
+        "open_loop": env_scan_loss(jax, parts, lambda policy, obs, offset: jnp.tanh(offset)),
+        "policy": env_scan_loss(jax, parts, functools.partial(linear_tanh_policy, jax)),
+        "policy_obs_stopped": env_scan_loss(
+            jax,
+            parts,
+            lambda policy, obs, offset: linear_tanh_policy(jax, policy, jax.lax.stop_gradient(obs), offset),
         ),
     }
     return variants, (parts["policy"], parts["offsets"], parts["state"])

@@ -86,15 +86,15 @@ def main(argv=None) -> int:
             return trajectory_loss(jnp, p, v)
 
         what = f"{config.n_substeps} substeps per control step"
+        inputs = (commands, init)
     else:
         realism = None if args.caller == "default_env" else args.caller.removeprefix("default_env_")
         loss_of, policy, commands, init = default_env_setup(jax, jd, np, t, w, realism)
-        by_policy = args.wrt == "policy"
-        loss = loss_of if by_policy else functools.partial(loss_of, policy)
-        what = f"caller {args.caller}, the gradient w.r.t. the " + (
-            "policy's parameters" if by_policy else "per-step offsets"
-        )
-    inputs = (policy, commands, init) if args.wrt == "policy" else (commands, init)
+        if args.wrt == "policy":
+            loss, inputs, wrt = loss_of, (policy, commands, init), "policy's parameters"
+        else:
+            loss, inputs, wrt = functools.partial(loss_of, policy), (commands, init), "per-step offsets"
+        what = f"caller {args.caller}, the gradient w.r.t. the {wrt}"
 
     compiled = {
         name: jax.jit(fn).lower(*inputs).compile()

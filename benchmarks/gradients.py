@@ -268,23 +268,36 @@ def default_env_parts(jax, jd, np, horizon: int, worlds: int, realism: str | Non
     }
 
 
-def default_env_setup(jax, jd, np, horizon: int, worlds: int, realism: str | None = None):
-    """``(loss_of, policy, offsets, state)`` of the ``default_env`` callers: ``loss_of(policy, offsets, state)`` is
-    the env's loss over a ``lax.scan`` of ``horizon`` steps of ``jd.make("hover", realism=realism)``'s vmapped
-    ``step`` at its defaults for ``worlds`` worlds, the action a linear tanh policy of the observation plus a
-    per-step offset; ``state`` the start's pos, quat, vel and ang_vel (`default_env_parts`)."""
+def env_scan_loss(jax, parts: dict, action_of):
+    """``loss_of(policy, offsets, state)``: the mean over ``lax.scan`` steps of ``parts``' (`default_env_parts`) env
+    loss, from its start with ``state`` (pos, quat, vel, ang_vel), each step's action
+    ``action_of(policy, obs, offset)``."""
     jnp = jax.numpy
-    parts = default_env_parts(jax, jd, np, horizon, worlds, realism)
     start, step, env_loss = parts["start"], parts["step"], parts["env_loss"]
 
     def loss_of(policy, offsets, state):
         def body(s, offset):
-            s = step(s, jnp.tanh(s.obs @ policy["w"] + policy["b"] + offset))
+            s = step(s, action_of(policy, s.obs, offset))
             return s, jnp.mean(env_loss(s))
 
         _, losses = jax.lax.scan(body, start.replace(sim=start.sim.replace(**state)), offsets)
         return jnp.mean(losses)
 
+    return loss_of
+
+
+def linear_tanh_policy(jax, policy, obs, offset):
+    """The ``default_env`` callers' action: ``tanh(obs @ w + b + offset)``."""
+    return jax.numpy.tanh(obs @ policy["w"] + policy["b"] + offset)
+
+
+def default_env_setup(jax, jd, np, horizon: int, worlds: int, realism: str | None = None):
+    """``(loss_of, policy, offsets, state)`` of the ``default_env`` callers: ``loss_of(policy, offsets, state)`` is
+    the env's loss over a ``lax.scan`` of ``horizon`` steps of ``jd.make("hover", realism=realism)``'s vmapped
+    ``step`` at its defaults for ``worlds`` worlds, the action a linear tanh policy of the observation plus a
+    per-step offset (`linear_tanh_policy`); ``state`` the start's pos, quat, vel and ang_vel (`default_env_parts`)."""
+    parts = default_env_parts(jax, jd, np, horizon, worlds, realism)
+    loss_of = env_scan_loss(jax, parts, functools.partial(linear_tanh_policy, jax))
     return loss_of, parts["policy"], parts["offsets"], parts["state"]
 
 
