@@ -17,6 +17,10 @@ _xla.add_flags(_xla.CLI_FLAGS)
 # Every broadcast between arrays of different ranks is written out (``x[None]``, `jnp.broadcast_to`,
 # `jaxdrones.physics.params.align_params`): JAX raises on an implicit one, here and in the suite's subprocesses.
 os.environ.setdefault("JAX_NUMPY_RANK_PROMOTION", "raise")
+# On a GPU, JAX's client takes 75 % of the device's memory when it starts: pytest-xdist's workers, and the suite's
+# subprocesses, would each ask for it and all but the first fail with CUDA_ERROR_OUT_OF_MEMORY. Each takes what it
+# uses instead (where the user has not chosen otherwise).
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402

@@ -7,6 +7,7 @@ refer to docs/physics.md.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -158,6 +159,45 @@ def test_held_action_equals_repeated_action(x64, rng):
     out_fast = jd.rollout(stepper(fast), params, state, np.repeat(rpms, 5, axis=0))
     for name in ("pos", "quat", "vel", "ang_vel", "rpm"):
         np.testing.assert_allclose(getattr(out_slow, name), getattr(out_fast, name)[4::5], rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {},
+        {"n_drones": 2, "drag": True, "ground_effect": True, "downwash": True},
+        {"motor_dynamics": True, "kinks": "smooth", "ground_effect": True},
+    ],
+    ids=["default", "aero", "motors-smooth"],
+)
+def test_unrolled_substeps_equal_the_loop(options, rng):
+    """`SimConfig.unroll_substeps` writes the substeps out instead of looping over them: the same states over a
+    rollout, and the same gradient w.r.t. the commands, in float32 (to 1e-5: XLA may fuse the arithmetic
+    differently); None, the per-device default, loops on the CPU."""
+    base = jd.SimConfig(sim_freq=240, ctrl_freq=30, **options)
+    assert base.unroll_substeps is None and base.substep_unroll == (1 if jax.default_backend() == "cpu" else 8)
+    params = jd.load_params("cf2x")
+    d = base.n_drones
+    state = jd.init_state(
+        base, pos=[[0.0, 0.0, 0.05 + 0.3 * k] for k in range(d)], rpy=[[0.1, -0.2, 0.3]] * d, ang_vel=[[1.0, -0.5, 0.2]] * d
+    )
+    rpms = jnp.asarray(float(params.hover_rpm) * (1 + 0.05 * rng.uniform(-1, 1, (3, d, 4))), jnp.float32)
+
+    def loss(config, rpms):
+        out = jd.rollout(jd.make_step(config), params, state, rpms)
+        return jnp.sum(out.pos[-1] ** 2) + jnp.sum(out.vel**2), out
+
+    results = {}
+    for unroll in (False, True):
+        config = dataclasses.replace(base, unroll_substeps=unroll)
+        assert config.substep_unroll == (8 if unroll else 1)
+        (_, out), grad = jax.value_and_grad(functools.partial(loss, config), has_aux=True)(rpms)
+        results[unroll] = (out, grad)
+    (loop, grad_loop), (unrolled, grad_unrolled) = results[False], results[True]
+    for name in ("pos", "quat", "vel", "ang_vel", "rpm"):
+        np.testing.assert_allclose(getattr(unrolled, name), getattr(loop, name), rtol=1e-5, atol=1e-5)
+    scale = float(jnp.max(jnp.abs(grad_loop)))
+    np.testing.assert_allclose(grad_unrolled / scale, grad_loop / scale, rtol=1e-5, atol=1e-5)
 
 
 def test_quaternion_update_tiny_rate_is_a_no_op(x64):

@@ -378,6 +378,32 @@ def test_vmap_auto_reset_equals_vmapped_auto_reset(randomize):
     assert not np.allclose(a.sim.pos[1], b.sim.pos[2])
 
 
+@pytest.mark.parametrize("randomize", [{}, {"randomize": {"mass": 0.1}}], ids=["shared-params", "randomized"])
+def test_vmap_auto_reset_with_drawn_starts(randomize):
+    """With the next episodes drawn before (`VmapAutoReset.starts`), a world whose episode ends takes its drawn
+    episode: the same state as a reset computed in the step from the same key chain, for a few worlds or many; the
+    worlds that go on are untouched; a world that ends again before the next draw starts the same episode again."""
+    env = jd.make("velocity", episode_len_s=0.5, ctrl_freq=30, **randomize)
+    n, auto = 32, VmapAutoReset(env, max_resets=4)
+    state = jax.jit(auto.reset)(jax.random.split(jax.random.key(3), n))
+    starts = jax.jit(auto.starts)(state)
+    step = jax.jit(auto.step_ended)
+    actions = np.random.default_rng(0).uniform(-1, 1, (n, 1, 4)).astype(np.float32)
+    for ending in ([1, 7, 30], list(range(12))):  # the gathered resets (3 <= 4) and every world reset (12 > 4)
+        action = actions.copy()
+        action[ending] = np.nan
+        ended, computed = step(state, action)
+        ended_drawn, drawn = step(state, action, starts)
+        assert sorted(np.nonzero(np.asarray(ended.done))[0]) == ending
+        for x, y in zip(_key_free((ended, computed)), _key_free((ended_drawn, drawn)), strict=True):
+            np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-7)
+    ending = np.asarray(ending)
+    np.testing.assert_array_equal(drawn.sim.pos[ending], starts.sim.pos[ending])
+    np.testing.assert_array_equal(drawn.sim.pos[12:], ended.sim.pos[12:])
+    again = step(drawn, action, starts)[1]
+    np.testing.assert_array_equal(again.sim.pos[ending], starts.sim.pos[ending])
+
+
 def test_heterogeneous_team():
     env = jd.make("multi_hover", n_drones=2, model=("cf2x", "racer"))
     np.testing.assert_allclose(env.params.mass, [0.027, 0.83], rtol=1e-6)

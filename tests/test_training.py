@@ -520,3 +520,45 @@ def test_load_policy_into_another_env_checks_the_team(tmp_path):
         load_policy(tmp_path, env=jd.make("leader_follower", n_drones=2, action_type="one_d_rpm"))
     with pytest.raises(ValueError, match="the env given is 'multi_hover'"):
         load_policy(tmp_path, env=jd.make("multi_hover", n_drones=3, action_type="one_d_rpm"))
+
+
+def test_train_cli_defaults_profiles(tmp_path, capsys):
+    """``--defaults gpu`` trains with the large-batch settings on any device (here the CPU) and the summary records
+    the profile; without it the device's profile is used (the CPU's here); the profiles differ where tuned."""
+    from jaxdrones.training import trainers
+
+    assert trainers.default_profile() == ("cpu" if jax.default_backend() == "cpu" else "gpu")
+    for algo in ("apg", "ppo", "brax_ppo"):
+        cpu, gpu = (trainers.get(algo).default_config("hover", False, d) for d in trainers.DEFAULTS)
+        assert gpu.num_envs >= 4096 > cpu.num_envs
+    with pytest.raises(ValueError, match="defaults must be one of"):
+        trainers.get("ppo").default_config("hover", False, "tpu")
+    run = tmp_path / "run"
+    args = ["train", "hover", "--steps", "1", "--num-evals", "1", "--out", str(run), "--no-progress"]
+    assert trainers.default_algo("hover", defaults="cpu") == "apg"
+    assert trainers.default_algo("hover", defaults="gpu") == "ppo"
+    assert main([*args, "--algo", "apg", "--defaults", "gpu", "--eval-episodes", "64"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["defaults"] == "gpu" and summary["config"]["num_envs"] == 4096
+    assert summary["config"]["learning_rate"] == 1e-2 and summary["env_steps"] == 4096 * 32
+    assert main([*args, "--algo", "apg", "--eval-episodes", "64", "--overwrite", "--num-envs", "8"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["defaults"] == trainers.default_profile() and summary["config"]["learning_rate"] == 3e-3
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main([*args, "--defaults", "tpu"])
+    assert "invalid choice: 'tpu'" in capsys.readouterr().err
+
+
+def test_failed_criteria_name_what_kept_a_run_from_success():
+    """The verdict names the criterion a run missed: the metric above its threshold, episodes that ended early, or
+    both; a solved run misses none."""
+    import jaxdrones as jd
+    from jaxdrones.training.run import failed_criteria
+
+    task = jd.make("hover").task
+    assert failed_criteria(task, {"success_value": 0.02, "terminated_rate": 0.0, "n_episodes": 256}) == []
+    crashed = failed_criteria(task, {"success_value": 0.034, "terminated_rate": 3 / 256, "n_episodes": 256})
+    assert crashed == ["3 of 256 episodes ended early (crashed or left the arena; a solved run has none)"]
+    both = failed_criteria(task, {"success_value": 0.07, "terminated_rate": 1 / 64, "n_episodes": 64})
+    assert len(both) == 2 and "0.07 m is not below the threshold 0.05" in both[0] and "1 of 64" in both[1]

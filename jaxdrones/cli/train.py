@@ -44,10 +44,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--algo",
         choices=ALGOS,
         default=None,
-        help="apg (analytic policy gradients through the simulator, the default for hover), ppo (our "
-        "batched PPO), brax_ppo (brax's PPO, the default for the other single-agent tasks), shac "
+        help="apg (analytic policy gradients through the simulator, the default for hover with --defaults cpu), "
+        "ppo (our batched PPO, the default for hover with --defaults gpu), brax_ppo (brax's PPO, the default for the other single-agent tasks), shac "
         "(short-horizon actor-critic through the simulator), mappo (multi-agent PPO with a "
         "centralised critic, the default for multi-agent tasks) or ippo (independent PPO)",
+    )
+    ppo.add_argument(
+        "--defaults",
+        choices=trainers.DEFAULTS,
+        default=None,
+        help="the trainer's default settings: cpu (few worlds, many small updates: fastest on a few CPU cores) or "
+        "gpu (thousands of worlds, few large updates: fastest where each sequential operation costs a kernel "
+        "launch); default: the device's (gpu on a GPU or TPU)",
     )
     ppo.add_argument("--steps", type=int, default=None, help="env steps to train (default: the task's tuned budget)")
     ppo.add_argument("--num-envs", type=int, default=None, help="parallel environments")
@@ -327,7 +335,8 @@ def run_cli(args: argparse.Namespace) -> int:
         from jaxdrones.envs import make_config
 
         vision = bool(make_config(args.task, **default_env(args.task, env)).vision)
-        algo = default_algo(args.task, args.backend or "jax", vision) if args.algo is None else args.algo
+        defaults = args.defaults or trainers.default_profile()
+        algo = default_algo(args.task, args.backend or "jax", vision, defaults) if args.algo is None else args.algo
         trainer = trainers.get(algo)
         overrides = {"seed": args.seed}
         if args.steps is not None:
@@ -339,7 +348,7 @@ def run_cli(args: argparse.Namespace) -> int:
             overrides["num_envs"] = args.num_envs
             if trainer.name == "brax_ppo":
                 overrides["batch_size"] = args.num_envs
-        config = dataclasses.replace(trainer.default_config(args.task, vision), **overrides)
+        config = dataclasses.replace(trainer.default_config(args.task, vision, defaults), **overrides)
         summary = train_task(
             args.task,
             args.out,
@@ -350,6 +359,7 @@ def run_cli(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             t_start=getattr(args, "t_start", None),
             algo=trainer.name,
+            defaults=defaults,
         )
     except (ValueError, OSError, ImportError, devices.DeviceError) as err:
         print(f"jaxdrones train: error: {err}", file=sys.stderr)
@@ -365,14 +375,16 @@ def run_cli(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 130
-    verdict = "solved" if summary["success"] else "not solved"
     stats = summary["eval"]
-    print(
-        f"{verdict}: {summary['success_metric']} {summary['success_value']:.4g} {summary['success_unit']} "
-        f"(threshold {summary['success_threshold']:g}) over {stats['n_episodes']} random starts "
-        f"({stats['terminated_rate']:.1%} terminated), {summary['env_steps']:,} env steps, "
-        f"{summary['wall_time_s']:.1f} s wall time"
+    result = (
+        f"{summary['success_metric']} {summary['success_value']:.4g} {summary['success_unit']} (threshold "
+        f"{summary['success_threshold']:g}) over {stats['n_episodes']} random starts ({stats['terminated_rate']:.1%} "
+        f"terminated), {summary['env_steps']:,} env steps, {summary['wall_time_s']:.1f} s wall time"
     )
+    if summary["success"]:
+        print(f"solved: {result}")
+    else:
+        print(f"not solved: {'; '.join(summary['failed_criteria'])}. {result}")
     viewer = ", flight.html" if os.path.exists(os.path.join(summary["out_dir"], "flight.html")) else ""
     print(f"saved policy.pkl, learning_curve.png, flight.png{viewer}, summary.json in {summary['out_dir']}")
     return 0

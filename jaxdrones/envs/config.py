@@ -110,6 +110,8 @@ class TaskConfig:
             ``"exact"`` (default), ``"smooth"`` or ``"straight_through"``, or a `jaxdrones.kinks.Kinks`.
         adjoint: reverse-mode derivatives of the physics through its hand-written adjoint (`SimConfig.adjoint`;
             default True); False for forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``) through ``step``.
+        unroll_substeps: the physics substeps of a control step unrolled in the compiled program
+            (`SimConfig.unroll_substeps`): None (default) on a GPU or TPU and not on the CPU, or True / False.
         reward: ``"shaped"`` (the task's shaped reward) or ``"paper"`` (the original's reward).
         init_pos: f[D, 3] m, fixed start positions (the original's ``initial_xyzs``): they override the random
             start ranges; the drones start at rest and level (unless ``init_rpy`` is given).
@@ -178,6 +180,7 @@ class TaskConfig:
     downwash: bool | str = False
     kinks: Any = "exact"
     adjoint: bool = True
+    unroll_substeps: bool | None = None
     reward: str = "shaped"
     init_pos: Any = None
     init_rpy: Any = None
@@ -220,6 +223,7 @@ class TaskConfig:
             raise ValueError(f"n_drones must be a positive integer, got {n!r}")
         self._check_model()
         self._set("kinks", SimConfig(kinks=self.kinks, adjoint=self.adjoint).kinks)
+        self._set("unroll_substeps", SimConfig(unroll_substeps=self.unroll_substeps).unroll_substeps)
         for name in ("init_pos", "init_rpy"):
             self._set(name, fixed_triples(name, getattr(self, name), n))
         if self.start_pos_range is not None:
@@ -330,6 +334,7 @@ class TaskConfig:
             kinks=self.kinks,
             downwash_radius=self.downwash_radius,
             adjoint=self.adjoint,
+            unroll_substeps=self.unroll_substeps,
             motor_dynamics=realism is not None and realism.motor_dynamics,
         )
 

@@ -48,11 +48,18 @@ class SimConfig:
             autodiff (jvp) to a custom_vjp function". False gives JAX's derived derivatives in both modes (the
             control step is then rematerialised in the reverse pass). RK4 and the other kink treatments always
             use JAX's.
+        unroll_substeps: the control step's physics substeps written out one after the other in the compiled
+            program (True) or as a loop (False); None (default) chooses when the step is traced: unrolled on a
+            GPU or TPU, where XLA then fuses the element-wise work of all substeps into a few kernels and each
+            sequential kernel costs a launch, a loop on the CPU, where the unrolled step ran 2-4 times slower
+            (`benchmarks/train_cost.py`, docs/benchmarks.md). The results are the same either way (to float
+            rounding: XLA may fuse the arithmetic differently).
 
     Raises:
         ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, an unknown
             integrator or kink treatment, a ``downwash_radius`` neither None nor > 0, a ``cell_capacity`` below 1,
-            a ``drag``, ``ground_effect``, ``adjoint`` or ``motor_dynamics`` that is not a bool (a string or number
+            a ``drag``, ``ground_effect``, ``adjoint`` or ``motor_dynamics`` that is not a bool (nor None for
+            ``unroll_substeps``) (a string or number
             would otherwise be truthy), or a ``downwash`` that is none of False, True, ``"paper"``, ``"per_rotor"``.
     """
 
@@ -68,6 +75,7 @@ class SimConfig:
     cell_capacity: int = 8
     adjoint: bool = True
     motor_dynamics: bool = False
+    unroll_substeps: bool | None = None
 
     def __post_init__(self):
         if isinstance(self.kinks, str):
@@ -101,6 +109,10 @@ class SimConfig:
             if not isinstance(value, (bool, np.bool_)):
                 raise ValueError(f"SimConfig.{name} must be True or False, got {value!r}")
             object.__setattr__(self, name, bool(value))
+        unroll = self.unroll_substeps
+        if unroll is not None and not isinstance(unroll, (bool, np.bool_)):
+            raise ValueError(f"SimConfig.unroll_substeps must be True, False or None (per device), got {unroll!r}")
+        object.__setattr__(self, "unroll_substeps", None if unroll is None else bool(unroll))
         object.__setattr__(self, "downwash", downwash_model(self.downwash, "SimConfig.downwash"))
         if self.integrator not in dynamics.INTEGRATORS:
             raise ValueError(
@@ -121,6 +133,17 @@ class SimConfig:
     def ctrl_dt(self) -> float:
         """Control period, s."""
         return 1.0 / self.ctrl_freq
+
+    @property
+    def substep_unroll(self) -> int:
+        """The ``unroll`` of the substeps' ``lax.scan`` (`unroll_substeps`; None decides by
+        ``jax.default_backend()``, so call it while tracing)."""
+        import jax
+
+        unroll = self.unroll_substeps
+        if unroll is None:
+            unroll = jax.default_backend() != "cpu"
+        return self.n_substeps if unroll else 1
 
     @property
     def effects(self) -> dynamics.Effects:

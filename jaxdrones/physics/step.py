@@ -102,7 +102,7 @@ def _core_step_c(config: SimConfig):
                 speeds = dynamics.motor_response_c(params, s.rpm, rpm, config.dt)
                 return physics_substep_c(config, params, s, speeds, None, True, neighbors, disturbance), None
 
-            return jax.lax.scan(lagged, state, None, length=config.n_substeps)[0]
+            return jax.lax.scan(lagged, state, None, length=config.n_substeps, unroll=config.substep_unroll)[0]
         # Instant motors: their output is held over the substeps. The RPM of the previous substep, which drag
         # uses, is the state's in the first substep and the held command in the others: it is chosen per substep
         # rather than carried (and copied) through the loop.
@@ -115,7 +115,7 @@ def _core_step_c(config: SimConfig):
             return s.replace(rpm=()), None
 
         first = jnp.arange(config.n_substeps) == 0
-        state, _ = jax.lax.scan(substep, state.replace(rpm=()), first)
+        state, _ = jax.lax.scan(substep, state.replace(rpm=()), first, unroll=config.substep_unroll)
         return state.replace(rpm=rpm)
 
     return core_c

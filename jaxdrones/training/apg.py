@@ -4,8 +4,8 @@ Each update differentiates the task's smooth training loss (`jaxdrones.envs.task
 `Task.loss_weights`, averaged over ``horizon`` control steps and ``num_envs`` worlds) w.r.t. the policy's
 parameters through the env's dynamics, and takes an Adam step. The worlds' states carry over from one window to
 the next with the gradient stopped (truncated backpropagation through time, as in brax's APG and in short-horizon
-actor-critic without the critic); a world whose episode ends is reset (`jaxdrones.wrappers.reset_where`), and no
-gradient crosses the reset. brax's APG trainer optimises ``-mean(reward)``, whose shaped hover reward (clipped at 0)
+actor-critic without the critic); a world whose episode ends starts the next episode of its key chain, drawn once
+per window (`jaxdrones.wrappers.VmapAutoReset.starts`), and no gradient crosses the reset. brax's APG trainer optimises ``-mean(reward)``, whose shaped hover reward (clipped at 0)
 has no gradient far from the target, so the loop is written here, on flax and optax.
 
 The policy is an MLP (tanh hidden layers, tanh output in the action box), deterministic.
@@ -21,7 +21,15 @@ import jax
 import jax.numpy as jnp
 
 from jaxdrones.envs.base import Env
-from jaxdrones.training.common import Schedule, check_config, described, mlp, program_description, run_updates
+from jaxdrones.training.common import (
+    Schedule,
+    check_config,
+    described,
+    flat_params,
+    mlp,
+    program_description,
+    run_updates,
+)
 
 if TYPE_CHECKING:
     from flax import linen
@@ -128,9 +136,15 @@ def train(
     network = make_network(config, env)
     optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.schedule()))
 
-    def window_loss(params, state):
+    obs0 = jnp.zeros((env.observation_size,), env.dtype)
+    ravel, unravel = flat_params(jax.eval_shape(network.init, jax.random.key(0), obs0))
+
+    def window_loss(flat, state):
+        params = unravel(flat)
+        starts = auto.starts(state)  # the worlds' next episodes, drawn once per window
+
         def body(s, _):
-            ended, s = auto.step_ended(s, network.apply(params, s.obs))
+            ended, s = auto.step_ended(s, network.apply(params, s.obs), starts)
             return s, jnp.mean(batched_loss(ended))  # the loss of the step, also where it ended an episode
 
         state, losses = jax.lax.scan(body, state, None, length=config.horizon)
@@ -145,11 +159,11 @@ def train(
 
     def init(key):
         key_init, key_reset = jax.random.split(key)
-        params = network.init(key_init, jnp.zeros((env.observation_size,), env.dtype))
+        params = ravel(network.init(key_init, obs0))  # one flat vector: `flat_params`
         return params, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs))
 
     def result(carry):
-        return network, carry[0]
+        return network, unravel(carry[0])
 
     run_eval = None if evaluate is None else described(lambda carry: evaluate(*result(carry)), evaluate)
     return run_updates(

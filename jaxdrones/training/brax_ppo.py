@@ -150,8 +150,9 @@ def _rank_promotion_allowed(fn: Callable) -> Callable:
     return wrapped
 
 
-def default_config(task: str, vision: bool = False) -> BraxPPOConfig:
-    """The settings brax's PPO was tuned with per task (the hover settings for tasks without their own); with
+def default_config(task: str, vision: bool = False, defaults: str = "cpu") -> BraxPPOConfig:
+    """The settings brax's PPO was tuned with per task (the hover settings for tasks without their own; with
+    ``defaults="gpu"``, hover's for a large batch: 8192 worlds, 60 updates); with
     camera images (``vision``), those tuned on ``avoid`` (which itself now trains on 512 worlds for 3 M steps) for
     every task: 256 worlds of 16-step unrolls; the adaptive
     KL learning rate (on ``avoid``, 2.1 M steps, consecutive evaluations from 1 M steps on differed by up to 31
@@ -209,6 +210,24 @@ def default_config(task: str, vision: bool = False) -> BraxPPOConfig:
     # steps. 4.5 M steps (4.7 M in whole epochs): at 3.1 M a third run was at 88 % and still rising (83 %, 87 %, 88 %
     # over the last 800,000 steps); at 4.7 M, 95 % and 92 % (seeds 0 and 1, docs/experiments.md).
     tuned["avoid"] = dict(tuned["vision"], num_envs=512, batch_size=512, num_timesteps=4_500_000, reward_scaling=0.1)
+    if defaults not in ("cpu", "gpu"):
+        raise ValueError(f"defaults must be one of ('cpu', 'gpu'), got {defaults!r}")
+    if defaults == "gpu" and task == "hover" and not vision:
+        # Few large updates (`jaxdrones.training.trainers.DEFAULTS`): one 32-step unroll of 8192 worlds per
+        # update, in 4 minibatches, as our PPO's gpu settings.
+        return BraxPPOConfig(
+            **dict(
+                tuned["hover"],
+                num_timesteps=8192 * 32 * 60,
+                num_envs=8192,
+                batch_size=2048,
+                num_minibatches=4,
+                unroll_length=32,
+                learning_rate=3e-3,
+                discounting=0.99,
+                num_evals=6,
+            )
+        )
     return BraxPPOConfig(
         **tuned["avoid" if task == "avoid" else "vision" if vision else task if task in tuned else "hover"]
     )
@@ -288,7 +307,10 @@ def train(
     networks = make_network(config, env)
     kwargs = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name not in NETWORK_FIELDS}
     latest = {"params": None, "steps": 0}
-    run_eval = None if evaluate is None else jax.jit(lambda params: evaluate(networks, params))
+    def evaluate_params(params):
+        return evaluate(networks, params)
+
+    run_eval = None if evaluate is None else jax.jit(evaluate_params)
 
     def keep(steps, make_policy, params):
         latest.update(params=params, steps=int(steps))

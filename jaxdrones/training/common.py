@@ -85,6 +85,21 @@ def mlp(
     return MLP()
 
 
+def flat_params(shapes: Any) -> tuple[Callable[[Any], jax.Array], Callable[[jax.Array], Any]]:
+    """``(ravel, unravel)`` for parameter pytrees shaped like ``shapes`` (arrays or ``jax.ShapeDtypeStruct``, e.g.
+    ``jax.eval_shape`` of a network's ``init``): ``ravel(params)`` is one flat vector
+    (`jax.flatten_util.ravel_pytree`), ``unravel(flat)`` the pytree again.
+
+    Our trainers keep the parameters they optimise, and so Adam's moments, as one flat vector: an optimiser step
+    (the gradient's global-norm clip, Adam's moments and the update) is then a few fused operations on one vector
+    instead of a few per leaf (PPO's actor and critic have 13 leaves), and on a GPU every operation of an update is
+    a kernel run after the previous one (`benchmarks/train_cost.py`). The same arithmetic, element by element."""
+    from jax.flatten_util import ravel_pytree
+
+    _, unravel = ravel_pytree(jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), shapes))
+    return (lambda params: ravel_pytree(params)[0]), unravel
+
+
 class Interrupted(Exception):
     """Training stopped by Ctrl-C (``KeyboardInterrupt``) between two evaluations.
 
@@ -133,8 +148,10 @@ def program_description(config: object, env: Env) -> str:
 
 
 def described(fn: Callable, evaluate: Callable) -> Callable:
-    """``fn`` with the ``description`` of the ``evaluate`` it calls (None if that has none)."""
+    """``fn`` with the ``description`` of the ``evaluate`` it calls (None if that has none), named ``evaluate`` (the
+    name of its compiled program)."""
     fn.description = getattr(evaluate, "description", None)
+    fn.__name__ = fn.__qualname__ = "evaluate"
     return fn
 
 

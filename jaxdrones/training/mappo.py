@@ -32,7 +32,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.envs.base import Env, EnvState
-from jaxdrones.training.common import Schedule, check_config, described, program_description, run_updates
+from jaxdrones.training.common import (
+    Schedule,
+    check_config,
+    described,
+    flat_params,
+    program_description,
+    run_updates,
+)
 
 if TYPE_CHECKING:
     from flax import linen
@@ -329,12 +336,14 @@ def train(
     gamma = config.discounting
 
     def collect(params, state, key):  # params with "norm"
+        starts = auto.starts(state)  # the worlds' next episodes, drawn once per unroll
+
         def body(state, key):
             world = features(state)
             mean = nets.actor(params, state.obs)
             std = jnp.broadcast_to(jnp.exp(params["log_std"]), mean.shape)
             action = mean + std * jax.random.normal(key, mean.shape, mean.dtype)
-            ended, nxt = auto.step_ended(state, jnp.tanh(action) if config.squash else action)
+            ended, nxt = auto.step_ended(state, jnp.tanh(action) if config.squash else action, starts)
             sample = {
                 "obs": state.obs,
                 "world": world,
@@ -350,8 +359,15 @@ def train(
 
         return jax.lax.scan(body, state, jax.random.split(key, config.unroll_length))
 
+    def trainable_init(key):
+        params = nets.init(key)
+        params.pop("norm")  # the observation statistics: updated from the data, not by the optimiser
+        return params
+
+    ravel, unravel = flat_params(jax.eval_shape(trainable_init, jax.random.key(0)))  # one flat vector
+
     def ppo_loss(trainable, norm, batch):
-        params = {**trainable, "norm": norm}
+        params = {**unravel(trainable), "norm": norm}
         mean = nets.actor(params, batch["obs"])
         ratio = jnp.exp(_log_prob(mean, params["log_std"], batch["action"]) - batch["log_prob"])
         adv = batch["advantage"]  # [B, D], standardised per agent: each drone's role weighs the same
@@ -366,7 +382,7 @@ def train(
     def update(carry, _):
         params, norm, opt_state, state, key = carry
         key, key_collect, key_shuffle = jax.random.split(key, 3)
-        state, data = collect({**params, "norm": norm}, state, key_collect)
+        state, data = collect({**unravel(params), "norm": norm}, state, key_collect)
         advantage = gae(
             data["reward"],
             data["value"],
@@ -399,19 +415,20 @@ def train(
             minibatch, (params, opt_state), orders.reshape(config.epochs * config.minibatches, -1)
         )
         metrics = {k: v[-1] for k, v in metrics.items()}
-        metrics["train/std"] = jnp.mean(jnp.exp(params["log_std"]))
+        metrics["train/std"] = jnp.mean(jnp.exp(unravel(params)["log_std"]))
         norm = update_norm(norm, data["obs"])  # after the update, which used the statistics the data was taken with
         return (params, norm, opt_state, state, key), metrics
 
     def init(key):
         key_init, key_reset, key_run = jax.random.split(key, 3)
         params = nets.init(key_init)
-        norm = params.pop("norm")  # the observation statistics: updated from the data, not by the optimiser
+        norm = params.pop("norm")
+        params = ravel(params)
         state = auto.reset(jax.random.split(key_reset, config.num_envs))
         return params, norm, optimizer.init(params), state, key_run
 
     def result(carry):
-        return nets, {**carry[0], "norm": carry[1]}
+        return nets, {**unravel(carry[0]), "norm": carry[1]}
 
     run_eval = None if evaluate is None else described(lambda carry: evaluate(*result(carry)), evaluate)
     return run_updates(

@@ -43,6 +43,18 @@ VISION_ENV = {
 #: speeds up to 0.3 rad and 0.3 m/s as well slowed the 1 m climb's learning: 31 and 15 cm short after 3 and 6 M
 #: steps with seed 1.)
 TRAIN_STARTS = {"multi_hover": {"start_ang_vel": 1.0}}
+#: Random starts of a task's training env for one trainer, over `TRAIN_STARTS`' (same rules). Our PPO (``ppo``)
+#: on ``hover``: its policies trained from the task's own starts left the arena from 1 and 2 of the 256 evaluation
+#: starts at 60 updates of 8192 worlds (seeds 0 and 1; 1.2-2.7 % at 512 worlds, docs/training.md), from starts near
+#: the edges of the distribution (spinning at about 1 rad/s about every axis); trained from tilts up to 0.8 rad and
+#: body rates up to 2 rad/s (the task's: 0.5 rad, 1 rad/s), a policy has met such starts and worse.
+TRAIN_STARTS_BY_ALGO = {("hover", "ppo"): {"start_tilt": 0.8, "start_ang_vel": 2.0}}
+
+
+def train_starts(task: str, algo: str) -> dict:
+    """The task settings of the training env of ``task`` trained by ``algo``: `TRAIN_STARTS`' and
+    `TRAIN_STARTS_BY_ALGO`'s."""
+    return {**TRAIN_STARTS.get(task, {}), **TRAIN_STARTS_BY_ALGO.get((task, algo), {})}
 
 
 def default_env(task: str, env_overrides: dict | None = None) -> dict:
@@ -93,6 +105,7 @@ def train_task(
     n_eval_episodes: int = 256,
     progress: bool = True,
     t_start: float | None = None,
+    defaults: str | None = None,
 ) -> dict:
     """Train a policy on a task with a trainer of `jaxdrones.training.trainers` and save it with a learning curve,
     a flight plot and a summary.
@@ -114,16 +127,20 @@ def train_task(
             `jaxdrones.envs.register`).
         out: output folder (default ``runs/<task>``).
         overwrite: replace an existing ``out``.
-        algo: one of `ALGOS` (default `default_algo`).
-        config: the trainer's config (default: the trainer's for the task, `Trainer.default_config`).
+        algo: one of `ALGOS` (default `default_algo` for ``defaults``).
+        config: the trainer's config (default: the trainer's for the task and ``defaults``,
+            `Trainer.default_config`).
         env_overrides: task config fields for ``jd.make(task, ...)``, over `DEFAULT_ENV`'s: the env the policy is
             trained in, evaluated in and saved with.
         train_env_overrides: task config fields of the training env only, for the fields ``env_overrides`` does not
-            set (default: `TRAIN_STARTS`' for the task unless its action has one entry; ``{}`` trains in the
+            set (default: `train_starts` of the task and algorithm unless its action has one entry; ``{}`` trains in the
             evaluation env).
         n_eval_episodes: evaluation episodes from random starts (≥ 64).
         progress: show the progress bar.
         t_start: ``time.perf_counter()`` at which the wall-clock measurement starts (default: now).
+        defaults: the profile of default settings (`jaxdrones.training.trainers.DEFAULTS`: ``"cpu"`` or ``"gpu"``)
+            that ``config`` comes from, or that builds it when None; default: the device's
+            (`jaxdrones.training.trainers.default_profile`).
 
     Returns:
         The summary dict (also written to ``summary.json``): ``wall_time_s`` (everything from ``t_start``: imports,
@@ -131,7 +148,8 @@ def train_task(
         call, ``setup`` (envs, run folder), ``train`` (tracing, compilation, training and the evaluations),
         ``save``, ``plots``, ``viewer``), ``env_steps``,
         ``success_metric``, ``success_value`` (the task's success metric over ``n_eval_episodes`` random starts),
-        ``success`` (that value below the task's threshold with no episode terminated early), ``eval`` (all
+        ``success`` (that value below the task's threshold with no episode terminated early), ``failed_criteria``
+        (what kept the run from success, as sentences: `failed_criteria`), ``defaults``, ``eval`` (all
         evaluation statistics), ``interrupted``, ``provenance`` (versions, commit, devices, processes, CPU), the
         output folder and the settings.
 
@@ -159,15 +177,18 @@ def train_task(
     env_overrides = default_env(task, env_overrides)
     env = make(task, **env_overrides)
     vision = bool(env.config.vision)
-    algo = default_algo(task, env.config.backend, vision) if algo is None else algo
+    defaults = trainers.default_profile() if defaults is None else defaults
+    if defaults not in trainers.DEFAULTS:
+        raise ValueError(f"train: defaults must be one of {trainers.DEFAULTS}, got {defaults!r}")
+    algo = default_algo(task, env.config.backend, vision, defaults) if algo is None else algo
     trainer = trainers.get(algo)
     if n_eval_episodes < 64:
         raise ValueError(f"n_eval_episodes must be >= 64, got {n_eval_episodes}")
-    config = trainer.default_config(task, vision) if config is None else config
+    config = trainer.default_config(task, vision, defaults) if config is None else config
     if type(config) is not trainer.config_cls or getattr(config, "algo", algo) not in (algo, "ippo"):
         raise ValueError(f"train: algo {algo!r} takes a {trainer.config_cls.__name__}, got {config!r}")
     if train_env_overrides is None:
-        train_env_overrides = TRAIN_STARTS.get(task, {}) if env.action_size > 1 else {}
+        train_env_overrides = train_starts(task, algo) if env.action_size > 1 else {}
     train_env_overrides = {k: v for k, v in train_env_overrides.items() if k not in env_overrides}
     train_env = make(task, **env_overrides, **train_env_overrides) if train_env_overrides else env
     if env.config.vision and algo != "brax_ppo":
@@ -212,6 +233,7 @@ def train_task(
     _write_viewer(env, last.get("eval"), out)
     phases["viewer"] = time.perf_counter() - t_phase
     value = stats.get("success_value", math.nan)
+    failed = failed_criteria(env.task, stats)
     summary = {
         "task": task,
         "algo": algo,
@@ -224,14 +246,13 @@ def train_task(
         "success_unit": env.task.success_unit,
         "success_value": value,
         "success_threshold": env.task.success_threshold,
-        "success": bool(
-            value < env.task.success_threshold
-            and (env.task.success_counts_terminations or stats.get("terminated_rate", 1.0) == 0.0)
-        ),
+        "success": not failed,
+        "failed_criteria": failed,
         "eval": stats,
         "out_dir": out,
         "env": json.loads(json.dumps(dataclasses.asdict(env.config), default=str)),
         "train_env_overrides": train_env_overrides,
+        "defaults": defaults,
         "config": dataclasses.asdict(config),
         "provenance": provenance(),
     }
@@ -240,6 +261,26 @@ def train_task(
     with open(os.path.join(out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=2)
     return summary
+
+
+def failed_criteria(task, stats: dict) -> list[str]:
+    """The criteria of a solved run that the evaluation ``stats`` (`jaxdrones.training.evaluation.
+    episode_statistics`) miss, as sentences (empty: solved): the task's success metric at or above its threshold,
+    and, unless the task's metric counts them itself (``success_counts_terminations``), any episode that ended early
+    (a crash, or leaving the arena)."""
+    from jaxdrones.training.progress import AGGREGATES
+
+    failed = []
+    value = stats.get("success_value", math.nan)
+    if not value < task.success_threshold:
+        failed.append(
+            f"{task.success_metric} ({AGGREGATES[task.success_at]}) {value:.4g} {task.success_unit} is not below "
+            f"the threshold {task.success_threshold:g}"
+        )
+    rate, n = stats.get("terminated_rate", math.nan), stats.get("n_episodes", 0)
+    if not task.success_counts_terminations and not rate == 0.0:
+        failed.append(f"{round(rate * n)} of {n} episodes ended early (crashed or left the arena; a solved run has none)")
+    return failed
 
 
 def _write_viewer(env, evaluation: dict | None, out: str) -> None:

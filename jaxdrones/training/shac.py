@@ -26,7 +26,7 @@ import jax.numpy as jnp
 
 from jaxdrones.envs.base import Env
 from jaxdrones.training.apg import APGConfig, make_network
-from jaxdrones.training.common import check_config, described, mlp, program_description, run_updates
+from jaxdrones.training.common import check_config, described, flat_params, mlp, program_description, run_updates
 
 if TYPE_CHECKING:
     from flax import linen
@@ -133,12 +133,19 @@ def train(
     critic_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.critic_learning_rate))
     gamma = config.discounting
 
-    def actor_loss(params, target_params, state):
+    obs0 = jnp.zeros((env.observation_size,), env.dtype)
+    # The actor's and the critic's parameters as flat vectors (`flat_params`).
+    ravel_actor, unravel_actor = flat_params(jax.eval_shape(actor.init, jax.random.key(0), obs0))
+    ravel_critic, unravel_critic = flat_params(jax.eval_shape(critic.init, jax.random.key(0), obs0))
+
+    def actor_loss(flat, target_flat, state):
         """Minus the mean discounted window return per step, and what the critic learns from."""
+        params, target_params = unravel_actor(flat), unravel_critic(target_flat)
+        starts = auto.starts(state)  # the worlds' next episodes, drawn once per window
 
         def body(carry, last):
             s, discount, acc, total = carry
-            ended, s_next = auto.step_ended(s, actor.apply(params, s.obs))
+            ended, s_next = auto.step_ended(s, actor.apply(params, s.obs), starts)
             reward = -batched_loss(ended)  # [W, D]
             term, end = (jnp.broadcast_to(x[:, None], reward.shape) for x in (ended.terminated, ended.done))
             # The value after the step: of the last observation before any reset; 0 where the episode terminated.
@@ -161,7 +168,7 @@ def train(
         size = samples // config.critic_minibatches
 
         def mse(p, o, t):
-            return jnp.mean((critic.apply(p, o)[..., 0] - t) ** 2)
+            return jnp.mean((critic.apply(unravel_critic(p), o)[..., 0] - t) ** 2)
 
         def minibatch(carry, index):
             p, opt_state = carry
@@ -200,8 +207,7 @@ def train(
 
     def init(key):
         key_actor, key_critic, key_reset, key_shuffle = jax.random.split(key, 4)
-        obs0 = jnp.zeros((env.observation_size,), env.dtype)
-        actor_params, critic_params = actor.init(key_actor, obs0), critic.init(key_critic, obs0)
+        actor_params, critic_params = ravel_actor(actor.init(key_actor, obs0)), ravel_critic(critic.init(key_critic, obs0))
         return (
             actor_params,
             critic_params,
@@ -213,7 +219,7 @@ def train(
         )
 
     def result(carry):
-        return actor, carry[0]
+        return actor, unravel_actor(carry[0])
 
     run_eval = None if evaluate is None else described(lambda carry: evaluate(*result(carry)), evaluate)
     return run_updates(

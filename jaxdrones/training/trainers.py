@@ -30,60 +30,87 @@ class Trainer:
     name: str
     description: str
     config_cls: type
-    #: (task, vision) → the trainer's config for the task (with camera images if vision).
-    default_config: Callable[[str, bool], Any]
+    #: (task, vision=False, defaults="cpu") → the trainer's config for the task (with camera images if vision), from
+    #: the `DEFAULTS` profile ``defaults``.
+    default_config: Callable[..., Any]
     train: Callable
     make_network: Callable
     make_policy: Callable
 
 
-def _ppo_config(task: str, vision: bool = False):
-    """Our PPO's settings: a local critic (PPO is MAPPO's independent-critic form at one drone), tuned for the
-    fewest seconds to a solved 3-D hover on 2 CPU cores (γ = 0.99 over 32-step unrolls of 512 worlds, 4 epochs of 4
-    minibatches, learning rate 3e-3; 1.3 M env steps; see the table in docs/training.md)."""
+#: The profiles of default settings (``jaxdrones train --defaults``): ``"cpu"``, tuned for the fewest seconds to a
+#: solved policy on a few CPU cores (few worlds, many small updates), and ``"gpu"``, for the fewest sequential
+#: operations (many worlds, few large updates: a GPU steps thousands of worlds in the time of one, while every
+#: operation of an update runs after the previous one, each at least one kernel launch; `benchmarks/train_cost.py`).
+#: The results do not depend on the device that runs them: ``--defaults gpu --device cpu`` trains the same policy.
+DEFAULTS = ("cpu", "gpu")
+
+
+def default_profile() -> str:
+    """The `DEFAULTS` profile of JAX's default device: ``"gpu"`` on a GPU or TPU, else ``"cpu"``."""
+    import jax
+
+    return "cpu" if jax.default_backend() == "cpu" else "gpu"
+
+
+def _check_defaults(defaults: str) -> None:
+    if defaults not in DEFAULTS:
+        raise ValueError(f"defaults must be one of {DEFAULTS}, got {defaults!r}")
+
+
+def _ppo_config(task: str, vision: bool = False, defaults: str = "cpu"):
+    """Our PPO's settings: a local critic (PPO is MAPPO's independent-critic form at one drone), γ = 0.99 over
+    32-step unrolls, 4 epochs of 4 minibatches, learning rate 3e-3. ``cpu``: tuned for the fewest seconds to a solved
+    3-D hover on 2 CPU cores (512 worlds, 1.3 M env steps; see the table in docs/training.md); ``gpu``: 8192 worlds,
+    60 updates (15.7 M env steps, 5 evaluations), the fewest updates that brought hover under 1 cm in the tuning
+    runs of docs/training.md."""
     from jaxdrones.training.mappo import MAPPOConfig
 
-    return MAPPOConfig(
-        critic="local",
-        num_timesteps=1_200_000,
-        num_envs=512,
-        unroll_length=32,
-        minibatches=4,
-        epochs=4,
-        learning_rate=3e-3,
-        discounting=0.99,
-    )
+    _check_defaults(defaults)
+    common = dict(critic="local", unroll_length=32, minibatches=4, epochs=4, learning_rate=3e-3, discounting=0.99)
+    if defaults == "gpu":
+        return MAPPOConfig(num_timesteps=8192 * 32 * 48, num_envs=8192, num_evals=4, **common)
+    return MAPPOConfig(num_timesteps=1_200_000, num_envs=512, **common)
 
 
-def _brax_ppo_config(task: str, vision: bool = False):
+def _brax_ppo_config(task: str, vision: bool = False, defaults: str = "cpu"):
     from jaxdrones.training.brax_ppo import default_config
 
-    return default_config(task, vision)
+    return default_config(task, vision, defaults)
 
 
 def _mappo_config(critic: str):
-    def config(task: str, vision: bool = False):
+    def config(task: str, vision: bool = False, defaults: str = "cpu"):
         from jaxdrones.training.mappo import MAPPOConfig
 
+        _check_defaults(defaults)
         return MAPPOConfig(critic=critic)
 
     return config
 
 
-def _apg_config(task: str, vision: bool = False):
-    """APG's defaults; for hover, the settings that solved it fastest on 2 CPU cores: 0.6 M env steps, a step size
-    of 3e-3 decayed to 0 along a half cosine (seeds 0-2 all solved, 1.4-2.5 cm; without the decay 0.8 M steps at
-    2e-3 ended 2.2-4.2 cm, and 0.5 M steps with it lost a drone in 0.8 % of the episodes of seed 1)."""
+def _apg_config(task: str, vision: bool = False, defaults: str = "cpu"):
+    """APG's defaults; for hover, the settings that solved it fastest: ``cpu``, on 2 CPU cores: 0.6 M env steps of
+    16 worlds, a step size of 3e-3 decayed to 0 along a half cosine (seeds 0-2 all solved, 1.4-2.5 cm; without the
+    decay 0.8 M steps at 2e-3 ended 2.2-4.2 cm, and 0.5 M steps with it lost a drone in 0.8 % of the episodes of seed
+    1); ``gpu``, in the fewest updates: 200 updates of 4096 worlds (26.2 M env steps) at a step size of 1e-2 with
+    the same decay (8192 worlds in 120 updates, or 16-step windows, ended 11-12 cm short: docs/training.md)."""
     from jaxdrones.training.apg import APGConfig
 
+    _check_defaults(defaults)
+    if task == "hover" and defaults == "gpu":
+        return APGConfig(
+            num_timesteps=4096 * 32 * 200, num_envs=4096, learning_rate=1e-2, cosine_decay=True, num_evals=5
+        )
     if task == "hover":
         return APGConfig(num_timesteps=600_000, learning_rate=3e-3, cosine_decay=True)
     return APGConfig()
 
 
-def _shac_config(task: str, vision: bool = False):
+def _shac_config(task: str, vision: bool = False, defaults: str = "cpu"):
     from jaxdrones.training.shac import SHACConfig
 
+    _check_defaults(defaults)
     return SHACConfig()
 
 
@@ -178,18 +205,22 @@ def get(algo: str) -> Trainer:
     return _table()[algo]
 
 
-#: The default algorithm of a single-agent task: the fastest to a solved hover on 2 CPU cores is APG (see
-#: the table in docs/training.md); the other single-agent tasks keep brax's PPO, with the settings it was tuned with for
-#: them (`jaxdrones.training.brax_ppo.default_config`).
-DEFAULT_ALGO = {"hover": "apg"}
+#: The default algorithm of a single-agent task per `DEFAULTS` profile: on a few CPU cores the fastest to a solved
+#: hover is APG (see the table in docs/training.md); on a GPU, where the sequential operations of the updates are the
+#: cost, our PPO, which solves hover in the fewest of them (48 updates; `benchmarks/train_cost.py`). The other
+#: single-agent tasks keep brax's PPO, with the settings it was tuned with for them
+#: (`jaxdrones.training.brax_ppo.default_config`).
+DEFAULT_ALGO = {"cpu": {"hover": "apg"}, "gpu": {"hover": "ppo"}}
 
 
-def default_algo(task: str, backend: str = "jax", vision: bool = False) -> str:
-    """``"mappo"`` for a multi-agent task; for a single-agent one `DEFAULT_ALGO`'s (``"brax_ppo"`` if none, on the
-    PyBullet backend, which APG cannot differentiate, and with camera images, which brax's vision PPO takes)."""
+def default_algo(task: str, backend: str = "jax", vision: bool = False, defaults: str = "cpu") -> str:
+    """``"mappo"`` for a multi-agent task; for a single-agent one `DEFAULT_ALGO`'s for the ``defaults`` profile
+    (``"brax_ppo"`` if none, on the PyBullet backend, which APG cannot differentiate, and with camera images, which
+    brax's vision PPO takes)."""
     from jaxdrones.envs import is_multi_agent
 
+    _check_defaults(defaults)
     if is_multi_agent(task):
         return "mappo"
-    algo = DEFAULT_ALGO.get(task, "brax_ppo")
+    algo = DEFAULT_ALGO[defaults].get(task, "brax_ppo")
     return "brax_ppo" if (backend != "jax" or vision) and algo in ("apg", "shac") else algo

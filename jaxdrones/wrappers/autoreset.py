@@ -10,7 +10,9 @@ Two forms with the same result:
   at every step and then discarded where the episode goes on.
 * `VmapAutoReset` steps a batch of worlds ``[W]`` itself and resets only the worlds whose episode ended
   (`reset_where`): on CPU, where a reset (mostly its random numbers) costs about as much as a step, this nearly
-  halves the cost of a step.
+  halves the cost of a step. A loop of many steps can draw every world's next episode once, before the loop
+  (`VmapAutoReset.starts`), and hand them to each step: a world whose episode ends then takes its drawn episode by a
+  select, and the step computes no reset at all (the trainers do so per rollout: `benchmarks/train_cost.py`).
 """
 
 from __future__ import annotations
@@ -116,13 +118,33 @@ class VmapAutoReset(_Wrapper):
         """Step every world with ``action`` f[W, D, n_act] and reset the ones whose episode ended."""
         return self.step_ended(state, action)[1]
 
-    def step_ended(self, state: EnvState, action: jax.Array) -> tuple[EnvState, EnvState]:
+    def starts(self, state: EnvState) -> EnvState:
+        """The episode each world of ``state`` [W] starts when its episode ends (``env.reset(state.key,
+        state.task)``, as a reset in `step` would draw it), for `step_ended`'s ``starts``: draw them once before a
+        loop of steps (not differentiated: they do not depend on the actions)."""
+        axes = world_axes(self.params_shared)
+        return jax.lax.stop_gradient(jax.vmap(self.env.reset, out_axes=axes)(state.key, state.task))
+
+    def step_ended(
+        self, state: EnvState, action: jax.Array, starts: EnvState | None = None
+    ) -> tuple[EnvState, EnvState]:
         """`step`, also returning each world's state right after the step, before any reset (e.g. for a training
-        loss of the step that ended an episode): ``(ended [W], state [W])``."""
+        loss of the step that ended an episode): ``(ended [W], state [W])``.
+
+        ``starts``: the worlds' next episodes drawn before (`starts`), which a world whose episode ends takes (a
+        select per leaf) instead of a reset computed here. A world whose episode ends twice while the same
+        ``starts`` are handed in (an episode shorter than the loop between two draws) starts the same episode again.
+        """
         axes = world_axes(self.params_shared)
         ended = _final_info(jax.vmap(self.env.step, in_axes=(axes, 0), out_axes=axes)(state, action))
         return ended, reset_where(
-            self.env, ended, ended.done, self.max_resets, keep=ENDING_STEP_FIELDS, shared_params=self.params_shared
+            self.env,
+            ended,
+            ended.done,
+            self.max_resets,
+            keep=ENDING_STEP_FIELDS,
+            shared_params=self.params_shared,
+            starts=starts,
         )
 
 
@@ -133,6 +155,7 @@ def reset_where(
     max_resets: int | None = None,
     keep: tuple[str, ...] = (),
     shared_params: bool = False,
+    starts: EnvState | None = None,
 ) -> EnvState:
     """Replace the worlds of a batched ``state`` where ``mask`` holds by a new episode, ``env.reset(key, task)`` with
     the world's own key and task params; the other worlds are returned unchanged.
@@ -152,6 +175,8 @@ def reset_where(
             episode); their structure must match the reset's.
         shared_params: ``state.params`` are shared by every world (see `VmapAutoReset`); the env's ``reset`` must
             then return them unchanged.
+        starts: EnvState [W] of new episodes drawn before (`VmapAutoReset.starts`): the worlds of ``mask`` take
+            their row, and no reset is computed (no random numbers, no ``lax.cond``).
 
     Returns:
         EnvState [W].
@@ -175,6 +200,8 @@ def reset_where(
     def every() -> EnvState:
         return choose(fresh(state.key, state.task), lambda new: new)
 
+    if starts is not None:
+        return choose(starts.replace(**carried), lambda new: new)
     if k >= n:
         return every()
     index = jnp.nonzero(mask, size=k, fill_value=0)[0]  # the worlds to reset, in order (unused slots: world 0)

@@ -1,0 +1,314 @@
+"""What a trained hover policy costs in sequential XLA operations, per trainer and defaults profile.
+
+On a GPU every operation of a compiled program (a fusion, a copy, a library call, a loop's step) is at least one
+kernel launch of a few microseconds, run one after the other; a training run whose updates are small is bound by
+their number, not by its arithmetic. This script counts them, without a GPU:
+
+1. **Operations per iteration, by phase.** A short run of the trainer (``--count-updates`` updates in one chunk and
+   one evaluation, the profile's settings otherwise) is traced with ``jax.profiler``; the operations XLA ran are
+   grouped by compiled program (the trace's ``hlo_module``) and divided by the runs of that program. On the CPU the
+   operations are XLA:CPU's thunks; on a GPU, the kernels and copies on the device's streams. ``update`` is the
+   chunk's operations per update (rollout, gradient or PPO epochs, optimiser); ``rollout`` is a ``lax.scan`` of the
+   trainer's rollout length (APG's ``horizon``, PPO's ``unroll_length``) of the same env's auto-resetting step with a
+   policy MLP of the trainer's size over its worlds, traced apart (forward only: APG's gradient is in ``update``);
+   ``evaluation`` is one evaluation (`jaxdrones.training.run`'s: 256 episodes of the task from random starts).
+2. **The run itself.** ``jaxdrones train hover --algo ALGO --defaults PROFILE`` in a subprocess, as a user runs it
+   (JAX's compilation cache in its default folder: the first run is cold, a second one warm), from which come the
+   iterations (the run's updates), its wall time and phases (``summary.json``), and its verdict.
+3. **Sequential operations to a solved policy**: iterations × operations per update + evaluations × operations per
+   evaluation. This is the number to drive down; on a GPU each of them costs at least a launch.
+
+The ``gpu`` profile's programs are counted as a GPU compiles them, with the physics substeps unrolled
+(`jaxdrones.SimConfig.unroll_substeps`, which is per device otherwise); the CPU's count of such a program is an
+upper bound of the GPU's kernels (XLA:GPU fuses more). Its training run here keeps the CPU's loop (the same
+result, faster on the CPU).
+
+Usage::
+
+    python benchmarks/train_cost.py                                  # apg, ppo, brax_ppo x cpu, gpu
+    python benchmarks/train_cost.py --algos apg --profiles gpu --runs 2
+    python benchmarks/train_cost.py --no-train                       # the counts only
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import glob
+import gzip
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+#: The solved hover of the issue's goal: < 5 cm final distance with no crashed start.
+TASK = "hover"
+
+
+def trace_operations(run) -> dict[str, tuple[int, int | None]]:
+    """Run ``run()`` under ``jax.profiler`` and return, per compiled program (``hlo_module``), the operations it
+    executed and how many runs of it there were: ``{module: (operations, runs)}``. On the CPU the operations are
+    XLA:CPU's thunks and the runs are counted (their ``run_id``); on a GPU they are the kernels and copies on the
+    device's streams (in CUDA graphs or not), and the runs are None (the trace does not tell them apart)."""
+    import jax
+
+    options = jax.profiler.ProfileOptions()
+    options.python_tracer_level = 0  # Python's calls would fill the trace's buffer before XLA's operations
+    with tempfile.TemporaryDirectory() as trace_dir:
+        jax.profiler.start_trace(trace_dir, profiler_options=options)
+        try:
+            jax.block_until_ready(run())
+        finally:
+            jax.profiler.stop_trace()
+        path = sorted(glob.glob(f"{trace_dir}/**/*.trace.json.gz", recursive=True))[-1]
+        events = json.load(gzip.open(path))["traceEvents"]
+    names = {e["pid"]: e["args"].get("name", "") for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
+    devices = {pid for pid, name in names.items() if "/device:GPU" in name or "/device:TPU" in name}
+    ops, runs = collections.Counter(), collections.defaultdict(set)
+    for event in events:
+        args = event.get("args") or {}
+        module = args.get("hlo_module")
+        if event.get("ph") != "X" or not module or "hlo_op" not in args:
+            continue
+        if devices and event.get("pid") not in devices:
+            continue
+        ops[module] += 1
+        runs[module].add(args.get("run_id"))
+    return {module: (count, None if devices else len(runs[module])) for module, count in ops.items()}
+
+
+def per_run(counted: tuple[int, int | None], expected: int) -> float:
+    """Operations per run of a program: counted runs on the CPU, ``expected`` runs where the trace has none."""
+    ops, runs = counted
+    return ops / (runs or expected)
+
+
+def profile_config(algo: str, profile: str):
+    """The trainer's config and the env's settings of ``jaxdrones train hover --algo ALGO --defaults PROFILE``."""
+    from jaxdrones.training import trainers
+    from jaxdrones.training.run import default_env
+
+    trainer = trainers.get(algo)
+    return trainer, trainer.default_config(TASK, False, profile), default_env(TASK, {"unroll_substeps": profile == "gpu"})
+
+
+def iterations(config) -> int:
+    """The updates of a run with ``config`` (brax's PPO: its training steps)."""
+    if hasattr(config, "updates_per_eval"):
+        return config.num_evals * config.updates_per_eval
+    return config.total_steps // (config.batch_size * config.unroll_length * config.num_minibatches)
+
+
+def rollout_length(config) -> int:
+    return getattr(config, "horizon", None) or config.unroll_length
+
+
+def control_step_cost(
+    env, n_worlds: int, length: int, hidden=(64, 64), grad: bool = False, timed: int = 5, predrawn: bool = True
+) -> dict:
+    """Operations and milliseconds per control step of ``n_worlds`` worlds of ``env`` with auto-reset
+    (`jaxdrones.wrappers.VmapAutoReset`) and an MLP policy, in a ``lax.scan`` of ``length`` steps: forward, or with
+    ``grad`` the value and gradient of APG's loss (`jaxdrones.training.apg`) w.r.t. the policy's parameters.
+    ``timed`` calls are timed (median); the operations come from one traced call."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdrones.envs.base import world_axes
+    from jaxdrones.training.common import mlp
+    from jaxdrones.wrappers import VmapAutoReset
+
+    auto = VmapAutoReset(env)
+    loss = jax.vmap(env.loss, in_axes=(world_axes(auto.params_shared),))
+    network = mlp(tuple(hidden), env.action_size)
+
+    def window(params, state):
+        starts = auto.starts(state) if predrawn else None
+
+        def body(s, _):
+            ended, s = auto.step_ended(s, jnp.tanh(network.apply(params, s.obs)), starts)
+            return s, jnp.mean(loss(ended))
+
+        state, losses = jax.lax.scan(body, state, None, length=length)
+        return jnp.mean(losses), state.obs
+
+    key = jax.random.key(0)
+    params = network.init(key, jnp.zeros((env.observation_size,), env.dtype))
+    state = jax.jit(auto.reset)(jax.random.split(key, n_worlds))
+    fn = jax.jit(jax.value_and_grad(window, has_aux=True) if grad else window)
+    jax.block_until_ready(fn(params, state))
+    times = []
+    for _ in range(timed):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(params, state))
+        times.append(time.perf_counter() - t0)
+    ops = max(per_run(counted, 1) for counted in trace_operations(lambda: fn(params, state)).values())
+    return {"ops": ops / length, "ms": 1e3 * statistics.median(times) / length if times else math.nan}
+
+
+def count(algo: str, profile: str, updates: int) -> dict:
+    """Operations per update, per rollout and per evaluation of ``algo`` at ``profile`` (the module doc)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdrones.envs import make
+    from jaxdrones.training.run import _eval_program, train_starts
+
+    trainer, config, env_options = profile_config(algo, profile)
+    env = make(TASK, **env_options)
+    train_env = make(TASK, **env_options, **train_starts(TASK, algo))
+    if algo == "brax_ppo":
+        per_step = config.batch_size * config.unroll_length * config.num_minibatches
+        short = dataclasses.replace(config, num_timesteps=updates * per_step, num_evals=2)
+    else:
+        short = dataclasses.replace(config, num_timesteps=updates * config.steps_per_update, num_evals=1)
+    evaluate = _eval_program(env, trainer, 256, config.seed)
+    modules = trace_operations(lambda: trainer.train(train_env, short, lambda *_: None, evaluate)[1])
+    # Runs where the trace does not count them (GPU): our trainers run the evaluation on the initial parameters
+    # while the chunk compiles and after the chunk (`jaxdrones.training.common.run_updates`), brax's PPO after its
+    # one training epoch; the chunk (brax: the epoch) runs once.
+    eval_runs = 1 if algo == "brax_ppo" else 2
+    eval_ops = max((per_run(v, eval_runs) for name, v in modules.items() if "evaluate" in name), default=0.0)
+    # The chunk of updates: the program with the most operations other than the evaluation.
+    chunk_name, chunk = max(((n, v) for n, v in modules.items() if "evaluate" not in n), key=lambda item: item[1][0])
+    per_update = per_run(chunk, 1) / updates
+
+    hidden = getattr(config, "hidden_layer_sizes", None) or config.policy_hidden_layer_sizes
+    length = rollout_length(config)
+    rollout_ops = control_step_cost(train_env, config.num_envs, length, hidden, timed=0)["ops"] * length
+    return {
+        "algo": algo,
+        "profile": profile,
+        "worlds": config.num_envs,
+        "rollout_length": length,
+        "iterations": iterations(config),
+        "num_evals": config.num_evals - (algo == "brax_ppo"),
+        "ops_rollout": rollout_ops,
+        "ops_update": per_update,
+        "ops_evaluation": eval_ops,
+        "programs": {name: ops for name, (ops, _) in modules.items() if ops > 10},
+        "chunk": chunk_name,
+    }
+
+
+def train(algo: str, profile: str, out: str, extra: list[str]) -> dict:
+    """``jaxdrones train hover --algo ALGO --defaults PROFILE`` in a subprocess; its summary."""
+    cmd = [sys.executable, "-m", "jaxdrones.cli", "train", TASK, "--algo", algo, "--defaults", profile, "--out", out,
+           "--overwrite", "--no-progress", *extra]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stdout}\n{proc.stderr}")
+    with open(os.path.join(out, "summary.json")) as f:
+        summary = json.load(f)
+    with open(os.path.join(out, "progress.json")) as f:
+        history = json.load(f)
+    threshold = summary["success_threshold"]
+    solved_at = next(
+        (i + 1 for i, h in enumerate(history) if h["success_value"] < threshold and h["terminated_rate"] == 0), None
+    )
+    chunks = [b["time_s"] - a["time_s"] for a, b in zip(history, history[1:])]
+    return {
+        **summary,
+        "first_solved_eval": solved_at,
+        "first_chunk_s": history[0]["time_s"],
+        "chunk_s": statistics.median(chunks) if chunks else math.nan,
+        "verdict": proc.stdout.strip().splitlines()[0],
+    }
+
+
+def per_step_table(worlds: list[int]) -> int:
+    """Print operations and milliseconds per control step of the default hover env (`control_step_cost`): as the
+    trainers stepped it before (the substeps in a loop, the resets computed in each step) and now (the worlds' next
+    episodes drawn once per window, the substeps looped or unrolled)."""
+    from jaxdrones.envs import make
+
+    print("| worlds | substeps | resets | forward ops | forward ms | gradient ops | gradient ms | gradient ÷ forward |")
+    print("|---:|---|---|---:|---:|---:|---:|---:|")
+    for w in worlds:
+        for unroll, predrawn in ((False, False), (False, True), (True, True)):
+            env = make(TASK, unroll_substeps=unroll)
+            fwd, grad = (control_step_cost(env, w, 32, grad=g, predrawn=predrawn) for g in (False, True))
+            print(
+                f"| {w} | {'unrolled' if unroll else 'loop'} | {'drawn per window' if predrawn else 'in each step'} "
+                f"| {fwd['ops']:.0f} | {fwd['ms']:.3f} | {grad['ops']:.0f} | {grad['ms']:.3f} | "
+                f"{grad['ms'] / fwd['ms']:.2f}x |",
+                flush=True,
+            )
+    return 0
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--algos", nargs="+", default=["apg", "ppo", "brax_ppo"])
+    parser.add_argument("--profiles", nargs="+", default=["cpu", "gpu"])
+    parser.add_argument("--count-updates", type=int, default=2, help="updates of the traced short run")
+    parser.add_argument("--runs", type=int, default=1, help="training runs per setting (medians of their times)")
+    parser.add_argument("--no-train", action="store_true", help="count the operations only")
+    parser.add_argument(
+        "--per-step",
+        type=int,
+        nargs="*",
+        default=None,
+        metavar="W",
+        help="only the table of operations and time per control step of the default hover env (32-step windows "
+        "with auto-reset and a 64x64 MLP), forward and gradient, substeps looped and unrolled, resets in each step "
+        "or drawn per window, at these worlds (default 4096)",
+    )
+    parser.add_argument("--json", default=None, help="also write the rows to this file")
+    parser.add_argument("--train-args", nargs=argparse.REMAINDER, default=[], help="passed to jaxdrones train")
+    args = parser.parse_args(argv)
+
+    import jax
+
+    from jaxdrones.io.runs import provenance
+
+    info = provenance()
+    print(f"jax {jax.__version__}, {jax.default_backend()} ({jax.devices()[0].device_kind}), "
+          f"{os.cpu_count()} CPUs; {info.get('cpu', '')}")
+    if args.per_step is not None:
+        return per_step_table(args.per_step or [4096])
+    rows = []
+    for algo in args.algos:
+        for profile in args.profiles:
+            row = count(algo, profile, args.count_updates)
+            row["ops_to_solved"] = row["iterations"] * row["ops_update"] + row["num_evals"] * row["ops_evaluation"]
+            if not args.no_train:
+                with tempfile.TemporaryDirectory() as tmp:
+                    runs = [train(algo, profile, os.path.join(tmp, f"r{i}"), args.train_args) for i in range(args.runs)]
+                row["wall_s"] = [r["wall_time_s"] for r in runs]
+                row["train_s"] = statistics.median(r["phases_s"]["train"] for r in runs)
+                row["phases_s"] = runs[-1]["phases_s"]
+                row["success"] = [r["success"] for r in runs]
+                row["final_m"] = [r["success_value"] for r in runs]
+                row["terminated"] = [r["eval"]["terminated_rate"] for r in runs]
+                row["env_steps"] = runs[-1]["env_steps"]
+                row["first_solved_eval"] = runs[-1]["first_solved_eval"]
+                row["first_chunk_s"] = statistics.median(r["first_chunk_s"] for r in runs)
+                row["chunk_s"] = statistics.median(r["chunk_s"] for r in runs)
+                row["verdict"] = runs[-1]["verdict"]
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    print("\n| trainer | defaults | worlds | iterations | ops/rollout | ops/update | ops/evaluation | evaluations "
+          "| sequential ops to the end | wall s (runs) | train s | final m | crashed |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---|---|")
+    for r in rows:
+        trained = (
+            f"{', '.join(f'{w:.1f}' for w in r['wall_s'])} | {r['train_s']:.1f} | "
+            f"{', '.join(f'{v:.4f}' for v in r['final_m'])} | {', '.join(f'{t:.1%}' for t in r['terminated'])}"
+            if "wall_s" in r else "| | |"
+        )
+        print(f"| {r['algo']} | {r['profile']} | {r['worlds']} | {r['iterations']} | {r['ops_rollout']:,.0f} | "
+              f"{r['ops_update']:,.0f} | {r['ops_evaluation']:,.0f} | {r['num_evals']} | {r['ops_to_solved']:,.0f} | "
+              f"{trained} |")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
