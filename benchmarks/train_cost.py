@@ -52,9 +52,10 @@ TASK = "hover"
 
 def trace_operations(run) -> dict[str, tuple[int, int | None]]:
     """Run ``run()`` under ``jax.profiler`` and return, per compiled program (``hlo_module``), the operations it
-    executed and how many runs of it there were: ``{module: (operations, runs)}``. On the CPU the operations are
-    XLA:CPU's thunks and the runs are counted (their ``run_id``); on a GPU they are the kernels and copies on the
-    device's streams (in CUDA graphs or not), and the runs are None (the trace does not tell them apart)."""
+    executed in all and in its longest run: ``{module: (operations, operations of the longest run)}``. On the CPU
+    the operations are XLA:CPU's thunks, told apart by run (``run_id``; programs of the same name, e.g. brax's
+    ``jit__fun``, are then apart too); on a GPU they are the kernels and copies on the device's streams (in CUDA
+    graphs or not), and the longest run is None (the trace does not tell the runs apart)."""
     import jax
 
     options = jax.profiler.ProfileOptions()
@@ -67,9 +68,11 @@ def trace_operations(run) -> dict[str, tuple[int, int | None]]:
             jax.profiler.stop_trace()
         path = sorted(glob.glob(f"{trace_dir}/**/*.trace.json.gz", recursive=True))[-1]
         events = json.load(gzip.open(path))["traceEvents"]
-    names = {e["pid"]: e["args"].get("name", "") for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
+    names = {
+        e["pid"]: e["args"].get("name", "") for e in events if e.get("ph") == "M" and e.get("name") == "process_name"
+    }
     devices = {pid for pid, name in names.items() if "/device:GPU" in name or "/device:TPU" in name}
-    ops, runs = collections.Counter(), collections.defaultdict(set)
+    ops, runs = collections.Counter(), collections.defaultdict(collections.Counter)
     for event in events:
         args = event.get("args") or {}
         module = args.get("hlo_module")
@@ -78,14 +81,15 @@ def trace_operations(run) -> dict[str, tuple[int, int | None]]:
         if devices and event.get("pid") not in devices:
             continue
         ops[module] += 1
-        runs[module].add(args.get("run_id"))
-    return {module: (count, None if devices else len(runs[module])) for module, count in ops.items()}
+        runs[module][args.get("run_id")] += 1
+    return {module: (count, None if devices else max(runs[module].values())) for module, count in ops.items()}
 
 
 def per_run(counted: tuple[int, int | None], expected: int) -> float:
-    """Operations per run of a program: counted runs on the CPU, ``expected`` runs where the trace has none."""
-    ops, runs = counted
-    return ops / (runs or expected)
+    """Operations of one run of a program: its longest run on the CPU; where the trace does not tell the runs apart
+    (GPU), its operations divided by the ``expected`` runs."""
+    ops, longest = counted
+    return longest if longest is not None else ops / expected
 
 
 def profile_config(algo: str, profile: str):
@@ -94,7 +98,11 @@ def profile_config(algo: str, profile: str):
     from jaxdrones.training.run import default_env
 
     trainer = trainers.get(algo)
-    return trainer, trainer.default_config(TASK, False, profile), default_env(TASK, {"unroll_substeps": profile == "gpu"})
+    return (
+        trainer,
+        trainer.default_config(TASK, False, profile),
+        default_env(TASK, {"unroll_substeps": profile == "gpu"}),
+    )
 
 
 def iterations(config) -> int:
@@ -152,8 +160,6 @@ def control_step_cost(
 
 def count(algo: str, profile: str, updates: int) -> dict:
     """Operations per update, per rollout and per evaluation of ``algo`` at ``profile`` (the module doc)."""
-    import jax
-    import jax.numpy as jnp
 
     from jaxdrones.envs import make
     from jaxdrones.training.run import _eval_program, train_starts
@@ -197,8 +203,22 @@ def count(algo: str, profile: str, updates: int) -> dict:
 
 def train(algo: str, profile: str, out: str, extra: list[str]) -> dict:
     """``jaxdrones train hover --algo ALGO --defaults PROFILE`` in a subprocess; its summary."""
-    cmd = [sys.executable, "-m", "jaxdrones.cli", "train", TASK, "--algo", algo, "--defaults", profile, "--out", out,
-           "--overwrite", "--no-progress", *extra]
+    cmd = [
+        sys.executable,
+        "-m",
+        "jaxdrones.cli",
+        "train",
+        TASK,
+        "--algo",
+        algo,
+        "--defaults",
+        profile,
+        "--out",
+        out,
+        "--overwrite",
+        "--no-progress",
+        *extra,
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stdout}\n{proc.stderr}")
@@ -210,7 +230,7 @@ def train(algo: str, profile: str, out: str, extra: list[str]) -> dict:
     solved_at = next(
         (i + 1 for i, h in enumerate(history) if h["success_value"] < threshold and h["terminated_rate"] == 0), None
     )
-    chunks = [b["time_s"] - a["time_s"] for a, b in zip(history, history[1:])]
+    chunks = [b["time_s"] - a["time_s"] for a, b in zip(history, history[1:], strict=False)]
     return {
         **summary,
         "first_solved_eval": solved_at,
@@ -267,8 +287,10 @@ def main(argv=None) -> int:
     from jaxdrones.io.runs import provenance
 
     info = provenance()
-    print(f"jax {jax.__version__}, {jax.default_backend()} ({jax.devices()[0].device_kind}), "
-          f"{os.cpu_count()} CPUs; {info.get('cpu', '')}")
+    print(
+        f"jax {jax.__version__}, {jax.default_backend()} ({jax.devices()[0].device_kind}), "
+        f"{os.cpu_count()} CPUs; {info.get('cpu', '')}"
+    )
     if args.per_step is not None:
         return per_step_table(args.per_step or [4096])
     rows = []
@@ -292,18 +314,23 @@ def main(argv=None) -> int:
                 row["verdict"] = runs[-1]["verdict"]
             rows.append(row)
             print(json.dumps(row), flush=True)
-    print("\n| trainer | defaults | worlds | iterations | ops/rollout | ops/update | ops/evaluation | evaluations "
-          "| sequential ops to the end | wall s (runs) | train s | final m | crashed |")
+    print(
+        "\n| trainer | defaults | worlds | iterations | ops/rollout | ops/update | ops/evaluation | evaluations "
+        "| sequential ops to the end | wall s (runs) | train s | final m | crashed |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---|---|")
     for r in rows:
         trained = (
             f"{', '.join(f'{w:.1f}' for w in r['wall_s'])} | {r['train_s']:.1f} | "
             f"{', '.join(f'{v:.4f}' for v in r['final_m'])} | {', '.join(f'{t:.1%}' for t in r['terminated'])}"
-            if "wall_s" in r else "| | |"
+            if "wall_s" in r
+            else "| | |"
         )
-        print(f"| {r['algo']} | {r['profile']} | {r['worlds']} | {r['iterations']} | {r['ops_rollout']:,.0f} | "
-              f"{r['ops_update']:,.0f} | {r['ops_evaluation']:,.0f} | {r['num_evals']} | {r['ops_to_solved']:,.0f} | "
-              f"{trained} |")
+        print(
+            f"| {r['algo']} | {r['profile']} | {r['worlds']} | {r['iterations']} | {r['ops_rollout']:,.0f} | "
+            f"{r['ops_update']:,.0f} | {r['ops_evaluation']:,.0f} | {r['num_evals']} | {r['ops_to_solved']:,.0f} | "
+            f"{trained} |"
+        )
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=1)

@@ -179,7 +179,10 @@ def test_unrolled_substeps_equal_the_loop(options, rng):
     params = jd.load_params("cf2x")
     d = base.n_drones
     state = jd.init_state(
-        base, pos=[[0.0, 0.0, 0.05 + 0.3 * k] for k in range(d)], rpy=[[0.1, -0.2, 0.3]] * d, ang_vel=[[1.0, -0.5, 0.2]] * d
+        base,
+        pos=[[0.0, 0.0, 0.05 + 0.3 * k] for k in range(d)],
+        rpy=[[0.1, -0.2, 0.3]] * d,
+        ang_vel=[[1.0, -0.5, 0.2]] * d,
     )
     rpms = jnp.asarray(float(params.hover_rpm) * (1 + 0.05 * rng.uniform(-1, 1, (3, d, 4))), jnp.float32)
 

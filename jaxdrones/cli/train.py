@@ -45,9 +45,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         choices=ALGOS,
         default=None,
         help="apg (analytic policy gradients through the simulator, the default for hover with --defaults cpu), "
-        "ppo (our batched PPO, the default for hover with --defaults gpu), brax_ppo (brax's PPO, the default for the other single-agent tasks), shac "
-        "(short-horizon actor-critic through the simulator), mappo (multi-agent PPO with a "
-        "centralised critic, the default for multi-agent tasks) or ippo (independent PPO)",
+        "ppo (our batched PPO, the default for hover with --defaults gpu), brax_ppo (brax's PPO, the default for "
+        "the other single-agent tasks), shac (short-horizon actor-critic through the simulator), mappo "
+        "(multi-agent PPO with a centralised critic, the default for multi-agent tasks) or ippo (independent PPO)",
     )
     ppo.add_argument(
         "--defaults",

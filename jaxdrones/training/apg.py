@@ -4,9 +4,10 @@ Each update differentiates the task's smooth training loss (`jaxdrones.envs.task
 `Task.loss_weights`, averaged over ``horizon`` control steps and ``num_envs`` worlds) w.r.t. the policy's
 parameters through the env's dynamics, and takes an Adam step. The worlds' states carry over from one window to
 the next with the gradient stopped (truncated backpropagation through time, as in brax's APG and in short-horizon
-actor-critic without the critic); a world whose episode ends starts the next episode of its key chain, drawn once
-per window (`jaxdrones.wrappers.VmapAutoReset.starts`), and no gradient crosses the reset. brax's APG trainer optimises ``-mean(reward)``, whose shaped hover reward (clipped at 0)
-has no gradient far from the target, so the loop is written here, on flax and optax.
+actor-critic without the critic); a world whose episode ends is reset (`jaxdrones.wrappers.reset_where`, or with
+``starts_per_window`` from episodes drawn once per window), and no gradient crosses the reset. brax's APG trainer
+optimises ``-mean(reward)``, whose shaped hover reward (clipped at 0) has no gradient far from the target, so the
+loop is written here, on flax and optax.
 
 The policy is an MLP (tanh hidden layers, tanh output in the action box), deterministic.
 """
@@ -25,8 +26,8 @@ from jaxdrones.training.common import (
     Schedule,
     check_config,
     described,
-    flat_params,
     mlp,
+    param_maps,
     program_description,
     run_updates,
 )
@@ -50,9 +51,11 @@ class APGConfig(Schedule):
         hidden_layer_sizes: of the policy MLP.
         num_evals: evaluations (learning-curve points) over the run, one after each chunk of updates, ≥ 1.
         seed: random seed.
+        starts_per_window, flat_params: how an update is built, for the device
+            (`jaxdrones.training.common.BUILD_SETTINGS`; on with ``--defaults gpu``).
 
     Raises:
-        ValueError: a count below 1 or a non-positive rate or norm.
+        ValueError: a count below 1, a non-positive rate or norm, a build setting that is not a bool.
     """
 
     num_timesteps: int = 1_000_000
@@ -64,6 +67,8 @@ class APGConfig(Schedule):
     hidden_layer_sizes: tuple[int, ...] = (64, 64)
     num_evals: int = 10
     seed: int = 0
+    starts_per_window: bool = False
+    flat_params: bool = False
 
     algo: ClassVar[str] = "apg"
 
@@ -72,6 +77,7 @@ class APGConfig(Schedule):
             self,
             integers={"num_timesteps": 1, "num_envs": 1, "horizon": 1, "num_evals": 1, "seed": 0},
             positive=("learning_rate", "max_grad_norm"),
+            booleans=("cosine_decay", "starts_per_window", "flat_params"),
         )
 
     @property
@@ -137,11 +143,11 @@ def train(
     optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.schedule()))
 
     obs0 = jnp.zeros((env.observation_size,), env.dtype)
-    ravel, unravel = flat_params(jax.eval_shape(network.init, jax.random.key(0), obs0))
+    ravel, unravel = param_maps(jax.eval_shape(network.init, jax.random.key(0), obs0), config.flat_params)
 
     def window_loss(flat, state):
         params = unravel(flat)
-        starts = auto.starts(state)  # the worlds' next episodes, drawn once per window
+        starts = auto.starts(state) if config.starts_per_window else None  # the worlds' next episodes
 
         def body(s, _):
             ended, s = auto.step_ended(s, network.apply(params, s.obs), starts)
@@ -159,7 +165,7 @@ def train(
 
     def init(key):
         key_init, key_reset = jax.random.split(key)
-        params = ravel(network.init(key_init, obs0))  # one flat vector: `flat_params`
+        params = ravel(network.init(key_init, obs0))
         return params, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs))
 
     def result(carry):

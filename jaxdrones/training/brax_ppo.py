@@ -307,6 +307,7 @@ def train(
     networks = make_network(config, env)
     kwargs = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name not in NETWORK_FIELDS}
     latest = {"params": None, "steps": 0}
+
     def evaluate_params(params):
         return evaluate(networks, params)
 

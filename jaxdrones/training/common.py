@@ -26,11 +26,15 @@ def check_config(
     nonnegative: Iterable[str] = (),
     fractions: Iterable[str] = (),
     open_fractions: Iterable[str] = (),
+    booleans: Iterable[str] = (),
 ) -> None:
     """Raise ``ValueError`` naming the config class and field for a value out of range: ``integers`` maps fields to
     their least value; ``positive`` fields must be > 0, ``nonnegative`` ≥ 0, ``fractions`` in [0, 1] and
-    ``open_fractions`` in [0, 1)."""
+    ``open_fractions`` in [0, 1); ``booleans`` must be True or False."""
     name = type(config).__name__
+    for field in booleans:
+        if not isinstance(getattr(config, field), (bool, np.bool_)):
+            raise ValueError(f"{name}: {field} must be True or False, got {getattr(config, field)!r}")
     for field, low in (integers or {}).items():
         value = getattr(config, field)
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
@@ -85,15 +89,29 @@ def mlp(
     return MLP()
 
 
-def flat_params(shapes: Any) -> tuple[Callable[[Any], jax.Array], Callable[[jax.Array], Any]]:
-    """``(ravel, unravel)`` for parameter pytrees shaped like ``shapes`` (arrays or ``jax.ShapeDtypeStruct``, e.g.
-    ``jax.eval_shape`` of a network's ``init``): ``ravel(params)`` is one flat vector
-    (`jax.flatten_util.ravel_pytree`), ``unravel(flat)`` the pytree again.
+#: The settings of our trainers' configs that choose how an update is built for a device, not what it computes
+#: (`jaxdrones.training.trainers.DEFAULTS` sets them per profile; both off is the CPU's choice):
+#:
+#: - ``starts_per_window``: every world's next episode is drawn once per window or unroll
+#:   (`jaxdrones.wrappers.VmapAutoReset.starts`) rather than reset in the step (random numbers, and a ``lax.cond``
+#:   whose predicate a GPU hands to the host, in every step); a world whose episode ends twice within one window
+#:   starts the same episode again.
+#: - ``flat_params``: the optimised parameters, and so Adam's moments, are one flat vector (`param_maps`), so that an
+#:   optimiser step is a few fused operations on one vector rather than a few per leaf (PPO's actor and critic have
+#:   13 leaves). The same arithmetic, element by element.
+#:
+#: On a GPU every operation of an update is a kernel run after the previous one, and both cut them
+#: (`benchmarks/train_cost.py`); on 2 CPU cores each made APG's default hover run 20-40 % slower per update.
+BUILD_SETTINGS = ("starts_per_window", "flat_params")
 
-    Our trainers keep the parameters they optimise, and so Adam's moments, as one flat vector: an optimiser step
-    (the gradient's global-norm clip, Adam's moments and the update) is then a few fused operations on one vector
-    instead of a few per leaf (PPO's actor and critic have 13 leaves), and on a GPU every operation of an update is
-    a kernel run after the previous one (`benchmarks/train_cost.py`). The same arithmetic, element by element."""
+
+def param_maps(shapes: Any, flat: bool = True) -> tuple[Callable[[Any], Any], Callable[[Any], Any]]:
+    """``(ravel, unravel)`` for parameter pytrees shaped like ``shapes`` (arrays or ``jax.ShapeDtypeStruct``, e.g.
+    ``jax.eval_shape`` of a network's ``init``): with ``flat``, ``ravel(params)`` is one flat vector
+    (`jax.flatten_util.ravel_pytree`) and ``unravel(flat)`` the pytree again; without, both are the identity (see
+    `BUILD_SETTINGS`' ``flat_params``)."""
+    if not flat:
+        return (lambda params: params), (lambda params: params)
     from jax.flatten_util import ravel_pytree
 
     _, unravel = ravel_pytree(jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), shapes))

@@ -36,7 +36,7 @@ from jaxdrones.training.common import (
     Schedule,
     check_config,
     described,
-    flat_params,
+    param_maps,
     program_description,
     run_updates,
 )
@@ -79,9 +79,11 @@ class MAPPOConfig(Schedule):
             tanh's Jacobian cancels in it).
         num_evals: evaluations (learning-curve points) over the run, one after each chunk of updates, ≥ 1.
         seed: random seed.
+        starts_per_window, flat_params: how an update is built, for the device
+            (`jaxdrones.training.common.BUILD_SETTINGS`; on with ``--defaults gpu``).
 
     Raises:
-        ValueError: a count below 1, a rate or weight out of range, an unknown critic, or
+        ValueError: a count below 1, a rate or weight out of range, an unknown critic, a flag that is not a bool, or
             ``num_envs · unroll_length`` not divisible by ``minibatches``.
     """
 
@@ -105,6 +107,8 @@ class MAPPOConfig(Schedule):
     squash: bool = False
     num_evals: int = 10
     seed: int = 0
+    starts_per_window: bool = False
+    flat_params: bool = False
 
     def __post_init__(self):
         check_config(
@@ -121,6 +125,7 @@ class MAPPOConfig(Schedule):
             positive=("learning_rate", "clip", "max_grad_norm", "init_std"),
             nonnegative=("entropy_cost", "value_cost"),
             fractions=("discounting", "gae_lambda"),
+            booleans=("anneal_lr", "share_params", "squash", "starts_per_window", "flat_params"),
         )
         if self.critic not in CRITICS:
             raise ValueError(f"MAPPOConfig: critic must be one of {CRITICS}, got {self.critic!r}")
@@ -336,7 +341,7 @@ def train(
     gamma = config.discounting
 
     def collect(params, state, key):  # params with "norm"
-        starts = auto.starts(state)  # the worlds' next episodes, drawn once per unroll
+        starts = auto.starts(state) if config.starts_per_window else None  # the worlds' next episodes
 
         def body(state, key):
             world = features(state)
@@ -364,7 +369,7 @@ def train(
         params.pop("norm")  # the observation statistics: updated from the data, not by the optimiser
         return params
 
-    ravel, unravel = flat_params(jax.eval_shape(trainable_init, jax.random.key(0)))  # one flat vector
+    ravel, unravel = param_maps(jax.eval_shape(trainable_init, jax.random.key(0)), config.flat_params)
 
     def ppo_loss(trainable, norm, batch):
         params = {**unravel(trainable), "norm": norm}

@@ -279,7 +279,9 @@ def failed_criteria(task, stats: dict) -> list[str]:
         )
     rate, n = stats.get("terminated_rate", math.nan), stats.get("n_episodes", 0)
     if not task.success_counts_terminations and not rate == 0.0:
-        failed.append(f"{round(rate * n)} of {n} episodes ended early (crashed or left the arena; a solved run has none)")
+        failed.append(
+            f"{round(rate * n)} of {n} episodes ended early (crashed or left the arena; a solved run has none)"
+        )
     return failed
 
 

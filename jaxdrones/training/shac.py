@@ -26,7 +26,7 @@ import jax.numpy as jnp
 
 from jaxdrones.envs.base import Env
 from jaxdrones.training.apg import APGConfig, make_network
-from jaxdrones.training.common import check_config, described, flat_params, mlp, program_description, run_updates
+from jaxdrones.training.common import check_config, described, mlp, param_maps, program_description, run_updates
 
 if TYPE_CHECKING:
     from flax import linen
@@ -134,14 +134,14 @@ def train(
     gamma = config.discounting
 
     obs0 = jnp.zeros((env.observation_size,), env.dtype)
-    # The actor's and the critic's parameters as flat vectors (`flat_params`).
-    ravel_actor, unravel_actor = flat_params(jax.eval_shape(actor.init, jax.random.key(0), obs0))
-    ravel_critic, unravel_critic = flat_params(jax.eval_shape(critic.init, jax.random.key(0), obs0))
+    # The actor's and the critic's parameters, as flat vectors with ``config.flat_params``.
+    ravel_actor, unravel_actor = param_maps(jax.eval_shape(actor.init, jax.random.key(0), obs0), config.flat_params)
+    ravel_critic, unravel_critic = param_maps(jax.eval_shape(critic.init, jax.random.key(0), obs0), config.flat_params)
 
     def actor_loss(flat, target_flat, state):
         """Minus the mean discounted window return per step, and what the critic learns from."""
         params, target_params = unravel_actor(flat), unravel_critic(target_flat)
-        starts = auto.starts(state)  # the worlds' next episodes, drawn once per window
+        starts = auto.starts(state) if config.starts_per_window else None  # the worlds' next episodes
 
         def body(carry, last):
             s, discount, acc, total = carry
@@ -207,7 +207,10 @@ def train(
 
     def init(key):
         key_actor, key_critic, key_reset, key_shuffle = jax.random.split(key, 4)
-        actor_params, critic_params = ravel_actor(actor.init(key_actor, obs0)), ravel_critic(critic.init(key_critic, obs0))
+        actor_params, critic_params = (
+            ravel_actor(actor.init(key_actor, obs0)),
+            ravel_critic(critic.init(key_critic, obs0)),
+        )
         return (
             actor_params,
             critic_params,
