@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 from jaxdrones.training.trainers import default_algo
 
 if TYPE_CHECKING:
+    from jaxdrones.envs.task import Task
     from jaxdrones.training.brax_ppo import BraxPPOConfig
     from jaxdrones.training.common import Schedule
 
@@ -263,7 +264,7 @@ def train_task(
     return summary
 
 
-def failed_criteria(task, stats: dict) -> list[str]:
+def failed_criteria(task: Task, stats: dict) -> list[str]:
     """The criteria of a solved run that the evaluation ``stats`` (`jaxdrones.training.evaluation.
     episode_statistics`) miss, as sentences (empty: solved): the task's success metric at or above its threshold,
     and, unless the task's metric counts them itself (``success_counts_terminations``), any episode that ended early

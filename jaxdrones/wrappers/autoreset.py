@@ -12,7 +12,8 @@ Two forms with the same result:
   (`reset_where`): on CPU, where a reset (mostly its random numbers) costs about as much as a step, this nearly
   halves the cost of a step. A loop of many steps can draw every world's next episode once, before the loop
   (`VmapAutoReset.starts`), and hand them to each step: a world whose episode ends then takes its drawn episode by a
-  select, and the step computes no reset at all (the trainers do so per rollout: `benchmarks/train_cost.py`).
+  select, and the step computes no reset at all (the trainers' ``starts_per_window``, on with ``--defaults gpu``:
+  `benchmarks/train_cost.py`).
 """
 
 from __future__ import annotations
