@@ -10,7 +10,8 @@ their number, not by its arithmetic. This script counts them, without a GPU:
    operations are XLA:CPU's thunks; on a GPU, the kernels and copies on the device's streams. ``update`` is the
    chunk's operations per update (rollout, gradient or PPO epochs, optimiser); ``rollout`` is a ``lax.scan`` of the
    trainer's rollout length (APG's ``horizon``, PPO's ``unroll_length``) of the same env's auto-resetting step with a
-   policy MLP of the trainer's size over its worlds, traced apart (forward only: APG's gradient is in ``update``);
+   policy MLP of the trainer's size over its worlds (the resets drawn per window where the config's
+   ``starts_per_window`` says so), traced apart (forward only: APG's gradient is in ``update``);
    ``evaluation`` is one evaluation (`jaxdrones.training.run`'s: 256 episodes of the task from random starts).
 2. **The run itself.** ``jaxdrones train hover --algo ALGO --defaults PROFILE`` in a subprocess, as a user runs it
    (JAX's compilation cache in its default folder: the first run is cold, a second one warm), from which come the
@@ -185,7 +186,11 @@ def count(algo: str, profile: str, updates: int) -> dict:
 
     hidden = getattr(config, "hidden_layer_sizes", None) or config.policy_hidden_layer_sizes
     length = rollout_length(config)
-    rollout_ops = control_step_cost(train_env, config.num_envs, length, hidden, timed=0)["ops"] * length
+    # brax's PPO resets in the step (the brax adapter's auto-reset); ours as their config says.
+    predrawn = getattr(config, "starts_per_window", False)
+    rollout_ops = (
+        control_step_cost(train_env, config.num_envs, length, hidden, timed=0, predrawn=predrawn)["ops"] * length
+    )
     return {
         "algo": algo,
         "profile": profile,

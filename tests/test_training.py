@@ -3,6 +3,7 @@ its bad input, and ``jaxdrones fly``."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import pickle
@@ -533,6 +534,11 @@ def test_train_cli_defaults_profiles(tmp_path, capsys):
         assert gpu.num_envs >= 4096 > cpu.num_envs
     with pytest.raises(ValueError, match="defaults must be one of"):
         trainers.get("ppo").default_config("hover", False, "tpu")
+    for algo in ("apg", "ppo"):  # the gpu profile builds its updates for a GPU; the CPU's as before
+        cpu, gpu = (trainers.get(algo).default_config("hover", False, d) for d in trainers.DEFAULTS)
+        assert gpu.starts_per_window and gpu.flat_params and not cpu.starts_per_window and not cpu.flat_params
+        with pytest.raises(ValueError, match="flat_params must be True or False"):
+            dataclasses.replace(cpu, flat_params=1)
     run = tmp_path / "run"
     args = ["train", "hover", "--steps", "1", "--num-evals", "1", "--out", str(run), "--no-progress"]
     assert trainers.default_algo("hover", defaults="cpu") == "apg"
@@ -541,6 +547,9 @@ def test_train_cli_defaults_profiles(tmp_path, capsys):
     summary = json.loads((run / "summary.json").read_text())
     assert summary["defaults"] == "gpu" and summary["config"]["num_envs"] == 4096
     assert summary["config"]["learning_rate"] == 1e-2 and summary["env_steps"] == 4096 * 32
+    env, policy = load_policy(run)  # trained with flat parameters, saved as the network's pytree
+    action, _ = policy(env.reset(jax.random.key(1)).obs.reshape(-1), jax.random.key(2))
+    assert action.shape == (4,) and np.all(np.isfinite(action))
     assert main([*args, "--algo", "apg", "--eval-episodes", "64", "--overwrite", "--num-envs", "8"]) == 0
     summary = json.loads((run / "summary.json").read_text())
     assert summary["defaults"] == trainers.default_profile() and summary["config"]["learning_rate"] == 3e-3
