@@ -51,16 +51,16 @@ class SimConfig:
         unroll_substeps: the control step's physics substeps written out one after the other in the compiled
             program (True) or as a loop (False); None (default) chooses when the step is traced: unrolled on a
             GPU or TPU, where XLA then fuses the element-wise work of all substeps into a few kernels and each
-            sequential kernel costs a launch, a loop on the CPU, where the unrolled step ran 2-4 times slower
-            (`benchmarks/train_cost.py`, docs/benchmarks.md). The results are the same either way (to float
+            sequential kernel costs a launch, a loop on the CPU, where the unrolled step ran 1.4-3 times slower
+            (`benchmarks/train_cost.py --per-step`, docs/benchmarks.md). The results are the same either way (to float
             rounding: XLA may fuse the arithmetic differently).
 
     Raises:
         ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, an unknown
             integrator or kink treatment, a ``downwash_radius`` neither None nor > 0, a ``cell_capacity`` below 1,
-            a ``drag``, ``ground_effect``, ``adjoint`` or ``motor_dynamics`` that is not a bool (nor None for
-            ``unroll_substeps``) (a string or number
-            would otherwise be truthy), or a ``downwash`` that is none of False, True, ``"paper"``, ``"per_rotor"``.
+            a ``drag``, ``ground_effect``, ``adjoint`` or ``motor_dynamics`` that is not a bool (a string or number
+            would otherwise be truthy), an ``unroll_substeps`` neither a bool nor None, or a ``downwash`` that is none
+            of False, True, ``"paper"``, ``"per_rotor"``.
     """
 
     n_drones: int = 1
