@@ -19,6 +19,9 @@ their number, not by its arithmetic. This script counts them, without a GPU:
 3. **Sequential operations to a solved policy**: iterations × operations per update + evaluations × operations per
    evaluation. This is the number to drive down; on a GPU each of them costs at least a launch.
 
+The figures of docs/benchmarks.md are from jax 0.10.2, where XLA:CPU's trace shows the operations inside loops; on
+jax >= 0.11 it runs an inner loop (the substeps) as one ``call``, so there the looped step counts far fewer
+operations than it runs (64 worlds: 157 forward operations per control step, against 600 at 4096 on jax 0.10.2).
 The ``gpu`` profile's programs are counted as a GPU compiles them, with the physics substeps unrolled
 (`jaxdrones.SimConfig.unroll_substeps`, which is per device otherwise); the CPU's count of such a program is an
 upper bound of the GPU's kernels (XLA:GPU fuses more). Its training run here keeps the CPU's loop (the same
