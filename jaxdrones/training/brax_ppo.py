@@ -13,7 +13,7 @@ import jax
 import numpy as np
 
 from jaxdrones.envs.base import Env
-from jaxdrones.training.common import Interrupted
+from jaxdrones.training.common import Interrupted, check_defaults
 
 if TYPE_CHECKING:
     from brax.training.agents.ppo import networks as ppo_networks
@@ -210,10 +210,9 @@ def default_config(task: str, vision: bool = False, defaults: str = "cpu") -> Br
     # steps. 4.5 M steps (4.7 M in whole epochs): at 3.1 M a third run was at 88 % and still rising (83 %, 87 %, 88 %
     # over the last 800,000 steps); at 4.7 M, 95 % and 92 % (seeds 0 and 1, docs/experiments.md).
     tuned["avoid"] = dict(tuned["vision"], num_envs=512, batch_size=512, num_timesteps=4_500_000, reward_scaling=0.1)
-    if defaults not in ("cpu", "gpu"):
-        raise ValueError(f"defaults must be one of ('cpu', 'gpu'), got {defaults!r}")
+    check_defaults(defaults)
     if defaults == "gpu" and task == "hover" and not vision:
-        # Few large updates (`jaxdrones.training.trainers.DEFAULTS`): one 32-step unroll of 8192 worlds per
+        # Few large updates (`jaxdrones.training.common.DEFAULTS`): one 32-step unroll of 8192 worlds per
         # update, in 4 minibatches, as our PPO's gpu settings.
         return BraxPPOConfig(
             **dict(

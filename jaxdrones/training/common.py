@@ -104,6 +104,19 @@ def mlp(
 #: (`benchmarks/train_cost.py`); on 2 CPU cores each made APG's default hover run 20-40 % slower per update.
 BUILD_SETTINGS = ("starts_per_window", "flat_params")
 
+#: The profiles of default settings (``jaxdrones train --defaults``): ``"cpu"``, tuned for the fewest seconds to a
+#: solved policy on a few CPU cores (few worlds, many small updates), and ``"gpu"``, for the fewest sequential
+#: operations (many worlds, few large updates: a GPU steps thousands of worlds in the time of one, while every
+#: operation of an update runs after the previous one, each at least one kernel launch; `benchmarks/train_cost.py`).
+#: The results do not depend on the device that runs them: ``--defaults gpu --device cpu`` trains the same policy.
+DEFAULTS = ("cpu", "gpu")
+
+
+def check_defaults(defaults: str) -> None:
+    """Raise ``ValueError`` unless ``defaults`` is one of `DEFAULTS`."""
+    if defaults not in DEFAULTS:
+        raise ValueError(f"defaults must be one of {DEFAULTS}, got {defaults!r}")
+
 
 def param_maps(shapes: Any, flat: bool = True) -> tuple[Callable[[Any], Any], Callable[[Any], Any]]:
     """``(ravel, unravel)`` for parameter pytrees shaped like ``shapes`` (arrays or ``jax.ShapeDtypeStruct``, e.g.

@@ -139,7 +139,7 @@ def train_task(
         n_eval_episodes: evaluation episodes from random starts (≥ 64).
         progress: show the progress bar.
         t_start: ``time.perf_counter()`` at which the wall-clock measurement starts (default: now).
-        defaults: the profile of default settings (`jaxdrones.training.trainers.DEFAULTS`: ``"cpu"`` or ``"gpu"``)
+        defaults: the profile of default settings (`jaxdrones.training.common.DEFAULTS`: ``"cpu"`` or ``"gpu"``)
             that ``config`` comes from, or that builds it when None; default: the device's
             (`jaxdrones.training.trainers.default_profile`).
 
@@ -166,7 +166,7 @@ def train_task(
     from jaxdrones.envs import make, registered
     from jaxdrones.io.runs import new_run_dir, provenance
     from jaxdrones.training import checkpoint, trainers
-    from jaxdrones.training.common import Interrupted
+    from jaxdrones.training.common import Interrupted, check_defaults
     from jaxdrones.training.evaluation import episode_statistics
     from jaxdrones.training.progress import AGGREGATES, ProgressLog
 
@@ -179,8 +179,7 @@ def train_task(
     env = make(task, **env_overrides)
     vision = bool(env.config.vision)
     defaults = trainers.default_profile() if defaults is None else defaults
-    if defaults not in trainers.DEFAULTS:
-        raise ValueError(f"train: defaults must be one of {trainers.DEFAULTS}, got {defaults!r}")
+    check_defaults(defaults)
     algo = default_algo(task, env.config.backend, vision, defaults) if algo is None else algo
     trainer = trainers.get(algo)
     if n_eval_episodes < 64:

@@ -17,6 +17,8 @@ from collections.abc import Callable
 from typing import Any
 
 from jaxdrones.envs import MULTI_AGENT, SINGLE_AGENT
+from jaxdrones.training.common import BUILD_SETTINGS, check_defaults
+from jaxdrones.training.common import DEFAULTS as DEFAULTS  # the profiles, beside the table that uses them
 
 #: The built-in tasks ``jaxdrones train`` trains: the single-agent ones (default algorithm: `default_algo`) and the
 #: multi-agent ones (default algorithm: MAPPO); it trains a task of your own too (`jaxdrones.envs.register`).
@@ -38,16 +40,8 @@ class Trainer:
     make_policy: Callable
 
 
-#: The profiles of default settings (``jaxdrones train --defaults``): ``"cpu"``, tuned for the fewest seconds to a
-#: solved policy on a few CPU cores (few worlds, many small updates), and ``"gpu"``, for the fewest sequential
-#: operations (many worlds, few large updates: a GPU steps thousands of worlds in the time of one, while every
-#: operation of an update runs after the previous one, each at least one kernel launch; `benchmarks/train_cost.py`).
-#: The results do not depend on the device that runs them: ``--defaults gpu --device cpu`` trains the same policy.
-DEFAULTS = ("cpu", "gpu")
-
-
-#: The build settings of our trainers' configs with ``defaults="gpu"`` (`jaxdrones.training.common.BUILD_SETTINGS`).
-GPU_BUILD = {"starts_per_window": True, "flat_params": True}
+#: The build settings of our trainers' configs with ``defaults="gpu"``: all of them on.
+GPU_BUILD = dict.fromkeys(BUILD_SETTINGS, True)
 
 
 def default_profile() -> str:
@@ -55,11 +49,6 @@ def default_profile() -> str:
     import jax
 
     return "cpu" if jax.default_backend() == "cpu" else "gpu"
-
-
-def _check_defaults(defaults: str) -> None:
-    if defaults not in DEFAULTS:
-        raise ValueError(f"defaults must be one of {DEFAULTS}, got {defaults!r}")
 
 
 def _ppo_config(task: str, vision: bool = False, defaults: str = "cpu"):
@@ -70,7 +59,7 @@ def _ppo_config(task: str, vision: bool = False, defaults: str = "cpu"):
     1.7-2.1 cm (docs/training.md)."""
     from jaxdrones.training.mappo import MAPPOConfig
 
-    _check_defaults(defaults)
+    check_defaults(defaults)
     common = dict(critic="local", unroll_length=32, minibatches=4, epochs=4, learning_rate=3e-3, discounting=0.99)
     if defaults == "gpu":
         return MAPPOConfig(num_timesteps=8192 * 32 * 60, num_envs=8192, num_evals=5, **common, **GPU_BUILD)
@@ -87,7 +76,7 @@ def _mappo_config(critic: str):
     def config(task: str, vision: bool = False, defaults: str = "cpu"):
         from jaxdrones.training.mappo import MAPPOConfig
 
-        _check_defaults(defaults)
+        check_defaults(defaults)
         return MAPPOConfig(critic=critic)
 
     return config
@@ -101,7 +90,7 @@ def _apg_config(task: str, vision: bool = False, defaults: str = "cpu"):
     the same decay (8192 worlds in 120 updates, or 16-step windows, ended 11-12 cm short: docs/training.md)."""
     from jaxdrones.training.apg import APGConfig
 
-    _check_defaults(defaults)
+    check_defaults(defaults)
     if task == "hover" and defaults == "gpu":
         return APGConfig(
             num_timesteps=4096 * 32 * 200,
@@ -119,7 +108,7 @@ def _apg_config(task: str, vision: bool = False, defaults: str = "cpu"):
 def _shac_config(task: str, vision: bool = False, defaults: str = "cpu"):
     from jaxdrones.training.shac import SHACConfig
 
-    _check_defaults(defaults)
+    check_defaults(defaults)
     return SHACConfig()
 
 
@@ -228,7 +217,7 @@ def default_algo(task: str, backend: str = "jax", vision: bool = False, defaults
     brax's vision PPO takes)."""
     from jaxdrones.envs import is_multi_agent
 
-    _check_defaults(defaults)
+    check_defaults(defaults)
     if is_multi_agent(task):
         return "mappo"
     algo = DEFAULT_ALGO[defaults].get(task, "brax_ppo")
