@@ -66,7 +66,8 @@ class TaskEnv(Env):
         self.sim_config = config.sim_config()
         model = config.model
         params = stack_params(model) if isinstance(model, tuple) else load_params(model)
-        self.params = broadcast_params(params, (config.n_drones,))
+        # Broadcast on the host and copied once: no device program compiled (each costs a compilation on a GPU).
+        self.params = jax.device_put(broadcast_params(jax.tree.map(np.asarray, params), (config.n_drones,), xp=np))
         self.action_type = make_action(config.action_type, config.pid_target, config.pid_scale)
         self.obs_type = ObsType(
             config.obs_type,

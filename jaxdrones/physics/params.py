@@ -392,8 +392,9 @@ def _derive(raw: dict, path: str) -> DroneParams:
     )
     values = {k: np.asarray(v, dtype=np.float64) for k, v in values.items()}
     derived = derive_params(_PrimaryParams(**values), xp=np)  # in float64, then cast once
-    dtype = jnp.result_type(float)
-    return DroneParams(**{k: jnp.asarray(v, dtype=dtype) for k, v in {**values, **derived}.items()})
+    dtype = np.dtype(jnp.result_type(float))
+    # Cast on the host and copied once: no device program compiled (each costs a compilation on a GPU).
+    return jax.device_put(DroneParams(**{k: np.asarray(v, dtype=dtype) for k, v in {**values, **derived}.items()}))
 
 
 #: The `DroneParams` fields computed from the others by `derive_params`.

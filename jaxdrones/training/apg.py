@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxdrones.envs.base import Env
 from jaxdrones.training.common import (
@@ -142,8 +143,8 @@ def train(
     network = make_network(config, env)
     optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.schedule()))
 
-    obs0 = jnp.zeros((env.observation_size,), env.dtype)
-    ravel, unravel = param_maps(jax.eval_shape(network.init, jax.random.key(0), obs0), config.flat_params)
+    obs0 = np.zeros((env.observation_size,), env.dtype)
+    ravel, unravel = param_maps(jax.eval_shape(lambda: network.init(jax.random.key(0), obs0)), config.flat_params)
 
     def window_loss(flat, state):
         params = unravel(flat)

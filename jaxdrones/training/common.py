@@ -4,11 +4,13 @@ loop."""
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
@@ -120,15 +122,30 @@ def check_defaults(defaults: str) -> None:
 
 def param_maps(shapes: Any, flat: bool = True) -> tuple[Callable[[Any], Any], Callable[[Any], Any]]:
     """``(ravel, unravel)`` for parameter pytrees shaped like ``shapes`` (arrays or ``jax.ShapeDtypeStruct``, e.g.
-    ``jax.eval_shape`` of a network's ``init``): with ``flat``, ``ravel(params)`` is one flat vector
-    (`jax.flatten_util.ravel_pytree`) and ``unravel(flat)`` the pytree again; without, both are the identity (see
-    `BUILD_SETTINGS`' ``flat_params``)."""
+    ``jax.eval_shape`` of a network's ``init``): with ``flat``, ``ravel(params)`` is one flat vector (the leaves
+    in `jax.tree.leaves` order, as `jax.flatten_util.ravel_pytree` orders them) and ``unravel(flat)`` the pytree
+    again; without, both are the identity (see `BUILD_SETTINGS`' ``flat_params``). Outside a trace ``unravel``
+    splits the vector on the host, so that a trainer's result compiles no program of its own."""
     if not flat:
         return (lambda params: params), (lambda params: params)
-    from jax.flatten_util import ravel_pytree
+    leaves, treedef = jax.tree.flatten(shapes)
+    dtype = jnp.result_type(*(leaf.dtype for leaf in leaves))
+    bounds = np.cumsum([0, *(math.prod(leaf.shape) for leaf in leaves)])
 
-    _, unravel = ravel_pytree(jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), shapes))
-    return (lambda params: ravel_pytree(params)[0]), unravel
+    def ravel(params):
+        return jnp.concatenate([jnp.ravel(x).astype(dtype) for x in jax.tree.leaves(params)])
+
+    def unravel(vector):
+        on_host = not isinstance(vector, jax.core.Tracer)
+        vector = host_array(vector) if on_host else vector
+        parts = [
+            vector[a:b].reshape(leaf.shape).astype(leaf.dtype)
+            for a, b, leaf in zip(bounds[:-1], bounds[1:], leaves, strict=True)
+        ]
+        tree = jax.tree.unflatten(treedef, parts)
+        return jax.device_put(tree) if on_host else tree
+
+    return ravel, unravel
 
 
 class Interrupted(Exception):
@@ -220,33 +237,39 @@ def run_updates(
     Raises:
         Interrupted: on Ctrl-C, with ``result`` of the last completed chunk's carry.
     """
-    key = jax.random.key(config.seed)
+    # The key is made inside the compiled init from the seed: a key made here would compile programs of its own.
+    seed = np.asarray(config.seed).astype(jax.dtypes.canonicalize_dtype(np.int64))
+
+    def init_seeded(seed):
+        return init(jax.random.key(seed))
 
     def chunk(carry):
         carry, metrics = jax.lax.scan(update, carry, None, length=config.updates_per_eval)
         return carry, {name: value[-1] for name, value in metrics.items()}
 
     steps_per_chunk = config.updates_per_eval * config.steps_per_update
-    init_c, carry, done, compiling = jax.jit(init), None, 0, None
+    init_c, carry, done, compiling = jax.jit(init_seeded), None, 0, None
     try:
-        shapes = jax.eval_shape(init, key)
+        shapes = jax.eval_shape(init_seeded, seed)
         shardings = world_shardings(shapes, n_worlds)
         eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
         if shardings is None:
             replicated, cached = None, description is not None and eval_description is not None
 
-            def jit(fn, what, out_shardings):  # what: the part of the program's key beyond ``description``
+            def jit(fn, what, out_shardings, example=shapes):  # what: the program's key beyond ``description``
                 from jaxdrones.training.programs import cached_jit
 
-                return cached_jit(fn, shapes, f"{description}\n{what}") if cached else jax.jit(fn)
+                return cached_jit(fn, example, f"{description}\n{what}") if cached else jax.jit(fn)
+
+            init_c = jit(init_seeded, "init", None, seed)
         else:
             replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())
-            init_c = jax.jit(init, out_shardings=shardings)
+            init_c = jax.jit(init_seeded, out_shardings=shardings)
 
             def jit(fn, what, out_shardings):
                 return jax.jit(fn, in_shardings=(shardings,), out_shardings=out_shardings)
 
-        carry = init_c(key)
+        carry = init_c(seed)
         eval_c = {}
         if evaluate is not None and shardings is None:
             # One device: trace and compile the evaluation beside the chunk (several devices, or processes, run
@@ -280,7 +303,7 @@ def run_updates(
             if progress is not None:
                 progress(done, {name: (value if name == "eval" else float(value)) for name, value in metrics.items()})
     except KeyboardInterrupt:
-        raise Interrupted(result(init_c(key) if carry is None else carry), done) from None
+        raise Interrupted(result(init_c(seed) if carry is None else carry), done) from None
     finally:
         if compiling is not None:
             compiling.join()  # never leave XLA compiling in a thread while Python shuts down

@@ -369,7 +369,7 @@ def train(
         params.pop("norm")  # the observation statistics: updated from the data, not by the optimiser
         return params
 
-    ravel, unravel = param_maps(jax.eval_shape(trainable_init, jax.random.key(0)), config.flat_params)
+    ravel, unravel = param_maps(jax.eval_shape(lambda: trainable_init(jax.random.key(0))), config.flat_params)
 
     def ppo_loss(trainable, norm, batch):
         params = {**unravel(trainable), "norm": norm}

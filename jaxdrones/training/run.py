@@ -7,6 +7,7 @@ import dataclasses
 import json
 import math
 import os
+import threading
 import time
 from typing import TYPE_CHECKING
 
@@ -76,9 +77,8 @@ def _eval_program(env, trainer, n_episodes: int, seed: int):
     from jaxdrones.training.evaluation import outcomes_of, rollout_policy
     from jaxdrones.viz import VIEW_EPISODES, flight_data
 
-    keys = jax.random.split(jax.random.split(jax.random.key(seed + 1))[0], n_episodes)
-
     def evaluate(network, params):
+        keys = jax.random.split(jax.random.split(jax.random.key(seed + 1))[0], n_episodes)
         policy = trainer.make_policy(network, params)
         states = jax.vmap(lambda k: rollout_policy(env, policy, k))(keys)
         flight = jax.tree.map(lambda x: x[0], states)  # the first episode, for the flight plot
@@ -208,6 +208,7 @@ def train_task(
 
     t_train = time.perf_counter()
     interrupted = False
+    importing = _import_writers() if writer else None
     try:
         _, params = trainer.train(
             train_env, config, progress=report, evaluate=_eval_program(env, trainer, n_eval_episodes, config.seed)
@@ -227,6 +228,7 @@ def train_task(
     stats = episode_statistics(env, last["eval"]["outcomes"]) if last else {}
     phases["save"] = time.perf_counter() - t_phase
     t_phase = time.perf_counter()
+    importing.join()
     _plot(env, task, algo, log, last.get("eval"), out)
     phases["plots"] = time.perf_counter() - t_phase
     t_phase = time.perf_counter()
@@ -283,6 +285,26 @@ def failed_criteria(task: Task, stats: dict) -> list[str]:
             f"{round(rate * n)} of {n} episodes ended early (crashed or left the arena; a solved run has none)"
         )
     return failed
+
+
+def _import_writers() -> threading.Thread:
+    """Import what writes the run's plots and viewer (matplotlib, viser: 1-2 s) in a thread, started when training
+    starts: the main thread mostly waits on the device meanwhile, and the run's files are written sooner after it."""
+
+    def load():
+        try:
+            from jaxdrones import viz
+            from jaxdrones.io.plotting import _pyplot
+
+            _pyplot()
+            if viz.viewer_available():
+                import viser  # noqa: F401
+        except Exception:  # noqa: BLE001, S110  (the writers, run in the main thread, raise it again where it matters)
+            pass
+
+    thread = threading.Thread(target=load, name="jaxdrones-import-writers", daemon=True)
+    thread.start()
+    return thread
 
 
 def _write_viewer(env, evaluation: dict | None, out: str) -> None:

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxdrones.envs.base import Env
 from jaxdrones.training.apg import APGConfig, make_network
@@ -133,10 +134,10 @@ def train(
     critic_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.critic_learning_rate))
     gamma = config.discounting
 
-    obs0 = jnp.zeros((env.observation_size,), env.dtype)
+    obs0 = np.zeros((env.observation_size,), env.dtype)
     # The actor's and the critic's parameters, as flat vectors with ``config.flat_params``.
-    ravel_actor, unravel_actor = param_maps(jax.eval_shape(actor.init, jax.random.key(0), obs0), config.flat_params)
-    ravel_critic, unravel_critic = param_maps(jax.eval_shape(critic.init, jax.random.key(0), obs0), config.flat_params)
+    ravel_actor, unravel_actor = param_maps(jax.eval_shape(lambda: actor.init(jax.random.key(0), obs0)), config.flat_params)
+    ravel_critic, unravel_critic = param_maps(jax.eval_shape(lambda: critic.init(jax.random.key(0), obs0)), config.flat_params)
 
     def actor_loss(flat, target_flat, state):
         """Minus the mean discounted window return per step, and what the critic learns from."""
