@@ -135,9 +135,13 @@ def train(
     gamma = config.discounting
 
     obs0 = np.zeros((env.observation_size,), env.dtype)
+
     # The actor's and the critic's parameters, as flat vectors with ``config.flat_params``.
-    ravel_actor, unravel_actor = param_maps(jax.eval_shape(lambda: actor.init(jax.random.key(0), obs0)), config.flat_params)
-    ravel_critic, unravel_critic = param_maps(jax.eval_shape(lambda: critic.init(jax.random.key(0), obs0)), config.flat_params)
+    def shapes(net):
+        return jax.eval_shape(lambda: net.init(jax.random.key(0), obs0))
+
+    ravel_actor, unravel_actor = param_maps(shapes(actor), config.flat_params)
+    ravel_critic, unravel_critic = param_maps(shapes(critic), config.flat_params)
 
     def actor_loss(flat, target_flat, state):
         """Minus the mean discounted window return per step, and what the critic learns from."""
