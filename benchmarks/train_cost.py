@@ -22,10 +22,8 @@ their number, not by its arithmetic. This script counts them, without a GPU:
 The figures of docs/benchmarks.md are from jax 0.10.2, where XLA:CPU's trace shows the operations inside loops; on
 jax >= 0.11 it runs an inner loop (the substeps) as one ``call``, so there the looped step counts far fewer
 operations than it runs (64 worlds: 157 forward operations per control step, against 600 at 4096 on jax 0.10.2).
-The ``gpu`` profile's programs are counted as a GPU compiles them, with the physics substeps unrolled
-(`jaxdrones.SimConfig.unroll_substeps`, which is per device otherwise); the CPU's count of such a program is an
-upper bound of the GPU's kernels (XLA:GPU fuses more). Its training run here keeps the CPU's loop (the same
-result, faster on the CPU).
+Every program is counted with the env's defaults (the physics substeps as a loop: `jaxdrones.SimConfig.
+unroll_substeps`); the CPU's count of a program is an upper bound of a GPU's kernels (XLA:GPU fuses more).
 
 Usage::
 
@@ -105,7 +103,7 @@ def profile_config(algo: str, profile: str):
     return (
         trainer,
         trainer.default_config(TASK, False, profile),
-        default_env(TASK, {"unroll_substeps": profile == "gpu"}),
+        default_env(TASK, {}),
     )
 
 

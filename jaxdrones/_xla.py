@@ -13,7 +13,11 @@ plugin's, e.g. CUDA), so the check runs once per installation (1.1 s on jax 0.10
 ``benchmarks/xla_flags.py``). A flag the user already set in ``XLA_FLAGS`` is left alone, whatever its value.
 ``JAXDRONES_XLA_FLAGS=0`` (set before the ``jaxdrones`` command or the test run) turns every flag off.
 
-`CLI_FLAGS`, measured on 2 cores (docs/benchmarks.md):
+`CLI_FLAGS` are for XLA:CPU, and are added only where the process compiles for the CPU (`compiles_for_cpu`: the
+platform asked for is the CPU, or no GPU or TPU plugin is installed). They were measured on the CPU only; on an
+NVIDIA H200 (jax 0.11.2) their check cost the first ``jaxdrones train hover`` 2.5 s (5.0 s from the command to the
+training instead of 2.4-2.6 s), and training from a warm cache took 3.28 s with them against 2.66-3.19 s without.
+Measured on 2 cores (docs/benchmarks.md):
 
 - ``--xla_backend_optimization_level=1`` and ``--xla_llvm_disable_expensive_passes=true`` halve the compile time
   of the training and simulation programs on CPU with no measured change in their run time;
@@ -161,6 +165,19 @@ def accepted(flags: tuple[str, ...]) -> tuple[str, ...]:
         cache[installation] = {**cache.get(installation, {}), **known}
         _write_cache(cache)
     return tuple(f for f in flags if known[f])
+
+
+def compiles_for_cpu(platform: str | None = None) -> bool:
+    """Whether JAX will compile for the CPU: ``platform`` (e.g. the command line's ``--device``), else the first of
+    ``JAX_PLATFORMS``, is ``cpu``; or, with neither set, no accelerator's PJRT plugin (``jax_plugins``: CUDA, ROCm)
+    nor ``libtpu`` is installed. Starts no backend."""
+    platform = platform or os.environ.get("JAX_PLATFORMS", "").split(",")[0].strip()
+    if platform:
+        return platform.lower() == "cpu"
+    plugins = importlib.util.find_spec("jax_plugins")
+    roots = plugins.submodule_search_locations if plugins else []
+    accelerators = [p for p in xla_libraries() if any(p.startswith(os.path.join(r, "")) for r in roots or [])]
+    return not accelerators and importlib.util.find_spec("libtpu") is None
 
 
 def add_flags(flags: tuple[str, ...]) -> list[str]:

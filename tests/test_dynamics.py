@@ -173,9 +173,11 @@ def test_held_action_equals_repeated_action(x64, rng):
 def test_unrolled_substeps_equal_the_loop(options, rng):
     """`SimConfig.unroll_substeps` writes the substeps out instead of looping over them: the same states over a
     rollout, and the same gradient w.r.t. the commands, in float32 (to 1e-5: XLA may fuse the arithmetic
-    differently); None, the per-device default, loops on the CPU."""
+    differently); by default a loop; None, the per-device choice, loops on the CPU only."""
     base = jd.SimConfig(sim_freq=240, ctrl_freq=80, **options)  # 3 substeps (the envs' 8 take longer to compile)
-    assert base.unroll_substeps is None and base.substep_unroll == (1 if jax.default_backend() == "cpu" else 3)
+    assert base.unroll_substeps is False and base.substep_unroll == 1
+    per_device = dataclasses.replace(base, unroll_substeps=None)
+    assert per_device.substep_unroll == (1 if jax.default_backend() == "cpu" else 3)
     params = jd.load_params("cf2x")
     d = base.n_drones
     state = jd.init_state(

@@ -101,3 +101,33 @@ def test_nothing_is_cached_where_jax_does_not_start_at_all(cache_dir, monkeypatc
     monkeypatch.setattr(_xla, "_probe", lambda *flag_sets: [False] * len(flag_sets))
     assert _xla.accepted(_xla.CLI_FLAGS) == ()
     assert not os.path.exists(_xla.cache_file())
+
+
+def test_cli_flags_go_where_jax_compiles_for_the_cpu(tmp_path, monkeypatch):
+    """The XLA:CPU flags are added where the CPU is asked for (``--device`` or ``JAX_PLATFORMS``), or where no
+    accelerator's plugin is installed; an installed CUDA plugin, or a GPU asked for, keeps them out."""
+    import importlib.util
+    import types
+
+    monkeypatch.delenv("JAX_PLATFORMS", raising=False)
+    assert _xla.compiles_for_cpu("cpu") and not _xla.compiles_for_cpu("gpu") and not _xla.compiles_for_cpu("tpu")
+    monkeypatch.setenv("JAX_PLATFORMS", "cuda,cpu")
+    assert not _xla.compiles_for_cpu() and _xla.compiles_for_cpu("cpu")
+    monkeypatch.setenv("JAX_PLATFORMS", "cpu")
+    assert _xla.compiles_for_cpu() and not _xla.compiles_for_cpu("gpu")
+    monkeypatch.delenv("JAX_PLATFORMS")
+    jaxlib_library = os.path.join(os.path.dirname(jaxlib.__file__), "libjax_common.so")
+    plugins = tmp_path / "jax_plugins"
+    find_spec = importlib.util.find_spec
+
+    def with_plugins(name, *args):
+        if name == "jax_plugins":
+            return types.SimpleNamespace(submodule_search_locations=[str(plugins)])
+        return None if name == "libtpu" else find_spec(name, *args)
+
+    monkeypatch.setattr(importlib.util, "find_spec", with_plugins)
+    monkeypatch.setattr(_xla, "xla_libraries", lambda: (jaxlib_library,))
+    assert _xla.compiles_for_cpu()  # jaxlib's own library compiles for the CPU
+    cuda = str(plugins / "xla_cuda13" / "xla_cuda_plugin.so")
+    monkeypatch.setattr(_xla, "xla_libraries", lambda: (jaxlib_library, cuda))
+    assert not _xla.compiles_for_cpu() and _xla.compiles_for_cpu("cpu")

@@ -46,8 +46,9 @@ def main(argv: list[str] | None = None) -> int:
     t_start = process_start() if argv is None else time.perf_counter()
     from jaxdrones import _xla
 
-    _xla.add_flags(_xla.CLI_FLAGS)  # before JAX starts a backend
     args = build_parser().parse_args(argv)
+    if _xla.compiles_for_cpu(getattr(args, "device", None)):
+        _xla.add_flags(_xla.CLI_FLAGS)  # before JAX starts a backend
     args.t_start = t_start
     return int(args.func(args) or 0)
 

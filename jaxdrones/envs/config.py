@@ -111,7 +111,7 @@ class TaskConfig:
         adjoint: reverse-mode derivatives of the physics through its hand-written adjoint (`SimConfig.adjoint`;
             default True); False for forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``) through ``step``.
         unroll_substeps: the physics substeps of a control step unrolled in the compiled program
-            (`SimConfig.unroll_substeps`): None (default) on a GPU or TPU and not on the CPU, or True / False.
+            (`SimConfig.unroll_substeps`): False (default, a loop), True, or None (unrolled on a GPU or TPU only).
         reward: ``"shaped"`` (the task's shaped reward) or ``"paper"`` (the original's reward).
         init_pos: f[D, 3] m, fixed start positions (the original's ``initial_xyzs``): they override the random
             start ranges; the drones start at rest and level (unless ``init_rpy`` is given).
@@ -180,7 +180,7 @@ class TaskConfig:
     downwash: bool | str = False
     kinks: Any = "exact"
     adjoint: bool = True
-    unroll_substeps: bool | None = None
+    unroll_substeps: bool | None = False
     reward: str = "shaped"
     init_pos: Any = None
     init_rpy: Any = None
