@@ -59,6 +59,11 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="aerodynamic effects: on = drag, ground effect and downwash (a no-op with one drone)",
     )
     parser.add_argument("--integrator", choices=("euler", "rk4"), default="euler")
+    parser.add_argument(
+        "--unroll-substeps",
+        action="store_true",
+        help="write the substeps out in the compiled step (SimConfig.unroll_substeps=True; default: a loop)",
+    )
     parser.add_argument("--sim-freq", type=int, default=240, help="physics rate, Hz")
     parser.add_argument("--ctrl-freq", type=int, default=48, help="control rate, Hz (sim_freq/ctrl_freq substeps)")
     parser.add_argument(
@@ -144,6 +149,7 @@ def measure(jax, jd, args, n_worlds: int, n_drones: int, effects_on: bool) -> di
         ground_effect=effects_on,
         downwash=effects_on,
         integrator=args.integrator,
+        unroll_substeps=args.unroll_substeps,
     )
     substeps = config.n_substeps
     steps = args.steps or int(np.clip(TARGET_DRONE_STEPS // (n_worlds * n_drones * substeps), 2, 2000))
