@@ -1,8 +1,13 @@
-"""Stable-Baselines3 PPO on the gymnasium hover env: env steps, wall time and final distance to the target.
+"""Stable-Baselines3 (or sbx) PPO on the hover env: env steps, wall time and final distance to the target.
 
-SB3's PPO with its default hyperparameters trains ``jaxdrones/Hover-v0`` through SB3's own
-``make_vec_env(id, n_envs=4, env_kwargs=...)`` (a ``DummyVecEnv`` of four gymnasium envs, each a `GymnasiumEnv`
-stepping one world). Training stops at checkpoints (every ``--eval-every`` env steps) to evaluate the
+``--vec make_vec_env`` (default): SB3's PPO with its default hyperparameters trains ``jaxdrones/Hover-v0`` through
+SB3's own ``make_vec_env(id, n_envs=4, env_kwargs=...)`` (a ``DummyVecEnv`` of four gymnasium envs, each a
+`GymnasiumEnv` stepping one world). ``--vec jaxdrones``: PPO trains on `jaxdrones.adapters.sb3.VecEnv` (all
+``--n-envs`` worlds, default 256, in one jitted call per step, wrapped in SB3's ``VecMonitor``), with rollouts of
+``--n-steps`` (default 32) and minibatches of ``--batch-size`` (default 256), SB3's other defaults.
+``--algo sbx`` takes sbx's PPO (JAX) instead of SB3's (torch). ``--baseline-steps N`` first times SB3's PPO
+(default hyperparameters) on ``make_vec_env`` with 8 envs for N env steps in the same process, for the env-steps/s
+of both routes side by side. Training stops at checkpoints (every ``--eval-every`` env steps) to evaluate the
 deterministic policy on ``--eval-episodes`` episodes of a separate env, the final distance to the target being
 ``info["distance"]`` at the last step of each episode. Every checkpoint is printed and the JSON file is rewritten,
 so a run that is stopped early keeps what it reached.
@@ -19,6 +24,8 @@ with 2 threads and no JAX, 5.1 s with 1 thread and JAX, 3.2 s with 1 thread and 
 
     python benchmarks/sb3_hover.py --action-type one_d_rpm --steps 200000      # the paper's 1-D hover
     python benchmarks/sb3_hover.py --action-type rpm --steps 1000000 --eval-every 250000   # the default 3-D task
+    python benchmarks/sb3_hover.py --vec jaxdrones --steps 300000 --baseline-steps 16384  # batched, beside SB3's
+    python benchmarks/sb3_hover.py --vec jaxdrones --algo sbx --steps 300000 --baseline-steps 16384
 
 Needs the ``sb3`` extra: ``pip install torch==2.13.0 && pip install -e ".[sb3]"``.
 """
@@ -82,7 +89,18 @@ def main(argv: list[str] | None = None) -> int:
         "--eval-every", type=int, default=None, help="env steps between evaluations (default: only at the end)"
     )
     parser.add_argument("--eval-episodes", type=int, default=10, help="evaluation episodes (default 10)")
-    parser.add_argument("--n-envs", type=int, default=4, help="envs of make_vec_env (default 4)")
+    parser.add_argument(
+        "--vec", choices=("make_vec_env", "jaxdrones"), default="make_vec_env", help="the vectorised env (see above)"
+    )
+    parser.add_argument("--algo", choices=("sb3", "sbx"), default="sb3", help="SB3's PPO (torch) or sbx's (JAX)")
+    parser.add_argument(
+        "--n-envs", type=int, default=None, help="envs of make_vec_env (default 4) or worlds of VecEnv (default 256)"
+    )
+    parser.add_argument("--n-steps", type=int, default=None, help="PPO's rollout per env (default: 2048 / 32)")
+    parser.add_argument("--batch-size", type=int, default=None, help="PPO's minibatch (default: 64 / 256)")
+    parser.add_argument(
+        "--baseline-steps", type=int, default=0, help="first time make_vec_env(8) with SB3's PPO for this many steps"
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of PPO and of the envs (default 0)")
     parser.add_argument(
         "--torch-threads", type=int, default=1, help="torch intra-op threads (default 1; 0: torch's default)"
@@ -92,20 +110,53 @@ def main(argv: list[str] | None = None) -> int:
 
     import stable_baselines3
     import torch
-    from stable_baselines3 import PPO
+    from stable_baselines3 import PPO as SB3PPO
     from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from jaxdrones.adapters.sb3 import VecEnv
 
     if args.torch_threads > 0:
         torch.set_num_threads(args.torch_threads)
     env_kwargs = {"action_type": args.action_type}
     if args.obs_type:
         env_kwargs["obs_type"] = args.obs_type
-    out = args.out or os.path.join(HERE, "results", f"sb3_hover_{args.action_type}.json")
+    batched = args.vec == "jaxdrones"
+    suffix = f"_{args.vec}_{args.algo}" if batched or args.algo != "sb3" else ""
+    out = args.out or os.path.join(HERE, "results", f"sb3_hover_{args.action_type}{suffix}.json")
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
 
+    baseline = None
+    if args.baseline_steps:
+        venv = make_vec_env(ENV_ID, n_envs=8, seed=args.seed, env_kwargs=env_kwargs)
+        model = SB3PPO("MlpPolicy", venv, seed=args.seed, device="cpu")
+        t = time.perf_counter()
+        model.learn(args.baseline_steps)
+        seconds = time.perf_counter() - t
+        baseline = {"vec": "make_vec_env(8)", "algo": "sb3 PPO defaults", "env_steps": int(model.num_timesteps)}
+        baseline |= {"train_wall_s": seconds, "env_steps_per_s": model.num_timesteps / seconds}
+        venv.close()
+        print(
+            f"baseline: SB3 PPO on make_vec_env(8): {model.num_timesteps:,} steps in {seconds:.1f} s "
+            f"({model.num_timesteps / seconds:,.0f} steps/s, first rollout's compilation included)",
+            flush=True,
+        )
+
+    if args.algo == "sbx":
+        from sbx import PPO
+
+        algo_kwargs = {}
+    else:
+        PPO, algo_kwargs = SB3PPO, {"device": "cpu"}
     t0 = time.perf_counter()
-    venv = make_vec_env(ENV_ID, n_envs=args.n_envs, seed=args.seed, env_kwargs=env_kwargs)
-    model = PPO("MlpPolicy", venv, seed=args.seed, device="cpu")  # SB3's default hyperparameters
+    if batched:
+        venv = VecMonitor(VecEnv("hover", num_envs=args.n_envs or 256, **env_kwargs))
+        venv.seed(args.seed)
+        algo_kwargs |= {"n_steps": args.n_steps or 32, "batch_size": args.batch_size or 256}
+    else:
+        venv = make_vec_env(ENV_ID, n_envs=args.n_envs or 4, seed=args.seed, env_kwargs=env_kwargs)
+        algo_kwargs |= {"n_steps": args.n_steps or 2048, "batch_size": args.batch_size or 64}  # SB3's defaults
+    model = PPO("MlpPolicy", venv, seed=args.seed, **algo_kwargs)
     rollout = model.n_steps * venv.num_envs
     total = args.steps // rollout * rollout
     every = total if args.eval_every is None else max(args.eval_every // rollout, 1) * rollout
@@ -117,9 +168,11 @@ def main(argv: list[str] | None = None) -> int:
         "command": "python benchmarks/sb3_hover.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "env_id": ENV_ID,
         "env_kwargs": env_kwargs,
+        "vec": "jaxdrones.adapters.sb3.VecEnv" if batched else "make_vec_env",
         "n_envs": venv.num_envs,
         "seed": args.seed,
-        "algorithm": "PPO (stable-baselines3 defaults, MlpPolicy)",
+        "algorithm": f"PPO ({'sbx' if args.algo == 'sbx' else 'stable-baselines3'}, MlpPolicy, the settings below)",
+        "baseline": baseline,
         "ppo": {
             "n_steps": model.n_steps,
             "batch_size": model.batch_size,
@@ -132,6 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         "versions": {
             "python": platform.python_version(),
             "stable_baselines3": stable_baselines3.__version__,
+            "sbx": __import__("sbx").__version__ if args.algo == "sbx" else None,
             "torch": torch.__version__,
             "gymnasium": gym.__version__,
             "jaxdrones": jaxdrones.__version__,
@@ -146,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
         "checkpoints": [],
     }
     print(
-        f"SB3 PPO on {ENV_ID} {env_kwargs}, {venv.num_envs} envs, {total:,} env steps "
+        f"{args.algo} PPO on {result['vec']} {env_kwargs}, {venv.num_envs} envs, {total:,} env steps "
         f"(rollouts of {rollout}), evaluations at {[f'{c:,}' for c in checkpoints]}",
         flush=True,
     )

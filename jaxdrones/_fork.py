@@ -20,7 +20,11 @@ FORK_HELP = (
     "SuperSuit: concat_vec_envs_v1(env, n, num_cpus=0, ...) (every copy in this process), or call "
     "multiprocessing.set_start_method('spawn') first thing under `if __name__ == '__main__':`; "
     "gymnasium: gymnasium.make_vec(id, num_envs=N, vectorization_mode='vector_entry_point') (all worlds in one "
-    "jitted call), or vectorization_mode='async' with vector_kwargs={'context': 'spawn'}"
+    "jitted call), or vectorization_mode='async' with vector_kwargs={'context': 'spawn'}; "
+    "Tianshou: venv_type=VectorEnvType.DUMMY (tianshou.highlevel.env; its examples' env factories fork by default), "
+    "or DummyVectorEnv instead of SubprocVectorEnv; "
+    "Stable-Baselines3: jaxdrones.adapters.sb3.VecEnv(task, num_envs=N) (all worlds in one jitted call), or "
+    "SubprocVecEnv(env_fns, start_method='spawn')"
 )
 
 _forked_after_jax = False

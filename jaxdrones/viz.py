@@ -5,9 +5,9 @@ cameras.
 obstacles and gates, and the onboard camera images when the env has cameras) with viser's scene serializer and
 writes viser's static client with the recording embedded: one ``.html`` file that opens from ``file://`` with no
 server and no network, with play/pause, a time slider, playback speed, trails behind the drones and a 3D view to
-orbit. It needs viser (``pip install "jaxdrones[viewer]"``; viser's ``ViserServer.get_scene_serializer`` and
-``StateSerializer.as_html``, https://viser.studio): the scene is built in a viser server bound to localhost, which
-no client ever joins, and recorded message by message.
+orbit. It needs viser (the ``viewer`` extra: ``pip install ".[viewer]"`` from a clone; viser's
+``ViserServer.get_scene_serializer`` and ``StateSerializer.as_html``, https://viser.studio): the scene is built in
+a viser server bound to localhost, which no client ever joins, and recorded message by message.
 
 `write_video` draws the same flight from a chase or fixed camera with the JAX ray caster
 (`jaxdrones.cameras.render`, no PyBullet) and writes a GIF or MP4 (`jaxdrones.video.VideoWriter`).
@@ -46,8 +46,8 @@ View = tuple[Sequence[float], Sequence[float]]
 #: Colours: (r, g, b) triples in 0-255.
 Colors = Sequence[Sequence[float]]
 
-#: The pip extra that brings viser (the HTML viewer's only optional dependency).
-VIEWER_EXTRA = "jaxdrones[viewer]"
+#: What installs viser (the HTML viewer's only optional dependency): the ``viewer`` extra, from a clone of the project.
+VIEWER_INSTALL = 'pip install ".[viewer]" from a clone of jaxdrones, or pip install viser "websockets<17"'
 #: Drone colours (RGB 0-255), cycled over the drones of a world: distinct hues that stand out on a white scene.
 DRONE_COLORS = (
     (31, 119, 180),
@@ -72,7 +72,7 @@ def _viser():
     try:
         import viser
     except ModuleNotFoundError as err:
-        raise ModuleNotFoundError(f'the flight viewer needs viser: pip install "{VIEWER_EXTRA}"', name="viser") from err
+        raise ModuleNotFoundError(f"the flight viewer needs viser: {VIEWER_INSTALL}", name="viser") from err
     return viser
 
 
@@ -436,7 +436,7 @@ def write_html(
 
     Raises:
         TypeError: ``flight`` is not a `Flight`.
-        ModuleNotFoundError: viser is not installed (``pip install "jaxdrones[viewer]"``).
+        ModuleNotFoundError: viser is not installed (`VIEWER_INSTALL`).
         FileExistsError: ``path`` exists and not ``overwrite``.
         ValueError: a bad option (a negative trail, a frame rate or scale that is not positive, a camera that is not
             two points, colours that are not RGB triples).

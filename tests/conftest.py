@@ -52,7 +52,7 @@ FAST_MODULES = frozenset(
     }
 )
 #: Markers that keep a test out of the ``fast`` tier.
-NOT_FAST = ("slow", "pybullet", "torch", "ros2")
+NOT_FAST = ("slow", "pybullet", "torch", "tianshou", "ros2")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -1,7 +1,7 @@
-"""Optional packages of the suite: pybullet and torch, which the test extra installs on Python 3.11 only.
+"""Optional packages of the suite: pybullet, torch and Tianshou, which the test extra installs on Python 3.11 only.
 
-Tests that need one are marked ``pybullet`` or ``torch`` (skipped by ``conftest.py`` where it is missing); a test
-module that imports one at its top calls `needs` first.
+Tests that need one are marked ``pybullet``, ``torch`` or ``tianshou`` (skipped by ``conftest.py`` where it is
+missing); a test module that imports one at its top calls `needs` first.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ MISSING = {
     f"it on 3.11 only; {PYBULLET_INSTALL}",
     "torch": "torch is not installed: PyPI's torch for Python >= 3.12 on Linux is a CUDA build of several GB, so "
     "the test extra installs torch and stable-baselines3 on 3.11 only (the CPU build)",
+    "tianshou": "tianshou is not installed: it needs torch, which the test extra installs on Python 3.11 only",
 }
 
 

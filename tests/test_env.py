@@ -449,6 +449,7 @@ def test_brax_rejects_randomization_fn():
     "name, overrides, message",
     [
         ("flyaway", {}, "unknown task 'flyaway'"),
+        ("hovr", {}, r"unknown task 'hovr' \(did you mean 'hover'\?\)"),
         ("hover", {"action_type": "warp"}, "unknown action_type 'warp'"),
         ("hover", {"obs_type": "lidar"}, "unknown obs_type 'lidar'"),
         ("hover", {"n_drones": 2}, "hover: n_drones must be exactly 1"),

@@ -92,6 +92,64 @@ def test_vector_env_steps_all_worlds_with_next_step_autoreset():
         vec.step(np.zeros((n - 1, 4), np.float32))
 
 
+def test_vector_env_same_step_autoreset_returns_the_final_observation():
+    """``autoreset_mode="same_step"``: the step that ends an episode returns the next episode's first observation
+    and the ended one's last in ``infos["final_obs"]`` (masked by ``_final_obs``), as gymnasium's SyncVectorEnv
+    does in that mode; the reward and flags are those of the ended episode's last step."""
+    n, length = 4, 6
+    kwargs = dict(num_envs=n, vectorization_mode="vector_entry_point", episode_len_s=0.2)
+    vec = gym.make_vec("jaxdrones/Hover-v0", autoreset_mode="same_step", **kwargs)
+    nxt = gym.make_vec("jaxdrones/Hover-v0", **kwargs)
+    assert vec.metadata["autoreset_mode"] == gym.vector.AutoresetMode.SAME_STEP
+    obs, _ = vec.reset(seed=1)
+    np.testing.assert_array_equal(obs, nxt.reset(seed=1)[0])
+    action = np.zeros((n, 4), np.float32)
+    for k in range(length):
+        obs, reward, terminated, truncated, info = vec.step(action)
+        last_obs, last_reward, *_ = nxt.step(action)
+        assert info["_final_obs"].tolist() == [k == length - 1] * n
+    assert truncated.all() and not terminated.any()
+    np.testing.assert_allclose(info["final_obs"], last_obs, rtol=1e-6)  # the ended episode's last observation
+    np.testing.assert_allclose(reward, last_reward, rtol=1e-6)
+    assert not np.allclose(obs, last_obs)
+    assert info["final_info"]["distance"].shape == (n,)
+    # The next episode's first observation: what the next-step env returns one step later.
+    np.testing.assert_allclose(obs, nxt.step(action)[0], rtol=1e-6)
+    obs, reward, terminated, truncated, info = vec.step(action)
+    assert not info["_final_obs"].any() and not (terminated | truncated).any() and np.all(reward != 0)
+    with pytest.raises(ValueError, match="autoreset_mode must be one of"):
+        gym.make_vec("jaxdrones/Hover-v0", num_envs=2, vectorization_mode="vector_entry_point", autoreset_mode="x")
+
+
+def test_vector_env_call_get_attr_set_attr_as_sync_vector_env():
+    """`call`, `get_attr` and `set_attr` give what gymnasium's SyncVectorEnv gives over single envs: one entry per
+    world (spaces of one world, the render mode, each world's frame for ``render``, the env's own attributes and
+    methods); set_attr sets the shared env's attribute, and refuses different values per world."""
+    n = 3
+    vec = gym.make_vec("jaxdrones/Hover-v0", n, vectorization_mode="vector_entry_point", render_mode="rgb_array")
+    sync = gym.make_vec("jaxdrones/Hover-v0", n, vectorization_mode="sync", render_mode="rgb_array")
+    vec.reset(seed=0)
+    sync.reset(seed=0)
+    for name in ("observation_space", "action_space", "render_mode"):
+        assert vec.get_attr(name) == sync.get_attr(name) and len(vec.get_attr(name)) == n
+    frames, sync_frames = vec.call("render"), sync.call("render")
+    assert len(frames) == n and all(f.shape == sync_frames[0].shape and f.dtype == np.uint8 for f in frames)
+    assert vec.get_attr("n_drones") == (1,) * n == sync.get_attr("unwrapped")[0].env.n_drones * (1,) * n
+    bounds = vec.call("action_bounds")
+    assert len(bounds) == n and bounds[0][0].shape == (1, 4)
+    vec.set_attr("user_note", "a")
+    vec.set_attr("user_note", ["b"] * n)
+    assert vec.get_attr("user_note") == ("b",) * n
+    with pytest.raises(ValueError, match="share one env"):
+        vec.set_attr("user_note", ["a", "b", "c"])
+    with pytest.raises(ValueError, match="expected one value or 3 values"):
+        vec.set_attr("user_note", ["a", "a"])
+    with pytest.raises(AttributeError):
+        vec.get_attr("no_such_attribute")
+    plain = gym.make_vec("jaxdrones/Hover-v0", num_envs=2, vectorization_mode="vector_entry_point")
+    assert plain.call("render") == (None, None)
+
+
 def test_sb3_style_keywords_pass_through():
     # SB3's make_vec_env calls gymnasium.make(id, render_mode=None, ...) for each env.
     env = gym.make("jaxdrones/Hover-v0", render_mode=None, action_type="one_d_rpm", ctrl_freq=48, model="cf2p")
@@ -103,6 +161,11 @@ def test_bad_options_name_what_was_expected():
         gym.make("jaxdrones/Hover-v0", action_type="warp")
     with pytest.raises(ValueError, match="num_envs must be a positive integer"):
         gym.make_vec("jaxdrones/Hover-v0", num_envs=0, vectorization_mode="vector_entry_point")
+    # The adapters' own keywords are among the suggestions.
+    with pytest.raises(ValueError, match="unknown option 'strict_action' \\(did you mean 'strict_actions'\\?\\)"):
+        gym.make("jaxdrones/Hover-v0", strict_action=True)
+    with pytest.raises(ValueError, match="did you mean 'autoreset_mode'"):
+        gym.make_vec("jaxdrones/Hover-v0", num_envs=2, vectorization_mode="vector_entry_point", autoreset=1)
 
 
 def test_image_observation_gives_policy_input_images():

@@ -106,6 +106,82 @@ def glob_one(directory, pattern):
     return found[0]
 
 
+#: Tianshou's PPO as its examples build it (examples/mujoco/mujoco_ppo.py, Tianshou 2.0.1, shortened): a main
+#: process's env for the spaces, training envs from factories, PPO with a probabilistic actor, one epoch of 4096
+#: steps. ``fork``: the examples' default vector env (SubprocVectorEnv, context "fork"); else DummyVectorEnv.
+TIANSHOU_PPO = """
+    import sys
+
+    import gymnasium as gym
+    import torch
+    from torch.distributions import Independent, Normal
+
+    import jaxdrones  # noqa: F401  (registers jaxdrones/Hover-v0)
+    from tianshou.algorithm import PPO
+    from tianshou.algorithm.modelfree.reinforce import ProbabilisticActorPolicy
+    from tianshou.algorithm.optim import AdamOptimizerFactory
+    from tianshou.data import Collector, CollectStats, VectorReplayBuffer
+    from tianshou.env import DummyVectorEnv, SubprocVectorEnv
+    from tianshou.trainer import OnPolicyTrainerParams
+    from tianshou.utils.net.common import Net
+    from tianshou.utils.net.continuous import ContinuousActorProbabilistic, ContinuousCritic
+
+    if __name__ == "__main__":
+        torch.set_num_threads(1)
+        env = gym.make("jaxdrones/Hover-v0", action_type="one_d_rpm")  # the main process's env, for the spaces
+        factories = [lambda: gym.make("jaxdrones/Hover-v0", action_type="one_d_rpm")] * 2
+        if sys.argv[1] == "fork":
+            training_envs = SubprocVectorEnv(factories, share_memory=True, context="fork")  # the examples' default
+        else:
+            training_envs = DummyVectorEnv(factories)
+        test_envs = DummyVectorEnv(factories)
+        shape = env.observation_space.shape
+        actor = ContinuousActorProbabilistic(
+            preprocess_net=Net(state_shape=shape, hidden_sizes=[64, 64], activation=torch.nn.Tanh),
+            action_shape=env.action_space.shape,
+            unbounded=True,
+        )
+        net = Net(state_shape=shape, hidden_sizes=[64, 64], activation=torch.nn.Tanh)
+        critic = ContinuousCritic(preprocess_net=net)
+        policy = ProbabilisticActorPolicy(
+            actor=actor,
+            dist_fn=lambda loc_scale: Independent(Normal(*loc_scale), 1),
+            action_scaling=True,
+            action_bound_method="clip",
+            action_space=env.action_space,
+        )
+        algorithm = PPO(policy=policy, critic=critic, optim=AdamOptimizerFactory(lr=3e-4))
+        result = algorithm.run_training(
+            OnPolicyTrainerParams(
+                training_collector=Collector[CollectStats](
+                    algorithm, training_envs, VectorReplayBuffer(2048, 2), exploration_noise=True
+                ),
+                test_collector=Collector[CollectStats](algorithm, test_envs),
+                max_epochs=1,
+                epoch_num_steps=4096,
+                collection_step_num_env_steps=2048,
+                update_step_num_repetitions=2,
+                test_step_num_episodes=2,
+                batch_size=64,
+                test_in_training=False,
+            )
+        )
+        print(f"trained {result.train_step} env steps, best test reward {result.best_reward:.1f}", flush=True)
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.tianshou
+def test_tianshou_ppo_trains_and_its_forked_workers_name_the_fix(tmp_path):
+    forked = run_script(tmp_path, TIANSHOU_PPO, "fork", timeout=180)
+    assert FORK_MESSAGE in forked.stderr
+    assert "VectorEnvType.DUMMY" in forked.stderr and "DummyVectorEnv" in forked.stderr
+    assert "trained" not in forked.stdout
+    dummy = run_script(tmp_path, TIANSHOU_PPO, "dummy", timeout=600)
+    assert dummy.returncode == 0, dummy.stderr[-3000:]
+    assert "trained 4096 env steps" in dummy.stdout
+
+
 ASYNC_VECTOR = """
     import sys
     import gymnasium as gym

@@ -25,9 +25,8 @@ from jaxdrones import viz
 from jaxdrones.scene import Obstacle
 from jaxdrones.viz import Flight
 
-needs_viser = pytest.mark.skipif(
-    not viz.viewer_available(), reason='viser is not installed (pip install "jaxdrones[viewer]")'
-)
+needs_viser = pytest.mark.skipif(not viz.viewer_available(), reason=f"viser is not installed ({viz.VIEWER_INSTALL})")
+DOCS = pathlib.Path(__file__).resolve().parents[1] / "docs"
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
 
 
@@ -148,7 +147,7 @@ def test_write_html_rejects_bad_options(tmp_path):
 
 def test_missing_viser_names_the_extra(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "viser", None)  # `import viser` raises ModuleNotFoundError
-    with pytest.raises(ModuleNotFoundError, match=re.escape('pip install "jaxdrones[viewer]"')):
+    with pytest.raises(ModuleNotFoundError, match=re.escape('pip install ".[viewer]" from a clone')):
         viz.write_html(tmp_path / "f.html", level(3, [[0, 0, 1]]))
     assert not (tmp_path / "f.html").exists()
 
@@ -159,7 +158,7 @@ def test_train_without_viser_prints_how_to_get_it(tmp_path, monkeypatch, capsys)
     monkeypatch.setattr(viz, "viewer_available", lambda: False)
     run._write_viewer(None, {"viewer": {}}, str(tmp_path))
     assert capsys.readouterr().out.strip() == (
-        'flight.html not written: the flight viewer needs viser (pip install "jaxdrones[viewer]")'
+        f"flight.html not written: the flight viewer needs viser ({viz.VIEWER_INSTALL})"
     )
     assert list(tmp_path.iterdir()) == []
 
@@ -482,6 +481,25 @@ def test_train_writes_flight_html_and_view_writes_a_run(tmp_path, capsys):
     assert "exists; pass --overwrite" in capsys.readouterr().err
     assert main(["view", str(tmp_path), "--out", str(tmp_path / "w.html")]) == 2  # no policy there
     assert "no saved policy" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@needs_viser
+def test_docs_train_then_view_lines_run_as_written(tmp_path):
+    """docs/viewer.md's ``jaxdrones train hover && jaxdrones view runs/hover --episodes 4``, in a fresh folder: the
+    view replaces the run's own flight.html (the training run wrote it) with the four episodes, exit status 0."""
+    line = re.search(r"^jaxdrones train hover && jaxdrones view .*$", (DOCS / "viewer.md").read_text(), re.M)
+    done = subprocess.run(
+        ["bash", "-c", line.group(0).replace("jaxdrones ", f"{sys.executable} -m jaxdrones.cli ")],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "wrote" in done.stdout and "4 evaluation episodes" in done.stdout
+    html = tmp_path / "runs" / "hover" / "flight.html"
+    assert html.stat().st_size > 100_000 and html.stat().st_mtime >= (html.parent / "summary.json").stat().st_mtime
 
 
 def test_flight_data_takes_the_newest_frame_of_a_stack():

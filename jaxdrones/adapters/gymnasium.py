@@ -40,16 +40,19 @@ from numpy.typing import ArrayLike
 try:
     from gymnasium.vector import AutoresetMode
 
-    _NEXT_STEP = AutoresetMode.NEXT_STEP
+    _NEXT_STEP, _SAME_STEP = AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP
 except ImportError:  # gymnasium < 1.1, where `GymnasiumVectorEnv` refuses to run
-    _NEXT_STEP = "next_step"
+    _NEXT_STEP, _SAME_STEP = "next_step", "same_step"
 
 from jaxdrones._fork import check_not_forked
 from jaxdrones.envs.base import Env, EnvState, world_axes
 from jaxdrones.envs.env import outside_box
-from jaxdrones.envs.registry import make, registered, subscribe
+from jaxdrones.envs.registry import check_options, make, registered, subscribe
 from jaxdrones.sensors.camera import ENV_IMAGES
 from jaxdrones.wrappers.autoreset import reset_where
+
+#: `GymnasiumVectorEnv`'s autoreset modes, by their names (gymnasium's ``AutoresetMode`` values).
+AUTORESET_MODES = {"next_step": _NEXT_STEP, "same_step": _SAME_STEP}
 
 #: The gymnasium releases the adapters need: `GymnasiumEnv` the reset/step API of 0.26 (tested with 0.29.1, the
 #: release CleanRL's main branch pins), `GymnasiumVectorEnv` the ``VectorEnv`` of 1.x with ``AutoresetMode`` (1.1).
@@ -353,15 +356,33 @@ class GymnasiumVectorEnv(VectorEnv):
 
     NumPy in and out: observations f32[N, ...] (the single space batched), actions f32[N, ...]; actions outside
     the action space are clipped as in `GymnasiumEnv` (``infos["clipped_actions"]`` i64[N] counts them per world;
-    ``strict_actions=True`` raises instead), NaN or inf ones raise a ``ValueError``. Autoreset follows gymnasium's
-    default (``AutoresetMode.NEXT_STEP``): the step after a world's episode ended resets it and returns its first
-    observation with reward 0. Each reset draws a fresh start, task params and (with ``randomize``) drone params
-    from the world's key. ``infos`` holds the metrics, arrays f[N].
+    ``strict_actions=True`` raises instead), NaN or inf ones raise a ``ValueError``. Each reset draws a fresh start,
+    task params and (with ``randomize``) drone params from the world's key. ``infos`` holds the metrics, arrays f[N].
+
+    Autoreset (``autoreset_mode``, gymnasium's ``AutoresetMode``): ``"next_step"`` (gymnasium's default): the step
+    after a world's episode ended resets it and returns its first observation with reward 0. ``"same_step"``: the
+    step that ends an episode returns the next episode's first observation, and the last one of the ended episode in
+    ``infos["final_obs"]`` (f32[N, ...], valid where ``infos["_final_obs"]`` bool[N] holds), with its metrics in
+    ``infos["final_info"]``; what Stable-Baselines3 expects (`jaxdrones.adapters.sb3.VecEnv` builds on it).
+
+    The worlds share one env (`Env`): `call`, `get_attr` and `set_attr` act on it as gymnasium's ``SyncVectorEnv``
+    acts on each sub-env, with a tuple of one entry per world (``call("render")``: each world's frame).
+
+    Raises:
+        ValueError: a ``num_envs`` below 1, an unknown ``render_mode`` or ``autoreset_mode``.
+        RuntimeError: gymnasium older than 1.1, or a process forked after JAX started.
     """
 
     metadata = {"autoreset_mode": _NEXT_STEP, "render_modes": list(RENDER_MODES)}
 
-    def __init__(self, env: Env, num_envs: int, render_mode: str | None = None, strict_actions: bool = False):
+    def __init__(
+        self,
+        env: Env,
+        num_envs: int,
+        render_mode: str | None = None,
+        strict_actions: bool = False,
+        autoreset_mode: str = "next_step",
+    ):
         if GYMNASIUM_VERSION < MIN_GYMNASIUM_VECTOR:
             raise RuntimeError(
                 f"jaxdrones' vector env needs gymnasium >= {'.'.join(map(str, MIN_GYMNASIUM_VECTOR))} "
@@ -372,8 +393,12 @@ class GymnasiumVectorEnv(VectorEnv):
         _check_render_mode(render_mode)
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if str(getattr(autoreset_mode, "value", autoreset_mode)) not in AUTORESET_MODES:
+            raise ValueError(f"autoreset_mode must be one of {list(AUTORESET_MODES)}, got {autoreset_mode!r}")
         check_not_forked()
-        self._init_args = (env, num_envs, render_mode, strict_actions)
+        self._init_args = (env, num_envs, render_mode, strict_actions, autoreset_mode)
+        self.autoreset_mode = AUTORESET_MODES[str(getattr(autoreset_mode, "value", autoreset_mode))]
+        self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
         self.env = env
         self.num_envs = int(num_envs)
         self.render_mode = render_mode
@@ -386,7 +411,9 @@ class GymnasiumVectorEnv(VectorEnv):
         self._shared_params = env.shared_params is not None
         self._axes = world_axes(self._shared_params)
         self._reset = jax.jit(jax.vmap(env.reset, out_axes=self._axes))
-        self._step = jax.jit(self._step_worlds, donate_argnums=0)
+        same = self.autoreset_mode == _SAME_STEP
+        self._step = jax.jit(self._step_same if same else self._step_worlds, donate_argnums=0)
+        self._final = None  # same_step: (obs, metrics) of the last step, before the ended worlds' reset
         self._state = None
         self._needs_reset = None
         self._key = None
@@ -399,6 +426,15 @@ class GymnasiumVectorEnv(VectorEnv):
         # Only the worlds whose episode ended at the last step are reset.
         out = reset_where(self.env, stepped, needs_reset, shared_params=self._shared_params)
         return out, out.done
+
+    def _step_same(self, state, action, needs_reset):
+        del needs_reset  # the ended worlds were reset in their last step
+        shape = (action.shape[0], self.env.n_drones, self.env.action_size)
+        step = jax.vmap(self.env.step, in_axes=(self._axes, 0), out_axes=self._axes)
+        stepped = step(state, action.reshape(shape).astype(state.sim.pos.dtype))
+        keep = ("reward", "terminated", "truncated", "metrics")
+        out = reset_where(self.env, stepped, stepped.done, keep=keep, shared_params=self._shared_params)
+        return out, (stepped.obs, stepped.metrics, stepped.done)
 
     def __reduce__(self):
         return type(self), self._init_args
@@ -423,14 +459,75 @@ class GymnasiumVectorEnv(VectorEnv):
             raise RuntimeError("call reset() before step()")
         actions = check_action(actions, self.single_action_space, (self.num_envs,), strict=self.strict_actions)
         was_reset = self._needs_reset
+        if self.autoreset_mode == _SAME_STEP:
+            self._state, self._final = self._step(self._state, actions, self._needs_reset)
+            self._show()
+            return self._step_results(np.zeros((self.num_envs,), bool))
         self._state, self._needs_reset = self._step(self._state, actions, self._needs_reset)
         self._show()
+        return self._step_results(np.asarray(was_reset))
+
+    def _step_results(self, reset: np.ndarray) -> tuple:
         s = self._state
-        reset = np.asarray(was_reset)
         reward = np.where(reset, 0.0, np.asarray(s.reward).reshape(self.num_envs, -1).sum(-1))
         terminated = np.asarray(s.terminated) & ~reset
         truncated = np.asarray(s.truncated) & ~reset
-        return self._obs(), reward.astype(np.float32), terminated, truncated, self._infos()
+        infos = self._infos()
+        if self.autoreset_mode == _SAME_STEP:
+            obs, metrics, ended = self._final
+            infos["final_obs"] = _to_numpy(obs, self.single_observation_space, self.env.n_drones == 1)
+            infos["_final_obs"] = np.asarray(ended)
+            infos["final_info"] = {k: np.asarray(v) for k, v in metrics.items()}
+            infos["_final_info"] = infos["_final_obs"]
+        return self._obs(), reward.astype(np.float32), terminated, truncated, infos
+
+    def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
+        """What each world's env gives for ``name``, as ``SyncVectorEnv.call`` (one entry per world): the world's
+        spaces (``observation_space``, ``action_space``), ``render_mode``, ``metadata``, ``spec``, its frame for
+        ``render`` (None unless ``render_mode="rgb_array"``), else the shared `Env`'s attribute, called with
+        ``args`` and ``kwargs`` if it is a method.
+
+        Raises:
+            AttributeError: the env has no attribute ``name``.
+        """
+        if name == "render":
+            if self.render_mode != "rgb_array" or self._state is None:
+                return (None,) * self.num_envs
+            return tuple(
+                render_frame(self.env, self._state, world=w, shared_params=self._shared_params)
+                for w in range(self.num_envs)
+            )
+        value = self._world_attr(name)
+        return (value(*args, **kwargs) if callable(value) else value,) * self.num_envs
+
+    def get_attr(self, name: str) -> tuple[Any, ...]:
+        """``name`` of each world's env (`call` without arguments)."""
+        return self.call(name)
+
+    def set_attr(self, name: str, values: Any) -> None:
+        """Set ``name`` on the env that the worlds share: one value, or a list or tuple of one per world, all equal.
+        The compiled step was traced before: what it reads (the config, params) does not change it.
+
+        Raises:
+            ValueError: a list or tuple of another length than ``num_envs``, or of different values.
+        """
+        if isinstance(values, (list, tuple)):
+            if len(values) != self.num_envs:
+                raise ValueError(f"set_attr: expected one value or {self.num_envs} values, got {len(values)}")
+            if any(v is not values[0] and v != values[0] for v in values[1:]):
+                raise ValueError(f"set_attr: the {self.num_envs} worlds share one env; give {name!r} one value")
+            values = values[0]
+        setattr(self.env, name, values)
+
+    def _world_attr(self, name: str) -> Any:
+        own = {
+            "observation_space": self.single_observation_space,
+            "action_space": self.single_action_space,
+            "render_mode": self.render_mode,
+            "metadata": self.metadata,
+            "spec": self.spec,
+        }
+        return own[name] if name in own else getattr(self.env, name)
 
     def render(self) -> np.ndarray | None:
         """An RGB frame of world 0 with ``render_mode="rgb_array"``; None otherwise (with ``"human"``, `reset`
@@ -463,17 +560,26 @@ class GymnasiumVectorEnv(VectorEnv):
 def make_env(task: str, render_mode: str | None = None, strict_actions: bool = False, **overrides: Any) -> GymnasiumEnv:
     """Entry point of ``gymnasium.make(GYM_IDS[task], **overrides)``; overrides are the task's config fields,
     ``strict_actions`` that of `GymnasiumEnv`."""
+    check_options(task, overrides, also=("render_mode", "strict_actions"))
     _check_render_mode(render_mode)
     return GymnasiumEnv(make(task, **overrides), render_mode=render_mode, strict_actions=strict_actions)
 
 
 def make_vector_env(
-    task: str, num_envs: int = 1, render_mode: str | None = None, strict_actions: bool = False, **overrides: Any
+    task: str,
+    num_envs: int = 1,
+    render_mode: str | None = None,
+    strict_actions: bool = False,
+    autoreset_mode: str = "next_step",
+    **overrides: Any,
 ) -> GymnasiumVectorEnv:
     """Vector entry point of ``gymnasium.make_vec(GYM_IDS[task], num_envs, vectorization_mode="vector_entry_point",
-    **overrides)``."""
+    **overrides)``; ``autoreset_mode`` (``"next_step"`` or ``"same_step"``) as in `GymnasiumVectorEnv`."""
+    check_options(task, overrides, also=("num_envs", "render_mode", "strict_actions", "autoreset_mode"))
     _check_render_mode(render_mode)
-    return GymnasiumVectorEnv(make(task, **overrides), num_envs, render_mode=render_mode, strict_actions=strict_actions)
+    return GymnasiumVectorEnv(
+        make(task, **overrides), num_envs, render_mode, strict_actions=strict_actions, autoreset_mode=autoreset_mode
+    )
 
 
 def gym_id(task: str) -> str:

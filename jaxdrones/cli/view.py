@@ -18,10 +18,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="write a training run's evaluation flights as one HTML file that plays offline",
         description="Fly the policy of a run of `jaxdrones train` for a few evaluation episodes on the JAX backend "
         "and write them as one self-contained HTML file (RUN/flight.html by default) that plays in a browser from "
-        'file://, with play/pause, a time slider and trails. Needs viser: pip install "jaxdrones[viewer]".',
+        "file://, with play/pause, a time slider and trails. Needs viser: "
+        'pip install ".[viewer]" from a clone of jaxdrones.',
     )
     parser.add_argument("run", help="a run folder of `jaxdrones train` (or its policy.pkl)")
-    parser.add_argument("--out", default=None, help="output file (default RUN/flight.html)")
+    parser.add_argument(
+        "--out", default=None, help="output file (default RUN/flight.html, the run's own, which it replaces)"
+    )
     parser.add_argument(
         "--episodes",
         type=int,
@@ -29,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help=f"evaluation episodes to fly and show (default {VIEW_EPISODES})",
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the episodes' random starts (default 0)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing file given by --out")
     parser.set_defaults(func=run_cli)
 
 
@@ -67,18 +70,19 @@ def view_run(
 
     Args:
         run: a run folder of ``jaxdrones train`` (or its ``policy.pkl``).
-        out: the HTML file (default ``RUN/flight.html``).
+        out: the HTML file (default ``RUN/flight.html``, the run's own viewer file, which ``jaxdrones train``
+            wrote: replaced by the new flights).
         n_episodes: episodes to fly (>= 1).
         seed: the seed of their random starts.
-        overwrite: replace an existing ``out``.
+        overwrite: replace an existing ``out`` given by the caller.
         **options: `jaxdrones.viz.write_html`'s options (``trail_s``, ``spacing``, ``camera``, ...).
 
     Returns:
         The path written.
 
     Raises:
-        ModuleNotFoundError: viser is not installed (``pip install "jaxdrones[viewer]"``).
-        FileExistsError: ``out`` exists and not ``overwrite`` (checked before flying).
+        ModuleNotFoundError: viser is not installed (`jaxdrones.viz.VIEWER_INSTALL`).
+        FileExistsError: an ``out`` given by the caller exists and not ``overwrite`` (checked before flying).
         ValueError: no policy at ``run``, or a bad option.
     """
     import jax
@@ -91,11 +95,13 @@ def view_run(
     if isinstance(n_episodes, bool) or not isinstance(n_episodes, numbers.Integral) or n_episodes < 1:
         raise ValueError(f"n_episodes must be an integer >= 1, got {n_episodes!r}")
     path, payload = read_payload(run)
-    out = os.path.join(os.path.dirname(path), "flight.html") if out is None else os.fspath(out)
+    own = out is None  # the run folder's own viewer file, written by `jaxdrones train`: made again from the policy
+    overwrite = overwrite or own
+    out = os.path.join(os.path.dirname(path), "flight.html") if own else os.fspath(out)
     if os.path.exists(out) and not overwrite:
         raise FileExistsError(17, "exists; pass overwrite=True to replace it", out)
     if not viz.viewer_available():
-        raise ModuleNotFoundError(f'the flight viewer needs viser: pip install "{viz.VIEWER_EXTRA}"', name="viser")
+        raise ModuleNotFoundError(f"the flight viewer needs viser: {viz.VIEWER_INSTALL}", name="viser")
     env = None
     if payload["env_overrides"].get("backend", "jax") != "jax":
         env = make(payload["env_name"], **{**payload["env_overrides"], "backend": "jax"})

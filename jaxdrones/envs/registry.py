@@ -4,10 +4,10 @@ what follows each new task (the gymnasium adapter registers its id)."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
-from jaxdrones._hints import unknown_option
+from jaxdrones._hints import did_you_mean, unknown_option
 from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.env import TaskEnv
 from jaxdrones.envs.task import Task
@@ -39,7 +39,8 @@ def get_task(name: str) -> Task:
         ValueError: unknown name.
     """
     if name not in _REGISTRY:
-        raise ValueError(f"unknown task {name!r}: expected one of {registered()}")
+        hint = did_you_mean(name, registered()) if isinstance(name, str) else ""
+        raise ValueError(f"unknown task {name!r}{hint}: expected one of {registered()}")
     return _REGISTRY[name]
 
 
@@ -50,15 +51,27 @@ def make_config(name: str, **overrides: Any) -> TaskConfig:
         ValueError: unknown task or option, or an invalid value.
     """
     task = get_task(name)
+    check_options(name, overrides)
     fields = {f.name for f in dataclasses.fields(task.config_cls)}
     options = {k: overrides.pop(k) for k in list(overrides) if k in REALISM_OPTIONS and k not in fields}
-    unknown = sorted(set(overrides) - fields)
-    if unknown:
-        raise ValueError(unknown_option(name, unknown[0], fields | REALISM_OPTIONS))
     if options:  # a realism option given alone: on top of the preset (or of none)
         realism = resolve_realism(overrides.get("realism"))
         overrides["realism"] = dataclasses.replace(realism or Realism(), **options)
     return task.config_cls(**overrides)
+
+
+def check_options(name: str, options: Iterable[str], also: Iterable[str] = ()) -> None:
+    """Raise for an option of ``options`` that is neither a field of the task ``name``'s config nor a `Realism` field
+    nor one of ``also`` (a caller's own keywords, e.g. an adapter's ``strict_actions``), naming the closest valid
+    one (`jaxdrones._hints.unknown_option`).
+
+    Raises:
+        ValueError: an unknown task or option.
+    """
+    fields = {f.name for f in dataclasses.fields(get_task(name).config_cls)} | REALISM_OPTIONS | set(also)
+    unknown = sorted(set(options) - fields)
+    if unknown:
+        raise ValueError(unknown_option(name, unknown[0], fields))
 
 
 def make(name: str, **overrides: Any) -> TaskEnv:

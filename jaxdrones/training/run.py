@@ -315,7 +315,7 @@ def _write_viewer(env, evaluation: dict | None, out: str) -> None:
     if evaluation is None:
         return
     if not viz.viewer_available():
-        print(f'flight.html not written: the flight viewer needs viser (pip install "{viz.VIEWER_EXTRA}")')
+        print(f"flight.html not written: the flight viewer needs viser ({viz.VIEWER_INSTALL})")
         return
     flight = viz.Flight.from_data(env, evaluation["viewer"], time_axis=1)
     viz.write_html(os.path.join(out, "flight.html"), flight, overwrite=True)
