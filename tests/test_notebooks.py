@@ -34,6 +34,8 @@ EXPECTED_OUTPUT = {
         r"SB3 check_env: passed",
         r"trained 8,192 env steps in [\d.]+ s",  # one PPO rollout: n_steps 2048 x 4 envs
         r"mean final distance to target over 10 episodes: [\d.]+ cm",
+        r"VecEnv: trained 8,192 env steps in [\d.]+ s",  # one rollout: n_steps 32 x 256 worlds
+        r"VecEnv: mean final distance to target over 64 episodes: [\d.]+ cm",
     ],
     "03_gradients.ipynb": [
         r"training budget: 20,000 env steps",
