@@ -487,7 +487,8 @@ def test_train_writes_flight_html_and_view_writes_a_run(tmp_path, capsys):
 @needs_viser
 def test_docs_train_then_view_lines_run_as_written(tmp_path):
     """docs/viewer.md's ``jaxdrones train hover && jaxdrones view runs/hover --episodes 4``, in a fresh folder: the
-    view replaces the run's own flight.html (the training run wrote it) with the four episodes, exit status 0."""
+    view replaces the run's own flight.html (the training run wrote it) with the four episodes, exit status 0, and
+    the page loads its recording in a browser."""
     line = re.search(r"^jaxdrones train hover && jaxdrones view .*$", (DOCS / "viewer.md").read_text(), re.M)
     done = subprocess.run(
         ["bash", "-c", line.group(0).replace("jaxdrones ", f"{sys.executable} -m jaxdrones.cli ")],
@@ -500,6 +501,12 @@ def test_docs_train_then_view_lines_run_as_written(tmp_path):
     assert "wrote" in done.stdout and "4 evaluation episodes" in done.stdout
     html = tmp_path / "runs" / "hover" / "flight.html"
     assert html.stat().st_size > 100_000 and html.stat().st_mtime >= (html.parent / "summary.json").stat().st_mtime
+    if CHROMIUM is None:
+        pytest.skip("the page in a browser: chromium is not installed (Debian: apt-get install chromium)")
+    page = browse(html.resolve().as_uri())
+    assert page["errors"] == [], page["errors"]
+    assert any("Embedded data loaded" in line for line in page["logs"]), page["logs"]
+    assert max(w * h for _, _, w, h in page["canvases"]) > 300 * 300
 
 
 def test_flight_data_takes_the_newest_frame_of_a_stack():
