@@ -473,6 +473,29 @@ def test_presets_and_options():
     assert jd.make("hover").config.realism is None
 
 
+def test_motors_start_turning_where_they_have_dynamics():
+    """With the preset's motor lag an episode starts with each drone's motors at its hover RPM: from a level start at
+    rest (the preset's random force off), ten control steps at the hover action lose no height, where stopped motors
+    (``start_rpm="zero"``, a take-off from rest) sink the drone tens of cm while they spin up. Without motor
+    dynamics the state's RPM starts at 0, as in the paper's physics."""
+
+    def height_lost(**options):
+        env = jd.make("hover", realism="crazyflie", init_pos=[[0.0, 0.0, 1.0]], disturbance_force=0.0, **options)
+        state = env.reset(jax.random.key(0))
+        hover = jnp.zeros((1, env.action_size))
+        end = jax.jit(lambda s: jax.lax.fori_loop(0, 10, lambda _, s: env.step(s, hover), s))(state)
+        return state, float(state.sim.pos[0, 2] - end.sim.pos[0, 2])
+
+    state, lost = height_lost()
+    np.testing.assert_allclose(state.sim.rpm, np.broadcast_to(state.params.hover_rpm[:, None], (1, 4)), rtol=1e-6)
+    assert abs(lost) < 0.01
+    state, lost = height_lost(start_rpm="zero")
+    assert np.all(state.sim.rpm == 0) and lost > 0.2
+    assert np.all(jd.make("hover").reset(jax.random.key(0)).sim.rpm == 0)
+    with pytest.raises(ValueError, match="unknown start_rpm 'idle'"):
+        jd.make("hover", start_rpm="idle")
+
+
 @pytest.mark.parametrize(
     "options, match",
     [

@@ -170,6 +170,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "1 rad/s and is evaluated from its own 0.1)",
     )
     env.add_argument(
+        "--start-rpm",
+        choices=("hover", "zero"),
+        default=None,
+        help="the motors' speeds at an episode's start where they have dynamics (--realism): hover (default) or "
+        "zero (a take-off from stopped motors)",
+    )
+    env.add_argument(
         "--realism",
         default=None,
         metavar="PRESET",
@@ -249,6 +256,7 @@ _ENV_OPTIONS = {
     "start_yaw": "start_yaw",
     "start_vel": "start_vel",
     "start_ang_vel": "start_ang_vel",
+    "start_rpm": "start_rpm",
     "max_neighbors": "max_neighbors",
     "downwash_radius": "downwash_radius",
     "drag": "drag",

@@ -32,6 +32,8 @@ from jaxdrones.sim import SimConfig
 VISION = tuple(ENV_IMAGES)
 #: Reward variants: ``"shaped"`` (ours, for fast RL) and ``"paper"`` (the original's).
 REWARDS = ("shaped", "paper")
+#: The motors' speeds at an episode's start where they have dynamics (`TaskConfig.start_rpm`).
+START_RPMS = ("hover", "zero")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -122,6 +124,12 @@ class TaskConfig:
         start_yaw: half-width of the random start yaw, rad (None: the task's default).
         start_vel: half-width of each random start velocity component, m/s (None: the task's default).
         start_ang_vel: half-width of each random start body-rate component, rad/s (None: the task's default).
+        start_rpm: the motors' speeds at an episode's start where they have dynamics (a ``realism`` with motor time
+            constants: `SimConfig.motor_dynamics`): ``"hover"`` (default), each drone's hover RPM with its episode's
+            params (``DroneParams.hover_rpm``), as a flying Crazyflie's motors spin when a controller takes over;
+            ``"zero"``, stopped motors (a take-off from rest: at the hover action the drone first sinks while they
+            spin up). Without motor dynamics each command is reached within a substep and the state's ``rpm`` starts
+            at 0 either way (the paper's physics).
         arena_xy: an episode terminates when a drone's |x| or |y| exceeds this, m.
         arena_z: ... or its z exceeds this, m.
         max_tilt: ... or its tilt exceeds this, rad.
@@ -189,6 +197,7 @@ class TaskConfig:
     start_yaw: float | None = None
     start_vel: float | None = None
     start_ang_vel: float | None = None
+    start_rpm: str = "hover"
     arena_xy: float = 1.5
     arena_z: float = 2.5
     max_tilt: float = math.pi / 2
@@ -212,6 +221,7 @@ class TaskConfig:
         _check_choice("obs_type", self.obs_type, OBS_TYPES)
         _check_choice("reward", self.reward, REWARDS)
         _check_choice("pid_target", self.pid_target, PID_TARGETS)
+        _check_choice("start_rpm", self.start_rpm, START_RPMS)
         for name in ("action_buffer", "terminate_on_ground"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")

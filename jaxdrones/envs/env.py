@@ -250,6 +250,8 @@ class TaskEnv(Env):
         task = self.task.sample(cfg, self.default_task_params() if task is None else task, k_task)
         params = cfg.randomize.sample(k_params, self.params) if cfg.randomize is not None else self.params
         sim = sample_start(k_start, task.start, self.dtype)
+        if self.sim_config.motor_dynamics and cfg.start_rpm == "hover":  # the motors already turning (start_rpm)
+            sim = sim.replace(rpm=jnp.broadcast_to(params.hover_rpm[..., None], sim.rpm.shape).astype(self.dtype))
         history = jnp.zeros((cfg.n_drones, self.obs_type.buffer_len, self.action_size), self.dtype)
         steps = jnp.zeros((), jnp.int32)
         realism, seen = None, sim
