@@ -413,7 +413,7 @@ class GymnasiumVectorEnv(VectorEnv):
         self._reset = jax.jit(jax.vmap(env.reset, out_axes=self._axes))
         same = self.autoreset_mode == _SAME_STEP
         self._step = jax.jit(self._step_same if same else self._step_worlds, donate_argnums=0)
-        self._final = None  # same_step: (obs, metrics) of the last step, before the ended worlds' reset
+        self._final = None  # same_step: (obs, metrics, done) of the last step, before the ended worlds' reset
         self._state = None
         self._needs_reset = None
         self._key = None
