@@ -393,11 +393,12 @@ class GymnasiumVectorEnv(VectorEnv):
         _check_render_mode(render_mode)
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        if str(getattr(autoreset_mode, "value", autoreset_mode)) not in AUTORESET_MODES:
+        mode = str(getattr(autoreset_mode, "value", autoreset_mode))  # a name, or gymnasium's AutoresetMode
+        if mode not in AUTORESET_MODES:
             raise ValueError(f"autoreset_mode must be one of {list(AUTORESET_MODES)}, got {autoreset_mode!r}")
         check_not_forked()
         self._init_args = (env, num_envs, render_mode, strict_actions, autoreset_mode)
-        self.autoreset_mode = AUTORESET_MODES[str(getattr(autoreset_mode, "value", autoreset_mode))]
+        self.autoreset_mode = AUTORESET_MODES[mode]
         self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
         self.env = env
         self.num_envs = int(num_envs)
@@ -419,19 +420,21 @@ class GymnasiumVectorEnv(VectorEnv):
         self._key = None
         self._view = HumanView.for_mode(env, render_mode)
 
-    def _step_worlds(self, state, action, needs_reset):
+    def _step_all(self, state, action):
+        """Every world's env step, before any reset."""
         shape = (action.shape[0], self.env.n_drones, self.env.action_size)
         step = jax.vmap(self.env.step, in_axes=(self._axes, 0), out_axes=self._axes)
-        stepped = step(state, action.reshape(shape).astype(state.sim.pos.dtype))
+        return step(state, action.reshape(shape).astype(state.sim.pos.dtype))
+
+    def _step_worlds(self, state, action, needs_reset):
+        stepped = self._step_all(state, action)
         # Only the worlds whose episode ended at the last step are reset.
         out = reset_where(self.env, stepped, needs_reset, shared_params=self._shared_params)
         return out, out.done
 
     def _step_same(self, state, action, needs_reset):
         del needs_reset  # the ended worlds were reset in their last step
-        shape = (action.shape[0], self.env.n_drones, self.env.action_size)
-        step = jax.vmap(self.env.step, in_axes=(self._axes, 0), out_axes=self._axes)
-        stepped = step(state, action.reshape(shape).astype(state.sim.pos.dtype))
+        stepped = self._step_all(state, action)
         keep = ("reward", "terminated", "truncated", "metrics")
         out = reset_where(self.env, stepped, stepped.done, keep=keep, shared_params=self._shared_params)
         return out, (stepped.obs, stepped.metrics, stepped.done)

@@ -8,6 +8,7 @@ import os
 import sys
 
 from jaxdrones import devices
+from jaxdrones.envs.config import START_RPMS
 from jaxdrones.io.runs import enable_compilation_cache
 from jaxdrones.training import trainers
 from jaxdrones.training.run import default_env, train_task
@@ -171,7 +172,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     env.add_argument(
         "--start-rpm",
-        choices=("hover", "zero"),
+        choices=START_RPMS,
         default=None,
         help="the motors' speeds at an episode's start where they have dynamics (--realism): hover (default) or "
         "zero (a take-off from stopped motors)",
