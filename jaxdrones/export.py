@@ -98,19 +98,33 @@ def mlp_layers(payload: dict) -> list[tuple[np.ndarray, np.ndarray]]:
     return layers
 
 
-def _obs_labels(env) -> list[str]:
+def _layout(env) -> dict[str, int]:
+    """Entries per drone of each part of the observation, in its order: the observation type's own (``base``), the
+    action buffer (``buffer``), the task's (``task``), the error integral (``integral``)."""
     obs_type = env.obs_type
+    buffer = obs_type.buffer_len * obs_type.action_size
+    return {"base": obs_type.size - buffer, "buffer": buffer, "task": env.task.obs_size, "integral": env.integral_size}
+
+
+#: What `jaxdrones.envs.task.Task.tracking_error` is, per task (default: the reference position's error).
+_ERRORS = {"velocity": "commanded velocity - measured velocity (m/s, world)"}
+_POSITION_ERROR = "reference position - measured position (m, world; hover: the target - x, y, z)"
+
+
+def _obs_labels(env) -> list[str]:
+    obs_type, parts = env.obs_type, _layout(env)
     base = _BASE_LABELS.get(obs_type.name)
-    n_base = obs_type.size - obs_type.buffer_len * obs_type.action_size
-    if base is None or len(base) != n_base:
-        base = [f"{obs_type.name} entry {i} (jaxdrones.envs.observations)" for i in range(n_base)]
+    if base is None or len(base) != parts["base"]:
+        base = [f"{obs_type.name} entry {i} (jaxdrones.envs.observations)" for i in range(parts["base"])]
     buffer = [
         f"action buffer: action {-(obs_type.buffer_len - k)} step(s) ago, entry {j}"
         for k in range(obs_type.buffer_len)
         for j in range(obs_type.action_size)
     ]
     task = [f"task observation {i} ({env.task.name}: jaxdrones.envs.tasks)" for i in range(env.task.obs_size)]
-    return base + buffer + task
+    error = _ERRORS.get(env.task.name, _POSITION_ERROR)
+    integral = [f"error integral {axis}: sum of ({error}) / ctrl_freq, clipped" for axis in "xyz"][: parts["integral"]]
+    return base + buffer + task + integral
 
 
 def _action_text(env) -> str:
@@ -198,12 +212,35 @@ def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
     layers, env = _policy_env(payload)
     sizes = sizes_of(layers)
     n_obs, n_act = sizes["n_obs"], sizes["n_act"]
+    from jaxdrones.envs.env import ERROR_INTEGRAL_BOUND
+
     low, high = (b[0] for b in env.observation_bounds())
     width = max(w.shape[1] for w, _ in layers)
     upper = name.upper()
+    parts = _layout(env)
     lines = [
         f"/* {name}: void {name}(const float obs[{n_obs}], float action[{n_act}]); needs <math.h> (tanhf) only.",
         f" * The observation is clipped to {name}_obs_low/high before the network.",
+        " *",
+        f" * With its memory, at every control step ({env.config.ctrl_freq} Hz; {name}_reset at an episode's start):",
+        f" *   void {name}_step({name}_memory *m, const float state[{upper}_N_STATE], const float error[3],",
+        f" *                    float action[{n_act}]);",
+        f" * state: the observation without its memory: entries 0-{parts['base'] - 1} below"
+        + (f", then the task's {parts['task']}" if parts["task"] else "")
+        + ". It assembles the observation below:",
+        f" * the last {env.obs_type.buffer_len} actions it returned (oldest first; zeros after {name}_reset)"
+        + (
+            f", and the error integral, m->integral += error / {env.config.ctrl_freq} clipped to "
+            f"+-{ERROR_INTEGRAL_BOUND:g},"
+            if parts["integral"]
+            else ","
+        ),
+        " * error: "
+        + (
+            _ERRORS.get(env.task.name, _POSITION_ERROR) + ", from the same measurements as state."
+            if parts["integral"]
+            else "unused (no error integral in this observation; may be NULL)."
+        ),
         " *",
         *[f" * {line}".rstrip() for line in describe(payload, env, layers)],
         " */",
@@ -240,8 +277,57 @@ def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
         dst = "action" if k == len(layers) - 1 else ("h" if src == "a" else "a")
         lines.append(f"  {name}_dense({name}_w{k}, {name}_b{k}, {src}, {w.shape[0]}, {w.shape[1]}, {dst});")
         src = dst
-    lines += ["}", ""]
+    lines += ["}", "", *_memory_source(env, name, n_act)]
     return "\n".join(lines), sizes
+
+
+def _memory_source(env, name: str, n_act: int) -> list[str]:
+    """C of ``NAME_step``: the policy with the memory the observation holds (action buffer, error integral)."""
+    from jaxdrones.envs.env import ERROR_INTEGRAL_BOUND
+
+    parts, upper = _layout(env), name.upper()
+    n_state, n_hist = parts["base"] + parts["task"], parts["buffer"]
+    lines = [
+        f"#define {upper}_N_STATE {n_state}",
+        f"#define {upper}_N_HISTORY {env.obs_type.buffer_len}",
+        f"#define {upper}_CTRL_FREQ {env.config.ctrl_freq}",
+        "",
+        f"typedef struct {{ float actions[{max(n_hist, 1)}]; float integral[3]; }} {name}_memory;",
+        "",
+        f"void {name}_reset({name}_memory *m)",
+        "{",
+        f"  for (int i = 0; i < {max(n_hist, 1)}; ++i) m->actions[i] = 0.0f;",
+        "  for (int i = 0; i < 3; ++i) m->integral[i] = 0.0f;",
+        "}",
+        "",
+        f"void {name}_step({name}_memory *m, const float state[{max(n_state, 1)}], const float error[3], "
+        f"float action[{n_act}])",
+        "{",
+        f"  float obs[{upper}_N_OBS];",
+        "  int j = 0;",
+        f"  for (int i = 0; i < {parts['base']}; ++i) obs[j++] = state[i];",
+        f"  for (int i = 0; i < {n_hist}; ++i) obs[j++] = m->actions[i];",
+        f"  for (int i = 0; i < {parts['task']}; ++i) obs[j++] = state[{parts['base']} + i];",
+    ]
+    if parts["integral"]:
+        bound = f"{float(ERROR_INTEGRAL_BOUND)!r}f"
+        lines += [
+            "  for (int i = 0; i < 3; ++i) {",
+            f"    float v = m->integral[i] + error[i] / {float(env.config.ctrl_freq)!r}f;",
+            f"    v = v < -{bound} ? -{bound} : (v > {bound} ? {bound} : v);",
+            "    m->integral[i] = v;",
+            "    obs[j++] = v;",
+            "  }",
+        ]
+    else:
+        lines.append("  (void)error;")
+    lines.append(f"  {name}(obs, action);")
+    if n_hist:
+        lines += [
+            f"  for (int i = 0; i < {n_hist - n_act}; ++i) m->actions[i] = m->actions[i + {n_act}];",
+            f"  for (int i = 0; i < {n_act}; ++i) m->actions[{n_hist - n_act} + i] = action[i];",
+        ]
+    return [*lines, "}", ""]
 
 
 def onnx_model(payload: dict) -> onnx.ModelProto:

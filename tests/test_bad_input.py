@@ -299,7 +299,13 @@ def test_effect_flags_must_be_bools(field, value):
     assert getattr(jd.SimConfig(**{field: np.bool_(True)}), field) is True
 
 
-@pytest.mark.parametrize("field", ["action_buffer", "terminate_on_ground"])
+@pytest.mark.parametrize("field", ["error_integral", "terminate_on_ground"])
 def test_task_switches_must_be_bools(field):
     with pytest.raises(ValueError, match=rf"{field} must be True or False, got 'no'"):
         jd.make("hover", **{field: "no"})
+
+
+@pytest.mark.parametrize("value", ["no", -1, 1.5])
+def test_action_buffer_is_a_switch_or_a_count(value):
+    with pytest.raises(ValueError, match=r"action_buffer must be True \(the last ctrl_freq // 2 actions\), False, or the number"):
+        jd.make("hover", action_buffer=value)

@@ -243,12 +243,65 @@ def test_action_buffer_holds_last_actions_and_is_cleared_at_reset():
     a1, a2 = jnp.full((1, 4), 0.25), jnp.full((1, 4), -0.5)
     s = env.step(env.step(s, a1), a2)
     buf = np.asarray(s.obs[0, 12:]).reshape(k, 4)
-    np.testing.assert_allclose(buf[-1], -0.5) and np.testing.assert_allclose(buf[-2], 0.25)
+    np.testing.assert_allclose(buf[-1], -0.5)
+    np.testing.assert_allclose(buf[-2], 0.25)
     np.testing.assert_array_equal(buf[:-2], 0.0)
     auto = AutoReset(env)
     done = s.replace(truncated=jnp.array(True))
     fresh = auto.step(done.replace(steps=jnp.array(env.episode_length - 1)), a1)
     np.testing.assert_array_equal(fresh.obs[0, 12:], 0.0)
+
+
+def test_action_buffer_of_k_actions():
+    env = jd.make("hover", action_buffer=3)
+    assert env.observation_size == 21 + 3 * 4 and jd.make("hover", action_buffer=0).observation_size == 21
+    s = env.reset(jax.random.key(0))
+    actions = [jnp.full((1, 4), v) for v in (0.1, 0.2, 0.3, 0.4)]
+    for a in actions:
+        s = env.step(s, a)
+    np.testing.assert_allclose(np.asarray(s.obs[0, 21:]).reshape(3, 4), [[0.2] * 4, [0.3] * 4, [0.4] * 4], rtol=1e-6)
+
+
+@pytest.mark.parametrize("task", ["hover", "velocity"])
+def test_error_integral_sums_the_tracking_error(task):
+    """I_t = clip(I_{t-1} + e_t / ctrl_freq, ±1), I_0 = e_0 / ctrl_freq, at the observation's end: hover's e is the
+    target minus the position, velocity's the commanded minus the measured velocity."""
+    from jaxdrones.envs.env import ERROR_INTEGRAL_BOUND
+
+    env = jd.make(task, error_integral=True)
+    plain = jd.make(task)
+    assert env.observation_size == plain.observation_size + 3
+    low, high = env.observation_bounds()
+    np.testing.assert_array_equal(high[0, -3:], ERROR_INTEGRAL_BOUND)
+    np.testing.assert_array_equal(low[0, -3:], -ERROR_INTEGRAL_BOUND)
+
+    def error(s):
+        if task == "velocity":
+            return np.asarray(s.task.data["target_vel"] - s.sim.vel, np.float64)
+        return np.asarray(s.task.target - s.sim.pos, np.float64)
+
+    s = env.reset(jax.random.key(2))
+    expected = error(s) / env.config.ctrl_freq
+    np.testing.assert_allclose(s.obs[:, -3:], expected, rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(s.obs[:, :-3], plain.reset(jax.random.key(2)).obs)
+    step = jax.jit(env.step)
+    for _ in range(40):
+        s = step(s, jnp.full((1, env.action_size), 0.3))  # climbs away: the integral grows, then saturates
+        expected = np.clip(expected + error(s) / env.config.ctrl_freq, -1.0, 1.0)
+        np.testing.assert_allclose(s.obs[:, -3:], expected, rtol=1e-4, atol=1e-6)
+    assert np.abs(expected).max() > 0.1
+
+
+def test_error_integral_is_cleared_at_reset():
+    env = AutoReset(jd.make("hover", error_integral=True))
+    s = env.reset(jax.random.key(0))
+    for _ in range(5):
+        s = env.step(s, jnp.full((1, 4), 0.5))
+    first = jd.make("hover", error_integral=True).reset(s.key)  # the episode the auto-reset starts
+    done = s.replace(truncated=jnp.array(True), steps=jnp.array(env.episode_length - 1))
+    fresh = env.step(done, jnp.full((1, 4), 0.5))
+    np.testing.assert_allclose(fresh.obs[0, -3:], first.obs[0, -3:], rtol=1e-6)
+    assert np.abs(np.asarray(s.obs[0, -3:])).max() > 2 * np.abs(np.asarray(fresh.obs[0, -3:])).max()
 
 
 def test_observation_types():

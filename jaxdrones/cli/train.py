@@ -78,6 +78,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     env.add_argument(
         "--obs-type", default=None, help="observation type (default: the task's): kin, kin_norm, kin_rotmat, neighbors"
     )
+    env.add_argument(
+        "--action-buffer",
+        type=int,
+        default=None,
+        metavar="K",
+        help="append the last K actions to the observation (0: none; default: the task's, none)",
+    )
+    env.add_argument(
+        "--error-integral",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="append the integral of the task's tracking error to the observation (an integral term: cancels a "
+        "constant unknown force); default off, on with --realism",
+    )
     env.add_argument("--model", default=None, help="drone model name (cf2x, cf2p, racer) or URDF path")
     env.add_argument(
         "--num-drones",
@@ -245,6 +259,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 _ENV_OPTIONS = {
     "action_type": "action_type",
     "obs_type": "obs_type",
+    "action_buffer": "action_buffer",
+    "error_integral": "error_integral",
     "model": "model",
     "num_drones": "n_drones",
     "ctrl_freq": "ctrl_freq",

@@ -27,6 +27,8 @@ class EnvState:
             ranges, termination bounds, reward weights), sampled at reset.
         ctrl: the action type's carry (the DSL PID's state for the PID-based actions, else ``()``).
         history: f[..., D, K, n_act] the last K actions, oldest first (K = 0 without an action buffer).
+        integral: f[..., D, 3] the integral of the task's tracking error (f[..., D, 0] without
+            ``config.error_integral``; `jaxdrones.envs.config.TaskConfig.error_integral`).
         key: PRNG key of the world, from which an auto-reset draws the next episode.
         obs: f[..., D, n_obs] observation after the last reset/step; with camera images, a dict of arrays (see the
             env's ``observation_spec``).
@@ -45,6 +47,7 @@ class EnvState:
     task: Any
     ctrl: Any
     history: jax.Array
+    integral: jax.Array
     key: jax.Array
     obs: Any
     reward: jax.Array
@@ -70,6 +73,7 @@ def world_axes(shared_params: bool) -> EnvState:
         task=0,
         ctrl=0,
         history=0,
+        integral=0,
         key=0,
         obs=0,
         reward=0,

@@ -99,7 +99,16 @@ class TaskConfig:
             by the rotation matrix: with random headings, the Euler angles' wrap at ±π makes learning much slower
             — PPO on 3-D hover reached 14 cm with ``"kin"`` and 1.2 cm with ``"kin_rotmat"`` in the same 4.4 M
             steps); ``"kin"`` is the paper's.
-        action_buffer: append the last ``ctrl_freq // 2`` actions to the observation (the original's KIN).
+        action_buffer: append the last actions to the observation, oldest first: True for ``ctrl_freq // 2`` (0.5 s,
+            the original's KIN), an integer k >= 1 for the last k, False (or 0) for none. A memory of what the
+            policy commanded, against the motors' lag and the actions' delay (Learning to Fly in Seconds feeds the
+            last 32 actions at 100 Hz, 0.32 s).
+        error_integral: append the integral of the task's tracking error (`jaxdrones.envs.task.Task.tracking_error`:
+            hover and the position tasks, reference position − position, m; ``velocity``, commanded − measured
+            velocity, m/s) over the episode, f[3] per drone, world frame: I_t = clip(I_{t-1} + e_t / ctrl_freq,
+            ±`ERROR_INTEGRAL_BOUND`), I_0 = e_0 / ctrl_freq, computed from what the sensors report (the realism's
+            noise and delay included). A PID's integral term: it lets a policy cancel a constant unknown force
+            (the ``crazyflie`` preset's per-episode disturbance) that a memoryless policy leaves as a steady offset.
         pid_target: ``pid`` action: ``"absolute"`` (main) or ``"relative"`` (the paper).
         pid_scale: ``pid`` with relative targets: target = pos + pid_scale · a, m, in (0, 1]; the paper's 0.1 m,
             which the DSL PID flies at up to about 0.5 m/s (0.3 m: about 1 m/s).
@@ -177,7 +186,8 @@ class TaskConfig:
     model: str | tuple[str, ...] = "cf2x"
     action_type: str = "rpm"
     obs_type: str = "kin_rotmat"
-    action_buffer: bool = False
+    action_buffer: bool | int = False
+    error_integral: bool = False
     pid_target: str = "absolute"
     pid_scale: float = 0.1
     sim_freq: int = 240
@@ -222,9 +232,15 @@ class TaskConfig:
         _check_choice("reward", self.reward, REWARDS)
         _check_choice("pid_target", self.pid_target, PID_TARGETS)
         _check_choice("start_rpm", self.start_rpm, START_RPMS)
-        for name in ("action_buffer", "terminate_on_ground"):
+        for name in ("error_integral", "terminate_on_ground"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        buffer = self.action_buffer
+        if not isinstance(buffer, (bool, np.bool_)) and not (isinstance(buffer, (int, np.integer)) and buffer >= 0):
+            raise ValueError(
+                f"action_buffer must be True (the last ctrl_freq // 2 actions), False, or the number of actions to "
+                f"keep (an integer >= 0), got {buffer!r}"
+            )
         self._set("downwash", downwash_model(self.downwash))
         if not (_is_number(self.pid_scale) and 0.0 < self.pid_scale <= PID_MAX_STEP):
             raise ValueError(f"pid_scale must be a distance in m in (0, {PID_MAX_STEP}], got {self.pid_scale!r}")
@@ -347,6 +363,15 @@ class TaskConfig:
             unroll_substeps=self.unroll_substeps,
             motor_dynamics=realism is not None and realism.motor_dynamics,
         )
+
+    @property
+    def buffer_len(self) -> int:
+        """Actions kept in the observation's action buffer (``action_buffer``): ``ctrl_freq // 2`` for True, 0 for
+        False."""
+        buffer = self.action_buffer
+        if isinstance(buffer, (bool, np.bool_)):
+            return self.ctrl_freq // 2 if buffer else 0
+        return int(buffer)
 
     @property
     def camera_period(self) -> int:

@@ -28,6 +28,9 @@ from jaxdrones.sim import make_step
 #: How far (in action units) an entry may lie outside its box before ``metrics["clipped_actions"]`` counts it:
 #: float32 round-off of actions computed at the bounds (e.g. ``tanh`` saturating to 1 + 1 ulp) is not a clip.
 CLIP_TOLERANCE = 1e-6
+#: The error integral's clip, per entry (`jaxdrones.envs.config.TaskConfig.error_integral`): m·s for a position
+#: error, m for a velocity error. A PID's anti-windup: a drone 5 cm off for 20 s reaches it.
+ERROR_INTEGRAL_BOUND = 1.0
 #: The PRNG stream of the sim-to-real options' draws at reset (`jax.random.fold_in` of the reset's key).
 _REALISM_STREAM = 0x5EA1
 
@@ -73,7 +76,7 @@ class TaskEnv(Env):
             config.obs_type,
             config.n_drones,
             config.neighbor_radius,
-            config.ctrl_freq // 2 if config.action_buffer else 0,
+            config.buffer_len,
             self.action_type.size,
             config.max_neighbors,
         )
@@ -101,7 +104,12 @@ class TaskEnv(Env):
 
     @property
     def observation_size(self) -> int:
-        return self.obs_type.size + self.task.obs_size
+        return self.obs_type.size + self.task.obs_size + self.integral_size
+
+    @property
+    def integral_size(self) -> int:
+        """Entries per drone of the error integral at the observation's end (``config.error_integral``): 3 or 0."""
+        return 3 if self.config.error_integral else 0
 
     @property
     def action_size(self) -> int:
@@ -134,24 +142,43 @@ class TaskEnv(Env):
     def observation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(low, high) f32[D, n_obs] of the state observation: the observation type's, then the task's."""
         low, high = self.obs_type.bounds()
-        bound = np.tile(np.asarray(self.task.obs_bound(self.config), np.float32), (self.n_drones, 1))
+        task = np.asarray(self.task.obs_bound(self.config), np.float32)
+        bound = np.tile(
+            np.concatenate([task, np.full(self.integral_size, ERROR_INTEGRAL_BOUND, np.float32)]), (self.n_drones, 1)
+        )
         return np.concatenate([low, -bound], axis=-1), np.concatenate([high, bound], axis=-1)
 
-    def _observe(self, task: TaskParams, sim: DroneState, history: jax.Array, steps: jax.Array) -> jax.Array:
+    def _integrate(self, task: TaskParams, seen: DroneState, steps: jax.Array, integral: jax.Array) -> jax.Array:
+        """The error integral after a step (``config.error_integral``): ``integral`` + e / ctrl_freq, clipped to
+        ±`ERROR_INTEGRAL_BOUND`, with e = `Task.tracking_error` of the state the sensors report; f[D, 0] without."""
+        if not self.integral_size:
+            return integral
+        error = self.task.tracking_error(self.config, task, seen, steps).astype(integral.dtype)
+        return jnp.clip(integral + error / self.config.ctrl_freq, -ERROR_INTEGRAL_BOUND, ERROR_INTEGRAL_BOUND)
+
+    def _observe(
+        self, task: TaskParams, sim: DroneState, history: jax.Array, integral: jax.Array, steps: jax.Array
+    ) -> jax.Array:
         """The state observation, f[D, n_obs], recomputed from its inputs in the backward pass (``jax.checkpoint``)
         rather than its intermediates stored: differentiated under a scan (APG, SHAC), the attitude's
         trigonometry stored 35 arrays per control step of the default hover env, a third of all it stored
         (`benchmarks/gradients.py`, caller ``default_env``)."""
-        return jax.checkpoint(self._observation)(task, sim, history, steps)
+        return jax.checkpoint(self._observation)(task, sim, history, integral, steps)
 
-    def _observation(self, task: TaskParams, sim: DroneState, history: jax.Array, steps: jax.Array) -> jax.Array:
+    def _observation(
+        self, task: TaskParams, sim: DroneState, history: jax.Array, integral: jax.Array, steps: jax.Array
+    ) -> jax.Array:
+        """The observation type's entries (with the action buffer), the task's (clipped to `Task.obs_bound`), then
+        the error integral."""
         obs = self.obs_type.observe(sim, history)
-        if not self.task.obs_size:
-            return obs
-        extra = self.task.observe(self.config, task, sim, steps)
-        bound = jnp.broadcast_to(jnp.asarray(self.task.obs_bound(self.config), obs.dtype), extra.shape)
-        extra = jnp.clip(extra, -bound, bound)
-        return jnp.concatenate([obs, extra.astype(obs.dtype)], axis=-1)
+        parts = [obs]
+        if self.task.obs_size:
+            extra = self.task.observe(self.config, task, sim, steps)
+            bound = jnp.broadcast_to(jnp.asarray(self.task.obs_bound(self.config), obs.dtype), extra.shape)
+            parts.append(jnp.clip(extra, -bound, bound).astype(obs.dtype))
+        if self.integral_size:
+            parts.append(integral.astype(obs.dtype))
+        return parts[0] if len(parts) == 1 else jnp.concatenate(parts, axis=-1)
 
     def privileged(self, state: EnvState) -> jax.Array | None:
         """f[D, k] of the env's dtype: the task's privileged observation of ``state`` (`Task.privileged`, e.g. the
@@ -253,6 +280,7 @@ class TaskEnv(Env):
         if self.sim_config.motor_dynamics and cfg.start_rpm == "hover":  # the motors already turning (start_rpm)
             sim = sim.replace(rpm=jnp.broadcast_to(params.hover_rpm[..., None], sim.rpm.shape).astype(self.dtype))
         history = jnp.zeros((cfg.n_drones, self.obs_type.buffer_len, self.action_size), self.dtype)
+        integral = jnp.zeros((cfg.n_drones, self.integral_size), self.dtype)
         steps = jnp.zeros((), jnp.int32)
         realism, seen = None, sim
         if self.realism is not None:
@@ -262,7 +290,8 @@ class TaskEnv(Env):
                     motor_tau_up=realism.values["motor_tau_up"], motor_tau_down=realism.values["motor_tau_down"]
                 )
             seen = self.realism.initial(realism, sim)
-        obs = self._observe(task, seen, history, steps)
+        integral = self._integrate(task, seen, steps, integral)
+        obs = self._observe(task, seen, history, integral, steps)
         if cfg.vision:
             blank = {k: jnp.zeros(v.shape, v.dtype) for k, v in self._image_spec(frames=False).items()}
             first = self._render(task.scene, params, sim, jnp.ones((), bool), blank)
@@ -277,6 +306,7 @@ class TaskEnv(Env):
             task=task,
             ctrl=self.action_type.init(params, sim),
             history=history,
+            integral=integral,
             key=key,
             obs=obs,
             reward=zeros,
@@ -318,7 +348,8 @@ class TaskEnv(Env):
         seen = sim
         if self.realism is not None:  # what the sensors report: delayed, biased, noisy
             seen, realism = self.realism.observe(realism, sim)
-        obs = self._observe(task, seen, history, steps)
+        integral = self._integrate(task, seen, steps, state.integral)
+        obs = self._observe(task, seen, history, integral, steps)
         if cfg.vision:
             held = {k: v for k, v in state.obs.items() if k != "state"}
             due = steps % cfg.camera_period == 0
@@ -335,6 +366,7 @@ class TaskEnv(Env):
             sim=sim,
             ctrl=ctrl,
             history=history,
+            integral=integral,
             obs=obs,
             reward=reward,
             terminated=terminated,

@@ -203,6 +203,11 @@ class Task(abc.ABC):
         """Where the drones should be at control step ``steps`` (default: at the target, at rest)."""
         return Reference(task.target, jnp.zeros_like(task.target))
 
+    def tracking_error(self, config: TaskConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> jax.Array:
+        """f[D, 3]: what the observation's error integral sums (`TaskConfig.error_integral`); by default the
+        reference position minus the position, m, world frame (`reference`)."""
+        return self.reference(config, task, steps).pos - sim.pos
+
     @abc.abstractmethod
     def reward_terms(
         self, config: TaskConfig, task: TaskParams, sim: DroneState, action: jax.Array, steps: jax.Array

@@ -249,6 +249,11 @@ class Velocity(Task):
         vel = task.data["target_vel"]
         return Reference(task.start.pos + vel * (steps / config.ctrl_freq), vel)
 
+    def tracking_error(self, config: VelocityConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> jax.Array:
+        """The commanded minus the measured velocity, m/s, world frame (its integral: how far the drone has fallen
+        behind the commanded flight since its start, m)."""
+        return task.data["target_vel"] - sim.vel
+
     def loss_weights(self, config: VelocityConfig) -> dict[str, float]:
         # The reference position integrates the command from the start range's centre, not from the drone's own
         # start: only its velocity is tracked.
