@@ -307,5 +307,5 @@ def test_task_switches_must_be_bools(field):
 
 @pytest.mark.parametrize("value", ["no", -1, 1.5])
 def test_action_buffer_is_a_switch_or_a_count(value):
-    with pytest.raises(ValueError, match=r"action_buffer must be True \(the last ctrl_freq // 2 actions\), False, or the number"):
+    with pytest.raises(ValueError, match=r"action_buffer must be True \(the last ctrl_freq // 2 actions\), False, or"):
         jd.make("hover", action_buffer=value)
