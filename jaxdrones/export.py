@@ -1,17 +1,22 @@
 """A trained policy as one dependency-free C file, for a microcontroller (a Crazyflie's STM32F405: 1 MB flash,
 192 KB RAM) or any C program.
 
-`export` writes the MLP of a policy saved by ``jaxdrones train`` (``policy.pkl``) as float32 weight arrays and one
-function ``void NAME(const float obs[N_OBS], float action[N_ACT])``. The header comment states the observation's
-layout (entry by entry, with units and frames), the clip the env applies to it, and how the action becomes motor
-commands. The function clips the observation to the env's box, as the env does, then runs the network: tanh hidden
-layers and a tanh output (the policies of ``apg`` and ``shac``, `jaxdrones.training.common.mlp`). It needs only
-``<math.h>`` (``tanhf``); ``tests/test_export.py`` compiles it with the system's C compiler and compares it with the
-JAX policy. The same network is also written as an ONNX model (`onnx_model`, with the ``onnx`` package: the
-``export`` extra), for ONNX runtimes and converters to microcontroller toolchains (e.g. STM32Cube.AI).
+`export` writes the MLP of a policy saved by ``jaxdrones train`` (``policy.pkl``) as float32 weight arrays, the
+function ``void NAME(const float obs[N_OBS], float action[N_ACT])``, and ``NAME_step``, which keeps the memory the
+observation holds (the last actions, `jaxdrones.envs.config.TaskConfig.action_buffer`; the error integral,
+``error_integral``) in a ``NAME_memory`` struct, cleared by ``NAME_reset``: called at every control step with the
+observation's other entries and the tracking error, it assembles the observation as the env does. The header
+comment states the observation's layout (entry by entry, with units and frames), the clip the env applies to it, the
+control rate, and how the action becomes motor commands. The function clips the observation to the env's box, as
+the env does, then runs the network (`Network`): tanh hidden layers and a tanh output (the policies of ``apg`` and
+``shac``, `jaxdrones.training.common.mlp`), or for our PPO (``ppo``, one drone) the observation standardised by its
+running statistics first and its mean action clipped to the box last. It needs only ``<math.h>`` (``tanhf``);
+``tests/test_export.py`` compiles it with the system's C compiler, compares it with the JAX policy, and flies it in
+closed loop through ``ctypes``. The same network is also written as an ONNX model (`onnx_model`, with the ``onnx``
+package: the ``export`` extra), for ONNX runtimes and converters to microcontroller toolchains (e.g. STM32Cube.AI).
 
-Policies of the other trainers (brax's PPO with its observation normaliser, MAPPO, camera policies) are refused with
-a `ValueError` naming the ones supported.
+Policies of the other trainers (brax's PPO, MAPPO's teams, camera policies) are refused with a `ValueError` naming
+the ones supported.
 """
 
 from __future__ import annotations
@@ -19,8 +24,7 @@ from __future__ import annotations
 import os
 import re
 import textwrap
-from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -29,8 +33,8 @@ if TYPE_CHECKING:
 
     from jaxdrones.envs.env import TaskEnv
 
-#: The trainers whose saved policy `export` writes: an MLP with tanh hidden layers and a tanh output.
-SUPPORTED = ("apg", "shac")
+#: The trainers whose saved policy `export` writes (`network_of`): MLPs with tanh hidden layers.
+SUPPORTED = ("apg", "shac", "ppo")
 
 #: Entry labels of the state observation types (`jaxdrones.envs.observations`), one per entry.
 _KIN = [
@@ -76,26 +80,69 @@ def load_payload(run: str | os.PathLike) -> dict:
     return read_payload(run)[1]
 
 
-def mlp_layers(payload: dict) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The (kernel f32[in, out], bias f32[out]) of each layer of a saved MLP policy, input first.
+class Network(NamedTuple):
+    """A saved policy's network as the exported code computes it, on an observation x clipped to the env's box:
+    x ← clip((x − ``norm[0]``) / ``norm[1]``, ±`NORM_CLIP`) when ``norm`` is set (our PPO's running statistics,
+    ``(x − mean) / sqrt(var + 1e-6)``), then each layer y = W x + b, tanh after the hidden ones, and after the last
+    a tanh (``output="tanh"``) or a clip to the action box [−1, 1] (``output="clip"``: a Gaussian policy's mean,
+    which the env clips)."""
 
-    Raises:
-        ValueError: a policy of a trainer not in `SUPPORTED`, or parameters that are not flax ``Dense_0 ...``.
-    """
-    if payload["algo"] not in SUPPORTED:
-        raise ValueError(
-            f"export: policies of {payload['algo']!r} are not supported yet; it writes those of "
-            f"{SUPPORTED} (an MLP with tanh layers)"
-        )
-    params = payload["params"].get("params", payload["params"])
+    layers: list[tuple[np.ndarray, np.ndarray]]  # (kernel f32[in, out], bias f32[out]), input first
+    norm: tuple[np.ndarray, np.ndarray] | None  # (mean f32[n_obs], scale f32[n_obs])
+    output: str
+
+
+#: Our PPO's observation standardisation clips to ±10 (`jaxdrones.training.mappo.Networks.normalize`).
+NORM_CLIP = 10.0
+
+
+def _dense_layers(params: dict) -> list[tuple[np.ndarray, np.ndarray]]:
     names = sorted((k for k in params if re.fullmatch(r"Dense_\d+", k)), key=lambda k: int(k.split("_")[1]))
-    if not names or len(names) != len(params):
+    if not names:
         raise ValueError(f"export: expected flax Dense_0 ... Dense_n parameters, got {sorted(params)}")
     layers = [(np.asarray(params[k]["kernel"], np.float32), np.asarray(params[k]["bias"], np.float32)) for k in names]
     for (w, b), (w_next, _) in zip(layers, layers[1:] + [(None, None)], strict=True):
         if w.ndim != 2 or b.shape != (w.shape[1],) or (w_next is not None and w_next.shape[0] != w.shape[1]):
             raise ValueError("export: the layers' shapes do not chain")
     return layers
+
+
+def network_of(payload: dict) -> Network:
+    """The `Network` of a saved policy: ``apg`` and ``shac`` (`jaxdrones.training.common.mlp`: tanh layers and a
+    tanh output), ``ppo`` (one drone: `jaxdrones.training.mappo`'s actor, its observation standardisation, its agent
+    embedding folded into the first bias, the deterministic action: its mean, through a tanh with ``squash``).
+
+    Raises:
+        ValueError: a policy of a trainer not in `SUPPORTED`, or parameters that are not flax ``Dense_0 ...``.
+    """
+    algo = payload["algo"]
+    if algo not in SUPPORTED:
+        raise ValueError(
+            f"export: policies of {algo!r} are not supported yet; it writes those of {SUPPORTED} (MLPs with tanh "
+            "layers)"
+        )
+    params = payload["params"]
+    if algo != "ppo":
+        params = params.get("params", params)
+        extra = sorted(k for k in params if not re.fullmatch(r"Dense_\d+", k))
+        if extra:
+            raise ValueError(f"export: expected flax Dense_0 ... Dense_n parameters, got {sorted(params)}")
+        return Network(_dense_layers(params), None, "tanh")
+    squeeze = payload["config"].get("share_params", True) is False  # per-agent networks: a leading axis of 1
+    actor = _map_arrays(lambda x: np.asarray(x)[0] if squeeze else np.asarray(x), params["actor"]["params"])
+    layers = _dense_layers(actor)
+    if "Embed_0" in actor:  # the one agent's id embedding, added to the first layer's output
+        w, b = layers[0]
+        layers[0] = (w, b + np.asarray(actor["Embed_0"]["embedding"], np.float32)[0])
+    norm = params["norm"]
+    scale = np.sqrt(np.asarray(norm["var"], np.float32) + np.float32(1e-6))
+    output = "tanh" if payload["config"].get("squash", False) else "clip"
+    return Network(layers, (np.asarray(norm["mean"], np.float32), scale), output)
+
+
+def _map_arrays(fn, tree: dict) -> dict:
+    """``fn`` on every array of a nested dict (a saved policy's parameters, NumPy)."""
+    return {k: _map_arrays(fn, v) if isinstance(v, dict) else fn(v) for k, v in tree.items()}
 
 
 def _layout(env) -> dict[str, int]:
@@ -153,10 +200,11 @@ def _array(name: str, values: np.ndarray) -> str:
 
 
 def _policy_env(payload: dict):
-    """(layers, env) of a saved policy, checked: a single-drone state env whose sizes the network maps."""
+    """(network, env) of a saved policy, checked: a single-drone state env whose sizes the network maps."""
     from jaxdrones.envs import make
 
-    layers = mlp_layers(payload)
+    net = network_of(payload)
+    layers = net.layers
     env = make(payload["env_name"], **payload["env_overrides"])
     if env.n_drones != 1 or env.config.vision:
         raise ValueError(
@@ -168,31 +216,41 @@ def _policy_env(payload: dict):
         raise ValueError(
             f"export: the network maps {n_obs} -> {n_act}, the env {env.observation_size} -> {env.action_size}"
         )
-    return layers, env
+    return net, env
 
 
-def sizes_of(layers: Sequence[tuple[np.ndarray, np.ndarray]]) -> dict:
+def sizes_of(net: Network) -> dict:
     """``{"n_obs", "n_act", "weight_bytes", "multiply_adds"}`` of an exported network (the bytes count the weights,
-    the biases and the observation box's two bounds, float32)."""
+    the biases, the observation box's two bounds and the standardisation's two vectors, float32)."""
+    layers = net.layers
     n_obs, n_act = layers[0][0].shape[0], layers[-1][0].shape[1]
+    vectors = 2 + (2 if net.norm is not None else 0)
     return {
         "n_obs": n_obs,
         "n_act": n_act,
-        "weight_bytes": 4 * (sum(w.size + b.size for w, b in layers) + 2 * n_obs),
+        "weight_bytes": 4 * (sum(w.size + b.size for w, b in layers) + vectors * n_obs),
         "multiply_adds": sum(w.size for w, _ in layers),
     }
 
 
-def describe(payload: dict, env: TaskEnv, layers: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[str]:
+def describe(payload: dict, env: TaskEnv, net: Network) -> list[str]:
     """What an exported policy computes and expects, as lines of text: its origin, its layers and sizes, the
     observation entry by entry (units, frames, the clip) and the action's mapping to motor commands."""
-    sizes = sizes_of(layers)
+    sizes, layers = sizes_of(net), net.layers
+    norm = (
+        f"standardised by the running mean and deviation of training, clipped to +-{NORM_CLIP:g}, then "
+        if net.norm is not None
+        else ""
+    )
+    last = (
+        "a tanh after each" if net.output == "tanh" else "a tanh after each hidden one, the output clipped to [-1, 1]"
+    )
     return [
         f"A policy trained by jaxdrones ({payload['algo']}) on the task {payload['env_name']!r} with options "
         f"{payload['env_overrides'] or '(defaults)'}, exported by `jaxdrones export`.",
-        f"{len(layers)} dense layers {' -> '.join(str(w.shape[0]) for w, _ in layers)} -> {sizes['n_act']}, tanh "
-        f"after each; {sizes['multiply_adds']} multiply-adds per call; {sizes['weight_bytes']} bytes of float32 "
-        "constants.",
+        f"The observation {norm}{len(layers)} dense layers {' -> '.join(str(w.shape[0]) for w, _ in layers)} -> "
+        f"{sizes['n_act']}, {last}; {sizes['multiply_adds']} multiply-adds per call; {sizes['weight_bytes']} bytes "
+        "of float32 constants.",
         f"Observation (one drone, float32, control rate {env.config.ctrl_freq} Hz; clipped to the env's box, as the "
         "env does):",
         *[f"  [{i:2d}] {label}" for i, label in enumerate(_obs_labels(env))],
@@ -204,16 +262,16 @@ def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
     """The C file of a saved policy and its sizes (`sizes_of`): ``(source, sizes)``.
 
     Raises:
-        ValueError: an unsupported policy (see `mlp_layers`), a multi-drone or camera env, or a ``name`` that is not
+        ValueError: an unsupported policy (see `network_of`), a multi-drone or camera env, or a ``name`` that is not
             a C identifier.
     """
     if not re.fullmatch(r"[A-Za-z_]\w*", name):
         raise ValueError(f"export: the function name must be a C identifier, got {name!r}")
-    layers, env = _policy_env(payload)
-    sizes = sizes_of(layers)
-    n_obs, n_act = sizes["n_obs"], sizes["n_act"]
     from jaxdrones.envs.env import ERROR_INTEGRAL_BOUND
 
+    net, env = _policy_env(payload)
+    layers, sizes = net.layers, sizes_of(net)
+    n_obs, n_act = sizes["n_obs"], sizes["n_act"]
     low, high = (b[0] for b in env.observation_bounds())
     width = max(w.shape[1] for w, _ in layers)
     upper = name.upper()
@@ -242,7 +300,7 @@ def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
             else "unused (no error integral in this observation; may be NULL)."
         ),
         " *",
-        *[f" * {line}".rstrip() for line in describe(payload, env, layers)],
+        *[f" * {line}".rstrip() for line in describe(payload, env, net)],
         " */",
         "#include <math.h>",
         "",
@@ -252,15 +310,19 @@ def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
         _array(f"{name}_obs_low", low),
         _array(f"{name}_obs_high", high),
     ]
+    if net.norm is not None:
+        lines += [_array(f"{name}_obs_mean", net.norm[0]), _array(f"{name}_obs_scale", net.norm[1])]
     for k, (w, b) in enumerate(layers):
         lines += [_array(f"{name}_w{k}", w.T), _array(f"{name}_b{k}", b)]  # row per output: a contiguous dot
     lines += [
-        f"static void {name}_dense(const float *w, const float *b, const float *x, int n_in, int n_out, float *y)",
+        "/* y = tanh(W x + b), or with clip != 0 y = W x + b clipped to [-1, 1] */",
+        f"static void {name}_dense(const float *w, const float *b, const float *x, int n_in, int n_out, float *y,",
+        "                          int clip)",
         "{",
         "  for (int o = 0; o < n_out; ++o) {",
         "    float s = b[o];",
         "    for (int i = 0; i < n_in; ++i) s += w[o * n_in + i] * x[i];",
-        "    y[o] = tanhf(s);",
+        "    y[o] = clip ? (s < -1.0f ? -1.0f : (s > 1.0f ? 1.0f : s)) : tanhf(s);",
         "  }",
         "}",
         "",
@@ -269,13 +331,24 @@ def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
         f"  float a[{max(width, n_obs)}], h[{width}];",
         f"  for (int i = 0; i < {n_obs}; ++i) {{",
         "    float v = obs[i];",
-        f"    a[i] = v < {name}_obs_low[i] ? {name}_obs_low[i] : (v > {name}_obs_high[i] ? {name}_obs_high[i] : v);",
+        f"    v = v < {name}_obs_low[i] ? {name}_obs_low[i] : (v > {name}_obs_high[i] ? {name}_obs_high[i] : v);",
+        *(
+            [
+                f"    v = (v - {name}_obs_mean[i]) / {name}_obs_scale[i];",
+                f"    v = v < -{NORM_CLIP!r}f ? -{NORM_CLIP!r}f : (v > {NORM_CLIP!r}f ? {NORM_CLIP!r}f : v);",
+            ]
+            if net.norm is not None
+            else []
+        ),
+        "    a[i] = v;",
         "  }",
     ]
     src = "a"
     for k, (w, _) in enumerate(layers):
-        dst = "action" if k == len(layers) - 1 else ("h" if src == "a" else "a")
-        lines.append(f"  {name}_dense({name}_w{k}, {name}_b{k}, {src}, {w.shape[0]}, {w.shape[1]}, {dst});")
+        last = k == len(layers) - 1
+        dst = "action" if last else ("h" if src == "a" else "a")
+        clip = int(last and net.output == "clip")
+        lines.append(f"  {name}_dense({name}_w{k}, {name}_b{k}, {src}, {w.shape[0]}, {w.shape[1]}, {dst}, {clip});")
         src = dst
     lines += ["}", "", *_memory_source(env, name, n_act)]
     return "\n".join(lines), sizes
@@ -346,21 +419,39 @@ def onnx_model(payload: dict) -> onnx.ModelProto:
             "export --format onnx needs the onnx package: pip install onnx, or the export "
             'extra (pip install "jaxdrones[export]")'
         ) from e
-    layers, env = _policy_env(payload)
-    sizes = sizes_of(layers)
+    net, env = _policy_env(payload)
+    layers, sizes = net.layers, sizes_of(net)
     low, high = (np.asarray(b[0], np.float32) for b in env.observation_bounds())
     inits = [numpy_helper.from_array(low[None], "obs_low"), numpy_helper.from_array(high[None], "obs_high")]
+    clipped = "x0" if net.norm is None else "obs_clipped"
     nodes = [
         helper.make_node("Max", ["obs", "obs_low"], ["obs_above"]),
-        helper.make_node("Min", ["obs_above", "obs_high"], ["x0"]),
+        helper.make_node("Min", ["obs_above", "obs_high"], [clipped]),
     ]
+    one = np.ones((), np.float32)
+    if net.norm is not None:
+        inits += [
+            numpy_helper.from_array(net.norm[0][None], "obs_mean"),
+            numpy_helper.from_array(net.norm[1][None], "obs_scale"),
+            numpy_helper.from_array(-NORM_CLIP * one, "norm_low"),
+            numpy_helper.from_array(NORM_CLIP * one, "norm_high"),
+        ]
+        nodes += [
+            helper.make_node("Sub", [clipped, "obs_mean"], ["obs_centred"]),
+            helper.make_node("Div", ["obs_centred", "obs_scale"], ["obs_scaled"]),
+            helper.make_node("Clip", ["obs_scaled", "norm_low", "norm_high"], ["x0"]),
+        ]
+    if net.output == "clip":
+        inits += [numpy_helper.from_array(-one, "action_low"), numpy_helper.from_array(one, "action_high")]
     for k, (w, b) in enumerate(layers):
         inits += [numpy_helper.from_array(w, f"w{k}"), numpy_helper.from_array(b, f"b{k}")]
-        out = "action" if k == len(layers) - 1 else f"x{k + 1}"
-        nodes += [
-            helper.make_node("Gemm", [f"x{k}", f"w{k}", f"b{k}"], [f"z{k}"]),
-            helper.make_node("Tanh", [f"z{k}"], [out]),
-        ]
+        last = k == len(layers) - 1
+        out = "action" if last else f"x{k + 1}"
+        nodes.append(helper.make_node("Gemm", [f"x{k}", f"w{k}", f"b{k}"], [f"z{k}"]))
+        if last and net.output == "clip":
+            nodes.append(helper.make_node("Clip", [f"z{k}", "action_low", "action_high"], [out]))
+        else:
+            nodes.append(helper.make_node("Tanh", [f"z{k}"], [out]))
     graph = helper.make_graph(
         nodes,
         "jaxdrones_policy",
@@ -372,7 +463,7 @@ def onnx_model(payload: dict) -> onnx.ModelProto:
         graph,
         producer_name="jaxdrones",
         opset_imports=[helper.make_opsetid("", 17)],
-        doc_string="\n".join(describe(payload, env, layers)),
+        doc_string="\n".join(describe(payload, env, net)),
     )
     onnx.checker.check_model(model)
     return model, sizes

@@ -12,7 +12,7 @@ import pytest
 import jaxdrones as jd
 from jaxdrones.cli import main
 from jaxdrones.export import c_source, load_payload
-from jaxdrones.training import apg, checkpoint
+from jaxdrones.training import apg, checkpoint, mappo
 
 CC = shutil.which("cc") or shutil.which("gcc")
 
@@ -30,15 +30,26 @@ int main(void) {
 """
 
 
-def _saved_policy(folder, task="hover", **overrides) -> str:
-    """An APG policy with random weights of the trained size (a trained one only moves the numbers)."""
+def _saved_policy(folder, task="hover", algo="apg", **overrides) -> str:
+    """A policy with random weights of the trained size (a trained one only moves the numbers): APG's, or our PPO's
+    with observation statistics far from (0, 1) and a mean action beyond the box's ±1 at times."""
     env = jd.make(task, **overrides)
-    config = apg.APGConfig()
-    network = apg.make_network(config, env)
-    params = network.init(jax.random.key(3), np.zeros((1, env.observation_size), np.float32))
-    params = jax.tree.map(lambda x: x * 30.0 if x.ndim == 2 and x.shape[-1] == env.action_size else x, params)
+    scale = {"apg": 30.0, "ppo": 300.0}[algo]
+    if algo == "apg":
+        config = apg.APGConfig()
+        params = apg.make_network(config, env).init(jax.random.key(3), np.zeros((1, env.observation_size), np.float32))
+    else:
+        config = mappo.MAPPOConfig(critic="local")
+        params = mappo.make_network(config, env).init(jax.random.key(3))
+        rng = np.random.default_rng(1)
+        params["norm"] = {
+            "mean": rng.normal(0.0, 0.3, env.observation_size).astype(np.float32),
+            "var": rng.uniform(0.01, 4.0, env.observation_size).astype(np.float32),
+            "count": np.float32(1e6),
+        }
+    params = jax.tree.map(lambda x: x * scale if x.ndim == 2 and x.shape[-1] == env.action_size else x, params)
     os.makedirs(folder, exist_ok=True)
-    checkpoint.save(os.path.join(folder, "policy.pkl"), "apg", params, task, overrides, config)
+    checkpoint.save(os.path.join(folder, "policy.pkl"), algo, params, task, overrides, config)
     return folder
 
 
@@ -56,7 +67,14 @@ def _observations(env, n: int) -> np.ndarray:
 
 
 @pytest.mark.skipif(CC is None, reason="no C compiler (cc or gcc) on this machine")
-@pytest.mark.parametrize("overrides", [{}, {"action_type": "one_d_rpm", "obs_type": "kin", "action_buffer": True}])
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        {},
+        {"action_type": "one_d_rpm", "obs_type": "kin", "action_buffer": True},
+        {"algo": "ppo", "task": "velocity", "action_type": "ctbr", "error_integral": True, "action_buffer": 2},
+    ],
+)
 def test_exported_c_policy_matches_jax(tmp_path, overrides):
     run = _saved_policy(str(tmp_path / "run"), **overrides)
     assert main(["export", run]) == 0
@@ -70,6 +88,9 @@ def test_exported_c_policy_matches_jax(tmp_path, overrides):
     obs[:5, 0] = [50.0, -50.0, 1e9, -1e9, 25.0]  # beyond the box: the C function clips as the env does
     low, high = env.observation_bounds()
     expected = np.asarray(jax.vmap(lambda o: policy(o, None)[0])(np.clip(obs, low[0], high[0])))
+    if overrides.get("algo") == "ppo":  # a Gaussian's mean: the env clips it to the box, the C function too
+        assert np.abs(expected).max() > 1.5
+        expected = np.clip(expected, -1.0, 1.0)
     out = subprocess.run([str(tmp_path / "harness")], input=obs.tobytes(), capture_output=True, check=True)
     actions = np.frombuffer(out.stdout, np.float32).reshape(1000, env.action_size)
     assert np.abs(expected).max() > 0.5  # the outputs span the range, not only ~0
@@ -94,16 +115,18 @@ def test_export_header_sizes_and_bad_input(tmp_path, capsys):
     with pytest.raises(ValueError, match="no saved policy"):
         load_payload(tmp_path / "nowhere")
     payload = {**load_payload(run), "algo": "brax_ppo"}
-    with pytest.raises(ValueError, match=r"'brax_ppo' are not supported yet.*\('apg', 'shac'\)"):
+    with pytest.raises(ValueError, match=r"'brax_ppo' are not supported yet.*\('apg', 'shac', 'ppo'\)"):
         c_source(payload)
 
 
-def test_onnx_model_matches_jax(tmp_path):
-    """``--format onnx``: onnx's checker passes and its reference evaluator gives the JAX policy's actions."""
+@pytest.mark.parametrize("algo", ["apg", "ppo"])
+def test_onnx_model_matches_jax(tmp_path, algo):
+    """``--format onnx``: onnx's checker passes and its reference evaluator gives the JAX policy's actions (our
+    PPO's clipped to the box, as the env clips them)."""
     onnx = pytest.importorskip("onnx", reason="the onnx package (the export extra) is not installed")
     from onnx.reference import ReferenceEvaluator
 
-    run = _saved_policy(str(tmp_path / "run"))
+    run = _saved_policy(str(tmp_path / "run"), algo=algo)
     assert main(["export", run, "--format", "onnx"]) == 0
     model = onnx.load(os.path.join(run, "jaxdrones_policy.onnx"))
     assert "[ 9] wx (rad/s, body)" in model.doc_string
@@ -111,7 +134,7 @@ def test_onnx_model_matches_jax(tmp_path):
     obs = _observations(env, 1000)
     obs[:3, 2] = [50.0, -1.0, 1e9]
     low, high = env.observation_bounds()
-    expected = np.asarray(jax.vmap(lambda o: policy(o, None)[0])(np.clip(obs, low[0], high[0])))
+    expected = np.clip(np.asarray(jax.vmap(lambda o: policy(o, None)[0])(np.clip(obs, low[0], high[0]))), -1, 1)
     (actions,) = ReferenceEvaluator(model).run(None, {"obs": obs})
     np.testing.assert_allclose(actions, expected, rtol=0, atol=1e-5)
 
