@@ -2,12 +2,11 @@
 preset, and under the preset with domain randomisation, each evaluated under the paper's physics, the preset and a
 harsher setting.
 
-Every env flies the ``ctbr`` action (collective thrust from 0 to twice the weight and body rates, the Crazyflie
-firmware's own interface): the preset's random force (σ 5 % of the weight per axis, drawn per episode) exceeds the
-default ``rpm`` action's authority (±5 % of hover RPM, ±10 % of the thrust) in about one episode in twenty.
-
-Training settings (`TRAIN`), each ``jaxdrones.training.apg.train`` (APG, as ``jaxdrones train TASK --algo apg``)
-with the trainer's default config for the task (``--steps`` overrides its budget) and a seed:
+Every policy is trained as ``jaxdrones train TASK --realism crazyflie`` trains it (`jaxdrones.training.run.train_task`
+with the preset's defaults: `jaxdrones.training.trainers.REALISM_TRAINING`'s algorithm and budget,
+`jaxdrones.training.run.REALISM_ENV`'s action and memory: collective thrust and body rates, ``ctbr``, the Crazyflie
+firmware's own interface, and the integral of the tracking error in the observation), only the physics of its
+training env differing (`TRAIN`), with a seed (``--steps`` overrides the budget):
 
 - ``paper``: the paper's physics (no realism);
 - ``crazyflie``: ``realism="crazyflie"`` (Learning to Fly in Seconds' Crazyflie: 0.15 s motor lag, observation
@@ -17,8 +16,8 @@ with the trainer's default config for the task (``--steps`` overrides its budget
   the drones' mass, inertia, kf and km within ±10 % (`jaxdrones.envs.DomainRandomization`).
 
 Evaluation settings (`EVAL`), each policy flown from 256 random starts (`jaxdrones.training.evaluation.evaluate`,
-the same keys for every policy): ``paper``; ``crazyflie``; ``harsh``: ``realism="crazyflie_harsh"`` (twice the lag
-and the noise, Dryden turbulence of σ 1 m/s at 2 m, drag on).
+the same keys for every policy) in its own env with the physics replaced: ``paper``; ``crazyflie``; ``harsh``:
+``realism="crazyflie_harsh"`` (twice the lag and the noise, Dryden turbulence of σ 1 m/s at 2 m, drag on).
 
 Per policy and evaluation: the task's success metric (hover: the final distance to the target, m; velocity: the
 mean velocity error, m/s) and the share of episodes terminated early (crashes). A policy succeeds in a setting when
@@ -28,7 +27,7 @@ task, the metric's median over seeds (each seed's value beside it) and the termi
 Usage::
 
     python benchmarks/robustness.py                           # hover and velocity, seeds 0 1 2
-    python benchmarks/robustness.py --tasks hover --seeds 0 --steps 200000 --episodes 64   # a quick look
+    python benchmarks/robustness.py --tasks hover --seeds 0 --steps 500000 --episodes 64   # a quick look
 
 Results go to ``benchmarks/results/robustness.json`` (``--out``) and the table to stdout (markdown).
 """
@@ -40,15 +39,13 @@ import dataclasses
 import json
 import os
 import statistics
-import time
+import tempfile
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_OUT = os.path.join(HERE, "results", "robustness.json")
 TASKS = ("hover", "velocity")
 SEEDS = (0, 1, 2)
 
-#: What every env of the experiment shares.
-BASE = {"action_type": "ctbr"}
 _PRESET = {"preset": "crazyflie"}
 #: The training settings: env overrides for ``jd.make`` / ``train_task``.
 TRAIN = {
@@ -74,59 +71,45 @@ TRAIN = {
 EVAL = {"paper": {}, "crazyflie": {"realism": "crazyflie"}, "harsh": {"realism": "crazyflie_harsh"}}
 
 
-def train_and_evaluate(task: str, setting: str, seed: int, steps: int | None, evaluators: dict) -> dict:
-    """Train one policy (`jaxdrones.training.apg.train`, the trainer's default config for the task) and evaluate
-    it in every `EVAL` setting; returns its record. ``evaluators`` caches one compiled evaluation per task and
-    setting (the policy's weights are its argument)."""
+def train_and_evaluate(task: str, setting: str, seed: int, steps: int | None, episodes: int, folder: str) -> dict:
+    """Train one policy as ``jaxdrones train TASK --realism crazyflie`` does, with the `TRAIN` setting's physics, and
+    evaluate it in every `EVAL` setting; returns its record."""
     import jax
 
     import jaxdrones as jd
-    from jaxdrones.training import apg, trainers
+    from jaxdrones.training import checkpoint, trainers
+    from jaxdrones.training.evaluation import evaluate
+    from jaxdrones.training.run import REALISM_ENV, train_task
 
-    config = trainers.get("apg").default_config(task, False)
+    algo = trainers.default_algo(task, realism=True)
+    config = trainers.run_config(trainers.get(algo), task, realism=True)
     config = dataclasses.replace(config, seed=seed, **({} if steps is None else {"num_timesteps": steps}))
-    env = jd.make(task, **BASE, **TRAIN[setting])
-    t0 = time.perf_counter()
-    network, weights = apg.train(env, config)
-    jax.block_until_ready(weights)
+    overrides = {**REALISM_ENV.get(task, {}), **TRAIN[setting]}
+    run = os.path.join(folder, f"{task}-{setting}-{seed}")
+    summary = train_task(
+        task, run, overwrite=True, algo=algo, config=config, env_overrides=overrides, progress=False, defaults="cpu"
+    )
     record = {
         "task": task,
         "train": setting,
         "seed": seed,
-        "env_steps": config.num_timesteps,
-        "train_wall_s": time.perf_counter() - t0,
+        "algo": algo,
+        "env": overrides,
+        "env_steps": summary["env_steps"],
+        "train_wall_s": summary["wall_time_s"],
         "eval": {},
     }
     threshold = jd.envs.get_task(task).success_threshold
-    for name in EVAL:
-        stats = evaluators[task, name](network, weights)
+    base = {k: v for k, v in overrides.items() if k not in ("realism", "randomize")}
+    for name, physics in EVAL.items():
+        env, policy = checkpoint.load_policy(run, env=jd.make(task, **base, **physics))
+        stats = evaluate(env, policy, jax.random.key(10_000), episodes)
         record["eval"][name] = {
             "success_value": stats["success_value"],
             "terminated_rate": stats["terminated_rate"],
             "success": bool(stats["success_value"] < threshold and stats["terminated_rate"] == 0.0),
         }
     return record
-
-
-def make_evaluator(task: str, setting: str, episodes: int):
-    """``evaluate(network, weights) -> stats``: an APG policy flown from ``episodes`` random starts (the same keys
-    for every policy) in the `EVAL` setting, compiled once."""
-    import jax
-
-    import jaxdrones as jd
-    from jaxdrones.training import apg
-    from jaxdrones.training.evaluation import episode_outcomes, episode_statistics
-
-    env = jd.make(task, **BASE, **EVAL[setting])
-    keys = jax.random.split(jax.random.key(10_000), episodes)
-    compiled = {}
-
-    def evaluate(network, weights):
-        if network not in compiled:
-            compiled[network] = jax.jit(lambda w: episode_outcomes(env, apg.make_policy(network, w), keys))
-        return episode_statistics(env, compiled[network](weights))
-
-    return evaluate
 
 
 def table(records: list[dict]) -> str:
@@ -162,21 +145,22 @@ def main(argv=None) -> None:
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
     parser.add_argument("--settings", nargs="+", default=list(TRAIN), choices=list(TRAIN))
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
-    parser.add_argument("--steps", type=int, default=None, help="env steps per training (default: apg's budget)")
+    parser.add_argument("--steps", type=int, default=None, help="env steps per training (default: the preset's budget)")
     parser.add_argument("--episodes", type=int, default=256, help="evaluation episodes per setting")
     parser.add_argument("--out", default=DEFAULT_OUT)
+    parser.add_argument("--runs", default=None, help="folder of the trained runs (default: a temporary folder)")
     args = parser.parse_args(argv)
     records = []
-    evaluators = {(task, name): make_evaluator(task, name, args.episodes) for task in args.tasks for name in EVAL}
-    for task in args.tasks:
-        for setting in args.settings:
-            for seed in args.seeds:
-                record = train_and_evaluate(task, setting, seed, args.steps, evaluators)
-                records.append(record)
-                print(json.dumps(record), flush=True)
+    with tempfile.TemporaryDirectory() as scratch:
+        for task in args.tasks:
+            for setting in args.settings:
+                for seed in args.seeds:
+                    record = train_and_evaluate(task, setting, seed, args.steps, args.episodes, args.runs or scratch)
+                    records.append(record)
+                    print(json.dumps(record), flush=True)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
-        json.dump({"base": BASE, "train": TRAIN, "eval": EVAL, "records": records, "args": vars(args)}, f, indent=1)
+        json.dump({"train": TRAIN, "eval": EVAL, "records": records, "args": vars(args)}, f, indent=1)
     print(table(records))
 
 

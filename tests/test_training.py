@@ -571,3 +571,32 @@ def test_failed_criteria_name_what_kept_a_run_from_success():
     assert crashed == ["3 of 256 episodes ended early (crashed or left the arena; a solved run has none)"]
     both = failed_criteria(task, {"success_value": 0.07, "terminated_rate": 1 / 64, "n_episodes": 64})
     assert len(both) == 2 and "0.07 m is not below the threshold 0.05" in both[0] and "1 of 64" in both[1]
+
+
+def test_train_cli_realism_defaults(tmp_path):
+    """Under sim-to-real options ``jaxdrones train hover`` trains as tuned for them: our PPO with its budget,
+    ``ctbr`` actions and the error integral; what the command line sets wins; the saved env has them."""
+    from jaxdrones.training import trainers
+    from jaxdrones.training.run import default_env
+
+    assert trainers.default_algo("hover", realism=True) == "ppo" and trainers.default_algo("hover") == "apg"
+    assert trainers.default_algo("hover", backend="pybullet", realism=True) == "brax_ppo"
+    plain = trainers.run_config(trainers.get("ppo"), "hover")
+    tuned = trainers.run_config(trainers.get("ppo"), "hover", realism=True)
+    assert tuned.num_timesteps > plain.num_timesteps and tuned.anneal_lr and not plain.anneal_lr
+    assert trainers.run_config(trainers.get("apg"), "hover", realism=True) == trainers.get("apg").default_config(
+        "hover"
+    )
+    assert default_env("hover", {"realism": "crazyflie"}) == {
+        "realism": "crazyflie",
+        "action_type": "ctbr",
+        "error_integral": True,
+    }
+    assert default_env("hover", {"realism": "crazyflie", "action_type": "rpm"})["action_type"] == "rpm"
+    assert default_env("hover", {}) == {}
+    run = tmp_path / "run"
+    args = ["train", "hover", "--realism", "crazyflie", "--steps", "1", "--num-evals", "1", "--out", str(run)]
+    assert main([*args, "--no-progress", "--eval-episodes", "64", "--num-envs", "8", "--no-error-integral"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["algo"] == "ppo" and summary["config"]["anneal_lr"]
+    assert summary["env"]["action_type"] == "ctbr" and summary["env"]["error_integral"] is False

@@ -359,9 +359,10 @@ def run_cli(args: argparse.Namespace) -> int:
             raise ValueError(f"--target applies to hover and takeoff, not {args.task}")
         from jaxdrones.envs import make_config
 
-        vision = bool(make_config(args.task, **default_env(args.task, env)).vision)
+        task_config = make_config(args.task, **default_env(args.task, env))
+        vision, realism = bool(task_config.vision), task_config.realism is not None
         defaults = args.defaults or trainers.default_profile()
-        algo = default_algo(args.task, args.backend or "jax", vision, defaults) if args.algo is None else args.algo
+        algo = args.algo or default_algo(args.task, args.backend or "jax", vision, defaults, realism)
         trainer = trainers.get(algo)
         overrides = {"seed": args.seed}
         if args.steps is not None:
@@ -373,7 +374,7 @@ def run_cli(args: argparse.Namespace) -> int:
             overrides["num_envs"] = args.num_envs
             if trainer.name == "brax_ppo":
                 overrides["batch_size"] = args.num_envs
-        config = dataclasses.replace(trainer.default_config(args.task, vision, defaults), **overrides)
+        config = dataclasses.replace(trainers.run_config(trainer, args.task, vision, defaults, realism), **overrides)
         summary = train_task(
             args.task,
             args.out,

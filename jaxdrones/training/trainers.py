@@ -211,14 +211,44 @@ def get(algo: str) -> Trainer:
 DEFAULT_ALGO = {"cpu": {"hover": "apg"}, "gpu": {"hover": "ppo"}}
 
 
-def default_algo(task: str, backend: str = "jax", vision: bool = False, defaults: str = "cpu") -> str:
+#: How ``jaxdrones train`` trains a task under sim-to-real options (``--realism``; the task's side, the action and
+#: the memory, is `jaxdrones.training.run.REALISM_ENV`): the algorithm, and the fields of its config per `DEFAULTS`
+#: profile over `Trainer.default_config`'s. Hover under the ``crazyflie`` preset (2 CPU cores, ctbr actions with the
+#: error integral, docs/experiments.md): APG plateaued 5.9-6.1 cm from the target after 2 M env steps (its
+#: squared-distance loss barely pulls at a few cm); our PPO at its hover settings reached 3.3 and 7.3 cm (seeds 0, 1;
+#: 1.2 % crashed) in 8 M env steps, and with its step size decayed to 0 over the run (``anneal_lr``) 2.2 cm for seed 1
+#: with none crashed, within 5 cm from 4.8 M steps on. Velocity: APG at its defaults (1 M env steps) tracked the
+#: command within 0.081 m/s with the integral and 0.124 m/s without it; our PPO at its hover settings (0.73 m/s after
+#: 8 M) and brax's PPO at its velocity settings (1.13 m/s, 31 % crashed) learned to hover, not to track.
+REALISM_TRAINING = {
+    "hover": ("ppo", {"cpu": {"num_timesteps": 8_000_000, "anneal_lr": True}, "gpu": {"anneal_lr": True}}),
+    "velocity": ("apg", {"cpu": {}, "gpu": {}}),
+}
+
+
+def default_algo(
+    task: str, backend: str = "jax", vision: bool = False, defaults: str = "cpu", realism: bool = False
+) -> str:
     """``"mappo"`` for a multi-agent task; for a single-agent one `DEFAULT_ALGO`'s for the ``defaults`` profile
     (``"brax_ppo"`` if none, on the PyBullet backend, which APG cannot differentiate, and with camera images, which
-    brax's vision PPO takes)."""
+    brax's vision PPO takes); with sim-to-real options (``realism``) on the JAX backend, `REALISM_TRAINING`'s."""
     from jaxdrones.envs import is_multi_agent
 
     check_defaults(defaults)
     if is_multi_agent(task):
         return "mappo"
+    if realism and task in REALISM_TRAINING and backend == "jax" and not vision:
+        return REALISM_TRAINING[task][0]
     algo = DEFAULT_ALGO[defaults].get(task, "brax_ppo")
     return "brax_ppo" if (backend != "jax" or vision) and algo in ("apg", "shac") else algo
+
+
+def run_config(trainer: Trainer, task: str, vision: bool = False, defaults: str = "cpu", realism: bool = False):
+    """The config a ``jaxdrones train`` run of ``task`` starts from: `Trainer.default_config`'s, with
+    `REALISM_TRAINING`'s fields for the profile under sim-to-real options (``realism``) when ``trainer`` is the
+    task's algorithm there."""
+    config = trainer.default_config(task, vision, defaults)
+    algo, fields = REALISM_TRAINING.get(task, (None, {}))
+    if realism and trainer.name == algo:
+        config = dataclasses.replace(config, **fields[defaults])
+    return config
