@@ -267,38 +267,17 @@ def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
     """
     if not re.fullmatch(r"[A-Za-z_]\w*", name):
         raise ValueError(f"export: the function name must be a C identifier, got {name!r}")
-    from jaxdrones.envs.env import ERROR_INTEGRAL_BOUND
-
     net, env = _policy_env(payload)
     layers, sizes = net.layers, sizes_of(net)
     n_obs, n_act = sizes["n_obs"], sizes["n_act"]
     low, high = (b[0] for b in env.observation_bounds())
     width = max(w.shape[1] for w, _ in layers)
     upper = name.upper()
-    parts = _layout(env)
     lines = [
         f"/* {name}: void {name}(const float obs[{n_obs}], float action[{n_act}]); needs <math.h> (tanhf) only.",
         f" * The observation is clipped to {name}_obs_low/high before the network.",
         " *",
-        f" * With its memory, at every control step ({env.config.ctrl_freq} Hz; {name}_reset at an episode's start):",
-        f" *   void {name}_step({name}_memory *m, const float state[{upper}_N_STATE], const float error[3],",
-        f" *                    float action[{n_act}]);",
-        f" * state: the observation without its memory: entries 0-{parts['base'] - 1} below"
-        + (f", then the task's {parts['task']}" if parts["task"] else "")
-        + ". It assembles the observation below:",
-        f" * the last {env.obs_type.buffer_len} actions it returned (oldest first; zeros after {name}_reset)"
-        + (
-            f", and the error integral, m->integral += error / {env.config.ctrl_freq} clipped to "
-            f"+-{ERROR_INTEGRAL_BOUND:g},"
-            if parts["integral"]
-            else ","
-        ),
-        " * error: "
-        + (
-            _ERRORS.get(env.task.name, _POSITION_ERROR) + ", from the same measurements as state."
-            if parts["integral"]
-            else "unused (no error integral in this observation; may be NULL)."
-        ),
+        *[f" * {line}" for line in _memory_text(env, name, n_act)],
         " *",
         *[f" * {line}".rstrip() for line in describe(payload, env, net)],
         " */",
@@ -352,6 +331,31 @@ def c_source(payload: dict, name: str = "jaxdrones_policy") -> tuple[str, dict]:
         src = dst
     lines += ["}", "", *_memory_source(env, name, n_act)]
     return "\n".join(lines), sizes
+
+
+def _memory_text(env, name: str, n_act: int) -> list[str]:
+    """The header's lines on ``NAME_step``: when to call it, what it takes, the memory it keeps."""
+    from jaxdrones.envs.env import ERROR_INTEGRAL_BOUND
+
+    parts, upper = _layout(env), name.upper()
+    task = f", then the task's {parts['task']}" if parts["task"] else ""
+    memory = []
+    if parts["buffer"]:
+        memory.append(f"the last {env.obs_type.buffer_len} actions it returned (oldest first)")
+    if parts["integral"]:
+        memory.append(
+            f"the error integral (m->integral += error / {env.config.ctrl_freq}, clipped to "
+            f"+-{ERROR_INTEGRAL_BOUND:g}; error: {_ERRORS.get(env.task.name, _POSITION_ERROR)}, from the same "
+            "measurements as state)"
+        )
+    kept = " and ".join(memory) if memory else "nothing (this observation has no memory; error may be NULL)"
+    text = (
+        f"At every control step ({env.config.ctrl_freq} Hz), after {name}_reset(&m) at the start: "
+        f"void {name}_step({name}_memory *m, const float state[{upper}_N_STATE], const float error[3], "
+        f"float action[{n_act}]). state: the observation below without its memory, entries 0-{parts['base'] - 1}"
+        f"{task}. It keeps {kept}, and assembles the observation below."
+    )
+    return textwrap.wrap(text, 110, subsequent_indent="  ")
 
 
 def _memory_source(env, name: str, n_act: int) -> list[str]:

@@ -159,7 +159,7 @@ def test_exported_c_policy_flies_closed_loop(tmp_path):
     shutil.copytree(os.path.join(os.path.dirname(__file__), "data", "crazyflie_hover"), run)
     assert main(["export", run]) == 0
     source = open(os.path.join(run, "jaxdrones_policy.c")).read()
-    assert "jaxdrones_policy_step(jaxdrones_policy_memory *m" in source and "(30 Hz;" in source
+    assert "jaxdrones_policy_step(jaxdrones_policy_memory *m" in source and "control step (30 Hz)" in source
     subprocess.run(
         [CC, "-O2", "-std=c99", "-Wall", "-Werror", "-shared", "-fPIC", "jaxdrones_policy.c", "-o", "policy.so", "-lm"],
         cwd=run,
