@@ -90,7 +90,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action=argparse.BooleanOptionalAction,
         default=None,
         help="append the integral of the task's tracking error to the observation (an integral term: cancels a "
-        "constant unknown force); default off, on with --realism",
+        "constant unknown force); default off, on with --realism for hover and velocity",
     )
     env.add_argument("--model", default=None, help="drone model name (cf2x, cf2p, racer) or URDF path")
     env.add_argument(

@@ -105,10 +105,11 @@ class TaskConfig:
             last 32 actions at 100 Hz, 0.32 s).
         error_integral: append the integral of the task's tracking error (`jaxdrones.envs.task.Task.tracking_error`:
             hover and the position tasks, reference position − position, m; ``velocity``, commanded − measured
-            velocity, m/s) over the episode, f[3] per drone, world frame: I_t = clip(I_{t-1} + e_t / ctrl_freq,
-            ±`ERROR_INTEGRAL_BOUND`), I_0 = e_0 / ctrl_freq, computed from what the sensors report (the realism's
-            noise and delay included). A PID's integral term: it lets a policy cancel a constant unknown force
-            (the ``crazyflie`` preset's per-episode disturbance) that a memoryless policy leaves as a steady offset.
+            velocity, m/s) over the episode, f[3] per drone, world frame: I_t = clip(I_{t-1} + e_t / ctrl_freq, ±1)
+            (`jaxdrones.envs.env.ERROR_INTEGRAL_BOUND`), I_0 = e_0 / ctrl_freq, computed from what the sensors
+            report (the realism's noise and delay included). A PID's integral term: it lets a policy cancel a
+            constant unknown force (the ``crazyflie`` preset's per-episode disturbance) that a memoryless policy
+            leaves as a steady offset.
         pid_target: ``pid`` action: ``"absolute"`` (main) or ``"relative"`` (the paper).
         pid_scale: ``pid`` with relative targets: target = pos + pid_scale · a, m, in (0, 1]; the paper's 0.1 m,
             which the DSL PID flies at up to about 0.5 m/s (0.3 m: about 1 m/s).
