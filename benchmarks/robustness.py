@@ -71,9 +71,11 @@ TRAIN = {
 EVAL = {"paper": {}, "crazyflie": {"realism": "crazyflie"}, "harsh": {"realism": "crazyflie_harsh"}}
 
 
-def train_and_evaluate(task: str, setting: str, seed: int, steps: int | None, episodes: int, folder: str) -> dict:
-    """Train one policy as ``jaxdrones train TASK --realism crazyflie`` does, with the `TRAIN` setting's physics, and
-    evaluate it in every `EVAL` setting; returns its record."""
+def train_and_evaluate(
+    task: str, setting: str, seed: int, steps: int | None, episodes: int, folder: str, defaults: str = "cpu"
+) -> dict:
+    """Train one policy as ``jaxdrones train TASK --realism crazyflie --defaults DEFAULTS`` does, with the `TRAIN`
+    setting's physics, and evaluate it in every `EVAL` setting; returns its record."""
     import jax
 
     import jaxdrones as jd
@@ -81,19 +83,20 @@ def train_and_evaluate(task: str, setting: str, seed: int, steps: int | None, ep
     from jaxdrones.training.evaluation import evaluate
     from jaxdrones.training.run import REALISM_ENV, train_task
 
-    algo = trainers.default_algo(task, realism=True)
-    config = trainers.run_config(trainers.get(algo), task, realism=True)
+    algo = trainers.default_algo(task, defaults=defaults, realism=True)
+    config = trainers.run_config(trainers.get(algo), task, defaults=defaults, realism=True)
     config = dataclasses.replace(config, seed=seed, **({} if steps is None else {"num_timesteps": steps}))
     overrides = {**REALISM_ENV.get(task, {}), **TRAIN[setting]}
     run = os.path.join(folder, f"{task}-{setting}-{seed}")
     summary = train_task(
-        task, run, overwrite=True, algo=algo, config=config, env_overrides=overrides, progress=False, defaults="cpu"
+        task, run, overwrite=True, algo=algo, config=config, env_overrides=overrides, progress=False, defaults=defaults
     )
     record = {
         "task": task,
         "train": setting,
         "seed": seed,
         "algo": algo,
+        "defaults": defaults,
         "env": overrides,
         "env_steps": summary["env_steps"],
         "train_wall_s": summary["wall_time_s"],
@@ -149,13 +152,18 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=256, help="evaluation episodes per setting")
     parser.add_argument("--out", default=DEFAULT_OUT)
     parser.add_argument("--runs", default=None, help="folder of the trained runs (default: a temporary folder)")
+    parser.add_argument(
+        "--defaults", default="cpu", choices=("cpu", "gpu"), help="the profile of training settings (default cpu)"
+    )
     args = parser.parse_args(argv)
     records = []
     with tempfile.TemporaryDirectory() as scratch:
         for task in args.tasks:
             for setting in args.settings:
                 for seed in args.seeds:
-                    record = train_and_evaluate(task, setting, seed, args.steps, args.episodes, args.runs or scratch)
+                    record = train_and_evaluate(
+                        task, setting, seed, args.steps, args.episodes, args.runs or scratch, args.defaults
+                    )
                     records.append(record)
                     print(json.dumps(record), flush=True)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
