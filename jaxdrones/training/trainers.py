@@ -243,7 +243,7 @@ def default_algo(
     return "brax_ppo" if (backend != "jax" or vision) and algo in ("apg", "shac") else algo
 
 
-def run_config(trainer: Trainer, task: str, vision: bool = False, defaults: str = "cpu", realism: bool = False):
+def run_config(trainer: Trainer, task: str, vision: bool = False, defaults: str = "cpu", realism: bool = False) -> Any:
     """The config a ``jaxdrones train`` run of ``task`` starts from: `Trainer.default_config`'s, with
     `REALISM_TRAINING`'s fields for the profile under sim-to-real options (``realism``) when ``trainer`` is the
     task's algorithm there."""
