@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
+from jaxdrones.training.mappo import NORM_CLIP, NORM_EPS
+
 if TYPE_CHECKING:
     import onnx
 
@@ -92,10 +94,6 @@ class Network(NamedTuple):
     output: str
 
 
-#: Our PPO's observation standardisation clips to ±10 (`jaxdrones.training.mappo.Networks.normalize`).
-NORM_CLIP = 10.0
-
-
 def _dense_layers(params: dict) -> list[tuple[np.ndarray, np.ndarray]]:
     names = sorted((k for k in params if re.fullmatch(r"Dense_\d+", k)), key=lambda k: int(k.split("_")[1]))
     if not names:
@@ -128,21 +126,18 @@ def network_of(payload: dict) -> Network:
         if extra:
             raise ValueError(f"export: expected flax Dense_0 ... Dense_n parameters, got {sorted(params)}")
         return Network(_dense_layers(params), None, "tanh")
+    import jax
+
     squeeze = payload["config"].get("share_params", True) is False  # per-agent networks: a leading axis of 1
-    actor = _map_arrays(lambda x: np.asarray(x)[0] if squeeze else np.asarray(x), params["actor"]["params"])
+    actor = jax.tree.map(lambda x: np.asarray(x)[0] if squeeze else np.asarray(x), params["actor"]["params"])
     layers = _dense_layers(actor)
     if "Embed_0" in actor:  # the one agent's id embedding, added to the first layer's output
         w, b = layers[0]
         layers[0] = (w, b + np.asarray(actor["Embed_0"]["embedding"], np.float32)[0])
     norm = params["norm"]
-    scale = np.sqrt(np.asarray(norm["var"], np.float32) + np.float32(1e-6))
+    scale = np.sqrt(np.asarray(norm["var"], np.float32) + np.float32(NORM_EPS))
     output = "tanh" if payload["config"].get("squash", False) else "clip"
     return Network(layers, (np.asarray(norm["mean"], np.float32), scale), output)
-
-
-def _map_arrays(fn, tree: dict) -> dict:
-    """``fn`` on every array of a nested dict (a saved policy's parameters, NumPy)."""
-    return {k: _map_arrays(fn, v) if isinstance(v, dict) else fn(v) for k, v in tree.items()}
 
 
 def _layout(env) -> dict[str, int]:

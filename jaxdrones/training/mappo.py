@@ -144,6 +144,11 @@ class MAPPOConfig(Schedule):
         return self.num_envs * self.unroll_length
 
 
+#: The observation's standardisation (`Networks.normalize`): the variance's floor and the clip of the result.
+NORM_EPS = 1e-6
+NORM_CLIP = 10.0
+
+
 def agent_mlp(
     hidden_layer_sizes: tuple[int, ...], out: int, n_ids: int, fan_in: int, last_init: Callable | None = None
 ) -> linen.Module:
@@ -216,10 +221,11 @@ class Networks:
 
     @staticmethod
     def normalize(params: dict, x: jax.Array) -> jax.Array:
-        """X standardised by the running statistics ``params["norm"]`` (`update_norm`), clipped to ±10."""
+        """X standardised by the running statistics ``params["norm"]`` (`update_norm`), (x − mean) / sqrt(var +
+        `NORM_EPS`), clipped to ±`NORM_CLIP`."""
         norm = params["norm"]
         mean, var = (jnp.broadcast_to(norm[k], x.shape) for k in ("mean", "var"))
-        return jnp.clip((x - mean) / jnp.sqrt(var + 1e-6), -10.0, 10.0)
+        return jnp.clip((x - mean) / jnp.sqrt(var + NORM_EPS), -NORM_CLIP, NORM_CLIP)
 
     def _apply(self, mlp, params, x, world=None):
         """``mlp`` on x f[..., D, n] (and the world's features f[..., m]): shared or one parameter set per agent."""
