@@ -14,7 +14,7 @@ import pytest
 from jax.experimental.compilation_cache import compilation_cache
 
 from jaxdrones import viz
-from jaxdrones.cli import main
+from jaxdrones.cli import build_parser, main
 from jaxdrones.training import evaluate, load_policy
 
 #: What a training run writes; flight.html where viser (the viewer extra, in the test extra) is installed.
@@ -575,7 +575,8 @@ def test_failed_criteria_name_what_kept_a_run_from_success():
 
 def test_train_cli_realism_defaults(tmp_path):
     """Under sim-to-real options ``jaxdrones train hover`` trains as tuned for them: our PPO with its budget,
-    ``ctbr`` actions and the error integral; what the command line sets wins; the saved env has them."""
+    ``ctbr`` actions, the error integral and ground contact as a crash; what the command line sets wins; the saved
+    env has them."""
     from jaxdrones.training import trainers
     from jaxdrones.training.run import default_env
 
@@ -591,8 +592,12 @@ def test_train_cli_realism_defaults(tmp_path):
         "realism": "crazyflie",
         "action_type": "ctbr",
         "error_integral": True,
+        "terminate_on_ground": True,
     }
     assert default_env("hover", {"realism": "crazyflie", "action_type": "rpm"})["action_type"] == "rpm"
+    parsed = build_parser().parse_args(["train", "hover", "--realism", "crazyflie", "--no-terminate-on-ground"])
+    assert parsed.terminate_on_ground is False
+    assert default_env("hover", {"realism": "crazyflie", "terminate_on_ground": False})["terminate_on_ground"] is False
     assert default_env("hover", {}) == {}
     run = tmp_path / "run"
     args = ["train", "hover", "--realism", "crazyflie", "--steps", "1", "--num-evals", "1", "--out", str(run)]
@@ -600,3 +605,4 @@ def test_train_cli_realism_defaults(tmp_path):
     summary = json.loads((run / "summary.json").read_text())
     assert summary["algo"] == "ppo" and summary["config"]["anneal_lr"]
     assert summary["env"]["action_type"] == "ctbr" and summary["env"]["error_integral"] is False
+    assert summary["env"]["terminate_on_ground"] is True

@@ -92,6 +92,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="append the integral of the task's tracking error to the observation (an integral term: cancels a "
         "constant unknown force); default off, on with --realism for hover and velocity",
     )
+    env.add_argument(
+        "--terminate-on-ground",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="end an episode as a crash when a drone touches the ground (default: the task's, off for hover and "
+        "velocity; on with --realism for them)",
+    )
     env.add_argument("--model", default=None, help="drone model name (cf2x, cf2p, racer) or URDF path")
     env.add_argument(
         "--num-drones",
@@ -261,6 +268,7 @@ _ENV_OPTIONS = {
     "obs_type": "obs_type",
     "action_buffer": "action_buffer",
     "error_integral": "error_integral",
+    "terminate_on_ground": "terminate_on_ground",
     "model": "model",
     "num_drones": "n_drones",
     "ctrl_freq": "ctrl_freq",
