@@ -9,8 +9,9 @@ import pytest
 import reference_pid as ref
 from scipy.spatial.transform import Rotation
 
-from jaxdrones.control import pid
+from jaxdrones.control import mixer, pid
 from jaxdrones.params import load_params
+from jaxdrones.physics import rotations
 from jaxdrones.state import DroneState
 
 #: Agreement required with the float64 NumPy reference: RPM are ~1e4, so this is ~1e-13 relative.
@@ -166,19 +167,26 @@ def test_hover_at_target_gives_hover_pwm():
 
 @pytest.mark.parametrize("model", ["cf2x", "cf2p"])
 def test_mixer_is_the_original(model):
-    np.testing.assert_array_equal(np.asarray(pid.mixer_matrix(load_params(model))), ref.MIXERS[model])
+    np.testing.assert_array_equal(np.asarray(mixer.mixer_matrix(load_params(model))), ref.MIXERS[model])
 
 
 def test_mixer_racer_follows_its_positive_torque_patterns():
     """Racer (docs/physics.md §2): roll+ raises (+,+,−,−), pitch+ (−,+,+,−), yaw+ (+,−,+,−)."""
-    signs = np.sign(np.asarray(pid.mixer_matrix(load_params("racer"))))
+    signs = np.sign(np.asarray(mixer.mixer_matrix(load_params("racer"))))
     np.testing.assert_array_equal(signs.T, [[1, 1, -1, -1], [-1, 1, 1, -1], [1, -1, 1, -1]])
+
+
+def test_moved_helpers_keep_their_old_paths():
+    """The mixer and the Euler helpers live with allocation and the rotations; the PID's module still has them."""
+    assert pid.mixer_matrix is mixer.mixer_matrix
+    assert pid.euler_xyz_from_rotmat is rotations.euler_xyz_from_rotmat
+    assert pid.rotmat_from_euler_xyz is rotations.rotmat_from_euler_xyz
 
 
 def test_mixer_batched_params():
     params = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), load_params("cf2x"), load_params("cf2p"))
-    mixer = np.asarray(pid.mixer_matrix(params))
-    np.testing.assert_array_equal(mixer, np.stack([ref.MIXERS["cf2x"], ref.MIXERS["cf2p"]]))
+    matrix = np.asarray(mixer.mixer_matrix(params))
+    np.testing.assert_array_equal(matrix, np.stack([ref.MIXERS["cf2x"], ref.MIXERS["cf2p"]]))
 
 
 def test_velocity_targets_match_reference(rng):
@@ -232,9 +240,9 @@ def test_velocity_control_matches_reference(rng):
 def test_euler_xyz_matches_scipy():
     rots = Rotation.random(500, random_state=3)
     with jax.enable_x64(True):
-        angles = np.asarray(pid.euler_xyz_from_rotmat(jnp.asarray(rots.as_matrix())))
+        angles = np.asarray(rotations.euler_xyz_from_rotmat(jnp.asarray(rots.as_matrix())))
         np.testing.assert_allclose(angles, rots.as_euler("XYZ"), atol=1e-13)
-        back = np.asarray(pid.rotmat_from_euler_xyz(jnp.asarray(angles)))
+        back = np.asarray(rotations.rotmat_from_euler_xyz(jnp.asarray(angles)))
         np.testing.assert_allclose(back, rots.as_matrix(), atol=1e-14)
 
 

@@ -8,6 +8,9 @@ A s = b; if a squared speed comes out negative, take the non-negative least-squa
 rpm = √s. `nnls_rpm_squared` solves that NNLS problem exactly, batched and jittable, by enumerating the 16 passive
 sets of the 4-motor problem.
 
+`mixer_matrix` is the PID controller's mixer (PWM units), derived from the airframe as the original's
+DSLPIDControl writes it (docs/physics.md §12.1).
+
 `body_rate_control` closes a proportional body-rate loop with gyroscopic feed-forward on top, for the collective
 thrust and body rates (CTBR) interface of real flight stacks (PX4, Betaflight).
 
@@ -421,3 +424,27 @@ def _broadcasts(shape, target) -> bool:
         return tuple(np.broadcast_shapes(tuple(shape), tuple(target))) == tuple(target)
     except ValueError:
         return False
+
+
+def mixer_matrix(params: DroneParams) -> jax.Array:
+    """The controller's mixer, derived from the airframe: pwm = thrust + M @ (τ_roll, τ_pitch, τ_yaw).
+
+    Roll/pitch columns: sign(torque_arm)ᵀ, scaled so each column's absolute values sum to 2 (½ per motor for an x
+    frame, 1 for the two active motors of a + frame); yaw column: −prop_spin. This gives exactly the original's
+    matrices (docs/physics.md §12.1): cf2x (main) [[−½,−½,−1],[−½,½,1],[½,½,−1],[½,−½,1]] and cf2p
+    [[0,−1,−1],[1,0,1],[0,1,−1],[−1,0,1]]; for the racer, its mirrored spins and motor order.
+
+    Args:
+        params: DroneParams, possibly batched (``torque_arm`` f[..., 2, 4] m, ``prop_spin`` f[..., 4]).
+
+    Returns:
+        f[..., 4, 3] (rows: motors 0-3; columns: roll, pitch, yaw), dimensionless.
+    """
+    arm = params.torque_arm
+    tol = 1e-6 * jnp.max(jnp.abs(arm), axis=(-2, -1), keepdims=True)
+    sign = jnp.where(jnp.abs(arm) > tol, jnp.sign(arm), 0.0)
+    count = jnp.maximum(jnp.sum(jnp.abs(sign), axis=-1, keepdims=True), 1.0)
+    roll_pitch = jnp.swapaxes(2.0 * sign / count, -1, -2)
+    lead = jnp.broadcast_shapes(roll_pitch.shape[:-2], params.prop_spin.shape[:-1])
+    yaw = jnp.broadcast_to(-params.prop_spin[..., None], lead + (4, 1))
+    return jnp.concatenate([jnp.broadcast_to(roll_pitch, lead + (4, 2)), yaw], axis=-1)

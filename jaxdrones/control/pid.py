@@ -36,8 +36,14 @@ from flax import struct
 from jax.typing import DTypeLike
 from numpy.typing import ArrayLike
 
+from jaxdrones.control.mixer import mixer_matrix
 from jaxdrones.physics.params import DroneParams, align_params
-from jaxdrones.physics.rotations import quat_to_euler, quat_to_rotmat
+from jaxdrones.physics.rotations import (
+    euler_xyz_from_rotmat,
+    quat_to_euler,
+    quat_to_rotmat,
+    rotmat_from_euler_xyz,
+)
 from jaxdrones.physics.state import DroneState
 
 #: PWM→RPM map of the Crazyflie: rpm = PWM2RPM_SCALE·pwm + PWM2RPM_CONST (docs/physics.md §12.1).
@@ -53,9 +59,6 @@ MAX_TORQUE_PWM = 3200.0
 POS_INTEGRAL_LIMIT = (2.0, 2.0, 0.15)
 #: Per-axis limits of the attitude-error integral, s: ±1 roll/pitch, ±1500 yaw (docs/physics.md §12.3, step 4).
 ATT_INTEGRAL_LIMIT = (1.0, 1.0, 1500.0)
-#: |sin(pitch)| above which the intrinsic 'XYZ' conversion treats the attitude as gimbal-locked (third angle 0,
-#: as scipy does).
-_XYZ_GIMBAL_EPS = 1e-7
 
 
 #: The DSL gains of the paper's controller by `PIDGains` field (docs/physics.md §12.1; DSLPIDControl.py's
@@ -159,75 +162,6 @@ def pid_init(shape_or_state: DroneState | int | tuple[int, ...], dtype: DTypeLik
     dtype = jnp.result_type(float) if dtype is None else dtype
     zeros = jnp.zeros(shape, dtype=dtype)
     return PIDState(integral_pos_e=zeros, integral_rpy_e=zeros, last_rpy=zeros)
-
-
-def mixer_matrix(params: DroneParams) -> jax.Array:
-    """The controller's mixer, derived from the airframe: pwm = thrust + M @ (τ_roll, τ_pitch, τ_yaw).
-
-    Roll/pitch columns: sign(torque_arm)ᵀ, scaled so each column's absolute values sum to 2 (½ per motor for an x
-    frame, 1 for the two active motors of a + frame); yaw column: −prop_spin. This gives exactly the original's
-    matrices (docs/physics.md §12.1): cf2x (main) [[−½,−½,−1],[−½,½,1],[½,½,−1],[½,−½,1]] and cf2p
-    [[0,−1,−1],[1,0,1],[0,1,−1],[−1,0,1]]; for the racer, its mirrored spins and motor order.
-
-    Args:
-        params: DroneParams, possibly batched (``torque_arm`` f[..., 2, 4] m, ``prop_spin`` f[..., 4]).
-
-    Returns:
-        f[..., 4, 3] (rows: motors 0-3; columns: roll, pitch, yaw), dimensionless.
-    """
-    arm = params.torque_arm
-    tol = 1e-6 * jnp.max(jnp.abs(arm), axis=(-2, -1), keepdims=True)
-    sign = jnp.where(jnp.abs(arm) > tol, jnp.sign(arm), 0.0)
-    count = jnp.maximum(jnp.sum(jnp.abs(sign), axis=-1, keepdims=True), 1.0)
-    roll_pitch = jnp.swapaxes(2.0 * sign / count, -1, -2)
-    lead = jnp.broadcast_shapes(roll_pitch.shape[:-2], params.prop_spin.shape[:-1])
-    yaw = jnp.broadcast_to(-params.prop_spin[..., None], lead + (4, 1))
-    return jnp.concatenate([jnp.broadcast_to(roll_pitch, lead + (4, 2)), yaw], axis=-1)
-
-
-def rotmat_from_euler_xyz(angles: jax.Array) -> jax.Array:
-    """Rotation matrix of *intrinsic* 'XYZ' Euler angles (scipy ``from_euler('XYZ')``): R = Rx(a)·Ry(b)·Rz(c).
-
-    Args:
-        angles: f[..., 3] rad (a, b, c).
-
-    Returns:
-        f[..., 3, 3].
-    """
-    ca, cb, cc = jnp.cos(angles[..., 0]), jnp.cos(angles[..., 1]), jnp.cos(angles[..., 2])
-    sa, sb, sc = jnp.sin(angles[..., 0]), jnp.sin(angles[..., 1]), jnp.sin(angles[..., 2])
-    rows = [
-        [cb * cc, -cb * sc, sb],
-        [sa * sb * cc + ca * sc, -sa * sb * sc + ca * cc, -sa * cb],
-        [-ca * sb * cc + sa * sc, ca * sb * sc + sa * cc, ca * cb],
-    ]
-    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
-
-
-def euler_xyz_from_rotmat(rotmat: jax.Array) -> jax.Array:
-    """*Intrinsic* 'XYZ' Euler angles of a rotation matrix (scipy ``as_euler('XYZ')``), the inverse of
-    `rotmat_from_euler_xyz`.
-
-    Angles: a, c ∈ (−π, π], b ∈ [−π/2, π/2]. At gimbal lock (|sin b| > 1 − 1e-7) the third angle is set to 0 as
-    scipy does (scipy also warns; this function does not).
-
-    Args:
-        rotmat: f[..., 3, 3], a rotation matrix.
-
-    Returns:
-        f[..., 3] rad (a, b, c).
-    """
-    r = rotmat
-    cos_b = jnp.sqrt(r[..., 0, 0] ** 2 + r[..., 0, 1] ** 2)
-    b = jnp.arctan2(r[..., 0, 2], cos_b)
-    a = jnp.arctan2(-r[..., 1, 2], r[..., 2, 2])
-    c = jnp.arctan2(-r[..., 0, 1], r[..., 0, 0])
-    locked = jnp.abs(r[..., 0, 2]) > 1.0 - _XYZ_GIMBAL_EPS
-    # With b = ±π/2, R[1,0] and R[1,1] are sin and cos of (a ± c); c = 0 leaves a.
-    a_locked = jnp.arctan2(jnp.sign(r[..., 0, 2]) * r[..., 1, 0], r[..., 1, 1])
-    a = jnp.where(locked, a_locked, a)
-    c = jnp.where(locked, 0.0, c)
-    return jnp.stack([a, b, c], axis=-1)
 
 
 def pid_control(

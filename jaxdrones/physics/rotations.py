@@ -326,3 +326,53 @@ def quat_integrate_c(quat: Components, ang_vel: Components, dt: float) -> Compon
 def quat_derivative_c(quat: Components, ang_vel: Components) -> Components:
     """q̇ = ½ q ⊗ (ω, 0) for a body-frame rate ω in rad/s: (x, y, z, w), (ωx, ωy, ωz) -> q̇ per second."""
     return tuple(0.5 * c for c in quat_mul_c(quat, (*ang_vel, jnp.zeros_like(ang_vel[0]))))
+
+
+#: |sin(pitch)| above which the intrinsic 'XYZ' conversion treats the attitude as gimbal-locked (third angle 0,
+#: as scipy does).
+_XYZ_GIMBAL_EPS = 1e-7
+
+
+def rotmat_from_euler_xyz(angles: jax.Array) -> jax.Array:
+    """Rotation matrix of *intrinsic* 'XYZ' Euler angles (scipy ``from_euler('XYZ')``): R = Rx(a)·Ry(b)·Rz(c).
+
+    Args:
+        angles: f[..., 3] rad (a, b, c).
+
+    Returns:
+        f[..., 3, 3].
+    """
+    ca, cb, cc = jnp.cos(angles[..., 0]), jnp.cos(angles[..., 1]), jnp.cos(angles[..., 2])
+    sa, sb, sc = jnp.sin(angles[..., 0]), jnp.sin(angles[..., 1]), jnp.sin(angles[..., 2])
+    rows = [
+        [cb * cc, -cb * sc, sb],
+        [sa * sb * cc + ca * sc, -sa * sb * sc + ca * cc, -sa * cb],
+        [-ca * sb * cc + sa * sc, ca * sb * sc + sa * cc, ca * cb],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def euler_xyz_from_rotmat(rotmat: jax.Array) -> jax.Array:
+    """*Intrinsic* 'XYZ' Euler angles of a rotation matrix (scipy ``as_euler('XYZ')``), the inverse of
+    `rotmat_from_euler_xyz`.
+
+    Angles: a, c ∈ (−π, π], b ∈ [−π/2, π/2]. At gimbal lock (|sin b| > 1 − 1e-7) the third angle is set to 0 as
+    scipy does (scipy also warns; this function does not).
+
+    Args:
+        rotmat: f[..., 3, 3], a rotation matrix.
+
+    Returns:
+        f[..., 3] rad (a, b, c).
+    """
+    r = rotmat
+    cos_b = jnp.sqrt(r[..., 0, 0] ** 2 + r[..., 0, 1] ** 2)
+    b = jnp.arctan2(r[..., 0, 2], cos_b)
+    a = jnp.arctan2(-r[..., 1, 2], r[..., 2, 2])
+    c = jnp.arctan2(-r[..., 0, 1], r[..., 0, 0])
+    locked = jnp.abs(r[..., 0, 2]) > 1.0 - _XYZ_GIMBAL_EPS
+    # With b = ±π/2, R[1,0] and R[1,1] are sin and cos of (a ± c); c = 0 leaves a.
+    a_locked = jnp.arctan2(jnp.sign(r[..., 0, 2]) * r[..., 1, 0], r[..., 1, 1])
+    a = jnp.where(locked, a_locked, a)
+    c = jnp.where(locked, 0.0, c)
+    return jnp.stack([a, b, c], axis=-1)

@@ -11,6 +11,7 @@ import numpy as np
 
 from jaxdrones.compat.gym_pybullet_drones.control.BaseControl import BaseControl
 from jaxdrones.compat.gym_pybullet_drones.utils.enums import DroneModel
+from jaxdrones.control.mixer import mixer_matrix
 from jaxdrones.control.pid import (
     DSL_GAINS,
     MAX_PWM,
@@ -19,7 +20,6 @@ from jaxdrones.control.pid import (
     PWM2RPM_SCALE,
     PIDGains,
     PIDState,
-    mixer_matrix,
     pid_compute,
     pid_init,
 )
@@ -65,7 +65,7 @@ class DSLPIDControl(BaseControl):
     @property
     def MIXER_MATRIX(self) -> np.ndarray:
         """f64[4, 3]: pwm = thrust + MIXER_MATRIX @ (τ_roll, τ_pitch, τ_yaw), derived from the airframe
-        (`jaxdrones.control.pid.mixer_matrix`)."""
+        (`jaxdrones.control.mixer.mixer_matrix`)."""
         return np.asarray(jax.jit(mixer_matrix)(self._params), np.float64)
 
     def reset(self) -> None:
