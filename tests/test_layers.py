@@ -12,6 +12,21 @@ def test_import_contracts_hold():
     assert lint_imports(config_filename=str(PYPROJECT), no_cache=True) == 0  # its report, printed, names a breach
 
 
+def test_every_module_is_in_a_layer():
+    """Each module and package at the top of jaxdrones has its place in the layers contract, so that the contract
+    governs all of it."""
+    import pkgutil
+    import tomllib
+
+    import jaxdrones
+
+    config = tomllib.loads(PYPROJECT.read_text())["tool"]["importlinter"]["contracts"]
+    layers = next(c for c in config if c["type"] == "layers")["layers"]
+    placed = {name.strip() for layer in layers for name in layer.split("|")}
+    modules = {f"jaxdrones.{m.name}" for m in pkgutil.iter_modules(jaxdrones.__path__)}
+    assert modules - placed == set()
+
+
 def test_old_module_paths_still_import():
     """The modules that moved into subpackages keep their old paths (the README's and pickled runs')."""
     import importlib
