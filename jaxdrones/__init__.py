@@ -2,8 +2,8 @@
 
 from jaxdrones import _fork  # noqa: F401  (refuse forked processes instead of hanging)
 from jaxdrones.envs import make
+from jaxdrones.envs.realism import Realism
 from jaxdrones.physics.params import MODELS, DroneParams, load_params
-from jaxdrones.physics.realism import Realism
 from jaxdrones.physics.state import Disturbance, DroneState, init_state
 from jaxdrones.scene import Obstacle
 from jaxdrones.sim import SimConfig, make_step, rollout
@@ -43,10 +43,13 @@ _register_gymnasium()
 #: The modules that moved into a subpackage, by subpackage: their old paths keep importing (``import
 #: jaxdrones.dynamics``, ``from jaxdrones.params import load_params``, and the pickles of runs that name them).
 _MOVED = {
-    "physics": ("adjoint", "aerodynamics", "checks", "config", "dynamics", "kinks", "neighbors", "params", "realism",
+    "physics": ("adjoint", "aerodynamics", "checks", "config", "dynamics", "kinks", "neighbors", "params",
                 "rotations", "state"),
     "io": ("plotting", "runs", "video"),
+    "envs": ("realism",),
 }  # fmt: skip
+#: Modules that moved from one subpackage to another: old path → new path (the pickles of runs name the old one).
+_MOVED_BETWEEN = {"physics.realism": "envs.realism"}
 
 
 def _alias_moved_modules() -> None:
@@ -59,6 +62,11 @@ def _alias_moved_modules() -> None:
             module = importlib.import_module(f"{__name__}.{package}.{name}")
             sys.modules[f"{__name__}.{name}"] = module
             globals()[name] = module
+    for old, new in _MOVED_BETWEEN.items():
+        package, name = old.rsplit(".", 1)
+        module = importlib.import_module(f"{__name__}.{new}")
+        sys.modules[f"{__name__}.{old}"] = module
+        setattr(importlib.import_module(f"{__name__}.{package}"), name, module)
 
 
 _alias_moved_modules()

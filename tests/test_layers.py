@@ -33,7 +33,7 @@ def test_old_module_paths_still_import():
     import pickle
 
     import jaxdrones as jd
-    from jaxdrones import physics
+    from jaxdrones import envs, physics
 
     for old, new in (
         ("dynamics", physics.dynamics),
@@ -41,10 +41,12 @@ def test_old_module_paths_still_import():
         ("rotations", physics.rotations),
         ("config", physics.config),
         ("state", physics.state),
-        ("realism", physics.realism),
+        ("realism", envs.realism),
+        ("physics.realism", envs.realism),
     ):
         assert importlib.import_module(f"jaxdrones.{old}") is new
-        assert getattr(jd, old) is new
+        assert getattr(jd, old.replace("physics.", "")) is new
+    assert physics.realism is envs.realism
     from jaxdrones.cameras import CameraSpec, make_scene, render  # noqa: F401
     from jaxdrones.plotting import plot_flight  # noqa: F401
     from jaxdrones.sim import JaxStep, make_step, rollout, shard_worlds  # noqa: F401
@@ -56,3 +58,8 @@ def test_old_module_paths_still_import():
     )
     assert b"jaxdrones.params" in old_pickle
     assert type(pickle.loads(old_pickle)) is physics.params.DroneParams
+    # The sim-to-real options moved from physics/ to envs/: a pickle naming the old module loads too.
+    realism = envs.realism.resolve("crazyflie")
+    old_pickle = pickle.dumps(realism, protocol=0).replace(b"jaxdrones.envs.realism", b"jaxdrones.physics.realism")
+    assert b"jaxdrones.physics.realism" in old_pickle
+    assert pickle.loads(old_pickle) == realism

@@ -20,9 +20,9 @@ from jaxdrones._hints import did_you_mean
 from jaxdrones.backends import BACKENDS, RENDERERS, require_pybullet
 from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS
 from jaxdrones.envs.observations import OBS_TYPES
+from jaxdrones.envs.realism import resolve as resolve_realism
 from jaxdrones.physics.config import downwash_model
 from jaxdrones.physics.params import MODELS, DroneParams, with_derived
-from jaxdrones.physics.realism import resolve as resolve_realism
 from jaxdrones.scene import resolve_obstacles
 from jaxdrones.sensors.camera import ENV_IMAGES
 from jaxdrones.sim import SimConfig

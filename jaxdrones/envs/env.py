@@ -17,9 +17,9 @@ from jaxdrones.envs.actions import make_action
 from jaxdrones.envs.base import Env, EnvState
 from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import ObsType
+from jaxdrones.envs.realism import RealismModel
 from jaxdrones.envs.task import Bounds, StartRanges, Task, TaskParams
 from jaxdrones.physics.params import DroneParams, broadcast_params, load_params, stack_params
-from jaxdrones.physics.realism import RealismModel
 from jaxdrones.physics.rotations import quat_from_euler
 from jaxdrones.physics.state import DroneState
 from jaxdrones.sensors.camera import image_shapes

@@ -10,13 +10,13 @@ from typing import Any
 from jaxdrones._hints import did_you_mean, unknown_option
 from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.env import TaskEnv
+from jaxdrones.envs.realism import Realism
+from jaxdrones.envs.realism import resolve as resolve_realism
 from jaxdrones.envs.task import Task
 from jaxdrones.envs.tasks.avoid import AVOID
 from jaxdrones.envs.tasks.gate import FLY_THRU_GATE
 from jaxdrones.envs.tasks.multi import MULTI_AGENT_TASKS
 from jaxdrones.envs.tasks.single import Hover, Takeoff, Tune, Velocity, Waypoints
-from jaxdrones.physics.realism import Realism
-from jaxdrones.physics.realism import resolve as resolve_realism
 
 #: The `Realism` fields that `make` and `make_config` take as keywords.
 REALISM_OPTIONS = frozenset(f.name for f in dataclasses.fields(Realism))
