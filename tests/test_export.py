@@ -11,8 +11,8 @@ import pytest
 
 import jaxdrones as jd
 from jaxdrones.cli import main
-from jaxdrones.export import c_source, load_payload
 from jaxdrones.training import apg, checkpoint, mappo
+from jaxdrones.training.export import c_source, load_payload
 
 CC = shutil.which("cc") or shutil.which("gcc")
 

@@ -47,6 +47,9 @@ def test_old_module_paths_still_import():
         assert importlib.import_module(f"jaxdrones.{old}") is new
         assert getattr(jd, old.replace("physics.", "")) is new
     assert physics.realism is envs.realism
+    from jaxdrones.training import export
+
+    assert importlib.import_module("jaxdrones.export") is export
     from jaxdrones.cameras import CameraSpec, make_scene, render  # noqa: F401
     from jaxdrones.plotting import plot_flight  # noqa: F401
     from jaxdrones.sim import JaxStep, make_step, rollout, shard_worlds  # noqa: F401

@@ -1,5 +1,5 @@
 """``jaxdrones export RUN --format c|onnx``: a trained policy as one dependency-free C file, or an ONNX model
-(`jaxdrones.export`)."""
+(`jaxdrones.training.export`)."""
 
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_cli(args: argparse.Namespace) -> int:
     """Run ``jaxdrones export`` with its parsed arguments; returns the exit status."""
-    from jaxdrones.export import export
+    from jaxdrones.training.export import export
 
     try:
         path, sizes = export(args.run, args.format, args.out, name=args.name, overwrite=args.overwrite)
