@@ -45,7 +45,8 @@ except ImportError:  # gymnasium < 1.1, where `GymnasiumVectorEnv` refuses to ru
     _NEXT_STEP, _SAME_STEP = "next_step", "same_step"
 
 from jaxdrones._fork import check_not_forked
-from jaxdrones.envs.base import Env, EnvState, world_axes
+from jaxdrones.adapters._host import RENDER_MODES, HumanView, OneWorldRendering, render_frame
+from jaxdrones.envs.base import Env, world_axes
 from jaxdrones.envs.env import outside_box
 from jaxdrones.envs.registry import check_options, make, registered, subscribe
 from jaxdrones.sensors.camera import ENV_IMAGES
@@ -59,8 +60,6 @@ AUTORESET_MODES = {"next_step": _NEXT_STEP, "same_step": _SAME_STEP}
 MIN_GYMNASIUM, MIN_GYMNASIUM_VECTOR = (0, 26), (1, 1)
 #: The installed gymnasium's (major, minor).
 GYMNASIUM_VERSION = tuple(int(part) for part in gym.__version__.split(".")[:2])
-#: ``"human"``: a window shows every step (`HumanView`); ``"rgb_array"``: ``render()`` returns the frame.
-RENDER_MODES = ("human", "rgb_array")
 
 
 #: ``jax.jit`` of ``reset`` and ``step`` by (env class, task class, config): see `compiled`.
@@ -149,7 +148,7 @@ def check_action(
     return action
 
 
-class GymnasiumEnv(gym.Env):
+class GymnasiumEnv(OneWorldRendering, gym.Env):
     """A functional jaxdrones env as a stateful gymnasium env (one world, NumPy in and out).
 
     The wrapper owns the env state and the PRNG key: ``reset(seed=...)`` makes the episode sequence reproducible,
@@ -205,23 +204,6 @@ class GymnasiumEnv(gym.Env):
         self._show()
         s = self._state
         return self._obs(), float(np.sum(s.reward)), bool(s.terminated), bool(s.truncated), self._info()
-
-    def render(self) -> np.ndarray | None:
-        """An RGB frame u8[H, W, 3] of the current state with ``render_mode="rgb_array"``; None otherwise (with
-        ``"human"``, `reset` and `step` show each frame)."""
-        if self.render_mode != "rgb_array" or self._state is None:
-            return None
-        return render_frame(self.env, self._state)
-
-    def close(self) -> None:
-        """Release the env's backend (PyBullet worlds) and close the window of ``render_mode="human"``."""
-        if self._view is not None:
-            self._view.close()
-        self.env.close()
-
-    def _show(self) -> None:
-        if self._view is not None:
-            self._view.show(render_frame(self.env, self._state))
 
     def _obs(self):
         return _to_numpy(self._state.obs, self.observation_space, self.env.n_drones == 1)
@@ -286,69 +268,6 @@ class ImageObservation(gym.ObservationWrapper):
             observation = {k: np.expand_dims(v, 0) for k, v in observation.items()}
         out = self._transform({k: v for k, v in observation.items() if k != "seg"})
         return {k: np.asarray(v, np.float32) for k, v in out.items()}
-
-
-def render_frame(env: Env, state: EnvState, world: int = 0, shared_params: bool = False) -> np.ndarray:
-    """An RGB frame u8[H, W, 3] of one world of ``state``: PyBullet's renderer on that backend, else matplotlib.
-    ``shared_params``: ``state.params`` are those of every world (batch shape [D]), not per world."""
-    lead = np.shape(state.sim.pos)[:-2]
-
-    def one(x):
-        x = np.asarray(x)
-        return x.reshape((-1,) + x.shape[len(lead) :])[world] if lead else x
-
-    sim = jax.tree.map(one, state.sim)
-    params = jax.tree.map(np.asarray, state.params) if shared_params else jax.tree.map(one, state.params)
-    if env._step.has_cameras:
-        return env._step.render(params, sim, width=480, height=360)
-    return _plotting().render_state(sim.pos, sim.quat, targets=one(state.task.target), title=env.task.name)
-
-
-def _plotting():
-    from jaxdrones.io import plotting
-
-    return plotting
-
-
-class HumanView:
-    """The window of ``render_mode="human"``: each frame (`render_frame`) drawn with matplotlib's ``imshow`` and
-    shown for ``1 / fps`` s (``plt.pause``).
-
-    It needs an interactive matplotlib backend (a display). With a non-interactive one (Agg, e.g. on a headless
-    machine or after `jaxdrones.plotting` has written files) matplotlib warns that the figure cannot be shown, and
-    the env runs on, paced at ``fps``.
-    """
-
-    def __init__(self, title: str, fps: float):
-        self.title, self.fps = title, fps
-        self._figure = self._image = None
-
-    @classmethod
-    def for_mode(cls, env: Env, render_mode: str | None) -> HumanView | None:
-        """The window of ``env`` (titled by its task, paced at its control rate) for ``render_mode="human"``, else
-        None."""
-        return cls(env.task.name, env.config.ctrl_freq) if render_mode == "human" else None
-
-    def show(self, frame: np.ndarray) -> None:
-        """Draw ``frame`` u8[H, W, 3] in the window (opened, or reopened if the user closed it)."""
-        import matplotlib.pyplot as plt
-
-        if self._figure is None or not plt.fignum_exists(self._figure.number):
-            self._figure, ax = plt.subplots(num=f"jaxdrones {self.title}")
-            ax.set_axis_off()
-            self._image = ax.imshow(frame)
-            plt.show(block=False)
-        else:
-            self._image.set_data(frame)
-        plt.pause(1.0 / self.fps)
-
-    def close(self) -> None:
-        """Close the window."""
-        if self._figure is not None:
-            import matplotlib.pyplot as plt
-
-            plt.close(self._figure)
-            self._figure = None
 
 
 class GymnasiumVectorEnv(VectorEnv):

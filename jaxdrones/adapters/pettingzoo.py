@@ -37,12 +37,13 @@ from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from jaxdrones._fork import check_not_forked
+from jaxdrones.adapters._host import RENDER_MODES, HumanView, OneWorldRendering
 from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
-from jaxdrones.adapters.gymnasium import RENDER_MODES, HumanView, check_action, compiled, render_frame, spaces
+from jaxdrones.adapters.gymnasium import check_action, compiled, spaces
 from jaxdrones.envs.env import TaskEnv, outside_box
 
 
-class PettingZooEnv(ParallelEnv):
+class PettingZooEnv(OneWorldRendering, ParallelEnv):
     """A `TaskEnv` of D drones as a PettingZoo ``ParallelEnv``; the adapter owns the env state and the PRNG key.
 
     * Spaces per agent (`observation_space`, `action_space`, the same object at every call): float32 Boxes, the
@@ -150,22 +151,6 @@ class PettingZooEnv(ParallelEnv):
         if terminated or truncated:
             self.agents = []
         return out
-
-    def render(self) -> np.ndarray | None:
-        """An RGB frame u8[H, W, 3] of the current state with ``render_mode="rgb_array"``, else None."""
-        if self.render_mode != "rgb_array" or self._state is None:
-            return None
-        return render_frame(self.env, self._state)
-
-    def close(self) -> None:
-        """Release the env's backend (PyBullet worlds) and close the window of ``render_mode="human"``."""
-        if self._view is not None:
-            self._view.close()
-        self.env.close()
-
-    def _show(self) -> None:
-        if self._view is not None:
-            self._view.show(render_frame(self.env, self._state))
 
     def _check_agent(self, agent: str) -> str:
         if agent not in self.observation_spaces:

@@ -1,0 +1,97 @@
+"""What the host-side adapters (gymnasium, PettingZoo) share: the frames of ``render_mode`` and the window of
+``"human"``."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+from jaxdrones.envs.base import Env, EnvState
+
+#: ``"human"``: a window shows every step (`HumanView`); ``"rgb_array"``: ``render()`` returns the frame.
+RENDER_MODES = ("human", "rgb_array")
+
+
+def render_frame(env: Env, state: EnvState, world: int = 0, shared_params: bool = False) -> np.ndarray:
+    """An RGB frame u8[H, W, 3] of one world of ``state``: PyBullet's renderer on that backend, else matplotlib.
+    ``shared_params``: ``state.params`` are those of every world (batch shape [D]), not per world."""
+    lead = np.shape(state.sim.pos)[:-2]
+
+    def one(x):
+        x = np.asarray(x)
+        return x.reshape((-1,) + x.shape[len(lead) :])[world] if lead else x
+
+    sim = jax.tree.map(one, state.sim)
+    params = jax.tree.map(np.asarray, state.params) if shared_params else jax.tree.map(one, state.params)
+    if env._step.has_cameras:
+        return env._step.render(params, sim, width=480, height=360)
+    return _plotting().render_state(sim.pos, sim.quat, targets=one(state.task.target), title=env.task.name)
+
+
+def _plotting():
+    from jaxdrones.io import plotting
+
+    return plotting
+
+
+class HumanView:
+    """The window of ``render_mode="human"``: each frame (`render_frame`) drawn with matplotlib's ``imshow`` and
+    shown for ``1 / fps`` s (``plt.pause``).
+
+    It needs an interactive matplotlib backend (a display). With a non-interactive one (Agg, e.g. on a headless
+    machine or after `jaxdrones.plotting` has written files) matplotlib warns that the figure cannot be shown, and
+    the env runs on, paced at ``fps``.
+    """
+
+    def __init__(self, title: str, fps: float):
+        self.title, self.fps = title, fps
+        self._figure = self._image = None
+
+    @classmethod
+    def for_mode(cls, env: Env, render_mode: str | None) -> HumanView | None:
+        """The window of ``env`` (titled by its task, paced at its control rate) for ``render_mode="human"``, else
+        None."""
+        return cls(env.task.name, env.config.ctrl_freq) if render_mode == "human" else None
+
+    def show(self, frame: np.ndarray) -> None:
+        """Draw ``frame`` u8[H, W, 3] in the window (opened, or reopened if the user closed it)."""
+        import matplotlib.pyplot as plt
+
+        if self._figure is None or not plt.fignum_exists(self._figure.number):
+            self._figure, ax = plt.subplots(num=f"jaxdrones {self.title}")
+            ax.set_axis_off()
+            self._image = ax.imshow(frame)
+            plt.show(block=False)
+        else:
+            self._image.set_data(frame)
+        plt.pause(1.0 / self.fps)
+
+    def close(self) -> None:
+        """Close the window."""
+        if self._figure is not None:
+            import matplotlib.pyplot as plt
+
+            plt.close(self._figure)
+            self._figure = None
+
+
+class OneWorldRendering:
+    """``render``, ``close`` and the ``"human"`` window's update of an adapter of one world: it holds ``env``, its
+    ``render_mode``, the current ``_state`` (None before the first reset) and ``_view`` (`HumanView.for_mode`)."""
+
+    def render(self) -> np.ndarray | None:
+        """An RGB frame u8[H, W, 3] of the current state with ``render_mode="rgb_array"``; None otherwise (with
+        ``"human"``, ``reset`` and ``step`` show each frame)."""
+        if self.render_mode != "rgb_array" or self._state is None:
+            return None
+        return render_frame(self.env, self._state)
+
+    def close(self) -> None:
+        """Release the env's backend (PyBullet worlds) and close the window of ``render_mode="human"``."""
+        if self._view is not None:
+            self._view.close()
+        self.env.close()
+
+    def _show(self) -> None:
+        if self._view is not None:
+            self._view.show(render_frame(self.env, self._state))
