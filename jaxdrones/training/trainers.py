@@ -221,7 +221,7 @@ DEFAULT_ALGO = {"cpu": {"hover": "apg"}, "gpu": {"hover": "ppo"}}
 #: command within 0.081 m/s with the integral and 0.124 m/s without it; our PPO at its hover settings (0.73 m/s after
 #: 8 M) and brax's PPO at its velocity settings (1.13 m/s, 31 % crashed) learned to hover, not to track.
 #: Hover's ``gpu`` profile trains 160 updates of 8192 worlds, twice the default hover's: on an H200 at 80 updates
-#: 3.6 cm, at 160 2.4-2.9 cm over 3 seeds (docs/experiments.md).
+#: 3.6 cm, at 160 2.1-3.9 cm (two runs of seeds 0-2; docs/experiments.md).
 REALISM_TRAINING = {
     "hover": (
         "ppo",
