@@ -48,8 +48,12 @@ _MOVED = {
     "io": ("plotting", "runs", "video"),
     "envs": ("realism",),
 }  # fmt: skip
-#: Modules that moved from one subpackage to another: old path → new path (the pickles of runs name the old one).
-_MOVED_BETWEEN = {"physics.realism": "envs.realism"}
+#: Every old path (relative to the package) and the module's path now: `_MOVED`'s, and the modules that moved from
+#: one subpackage to another.
+_OLD_PATHS = {
+    **{name: f"{package}.{name}" for package, names in _MOVED.items() for name in names},
+    "physics.realism": "envs.realism",
+}
 
 
 def _alias_moved_modules() -> None:
@@ -57,16 +61,11 @@ def _alias_moved_modules() -> None:
     import importlib
     import sys
 
-    for package, names in _MOVED.items():
-        for name in names:
-            module = importlib.import_module(f"{__name__}.{package}.{name}")
-            sys.modules[f"{__name__}.{name}"] = module
-            globals()[name] = module
-    for old, new in _MOVED_BETWEEN.items():
-        package, name = old.rsplit(".", 1)
+    for old, new in _OLD_PATHS.items():
         module = importlib.import_module(f"{__name__}.{new}")
         sys.modules[f"{__name__}.{old}"] = module
-        setattr(importlib.import_module(f"{__name__}.{package}"), name, module)
+        parent, _, name = old.rpartition(".")
+        setattr(importlib.import_module(f"{__name__}.{parent}" if parent else __name__), name, module)
 
 
 _alias_moved_modules()

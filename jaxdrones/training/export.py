@@ -26,6 +26,7 @@ import re
 import textwrap
 from typing import TYPE_CHECKING, NamedTuple
 
+import jax
 import numpy as np
 
 from jaxdrones.training.mappo import NORM_CLIP, NORM_EPS
@@ -126,8 +127,6 @@ def network_of(payload: dict) -> Network:
         if extra:
             raise ValueError(f"export: expected flax Dense_0 ... Dense_n parameters, got {sorted(params)}")
         return Network(_dense_layers(params), None, "tanh")
-    import jax
-
     squeeze = payload["config"].get("share_params", True) is False  # per-agent networks: a leading axis of 1
     actor = jax.tree.map(lambda x: np.asarray(x)[0] if squeeze else np.asarray(x), params["actor"]["params"])
     layers = _dense_layers(actor)
