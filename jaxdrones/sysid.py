@@ -26,6 +26,7 @@ import numpy as np
 import optimistix as optx
 from jax.typing import ArrayLike
 
+from jaxdrones._validate import is_real
 from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.params import DroneParams, with_derived
 from jaxdrones.physics.rotations import quat_integrate
@@ -159,7 +160,7 @@ def _check(init_state, rpms, observed, fields, window, iterations, noise, defect
 
 def _positive(value) -> bool:
     """Whether ``value`` is a real number > 0."""
-    return isinstance(value, int | float | np.floating | np.integer) and not isinstance(value, bool) and value > 0
+    return is_real(value) and value > 0
 
 
 def _float64(tree):

@@ -45,6 +45,7 @@ except ImportError:  # gymnasium < 1.1, where `GymnasiumVectorEnv` refuses to ru
     _NEXT_STEP, _SAME_STEP = "next_step", "same_step"
 
 from jaxdrones._fork import check_not_forked
+from jaxdrones._validate import check_int
 from jaxdrones.adapters._host import RENDER_MODES, HumanView, OneWorldRendering, render_frame
 from jaxdrones.envs.base import Env, world_axes
 from jaxdrones.envs.env import outside_box
@@ -176,7 +177,7 @@ class GymnasiumEnv(OneWorldRendering, gym.Env):
         self.env = env
         self.render_mode = render_mode
         self.strict_actions = bool(strict_actions)
-        self.metadata = {**self.metadata, "render_fps": env.config.ctrl_freq}
+        self.metadata = {**self.metadata, "render_fps": env.config.sim.ctrl_freq}
         self.observation_space, self.action_space = spaces(env)
         self._reset, self._step = compiled(env)
         self._state = None
@@ -310,8 +311,7 @@ class GymnasiumVectorEnv(VectorEnv):
                 f"gymnasium.make(id) for _ in range(n)]), or upgrade: pip install 'gymnasium>=1.1'"
             )
         _check_render_mode(render_mode)
-        if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        check_int("num_envs", num_envs)
         mode = str(getattr(autoreset_mode, "value", autoreset_mode))  # a name, or gymnasium's AutoresetMode
         if mode not in AUTORESET_MODES:
             raise ValueError(f"autoreset_mode must be one of {list(AUTORESET_MODES)}, got {autoreset_mode!r}")

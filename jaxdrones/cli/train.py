@@ -8,6 +8,7 @@ import os
 import sys
 
 from jaxdrones import devices
+from jaxdrones._validate import check_int
 from jaxdrones.envs.config import START_RPMS
 from jaxdrones.io.runs import enable_compilation_cache
 from jaxdrones.training import trainers
@@ -321,8 +322,8 @@ def realism_options(preset: str | None, settings: list[str]) -> str | dict | Non
 
 
 def _positive(name: str, value) -> None:
-    if value is not None and value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value}")
+    if value is not None:
+        check_int(name, value)
 
 
 def _import_modules(modules) -> None:

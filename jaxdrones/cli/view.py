@@ -4,10 +4,10 @@ by `jaxdrones.viz.write_html`)."""
 from __future__ import annotations
 
 import argparse
-import numbers
 import os
 import sys
 
+from jaxdrones._validate import check_int
 from jaxdrones.viz import VIEW_EPISODES
 
 
@@ -92,8 +92,7 @@ def view_run(
     from jaxdrones.training import load_policy, rollout_policy
     from jaxdrones.training.checkpoint import read_payload
 
-    if isinstance(n_episodes, bool) or not isinstance(n_episodes, numbers.Integral) or n_episodes < 1:
-        raise ValueError(f"n_episodes must be an integer >= 1, got {n_episodes!r}")
+    check_int("n_episodes", n_episodes)
     path, payload = read_payload(run)
     own = out is None  # the run folder's own viewer file, written by `jaxdrones train`: made again from the policy
     overwrite = overwrite or own

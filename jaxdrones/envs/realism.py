@@ -27,6 +27,7 @@ from flax import struct
 from jax.typing import ArrayLike, DTypeLike
 
 from jaxdrones._hints import did_you_mean
+from jaxdrones._validate import is_real
 from jaxdrones.physics.rotations import join, normalize_c, quat_integrate_c, split
 from jaxdrones.physics.state import Disturbance, DroneState
 
@@ -105,7 +106,7 @@ class Realism:
             pair = value if isinstance(value, (tuple, list)) else (value, value)
             integer = f.name.endswith("_delay")
             kind = "an integer number of control steps" if integer else "a number"
-            if len(pair) != 2 or not all(_is_real(v) for v in pair):
+            if len(pair) != 2 or not all(is_real(v) for v in pair):
                 raise ValueError(f"realism.{f.name} must be {kind} or a pair (low, high), got {value!r}")
             low, high = (float(v) for v in pair)
             finite = f.name == "disturbance_hold" or (math.isfinite(low) and math.isfinite(high))
@@ -167,10 +168,6 @@ class Realism:
             if factor is not None:
                 new[f.name] = tuple(v * factor for v in getattr(self, f.name))
         return dataclasses.replace(self, **new)
-
-
-def _is_real(value) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
 #: Learning to Fly in Seconds (Eschmann, Albani, Loianno, IEEE RA-L 2024; arplaboratory/learning-to-fly: the

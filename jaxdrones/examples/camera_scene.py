@@ -17,13 +17,12 @@ exceeds 254) and ``scene.json`` (body ids and camera settings).
 from __future__ import annotations
 
 import json
-import math
-import numbers
 import os
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from jaxdrones._validate import check_real
 from jaxdrones.physics.params import DroneParams
 from jaxdrones.scene import Obstacle
 
@@ -69,8 +68,7 @@ def scene_obstacles(params: DroneParams, distance: float = BOX_DISTANCE) -> tupl
     Raises:
         ValueError: if ``distance`` is not a positive finite number.
     """
-    if isinstance(distance, bool) or not isinstance(distance, numbers.Real) or not 0 < distance < math.inf:
-        raise ValueError(f"distance must be a positive number of metres, got {distance!r}")
+    check_real("distance", distance, 0, low_open=True, what="a finite number of metres")
     eye = eye_position(params)
     box = Obstacle("box", size=(BOX_SIDE,) * 3, pos=(eye[0] + distance + BOX_SIDE / 2, eye[1], eye[2]), rgba=BOX_RGBA)
     sphere = Obstacle("sphere", size=(SPHERE_RADIUS,), pos=SPHERE_POS, rgba=SPHERE_RGBA)

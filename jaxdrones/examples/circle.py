@@ -46,6 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrones._validate import check_int, check_real, is_integer
 from jaxdrones.backends import require_pybullet
 from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import (
@@ -159,10 +160,8 @@ def check_flight(
         RuntimeError: ``gui`` without a display.
         ModuleNotFoundError: ``backend="pybullet"`` without pybullet installed.
     """
-    if isinstance(num_drones, bool) or not isinstance(num_drones, (int, np.integer)) or num_drones < 1:
-        raise ValueError(f"num_drones must be a positive integer, got {num_drones!r}")
     config = SimConfig(
-        n_drones=int(num_drones),
+        n_drones=check_int("num_drones", num_drones),
         sim_freq=sim_freq,
         ctrl_freq=ctrl_freq,
         drag=drag,
@@ -189,11 +188,10 @@ def check_flight(
     if (
         not isinstance(video_size, (tuple, list))
         or len(video_size) != 2
-        or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 1 <= v <= 8192 for v in video_size)
+        or not all(is_integer(v) and 1 <= v <= 8192 for v in video_size)
     ):
         raise ValueError(f"video_size must be (width, height) in pixels, each in [1, 8192], got {video_size!r}")
-    if isinstance(video_fps, bool) or not (isinstance(video_fps, (int, float)) and 0 < video_fps < math.inf):
-        raise ValueError(f"video_fps must be a positive frame rate in Hz, got {video_fps!r}")
+    check_real("video_fps", video_fps, 0, low_open=True, what="a finite frame rate in Hz")
     if gui:
         from jaxdrones.backends.pybullet import require_display
 

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
+from jaxdrones._validate import is_real
 from jaxdrones.control.pid import PIDGains, PIDState, pid_control, pid_init
 from jaxdrones.physics.params import DroneParams
 from jaxdrones.physics.rotations import quat_to_euler
@@ -198,12 +199,7 @@ def check_steps(duration_s: float, ctrl_freq: int) -> int:
     Raises:
         ValueError: if ``duration_s`` is not finite or shorter than one control step.
     """
-    if (
-        isinstance(duration_s, bool)
-        or not isinstance(duration_s, (int, float, np.integer, np.floating))
-        or not math.isfinite(duration_s)
-        or duration_s * ctrl_freq < 1
-    ):
+    if not (is_real(duration_s) and math.isfinite(duration_s) and duration_s * ctrl_freq >= 1):
         raise ValueError(f"duration_s must be at least one control step (1/{ctrl_freq} s), got {duration_s!r}")
     return int(duration_s * ctrl_freq + 1e-9)
 

@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
+from jaxdrones._validate import check_int, check_real
 from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import check_steps, initial_carry, jax_closed_loop, track_position
 from jaxdrones.physics.params import DroneParams, load_params
@@ -78,12 +79,9 @@ class MPCWeights:
     max_iter: int = 100
 
     def __post_init__(self):
-        if not isinstance(self.horizon, int) or self.horizon < 1:
-            raise ValueError(f"horizon must be a positive int (control steps), got {self.horizon!r}")
+        check_int("horizon", self.horizon, what="control steps")
         for name in ("position", "velocity", "attitude", "rates", "rpm"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"the weight {name} must be finite and >= 0, got {value!r}")
+            check_real(f"the weight {name}", getattr(self, name), 0, what="a finite number")
 
 
 class MPC:

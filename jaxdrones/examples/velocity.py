@@ -33,6 +33,7 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrones._validate import check_real
 from jaxdrones.control.pid import PIDGains, speed_limit, velocity_control
 from jaxdrones.examples.closed_loop import (
     FLIGHT_KEYS,
@@ -185,8 +186,7 @@ def check(
         downwash=downwash,
     )
     n_steps = check_steps(duration_s, ctrl_freq)
-    if isinstance(settle_s, bool) or not isinstance(settle_s, (int, float)) or not 0 <= settle_s < math.inf:
-        raise ValueError(f"settle_s must be a non-negative number of seconds, got {settle_s!r}")
+    check_real("settle_s", settle_s, 0, what="a finite number of seconds")
     if not settled_mask(applied_actions(n_steps, ctrl_freq), ctrl_freq, settle_s).any(axis=0).all():
         raise ValueError(
             f"settle_s = {settle_s!r} s leaves no settled sample for some drone in a {duration_s!r} s "

@@ -11,12 +11,13 @@ MP4 files are H.264 (yuv420p, readable by common players) written through imagei
 
 from __future__ import annotations
 
-import numbers
 import os
 import warnings
 
 import numpy as np
 from numpy.typing import ArrayLike
+
+from jaxdrones._validate import check_real
 
 #: File extensions and their formats.
 FORMATS = {".mp4": "mp4", ".gif": "gif"}
@@ -61,8 +62,7 @@ class VideoWriter:
     def __init__(self, path: str | os.PathLike, fps: float = 24, overwrite: bool = False):
         path = os.fspath(path)
         video_format(path)
-        if isinstance(fps, bool) or not isinstance(fps, numbers.Real) or not (0 < fps < float("inf")):
-            raise ValueError(f"fps must be a positive number of frames per second, got {fps!r}")
+        check_real("fps", fps, 0, low_open=True, what="a finite number of frames per second")
         if os.path.isdir(path):
             raise ValueError(f"video path {path!r} is a folder")
         if os.path.exists(path) and not overwrite:

@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 
 from jaxdrones._hints import did_you_mean
+from jaxdrones._validate import check_bool, check_int, check_real
 from jaxdrones.physics import dynamics
 from jaxdrones.physics.aerodynamics import DOWNWASH_MODELS
 from jaxdrones.physics.kinks import Kinks
@@ -87,32 +88,18 @@ class SimConfig:
         elif not isinstance(self.kinks, Kinks):
             raise ValueError(f"SimConfig.kinks must be a jaxdrones.kinks.Kinks or one of its modes, got {self.kinks!r}")
         for name in ("n_drones", "sim_freq", "ctrl_freq"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"SimConfig.{name} must be a positive integer, got {value!r}")
+            check_int(f"SimConfig.{name}", getattr(self, name))
         if self.sim_freq % self.ctrl_freq:
             raise ValueError(
                 f"SimConfig: sim_freq ({self.sim_freq} Hz) must be a multiple of ctrl_freq "
                 f"({self.ctrl_freq} Hz), e.g. sim_freq=240 with ctrl_freq in 240, 120, 80, 48, 30, ..."
             )
-        radius = self.downwash_radius
-        if radius is not None and (
-            isinstance(radius, bool)
-            or not isinstance(radius, (int, float, np.number))
-            or not np.isfinite(radius)
-            or radius <= 0
-        ):
-            raise ValueError(
-                f"SimConfig.downwash_radius must be None (every drone) or a finite radius > 0 m, got {radius!r}"
-            )
-        capacity = self.cell_capacity
-        if not isinstance(capacity, (int, np.integer)) or isinstance(capacity, bool) or capacity < 1:
-            raise ValueError(f"SimConfig.cell_capacity must be a positive integer, got {capacity!r}")
+        if self.downwash_radius is not None:
+            what = "None (every drone) or a finite radius in m"
+            check_real("SimConfig.downwash_radius", self.downwash_radius, 0, low_open=True, what=what)
+        check_int("SimConfig.cell_capacity", self.cell_capacity)
         for name in ("drag", "ground_effect", "adjoint", "motor_dynamics"):
-            value = getattr(self, name)
-            if not isinstance(value, (bool, np.bool_)):
-                raise ValueError(f"SimConfig.{name} must be True or False, got {value!r}")
-            object.__setattr__(self, name, bool(value))
+            object.__setattr__(self, name, check_bool(f"SimConfig.{name}", getattr(self, name)))
         unroll = self.unroll_substeps
         if unroll is not None and not isinstance(unroll, (bool, np.bool_)):
             raise ValueError(f"SimConfig.unroll_substeps must be True, False or None (per device), got {unroll!r}")

@@ -36,6 +36,8 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from jaxdrones._validate import check_real
+
 #: The treatments of `Kinks.mode`.
 MODES = ("exact", "smooth", "straight_through")
 
@@ -67,9 +69,7 @@ class Kinks:
         if self.mode not in MODES:
             raise ValueError(f"Kinks.mode must be one of {MODES}, got {self.mode!r}")
         for name in ("rpm", "height", "speed", "attitude", "downwash"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-                raise ValueError(f"Kinks.{name} (a smoothing band width) must be a number > 0, got {value!r}")
+            check_real(f"Kinks.{name} (a smoothing band width)", getattr(self, name), 0, low_open=True, finite=False)
 
     def maximum(self, x: jax.Array, floor: jax.Array | float, width: float) -> jax.Array:
         """max(x, floor), treated by `mode` with band half-width ``width`` (x's units)."""

@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
+from jaxdrones._validate import check_int
 from jaxdrones.physics.params import DroneParams
 from jaxdrones.physics.rotations import quat_to_rotmat
 from jaxdrones.scene.primitives import (
@@ -130,10 +131,7 @@ def image_shapes(
 # --------------------------------------------------------------------------------------------- the camera spec
 def check_image_size(width: int, height: int) -> tuple[int, int]:
     """Width and height as positive ints (pixels), or ValueError."""
-    for name, value in (("width", width), ("height", height)):
-        if not isinstance(value, numbers.Integral) or isinstance(value, bool) or not 1 <= value <= 8192:
-            raise ValueError(f"{name} must be an integer number of pixels in [1, 8192], got {value!r}")
-    return int(width), int(height)
+    return tuple(check_int(name, value, 1, 8192) for name, value in (("width", width), ("height", height)))
 
 
 def real(name: str, value: ArrayLike) -> float:

@@ -22,10 +22,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrones._validate import check_fields
 from jaxdrones.envs.base import Env
 from jaxdrones.training.common import (
     Schedule,
-    check_config,
     described,
     mlp,
     param_maps,
@@ -74,7 +74,7 @@ class APGConfig(Schedule):
     algo: ClassVar[str] = "apg"
 
     def __post_init__(self):
-        check_config(
+        check_fields(
             self,
             integers={"num_timesteps": 1, "num_envs": 1, "horizon": 1, "num_evals": 1, "seed": 0},
             positive=("learning_rate", "max_grad_norm"),

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import jax
 import numpy as np
 
+from jaxdrones._validate import check_fields, check_real
 from jaxdrones.envs.base import Env
 from jaxdrones.training.common import Interrupted, check_defaults
 
@@ -85,19 +86,14 @@ class BraxPPOConfig:
         return int(epochs * math.ceil(self.num_timesteps / (epochs * per_step)) * per_step)
 
     def __post_init__(self):
-        for name in ("num_timesteps", "num_envs", "batch_size", "num_minibatches", "unroll_length", "num_evals"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"BraxPPOConfig: {name} must be an integer >= 1, got {value!r}")
-        if not isinstance(self.privileged_critic, (bool, np.bool_)):
-            raise ValueError(f"BraxPPOConfig: privileged_critic must be True or False, got {self.privileged_critic!r}")
+        counts = ("num_timesteps", "num_envs", "batch_size", "num_minibatches", "unroll_length", "num_evals")
+        check_fields(self, integers=dict.fromkeys(counts, 1), booleans=("privileged_critic",))
         if self.learning_rate_schedule not in (None, "NONE", "ADAPTIVE_KL"):
             raise ValueError(
                 f"BraxPPOConfig: learning_rate_schedule must be None, 'NONE' or 'ADAPTIVE_KL' (brax's "
                 f"LRSchedule), got {self.learning_rate_schedule!r}"
             )
-        if not (isinstance(self.desired_kl, (int, float)) and math.isfinite(self.desired_kl) and self.desired_kl > 0):
-            raise ValueError(f"BraxPPOConfig: desired_kl must be a finite number > 0, got {self.desired_kl!r}")
+        check_real("BraxPPOConfig: desired_kl", self.desired_kl, 0, low_open=True, what="a finite number")
         if (self.batch_size * self.num_minibatches) % self.num_envs:
             raise ValueError(
                 f"BraxPPOConfig: batch_size·num_minibatches ({self.batch_size}·{self.num_minibatches}) "

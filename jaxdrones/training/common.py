@@ -1,12 +1,12 @@
-"""Pieces shared by our own trainers (`jaxdrones.training.apg`, ``shac``, ``mappo``): checking a config, the
-schedule of updates between evaluations, the MLP, spreading the worlds over devices, and the jitted training
+"""Pieces shared by our own trainers (`jaxdrones.training.apg`, ``shac``, ``mappo``): the schedule of updates
+between evaluations, the MLP, spreading the worlds over devices, and the jitted training
 loop."""
 
 from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import jax
@@ -18,40 +18,6 @@ if TYPE_CHECKING:
     from flax import linen
 
     from jaxdrones.envs.base import Env
-
-
-def check_config(
-    config: object,
-    *,
-    integers: dict[str, int] | None = None,
-    positive: Iterable[str] = (),
-    nonnegative: Iterable[str] = (),
-    fractions: Iterable[str] = (),
-    open_fractions: Iterable[str] = (),
-    booleans: Iterable[str] = (),
-) -> None:
-    """Raise ``ValueError`` naming the config class and field for a value out of range: ``integers`` maps fields to
-    their least value; ``positive`` fields must be > 0, ``nonnegative`` ≥ 0, ``fractions`` in [0, 1] and
-    ``open_fractions`` in [0, 1); ``booleans`` must be True or False."""
-    name = type(config).__name__
-    for field in booleans:
-        if not isinstance(getattr(config, field), (bool, np.bool_)):
-            raise ValueError(f"{name}: {field} must be True or False, got {getattr(config, field)!r}")
-    for field, low in (integers or {}).items():
-        value = getattr(config, field)
-        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
-            raise ValueError(f"{name}: {field} must be an integer >= {low}, got {value!r}")
-    checks = (
-        (positive, lambda v: v > 0, "> 0"),
-        (nonnegative, lambda v: v >= 0, ">= 0"),
-        (fractions, lambda v: 0 <= v <= 1, "in [0, 1]"),
-        (open_fractions, lambda v: 0 <= v < 1, "in [0, 1)"),
-    )
-    for fields, ok, text in checks:
-        for field in fields:
-            value = getattr(config, field)
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not ok(value):
-                raise ValueError(f"{name}: {field} must be {text}, got {value!r}")
 
 
 class Schedule:

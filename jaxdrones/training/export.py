@@ -245,8 +245,8 @@ def describe(payload: dict, env: TaskEnv, net: Network) -> list[str]:
         f"The observation {norm}{len(layers)} dense layers {' -> '.join(str(w.shape[0]) for w, _ in layers)} -> "
         f"{sizes['n_act']}, {last}; {sizes['multiply_adds']} multiply-adds per call; {sizes['weight_bytes']} bytes "
         "of float32 constants.",
-        f"Observation (one drone, float32, control rate {env.config.ctrl_freq} Hz; clipped to the env's box, as the "
-        "env does):",
+        f"Observation (one drone, float32, control rate {env.config.sim.ctrl_freq} Hz; clipped to the env's box, as "
+        "the env does):",
         *[f"  [{i:2d}] {label}" for i, label in enumerate(_obs_labels(env))],
         *textwrap.wrap(f"Action: {_action_text(env)}", 110, subsequent_indent="  "),
     ]
@@ -338,13 +338,13 @@ def _memory_text(env, name: str, n_act: int) -> list[str]:
         memory.append(f"the last {env.obs_type.buffer_len} actions it returned (oldest first)")
     if parts["integral"]:
         memory.append(
-            f"the error integral (m->integral += error / {env.config.ctrl_freq}, clipped to "
+            f"the error integral (m->integral += error / {env.config.sim.ctrl_freq}, clipped to "
             f"+-{ERROR_INTEGRAL_BOUND:g}; error: {_ERRORS.get(env.task.name, _POSITION_ERROR)}, from the same "
             "measurements as state)"
         )
     kept = " and ".join(memory) if memory else "nothing (this observation has no memory; error may be NULL)"
     text = (
-        f"At every control step ({env.config.ctrl_freq} Hz), after {name}_reset(&m) at the start: "
+        f"At every control step ({env.config.sim.ctrl_freq} Hz), after {name}_reset(&m) at the start: "
         f"void {name}_step({name}_memory *m, const float state[{upper}_N_STATE], const float error[3], "
         f"float action[{n_act}]). state: the observation below without its memory, entries 0-{parts['base'] - 1}"
         f"{task}. It keeps {kept}, and assembles the observation below."
@@ -361,7 +361,7 @@ def _memory_source(env, name: str, n_act: int) -> list[str]:
     lines = [
         f"#define {upper}_N_STATE {n_state}",
         f"#define {upper}_N_HISTORY {env.obs_type.buffer_len}",
-        f"#define {upper}_CTRL_FREQ {env.config.ctrl_freq}",
+        f"#define {upper}_CTRL_FREQ {env.config.sim.ctrl_freq}",
         "",
         f"typedef struct {{ float actions[{max(n_hist, 1)}]; float integral[3]; }} {name}_memory;",
         "",
@@ -384,7 +384,7 @@ def _memory_source(env, name: str, n_act: int) -> list[str]:
         bound = f"{float(ERROR_INTEGRAL_BOUND)!r}f"
         lines += [
             "  for (int i = 0; i < 3; ++i) {",
-            f"    float v = m->integral[i] + error[i] / {float(env.config.ctrl_freq)!r}f;",
+            f"    float v = m->integral[i] + error[i] / {float(env.config.sim.ctrl_freq)!r}f;",
             f"    v = v < -{bound} ? -{bound} : (v > {bound} ? {bound} : v);",
             "    m->integral[i] = v;",
             "    obs[j++] = v;",

@@ -31,10 +31,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrones._validate import check_fields
 from jaxdrones.envs.base import Env, EnvState
 from jaxdrones.training.common import (
     Schedule,
-    check_config,
     described,
     param_maps,
     program_description,
@@ -111,7 +111,7 @@ class MAPPOConfig(Schedule):
     flat_params: bool = False
 
     def __post_init__(self):
-        check_config(
+        check_fields(
             self,
             integers={
                 "num_timesteps": 1,

@@ -356,7 +356,7 @@ def _plot(env, task: str, algo: str, log, evaluation: dict | None, out: str) -> 
         )
     if evaluation is not None:
         flight = evaluation["flight"]
-        times = np.arange(env.episode_length + 1) / env.config.ctrl_freq
+        times = np.arange(env.episode_length + 1) / env.config.sim.ctrl_freq
         plot_task_flight(
             times,
             flight["pos"],

@@ -25,9 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrones._validate import check_fields
 from jaxdrones.envs.base import Env
 from jaxdrones.training.apg import APGConfig, make_network
-from jaxdrones.training.common import check_config, described, mlp, param_maps, program_description, run_updates
+from jaxdrones.training.common import described, mlp, param_maps, program_description, run_updates
 
 if TYPE_CHECKING:
     from flax import linen
@@ -64,7 +65,7 @@ class SHACConfig(APGConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        check_config(
+        check_fields(
             self,
             integers={"critic_epochs": 1, "critic_minibatches": 1},
             positive=("critic_learning_rate",),

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrones._validate import check_int, check_real
 from jaxdrones.envs import rewards, terminations
 from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import POS_BOUND
@@ -89,16 +90,12 @@ class AvoidConfig(TaskConfig):
 
     def __post_init__(self):
         for name in ("n_cylinders", "n_boxes"):
-            n = getattr(self, name)
-            if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 0:
-                raise ValueError(f"avoid: {name} must be an integer >= 0, got {n!r}")
+            check_int(f"avoid: {name}", getattr(self, name), low=0)
         for name in ("cylinder_radius", "box_half", "field_x"):
             lo, hi = _range(name, getattr(self, name))
             object.__setattr__(self, name, (lo, hi))
         for name in ("obstacle_height", "field_y", "goal_x", "goal_y", "goal_radius", "flight_z", "start_y"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"avoid: {name} must be a finite number >= 0 m, got {value!r}")
+            check_real(f"avoid: {name}", getattr(self, name), 0, what="a finite distance in m")
         reach = max(self.cylinder_radius[1], math.sqrt(2) * self.box_half[1])
         if self.field_x[0] - reach <= 0.2 or self.field_x[1] + reach >= self.goal_x - self.goal_radius:
             raise ValueError(

@@ -16,9 +16,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrones._validate import check_real
 from jaxdrones.envs import rewards
 from jaxdrones.envs.actions import ACTION_SIZES, Reference
-from jaxdrones.envs.config import TaskConfig, _is_number
+from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
 from jaxdrones.envs.task import Task, TaskParams
 from jaxdrones.envs.tasks.single import ANG_SPEED_WEIGHT, SPEED_WEIGHT
@@ -337,9 +338,7 @@ class CrossingConfig(MultiConfig):
 
     def __post_init__(self):
         for name in ("period_s", "amplitude", "spacing"):
-            value = getattr(self, name)
-            if not (_is_number(value) and math.isfinite(value) and value > 0):
-                raise ValueError(f"crossing: {name} must be a finite number > 0, got {value!r}")
+            check_real(f"crossing: {name}", getattr(self, name), 0, low_open=True, what="a finite number")
         super().__post_init__()
         if self.amplitude >= self.arena_xy:
             raise ValueError(
@@ -412,7 +411,7 @@ class Crossing(MultiTask):
         """Reference(pos f[D, 3] m, vel f[D, 3] m/s) at control step ``steps`` (see the class docstring)."""
         amplitude, period, phase = task.data["amplitude"], task.data["period"], task.data["phase"]
         omega = 2 * jnp.pi / period
-        theta = omega * (steps / config.ctrl_freq) + phase
+        theta = omega * (steps / config.sim.ctrl_freq) + phase
         zero = jnp.zeros_like(theta)
         offset = jnp.stack([amplitude * jnp.cos(theta), zero, zero], -1)
         vel = jnp.stack([-amplitude * omega * jnp.sin(theta), zero, zero], -1)
