@@ -1,6 +1,7 @@
 """Shared fixtures: seeded keys and generators, and a scoped float64 switch; the XLA flags the suite compiles with;
 the skips of tests whose optional packages are not installed (markers ``pybullet`` and ``torch``); the ``fast``
-tier; the order the tests run in (the modules with slow tests first)."""
+tier (the tests of the modules marked ``unit``, less those marked slow or needing an optional package); the order
+the tests run in (the modules with slow tests first)."""
 
 from __future__ import annotations
 
@@ -32,41 +33,23 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 from optional import MISSING, installed  # noqa: E402
 
-#: The modules of the pure-JAX unit tests: the physics core (dynamics, rotations, aerodynamics, integrators, contact,
-#: the hand-written adjoint, kinks, sim-to-real options), the drone parameters, the mixer and the PID, the three ways
-#: of differentiating the simulator, and the checks of bad input and configs. Their tests that are not marked slow,
-#: pybullet, torch or ros2 are the ``fast`` tier: ``python -m pytest -m fast``.
-FAST_MODULES = frozenset(
-    {
-        "test_action_clipping.py",
-        "test_adjoint.py",
-        "test_bad_input.py",
-        "test_downwash_per_rotor.py",
-        "test_dynamics.py",
-        "test_gradient_callers.py",
-        "test_kinks.py",
-        "test_mixer.py",
-        "test_params.py",
-        "test_pid.py",
-        "test_realism.py",
-    }
-)
 #: Markers that keep a test out of the ``fast`` tier.
 NOT_FAST = ("slow", "pybullet", "torch", "tianshou", "ros2")
 
 
 def pytest_collection_modifyitems(config, items):
     """Skip the tests marked ``pybullet`` or ``torch`` where that package is missing, with `MISSING`'s reason; mark
-    the ``fast`` tier (`FAST_MODULES`, less `NOT_FAST`); run the modules that hold slow tests first, each module's
-    tests together and in their order, so that pytest-xdist's workers end on short tests rather than one of them
-    on a minutes-long one (pytest runs ``items`` in this order, and xdist hands them out in it)."""
+    the ``fast`` tier (the tests marked ``unit``, by their module's ``pytestmark``, less `NOT_FAST`); run the
+    modules that hold slow tests first, each module's tests together and in their order, so that pytest-xdist's
+    workers end on short tests rather than one of them on a minutes-long one (pytest runs ``items`` in this order,
+    and xdist hands them out in it)."""
     for name, reason in MISSING.items():
         if not installed(name):
             for item in items:
                 if name in item.keywords:
                     item.add_marker(pytest.mark.skip(reason=reason))
     for item in items:
-        if item.path.name in FAST_MODULES and not any(item.get_closest_marker(m) for m in NOT_FAST):
+        if item.get_closest_marker("unit") and not any(item.get_closest_marker(m) for m in NOT_FAST):
             item.add_marker(pytest.mark.fast)
     slow_modules = {item.path for item in items if item.get_closest_marker("slow")}
     items.sort(key=lambda item: item.path not in slow_modules)  # stable: each module's order is kept

@@ -12,6 +12,8 @@ import jaxdrones  # noqa: F401  (registers the ids)
 from jaxdrones.adapters import jaxmarl
 from jaxdrones.adapters.pettingzoo import parallel_env
 
+pytestmark = pytest.mark.unit
+
 #: Standard deviation of the Gaussian policy: about half its entries fall outside [-1, 1].
 SIGMA = 1.5
 

@@ -18,6 +18,8 @@ import pytest
 import jaxdrones as jd
 from jaxdrones import adjoint
 
+pytestmark = pytest.mark.unit
+
 WORLDS = 16
 EFFECTS = {
     "none": {},

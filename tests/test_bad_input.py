@@ -12,6 +12,8 @@ import pytest
 import jaxdrones as jd
 from jaxdrones.params import model_path
 
+pytestmark = pytest.mark.unit
+
 CF2X_URDF = open(model_path("cf2x")).read()
 
 

@@ -20,6 +20,8 @@ from jaxdrones import aerodynamics
 from jaxdrones.kinks import Kinks
 from jaxdrones.rotations import quat_to_rotmat
 
+pytestmark = pytest.mark.unit
+
 #: A cf2x hovering 0.5 m straight below another.
 BELOW = ((0.0, 0.0, 1.0), (0.0, 0.0, 0.5))
 

@@ -24,6 +24,8 @@ from jaxdrones import aerodynamics
 from jaxdrones.adjoint import supported as adjoint_supported
 from jaxdrones.rotations import quat_mul, quat_to_rotmat
 
+pytestmark = pytest.mark.unit
+
 MODELS = ("cf2x", "cf2p", "racer")
 PATTERNS = ("hover", "climb", "roll", "pitch", "yaw", "random")
 #: Relative tolerance of the JAX step against the NumPy reference (float64).

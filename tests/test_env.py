@@ -110,6 +110,32 @@ def keys(n=N_WORLDS, seed=0):
     return jax.random.split(jax.random.key(seed), n)
 
 
+def test_the_control_rate_has_one_home(monkeypatch):
+    """``jd.make(task, ctrl_freq=48)``: the config builds its `SimConfig` once, and the env, its physics step, its
+    episode length, the tasks' references and the pickled config all read the rate from it."""
+    from jaxdrones.physics import config as physics_config
+
+    built = []
+    post_init = physics_config.SimConfig.__post_init__
+    monkeypatch.setattr(physics_config.SimConfig, "__post_init__", lambda self: built.append(post_init(self)))
+    env = jd.make("velocity", ctrl_freq=48, episode_len_s=2.0)
+    assert len(built) == 1
+    assert env.sim_config is env.config.sim is env.config.sim_config() is env._step.config
+    assert (env.sim_config.ctrl_freq, env.sim_config.n_substeps, env.episode_length) == (48, 5, 96)
+    state = env.reset(jax.random.key(0))
+    ref = env.task.reference(env.config, state.task, jnp.asarray(48))  # one second in: the commanded velocity
+    assert np.all(np.abs(state.task.data["target_vel"]) > 0.01)
+    np.testing.assert_allclose(ref.pos - state.task.start.pos, state.task.data["target_vel"], atol=1e-6)
+    import pickle
+
+    loaded = pickle.loads(pickle.dumps(env.config))
+    assert loaded == env.config and loaded.sim == env.config.sim and len(built) == 1
+    # A config pickled before `sim` existed (its __dict__ without it) builds it when first read.
+    old = object.__new__(type(env.config))
+    old.__dict__.update({k: v for k, v in env.config.__dict__.items() if k != "sim"})
+    assert old.sim == env.config.sim and old.sim.ctrl_freq == 48
+
+
 def test_hover_default_is_3d_with_random_starts(hover):
     env, reset, _ = hover
     assert env.config.action_type == "rpm" and env.action_size == 4 and env.observation_size == 21

@@ -17,6 +17,8 @@ from jaxdrones.envs.actions import RPM_ACTION_SCALE
 from jaxdrones.envs.base import world_axes
 from jaxdrones.rotations import join, split
 
+pytestmark = pytest.mark.unit
+
 STEPS, WORLDS = 20, 3
 CALLERS = ("rollout", "rollout_stored", "user_scan", "env_step")
 

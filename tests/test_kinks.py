@@ -15,6 +15,8 @@ from jax.test_util import check_grads
 import jaxdrones as jd
 from jaxdrones.kinks import Kinks
 
+pytestmark = pytest.mark.unit
+
 P = jd.load_params("cf2x")
 REST = 0.5 * float(P.collision_height)
 

@@ -28,6 +28,8 @@ from jaxdrones.control import (
 )
 from jaxdrones.rotations import join, split
 
+pytestmark = pytest.mark.unit
+
 MODELS = ("cf2x", "cf2p", "racer")
 #: Agreement with scipy.optimize.nnls, relative to the largest entry of scipy's solution, over 1,000 targets per
 #: model. float64: measured at most 3e-15 on RPM² and 4e-15 on RPM. float32 (scipy still in float64): measured at

@@ -14,6 +14,8 @@ import reference_dyn as ref
 import jaxdrones as jd
 from jaxdrones.params import model_path
 
+pytestmark = pytest.mark.unit
+
 MODELS = ("cf2x", "cf2p", "racer")
 DERIVED = ("hover_rpm", "max_rpm", "max_thrust", "max_xy_torque", "max_z_torque", "gnd_eff_h_clip")
 

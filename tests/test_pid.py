@@ -14,6 +14,8 @@ from jaxdrones.params import load_params
 from jaxdrones.physics import rotations
 from jaxdrones.state import DroneState
 
+pytestmark = pytest.mark.unit
+
 #: Agreement required with the float64 NumPy reference: RPM are ~1e4, so this is ~1e-13 relative.
 RPM_ATOL = 1e-9
 ANGLE_ATOL = 1e-12

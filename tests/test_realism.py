@@ -247,6 +247,8 @@ def test_pybullet_backend_follows_motor_dynamics_and_disturbance(x64):
 
 from jaxdrones.realism import PRESETS, Realism, RealismModel, dryden_psd  # noqa: E402
 
+pytestmark = pytest.mark.unit
+
 
 def _rollout(env, actions, key=0):
     """The states and observations of ``env`` driven by ``actions`` f[T, D, n_act] from a reset with ``key``."""

@@ -51,7 +51,7 @@ class HumanView:
     def for_mode(cls, env: Env, render_mode: str | None) -> HumanView | None:
         """The window of ``env`` (titled by its task, paced at its control rate) for ``render_mode="human"``, else
         None."""
-        return cls(env.task.name, env.config.ctrl_freq) if render_mode == "human" else None
+        return cls(env.task.name, env.config.sim.ctrl_freq) if render_mode == "human" else None
 
     def show(self, frame: np.ndarray) -> None:
         """Draw ``frame`` u8[H, W, 3] in the window (opened, or reopened if the user closed it)."""

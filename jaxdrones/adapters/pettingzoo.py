@@ -71,7 +71,11 @@ class PettingZooEnv(OneWorldRendering, ParallelEnv):
         self.env = env
         self.render_mode = render_mode
         self.strict_actions = bool(strict_actions)
-        self.metadata = {**self.metadata, "name": f"jaxdrones_{env.task.name}_v0", "render_fps": env.config.ctrl_freq}
+        self.metadata = {
+            **self.metadata,
+            "name": f"jaxdrones_{env.task.name}_v0",
+            "render_fps": env.config.sim.ctrl_freq,
+        }
         self.possible_agents = agent_names(env.n_drones)
         self.agents = []
         obs_space, action_space = spaces(env)

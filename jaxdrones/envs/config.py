@@ -9,6 +9,7 @@ A `jaxdrones.envs.task.Task` supplies what differs between tasks; `jaxdrones.env
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any
 
@@ -16,7 +17,7 @@ import jax
 import numpy as np
 from numpy.typing import ArrayLike
 
-from jaxdrones._hints import did_you_mean
+from jaxdrones._validate import check_bool, check_choice, check_int, check_real, check_reals, is_integer, is_real
 from jaxdrones.backends import BACKENDS, RENDERERS, require_pybullet
 from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS
 from jaxdrones.envs.observations import OBS_TYPES
@@ -63,12 +64,8 @@ class DomainRandomization:
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value < 1):
-                raise ValueError(
-                    f"randomize.{f.name} must be a relative half-width in [0, 1) (a factor in "
-                    f"[1 - r, 1 + r]; r >= 1 allows a non-positive {f.name}), got {value!r}"
-                )
+            what = f"a relative half-width (a factor in [1 - r, 1 + r]; r >= 1 allows a non-positive {f.name})"
+            check_real(f"randomize.{f.name}", getattr(self, f.name), 0, 1, high_open=True, what=what)
 
     def sample(self, key: jax.Array, params: DroneParams) -> DroneParams:
         """Randomised ``params`` (batch shape [..., D]), with the derived fields recomputed."""
@@ -228,48 +225,42 @@ class TaskConfig:
     realism: Any = None
 
     def __post_init__(self):
-        _check_choice("action_type", self.action_type, ACTION_TYPES)
-        _check_choice("obs_type", self.obs_type, OBS_TYPES)
-        _check_choice("reward", self.reward, REWARDS)
-        _check_choice("pid_target", self.pid_target, PID_TARGETS)
-        _check_choice("start_rpm", self.start_rpm, START_RPMS)
+        check_choice("action_type", self.action_type, ACTION_TYPES)
+        check_choice("obs_type", self.obs_type, OBS_TYPES)
+        check_choice("reward", self.reward, REWARDS)
+        check_choice("pid_target", self.pid_target, PID_TARGETS)
+        check_choice("start_rpm", self.start_rpm, START_RPMS)
         for name in ("error_integral", "terminate_on_ground"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+            check_bool(name, getattr(self, name))
         buffer = self.action_buffer
-        if not isinstance(buffer, (bool, np.bool_)) and not (isinstance(buffer, (int, np.integer)) and buffer >= 0):
+        if not isinstance(buffer, (bool, np.bool_)) and not (is_integer(buffer) and buffer >= 0):
             raise ValueError(
                 f"action_buffer must be True (the last ctrl_freq // 2 actions), False, or the number of actions to "
                 f"keep (an integer >= 0), got {buffer!r}"
             )
-        self._set("downwash", downwash_model(self.downwash))
-        if not (_is_number(self.pid_scale) and 0.0 < self.pid_scale <= PID_MAX_STEP):
-            raise ValueError(f"pid_scale must be a distance in m in (0, {PID_MAX_STEP}], got {self.pid_scale!r}")
-        n = self.n_drones
-        if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
-            raise ValueError(f"n_drones must be a positive integer, got {n!r}")
+        check_real("pid_scale", self.pid_scale, 0, PID_MAX_STEP, low_open=True, what="a distance in m")
+        n = check_int("n_drones", self.n_drones)
         self._check_model()
-        self._set("kinks", SimConfig(kinks=self.kinks, adjoint=self.adjoint).kinks)
-        self._set("unroll_substeps", SimConfig(unroll_substeps=self.unroll_substeps).unroll_substeps)
+        self._set("downwash", downwash_model(self.downwash))
+        self._set("realism", resolve_realism(self.realism))
+        sim = self.sim  # built here, once: it checks the rates and the physics' options
+        for name in ("kinks", "unroll_substeps"):  # as the physics stores them
+            self._set(name, getattr(sim, name))
         for name in ("init_pos", "init_rpy"):
             self._set(name, fixed_triples(name, getattr(self, name), n))
         if self.start_pos_range is not None:
-            self._set("start_pos_range", _finite_tuple("start_pos_range", self.start_pos_range, 3, nonneg=True))
+            self._set("start_pos_range", check_reals("start_pos_range", self.start_pos_range, 3, nonneg=True))
         for name in ("start_tilt", "start_yaw", "start_vel", "start_ang_vel"):
-            value = getattr(self, name)
-            if value is not None and not (_is_number(value) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite half-width >= 0, got {value!r}")
-        k = self.max_neighbors
-        if k is not None and (not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1):
-            raise ValueError(f"max_neighbors must be None (every drone) or a positive integer, got {k!r}")
+            if getattr(self, name) is not None:
+                check_real(name, getattr(self, name), 0, what="a finite half-width")
+        if self.max_neighbors is not None:
+            check_int("max_neighbors", self.max_neighbors, what="None for every drone")
         for name in ("arena_xy", "arena_z", "max_tilt", "neighbor_radius"):
-            value = getattr(self, name)
-            if not (_is_number(value) and value > 0):
-                raise ValueError(f"{name} must be a number > 0, got {value!r}")
+            check_real(name, getattr(self, name), 0, low_open=True, finite=False)
         if not (
-            _is_number(self.episode_len_s)
+            is_real(self.episode_len_s)
             and math.isfinite(self.episode_len_s)
-            and self.episode_len_s * self.ctrl_freq >= 1
+            and self.episode_len_s * sim.ctrl_freq >= 1
         ):
             raise ValueError(
                 f"episode_len_s·ctrl_freq must give at least one control step, got "
@@ -282,8 +273,6 @@ class TaskConfig:
                 f"randomize must be None, a DomainRandomization or a dict of its fields "
                 f"{[f.name for f in dataclasses.fields(DomainRandomization)]}, got {self.randomize!r}"
             )
-        self._set("realism", resolve_realism(self.realism))
-        self.sim_config()  # validates the rates
         self._check_backend()
 
     def _set(self, name: str, value) -> None:
@@ -303,8 +292,8 @@ class TaskConfig:
                 raise ValueError(f"unknown drone model {m!r}: expected one of {MODELS} or a path to a .urdf file")
 
     def _check_backend(self) -> None:
-        _check_choice("backend", self.backend, BACKENDS)
-        _check_choice("renderer", self.renderer, RENDERERS)
+        check_choice("backend", self.backend, BACKENDS)
+        check_choice("renderer", self.renderer, RENDERERS)
         if self.backend == "pybullet":
             require_pybullet()  # here, not at the first step: a missing pybullet is named before any work
         vision = self.vision
@@ -327,30 +316,25 @@ class TaskConfig:
             from jaxdrones.scene.primitives import check_obstacles
 
             check_obstacles(obstacles)  # a mesh: a clear error now rather than at the first render
-        if not (_is_number(self.camera_freq) and math.isfinite(self.camera_freq) and self.camera_freq > 0):
-            raise ValueError(f"camera_freq must be a finite rate > 0 Hz, got {self.camera_freq!r}")
+        check_real("camera_freq", self.camera_freq, 0, low_open=True, what="a finite rate in Hz")
         size = self.image_size
-        if (
-            not isinstance(size, (tuple, list))
-            or len(size) != 2
-            or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in size)
-        ):
+        if not isinstance(size, (tuple, list)) or len(size) != 2 or not all(is_integer(v) and v > 0 for v in size):
             raise ValueError(f"image_size must be two positive integers (width, height) in pixels, got {size!r}")
         self._set("image_size", (int(size[0]), int(size[1])))
-        if not (_is_number(self.camera_fov) and 0 < self.camera_fov < 180):
-            raise ValueError(
-                f"camera_fov must be the vertical field of view in degrees, in (0, 180), got {self.camera_fov!r}"
-            )
-        k = self.frame_stack
-        if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
-            raise ValueError(f"frame_stack must be an integer ≥ 1 (camera frames per image), got {k!r}")
+        what = "the vertical field of view in degrees,"
+        check_real("camera_fov", self.camera_fov, 0, 180, low_open=True, high_open=True, what=what)
+        k = check_int("frame_stack", self.frame_stack, what="camera frames per image")
         if k > 1 and not self.vision:
             raise ValueError(f"frame_stack={k} stacks camera frames: it needs vision=('depth',), ('rgb',) or ('seg',)")
         self._set("frame_stack", int(k))
 
-    def sim_config(self) -> SimConfig:
-        """The `SimConfig` of the physics."""
-        realism = self.realism
+    @functools.cached_property
+    def sim(self) -> SimConfig:
+        """The `SimConfig` of the physics, built once (when the config is): the one home of the rates
+        (``sim_freq``, ``ctrl_freq``, ``ctrl_dt``, ``n_substeps``) and of the physics' options for every reader
+        downstream (the env, the tasks, the realism, the trainers). Its ``drag`` is also on where the ``realism`` has
+        wind, its ``motor_dynamics`` where it has motor time constants."""
+        realism = resolve_realism(self.realism)
         return SimConfig(
             n_drones=self.n_drones,
             sim_freq=self.sim_freq,
@@ -365,44 +349,28 @@ class TaskConfig:
             motor_dynamics=realism is not None and realism.motor_dynamics,
         )
 
+    def sim_config(self) -> SimConfig:
+        """The `SimConfig` of the physics: `sim`."""
+        return self.sim
+
     @property
     def buffer_len(self) -> int:
         """Actions kept in the observation's action buffer (``action_buffer``): ``ctrl_freq // 2`` for True, 0 for
         False."""
         buffer = self.action_buffer
         if isinstance(buffer, (bool, np.bool_)):
-            return self.ctrl_freq // 2 if buffer else 0
+            return self.sim.ctrl_freq // 2 if buffer else 0
         return int(buffer)
 
     @property
     def camera_period(self) -> int:
         """Control steps between two camera renders, k = max(1, round(ctrl_freq / camera_freq))."""
-        return max(1, int(round(self.ctrl_freq / self.camera_freq)))
+        return max(1, int(round(self.sim.ctrl_freq / self.camera_freq)))
 
     @property
     def camera_rate(self) -> float:
         """Effective camera rate, Hz: ctrl_freq / `camera_period`."""
-        return self.ctrl_freq / self.camera_period
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-
-
-def _check_choice(name: str, value, choices) -> None:
-    if value not in choices:
-        hint = did_you_mean(value, choices) if isinstance(value, str) else ""
-        raise ValueError(f"unknown {name} {value!r}{hint}: expected one of {tuple(choices)}")
-
-
-def _finite_tuple(name: str, value, n: int, nonneg: bool = False) -> tuple[float, ...]:
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be {n} numbers, got {value!r}") from None
-    if arr.shape != (n,) or not np.all(np.isfinite(arr)) or (nonneg and np.any(arr < 0)):
-        raise ValueError(f"{name} must be {n} finite numbers{' >= 0' if nonneg else ''}, got {value!r}")
-    return tuple(float(v) for v in arr)
+        return self.sim.ctrl_freq / self.camera_period
 
 
 def fixed_triples(name: str, value: ArrayLike | None, n: int) -> tuple[tuple[float, float, float], ...] | None:

@@ -66,7 +66,7 @@ class TaskEnv(Env):
         task = task.variant(config)
         task.check(config)
         self.task, self.config = task, config
-        self.sim_config = config.sim_config()
+        self.sim_config = config.sim
         model = config.model
         params = stack_params(model) if isinstance(model, tuple) else load_params(model)
         # Broadcast on the host and copied once: no device program compiled (each costs a compilation on a GPU).
@@ -117,7 +117,7 @@ class TaskEnv(Env):
 
     @property
     def episode_length(self) -> int:
-        return int(round(self.config.episode_len_s * self.config.ctrl_freq))
+        return int(round(self.config.episode_len_s * self.sim_config.ctrl_freq))
 
     @property
     def dtype(self) -> np.dtype:
@@ -154,7 +154,7 @@ class TaskEnv(Env):
         if not self.integral_size:
             return integral
         error = self.task.tracking_error(self.config, task, seen, steps).astype(integral.dtype)
-        return jnp.clip(integral + error / self.config.ctrl_freq, -ERROR_INTEGRAL_BOUND, ERROR_INTEGRAL_BOUND)
+        return jnp.clip(integral + error / self.sim_config.ctrl_freq, -ERROR_INTEGRAL_BOUND, ERROR_INTEGRAL_BOUND)
 
     def _observe(
         self, task: TaskParams, sim: DroneState, history: jax.Array, integral: jax.Array, steps: jax.Array

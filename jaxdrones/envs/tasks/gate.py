@@ -142,7 +142,7 @@ class FlyThruGate(ReferenceTask):
 
     def reference(self, config: GateConfig, task: TaskParams, steps: jax.Array) -> Reference:
         duration = config.episode_len_s
-        tau = jnp.minimum(steps / config.ctrl_freq, duration) / duration
+        tau = jnp.minimum(steps / config.sim.ctrl_freq, duration) / duration
         start = task.target.at[..., 1].set(0.0)
         vel = (task.target - start) / duration
         return Reference(start + (task.target - start) * tau, jnp.where(tau < 1, vel, 0.0))

@@ -247,7 +247,7 @@ class Velocity(Task):
 
     def reference(self, config: VelocityConfig, task: TaskParams, steps: jax.Array) -> Reference:
         vel = task.data["target_vel"]
-        return Reference(task.start.pos + vel * (steps / config.ctrl_freq), vel)
+        return Reference(task.start.pos + vel * (steps / config.sim.ctrl_freq), vel)
 
     def tracking_error(self, config: VelocityConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> jax.Array:
         """The commanded minus the measured velocity, m/s, world frame (its integral: how far the drone has fallen
@@ -385,7 +385,7 @@ class Waypoints(ReferenceTask):
         return np.asarray([config.centre])
 
     def data(self, config: WaypointsConfig) -> dict[str, np.ndarray]:
-        n = int(round(config.episode_len_s * config.ctrl_freq)) + 2
+        n = int(round(config.episode_len_s * config.sim.ctrl_freq)) + 2
         kind = {"circle": 0, "figure8": 1, "random": -1}[config.path]
         return {
             "waypoints": np.zeros((n, config.n_drones, 3)),
@@ -415,7 +415,7 @@ class Waypoints(ReferenceTask):
         points = task.data["waypoints"]
         k = jnp.minimum(steps, points.shape[0] - 2)
         pos, nxt = points[k], points[k + 1]
-        return Reference(pos, (nxt - pos) * config.ctrl_freq)
+        return Reference(pos, (nxt - pos) * config.sim.ctrl_freq)
 
     def metrics(
         self, config: WaypointsConfig, task: TaskParams, sim: DroneState, steps: jax.Array
