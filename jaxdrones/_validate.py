@@ -33,11 +33,11 @@ def is_integer(value: Any) -> bool:
 def interval(low: float = -math.inf, high: float = math.inf, low_open: bool = False, high_open: bool = False) -> str:
     """The range's words: ``"> 0"``, ``">= 1"``, ``"<= 8192"``, ``"in (0, 0.3]"``; empty where it is unbounded."""
     if low > -math.inf and high < math.inf:
-        return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+        return f"in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
     if low > -math.inf:
-        return f"{'>' if low_open else '>='} {low:g}"
+        return f"{'>' if low_open else '>='} {low}"
     if high < math.inf:
-        return f"{'<' if high_open else '<='} {high:g}"
+        return f"{'<' if high_open else '<='} {high}"
     return ""
 
 

@@ -23,6 +23,10 @@ os.environ.setdefault("JAX_NUMPY_RANK_PROMOTION", "raise")
 # subprocesses, would each ask for it and all but the first fail with CUDA_ERROR_OUT_OF_MEMORY. Each takes what it
 # uses instead (where the user has not chosen otherwise).
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+# pytest-xdist runs one worker per core: torch (the Stable-Baselines3, Tianshou and PettingZoo tests) and OpenBLAS
+# would each start a thread per core in every worker and its subprocesses, which then spin against the other
+# workers (the docs' SB3 example: 58 s alone, 244 s in the suite). One thread each, where the user has not chosen.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402

@@ -95,12 +95,17 @@ def _compare_vjps(config, params, state, rpm, with_params: bool, rng) -> set[str
     return checked
 
 
+#: The case of `test_adjoint_matches_derived_derivative` without downwash whose float64 check takes longest (11 s on 2
+#: cores): in the ``slow`` tier; the others stay ``fast``.
+LONG = ("drag_ground", 4)
+
+
 # The cases with downwash (3 drones per world, the per-rotor jets) compile for 20-60 s each: slow, and run with 4
 # substeps only (which run the single substep's pass 4 times, and the loop around it).
 @pytest.mark.parametrize(
     "effects, substeps",
     [
-        pytest.param(e, n, marks=pytest.mark.slow) if "downwash" in EFFECTS[e] else (e, n)
+        pytest.param(e, n, marks=pytest.mark.slow) if "downwash" in EFFECTS[e] or (e, n) == LONG else (e, n)
         for e in EFFECTS
         for n in (1, 4)
         if n == 4 or "downwash" not in EFFECTS[e]
@@ -117,6 +122,7 @@ def test_adjoint_matches_derived_derivative(x64, effects, substeps):
     assert checked == expected, checked
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("effects, substeps", [("drag_ground", 4)])
 def test_params_cotangents_fall_back_to_the_derived_derivative(x64, effects, substeps):
     """float64, params differentiated too (system identification): the rule's fallback to JAX's derived pass gives

@@ -167,8 +167,8 @@ def test_held_action_equals_repeated_action(x64, rng):
     "options",
     [
         {},
-        {"n_drones": 2, "drag": True, "ground_effect": True, "downwash": True},
-        {"motor_dynamics": True, "kinks": "smooth", "ground_effect": True},
+        pytest.param({"n_drones": 2, "drag": True, "ground_effect": True, "downwash": True}, marks=pytest.mark.slow),
+        pytest.param({"motor_dynamics": True, "kinks": "smooth", "ground_effect": True}, marks=pytest.mark.slow),
     ],
     ids=["default", "aero", "motors-smooth"],
 )
@@ -476,6 +476,7 @@ def _swarm(rng, side=16, spacing=0.5):
     return np.concatenate([xy, rng.uniform(0.5, 1.5, (len(xy), 1))], -1)
 
 
+@pytest.mark.slow
 def test_downwash_cell_list(x64, rng):
     """The cell list finds every drone within the radius (no duplicates); with it and a 1 m cut-off, the downwash
     of a 256-drone swarm 0.5 m apart equals the all-pairs force with that cut-off, and the original's (10 m) to
@@ -504,6 +505,7 @@ def test_downwash_cell_list(x64, rng):
     )
 
 
+@pytest.mark.slow
 def test_downwash_radius_step_matches_all_pairs(x64, rng):
     """SimConfig(downwash_radius=1): the control step of 256 drones (its neighbour list held over 8 substeps)
     gives the all-pairs step's state to 1e-12, in a batch of worlds; gradients flow through it; bad values are
@@ -574,7 +576,12 @@ def test_drag_uses_previous_substep_rpm(x64):
 
 
 @pytest.mark.parametrize(
-    "integrator, adjoint", [("euler", True), ("euler", False), pytest.param("rk4", True, marks=pytest.mark.slow)]
+    "integrator, adjoint",
+    [
+        ("euler", True),
+        pytest.param("euler", False, marks=pytest.mark.slow),
+        pytest.param("rk4", True, marks=pytest.mark.slow),
+    ],
 )
 def test_check_grads_full_step(integrator, adjoint, x64):
     """check_grads (float64, order 1) through a 2-substep step of 3 drones with all effects on, w.r.t. pos, vel,
@@ -915,6 +922,7 @@ def test_check_grads_rollout(steps, x64):
     check_grads(jax.jit(f), args, order=1, modes=("rev",), eps=1e-5, atol=1e-6, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_gradients_stay_finite_through_contact_flips_and_crashes():
     """10⁴ random rollouts (2 drones per world, every effect on, 60 steps of random commands from 0 to max RPM,
     starts from the ground up to 0.5 m, tilted up to 1.5 rad, spinning): the drones touch the ground, flip and crash,

@@ -118,8 +118,15 @@ def test_gradients_of_rollout_user_scan_and_env_step_agree(x64):
     assert not bool(out.ground_contact.any()) and float(out.pos[..., 2].min()) < 0.2  # in ground effect
 
 
-@pytest.mark.parametrize("adjoint", [True, False])
-@pytest.mark.parametrize("caller", ["user_scan", "env_step"])
+@pytest.mark.parametrize(
+    "caller, adjoint",
+    [
+        ("user_scan", False),
+        pytest.param("user_scan", True, marks=pytest.mark.slow),
+        pytest.param("env_step", False, marks=pytest.mark.slow),
+        ("env_step", True),
+    ],
+)
 def test_user_scan_and_env_step_gradients_match_finite_differences(x64, caller, adjoint):
     """check_grads (float64, order 1) through the user's scan and through the env: reverse mode with the
     hand-written adjoint (it has no forward mode), forward and reverse mode with JAX's derived derivatives."""

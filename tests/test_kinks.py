@@ -159,6 +159,7 @@ def test_straight_through_keeps_the_forward_pass_and_passes_the_gradient_through
     assert float(z_after(REST - 0.005)) == REST and float(jax.grad(z_after)(REST - 0.005)) == pytest.approx(1.0)
 
 
+@pytest.mark.slow
 def test_check_grads_rollout_with_smooth_kinks_through_contact_and_saturation(x64):
     """check_grads through 20 steps of smooth physics in which drones saturate, land and sit in each other's
     downwash, with every effect on."""

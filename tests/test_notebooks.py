@@ -1,4 +1,7 @@
-"""Every notebook in ``notebooks/`` runs from top to bottom without error, in this interpreter."""
+"""Every notebook in ``notebooks/`` runs from top to bottom without error, in this interpreter (marker
+``notebooks``: 7 Jupyter kernels that compile the notebooks' trainings, about 7 minutes of CPU; left out of the
+default run, ``python -m pytest -m notebooks`` runs them, and ``.ci/run`` does in every lane); and the stored
+notebooks hold the outputs of one whole run."""
 
 from __future__ import annotations
 
@@ -138,6 +141,7 @@ def test_stored_outputs_are_one_whole_run(path):
 
 
 @pytest.mark.slow
+@pytest.mark.notebooks
 @pytest.mark.parametrize(
     "path",
     [pytest.param(p, marks=[pytest.mark.torch] * (p.name in SB3_NOTEBOOKS)) for p in NOTEBOOKS],

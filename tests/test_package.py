@@ -114,8 +114,7 @@ def test_public_api_is_annotated():
     """Every public function of every public module, and every public method of its public classes, annotates each
     parameter and its return: the package ships ``py.typed`` (PEP 561), so type checkers read these hints as its
     API. Private modules (``_x.py``) and private names are left out, and so are `UNTYPED_MODULES`:
-    ``jaxdrones.compat`` (it mirrors gym-pybullet-drones' untyped signatures), ``jaxdrones.viz`` and
-    ``jaxdrones.cli.view`` (the flight viewer, whose API is still changing)."""
+    ``jaxdrones.compat`` (it mirrors gym-pybullet-drones' untyped signatures)."""
     functions = dict(item for module in _public_modules() for item in _public_functions(module))
     assert len(functions) > 300  # the walk found the package (not an empty or broken one)
     assert "jaxdrones.physics.state.init_state" in functions and "jaxdrones.envs.env.TaskEnv.step" in functions

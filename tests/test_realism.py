@@ -104,7 +104,11 @@ def test_disturbance_force_torque_and_wind(x64):
 
 @pytest.mark.parametrize(
     "downwash, substeps, with_params",
-    [("paper", 1, False), ("paper", 1, True), pytest.param("per_rotor", 4, False, marks=pytest.mark.slow)],
+    [
+        ("paper", 1, False),
+        pytest.param("paper", 1, True, marks=pytest.mark.slow),
+        pytest.param("per_rotor", 4, False, marks=pytest.mark.slow),
+    ],
 )
 def test_adjoint_with_motor_dynamics_and_disturbance(x64, downwash, substeps, with_params):
     """The hand-written adjoint with every core option on (motor dynamics, force, torque, wind, drag, ground
