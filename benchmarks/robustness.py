@@ -28,6 +28,7 @@ Usage::
 
     python benchmarks/robustness.py                           # hover and velocity, seeds 0 1 2
     python benchmarks/robustness.py --tasks hover --seeds 0 --steps 500000 --episodes 64   # a quick look
+    python benchmarks/robustness.py --tasks hover --settings crazyflie_dr --dr-turbulence 1.0   # wind in the ranges
 
 Results go to ``benchmarks/results/robustness.json`` (``--out``) and the table to stdout (markdown).
 """
@@ -155,7 +156,16 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--defaults", default="cpu", choices=("cpu", "gpu"), help="the profile of training settings (default cpu)"
     )
+    parser.add_argument(
+        "--dr-turbulence",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="crazyflie_dr also draws Dryden turbulence of σ uniform in [0, SIGMA] m/s per episode (default 0: none)",
+    )
     args = parser.parse_args(argv)
+    if args.dr_turbulence > 0:
+        TRAIN["crazyflie_dr"]["realism"]["turbulence"] = (0.0, args.dr_turbulence)
     records = []
     with tempfile.TemporaryDirectory() as scratch:
         for task in args.tasks:

@@ -185,7 +185,7 @@ def test_dip_metrics_on_a_synthetic_pass():
         (["--example", "velocity", "--no-feedforward"], "--feedforward/--no-feedforward does not apply"),
         (["--example", "ground-effect", "--duration", "0.25"], "must cover the figure's 0.5 s window"),
         (["--example", "velocity", "--duration", "1", "--settle", "0.9"], "leaves no settled sample"),
-        (["--example", "velocity", "--settle", "-1"], "settle_s must be a non-negative"),
+        (["--example", "velocity", "--settle", "-1"], "settle_s must be a finite number of seconds >= 0"),
         (["--example", "downwash", "--model", "nope"], "drone model"),
         (["--example", "downwash", "--duration", "0"], "duration_s must be at least one control step"),
     ],

@@ -23,8 +23,9 @@ def render_frame(env: Env, state: EnvState, world: int = 0, shared_params: bool 
 
     sim = jax.tree.map(one, state.sim)
     params = jax.tree.map(np.asarray, state.params) if shared_params else jax.tree.map(one, state.params)
-    if env._step.has_cameras:
-        return env._step.render(params, sim, width=480, height=360)
+    frame = env.render_world(params, sim)
+    if frame is not None:
+        return frame
     return _plotting().render_state(sim.pos, sim.quat, targets=one(state.task.target), title=env.task.name)
 
 
