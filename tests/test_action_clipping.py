@@ -96,6 +96,7 @@ def test_gaussian_policy_on_pettingzoo():
         env.step({"drone_0": np.full(4, np.nan, np.float32), "drone_1": np.zeros(4, np.float32)})
 
 
+@pytest.mark.slow
 def test_gaussian_policy_on_jaxmarl_vmapped():
     """Three worlds under jit and vmap: per-agent counts; with ``strict_actions`` an action outside the box ends
     its world's episode as invalid, and the others go on."""

@@ -95,9 +95,9 @@ def _compare_vjps(config, params, state, rpm, with_params: bool, rng) -> set[str
     return checked
 
 
-#: The case of `test_adjoint_matches_derived_derivative` without downwash whose float64 check takes longest (11 s on 2
-#: cores): in the ``slow`` tier; the others stay ``fast``.
-LONG = ("drag_ground", 4)
+#: The cases of `test_adjoint_matches_derived_derivative` without downwash whose float64 checks take longest (11 s each
+#: on 2 cores): in the ``slow`` tier; the others stay ``fast``.
+LONG = (("drag_ground", 1), ("drag_ground", 4))
 
 
 # The cases with downwash (3 drones per world, the per-rotor jets) compile for 20-60 s each: slow, and run with 4
@@ -105,7 +105,7 @@ LONG = ("drag_ground", 4)
 @pytest.mark.parametrize(
     "effects, substeps",
     [
-        pytest.param(e, n, marks=pytest.mark.slow) if "downwash" in EFFECTS[e] or (e, n) == LONG else (e, n)
+        pytest.param(e, n, marks=pytest.mark.slow) if "downwash" in EFFECTS[e] or (e, n) in LONG else (e, n)
         for e in EFFECTS
         for n in (1, 4)
         if n == 4 or "downwash" not in EFFECTS[e]
@@ -132,6 +132,7 @@ def test_params_cotangents_fall_back_to_the_derived_derivative(x64, effects, sub
     assert {"[2].mass", "[2].kf", "[2].km", "[2].drag_coeff", "[2].inertia", "[0].pos", "[1]"} <= checked, checked
 
 
+@pytest.mark.slow
 def test_adjoint_gradient_without_params_matches_derived_in_float32():
     """float32, the case APG and SHAC run: the gradient w.r.t. state and command alone (the hand-written pass
     proper, params not perturbed) agrees with JAX's derived one within float32 rounding."""

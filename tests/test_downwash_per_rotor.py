@@ -315,6 +315,7 @@ def test_choices_and_bad_input():
         jd.make("multi_hover", n_drones=2, downwash="perrotor")
 
 
+@pytest.mark.slow
 def test_smooth_onset_and_rk4(x64):
     """Exact kinks: the loss jumps on where the rotors come 0.1 l below the source (8 mm for the cf2x). Smooth kinks:
     it rises over 2·kinks.downwash below that, and its derivative w.r.t. the height agrees with central finite

@@ -691,6 +691,7 @@ def test_jit_equals_eager(rng):
     _assert_states_close(jax.jit(step)(params, state, rpm), step(params, state, rpm))
 
 
+@pytest.mark.slow
 def test_vmap_and_batched_state_equal_per_world(rng):
     params = jd.load_params("cf2x")
     step = stepper(ALL_EFFECTS)
@@ -880,7 +881,7 @@ def test_quaternion_update_gradient_at_rest_is_first_order(x64):
     )  # off the diagonal, ½ dt |ω| = 2e-9 just above
 
 
-@pytest.mark.parametrize("steps", [10, 100])
+@pytest.mark.parametrize("steps", [10, pytest.param(100, marks=pytest.mark.slow)])
 def test_check_grads_rollout(steps, x64):
     """check_grads (float64, order 1, rev: the hand-written adjoint) through `jd.rollout` of 10 and 100 control
     steps of 3 drones at 240 Hz with drag, ground effect and downwash on, w.r.t. the RPM commands, the initial state

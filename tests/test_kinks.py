@@ -99,6 +99,8 @@ KINKS = {
     "downwash_onset": (lambda k: _downwash(k, "dz"), 0.01, lambda k: k.downwash),
     "downwash_cutoff": (lambda k: _downwash(k, "d"), 10.0, lambda k: k.downwash),
 }
+#: The kinks whose checks compile longest (10-11 s each on 2 cores): in the ``slow`` tier, the others ``fast``.
+SLOW_KINKS = ("ground_effect_height", "downwash_onset", "downwash_cutoff")
 
 
 def _grads_and_central_differences(f, xs, eps):
@@ -108,7 +110,7 @@ def _grads_and_central_differences(f, xs, eps):
     return grads, fd
 
 
-@pytest.mark.parametrize("kink", KINKS)
+@pytest.mark.parametrize("kink", [pytest.param(k, marks=pytest.mark.slow) if k in SLOW_KINKS else k for k in KINKS])
 def test_smooth_treatment_agrees_with_finite_differences_across_its_kink(kink, x64):
     make_f, center, band = KINKS[kink]
     kinks = Kinks("smooth")

@@ -236,6 +236,7 @@ def test_jit_vmap_and_batched_params(x64, rng, strict_ranks):
     assert lone.shape == (4,)
 
 
+@pytest.mark.slow
 def test_gradients(x64, strict_ranks):
     """Gradients of the mixer and the body-rate loop (float64).
 
