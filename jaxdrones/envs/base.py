@@ -12,6 +12,8 @@ from jaxdrones.physics.params import DroneParams
 from jaxdrones.physics.state import DroneState
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from jaxdrones.envs.task import TaskParams
 
 
@@ -106,6 +108,19 @@ class Env(abc.ABC):
         """The `DroneParams` (batch shape [D]) that every world and episode uses, or None when ``reset`` draws them
         (domain randomisation). Batched wrappers keep shared params once rather than once per world: a step that
         reads them per world is about a fifth slower on CPU."""
+        return None
+
+    def render_world(
+        self, params: DroneParams, sim: DroneState, width: int = 480, height: int = 360
+    ) -> np.ndarray | None:
+        """One world's frame u8[H, W, 3] from the backend's renderer, or None where the backend has none (the
+        default; the JAX backend: `jaxdrones.viz` and `jaxdrones.plotting` draw its flights).
+
+        Args:
+            params: one world's drone params, batch shape [D].
+            sim: one world's state, pos f[D, 3] m, world frame.
+            width, height: the frame's size, pixels.
+        """
         return None
 
     def privileged(self, state: EnvState) -> jax.Array | None:

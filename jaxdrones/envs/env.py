@@ -198,14 +198,7 @@ class TaskEnv(Env):
     def render_world(
         self, params: DroneParams, sim: DroneState, width: int = 480, height: int = 360
     ) -> np.ndarray | None:
-        """One world's frame u8[H, W, 3] from the backend's renderer (PyBullet's third-person view of the drones), or
-        None on a backend without one (the JAX backend: `jaxdrones.viz` and `jaxdrones.plotting` draw its flights).
-
-        Args:
-            params: one world's drone params, batch shape [D].
-            sim: one world's state, pos f[D, 3] m, world frame.
-            width, height: the frame's size, pixels.
-        """
+        """`Env.render_world`: PyBullet's third-person view of the drones on that backend, None on the JAX backend."""
         return self._step.render(params, sim, width=width, height=height) if self._step.has_cameras else None
 
     # -- task params -----------------------------------------------------------------------------------------------
