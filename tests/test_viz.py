@@ -24,7 +24,7 @@ import pytest
 from jaxdrones import viz
 from jaxdrones.scene import Obstacle
 from jaxdrones.viz import Flight
-from jaxdrones.viz import flight as viz_flight
+from jaxdrones.viz import html as viz_html
 
 needs_viser = pytest.mark.skipif(not viz.viewer_available(), reason=f"viser is not installed ({viz.VIEWER_INSTALL})")
 DOCS = pathlib.Path(__file__).resolve().parents[1] / "docs"
@@ -109,7 +109,7 @@ def test_scene_of_obstacles_and_per_world_scenes():
             Obstacle("urdf", urdf=__file__, pos=(0, 0, 0)),
         ],
     )  # a mesh: not drawn
-    prims = viz_flight._primitives(flight.scene, 0)
+    prims = viz_html._primitives(flight.scene, 0)
     assert [p[0] for p in prims] == ["box"]
     np.testing.assert_allclose(prims[0][1], (1.0, 2.0, 0.3))
     np.testing.assert_allclose(prims[0][3], (0.1, 0.2, 0.3))  # half extents
@@ -119,8 +119,8 @@ def test_scene_of_obstacles_and_per_world_scenes():
     two = jax.tree.map(lambda x: np.stack([x, x]), one)
     two.sphere.pos[1, 0] = (5.0, 0.0, 1.0)
     flight = Flight(pos, quat, 0.1, scene=two)
-    np.testing.assert_allclose(viz_flight._primitives(flight.scene, 1)[0][1], (5.0, 0.0, 1.0))
-    offsets = viz_flight._world_offsets(flight, None)  # one scene per world: laid out apart
+    np.testing.assert_allclose(viz_html._primitives(flight.scene, 1)[0][1], (5.0, 0.0, 1.0))
+    offsets = viz_html._world_offsets(flight, None)  # one scene per world: laid out apart
     assert np.linalg.norm(offsets[1] - offsets[0]) > 2.0
     with pytest.raises(ValueError, match=r"world axes \[2\]"):
         Flight(pos, quat, 0.1, scene=jax.tree.map(lambda x: np.stack([x, x, x]), one))
@@ -450,9 +450,9 @@ def test_flight_of_a_vision_env_with_a_gate_per_episode(tmp_path):
     assert (flight.n_frames, flight.n_worlds, flight.n_drones) == (4, 2, 1)
     assert flight.dt == pytest.approx(1 / env.config.ctrl_freq)
     assert flight.images.shape == (4, 2, 1, 48, 64, 3)
-    gates = [np.array([c for _, c, *_ in viz_flight._primitives(flight.scene, w)]) for w in range(2)]
+    gates = [np.array([c for _, c, *_ in viz_html._primitives(flight.scene, w)]) for w in range(2)]
     assert len(gates[0]) == 3 and not np.allclose(gates[0], gates[1])  # the gate's three boxes, drawn per episode
-    assert np.linalg.norm(viz_flight._world_offsets(flight, None)[1]) > 2.0  # episodes side by side
+    assert np.linalg.norm(viz_html._world_offsets(flight, None)[1]) > 2.0  # episodes side by side
     html = tmp_path / "gate.html"
     viz.write_html(html, flight)
     assert html.stat().st_size > 100_000

@@ -326,7 +326,7 @@ class TaskConfig:
         k = check_int("frame_stack", self.frame_stack, what="camera frames per image")
         if k > 1 and not self.vision:
             raise ValueError(f"frame_stack={k} stacks camera frames: it needs vision=('depth',), ('rgb',) or ('seg',)")
-        self._set("frame_stack", int(k))
+        self._set("frame_stack", k)
 
     @functools.cached_property
     def sim(self) -> SimConfig:
@@ -334,7 +334,7 @@ class TaskConfig:
         (``sim_freq``, ``ctrl_freq``, ``ctrl_dt``, ``n_substeps``) and of the physics' options for every reader
         downstream (the env, the tasks, the realism, the trainers). Its ``drag`` is also on where the ``realism`` has
         wind, its ``motor_dynamics`` where it has motor time constants."""
-        realism = resolve_realism(self.realism)
+        realism = self.realism  # resolved by __post_init__ before it builds this
         return SimConfig(
             n_drones=self.n_drones,
             sim_freq=self.sim_freq,

@@ -23,7 +23,7 @@ from jaxdrones.physics.params import DroneParams, broadcast_params, load_params,
 from jaxdrones.physics.rotations import quat_from_euler
 from jaxdrones.physics.state import DroneState
 from jaxdrones.sensors.camera import image_shapes
-from jaxdrones.sim import make_step
+from jaxdrones.sim import SimConfig, make_step
 
 #: How far (in action units) an entry may lie outside its box before ``metrics["clipped_actions"]`` counts it:
 #: float32 round-off of actions computed at the bounds (e.g. ``tanh`` saturating to 1 + 1 ulp) is not a clip.
@@ -66,7 +66,6 @@ class TaskEnv(Env):
         task = task.variant(config)
         task.check(config)
         self.task, self.config = task, config
-        self.sim_config = config.sim
         model = config.model
         params = stack_params(model) if isinstance(model, tuple) else load_params(model)
         # Broadcast on the host and copied once: no device program compiled (each costs a compilation on a GPU).
@@ -97,6 +96,11 @@ class TaskEnv(Env):
         return type(self), (self.task, self.config)
 
     # -- sizes and spaces ------------------------------------------------------------------------------------------
+
+    @property
+    def sim_config(self) -> SimConfig:
+        """The physics' `SimConfig`: the config's (`TaskConfig.sim`)."""
+        return self.config.sim
 
     @property
     def n_drones(self) -> int:

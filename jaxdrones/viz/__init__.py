@@ -21,7 +21,7 @@ a viser server bound to localhost, which no client ever joins, and recorded mess
 Frames: positions are m in the world frame, z up; quaternions (x, y, z, w) rotate body to world, as everywhere in
 jaxdrones (`jaxdrones.DroneState`).
 
-The package: `jaxdrones.viz.flight` (the `Flight` record and the drawing both views share),
+The package: `jaxdrones.viz.flight` (the `Flight` record and what both views take from it),
 `jaxdrones.viz.html` (`write_html`), `jaxdrones.viz.video` (`write_video`); each name is also here.
 """
 

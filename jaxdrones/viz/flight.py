@@ -1,5 +1,5 @@
 """A rollout to show (`Flight`: every drone's pose over time, the scene, the onboard camera images) and what both
-views draw from it: the drones' mesh and colours, the scene's primitives, the worlds laid out side by side."""
+views take from it: the drones' colours, the camera's view, the target file's check."""
 
 from __future__ import annotations
 
@@ -269,59 +269,6 @@ def _wxyz_from_rotmat(r: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return _wxyz(Rotation.from_matrix(np.asarray(r, np.float64)).as_quat())
-
-
-def _primitives(scene, world: int) -> list[tuple]:
-    """The valid primitives of world ``world`` of a `Flight.scene`: (shape, centre, rotation, size, rgb) with
-    `jaxdrones.cameras.Primitives`' size convention (half extents; radius; radius and half length)."""
-    if scene is None:
-        return []
-    out = []
-    for shape in ("box", "sphere", "cylinder", "capsule"):
-        p = getattr(scene, shape)
-        if p.valid.ndim == 2:  # one scene per world: this world's
-            p = type(p)(**{f.name: getattr(p, f.name)[world] for f in dataclasses.fields(p)})
-        out += [(shape, p.pos[i], p.rot[i], p.size[i], p.rgb[i]) for i in np.flatnonzero(p.valid)]
-    return out
-
-
-def _drone_mesh(arm: float) -> tuple[np.ndarray, np.ndarray]:
-    """A quadrotor of arm length ``arm`` m as one triangle mesh (vertices f[V, 3] m, body frame; faces i32[F, 3]):
-    a square plate, four rotor disks on the diagonals (the cf2x's X layout) and a nose along body +x that shows the
-    heading."""
-    import trimesh
-
-    side = 1.13 * arm  # `jaxdrones.cameras.BODY_SIDE_PER_ARM`, as the cameras draw the plate
-    d = arm / math.sqrt(2)
-    parts = [trimesh.creation.box((side, side, 0.012))]
-    nose = trimesh.creation.box((0.9 * arm, 0.25 * arm, 0.012))
-    nose.apply_translation((side / 2 + 0.3 * arm, 0.0, 0.0))
-    parts.append(nose)
-    for sx, sy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
-        disk = trimesh.creation.cylinder(radius=0.58 * arm, height=0.004, sections=20)
-        disk.apply_translation((sx * d, sy * d, 0.008))
-        parts.append(disk)
-    mesh = trimesh.util.concatenate(parts)
-    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
-
-
-def _world_offsets(flight: Flight, spacing: float | None) -> np.ndarray:
-    """f[W, 3]: where each world is drawn, m: all at the origin (``spacing`` 0), or on a square grid of that pitch."""
-    n = flight.n_worlds
-    if spacing is None:
-        per_world = flight.scene is not None and flight.scene.box.pos.ndim == 3 and n > 1
-        if not per_world:
-            return np.zeros((n, 3))
-        span = float(np.ptp(flight.pos[..., :2], axis=(0, 2)).max())
-        reach = [
-            np.abs(c[:2] - flight.pos[0, w, :, :2].mean(0)).max() + 2 * np.max(s)
-            for w in range(n)
-            for _, c, _, s, _ in _primitives(flight.scene, w)
-        ]
-        spacing = 2 * max([span, *reach]) + 1.0
-    cols = math.ceil(math.sqrt(n))
-    w = np.arange(n)
-    return np.stack([(w % cols) * spacing, -(w // cols) * spacing, np.zeros(n)], -1)
 
 
 def _view(flight: Flight, offsets: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
