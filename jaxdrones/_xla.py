@@ -1,8 +1,9 @@
 """XLA flags for the ``jaxdrones`` command line and the test suite, each set only where the running XLA accepts it.
 
 ``import jaxdrones`` sets no XLA flag: a library does not change how the rest of its user's process compiles.
-The ``jaxdrones`` command line, which owns its process, adds `CLI_FLAGS` to ``XLA_FLAGS`` before JAX starts a
-backend (`add_flags`), and so does the test suite (``tests/conftest.py``).
+The ``jaxdrones`` command line, which owns its process, adds the flags of the device it compiles for
+(`flags_for`: `CLI_FLAGS` for XLA:CPU, `GPU_FLAGS` for XLA:GPU) to ``XLA_FLAGS`` before JAX starts a backend
+(`add_flags`), and so does the test suite (``tests/conftest.py``).
 
 XLA reads ``XLA_FLAGS`` when JAX starts a backend and aborts the process on a flag it does not know (``Unknown flag
 in XLA_FLAGS``), and flags come and go between jaxlib releases (jaxlib 0.11 removed
@@ -25,6 +26,16 @@ Measured on 2 cores (docs/benchmarks.md):
   the fusion emitters and refuse the flag) compiles faster: ``jaxdrones train hover`` with an empty compilation
   cache took 11.7 s instead of 14.1 s on jax 0.10.2, and trained as fast (``benchmarks/train_algos.py``, 3 runs
   each, medians).
+
+`GPU_FLAGS` are for XLA:GPU, added where the process compiles for a GPU (`compiles_for_gpu`). Measured on an NVIDIA
+H200 (jax 0.11.2, CUDA 13; docs/benchmarks.md), one run each:
+
+- ``--xla_gpu_enable_triton_gemm=false`` (the matrix products by cuBLAS instead of Triton kernels generated and
+  compiled per product): ``jaxdrones train hover`` from an empty cache took 17.9 s instead of 22.1 s (21.7 s
+  against 27.4 s on a second machine), warm 6.9-7.2 s against 5.9-7.0 s with its training phase as fast (3.1 s
+  against 2.8-3.1 s). The trainers' products are small (a 64 x 64 MLP over a batch of worlds), where Triton's tuned
+  kernels gain nothing worth their compilation.
+  ``--xla_gpu_autotune_level=0`` compiled 2 s less than XLA's defaults but trained 1.7 times slower.
 """
 
 from __future__ import annotations
@@ -46,6 +57,8 @@ CLI_FLAGS = (
     "--xla_llvm_disable_expensive_passes=true",
     "--xla_cpu_use_fusion_emitters=false",
 )
+#: Flags added by the ``jaxdrones`` command line (and the test suite) where JAX compiles for a GPU.
+GPU_FLAGS = ("--xla_gpu_enable_triton_gemm=false",)
 #: Libraries below this size are Python bindings, not XLA.
 _MIN_XLA_LIBRARY_BYTES = 10 * 2**20
 #: What the probe runs: start every backend JAX finds, which parses ``XLA_FLAGS`` (and aborts on an unknown flag).
@@ -178,6 +191,30 @@ def compiles_for_cpu(platform: str | None = None) -> bool:
     roots = plugins.submodule_search_locations if plugins else []
     accelerators = [p for p in xla_libraries() if any(p.startswith(os.path.join(r, "")) for r in roots or [])]
     return not accelerators and importlib.util.find_spec("libtpu") is None
+
+
+def compiles_for_gpu(platform: str | None = None) -> bool:
+    """Whether JAX will compile for a GPU: ``platform`` (or the first of ``JAX_PLATFORMS``) is ``gpu``, ``cuda`` or
+    ``rocm``; or, with neither set, a CUDA or ROCm PJRT plugin (``jax_plugins``) is installed. Starts no backend."""
+    platform = platform or os.environ.get("JAX_PLATFORMS", "").split(",")[0].strip()
+    if platform:
+        return platform.lower() in ("gpu", "cuda", "rocm")
+    plugins = importlib.util.find_spec("jax_plugins")
+    roots = plugins.submodule_search_locations if plugins else []
+    return any(
+        os.path.relpath(p, r).split(os.sep)[0].lower().startswith(("xla_cuda", "xla_rocm", "cuda", "rocm"))
+        for p in xla_libraries()
+        for r in roots or []
+        if p.startswith(os.path.join(r, ""))
+    )
+
+
+def flags_for(platform: str | None = None) -> tuple[str, ...]:
+    """The flags for the device JAX will compile for: `CLI_FLAGS` for the CPU (`compiles_for_cpu`), `GPU_FLAGS` for
+    a GPU (`compiles_for_gpu`), none otherwise (a TPU)."""
+    if compiles_for_cpu(platform):
+        return CLI_FLAGS
+    return GPU_FLAGS if compiles_for_gpu(platform) else ()
 
 
 def add_flags(flags: tuple[str, ...]) -> list[str]:

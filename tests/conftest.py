@@ -13,9 +13,9 @@ from jaxdrones import _xla
 # The suite compiles several hundred programs, most of them run for a few steps: it compiles them as the
 # ``jaxdrones`` command line does (`jaxdrones._xla.CLI_FLAGS`, where the installed XLA accepts them: LLVM's cheaper
 # passes, and XLA:CPU's classic emitters up to jaxlib 0.10; tests/test_avoid.py and tests/test_gate.py in 45-50 s
-# instead of 65-67 s), where it compiles for the CPU. ``JAXDRONES_XLA_FLAGS=0`` runs it with XLA's defaults.
-if _xla.compiles_for_cpu():
-    _xla.add_flags(_xla.CLI_FLAGS)
+# instead of 65-67 s), where it compiles for the CPU, and `jaxdrones._xla.GPU_FLAGS` where it compiles for a GPU.
+# ``JAXDRONES_XLA_FLAGS=0`` runs it with XLA's defaults.
+_xla.add_flags(_xla.flags_for())
 # Every broadcast between arrays of different ranks is written out (``x[None]``, `jnp.broadcast_to`,
 # `jaxdrones.physics.params.align_params`): JAX raises on an implicit one, here and in the suite's subprocesses.
 os.environ.setdefault("JAX_NUMPY_RANK_PROMOTION", "raise")

@@ -82,6 +82,11 @@ def test_every_cli_flag_starts_xla():
     assert total == "3.0"
 
 
+def test_every_gpu_flag_is_known_to_xla(cache_dir):
+    """XLA parses every backend's flags wherever it starts: the installed XLA knows the GPU's, even on a CPU."""
+    assert _xla.accepted(_xla.GPU_FLAGS) == _xla.GPU_FLAGS
+
+
 def test_add_flags_never_overrides_the_user(cache_dir, monkeypatch):
     jax.numpy.zeros(1).block_until_ready()  # JAX has started: flags set now come too late, and add_flags says so
     monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=3")
@@ -103,16 +108,17 @@ def test_nothing_is_cached_where_jax_does_not_start_at_all(cache_dir, monkeypatc
     assert not os.path.exists(_xla.cache_file())
 
 
-def test_cli_flags_go_where_jax_compiles_for_the_cpu(tmp_path, monkeypatch):
+def test_each_device_gets_its_flags(tmp_path, monkeypatch):
     """The XLA:CPU flags are added where the CPU is asked for (``--device`` or ``JAX_PLATFORMS``), or where no
-    accelerator's plugin is installed; an installed CUDA plugin, or a GPU asked for, keeps them out."""
+    accelerator's plugin is installed; an installed CUDA plugin, or a GPU asked for, gets the XLA:GPU flags."""
     import importlib.util
     import types
 
     monkeypatch.delenv("JAX_PLATFORMS", raising=False)
     assert _xla.compiles_for_cpu("cpu") and not _xla.compiles_for_cpu("gpu") and not _xla.compiles_for_cpu("tpu")
+    assert _xla.compiles_for_gpu("gpu") and _xla.compiles_for_gpu("rocm") and not _xla.compiles_for_gpu("tpu")
     monkeypatch.setenv("JAX_PLATFORMS", "cuda,cpu")
-    assert not _xla.compiles_for_cpu() and _xla.compiles_for_cpu("cpu")
+    assert not _xla.compiles_for_cpu() and _xla.compiles_for_cpu("cpu") and _xla.compiles_for_gpu()
     monkeypatch.setenv("JAX_PLATFORMS", "cpu")
     assert _xla.compiles_for_cpu() and not _xla.compiles_for_cpu("gpu")
     monkeypatch.delenv("JAX_PLATFORMS")
@@ -128,6 +134,9 @@ def test_cli_flags_go_where_jax_compiles_for_the_cpu(tmp_path, monkeypatch):
     monkeypatch.setattr(importlib.util, "find_spec", with_plugins)
     monkeypatch.setattr(_xla, "xla_libraries", lambda: (jaxlib_library,))
     assert _xla.compiles_for_cpu()  # jaxlib's own library compiles for the CPU
+    assert not _xla.compiles_for_gpu() and _xla.flags_for() == _xla.CLI_FLAGS
     cuda = str(plugins / "xla_cuda13" / "xla_cuda_plugin.so")
     monkeypatch.setattr(_xla, "xla_libraries", lambda: (jaxlib_library, cuda))
     assert not _xla.compiles_for_cpu() and _xla.compiles_for_cpu("cpu")
+    assert _xla.compiles_for_gpu() and _xla.flags_for() == _xla.GPU_FLAGS and _xla.flags_for("cpu") == _xla.CLI_FLAGS
+    assert _xla.flags_for("tpu") == ()  # measured on CPUs and GPUs only

@@ -47,8 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     from jaxdrones import _xla
 
     args = build_parser().parse_args(argv)
-    if _xla.compiles_for_cpu(getattr(args, "device", None)):
-        _xla.add_flags(_xla.CLI_FLAGS)  # before JAX starts a backend
+    _xla.add_flags(_xla.flags_for(getattr(args, "device", None)))  # before JAX starts a backend
     args.t_start = t_start
     return int(args.func(args) or 0)
 
