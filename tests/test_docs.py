@@ -153,6 +153,18 @@ def test_few_blocks_left_unrun():
     assert len(blocks("py-norun")) <= MAX_NORUN
 
 
+#: A training budget of a page's example and what the suite runs instead: the example is checked to run as written,
+#: not to learn (docs/adapters.md's SB3 run: 300,000 steps, 62 s of the suite on 2 cores; the page's learning figures
+#: come from benchmarks/sb3_hover.py).
+SHORTER_BUDGETS = {".learn(300_000)": ".learn(8_192)"}
+
+
+def test_shorter_budgets_stand_in_the_docs():
+    """Each budget the suite shortens is still on a page (else the page's example runs at its full budget)."""
+    code = " ".join(c for _, c in blocks("python"))
+    assert all(budget in code for budget in SHORTER_BUDGETS)
+
+
 def readme_blocks() -> set[str]:
     """The README's Python blocks, whitespace-normalised: tests/test_readme.py runs them, so a page that shows one
     again is not run twice."""
@@ -170,6 +182,8 @@ def readme_blocks() -> set[str]:
 )
 def test_docs_example_runs(name, capsys, users_rank_promotion):
     code = dict(blocks("python"))[name]
+    for budget, short in SHORTER_BUDGETS.items():  # the code as written, with a shorter training
+        code = code.replace(budget, short)
     exec(compile(code, f"docs/{name} (python block)", "exec"), {})
     if "print(touched)" in code:  # the PyBullet backend's collision report
         assert capsys.readouterr().out.strip() == "[2 0]"

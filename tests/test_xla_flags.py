@@ -45,8 +45,8 @@ def test_import_sets_no_flag_and_keeps_the_users():
         import os, jax, jax.numpy as jnp
         import jaxdrones as jd
         env = jd.make("hover")
-        state = env.reset(jax.random.key(0))
-        grad = jax.grad(lambda a: env.step(state, a).reward.sum())(jnp.zeros((1, env.action_size)))
+        state = jax.jit(env.reset)(jax.random.key(0))  # jitted: one compilation each, not one per operation
+        grad = jax.jit(jax.grad(lambda a: env.step(state, a).reward.sum()))(jnp.zeros((1, env.action_size)))
         print(repr(os.environ.get("XLA_FLAGS")), jax.device_count(), bool(jnp.isfinite(grad).all()))
     """
     default = run_python(code)
