@@ -304,8 +304,9 @@ def failed_criteria(task: Task, stats: dict) -> list[str]:
 
 
 def _import_writers() -> threading.Thread:
-    """Import what writes the run's plots and viewer (matplotlib, viser: 1-2 s) in a thread, started when training
-    starts: the main thread mostly waits on the device meanwhile, and the run's files are written sooner after it."""
+    """Import what writes the run's plots and viewer (matplotlib, viser and trimesh, which draws the viewer's drone:
+    2-3 s on 2 cores) in a thread, started when training starts: the main thread mostly waits on the device
+    meanwhile, and the run's files are written sooner after it."""
 
     def load():
         try:
@@ -314,6 +315,7 @@ def _import_writers() -> threading.Thread:
 
             _pyplot()
             if viz.viewer_available():
+                import trimesh  # noqa: F401
                 import viser  # noqa: F401
         except Exception:  # noqa: BLE001, S110  (the writers, run in the main thread, raise it again where it matters)
             pass
