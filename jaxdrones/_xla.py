@@ -180,33 +180,39 @@ def accepted(flags: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(f for f in flags if known[f])
 
 
+def _platform(platform: str | None) -> str:
+    """The platform asked for: ``platform`` (e.g. the command line's ``--device``), else the first of
+    ``JAX_PLATFORMS``, lower-cased; "" where neither is set."""
+    return (platform or os.environ.get("JAX_PLATFORMS", "").split(",")[0]).strip().lower()
+
+
+def _plugins() -> list[str]:
+    """The folders of ``jax_plugins`` (accelerators' PJRT plugins, e.g. ``xla_cuda13``) that hold an XLA library."""
+    spec = importlib.util.find_spec("jax_plugins")
+    roots = (spec.submodule_search_locations or []) if spec else []
+    return [
+        os.path.relpath(path, root).split(os.sep)[0]
+        for path in xla_libraries()
+        for root in roots
+        if path.startswith(os.path.join(root, ""))
+    ]
+
+
 def compiles_for_cpu(platform: str | None = None) -> bool:
     """Whether JAX will compile for the CPU: ``platform`` (e.g. the command line's ``--device``), else the first of
     ``JAX_PLATFORMS``, is ``cpu``; or, with neither set, no accelerator's PJRT plugin (``jax_plugins``: CUDA, ROCm)
     nor ``libtpu`` is installed. Starts no backend."""
-    platform = platform or os.environ.get("JAX_PLATFORMS", "").split(",")[0].strip()
-    if platform:
-        return platform.lower() == "cpu"
-    plugins = importlib.util.find_spec("jax_plugins")
-    roots = plugins.submodule_search_locations if plugins else []
-    accelerators = [p for p in xla_libraries() if any(p.startswith(os.path.join(r, "")) for r in roots or [])]
-    return not accelerators and importlib.util.find_spec("libtpu") is None
+    if _platform(platform):
+        return _platform(platform) == "cpu"
+    return not _plugins() and importlib.util.find_spec("libtpu") is None
 
 
 def compiles_for_gpu(platform: str | None = None) -> bool:
     """Whether JAX will compile for a GPU: ``platform`` (or the first of ``JAX_PLATFORMS``) is ``gpu``, ``cuda`` or
     ``rocm``; or, with neither set, a CUDA or ROCm PJRT plugin (``jax_plugins``) is installed. Starts no backend."""
-    platform = platform or os.environ.get("JAX_PLATFORMS", "").split(",")[0].strip()
-    if platform:
-        return platform.lower() in ("gpu", "cuda", "rocm")
-    plugins = importlib.util.find_spec("jax_plugins")
-    roots = plugins.submodule_search_locations if plugins else []
-    return any(
-        os.path.relpath(p, r).split(os.sep)[0].lower().startswith(("xla_cuda", "xla_rocm", "cuda", "rocm"))
-        for p in xla_libraries()
-        for r in roots or []
-        if p.startswith(os.path.join(r, ""))
-    )
+    if _platform(platform):
+        return _platform(platform) in ("gpu", "cuda", "rocm")
+    return any(name.lower().startswith(("xla_cuda", "xla_rocm", "cuda", "rocm")) for name in _plugins())
 
 
 def flags_for(platform: str | None = None) -> tuple[str, ...]:
