@@ -188,7 +188,8 @@ def run_updates(
     policy). Each chunk is dispatched before the previous chunk's metrics are read, so that the host's work (the
     progress display) overlaps the next chunk; nothing else leaves the device during training. On one device the
     evaluation is traced and compiled in a second thread while the chunk is compiled and the first chunk trains
-    (on 2 CPU cores this hides its 2 s of tracing and compiling; it is first run on the initial carry).
+    (on 2 CPU cores this hides its 2 s of tracing and compiling; it is first run on the initial carry), and a cached
+    chunk (with ``description``, below) is traced or loaded and compiled in a third while ``init`` is.
 
     ``progress(env_steps, metrics)`` is called after each chunk, with the last update's metrics (floats) and the
     evaluation under ``"eval"`` (NumPy arrays).
@@ -214,11 +215,13 @@ def run_updates(
         return carry, {name: value[-1] for name, value in metrics.items()}
 
     steps_per_chunk = config.updates_per_eval * config.steps_per_update
-    init_c, carry, done, compiling = jax.jit(init_seeded), None, 0, None
+    init_c, carry, done, compiling, building = jax.jit(init_seeded), None, 0, None, None
+    chunk_what = f"updates {config.updates_per_eval}"
     try:
         shapes = jax.eval_shape(init_seeded, seed)
         shardings = world_shardings(shapes, n_worlds)
         eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
+        built = {}  # the chunk's program, or the error building it
         if shardings is None:
             replicated, cached = None, description is not None and eval_description is not None
 
@@ -227,6 +230,17 @@ def run_updates(
 
                 return cached_jit(fn, example, f"{description}\n{what}") if cached else jax.jit(fn)
 
+            if cached:
+                # The chunk's program (its inputs' shapes known) traced or loaded and compiled beside the init's.
+                def build_chunk():
+                    try:
+                        built["fn"] = jit(chunk, chunk_what, (shardings, replicated))
+                        getattr(built["fn"], "precompile", lambda: None)()  # none where the program cache is off
+                    except BaseException as err:  # noqa: BLE001  (raised in the training thread, below)
+                        built["error"] = err
+
+                building = threading.Thread(target=build_chunk, name="jaxdrones-compile-chunk", daemon=True)
+                building.start()
             init_c = jit(init_seeded, "init", None, seed)
         else:
             replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())
@@ -251,7 +265,14 @@ def run_updates(
             compiling.start()
         elif evaluate is not None:
             eval_c["fn"] = jit(evaluate, eval_description, replicated)
-        chunk_c = jit(chunk, f"updates {config.updates_per_eval}", (shardings, replicated))
+        if building is not None:
+            building.join()
+            building = None
+            if "error" in built:
+                raise built["error"]
+        else:
+            built["fn"] = jit(chunk, chunk_what, (shardings, replicated))
+        chunk_c = built["fn"]
         pending = chunk_c(carry)
         for k in range(1, config.num_evals + 1):
             finished, metrics = pending
@@ -271,6 +292,7 @@ def run_updates(
     except KeyboardInterrupt:
         raise Interrupted(result(init_c(seed) if carry is None else carry), done) from None
     finally:
-        if compiling is not None:
-            compiling.join()  # never leave XLA compiling in a thread while Python shuts down
+        for thread in (building, compiling):
+            if thread is not None:
+                thread.join()  # never leave XLA compiling in a thread while Python shuts down
     return result(carry)
