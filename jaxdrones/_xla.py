@@ -202,16 +202,18 @@ def compiles_for_cpu(platform: str | None = None) -> bool:
     """Whether JAX will compile for the CPU: ``platform`` (e.g. the command line's ``--device``), else the first of
     ``JAX_PLATFORMS``, is ``cpu``; or, with neither set, no accelerator's PJRT plugin (``jax_plugins``: CUDA, ROCm)
     nor ``libtpu`` is installed. Starts no backend."""
-    if _platform(platform):
-        return _platform(platform) == "cpu"
+    asked = _platform(platform)
+    if asked:
+        return asked == "cpu"
     return not _plugins() and importlib.util.find_spec("libtpu") is None
 
 
 def compiles_for_gpu(platform: str | None = None) -> bool:
     """Whether JAX will compile for a GPU: ``platform`` (or the first of ``JAX_PLATFORMS``) is ``gpu``, ``cuda`` or
     ``rocm``; or, with neither set, a CUDA or ROCm PJRT plugin (``jax_plugins``) is installed. Starts no backend."""
-    if _platform(platform):
-        return _platform(platform) in ("gpu", "cuda", "rocm")
+    asked = _platform(platform)
+    if asked:
+        return asked in ("gpu", "cuda", "rocm")
     return any(name.lower().startswith(("xla_cuda", "xla_rocm", "cuda", "rocm")) for name in _plugins())
 
 

@@ -234,8 +234,9 @@ def run_updates(
                 # The chunk's program (its inputs' shapes known) traced or loaded and compiled beside the init's.
                 def build_chunk():
                     try:
-                        built["fn"] = jit(chunk, chunk_what, (shardings, replicated))
-                        getattr(built["fn"], "precompile", lambda: None)()  # none where the program cache is off
+                        built["fn"] = program = jit(chunk, chunk_what, (shardings, replicated))
+                        if hasattr(program, "precompile"):  # a cached program (not where the program cache is off)
+                            program.precompile()
                     except BaseException as err:  # noqa: BLE001  (raised in the training thread, below)
                         built["error"] = err
 
