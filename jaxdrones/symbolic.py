@@ -199,7 +199,11 @@ def _accelerations(a: _Airframe, config: SimConfig, pos, quat, vel, ang_vel, rpm
 
 
 def _quat_integrate(quat, ang_vel, dt: float):
-    """Q ⊗ (sin(θ) ω/|ω|, cos θ), θ = ½ dt |ω|; q itself below |ω| = OMEGA_EPS (docs/physics.md §4.6)."""
+    """Q ⊗ (sin(θ) ω/|ω|, cos θ), θ = ½ dt |ω| (docs/physics.md §4.6); below |ω| = OMEGA_EPS the first-order update
+    q ⊗ (½ dt ω, 1): q itself at rest, as the JAX core's value, within ½ dt OMEGA_EPS of it below, and with the
+    derivative the JAX core gives there (`jaxdrones.physics.rotations.quat_integrate_c`), so that a solver's
+    gradients reach the attitude from a drone at rest (held at q, a level hover is a stationary point of any
+    tracking cost: the MPC never tilts)."""
     cs = require_casadi()
     sq = cs.dot(ang_vel, ang_vel)
     moving = sq > OMEGA_EPS**2
@@ -207,7 +211,7 @@ def _quat_integrate(quat, ang_vel, dt: float):
     theta = 0.5 * dt * norm
     sin_over_norm = cs.if_else(moving, cs.sin(theta) / norm, 0.5 * dt)
     delta = cs.vertcat(sin_over_norm * ang_vel, cs.if_else(moving, cs.cos(theta), 1.0))
-    return cs.if_else(moving, _quat_mul(quat, delta), quat)
+    return _quat_mul(quat, delta)
 
 
 def _euler(a, config, pos, quat, vel, ang_vel, rpm, rpm_prev, dt):

@@ -96,6 +96,10 @@ def test_discrete_jacobians_equal_jacfwd(x64, rng, name):
     x, u = random_states(rng, params, n, True, near_level=True)
     x[:, 2] = rng.uniform(0.05, 0.3, n)  # above the ground: away from the contact's kink
     u = rng.uniform(0.3, 0.95, (n, 4)) * float(params.max_rpm)  # inside the clip
+    # Level drones at rest: no rate, four equal rotor speeds and commands, so no torque. The step holds the attitude,
+    # and both derivatives are the first-order update's (a level hover is not a stationary point of a controller).
+    x[:10, 3:7], x[:10, 10:13], u[:10] = [0.0, 0.0, 0.0, 1.0], 0.0, u[:10, :1]
+    x[:10, 13:17] = u[:10]
     dfdx, dfdu = (np.asarray(j).reshape(17, n, -1).transpose(1, 0, 2) for j in model.dfd_func.map(n)(x.T, u.T))
     jac_x, jac_u = jax.jit(jax.vmap(jax.jacfwd(jax_step_of_vectors(config, params), argnums=(0, 1))))(
         jnp.asarray(x), jnp.asarray(u)
