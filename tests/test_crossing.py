@@ -201,8 +201,9 @@ def test_evaluation_takes_the_episode_maximum():
         states = rollout_policy(env, policy, k)
         live = np.asarray(states.steps[1:] > states.steps[:-1])
         values.append(np.asarray(states.metrics["max_altitude_error"][1:])[live].max())
-    np.testing.assert_allclose(outcomes[4]["max_altitude_error"], values, rtol=1e-6)
-    assert stats["success_value"] == pytest.approx(np.mean(values), rel=1e-6)
+    # Equal up to float32 rounding: the evaluation's program and the rollout's are compiled apart.
+    np.testing.assert_allclose(outcomes[4]["max_altitude_error"], values, rtol=1e-5)
+    assert stats["success_value"] == pytest.approx(np.mean(values), rel=1e-5)
     assert stats["max_max_altitude_error"] == stats["success_value"]
     assert stats["success_value"] > stats["mean_max_altitude_error"]
     assert stats["success_value"] != pytest.approx(stats["final_max_altitude_error"])

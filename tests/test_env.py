@@ -450,8 +450,9 @@ def test_vmap_auto_reset_equals_vmapped_auto_reset(randomize):
             np.testing.assert_array_equal(b.params.mass, env.params.mass)
             per_world = b.replace(params=jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), b.params))
         for x, y in zip(_key_free(a), _key_free(per_world), strict=True):
-            # Equal up to float32 rounding: XLA may fuse the two programs' arithmetic differently (1 ulp seen).
-            np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-7)
+            # Equal up to float32 rounding: XLA may compile the two programs' arithmetic differently, and 40 steps
+            # of flight carry its last bits on (2.5e-6 seen, at XLA's optimisation level 0).
+            np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-5)
     # The time limit then ends at once the 19 worlds that were never reset (all but worlds 0-11 and 30).
     assert ended[5] == 3 and ended[9] == 12 and ended[14] == n - 13
     assert not np.allclose(a.sim.pos[1], b.sim.pos[2])
@@ -475,7 +476,8 @@ def test_vmap_auto_reset_with_drawn_starts(randomize):
         ended_drawn, drawn = step(state, action, starts)
         assert sorted(np.nonzero(np.asarray(ended.done))[0]) == ending
         for x, y in zip(_key_free((ended, computed)), _key_free((ended_drawn, drawn)), strict=True):
-            np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-7)
+            # Equal up to float32 rounding (two programs: 1.3e-7 seen in a component near 0.02).
+            np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
     ending = np.asarray(ending)
     np.testing.assert_array_equal(drawn.sim.pos[ending], starts.sim.pos[ending])
     np.testing.assert_array_equal(drawn.sim.pos[12:], ended.sim.pos[12:])

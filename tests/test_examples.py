@@ -75,11 +75,12 @@ def test_velocity_tracks_its_commands(flown, backend):
     # Settled RMS error per drone, a tenth of the commanded speed or better (measured 2.2-2.9 cm/s).
     assert m["samples_per_drone"] == [193, 193, 193, 193]
     assert max(m["rms_per_drone_mps"]) < 0.035, m
-    # Over each drone's last settled command, the mean velocity reached is the command within 1.5 cm/s.
+    # Over each drone's last settled command, the mean velocity reached is the command within 2 cm/s (0.2-1.8 cm/s
+    # measured: on PyBullet the flight's last bits differ with XLA's build and flags).
     for d in range(4):
         last = a["settled"][:, d] & np.all(a["vel_cmd"][:, d] == a["vel_cmd"][-1, d], axis=-1)
         assert last.sum() > 48
-        np.testing.assert_allclose(a["vel"][last, d].mean(axis=0), a["vel_cmd"][-1, d], atol=0.015)
+        np.testing.assert_allclose(a["vel"][last, d].mean(axis=0), a["vel_cmd"][-1, d], atol=0.02)
     assert "drone 3" in printed and "overall" in printed
 
 

@@ -109,12 +109,13 @@ def test_vector_env_same_step_autoreset_returns_the_final_observation():
         last_obs, last_reward, *_ = nxt.step(action)
         assert info["_final_obs"].tolist() == [k == length - 1] * n
     assert truncated.all() and not terminated.any()
-    np.testing.assert_allclose(info["final_obs"], last_obs, rtol=1e-6)  # the ended episode's last observation
-    np.testing.assert_allclose(reward, last_reward, rtol=1e-6)
+    # The ended episode's last observation, up to float32 rounding (the two modes' programs are compiled apart).
+    np.testing.assert_allclose(info["final_obs"], last_obs, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(reward, last_reward, rtol=1e-5, atol=1e-6)
     assert not np.allclose(obs, last_obs)
     assert info["final_info"]["distance"].shape == (n,)
     # The next episode's first observation: what the next-step env returns one step later.
-    np.testing.assert_allclose(obs, nxt.step(action)[0], rtol=1e-6)
+    np.testing.assert_allclose(obs, nxt.step(action)[0], rtol=1e-5, atol=1e-6)
     obs, reward, terminated, truncated, info = vec.step(action)
     assert not info["_final_obs"].any() and not (terminated | truncated).any() and np.all(reward != 0)
     with pytest.raises(ValueError, match="autoreset_mode must be one of"):

@@ -176,12 +176,13 @@ def test_jaxmarl_view_matches_the_stacked_env_under_jit_and_vmap(marl):
     actions_all = actions_all.reshape(n_drones, n_steps, len(keys), 4)
     for t in range(n_steps):
         for i, agent in enumerate(marl.agents):
-            np.testing.assert_allclose(obs[agent], ref.obs[:, i], rtol=0, atol=1e-6)
+            # Up to float32 rounding: the view's program and the stacked env's are compiled apart.
+            np.testing.assert_allclose(obs[agent], ref.obs[:, i], rtol=0, atol=1e-5)
         actions = {a: actions_all[i, t] for i, a in enumerate(marl.agents)}
         obs, state, rewards, dones, infos = step(keys, state, actions)
         ref = ref_step(ref, jnp.stack([actions[a] for a in marl.agents], axis=1))
         for i, agent in enumerate(marl.agents):
-            np.testing.assert_allclose(rewards[agent], ref.reward[:, i], rtol=0, atol=1e-6)
+            np.testing.assert_allclose(rewards[agent], ref.reward[:, i], rtol=0, atol=1e-5)
             np.testing.assert_array_equal(dones[agent], dones["__all__"])
         np.testing.assert_array_equal(dones["__all__"], np.asarray(ref.done))
         # JaxMARL's convention: every info leaf has one entry per agent, f[W, D] here
@@ -189,13 +190,13 @@ def test_jaxmarl_view_matches_the_stacked_env_under_jit_and_vmap(marl):
         assert all(v.shape == (len(keys), n_drones) for v in infos.values())
         np.testing.assert_array_equal(infos["truncated"], np.repeat(np.asarray(ref.truncated)[:, None], 3, 1))
         for name, value in ref.metrics.items():
-            np.testing.assert_allclose(infos[name], np.repeat(np.asarray(value)[:, None], 3, 1), rtol=0, atol=1e-6)
+            np.testing.assert_allclose(infos[name], np.repeat(np.asarray(value)[:, None], 3, 1), rtol=0, atol=1e-5)
         assert not np.any(ref.terminated)
         if t + 1 < env.episode_length:
             assert not np.any(dones["__all__"]) and np.all(state.steps == t + 1)
         elif t + 1 == env.episode_length:  # the last step: reported, then the world starts anew
             assert np.all(dones["__all__"]) and np.all(infos["final_steps"] == env.episode_length)
-            np.testing.assert_allclose(state.info["final_obs"], ref.obs, rtol=0, atol=1e-6)
+            np.testing.assert_allclose(state.info["final_obs"], ref.obs, rtol=0, atol=1e-5)
             assert np.all(state.steps == 0)
             ref = ref_reset(ref.key, ref.task)  # the auto-reset's new episode: a fresh start from the world's key
             assert np.abs(ref.obs[:, :, :3] - state.info["final_obs"][:, :1, :3]).max() > 0.01
