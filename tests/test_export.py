@@ -94,7 +94,9 @@ def test_exported_c_policy_matches_jax(tmp_path, overrides):
     out = subprocess.run([str(tmp_path / "harness")], input=obs.tobytes(), capture_output=True, check=True)
     actions = np.frombuffer(out.stdout, np.float32).reshape(1000, env.action_size)
     assert np.abs(expected).max() > 0.5  # the outputs span the range, not only ~0
-    np.testing.assert_allclose(actions, expected, rtol=0, atol=1e-5)
+    # Float32 rounding: the C compiler and XLA sum the layers' products in their own orders (1.04e-5 seen, jax 0.12
+    # with LLVM's optimisation level 0).
+    np.testing.assert_allclose(actions, expected, rtol=0, atol=3e-5)
 
 
 def test_export_header_sizes_and_bad_input(tmp_path, capsys):
