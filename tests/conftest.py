@@ -23,12 +23,11 @@ SUITE_CPU_FLAGS = ("--xla_backend_optimization_level=0",)
 
 
 def _suite_flags() -> tuple[str, ...]:
-    """`jaxdrones._xla.flags_for`'s flags, each of `SUITE_CPU_FLAGS` in place of the command line's on the CPU."""
-    flags = _xla.flags_for()
+    """`jaxdrones._xla.flags_for`'s flags, on the CPU each of `SUITE_CPU_FLAGS` in place of the command line's."""
     if not _xla.compiles_for_cpu():
-        return flags
-    ours = {f.split("=", 1)[0] for f in SUITE_CPU_FLAGS}
-    return SUITE_CPU_FLAGS + tuple(f for f in flags if f.split("=", 1)[0] not in ours)
+        return _xla.flags_for()
+    ours = {_xla._flag_name(f) for f in SUITE_CPU_FLAGS}
+    return SUITE_CPU_FLAGS + tuple(f for f in _xla.CLI_FLAGS if _xla._flag_name(f) not in ours)
 
 
 _xla.add_flags(_suite_flags())

@@ -4,8 +4,8 @@ loop."""
 
 from __future__ import annotations
 
+import concurrent.futures
 import math
-import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -215,13 +215,15 @@ def run_updates(
         return carry, {name: value[-1] for name, value in metrics.items()}
 
     steps_per_chunk = config.updates_per_eval * config.steps_per_update
-    init_c, carry, done, compiling, building = jax.jit(init_seeded), None, 0, None, None
+    init_c, carry, done = jax.jit(init_seeded), None, 0
     chunk_what = f"updates {config.updates_per_eval}"
+    # Programs traced and compiled beside the training thread; `Future.result` raises their errors there.
+    background = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="jaxdrones-compile")
+    building = compiling = eval_fn = None
     try:
         shapes = jax.eval_shape(init_seeded, seed)
         shardings = world_shardings(shapes, n_worlds)
         eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
-        built = {}  # the chunk's program, or the error building it
         if shardings is None:
             replicated, cached = None, description is not None and eval_description is not None
 
@@ -233,15 +235,12 @@ def run_updates(
             if cached:
                 # The chunk's program (its inputs' shapes known) traced or loaded and compiled beside the init's.
                 def build_chunk():
-                    try:
-                        built["fn"] = program = jit(chunk, chunk_what, (shardings, replicated))
-                        if hasattr(program, "precompile"):  # a cached program (not where the program cache is off)
-                            program.precompile()
-                    except BaseException as err:  # noqa: BLE001  (raised in the training thread, below)
-                        built["error"] = err
+                    program = jit(chunk, chunk_what, (shardings, replicated))
+                    if hasattr(program, "precompile"):  # a cached program (not where the program cache is off)
+                        program.precompile()
+                    return program
 
-                building = threading.Thread(target=build_chunk, name="jaxdrones-compile-chunk", daemon=True)
-                building.start()
+                building = background.submit(build_chunk)
             init_c = jit(init_seeded, "init", None, seed)
         else:
             replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())
@@ -251,39 +250,25 @@ def run_updates(
                 return jax.jit(fn, in_shardings=(shardings,), out_shardings=out_shardings)
 
         carry = init_c(seed)
-        eval_c = {}
         if evaluate is not None and shardings is None:
             # One device: trace and compile the evaluation beside the chunk (several devices, or processes, run
             # their programs in the same order everywhere, so there it is compiled in turn).
             def compile_eval(first=carry):
-                try:
-                    eval_c["fn"] = jit(evaluate, eval_description, replicated)
-                    jax.block_until_ready(eval_c["fn"](first))
-                except BaseException as err:  # noqa: BLE001  (raised in the training thread, below)
-                    eval_c["error"] = err
+                fn = jit(evaluate, eval_description, replicated)
+                jax.block_until_ready(fn(first))
+                return fn
 
-            compiling = threading.Thread(target=compile_eval, name="jaxdrones-compile-evaluation", daemon=True)
-            compiling.start()
+            compiling = background.submit(compile_eval)
         elif evaluate is not None:
-            eval_c["fn"] = jit(evaluate, eval_description, replicated)
-        if building is not None:
-            building.join()
-            building = None
-            if "error" in built:
-                raise built["error"]
-        else:
-            built["fn"] = jit(chunk, chunk_what, (shardings, replicated))
-        chunk_c = built["fn"]
+            eval_fn = jit(evaluate, eval_description, replicated)
+        chunk_c = jit(chunk, chunk_what, (shardings, replicated)) if building is None else building.result()
         pending = chunk_c(carry)
         for k in range(1, config.num_evals + 1):
             finished, metrics = pending
             if compiling is not None:
-                compiling.join()
-                compiling = None
-                if "error" in eval_c:
-                    raise eval_c["error"]
+                eval_fn, compiling = compiling.result(), None
             if evaluate is not None:
-                metrics = {**metrics, "eval": eval_c["fn"](finished)}
+                metrics = {**metrics, "eval": eval_fn(finished)}
             if k < config.num_evals:
                 pending = chunk_c(finished)  # runs while this chunk's metrics are read and shown
             metrics = jax.tree.map(host_array, metrics)
@@ -293,7 +278,5 @@ def run_updates(
     except KeyboardInterrupt:
         raise Interrupted(result(init_c(seed) if carry is None else carry), done) from None
     finally:
-        for thread in (building, compiling):
-            if thread is not None:
-                thread.join()  # never leave XLA compiling in a thread while Python shuts down
+        background.shutdown(wait=True)  # never leave XLA compiling in a thread while Python shuts down
     return result(carry)
