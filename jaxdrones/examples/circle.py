@@ -50,19 +50,19 @@ from jaxdrones._validate import check_int, check_real, is_integer
 from jaxdrones.backends import require_pybullet
 from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import (
-    check_backend,
-    check_steps,
+    check_flight_settings,
     closed_loop,
     flight_arrays,
+    flight_settings,
     initial_carry,
+    pid_title,
     run_closed_loop,
     track_position,
 )
 from jaxdrones.io.video import VideoWriter, video_format
-from jaxdrones.physics.params import load_params
 from jaxdrones.physics.state import CONTACT_DRONE, CONTACT_GROUND, CONTACT_OBSTACLE, init_state
 from jaxdrones.scene import Obstacle, resolve_obstacles
-from jaxdrones.sim import SimConfig, make_step
+from jaxdrones.sim import make_step
 
 #: Circle radius (m), first altitude (m) and altitude step between drones (m) of the paper's example (§13).
 RADIUS = 0.3
@@ -160,7 +160,10 @@ def check_flight(
         RuntimeError: ``gui`` without a display.
         ModuleNotFoundError: ``backend="pybullet"`` without pybullet installed.
     """
-    config = SimConfig(
+    config, n_steps, params = check_flight_settings(
+        duration_s,
+        model,
+        backend,
         n_drones=check_int("num_drones", num_drones),
         sim_freq=sim_freq,
         ctrl_freq=ctrl_freq,
@@ -168,10 +171,8 @@ def check_flight(
         ground_effect=ground_effect,
         downwash=downwash,
     )
-    n_steps = check_steps(duration_s, ctrl_freq)
     if not math.isfinite(settle_s) or settle_s < 0 or settle_s >= n_steps / ctrl_freq:
         raise ValueError(f"settle_s must be in [0, {n_steps / ctrl_freq}) s (the flight time), got {settle_s!r}")
-    check_backend(backend)
     resolved = ()
     if backend == "jax":
         for name, value in (("obstacles", obstacles not in (None, False)), ("gui", gui), ("video", video)):
@@ -196,7 +197,6 @@ def check_flight(
         from jaxdrones.backends.pybullet import require_display
 
         require_display()
-    params = load_params(model)
     return dict(
         config=config, n_steps=n_steps, params=params, obstacles=resolved, video_size=tuple(int(v) for v in video_size)
     )
@@ -339,19 +339,14 @@ def fly_circle(
         contacts=contact_metrics(out["contact"], times, backend),
         video=None if video is None else os.fspath(video),
         video_frames=n_frames,
-        settings=dict(
-            num_drones=config.n_drones,
-            duration_s=n_steps / ctrl_freq,
-            model=str(model),
-            drag=drag,
-            ground_effect=ground_effect,
-            downwash=downwash,
+        settings=flight_settings(
+            "circle",
+            config,
+            out,
+            model,
+            backend,
             feedforward=bool(feedforward),
             settle_s=settle_s,
-            sim_freq=sim_freq,
-            ctrl_freq=ctrl_freq,
-            dtype=str(dtype),
-            backend=backend,
             obstacles=[_obstacle_dict(o) for o in checked["obstacles"]],
         ),
     )
@@ -466,8 +461,8 @@ def plot_flight(result: dict, path: str | os.PathLike) -> str:
 
     s, m = result["settings"], result["metrics"]
     title = (
-        f"Circle tracking: {s['num_drones']} × {s['model']}, DSL PID at {s['ctrl_freq']} Hz, physics "
-        f"{s['sim_freq']} Hz ({s.get('backend', 'jax')}), feed-forward {'on' if s['feedforward'] else 'off'}"
+        f"Circle tracking: {s['num_drones']} × {s['model']}, {pid_title({'backend': 'jax', **s})}, feed-forward "
+        f"{'on' if s['feedforward'] else 'off'}"
     )
     effects = [name for name in ("drag", "ground_effect", "downwash") if s[name]]
     note = (

@@ -1,4 +1,6 @@
-"""The closed loop shared by the control examples: physics step, then controller, in one jitted ``lax.scan``.
+"""The closed loop shared by the control examples: physics step, then controller, in one jitted ``lax.scan``; and
+the scaffolding around it that every example shares (checking a flight's settings, flying the DSL PID to way-points
+as the original scripts do, the settings a result records).
 
 Every example of the paper (§V-A: circle, velocity, ground effect, downwash) runs the same loop as the original
 scripts (``examples/pid.py``, ``velocity.py``, ``groundeffect.py``, ``downwash.py``): each control step applies
@@ -28,9 +30,9 @@ from numpy.typing import ArrayLike
 
 from jaxdrones._validate import is_real
 from jaxdrones.control.pid import PIDGains, PIDState, pid_control, pid_init
-from jaxdrones.physics.params import DroneParams
+from jaxdrones.physics.params import DroneParams, load_params
 from jaxdrones.physics.rotations import quat_to_euler
-from jaxdrones.physics.state import DroneState
+from jaxdrones.physics.state import DroneState, init_state
 from jaxdrones.sim import SimConfig, StepFn, make_step
 
 #: Physics backends of the examples (`jaxdrones.sim.make_step`).
@@ -208,3 +210,104 @@ def check_backend(backend: str) -> None:
     """Raises ValueError unless ``backend`` is one of `BACKENDS`."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+
+
+def check_flight_settings(
+    duration_s: float, model: str, backend: str, **physics: Any
+) -> tuple[SimConfig, int, DroneParams]:
+    """An example's physics, length and airframe, each checked: the first step of every example's ``check``.
+
+    Args:
+        duration_s: flight time, s (`check_steps`).
+        model: airframe name or URDF path (`jaxdrones.physics.params.load_params`).
+        backend: one of `BACKENDS`.
+        **physics: `SimConfig`'s fields (``n_drones``, ``sim_freq``, ``ctrl_freq``, ``drag``, ...).
+
+    Returns:
+        (config, n_steps, params): the `SimConfig`, the whole control steps in ``duration_s`` and the airframe's
+        `DroneParams`.
+
+    Raises:
+        ValueError: invalid physics settings or rates (`SimConfig`), a ``duration_s`` shorter than one control step,
+            an unknown backend or model.
+    """
+    config = SimConfig(**physics)
+    n_steps = check_steps(duration_s, config.ctrl_freq)
+    check_backend(backend)
+    return config, n_steps, load_params(model)
+
+
+def fly_to_waypoints(
+    config: SimConfig,
+    params: DroneParams,
+    gains: PIDGains,
+    start_pos: ArrayLike,
+    target_pos: ArrayLike,
+    backend: str = "jax",
+) -> dict:
+    """The DSL PID flown to a way-point per control step as the original ground-effect and downwash scripts fly it:
+    from rest at ``start_pos`` f[D, 3] m, 0 RPM in the first step, no target velocity, a level target attitude.
+
+    Args:
+        config, params, gains: the physics, the airframe and the PID gains.
+        start_pos: f[D, 3] m, world frame.
+        target_pos: f[T, D, 3] m, world frame: the way-point commanded after each of the T control steps.
+        backend: ``"jax"`` or ``"pybullet"``.
+
+    Returns:
+        The flight (`flight_arrays`).
+    """
+    state = init_state(config, pos=np.asarray(start_pos))
+    dtype = state.pos.dtype
+    target_pos = jnp.asarray(target_pos, dtype)
+    xs = (target_pos, jnp.zeros_like(target_pos))
+    fixed = (jnp.zeros(target_pos.shape[1:], dtype), jnp.asarray(0.0, dtype))
+    states, rpm_cmd = run_closed_loop(config, track_position, params, gains, initial_carry(state), xs, fixed, backend)
+    return flight_arrays(states, rpm_cmd, config.ctrl_freq)
+
+
+def flight_settings(example: str, config: SimConfig, flight: dict, model: str, backend: str, **more: Any) -> dict:
+    """The settings a flight's result records (``result["settings"]``, saved in ``metrics.json``).
+
+    Args:
+        example: the example's name.
+        config: the flight's physics (of an example flown with and without an effect, the run with it).
+        flight: the flight (`flight_arrays`), whose length and float type are recorded.
+        model, backend: the airframe and the backend flown.
+        **more: the example's own settings.
+
+    Returns:
+        dict: ``example``, ``num_drones``, ``duration_s`` (s), ``model``, the aerodynamic effects (``drag``,
+        ``ground_effect``, ``downwash``), ``more``, the rates ``sim_freq`` and ``ctrl_freq`` (Hz), ``dtype`` and
+        ``backend``.
+    """
+    return {
+        "example": example,
+        "num_drones": config.n_drones,
+        "duration_s": len(flight["times"]) / config.ctrl_freq,
+        "model": str(model),
+        "drag": config.drag,
+        "ground_effect": config.ground_effect,
+        "downwash": config.downwash,
+        **more,
+        "sim_freq": config.sim_freq,
+        "ctrl_freq": config.ctrl_freq,
+        "dtype": str(flight["pos"].dtype),
+        "backend": backend,
+    }
+
+
+def run_arrays(runs: dict) -> dict:
+    """The flights of an example flown more than once (label → `flight_arrays`) as one dict of arrays for
+    ``flight.npz``: each run's arrays but the times (which they share) as ``{label}_{key}``, e.g. ``on_pos``."""
+    return {f"{label}_{k}": run[k] for label, run in runs.items() for k in FLIGHT_KEYS if k != "times"}
+
+
+def pid_title(settings: dict) -> str:
+    """The words of a plot's title that name the controller, the rates and the backend of a flight's settings."""
+    return f"DSL PID at {settings['ctrl_freq']} Hz, physics {settings['sim_freq']} Hz ({settings['backend']})"
+
+
+def on_off(on: float, off: float) -> dict:
+    """A figure of the two runs of an effect's example (with it and without) and their difference on − off."""
+    return {"on": on, "off": off, "difference": on - off}

@@ -26,25 +26,21 @@ on − off), and the upper drone's largest |z − z_target| over the flight (dow
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 
-import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import (
-    FLIGHT_KEYS,
-    check_backend,
-    check_steps,
-    flight_arrays,
-    initial_carry,
-    run_closed_loop,
-    track_position,
+    check_flight_settings,
+    flight_settings,
+    fly_to_waypoints,
+    on_off,
+    pid_title,
+    run_arrays,
 )
-from jaxdrones.physics.params import load_params
-from jaxdrones.physics.state import init_state
-from jaxdrones.sim import SimConfig
 
 #: Start positions, m, world frame (``downwash.py:47``); each drone's target altitude is its start altitude.
 INIT_POS = ((0.5, 0.0, 1.0), (-0.5, 0.0, 0.5))
@@ -144,20 +140,19 @@ def check(
     Raises:
         ValueError: see `fly`.
     """
-    configs = {
-        label: SimConfig(
-            n_drones=2,
-            sim_freq=sim_freq,
-            ctrl_freq=ctrl_freq,
-            drag=drag,
-            ground_effect=ground_effect,
-            downwash=downwash if label == "on" else False,
-        )
-        for label in RUNS
-    }
-    n_steps = check_steps(duration_s, ctrl_freq)
-    check_backend(backend)
-    return {"configs": configs, "n_steps": n_steps, "params": load_params(model)}
+    config, n_steps, params = check_flight_settings(
+        duration_s,
+        model,
+        backend,
+        n_drones=2,
+        sim_freq=sim_freq,
+        ctrl_freq=ctrl_freq,
+        drag=drag,
+        ground_effect=ground_effect,
+        downwash=downwash,
+    )
+    configs = {"on": config, "off": dataclasses.replace(config, downwash=False)}
+    return {"configs": configs, "n_steps": n_steps, "params": params}
 
 
 def fly(
@@ -213,20 +208,12 @@ def fly(
     target_z = np.array(INIT_POS)[:, 2]
     runs, figures, passes = {}, {}, {}
     for label, config in checked["configs"].items():
-        state = init_state(config, pos=np.array(INIT_POS))
-        dtype = state.pos.dtype
-        xs = (jnp.asarray(target_pos, dtype), jnp.zeros(target_pos.shape, dtype))
-        fixed = (jnp.zeros((2, 3), dtype), jnp.asarray(0.0, dtype))
-        states, rpm_cmd = run_closed_loop(
-            config, track_position, params, gains, initial_carry(state), xs, fixed, backend
-        )
-        run = runs[label] = flight_arrays(states, rpm_cmd, ctrl_freq)
+        run = runs[label] = fly_to_waypoints(config, params, gains, INIT_POS, target_pos, backend)
         figures[label] = dip_metrics(run["times"], run["pos"], target_z)
         passes[label] = np.zeros(n_steps, dtype=bool)
         for first, last in find_passes(run["pos"]):
             passes[label][first : last + 1] = True
     wall_s = time.perf_counter() - start
-    dip = {"on": figures["on"]["max_dip_m"], "off": figures["off"]["max_dip_m"]}
     return {
         "times": runs["on"]["times"],
         "target_pos": target_pos,
@@ -239,21 +226,9 @@ def fly(
                 f"{PASS_RADIUS_M:g} m apart horizontally and {RECOVERY_S:g} s after, m"
             ),
             **figures,
-            "max_dip_m": {**dip, "difference": dip["on"] - dip["off"]},
+            "max_dip_m": on_off(figures["on"]["max_dip_m"], figures["off"]["max_dip_m"]),
         },
-        "settings": {
-            "example": "downwash",
-            "num_drones": 2,
-            "duration_s": n_steps / ctrl_freq,
-            "model": str(model),
-            "drag": drag,
-            "ground_effect": ground_effect,
-            "downwash": checked["configs"]["on"].downwash,
-            "sim_freq": sim_freq,
-            "ctrl_freq": ctrl_freq,
-            "dtype": str(dtype),
-            "backend": backend,
-        },
+        "settings": flight_settings("downwash", checked["configs"]["on"], runs["on"], model, backend),
     }
 
 
@@ -262,10 +237,7 @@ def plot(result: dict, path: str | os.PathLike) -> str:
     from jaxdrones.io.plotting import plot_altitude_comparison
 
     s, m = result["settings"], result["metrics"]
-    title = (
-        f"Downwash: 2 × {s['model']} crossing 0.5 m apart, DSL PID at {s['ctrl_freq']} Hz, physics "
-        f"{s['sim_freq']} Hz ({s['backend']})"
-    )
+    title = f"Downwash: 2 × {s['model']} crossing 0.5 m apart, {pid_title(s)}"
     dip = m["max_dip_m"]
     note = (
         f"lower drone's largest dip below its target while the other passes over it (grey): "
@@ -302,8 +274,5 @@ def summary(result: dict) -> list[str]:
 
 def arrays(result: dict) -> dict:
     """The arrays saved in ``flight.npz``: ``times``, ``target_pos`` and each run's flight as ``on_pos``, ..."""
-    out = {"times": result["times"], "target_pos": result["target_pos"]}
-    for label, run in result["runs"].items():
-        out.update({f"{label}_{k}": run[k] for k in FLIGHT_KEYS if k != "times"})
-        out[f"{label}_passes"] = result["passes"][label]
-    return out
+    passes = {f"{label}_passes": passes for label, passes in result["passes"].items()}
+    return {"times": result["times"], "target_pos": result["target_pos"], **run_arrays(result["runs"]), **passes}

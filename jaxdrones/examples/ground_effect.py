@@ -27,25 +27,21 @@ Metrics (``result["metrics"]``), for each run (``on``, ``off``) and their differ
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 
-import jax.numpy as jnp
 import numpy as np
 
 from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import (
-    FLIGHT_KEYS,
-    check_backend,
-    check_steps,
-    flight_arrays,
-    initial_carry,
-    run_closed_loop,
-    track_position,
+    check_flight_settings,
+    flight_settings,
+    fly_to_waypoints,
+    on_off,
+    pid_title,
+    run_arrays,
 )
-from jaxdrones.physics.params import load_params
-from jaxdrones.physics.state import init_state
-from jaxdrones.sim import SimConfig
 
 #: Start altitude, m (``groundeffect.py:62``), above (x, y) = (0, 0).
 START_Z = 0.014
@@ -101,8 +97,8 @@ def takeoff_metrics(
 
 
 def compare(on: dict, off: dict) -> dict:
-    """Both runs' figures and their difference on − off, per figure."""
-    return {k: {"on": on[k], "off": off[k], "difference": on[k] - off[k]} for k in on}
+    """Both runs' figures and their difference on − off, per figure (`on_off`)."""
+    return {k: on_off(on[k], off[k]) for k in on}
 
 
 def check(
@@ -122,15 +118,13 @@ def check(
     Raises:
         ValueError: see `fly`.
     """
-    configs = {
-        label: SimConfig(n_drones=1, sim_freq=sim_freq, ctrl_freq=ctrl_freq, drag=drag, ground_effect=label == "on")
-        for label in RUNS
-    }
-    n_steps = check_steps(duration_s, ctrl_freq)
+    config, n_steps, params = check_flight_settings(
+        duration_s, model, backend, n_drones=1, sim_freq=sim_freq, ctrl_freq=ctrl_freq, drag=drag
+    )
     if n_steps / ctrl_freq < WINDOW_S - 1e-9:
         raise ValueError(f"duration_s must cover the figure's {WINDOW_S:g} s window, got {duration_s!r}")
-    check_backend(backend)
-    return {"configs": configs, "n_steps": n_steps, "params": load_params(model)}
+    configs = {"on": dataclasses.replace(config, ground_effect=True), "off": config}
+    return {"configs": configs, "n_steps": n_steps, "params": params}
 
 
 def fly(
@@ -168,19 +162,11 @@ def fly(
     start = time.perf_counter()
     gains = PIDGains.dsl() if gains is None else gains
     target_z = target_altitude(n_steps, ctrl_freq)
+    target_pos = np.zeros((n_steps, 1, 3))
+    target_pos[:, 0, 2] = target_z
     runs, figures = {}, {}
     for label, config in checked["configs"].items():
-        state = init_state(config, pos=np.array([[0.0, 0.0, START_Z]]))
-        dtype = state.pos.dtype
-        target_pos = np.zeros((n_steps, 1, 3))
-        target_pos[:, 0, 2] = target_z
-        xs = (jnp.asarray(target_pos, dtype), jnp.zeros((n_steps, 1, 3), dtype))
-        fixed = (jnp.zeros((1, 3), dtype), jnp.asarray(0.0, dtype))
-        states, rpm_cmd = run_closed_loop(
-            config, track_position, params, gains, initial_carry(state), xs, fixed, backend
-        )
-        runs[label] = flight_arrays(states, rpm_cmd, ctrl_freq)
-        r = runs[label]
+        r = runs[label] = fly_to_waypoints(config, params, gains, [[0.0, 0.0, START_Z]], target_pos, backend)
         figures[label] = takeoff_metrics(r["times"], r["pos"][:, 0, 2], r["vel"][:, 0, 2], r["rpm"][:, 0], target_z)
     wall_s = time.perf_counter() - start
     return {
@@ -189,18 +175,9 @@ def fly(
         "runs": runs,
         "wall_s": wall_s,
         "metrics": {"window_s": WINDOW_S, **compare(figures["on"], figures["off"])},
-        "settings": {
-            "example": "ground-effect",
-            "num_drones": 1,
-            "duration_s": n_steps / ctrl_freq,
-            "model": str(model),
-            "drag": drag,
-            "start_z_m": START_Z,
-            "sim_freq": sim_freq,
-            "ctrl_freq": ctrl_freq,
-            "dtype": str(dtype),
-            "backend": backend,
-        },
+        "settings": flight_settings(
+            "ground-effect", checked["configs"]["on"], runs["on"], model, backend, start_z_m=START_Z
+        ),
     }
 
 
@@ -209,10 +186,7 @@ def plot(result: dict, path: str | os.PathLike) -> str:
     from jaxdrones.io.plotting import plot_takeoff_comparison
 
     s, m = result["settings"], result["metrics"]
-    title = (
-        f"Take-off with and without ground effect: {s['model']}, DSL PID at {s['ctrl_freq']} Hz, physics "
-        f"{s['sim_freq']} Hz ({s['backend']})"
-    )
+    title = f"Take-off with and without ground effect: {s['model']}, {pid_title(s)}"
     z, over = m["z_at_window_m"], m["overshoot_m"]
     note = (
         f"at t = {m['window_s']:g} s: z = {100 * z['on']:.2f} cm with ground effect, {100 * z['off']:.2f} cm "
@@ -254,7 +228,4 @@ def summary(result: dict) -> list[str]:
 
 def arrays(result: dict) -> dict:
     """The arrays saved in ``flight.npz``: ``times``, ``target_z`` and each run's flight as ``on_pos``, ..."""
-    out = {"times": result["times"], "target_z": result["target_z"]}
-    for label, run in result["runs"].items():
-        out.update({f"{label}_{k}": run[k] for k in FLIGHT_KEYS if k != "times"})
-    return out
+    return {"times": result["times"], "target_z": result["target_z"], **run_arrays(result["runs"])}

@@ -37,15 +37,13 @@ from jaxdrones._validate import check_real
 from jaxdrones.control.pid import PIDGains, speed_limit, velocity_control
 from jaxdrones.examples.closed_loop import (
     FLIGHT_KEYS,
-    check_backend,
-    check_steps,
+    check_flight_settings,
     flight_arrays,
+    flight_settings,
     initial_carry,
     run_closed_loop,
 )
-from jaxdrones.physics.params import load_params
 from jaxdrones.physics.state import init_state
-from jaxdrones.sim import SimConfig
 
 #: Start positions, m, world frame, and roll/pitch/yaw, rad, of the 4 drones (``velocity.py:65-76``).
 INIT_POS = ((0.0, 0.0, 0.1), (0.3, 0.0, 0.1), (0.6, 0.0, 0.1), (0.9, 0.0, 0.1))
@@ -177,7 +175,10 @@ def check(
     Raises:
         ValueError: see `fly`.
     """
-    config = SimConfig(
+    config, n_steps, params = check_flight_settings(
+        duration_s,
+        model,
+        backend,
         n_drones=len(INIT_POS),
         sim_freq=sim_freq,
         ctrl_freq=ctrl_freq,
@@ -185,15 +186,13 @@ def check(
         ground_effect=ground_effect,
         downwash=downwash,
     )
-    n_steps = check_steps(duration_s, ctrl_freq)
     check_real("settle_s", settle_s, 0, what="a finite number of seconds")
     if not settled_mask(applied_actions(n_steps, ctrl_freq), ctrl_freq, settle_s).any(axis=0).all():
         raise ValueError(
             f"settle_s = {settle_s!r} s leaves no settled sample for some drone in a {duration_s!r} s "
             f"flight; fly longer or settle for less"
         )
-    check_backend(backend)
-    return {"config": config, "n_steps": n_steps, "params": load_params(model)}
+    return {"config": config, "n_steps": n_steps, "params": params}
 
 
 def fly(
@@ -275,21 +274,9 @@ def fly(
         settled=settled,
         wall_s=wall_s,
         metrics=velocity_metrics(out["vel"], vel_cmd, settled, settle_s),
-        settings={
-            "example": "velocity",
-            "num_drones": config.n_drones,
-            "duration_s": n_steps / ctrl_freq,
-            "model": str(model),
-            "drag": drag,
-            "ground_effect": ground_effect,
-            "downwash": downwash,
-            "speed_limit_mps": float(limit),
-            "settle_s": settle_s,
-            "sim_freq": sim_freq,
-            "ctrl_freq": ctrl_freq,
-            "dtype": str(dtype),
-            "backend": backend,
-        },
+        settings=flight_settings(
+            "velocity", config, out, model, backend, speed_limit_mps=float(limit), settle_s=settle_s
+        ),
     )
     return out
 
