@@ -41,6 +41,7 @@ import math
 import os
 import time
 from collections.abc import Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -50,6 +51,7 @@ from jaxdrones._validate import check_int, check_real, is_integer
 from jaxdrones.backends import require_pybullet
 from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import (
+    bind_arguments,
     check_flight_settings,
     closed_loop,
     flight_arrays,
@@ -131,25 +133,9 @@ def circle_targets(setup: dict, n_steps: int, ctrl_freq: int = 48) -> tuple[np.n
     return np.concatenate([xy, z[..., None]], -1), vel
 
 
-def check_flight(
-    num_drones: int = 4,
-    duration_s: float = 12.0,
-    model: str = "cf2x",
-    *,
-    settle_s: float = DEFAULT_SETTLE_S,
-    sim_freq: int = 240,
-    ctrl_freq: int = 48,
-    backend: str = "jax",
-    obstacles: bool | str | Sequence[Obstacle | str | os.PathLike] | None = None,
-    gui: bool = False,
-    video: str | os.PathLike | None = None,
-    video_size: tuple[int, int] = DEFAULT_VIDEO_SIZE,
-    video_fps: float = DEFAULT_VIDEO_FPS,
-    drag: bool = False,
-    ground_effect: bool = False,
-    downwash: bool = False,
-) -> dict:
-    """Validate `fly_circle`'s arguments without flying (cheap; `fly_circle` calls it first).
+def check_flight(*args: Any, **kwargs: Any) -> dict:
+    """Validate `fly_circle`'s arguments (the same, by position or name) without flying (cheap; `fly_circle` calls
+    it first).
 
     Returns:
         dict with ``config`` (`SimConfig`), ``n_steps``, ``params`` (`DroneParams`), ``obstacles`` (the resolved
@@ -159,17 +145,12 @@ def check_flight(
         ValueError: see `fly_circle`.
         RuntimeError: ``gui`` without a display.
         ModuleNotFoundError: ``backend="pybullet"`` without pybullet installed.
+        TypeError: an argument `fly_circle` does not take.
     """
-    config, n_steps, params = check_flight_settings(
-        duration_s,
-        model,
-        backend,
-        n_drones=check_int("num_drones", num_drones),
-        sim_freq=sim_freq,
-        ctrl_freq=ctrl_freq,
-        drag=drag,
-        ground_effect=ground_effect,
-        downwash=downwash,
+    a = bind_arguments(fly_circle, args, kwargs)
+    config, n_steps, params = check_flight_settings(a, n_drones=check_int("num_drones", a["num_drones"]))
+    settle_s, ctrl_freq, backend, obstacles, gui, video, video_size = (
+        a[k] for k in ("settle_s", "ctrl_freq", "backend", "obstacles", "gui", "video", "video_size")
     )
     if not math.isfinite(settle_s) or settle_s < 0 or settle_s >= n_steps / ctrl_freq:
         raise ValueError(f"settle_s must be in [0, {n_steps / ctrl_freq}) s (the flight time), got {settle_s!r}")
@@ -192,7 +173,7 @@ def check_flight(
         or not all(is_integer(v) and 1 <= v <= 8192 for v in video_size)
     ):
         raise ValueError(f"video_size must be (width, height) in pixels, each in [1, 8192], got {video_size!r}")
-    check_real("video_fps", video_fps, 0, low_open=True, what="a finite frame rate in Hz")
+    check_real("video_fps", a["video_fps"], 0, low_open=True, what="a finite frame rate in Hz")
     if gui:
         from jaxdrones.backends.pybullet import require_display
 
@@ -266,23 +247,7 @@ def fly_circle(
             exists, a bad ``video_size`` or ``video_fps``.
         RuntimeError: ``gui`` without a display.
     """
-    checked = check_flight(
-        num_drones,
-        duration_s,
-        model,
-        settle_s=settle_s,
-        sim_freq=sim_freq,
-        ctrl_freq=ctrl_freq,
-        backend=backend,
-        obstacles=obstacles,
-        gui=gui,
-        video=video,
-        video_size=video_size,
-        video_fps=video_fps,
-        drag=drag,
-        ground_effect=ground_effect,
-        downwash=downwash,
-    )
+    checked = check_flight(**locals())  # every argument of this call, before anything flies
     config, n_steps, params = checked["config"], checked["n_steps"], checked["params"]
 
     start = time.perf_counter()

@@ -19,6 +19,7 @@ period in s. Controllers are module-level functions (hashable), so the JAX backe
 from __future__ import annotations
 
 import functools
+import inspect
 import math
 from collections.abc import Callable
 from typing import Any
@@ -37,6 +38,8 @@ from jaxdrones.sim import SimConfig, StepFn, make_step
 
 #: Physics backends of the examples (`jaxdrones.sim.make_step`).
 BACKENDS = ("jax", "pybullet")
+#: The examples' arguments that are `SimConfig` fields of the same name.
+PHYSICS_ARGUMENTS = ("sim_freq", "ctrl_freq", "drag", "ground_effect", "downwash")
 #: Fields of a flight record (`flight_arrays`), each with a leading time axis.
 FLIGHT_KEYS = ("times", "pos", "quat", "vel", "rpy", "ang_vel", "rpm", "rpm_cmd", "contact")
 
@@ -212,16 +215,26 @@ def check_backend(backend: str) -> None:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
 
 
-def check_flight_settings(
-    duration_s: float, model: str, backend: str, **physics: Any
-) -> tuple[SimConfig, int, DroneParams]:
+def bind_arguments(fly: Callable, args: tuple, kwargs: dict) -> dict:
+    """The arguments that ``fly(*args, **kwargs)`` would bind, by name, with ``fly``'s defaults for the rest: how an
+    example's ``check`` takes exactly its ``fly``'s arguments, whose signature is their one home.
+
+    Raises:
+        TypeError: an argument ``fly`` does not take, or one given twice (as the call would).
+    """
+    bound = inspect.signature(fly).bind(*args, **kwargs)
+    bound.apply_defaults()
+    return bound.arguments
+
+
+def check_flight_settings(arguments: dict, **physics: Any) -> tuple[SimConfig, int, DroneParams]:
     """An example's physics, length and airframe, each checked: the first step of every example's ``check``.
 
     Args:
-        duration_s: flight time, s (`check_steps`).
-        model: airframe name or URDF path (`jaxdrones.physics.params.load_params`).
-        backend: one of `BACKENDS`.
-        **physics: `SimConfig`'s fields (``n_drones``, ``sim_freq``, ``ctrl_freq``, ``drag``, ...).
+        arguments: the example's arguments (`bind_arguments`): ``duration_s`` (flight time, s, `check_steps`),
+            ``model`` (airframe name or URDF path, `jaxdrones.physics.params.load_params`), ``backend`` (one of
+            `BACKENDS`), and those of `PHYSICS_ARGUMENTS` the example takes.
+        **physics: further `SimConfig` fields the example sets itself (``n_drones``).
 
     Returns:
         (config, n_steps, params): the `SimConfig`, the whole control steps in ``duration_s`` and the airframe's
@@ -231,10 +244,10 @@ def check_flight_settings(
         ValueError: invalid physics settings or rates (`SimConfig`), a ``duration_s`` shorter than one control step,
             an unknown backend or model.
     """
-    config = SimConfig(**physics)
-    n_steps = check_steps(duration_s, config.ctrl_freq)
-    check_backend(backend)
-    return config, n_steps, load_params(model)
+    config = SimConfig(**{k: arguments[k] for k in PHYSICS_ARGUMENTS if k in arguments}, **physics)
+    n_steps = check_steps(arguments["duration_s"], config.ctrl_freq)
+    check_backend(arguments["backend"])
+    return config, n_steps, load_params(arguments["model"])
 
 
 def fly_to_waypoints(

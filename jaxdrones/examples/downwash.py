@@ -29,11 +29,13 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+from typing import Any
 
 import numpy as np
 
 from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import (
+    bind_arguments,
     check_flight_settings,
     flight_settings,
     fly_to_waypoints,
@@ -121,36 +123,19 @@ def dip_metrics(
     }
 
 
-def check(
-    duration_s: float = DEFAULT_DURATION_S,
-    model: str = "cf2x",
-    *,
-    sim_freq: int = SIM_FREQ,
-    ctrl_freq: int = CTRL_FREQ,
-    backend: str = "jax",
-    drag: bool = False,
-    ground_effect: bool = False,
-    downwash: bool | str = True,
-) -> dict:
-    """Validate `fly`'s arguments without flying.
+def check(*args: Any, **kwargs: Any) -> dict:
+    """Validate `fly`'s arguments (the same, by position or name) without flying.
 
     Returns:
-        dict with ``configs`` (label → `SimConfig`), ``n_steps`` and ``params`` (`DroneParams`).
+        dict with ``configs`` (``"on"`` → the physics with downwash, ``"off"`` → without it; `SimConfig`), ``n_steps``
+        and ``params`` (`DroneParams`).
 
     Raises:
         ValueError: see `fly`.
+        TypeError: an argument `fly` does not take.
     """
-    config, n_steps, params = check_flight_settings(
-        duration_s,
-        model,
-        backend,
-        n_drones=2,
-        sim_freq=sim_freq,
-        ctrl_freq=ctrl_freq,
-        drag=drag,
-        ground_effect=ground_effect,
-        downwash=downwash,
-    )
+    a = bind_arguments(fly, args, kwargs)
+    config, n_steps, params = check_flight_settings(a, n_drones=2)
     configs = {"on": config, "off": dataclasses.replace(config, downwash=False)}
     return {"configs": configs, "n_steps": n_steps, "params": params}
 
@@ -191,16 +176,7 @@ def fly(
         ValueError: ``duration_s`` shorter than one control step, an unknown model, invalid rates, an unknown
             backend or downwash model.
     """
-    checked = check(
-        duration_s,
-        model,
-        sim_freq=sim_freq,
-        ctrl_freq=ctrl_freq,
-        backend=backend,
-        drag=drag,
-        ground_effect=ground_effect,
-        downwash=downwash,
-    )
+    checked = check(**locals())  # every argument of this call, before anything flies
     n_steps, params = checked["n_steps"], checked["params"]
     start = time.perf_counter()
     gains = PIDGains.dsl() if gains is None else gains

@@ -30,11 +30,13 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+from typing import Any
 
 import numpy as np
 
 from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import (
+    bind_arguments,
     check_flight_settings,
     flight_settings,
     fly_to_waypoints,
@@ -101,28 +103,21 @@ def compare(on: dict, off: dict) -> dict:
     return {k: on_off(on[k], off[k]) for k in on}
 
 
-def check(
-    duration_s: float = DEFAULT_DURATION_S,
-    model: str = "cf2x",
-    *,
-    sim_freq: int = SIM_FREQ,
-    ctrl_freq: int = CTRL_FREQ,
-    backend: str = "jax",
-    drag: bool = False,
-) -> dict:
-    """Validate `fly`'s arguments without flying.
+def check(*args: Any, **kwargs: Any) -> dict:
+    """Validate `fly`'s arguments (the same, by position or name) without flying.
 
     Returns:
-        dict with ``configs`` (label → `SimConfig`), ``n_steps`` and ``params`` (`DroneParams`).
+        dict with ``configs`` (``"on"`` → the physics with ground effect, ``"off"`` → without it; `SimConfig`),
+        ``n_steps`` and ``params`` (`DroneParams`).
 
     Raises:
         ValueError: see `fly`.
+        TypeError: an argument `fly` does not take.
     """
-    config, n_steps, params = check_flight_settings(
-        duration_s, model, backend, n_drones=1, sim_freq=sim_freq, ctrl_freq=ctrl_freq, drag=drag
-    )
-    if n_steps / ctrl_freq < WINDOW_S - 1e-9:
-        raise ValueError(f"duration_s must cover the figure's {WINDOW_S:g} s window, got {duration_s!r}")
+    a = bind_arguments(fly, args, kwargs)
+    config, n_steps, params = check_flight_settings(a, n_drones=1)
+    if n_steps / config.ctrl_freq < WINDOW_S - 1e-9:
+        raise ValueError(f"duration_s must cover the figure's {WINDOW_S:g} s window, got {a['duration_s']!r}")
     configs = {"on": dataclasses.replace(config, ground_effect=True), "off": config}
     return {"configs": configs, "n_steps": n_steps, "params": params}
 
@@ -157,7 +152,7 @@ def fly(
     Raises:
         ValueError: ``duration_s`` shorter than `WINDOW_S`, an unknown model, invalid rates, an unknown backend.
     """
-    checked = check(duration_s, model, sim_freq=sim_freq, ctrl_freq=ctrl_freq, backend=backend, drag=drag)
+    checked = check(**locals())  # every argument of this call, before anything flies
     n_steps, params = checked["n_steps"], checked["params"]
     start = time.perf_counter()
     gains = PIDGains.dsl() if gains is None else gains

@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
@@ -37,6 +38,7 @@ from jaxdrones._validate import check_real
 from jaxdrones.control.pid import PIDGains, speed_limit, velocity_control
 from jaxdrones.examples.closed_loop import (
     FLIGHT_KEYS,
+    bind_arguments,
     check_flight_settings,
     flight_arrays,
     flight_settings,
@@ -155,41 +157,23 @@ def _vel_action_control(params, gains, pid_state, state, action, limit, ctrl_dt)
     return velocity_control(params, gains, pid_state, state, action, ctrl_dt=ctrl_dt, limit=limit)
 
 
-def check(
-    duration_s: float = DEFAULT_DURATION_S,
-    model: str = "cf2x",
-    *,
-    settle_s: float = DEFAULT_SETTLE_S,
-    sim_freq: int = SIM_FREQ,
-    ctrl_freq: int = CTRL_FREQ,
-    backend: str = "jax",
-    drag: bool = False,
-    ground_effect: bool = False,
-    downwash: bool = False,
-) -> dict:
-    """Validate `fly`'s arguments without flying.
+def check(*args: Any, **kwargs: Any) -> dict:
+    """Validate `fly`'s arguments (the same, by position or name) without flying.
 
     Returns:
         dict with ``config`` (`SimConfig`), ``n_steps`` and ``params`` (`DroneParams`).
 
     Raises:
         ValueError: see `fly`.
+        TypeError: an argument `fly` does not take.
     """
-    config, n_steps, params = check_flight_settings(
-        duration_s,
-        model,
-        backend,
-        n_drones=len(INIT_POS),
-        sim_freq=sim_freq,
-        ctrl_freq=ctrl_freq,
-        drag=drag,
-        ground_effect=ground_effect,
-        downwash=downwash,
-    )
+    a = bind_arguments(fly, args, kwargs)
+    config, n_steps, params = check_flight_settings(a, n_drones=len(INIT_POS))
+    settle_s, ctrl_freq = a["settle_s"], config.ctrl_freq
     check_real("settle_s", settle_s, 0, what="a finite number of seconds")
     if not settled_mask(applied_actions(n_steps, ctrl_freq), ctrl_freq, settle_s).any(axis=0).all():
         raise ValueError(
-            f"settle_s = {settle_s!r} s leaves no settled sample for some drone in a {duration_s!r} s "
+            f"settle_s = {settle_s!r} s leaves no settled sample for some drone in a {a['duration_s']!r} s "
             f"flight; fly longer or settle for less"
         )
     return {"config": config, "n_steps": n_steps, "params": params}
@@ -231,17 +215,7 @@ def fly(
         ValueError: ``duration_s`` shorter than one control step, a negative ``settle_s`` or one that leaves a
             drone no settled sample, an unknown model, invalid rates, an unknown backend.
     """
-    checked = check(
-        duration_s,
-        model,
-        settle_s=settle_s,
-        sim_freq=sim_freq,
-        ctrl_freq=ctrl_freq,
-        backend=backend,
-        drag=drag,
-        ground_effect=ground_effect,
-        downwash=downwash,
-    )
+    checked = check(**locals())  # every argument of this call, before anything flies
     config, n_steps, params = checked["config"], checked["n_steps"], checked["params"]
     start = time.perf_counter()
     gains = PIDGains.dsl() if gains is None else gains
