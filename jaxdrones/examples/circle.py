@@ -426,7 +426,7 @@ def plot_flight(result: dict, path: str | os.PathLike) -> str:
 
     s, m = result["settings"], result["metrics"]
     title = (
-        f"Circle tracking: {s['num_drones']} × {s['model']}, {pid_title({'backend': 'jax', **s})}, feed-forward "
+        f"Circle tracking: {s['num_drones']} × {s['model']}, {pid_title(s)}, feed-forward "
         f"{'on' if s['feedforward'] else 'off'}"
     )
     effects = [name for name in ("drag", "ground_effect", "downwash") if s[name]]

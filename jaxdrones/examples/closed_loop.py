@@ -317,8 +317,10 @@ def run_arrays(runs: dict) -> dict:
 
 
 def pid_title(settings: dict) -> str:
-    """The words of a plot's title that name the controller, the rates and the backend of a flight's settings."""
-    return f"DSL PID at {settings['ctrl_freq']} Hz, physics {settings['sim_freq']} Hz ({settings['backend']})"
+    """The words of a plot's title that name the controller, the rates and the backend of a flight's settings (the
+    JAX backend where they name none, as results saved before they recorded it)."""
+    backend = settings.get("backend", "jax")
+    return f"DSL PID at {settings['ctrl_freq']} Hz, physics {settings['sim_freq']} Hz ({backend})"
 
 
 def on_off(on: float, off: float) -> dict:

@@ -250,5 +250,5 @@ def summary(result: dict) -> list[str]:
 
 def arrays(result: dict) -> dict:
     """The arrays saved in ``flight.npz``: ``times``, ``target_pos`` and each run's flight as ``on_pos``, ..."""
-    passes = {f"{label}_passes": passes for label, passes in result["passes"].items()}
+    passes = {f"{label}_passes": steps for label, steps in result["passes"].items()}
     return {"times": result["times"], "target_pos": result["target_pos"], **run_arrays(result["runs"]), **passes}
