@@ -12,7 +12,8 @@ first given to XLA itself, in a subprocess that starts JAX's backends with it (`
 file in the user's cache folder (`cache_file`), keyed by the XLA libraries installed (jaxlib's and any PJRT
 plugin's, e.g. CUDA), so the check runs once per installation (1.1 s on jax 0.10.2, 2.2 s on jax 0.12 on 2 cores:
 ``benchmarks/xla_flags.py``). A flag the user already set in ``XLA_FLAGS`` is left alone, whatever its value.
-``JAXDRONES_XLA_FLAGS=0`` (set before the ``jaxdrones`` command or the test run) turns every flag off.
+``JAXDRONES_XLA_FLAGS=0`` (set before the ``jaxdrones`` command or the test run) turns every flag off, and the JAX
+options and environment variables below.
 
 `CLI_FLAGS` are for XLA:CPU, and are added only where the process compiles for the CPU (`compiles_for_cpu`: the
 platform asked for is the CPU, or no GPU or TPU plugin is installed). They were measured on the CPU only; on an
@@ -36,6 +37,24 @@ H200 (jax 0.11.2, CUDA 13; docs/benchmarks.md), one run each:
   against 2.8-3.1 s). The trainers' products are small (a 64 x 64 MLP over a batch of worlds), where Triton's tuned
   kernels gain nothing worth their compilation.
   ``--xla_gpu_autotune_level=0`` compiled 2 s less than XLA's defaults but trained 1.7 times slower.
+
+Where it compiles for a GPU the command line also sets the JAX options of `GPU_JAX_OPTIONS` (`set_jax_options`; a
+JAX option is not an XLA flag: JAX reads it when it traces and lowers a program):
+
+- ``jax_threefry_gpu_kernel_lowering``: each threefry hash of ``jax.random`` (the PRNG of every draw: random starts,
+  the policy's noise, resets) lowered to one call of jaxlib's CUDA threefry kernel instead of XLA operations written
+  out round by round. The numbers drawn are the same (the same Threefry-2x32 hash); XLA's optimisation of the
+  three training programs took 0.8-1.5 s each instead of 2.7-3.8 s on an NVIDIA H200 (jax 0.11.2), and the first
+  ``jaxdrones train hover`` took 8.3-9.8 s instead of 10.9-11.6 s from the command to its exit, warm 4.8 s against
+  4.9-5.0 s (docs/benchmarks.md).
+
+And it sets the environment variables of `GPU_ENV` (`set_environment`), where the user has not:
+
+- ``XLA_PYTHON_CLIENT_PREALLOCATE=false``: JAX's GPU client takes the memory its programs need instead of 75 % of
+  the GPU's at its first array. On an NVIDIA H200 (141 GB, jax 0.11.2) that first array, in the run's ``setup``
+  phase, took 1.4-2.5 s with the preallocation and 0.02-0.03 s without (runs on different machines of one kind);
+  the trainers' programs take a few hundred MB. Other processes can then share the GPU, as the test suite's
+  workers do (``tests/conftest.py``).
 """
 
 from __future__ import annotations
@@ -59,6 +78,11 @@ CLI_FLAGS = (
 )
 #: Flags added by the ``jaxdrones`` command line (and the test suite) where JAX compiles for a GPU.
 GPU_FLAGS = ("--xla_gpu_enable_triton_gemm=false",)
+#: JAX options (name: value) the command line sets where JAX compiles for a GPU (see the module doc).
+GPU_JAX_OPTIONS = {"jax_threefry_gpu_kernel_lowering": True}
+#: Environment variables (name: value) the command line sets, unless the user did, where JAX compiles for a GPU,
+#: before JAX starts its backend (see the module doc).
+GPU_ENV = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
 #: Libraries below this size are Python bindings, not XLA.
 _MIN_XLA_LIBRARY_BYTES = 10 * 2**20
 #: What the probe runs: start every backend JAX finds, which parses ``XLA_FLAGS`` (and aborts on an unknown flag).
@@ -250,3 +274,46 @@ def add_flags(flags: tuple[str, ...]) -> list[str]:
             stacklevel=2,
         )
     return added
+
+
+def jax_options_for(platform: str | None = None) -> dict:
+    """The JAX options for the device JAX will compile for: `GPU_JAX_OPTIONS` for a GPU (`compiles_for_gpu`, and not
+    `compiles_for_cpu`), none otherwise."""
+    return dict(GPU_JAX_OPTIONS) if not compiles_for_cpu(platform) and compiles_for_gpu(platform) else {}
+
+
+def environment_for(platform: str | None = None) -> dict:
+    """The environment variables for the device JAX will compile for: `GPU_ENV` for a GPU (as `jax_options_for`),
+    none otherwise."""
+    return dict(GPU_ENV) if jax_options_for(platform) else {}
+
+
+def set_environment(variables: dict) -> list[str]:
+    """Set each of ``variables`` (names and values, e.g. `environment_for`'s) that the user did not set, unless the
+    user opted out (`opted_out`); returns the names set. Call it before JAX starts its backend."""
+    if opted_out():
+        return []
+    done = [name for name in variables if name not in os.environ]
+    os.environ.update({name: variables[name] for name in done})
+    return done
+
+
+def set_jax_options(options: dict) -> list[str]:
+    """Set each of ``options`` (JAX option names and values, e.g. `jax_options_for`'s) that the user did not set in
+    its environment variable (the option's name in upper case, e.g. ``JAX_THREEFRY_GPU_KERNEL_LOWERING``) and the
+    running JAX knows, with ``jax.config.update``, unless the user opted out (`opted_out`); returns the names set.
+    Call it before JAX traces the programs they are for."""
+    if opted_out() or not options:
+        return []
+    import jax
+
+    done = []
+    for name, value in options.items():
+        if name.upper() in os.environ:
+            continue
+        try:
+            jax.config.update(name, value)
+        except AttributeError:  # an option this JAX does not have
+            continue
+        done.append(name)
+    return done

@@ -31,6 +31,7 @@ def _suite_flags() -> tuple[str, ...]:
 
 
 _xla.add_flags(_suite_flags())
+_xla.set_jax_options(_xla.jax_options_for())  # the command line's JAX options on a GPU (none on the CPU)
 # Every broadcast between arrays of different ranks is written out (``x[None]``, `jnp.broadcast_to`,
 # `jaxdrones.physics.params.align_params`): JAX raises on an implicit one, here and in the suite's subprocesses.
 os.environ.setdefault("JAX_NUMPY_RANK_PROMOTION", "raise")

@@ -9,6 +9,7 @@ import textwrap
 
 import jax
 import jaxlib
+import numpy as np
 import pytest
 
 from jaxdrones import _xla
@@ -47,7 +48,7 @@ def test_import_sets_no_flag_and_keeps_the_users():
         env = jd.make("hover")
         state = jax.jit(env.reset)(jax.random.key(0))  # jitted: one compilation each, not one per operation
         grad = jax.jit(jax.grad(lambda a: env.step(state, a).reward.sum()))(jnp.zeros((1, env.action_size)))
-        print(repr(os.environ.get("XLA_FLAGS")), jax.device_count(), bool(jnp.isfinite(grad).all()))
+        print(repr(os.environ.get("XLA_FLAGS")), len(jax.devices("cpu")), bool(jnp.isfinite(grad).all()))
     """
     default = run_python(code)
     assert default.returncode == 0, default.stderr
@@ -140,3 +141,79 @@ def test_each_device_gets_its_flags(tmp_path, monkeypatch):
     assert not _xla.compiles_for_cpu() and _xla.compiles_for_cpu("cpu")
     assert _xla.compiles_for_gpu() and _xla.flags_for() == _xla.GPU_FLAGS and _xla.flags_for("cpu") == _xla.CLI_FLAGS
     assert _xla.flags_for("tpu") == ()  # measured on CPUs and GPUs only
+    assert _xla.jax_options_for() == _xla.GPU_JAX_OPTIONS and _xla.jax_options_for("gpu") == _xla.GPU_JAX_OPTIONS
+    assert _xla.jax_options_for("cpu") == {} and _xla.jax_options_for("tpu") == {}
+    assert _xla.environment_for() == _xla.GPU_ENV and _xla.environment_for("cpu") == _xla.environment_for("tpu") == {}
+    monkeypatch.setattr(_xla, "xla_libraries", lambda: (jaxlib_library,))
+    assert _xla.jax_options_for() == {}  # the CPU's programs lower jax.random as they always did
+    assert _xla.environment_for() == {}
+
+
+def test_set_environment_never_overrides_the_user(monkeypatch):
+    name = "JAXDRONES_TEST_VARIABLE"
+    monkeypatch.delenv(name, raising=False)
+    assert _xla.set_environment({name: "ours"}) == [name] and os.environ[name] == "ours"
+    monkeypatch.setenv(name, "theirs")
+    assert _xla.set_environment({name: "ours"}) == [] and os.environ[name] == "theirs"
+    monkeypatch.delenv(name)
+    monkeypatch.setenv(_xla.OPT_OUT_VAR, "0")
+    assert _xla.set_environment({name: "ours"}) == [] and name not in os.environ
+
+
+def test_set_jax_options_sets_the_known_ones_and_never_the_users():
+    """Set in a fresh process: the option takes effect; a user's own environment variable, an option this JAX lacks
+    and the opt-out each leave JAX as it was."""
+    code = """
+        import jax
+        from jaxdrones import _xla
+        print(_xla.set_jax_options({**_xla.GPU_JAX_OPTIONS, "jax_jaxdrones_no_such_option": True}),
+              jax.config.jax_threefry_gpu_kernel_lowering)
+    """
+    ours = run_python(code)
+    assert ours.returncode == 0, ours.stderr
+    assert ours.stdout.split() == ["['jax_threefry_gpu_kernel_lowering']", "True"]
+    for env in ({"JAX_THREEFRY_GPU_KERNEL_LOWERING": "0"}, {_xla.OPT_OUT_VAR: "0"}):
+        kept = run_python(code, **env)
+        assert kept.returncode == 0, kept.stderr
+        assert kept.stdout.split() == ["[]", "False"], env
+
+
+def test_threefry_kernel_option_lowers_each_hash_to_one_kernel_call():
+    """With `GPU_JAX_OPTIONS` a program's draws, lowered for a GPU, call the CUDA threefry kernel instead of writing
+    the hash out in XLA operations, and the exported program (what `jaxdrones.training.programs` stores) is
+    serialised as before."""
+    key = jax.random.key(0)
+
+    def draw(k):
+        return jax.random.uniform(k, (64,)) + jax.random.normal(jax.random.split(k)[1], (64,))
+
+    lowered, previous = {}, jax.config.jax_threefry_gpu_kernel_lowering
+    for on in (False, True):
+        jax.config.update("jax_threefry_gpu_kernel_lowering", on)
+        try:
+            exported = jax.export.export(jax.jit(draw), platforms=["cuda"])(key)
+        finally:
+            jax.config.update("jax_threefry_gpu_kernel_lowering", previous)
+        assert exported.serialize()
+        lowered[on] = exported.mlir_module()
+    assert "threefry2x32_ffi" not in lowered[False] and "threefry2x32_ffi" in lowered[True]
+    assert len(lowered[True]) < len(lowered[False])
+
+
+@pytest.mark.skipif(jax.default_backend() != "gpu", reason="the CUDA threefry kernel runs on a GPU only")
+def test_threefry_kernel_draws_the_same_numbers():
+    """On a GPU the kernel and XLA's written-out hash draw the same bits (the same Threefry-2x32)."""
+    keys = jax.random.split(jax.random.key(3), 8)
+
+    def draw(k):
+        return jax.random.bits(k, (1000,)), jax.random.normal(k, (17, 3))
+
+    draws, previous = {}, jax.config.jax_threefry_gpu_kernel_lowering
+    for on in (False, True):
+        jax.config.update("jax_threefry_gpu_kernel_lowering", on)
+        try:
+            draws[on] = jax.jit(jax.vmap(draw))(keys)
+        finally:
+            jax.config.update("jax_threefry_gpu_kernel_lowering", previous)
+    for a, b in zip(jax.tree.leaves(draws[False]), jax.tree.leaves(draws[True]), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

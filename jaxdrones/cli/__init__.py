@@ -47,7 +47,10 @@ def main(argv: list[str] | None = None) -> int:
     from jaxdrones import _xla
 
     args = build_parser().parse_args(argv)
-    _xla.add_flags(_xla.flags_for(getattr(args, "device", None)))  # before JAX starts a backend
+    device = getattr(args, "device", None)
+    _xla.add_flags(_xla.flags_for(device))  # before JAX starts a backend
+    _xla.set_environment(_xla.environment_for(device))
+    _xla.set_jax_options(_xla.jax_options_for(device))  # before JAX traces a program
     args.t_start = t_start
     return int(args.func(args) or 0)
 

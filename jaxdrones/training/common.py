@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import math
+import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -186,10 +187,12 @@ def run_updates(
     `jax.lax.scan` of ``config.updates_per_eval`` calls of ``update(carry, None) -> (carry, metrics)``, each followed
     by a call of the jitted ``evaluate(carry)`` (a pytree of arrays, e.g. per-episode outcomes of the current
     policy). Each chunk is dispatched before the previous chunk's metrics are read, so that the host's work (the
-    progress display) overlaps the next chunk; nothing else leaves the device during training. On one device the
-    evaluation is traced and compiled in a second thread while the chunk is compiled and the first chunk trains
-    (on 2 CPU cores this hides its 2 s of tracing and compiling; it is first run on the initial carry), and a cached
-    chunk (with ``description``, below) is traced or loaded and compiled in a third while ``init`` is.
+    progress display) overlaps the next chunk; nothing else leaves the device during training. On one device, with
+    the program cache (``description``, below), the chunk and then the evaluation are traced or loaded and compiled
+    in two threads while ``init`` is (the chunk first: tracing holds Python's lock, XLA's compilation does not);
+    without it, the evaluation is traced and compiled in a second thread, on its first run on the initial carry,
+    while the chunk is compiled and the first chunk trains (on 2 CPU cores this hides its 2 s of tracing and
+    compiling).
 
     ``progress(env_steps, metrics)`` is called after each chunk, with the last update's metrics (floats) and the
     evaluation under ``"eval"`` (NumPy arrays).
@@ -225,22 +228,34 @@ def run_updates(
         shardings = world_shardings(shapes, n_worlds)
         eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
         if shardings is None:
-            replicated, cached = None, description is not None and eval_description is not None
+            from jaxdrones.training.programs import cache_folder, cached_jit
+
+            replicated = None
+            cached = description is not None and eval_description is not None and cache_folder() is not None
 
             def jit(fn, what, out_shardings, example=shapes):  # what: the program's key beyond ``description``
-                from jaxdrones.training.programs import cached_jit
-
                 return cached_jit(fn, example, f"{description}\n{what}") if cached else jax.jit(fn)
 
-            if cached:
-                # The chunk's program (its inputs' shapes known) traced or loaded and compiled beside the init's.
-                def build_chunk():
-                    program = jit(chunk, chunk_what, (shardings, replicated))
-                    if hasattr(program, "precompile"):  # a cached program (not where the program cache is off)
-                        program.precompile()
-                    return program
+            def build(fn, what, after=None, traced=None):
+                # Traced (or loaded) once ``after`` is set, then compiled; sets ``traced`` when its tracing is done.
+                try:
+                    if after is not None:
+                        after.wait()
+                    program = jit(fn, what, None)
+                finally:
+                    if traced is not None:
+                        traced.set()
+                program.precompile()
+                return program
 
-                building = background.submit(build_chunk)
+            if cached:
+                # The chunk's and the evaluation's programs (their inputs' shapes known) traced or loaded and
+                # compiled beside the init's: the chunk, the longest to compile, traced first and alone (tracing
+                # holds Python's lock; XLA's compilation does not), the evaluation once it is.
+                chunk_traced = threading.Event()
+                building = background.submit(build, chunk, chunk_what, None, chunk_traced)
+                if evaluate is not None:
+                    compiling = background.submit(build, evaluate, eval_description, chunk_traced)
             init_c = jit(init_seeded, "init", None, seed)
         else:
             replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())
@@ -250,16 +265,17 @@ def run_updates(
                 return jax.jit(fn, in_shardings=(shardings,), out_shardings=out_shardings)
 
         carry = init_c(seed)
-        if evaluate is not None and shardings is None:
-            # One device: trace and compile the evaluation beside the chunk (several devices, or processes, run
-            # their programs in the same order everywhere, so there it is compiled in turn).
+        if evaluate is not None and shardings is None and compiling is None:
+            # One device, no program cache: trace and compile the evaluation (on its first call) beside the chunk
+            # (several devices, or processes, run their programs in the same order everywhere, so there it is
+            # compiled in turn).
             def compile_eval(first=carry):
                 fn = jit(evaluate, eval_description, replicated)
                 jax.block_until_ready(fn(first))
                 return fn
 
             compiling = background.submit(compile_eval)
-        elif evaluate is not None:
+        elif evaluate is not None and shardings is not None:
             eval_fn = jit(evaluate, eval_description, replicated)
         chunk_c = jit(chunk, chunk_what, (shardings, replicated)) if building is None else building.result()
         pending = chunk_c(carry)

@@ -44,7 +44,9 @@ def _source_hash() -> str:
     return digest.hexdigest()
 
 
-def _cache_folder() -> str | None:
+def cache_folder() -> str | None:
+    """The folder of the program cache (`FOLDER` in JAX's compilation cache folder), or None where it is off: no
+    compilation cache, or no ``flatbuffers`` for `jax.export`'s serialisation (then `cached_jit` is ``jax.jit``)."""
     folder = jax.config.jax_compilation_cache_dir
     if not folder:
         return None
@@ -73,7 +75,7 @@ def cached_jit(fn: Callable, example: Any, description: str) -> Callable:
         A function of a tree like ``example`` returning what ``fn`` returns; where the program is cached, its
         ``precompile()`` compiles it ahead of the first call (without the cache: ``jax.jit(fn)``).
     """
-    folder = _cache_folder()
+    folder = cache_folder()
     if folder is None:
         return jax.jit(fn)
     leaves, treedef = jax.tree.flatten(example)
