@@ -43,7 +43,8 @@ JAX option is not an XLA flag: JAX reads it when it traces and lowers a program)
 
 - ``jax_threefry_gpu_kernel_lowering``: each threefry hash of ``jax.random`` (the PRNG of every draw: random starts,
   the policy's noise, resets) lowered to one call of jaxlib's CUDA threefry kernel instead of XLA operations written
-  out round by round. The numbers drawn are the same (the same Threefry-2x32 hash); XLA's optimisation of the
+  out round by round (in memory, JAX's note says, the kernel takes the keys broadcast to each draw's shape: a few
+  MB for the trainers). The numbers drawn are the same (the same Threefry-2x32 hash); XLA's optimisation of the
   three training programs took 0.8-1.5 s each instead of 2.7-3.8 s on an NVIDIA H200 (jax 0.11.2), and the first
   ``jaxdrones train hover`` took 8.3-9.8 s instead of 10.9-11.6 s from the command to its exit, warm 4.8 s against
   4.9-5.0 s (docs/benchmarks.md).
