@@ -242,12 +242,17 @@ def compiles_for_gpu(platform: str | None = None) -> bool:
     return any(name.lower().startswith(("xla_cuda", "xla_rocm", "cuda", "rocm")) for name in _plugins())
 
 
+def _for_gpu(platform: str | None = None) -> bool:
+    """Whether the GPU's settings apply: JAX compiles for a GPU (`compiles_for_gpu`), not for the CPU."""
+    return not compiles_for_cpu(platform) and compiles_for_gpu(platform)
+
+
 def flags_for(platform: str | None = None) -> tuple[str, ...]:
     """The flags for the device JAX will compile for: `CLI_FLAGS` for the CPU (`compiles_for_cpu`), `GPU_FLAGS` for
     a GPU (`compiles_for_gpu`), none otherwise (a TPU)."""
     if compiles_for_cpu(platform):
         return CLI_FLAGS
-    return GPU_FLAGS if compiles_for_gpu(platform) else ()
+    return GPU_FLAGS if _for_gpu(platform) else ()
 
 
 def add_flags(flags: tuple[str, ...]) -> list[str]:
@@ -278,15 +283,13 @@ def add_flags(flags: tuple[str, ...]) -> list[str]:
 
 
 def jax_options_for(platform: str | None = None) -> dict:
-    """The JAX options for the device JAX will compile for: `GPU_JAX_OPTIONS` for a GPU (`compiles_for_gpu`, and not
-    `compiles_for_cpu`), none otherwise."""
-    return dict(GPU_JAX_OPTIONS) if not compiles_for_cpu(platform) and compiles_for_gpu(platform) else {}
+    """The JAX options for the device JAX will compile for: `GPU_JAX_OPTIONS` for a GPU, none otherwise."""
+    return dict(GPU_JAX_OPTIONS) if _for_gpu(platform) else {}
 
 
 def environment_for(platform: str | None = None) -> dict:
-    """The environment variables for the device JAX will compile for: `GPU_ENV` for a GPU (as `jax_options_for`),
-    none otherwise."""
-    return dict(GPU_ENV) if jax_options_for(platform) else {}
+    """The environment variables for the device JAX will compile for: `GPU_ENV` for a GPU, none otherwise."""
+    return dict(GPU_ENV) if _for_gpu(platform) else {}
 
 
 def set_environment(variables: dict) -> list[str]:

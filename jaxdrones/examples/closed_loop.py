@@ -18,6 +18,7 @@ period in s. Controllers are module-level functions (hashable), so the JAX backe
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import inspect
 import math
@@ -40,6 +41,8 @@ from jaxdrones.sim import SimConfig, StepFn, make_step
 BACKENDS = ("jax", "pybullet")
 #: The examples' arguments that are `SimConfig` fields of the same name.
 PHYSICS_ARGUMENTS = ("sim_freq", "ctrl_freq", "drag", "ground_effect", "downwash")
+#: Labels of the two runs of an effect's example: with the effect and without it (`effect_configs`, `on_off`).
+RUNS = ("on", "off")
 #: Fields of a flight record (`flight_arrays`), each with a leading time axis.
 FLIGHT_KEYS = ("times", "pos", "quat", "vel", "rpy", "ang_vel", "rpm", "rpm_cmd", "contact")
 
@@ -321,6 +324,12 @@ def pid_title(settings: dict) -> str:
     JAX backend where they name none, as results saved before they recorded it)."""
     backend = settings.get("backend", "jax")
     return f"DSL PID at {settings['ctrl_freq']} Hz, physics {settings['sim_freq']} Hz ({backend})"
+
+
+def effect_configs(config: SimConfig, effect: str, value: Any = True) -> dict[str, SimConfig]:
+    """The physics of an effect's example flown twice (`RUNS`): ``config`` with its `SimConfig` field ``effect`` set
+    to ``value`` (``"on"``) and to False (``"off"``)."""
+    return {label: dataclasses.replace(config, **{effect: v}) for label, v in zip(RUNS, (value, False), strict=True)}
 
 
 def on_off(on: float, off: float) -> dict:

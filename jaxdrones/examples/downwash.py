@@ -26,7 +26,6 @@ on − off), and the upper drone's largest |z − z_target| over the flight (dow
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time
 from typing import Any
@@ -35,8 +34,10 @@ import numpy as np
 
 from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import (
+    RUNS,
     bind_arguments,
     check_flight_settings,
+    effect_configs,
     flight_settings,
     fly_to_waypoints,
     on_off,
@@ -57,8 +58,6 @@ CTRL_FREQ = 48
 PASS_RADIUS_M = 0.1
 #: Time after a pass still searched for the lower drone's dip, s (it keeps falling until the PID recovers).
 RECOVERY_S = 0.5
-#: Labels of the two runs: with and without downwash.
-RUNS = ("on", "off")
 #: Command-line options of ``jaxdrones fly`` this example takes (besides --duration, --model, --drag, --backend,
 #: --out, --overwrite, --no-progress).
 CLI_OPTIONS = ("ground_effect",)
@@ -136,8 +135,7 @@ def check(*args: Any, **kwargs: Any) -> dict:
     """
     a = bind_arguments(fly, args, kwargs)
     config, n_steps, params = check_flight_settings(a, n_drones=2)
-    configs = {"on": config, "off": dataclasses.replace(config, downwash=False)}
-    return {"configs": configs, "n_steps": n_steps, "params": params}
+    return {"configs": effect_configs(config, "downwash", config.downwash), "n_steps": n_steps, "params": params}
 
 
 def fly(

@@ -27,7 +27,6 @@ Metrics (``result["metrics"]``), for each run (``on``, ``off``) and their differ
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time
 from typing import Any
@@ -38,6 +37,7 @@ from jaxdrones.control.pid import PIDGains
 from jaxdrones.examples.closed_loop import (
     bind_arguments,
     check_flight_settings,
+    effect_configs,
     flight_settings,
     fly_to_waypoints,
     on_off,
@@ -56,8 +56,6 @@ CTRL_FREQ = 240
 #: The paper figure's window, s: the metrics are taken over t ≤ WINDOW_S; the default flight time.
 WINDOW_S = 0.5
 DEFAULT_DURATION_S = WINDOW_S
-#: Labels of the two runs: with and without ground effect.
-RUNS = ("on", "off")
 #: Command-line options of ``jaxdrones fly`` this example takes (besides --duration, --model, --drag, --backend,
 #: --out, --overwrite, --no-progress).
 CLI_OPTIONS = ()
@@ -118,8 +116,7 @@ def check(*args: Any, **kwargs: Any) -> dict:
     config, n_steps, params = check_flight_settings(a, n_drones=1)
     if n_steps / config.ctrl_freq < WINDOW_S - 1e-9:
         raise ValueError(f"duration_s must cover the figure's {WINDOW_S:g} s window, got {a['duration_s']!r}")
-    configs = {"on": dataclasses.replace(config, ground_effect=True), "off": config}
-    return {"configs": configs, "n_steps": n_steps, "params": params}
+    return {"configs": effect_configs(config, "ground_effect"), "n_steps": n_steps, "params": params}
 
 
 def fly(
