@@ -5,14 +5,27 @@ compared only between runs interleaved on one machine. Each setting is a set of 
 ``python -m jaxdrones.cli train TASK`` (e.g. ``JAX_THREEFRY_GPU_KERNEL_LOWERING=0``, which turns off the command
 line's JAX option, or ``XLA_PYTHON_CLIENT_PREALLOCATE=true``, which brings back JAX's preallocation of the GPU's
 memory; `jaxdrones._xla`); each has its own compilation cache (``JAXDRONES_CACHE_DIR``), emptied before each round.
-A round runs every setting from the empty cache (``cold``), then every setting again (``warm``). Per run: the wall
-time from outside (the process, its exit included), the run's phases and result (``summary.json``) and, with
+A round runs every setting from the empty cache (``cold``), then every setting again (``warm``, ``--warm`` times).
+Per run: the wall time from outside (the process, its exit included), the run's phases and result
+(``summary.json``), the seconds after training started at which each evaluation ended (``progress.json``: the
+first one waits for the programs' compilation or loading, the others each follow one chunk of updates) and, with
 ``--xla-timers``, XLA's own timers per compiled program (``TF_CPP_VMODULE=gpu_compiler=1``: its HLO passes and its
-backend, LLVM and PTX, as XLA:GPU logs them; nothing on the CPU).
+backend, LLVM and PTX, as XLA:GPU logs them; nothing on the CPU). ``--timeline`` adds, from JAX's own log
+(``JAX_LOGGING_LEVEL=DEBUG``), each program's lowering to StableHLO, its compilation or its loading from the cache
+(hit or miss), and when that ended, in seconds from the process's start: where a warm run's training phase goes
+before its first update.
+
+A setting can also be another checkout of jaxdrones, run from ``PYTHONPATH`` (from a folder outside either
+checkout, so that the current folder does not come first), e.g. a commit against the working tree::
+
+    git worktree add /tmp/base COMMIT && cd /tmp
+    python /path/to/benchmarks/first_run.py --rounds 2 --warm 3 --setting base PYTHONPATH=/tmp/base \
+        --setting now PYTHONPATH=/path/to/checkout
 
     python benchmarks/first_run.py                                          # the command line's settings against
                                                                             # each GPU setting turned off
     python benchmarks/first_run.py --rounds 3 --xla-timers
+    python benchmarks/first_run.py --rounds 1 --warm 2 --timeline --setting default
     python benchmarks/first_run.py --setting nokernel JAX_THREEFRY_GPU_KERNEL_LOWERING=0 --train-args --defaults gpu
 
 Results: a table of medians on stdout and every run in ``benchmarks/results/first_run_<TASK>.json`` (``--out``).
@@ -21,6 +34,8 @@ Results: a table of medians on stdout and every run in ``benchmarks/results/firs
 from __future__ import annotations
 
 import argparse
+import collections
+import itertools
 import json
 import os
 import re
@@ -41,6 +56,11 @@ DEFAULT_SETTINGS = {
 }
 _TIMER = re.compile(r"GpuCompiler::(RunHloPasses|RunBackend) for (\S+) time: ([0-9.]+) (s|ms|us)")
 _UNIT = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
+#: JAX's debug log lines (``JAX_LOGGING_LEVEL=DEBUG``; `jax._src.logging_config`'s format) that `timeline` reads.
+_LOG_LINE = re.compile(r"^DEBUG:(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}):(\S+?):\d+: (.*)$")
+_LOWERED = re.compile(r"Finished jaxpr to MLIR module conversion (\S+) in ([0-9.]+) sec")
+_COMPILED = re.compile(r"Finished XLA compilation of (\S+) in ([0-9.]+) sec")
+_CACHE = re.compile(r"(Persistent compilation cache hit|PERSISTENT COMPILATION CACHE MISS) for '([^']+)'")
 
 
 def xla_timers(log: str) -> dict[str, list[float]]:
@@ -51,12 +71,53 @@ def xla_timers(log: str) -> dict[str, list[float]]:
     return timers
 
 
-def run_once(task: str, env: dict, cache: str, out: str, train_args: list[str], timers: bool) -> dict:
-    """One ``jaxdrones train`` process with ``env`` over the current environment; its times and result."""
+def timeline(log: str, start: float) -> list[dict]:
+    """The compiled programs of a run in JAX's debug log, in the order their compilation (or loading from the
+    cache) ended: ``{program, lowering_s, compile_s, cache, ended_at_s}``, ``ended_at_s`` in seconds after
+    ``start`` (the process's start, ``time.time()``; the log's clock, to its milliseconds); ``lowering_s`` is a
+    lowering to StableHLO of a program of the same name, ``cache`` ``hit``, ``miss`` or None (the cache off).
+    Programs built side by side share names (``jit(call)``), so these are paired in the order they were logged: a
+    close reading, not an exact one."""
+    programs = []
+    lowered: dict[str, list[float]] = collections.defaultdict(list)
+    cache: dict[str, list[str]] = collections.defaultdict(list)
+    for line in log.splitlines():
+        match = _LOG_LINE.match(line)
+        if not match:
+            continue
+        stamp, _, message = match.groups()
+        when = time.mktime(time.strptime(stamp[:19], "%Y-%m-%d %H:%M:%S")) + int(stamp[20:]) / 1e3
+        if found := _LOWERED.search(message):
+            lowered[found[1]].append(float(found[2]))
+        elif found := _CACHE.search(message):
+            cache[found[2]].append("hit" if found[1].endswith("hit") else "miss")
+        elif found := _COMPILED.search(message):
+            name = found[1]
+            hits = cache[name.replace("(", "_").rstrip(")")]
+            programs.append(
+                {
+                    "program": name,
+                    "lowering_s": lowered[name].pop(0) if lowered[name] else None,
+                    "compile_s": float(found[2]),
+                    "cache": hits.pop(0) if hits else None,
+                    "ended_at_s": round(when - start, 3),
+                }
+            )
+    return programs
+
+
+def run_once(
+    task: str, env: dict, cache: str, out: str, train_args: list[str], timers: bool, log: bool = False
+) -> dict:
+    """One ``jaxdrones train`` process with ``env`` over the current environment; its times and result (with
+    ``log``, its programs' `timeline`)."""
     environ = {**os.environ, **env, "JAXDRONES_CACHE_DIR": cache}
     if timers:
         environ.update(TF_CPP_MIN_LOG_LEVEL="0", TF_CPP_VMODULE="gpu_compiler=1")
+    if log:
+        environ.update(JAX_LOGGING_LEVEL="DEBUG")
     command = [sys.executable, "-m", "jaxdrones.cli", "train", task, "--out", out, "--overwrite", "--no-progress"]
+    started = time.time()
     start = time.perf_counter()
     done = subprocess.run([*command, *train_args], env=environ, capture_output=True, text=True)
     record = {"wall_time_s": time.perf_counter() - start, "returncode": done.returncode}
@@ -73,15 +134,20 @@ def run_once(task: str, env: dict, cache: str, out: str, train_args: list[str], 
         algo=summary["algo"],
         defaults=summary["defaults"],
     )
+    with open(os.path.join(out, "progress.json")) as f:
+        record["evals_at_s"] = [round(row["time_s"], 3) for row in json.load(f)]
     if timers:
         record["xla_timers_s"] = xla_timers(done.stderr)
+    if log:
+        record["programs"] = timeline(done.stderr, started)
     return record
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="hover")
-    parser.add_argument("--rounds", type=int, default=2, help="cold and warm runs per setting (default 2)")
+    parser.add_argument("--rounds", type=int, default=2, help="rounds of a cold and warm runs (default 2)")
+    parser.add_argument("--warm", type=int, default=1, help="warm runs per setting and round (default 1)")
     parser.add_argument(
         "--setting",
         nargs="+",
@@ -91,11 +157,14 @@ def main() -> int:
         f"and each GPU setting turned off: {list(DEFAULT_SETTINGS)})",
     )
     parser.add_argument("--xla-timers", action="store_true", help="log XLA:GPU's timers per compiled program")
+    parser.add_argument(
+        "--timeline", action="store_true", help="each program's lowering and compilation or loading, from JAX's log"
+    )
     parser.add_argument("--out", default=None, help="JSON output (default benchmarks/results/first_run_TASK.json)")
     parser.add_argument("--train-args", nargs=argparse.REMAINDER, default=[], help="passed to jaxdrones train")
     args = parser.parse_args()
-    if args.rounds < 1:
-        parser.error("--rounds must be >= 1")
+    if args.rounds < 1 or args.warm < 1:
+        parser.error("--rounds and --warm must be >= 1")
     settings = DEFAULT_SETTINGS
     if args.setting:
         settings = {}
@@ -108,24 +177,35 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="jaxdrones-first-run-") as tmp:
         folders = {name: os.path.join(tmp, f"setting{k}") for k, name in enumerate(settings)}
         for round_ in range(args.rounds):
-            for mode in ("cold", "warm"):
+            for mode in ("cold", *["warm"] * args.warm):
                 for name, env in settings.items():
                     cache, out = folders[name] + "-cache", folders[name] + "-run"
                     if mode == "cold":
                         shutil.rmtree(cache, ignore_errors=True)
-                    record = run_once(args.task, env, cache, out, args.train_args, args.xla_timers)
+                    record = run_once(args.task, env, cache, out, args.train_args, args.xla_timers, args.timeline)
                     record.update(setting=name, env=env, mode=mode, round=round_)
                     records.append(record)
                     print(json.dumps(record), flush=True)
-    print(f"\n{args.task}: medians of {args.rounds} round(s), seconds from the command to its exit")
-    print(f"{'setting':<24} {'cold':>7} {'warm':>7}  final metric (cold runs)")
+    print(
+        f"\n{args.task}: medians of {args.rounds} round(s) of a cold and {args.warm} warm run(s), seconds from the "
+        "command to its exit, and of the training phase's first evaluation (after loading or compiling the "
+        "programs) and each later chunk with its evaluation"
+    )
+    print(f"{'setting':<24} {'cold':>7} {'warm':>7} {'1st eval':>9} {'chunk':>7}  final metric (cold runs)")
     for name in settings:
         row = []
         for mode in ("cold", "warm"):
             times = [r["wall_time_s"] for r in records if r["setting"] == name and r["mode"] == mode]
             row.append(statistics.median(times))
+        warm = [r for r in records if r["setting"] == name and r["mode"] == "warm" and r.get("evals_at_s")]
+        first = statistics.median([r["evals_at_s"][0] for r in warm]) if warm else float("nan")
+        gaps = [b - a for r in warm for a, b in itertools.pairwise(r["evals_at_s"])]
+        chunk = statistics.median(gaps) if gaps else float("nan")
         values = [r.get("success_value") for r in records if r["setting"] == name and r["mode"] == "cold"]
-        print(f"{name:<24} {row[0]:7.2f} {row[1]:7.2f}  {values}")
+        print(f"{name:<24} {row[0]:7.2f} {row[1]:7.2f} {first:9.2f} {chunk:7.3f}  {values}")
+        for record in warm[-1:] if args.timeline else []:
+            for program in record["programs"]:
+                print(f"{'':<4}last warm run: {json.dumps(program)}")
     path = args.out or os.path.join(HERE, "results", f"first_run_{args.task}.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as f:

@@ -1,5 +1,6 @@
 """XLA flags: ``import jaxdrones`` sets none; the command line's are asked of the installed XLA itself, cached, and
-never set over the user's own."""
+never set over the user's own; and the rest of the command line's own process settings (JAX options, environment
+variables, the garbage collector)."""
 
 import json
 import os
@@ -217,3 +218,38 @@ def test_threefry_kernel_draws_the_same_numbers():
             jax.config.update("jax_threefry_gpu_kernel_lowering", previous)
     for a, b in zip(jax.tree.leaves(draws[False]), jax.tree.leaves(draws[True]), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_command_line_freezes_the_collector_only_as_the_process_command(monkeypatch):
+    """As the process's command (no ``argv``), `jaxdrones.cli.main` moves the objects made so far out of the cyclic
+    collector's sight before the command runs and again after it (what the command made); called from Python with
+    ``argv``, it leaves the collector as it was."""
+    import argparse
+    import gc
+
+    from jaxdrones import cli
+
+    frozen_while_running, made = [], []
+
+    def parser():
+        command = argparse.ArgumentParser()
+        command.set_defaults(
+            func=lambda args: frozen_while_running.append(gc.get_freeze_count()) or made.append([object()]) or 0
+        )
+        return command
+
+    def collected(x) -> bool:  # in the generations the collector walks (a frozen object is in none)
+        return any(y is x for y in gc.get_objects())
+
+    monkeypatch.setattr(cli, "build_parser", parser)
+    monkeypatch.setattr(sys, "argv", ["jaxdrones"])
+    monkeypatch.setenv(_xla.OPT_OUT_VAR, "0")  # no flag, option or variable set in this process
+    gc.unfreeze()
+    try:
+        assert cli.main([]) == 0 and frozen_while_running == [0] and gc.get_freeze_count() == 0
+        assert collected(made[0])
+        assert cli.main() == 0
+        assert frozen_while_running[1] > 0  # the imports' objects, before the command ran
+        assert not collected(made[1])  # and, after it, what it made
+    finally:
+        gc.unfreeze()

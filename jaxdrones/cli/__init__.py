@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import sys
 import time
@@ -42,7 +43,14 @@ def process_start() -> float:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line on ``argv`` (default: the process's arguments, and the wall time of a run then counts
-    from the process's start); returns the exit status."""
+    from the process's start); returns the exit status.
+
+    As the process's command (``argv`` None), it moves the objects that live as long as the process out of the
+    cyclic garbage collector's sight (`gc.freeze`): after the imports (JAX's and jaxdrones' modules, which every
+    full collection while a program is traced would otherwise walk again), and once the command is done (Python's
+    collections at exit would otherwise walk everything the run made: 0.3-0.4 s of a ``jaxdrones train hover`` on 2
+    CPU cores). Nothing is lost: the run's files are written and closed by then, and the process's memory goes
+    back to the system at its exit as always. Called with ``argv`` (from Python), it leaves the collector alone."""
     t_start = process_start() if argv is None else time.perf_counter()
     from jaxdrones import _xla
 
@@ -52,7 +60,13 @@ def main(argv: list[str] | None = None) -> int:
     _xla.set_environment(_xla.environment_for(device))
     _xla.set_jax_options(_xla.jax_options_for(device))  # before JAX traces a program
     args.t_start = t_start
-    return int(args.func(args) or 0)
+    if argv is not None:
+        return int(args.func(args) or 0)
+    gc.freeze()
+    try:
+        return int(args.func(args) or 0)
+    finally:
+        gc.freeze()
 
 
 if __name__ == "__main__":
