@@ -126,14 +126,9 @@ def run_once(
         return record
     with open(os.path.join(out, "summary.json")) as f:
         summary = json.load(f)
-    record.update(
-        summary_wall_time_s=summary["wall_time_s"],
-        phases_s=summary["phases_s"],
-        success_value=summary["success_value"],
-        success=summary["success"],
-        algo=summary["algo"],
-        defaults=summary["defaults"],
-    )
+    # .get: an older checkout (a setting's PYTHONPATH) writes fewer fields
+    fields = ("wall_time_s", "phases_s", "success_value", "success", "algo", "defaults")
+    record.update({("summary_" if k == "wall_time_s" else "") + k: summary.get(k) for k in fields})
     with open(os.path.join(out, "progress.json")) as f:
         record["evals_at_s"] = [round(row["time_s"], 3) for row in json.load(f)]
     if timers:
