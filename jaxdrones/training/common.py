@@ -198,8 +198,9 @@ def run_updates(
     evaluation under ``"eval"`` (NumPy arrays).
 
     ``description`` (the trainer, its config and its env's config, as text) lets a later process load the traced
-    chunk and evaluation from disk instead of tracing them (`jaxdrones.training.programs`), when ``evaluate`` has a
-    ``description`` too (or is None); otherwise they are traced as usual.
+    init, chunk and evaluation, and the shapes of init's result, from disk instead of tracing them
+    (`jaxdrones.training.programs`), when ``evaluate`` has a ``description`` too (or is None); otherwise they are
+    traced as usual.
 
     Returns:
         ``result(carry)`` of the final carry.
@@ -224,7 +225,12 @@ def run_updates(
     background = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="jaxdrones-compile")
     building = compiling = eval_fn = None
     try:
-        shapes = jax.eval_shape(init_seeded, seed)
+        if description is None:
+            shapes = jax.eval_shape(init_seeded, seed)
+        else:  # read from the program cache where it is on: init is not traced in a warm run
+            from jaxdrones.training.programs import cached_eval_shape
+
+            shapes = cached_eval_shape(init_seeded, seed, f"{description}\ninit")
         shardings = world_shardings(shapes, n_worlds)
         eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
         if shardings is None:
