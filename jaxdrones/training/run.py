@@ -218,13 +218,16 @@ def train_task(
     log = ProgressLog(config.total_steps, env.task, enabled=progress and writer)
     last = {}
 
+    importing: list[threading.Thread] = []  # the writers' imports, started at the first report (`_import_writers`)
+
     def report(steps, metrics):
+        if writer and not importing:
+            importing.append(_import_writers())
         last.update(eval=metrics["eval"])
         log(steps, episode_statistics(env, metrics["eval"]["outcomes"]))
 
     t_train = time.perf_counter()
     interrupted = False
-    importing = _import_writers() if writer else None
     try:
         _, params = trainer.train(
             train_env, config, progress=report, evaluate=_eval_program(env, trainer, n_eval_episodes, config.seed)
@@ -244,7 +247,8 @@ def train_task(
     stats = episode_statistics(env, last["eval"]["outcomes"]) if last else {}
     phases["save"] = time.perf_counter() - t_phase
     t_phase = time.perf_counter()
-    importing.join()
+    for thread in importing:
+        thread.join()
     _plot(env, task, algo, log, last.get("eval"), out)
     phases["plots"] = time.perf_counter() - t_phase
     t_phase = time.perf_counter()
@@ -305,8 +309,11 @@ def failed_criteria(task: Task, stats: dict) -> list[str]:
 
 def _import_writers() -> threading.Thread:
     """Import what writes the run's plots and viewer (matplotlib, viser and trimesh, which draws the viewer's drone:
-    2-3 s on 2 cores) in a thread, started when training starts: the main thread mostly waits on the device
-    meanwhile, and the run's files are written sooner after it."""
+    2-3 s on 2 cores) in a thread, started at the trainer's first report, once its programs are compiled or loaded:
+    the main thread then mostly waits on the device, and the run's files are written sooner after training. Started
+    with training, the imports held Python's lock while the programs were loaded: on 2 CPU cores the default hover
+    run's first evaluation ended 1.85 s into training instead of 1.35 s, the warm run took 7.56 s instead of 7.02 s
+    (``benchmarks/first_run.py``, docs/benchmarks.md)."""
 
     def load():
         try:
