@@ -312,7 +312,7 @@ def _import_writers() -> threading.Thread:
     2-3 s on 2 cores) in a thread, started at the trainer's first report, once its programs are compiled or loaded:
     the main thread then mostly waits on the device, and the run's files are written sooner after training. Started
     with training, the imports held Python's lock while the programs were loaded: on 2 CPU cores the default hover
-    run's first evaluation ended 1.85 s into training instead of 1.35 s, the warm run took 7.56 s instead of 7.02 s
+    run's first evaluation ended 1.85 s into training instead of 1.36 s, the warm run took 7.57 s instead of 6.91 s
     (``benchmarks/first_run.py``, docs/benchmarks.md)."""
 
     def load():
