@@ -26,7 +26,6 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 #: Sub-folder of JAX's compilation cache folder holding the exported programs.
 FOLDER = "jaxdrones-programs"
@@ -64,9 +63,21 @@ def _is_key(x) -> bool:
     return jnp.issubdtype(x.dtype, jax.dtypes.prng_key)
 
 
+def _signature(example: Any) -> tuple[Any, list[bool], list[jax.ShapeDtypeStruct]]:
+    """``(treedef, is_key, raw_avals)`` of a tree of arrays (or ``jax.ShapeDtypeStruct``): its structure, which
+    leaves are PRNG keys, and each leaf's shape and dtype (a key's as its raw data, `jax.random.key_data`)."""
+    leaves, treedef = jax.tree.flatten(example)
+    is_key = [_is_key(x) for x in leaves]
+    raw_avals = [
+        jax.eval_shape(jax.random.key_data, x) if k else jax.ShapeDtypeStruct(x.shape, x.dtype)
+        for x, k in zip(leaves, is_key, strict=True)
+    ]
+    return treedef, is_key, raw_avals
+
+
 def _key(description: str, treedef, is_key: list[bool], raw_avals: list) -> str:
-    """The program key of the module doc: a hash of ``description``, the inputs' tree, shapes and dtypes (keys as
-    their raw data, ``is_key``), the source, the versions and the device."""
+    """The program key of the module doc: a hash of ``description``, the inputs' tree, shapes and dtypes
+    (`_signature`), the source, the versions and the device."""
     device = jax.devices()[0]
     return hashlib.sha256(
         "\n".join(
@@ -87,15 +98,14 @@ def _key(description: str, treedef, is_key: list[bool], raw_avals: list) -> str:
 
 
 def cached_eval_shape(fn: Callable, example: Any, description: str) -> Any:
-    """``jax.eval_shape(fn, example)`` (one argument without PRNG keys, e.g. a trainer's seed), read from the program
-    cache where a process with the same key (as `cached_jit`'s) computed it before, else computed (a trace of
-    ``fn``: 0.16 s for APG's init on 2 CPU cores) and saved there; without the cache, computed."""
+    """``jax.eval_shape(fn, example)`` (one pytree argument, as `cached_jit`'s ``example``, e.g. a trainer's seed),
+    read from the program cache where a process with the same key (as `cached_jit`'s) computed it before, else
+    computed (a trace of ``fn``: 0.16 s for APG's init on 2 CPU cores) and saved there; without the cache,
+    computed."""
     folder = cache_folder()
     if folder is None:
         return jax.eval_shape(fn, example)
-    leaves, treedef = jax.tree.flatten(example)
-    avals = [jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x)) for x in leaves]
-    path = os.path.join(folder, _key(description, treedef, [False] * len(avals), avals)) + ".shapes"
+    path = os.path.join(folder, _key(description, *_signature(example))) + ".shapes"
     try:
         with open(path, "rb") as f:
             return pickle.load(f)
@@ -123,15 +133,9 @@ def cached_jit(fn: Callable, example: Any, description: str) -> Callable:
     folder = cache_folder()
     if folder is None:
         return jax.jit(fn)
-    leaves, treedef = jax.tree.flatten(example)
-    is_key = [_is_key(x) for x in leaves]
-    raw_avals = [
-        jax.eval_shape(jax.random.key_data, x) if k else jax.ShapeDtypeStruct(x.shape, x.dtype)
-        for x, k in zip(leaves, is_key, strict=True)
-    ]
+    treedef, is_key, raw_avals = _signature(example)
     device = jax.devices()[0]
-    key = _key(description, treedef, is_key, raw_avals)
-    path = os.path.join(folder, key)
+    path = os.path.join(folder, _key(description, treedef, is_key, raw_avals))
     out_tree: dict = {}
 
     def traced_program(*raw):
