@@ -365,6 +365,49 @@ def test_agent_mlp_first_layer_is_the_concatenated_dense():
     np.testing.assert_allclose(net.apply(params, obs, world), expected, rtol=2e-5, atol=2e-6)
 
 
+def test_ppo_noise_per_window_draws_an_unrolls_noise_before_it(monkeypatch):
+    """With ``noise_per_window`` (on in the ``gpu`` profile) our PPO draws the Gaussian noise of a whole unroll in one
+    call before it, so that the unroll's step hashes no key; without it every step draws from its own key."""
+    import jaxdrones as jd
+    from jaxdrones.training import mappo
+
+    def eqns(jaxpr):  # the equations of a jaxpr and of every jaxpr inside it
+        for eqn in jaxpr.eqns:
+            yield eqn
+            for param in eqn.params.values():
+                for sub in param if isinstance(param, (list, tuple)) else [param]:
+                    inner = getattr(sub, "jaxpr", sub)
+                    if isinstance(inner, jax.extend.core.Jaxpr):
+                        yield from eqns(inner)
+
+    def draws(jaxpr):
+        return any(eqn.primitive.name in ("random_bits", "threefry2x32") for eqn in eqns(jaxpr))
+
+    env = jd.make("hover")
+    for per_window in (False, True):
+        built = {}
+        monkeypatch.setattr(mappo, "run_updates", lambda config, init, update, *a, **k: built.update(i=init, u=update))
+        config = mappo.MAPPOConfig(
+            num_timesteps=36,
+            num_envs=4,
+            unroll_length=3,
+            minibatches=1,
+            epochs=2,
+            critic="local",
+            num_evals=1,
+            starts_per_window=True,  # else the resets drawn in the step hash keys there too
+            noise_per_window=per_window,
+        )
+        mappo.train(env, config)
+        update = jax.make_jaxpr(built["u"])(jax.eval_shape(built["i"], jax.random.key(0)), None).jaxpr
+        unrolls = [e for e in eqns(update) if e.primitive.name == "scan" and e.params["length"] == 3]
+        assert unrolls  # the unroll, and GAE's backward pass over it
+        assert any(draws(e.params["jaxpr"].jaxpr) for e in unrolls) is not per_window
+        assert draws(update)  # the minibatches' shuffle, and with noise_per_window the unroll's noise
+    with pytest.raises(ValueError, match="noise_per_window must be True or False"):
+        mappo.MAPPOConfig(noise_per_window="yes")
+
+
 @pytest.mark.parametrize(
     "kwargs", [dict(critic="central", share_params=True), dict(critic="local", share_params=False)]
 )
@@ -537,6 +580,7 @@ def test_train_cli_defaults_profiles(tmp_path, capsys):
     for algo in ("apg", "ppo"):  # the gpu profile builds its updates for a GPU; the CPU's as before
         cpu, gpu = (trainers.get(algo).default_config("hover", False, d) for d in trainers.DEFAULTS)
         assert gpu.starts_per_window and gpu.flat_params and not cpu.starts_per_window and not cpu.flat_params
+        assert getattr(gpu, "noise_per_window", True) and not getattr(cpu, "noise_per_window", False)
         with pytest.raises(ValueError, match="flat_params must be True or False"):
             dataclasses.replace(cpu, flat_params=1)
     run = tmp_path / "run"

@@ -68,10 +68,15 @@ def mlp(
 #: - ``flat_params``: the optimised parameters, and so Adam's moments, are one flat vector (`param_maps`), so that an
 #:   optimiser step is a few fused operations on one vector rather than a few per leaf (PPO's actor and critic have
 #:   13 leaves). The same arithmetic, element by element.
+#: - ``noise_per_window`` (our PPO's): the Gaussian actions' noise of a whole unroll is drawn in one call before it
+#:   rather than from a key in each step: one Threefry hash per update instead of one per step (XLA:CPU runs each
+#:   as a loop of about 90 operations; a GPU as one kernel and the normal's transform). The same distribution,
+#:   other draws.
 #:
-#: On a GPU every operation of an update is a kernel run after the previous one, and both cut them
-#: (`benchmarks/train_cost.py`); on 2 CPU cores each made APG's default hover run 20-40 % slower per update.
-BUILD_SETTINGS = ("starts_per_window", "flat_params")
+#: On a GPU every operation of an update is a kernel run after the previous one, and each cuts them
+#: (`benchmarks/train_cost.py`); on 2 CPU cores the first two each made APG's default hover run 20-40 % slower per
+#: update, and the third left our PPO's `cpu` settings as fast (each chunk 1.21 s against 1.20 s).
+BUILD_SETTINGS = ("starts_per_window", "flat_params", "noise_per_window")
 
 #: The profiles of default settings (``jaxdrones train --defaults``): ``"cpu"``, tuned for the fewest seconds to a
 #: solved policy on a few CPU cores (few worlds, many small updates), and ``"gpu"``, for the fewest sequential

@@ -79,7 +79,7 @@ class MAPPOConfig(Schedule):
             tanh's Jacobian cancels in it).
         num_evals: evaluations (learning-curve points) over the run, one after each chunk of updates, ≥ 1.
         seed: random seed.
-        starts_per_window, flat_params: how an update is built, for the device
+        starts_per_window, flat_params, noise_per_window: how an update is built, for the device
             (`jaxdrones.training.common.BUILD_SETTINGS`; on with ``--defaults gpu``).
 
     Raises:
@@ -109,6 +109,7 @@ class MAPPOConfig(Schedule):
     seed: int = 0
     starts_per_window: bool = False
     flat_params: bool = False
+    noise_per_window: bool = False
 
     def __post_init__(self):
         check_fields(
@@ -125,7 +126,7 @@ class MAPPOConfig(Schedule):
             positive=("learning_rate", "clip", "max_grad_norm", "init_std"),
             nonnegative=("entropy_cost", "value_cost"),
             fractions=("discounting", "gae_lambda"),
-            booleans=("anneal_lr", "share_params", "squash", "starts_per_window", "flat_params"),
+            booleans=("anneal_lr", "share_params", "squash", "starts_per_window", "flat_params", "noise_per_window"),
         )
         if self.critic not in CRITICS:
             raise ValueError(f"MAPPOConfig: critic must be one of {CRITICS}, got {self.critic!r}")
@@ -348,12 +349,20 @@ def train(
 
     def collect(params, state, key):  # params with "norm"
         starts = auto.starts(state) if config.starts_per_window else None  # the worlds' next episodes
+        # The actions' standard normal noise: drawn for the whole unroll before it, or in each step from its key.
+        if config.noise_per_window:
+            action_shape = jax.eval_shape(nets.actor, params, state.obs)
+            noises = jax.random.normal(key, (config.unroll_length, *action_shape.shape), action_shape.dtype)
+        else:
+            noises = jax.random.split(key, config.unroll_length)
 
-        def body(state, key):
+        def body(state, noise):
             world = features(state)
             mean = nets.actor(params, state.obs)
             std = jnp.broadcast_to(jnp.exp(params["log_std"]), mean.shape)
-            action = mean + std * jax.random.normal(key, mean.shape, mean.dtype)
+            if not config.noise_per_window:  # a key
+                noise = jax.random.normal(noise, mean.shape, mean.dtype)
+            action = mean + std * noise
             ended, nxt = auto.step_ended(state, jnp.tanh(action) if config.squash else action, starts)
             sample = {
                 "obs": state.obs,
@@ -368,7 +377,7 @@ def train(
             }
             return nxt, sample
 
-        return jax.lax.scan(body, state, jax.random.split(key, config.unroll_length))
+        return jax.lax.scan(body, state, noises)
 
     def trainable_init(key):
         params = nets.init(key)

@@ -40,8 +40,11 @@ class Trainer:
     make_policy: Callable
 
 
-#: The build settings of our trainers' configs with ``defaults="gpu"``: all of them on.
-GPU_BUILD = dict.fromkeys(BUILD_SETTINGS, True)
+def gpu_build(config_cls: type) -> dict[str, bool]:
+    """The build settings of a trainer's config class with ``defaults="gpu"``: every one of `BUILD_SETTINGS` it
+    has, on."""
+    fields = {field.name for field in dataclasses.fields(config_cls)}
+    return {name: True for name in BUILD_SETTINGS if name in fields}
 
 
 def default_profile() -> str:
@@ -62,7 +65,7 @@ def _ppo_config(task: str, vision: bool = False, defaults: str = "cpu"):
     check_defaults(defaults)
     common = dict(critic="local", unroll_length=32, minibatches=4, epochs=4, learning_rate=3e-3, discounting=0.99)
     if defaults == "gpu":
-        return MAPPOConfig(num_timesteps=8192 * 32 * 80, num_envs=8192, num_evals=5, **common, **GPU_BUILD)
+        return MAPPOConfig(num_timesteps=8192 * 32 * 80, num_envs=8192, num_evals=5, **common, **gpu_build(MAPPOConfig))
     return MAPPOConfig(num_timesteps=1_200_000, num_envs=512, **common)
 
 
@@ -98,7 +101,7 @@ def _apg_config(task: str, vision: bool = False, defaults: str = "cpu"):
             learning_rate=1e-2,
             cosine_decay=True,
             num_evals=5,
-            **GPU_BUILD,
+            **gpu_build(APGConfig),
         )
     if task == "hover":
         return APGConfig(num_timesteps=600_000, learning_rate=3e-3, cosine_decay=True)
