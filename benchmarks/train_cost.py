@@ -30,6 +30,7 @@ Usage::
     python benchmarks/train_cost.py                                  # apg, ppo, brax_ppo x cpu, gpu
     python benchmarks/train_cost.py --algos apg --profiles gpu --runs 2
     python benchmarks/train_cost.py --no-train                       # the counts only
+    python benchmarks/train_cost.py --algos ppo --profiles gpu --no-train --by-loop   # and by loop (CPU)
 """
 
 from __future__ import annotations
@@ -52,12 +53,13 @@ import time
 TASK = "hover"
 
 
-def trace_operations(run) -> dict[str, tuple[int, int | None]]:
+def trace_operations(run, by_name: dict | None = None) -> dict[str, tuple[int, int | None]]:
     """Run ``run()`` under ``jax.profiler`` and return, per compiled program (``hlo_module``), the operations it
     executed in all and in its longest run: ``{module: (operations, operations of the longest run)}``. On the CPU
     the operations are XLA:CPU's thunks, told apart by run (``run_id``; programs of the same name, e.g. brax's
     ``jit__fun``, are then apart too); on a GPU they are the kernels and copies on the device's streams (in CUDA
-    graphs or not), and the longest run is None (the trace does not tell the runs apart)."""
+    graphs or not), and the longest run is None (the trace does not tell the runs apart). ``by_name``, if given, is
+    filled with the operations per program and operation name (the HLO instruction's): ``{module: Counter}``."""
     import jax
 
     options = jax.profiler.ProfileOptions()
@@ -84,6 +86,8 @@ def trace_operations(run) -> dict[str, tuple[int, int | None]]:
             continue
         ops[module] += 1
         runs[module][args.get("run_id")] += 1
+        if by_name is not None:
+            by_name.setdefault(module, collections.Counter())[event["name"]] += 1
     return {module: (count, None if devices else max(runs[module].values())) for module, count in ops.items()}
 
 
@@ -160,8 +164,9 @@ def control_step_cost(
     return {"ops": ops / length, "ms": 1e3 * statistics.median(times) / length if times else math.nan}
 
 
-def count(algo: str, profile: str, updates: int) -> dict:
-    """Operations per update, per rollout and per evaluation of ``algo`` at ``profile`` (the module doc)."""
+def count(algo: str, profile: str, updates: int, by_name: dict | None = None) -> dict:
+    """Operations per update, per rollout and per evaluation of ``algo`` at ``profile`` (the module doc);
+    ``by_name`` as in `trace_operations`."""
 
     from jaxdrones.envs import make
     from jaxdrones.training.run import _eval_program, train_starts
@@ -175,7 +180,7 @@ def count(algo: str, profile: str, updates: int) -> dict:
     else:
         short = dataclasses.replace(config, num_timesteps=updates * config.steps_per_update, num_evals=1)
     evaluate = _eval_program(env, trainer, 256, config.seed)
-    modules = trace_operations(lambda: trainer.train(train_env, short, lambda *_: None, evaluate)[1])
+    modules = trace_operations(lambda: trainer.train(train_env, short, lambda *_: None, evaluate)[1], by_name)
     # Runs where the trace does not count them (GPU): our trainers run the evaluation on the initial parameters
     # while the chunk compiles and after the chunk (`jaxdrones.training.common.run_updates`), brax's PPO after its
     # one training epoch; the chunk (brax: the epoch) runs once.
@@ -204,6 +209,7 @@ def count(algo: str, profile: str, updates: int) -> dict:
         "ops_evaluation": eval_ops,
         "programs": {name: ops for name, (ops, _) in modules.items() if ops > 10},
         "chunk": chunk_name,
+        "evaluation_runs": eval_runs,
     }
 
 
@@ -246,6 +252,58 @@ def train(algo: str, profile: str, out: str, extra: list[str]) -> dict:
     }
 
 
+def operations_by_loop(dump_dir: str, module: str, names: collections.Counter) -> list[tuple[int, str]]:
+    """The operations of a program's trace (``names``: per HLO instruction, `trace_operations`' ``by_name``) summed
+    by the loop that ran them: ``[(operations, loop)]``, most first. A loop is named by the JAX name path of its
+    ``while`` and its trip count, inside those of the loops around it (``outer (xN) > inner (xM)``, each inner one
+    by what its name adds), read from XLA's optimised HLO of ``module`` in ``dump_dir`` (``XLA_FLAGS=--xla_dump_to=DIR
+    --xla_dump_hlo_as_text``); ``"(no loop)"`` outside every loop. The CPU's thunks only: a GPU's kernels are named
+    otherwise."""
+    import re
+
+    best = None
+    for path in glob.glob(os.path.join(dump_dir, f"*.{module}.cpu_after_optimizations.txt")):
+        text = open(path).read()
+        found = sum(n for name, n in names.items() if f"%{name} = " in text)
+        best = max(best or (found, path), (found, path))
+    if best is None:
+        return []
+    computation_of, parent = {}, {}  # instruction -> computation; loop body -> (computation, name, trip count)
+    computation = None
+    for line in open(best[1]).read().splitlines():
+        if head := re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{$", line):
+            computation = head[1]
+        elif (instruction := re.match(r"^\s+(?:ROOT )?%([\w.\-]+) = ", line)) and computation:
+            computation_of[instruction[1]] = computation
+            if body := re.search(r"while\(.*body=%([\w.\-]+)", line):
+                name = re.search(r'op_name="([^"]*)"', line)
+                trips = re.search(r'"known_trip_count":\{"n":"(\d+)"', line)
+                parent[body[1]] = (computation, name[1] if name else body[1], trips[1] if trips else "?")
+    by_loop = collections.Counter()
+    for name, n in names.items():
+        where, loops = computation_of.get(name), []
+        while where in parent:
+            where, loop, trips = parent[where]
+            loops.insert(0, (loop, trips))
+        labels = [
+            f"{loop[len(outer[0]) :] if outer and loop.startswith(outer[0]) else loop} (x{trips})"
+            for outer, (loop, trips) in zip([None, *loops], loops, strict=False)
+        ]
+        by_loop[" > ".join(labels) or "(no loop)"] += n
+    return [(n, loop) for loop, n in by_loop.most_common()]
+
+
+def print_by_loop(dump_dir: str, by_name: dict, row: dict, updates: int) -> None:
+    """Print `operations_by_loop` for ``row``'s chunk (per update) and evaluation (per evaluation)."""
+    programs = [(row["chunk"], updates, "update")]
+    programs += [(m, row["evaluation_runs"], "evaluation") for m in by_name if "evaluate" in m][:1]
+    for module, runs, what in programs:
+        print(f"\n{row['algo']} {row['profile']}: operations per {what} ({module}) by the loop that runs them")
+        for n, loop in operations_by_loop(dump_dir, module, by_name[module]):
+            if n / runs >= 1:
+                print(f"{n / runs:10,.0f}  {loop}")
+
+
 def per_step_table(worlds: list[int]) -> int:
     """Print operations and milliseconds per control step of the default hover env (`control_step_cost`): as the
     trainers stepped it before (the substeps in a loop, the resets computed in each step) and now (the worlds' next
@@ -284,9 +342,19 @@ def main(argv=None) -> int:
         "with auto-reset and a 64x64 MLP), forward and gradient, substeps looped and unrolled, resets in each step "
         "or drawn per window, at these worlds (default 4096)",
     )
+    parser.add_argument(
+        "--by-loop",
+        action="store_true",
+        help="also the operations per update and per evaluation by the loop that runs them (CPU; XLA's optimised "
+        "HLO dumped to a temporary folder)",
+    )
     parser.add_argument("--json", default=None, help="also write the rows to this file")
     parser.add_argument("--train-args", nargs=argparse.REMAINDER, default=[], help="passed to jaxdrones train")
     args = parser.parse_args(argv)
+    dump_dir = tempfile.mkdtemp(prefix="train_cost_hlo_") if args.by_loop else None
+    if dump_dir:  # before JAX starts its backend
+        dump = f"--xla_dump_to={dump_dir} --xla_dump_hlo_as_text --xla_dump_hlo_module_re=chunk|evaluate"
+        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {dump}".strip()
 
     import jax
 
@@ -302,8 +370,11 @@ def main(argv=None) -> int:
     rows = []
     for algo in args.algos:
         for profile in args.profiles:
-            row = count(algo, profile, args.count_updates)
+            by_name = {} if dump_dir else None
+            row = count(algo, profile, args.count_updates, by_name)
             row["ops_to_solved"] = row["iterations"] * row["ops_update"] + row["num_evals"] * row["ops_evaluation"]
+            if dump_dir:
+                print_by_loop(dump_dir, by_name, row, args.count_updates)
             if not args.no_train:
                 with tempfile.TemporaryDirectory() as tmp:
                     runs = [train(algo, profile, os.path.join(tmp, f"r{i}"), args.train_args) for i in range(args.runs)]
