@@ -43,6 +43,7 @@ import gzip
 import json
 import math
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -213,8 +214,9 @@ def count(algo: str, profile: str, updates: int, by_name: dict | None = None) ->
     }
 
 
-def train(algo: str, profile: str, out: str, extra: list[str]) -> dict:
-    """``jaxdrones train hover --algo ALGO --defaults PROFILE`` in a subprocess; its summary."""
+def train(algo: str, profile: str, out: str, extra: list[str], env: dict | None = None) -> dict:
+    """``jaxdrones train hover --algo ALGO --defaults PROFILE`` in a subprocess (its environment ``env``, by default
+    this process's); its summary."""
     cmd = [
         sys.executable,
         "-m",
@@ -231,7 +233,7 @@ def train(algo: str, profile: str, out: str, extra: list[str]) -> dict:
         "--no-progress",
         *extra,
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if proc.returncode:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stdout}\n{proc.stderr}")
     with open(os.path.join(out, "summary.json")) as f:
@@ -351,6 +353,7 @@ def main(argv=None) -> int:
     parser.add_argument("--json", default=None, help="also write the rows to this file")
     parser.add_argument("--train-args", nargs=argparse.REMAINDER, default=[], help="passed to jaxdrones train")
     args = parser.parse_args(argv)
+    environ = dict(os.environ)  # the training runs' environment: without the dump of --by-loop
     dump_dir = tempfile.mkdtemp(prefix="train_cost_hlo_") if args.by_loop else None
     if dump_dir:  # before JAX starts its backend
         dump = f"--xla_dump_to={dump_dir} --xla_dump_hlo_as_text --xla_dump_hlo_module_re=chunk|evaluate"
@@ -377,7 +380,10 @@ def main(argv=None) -> int:
                 print_by_loop(dump_dir, by_name, row, args.count_updates)
             if not args.no_train:
                 with tempfile.TemporaryDirectory() as tmp:
-                    runs = [train(algo, profile, os.path.join(tmp, f"r{i}"), args.train_args) for i in range(args.runs)]
+                    runs = [
+                        train(algo, profile, os.path.join(tmp, f"r{i}"), args.train_args, environ)
+                        for i in range(args.runs)
+                    ]
                 row["wall_s"] = [r["wall_time_s"] for r in runs]
                 row["train_s"] = statistics.median(r["phases_s"]["train"] for r in runs)
                 row["phases_s"] = runs[-1]["phases_s"]
@@ -411,6 +417,8 @@ def main(argv=None) -> int:
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=1)
+    if dump_dir:
+        shutil.rmtree(dump_dir, ignore_errors=True)
     return 0
 
 
