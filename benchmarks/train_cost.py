@@ -263,16 +263,17 @@ def operations_by_loop(dump_dir: str, module: str, names: collections.Counter) -
     otherwise."""
     import re
 
-    best = None
+    texts = {}
     for path in glob.glob(os.path.join(dump_dir, f"*.{module}.cpu_after_optimizations.txt")):
-        text = open(path).read()
-        found = sum(n for name, n in names.items() if f"%{name} = " in text)
-        best = max(best or (found, path), (found, path))
-    if best is None:
+        with open(path) as f:
+            texts[path] = f.read()
+    if not texts:
         return []
+    # The dump of the compilation that ran: the one holding the most of the traced operations.
+    best = max(texts, key=lambda path: sum(n for name, n in names.items() if f"%{name} = " in texts[path]))
     computation_of, parent = {}, {}  # instruction -> computation; loop body -> (computation, name, trip count)
     computation = None
-    for line in open(best[1]).read().splitlines():
+    for line in texts[best].splitlines():
         if head := re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{$", line):
             computation = head[1]
         elif (instruction := re.match(r"^\s+(?:ROOT )?%([\w.\-]+) = ", line)) and computation:
