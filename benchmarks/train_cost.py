@@ -271,23 +271,32 @@ def operations_by_loop(dump_dir: str, module: str, names: collections.Counter) -
         return []
     # The dump of the compilation that ran: the one holding the most of the traced operations.
     best = max(texts, key=lambda path: sum(n for name, n in names.items() if f"%{name} = " in texts[path]))
-    computation_of, parent = {}, {}  # instruction -> computation; loop body -> (computation, name, trip count)
+    # instruction -> its computation; computation -> (the computation that calls it, its loop's name and trip
+    # count if it is a loop's body or condition, else None)
+    computation_of, parent = {}, {}
     computation = None
     for line in texts[best].splitlines():
         if head := re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{$", line):
             computation = head[1]
         elif (instruction := re.match(r"^\s+(?:ROOT )?%([\w.\-]+) = ", line)) and computation:
             computation_of[instruction[1]] = computation
-            if body := re.search(r"while\(.*body=%([\w.\-]+)", line):
+            loop = None
+            if " while(" in line:
                 name = re.search(r'op_name="([^"]*)"', line)
                 trips = re.search(r'"known_trip_count":\{"n":"(\d+)"', line)
-                parent[body[1]] = (computation, name[1] if name else body[1], trips[1] if trips else "?")
+                loop = (name[1] if name else instruction[1], trips[1] if trips else "?")
+            for _, called in re.findall(r"(body|condition|calls|to_apply|\w+_computations?)=\{?%([\w.\-]+)", line):
+                parent[called] = (computation, loop)
+            for branches in re.findall(r"branch_computations=\{([^}]*)\}", line):
+                for called in re.findall(r"%([\w.\-]+)", branches):
+                    parent[called] = (computation, None)
     by_loop = collections.Counter()
     for name, n in names.items():
         where, loops = computation_of.get(name), []
         while where in parent:
-            where, loop, trips = parent[where]
-            loops.insert(0, (loop, trips))
+            where, loop = parent[where]
+            if loop:
+                loops.insert(0, loop)
         labels = [
             f"{loop[len(outer[0]) :] if outer and loop.startswith(outer[0]) else loop} (x{trips})"
             for outer, (loop, trips) in zip([None, *loops], loops, strict=False)
@@ -357,7 +366,7 @@ def main(argv=None) -> int:
     environ = dict(os.environ)  # the training runs' environment: without the dump of --by-loop
     dump_dir = tempfile.mkdtemp(prefix="train_cost_hlo_") if args.by_loop else None
     if dump_dir:  # before JAX starts its backend
-        dump = f"--xla_dump_to={dump_dir} --xla_dump_hlo_as_text --xla_dump_hlo_module_re=chunk|evaluate"
+        dump = f"--xla_dump_to={dump_dir} --xla_dump_hlo_as_text --xla_dump_hlo_module_re=chunk|evaluate|fun"
         os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {dump}".strip()
 
     import jax
