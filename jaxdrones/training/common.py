@@ -230,17 +230,13 @@ def run_updates(
     background = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="jaxdrones-compile")
     building = compiling = eval_fn = None
     try:
-        if description is None:
-            shapes = jax.eval_shape(init_seeded, seed)
-        else:  # read from the program cache where it is on: init is not traced in a warm run
-            from jaxdrones.training.programs import cached_eval_shape
+        from jaxdrones.training.programs import cache_folder, cached_eval_shape, cached_jit
 
-            shapes = cached_eval_shape(init_seeded, seed, f"{description}\ninit")
+        # Read from the program cache where it is on: init is not traced in a warm run.
+        shapes = cached_eval_shape(init_seeded, seed, None if description is None else f"{description}\ninit")
         shardings = world_shardings(shapes, n_worlds)
         eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
         if shardings is None:
-            from jaxdrones.training.programs import cache_folder, cached_jit
-
             replicated = None
             cached = description is not None and eval_description is not None and cache_folder() is not None
 
