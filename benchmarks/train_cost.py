@@ -16,8 +16,10 @@ their number, not by its arithmetic. This script counts them, without a GPU:
 2. **The run itself.** ``jaxdrones train hover --algo ALGO --defaults PROFILE`` in a subprocess, as a user runs it
    (JAX's compilation cache in its default folder: the first run is cold, a second one warm), from which come the
    iterations (the run's updates), its wall time and phases (``summary.json``), and its verdict.
-3. **Sequential operations to a solved policy**: iterations × operations per update + evaluations × operations per
-   evaluation. This is the number to drive down; on a GPU each of them costs at least a launch.
+3. **Sequential operations**: to the end of the run, its iterations × operations per update + its evaluations ×
+   operations per evaluation; and to a solved policy, the same up to the run's first evaluation from which on every
+   evaluation was solved (< 5 cm with no start crashed; "never" if the run ended unsolved). This is the number to
+   drive down; on a GPU each of them costs at least a launch.
 
 The figures of docs/benchmarks.md are from jax 0.10.2, where XLA:CPU's trace shows the operations inside loops; on
 jax >= 0.11 it runs an inner loop (the substeps) as one ``call``, so there the looped step counts far fewer
@@ -240,18 +242,33 @@ def train(algo: str, profile: str, out: str, extra: list[str], env: dict | None 
         summary = json.load(f)
     with open(os.path.join(out, "progress.json")) as f:
         history = json.load(f)
-    threshold = summary["success_threshold"]
-    solved_at = next(
-        (i + 1 for i, h in enumerate(history) if h["success_value"] < threshold and h["terminated_rate"] == 0), None
-    )
+    solved_from = solved_from_eval(history, summary["success_threshold"])
     chunks = [b["time_s"] - a["time_s"] for a, b in zip(history, history[1:], strict=False)]
     return {
         **summary,
-        "first_solved_eval": solved_at,
+        "solved_from_eval": solved_from,
+        "solved_from_share": history[solved_from - 1]["env_steps"] / history[-1]["env_steps"] if solved_from else None,
         "first_chunk_s": history[0]["time_s"],
         "chunk_s": statistics.median(chunks) if chunks else math.nan,
         "verdict": proc.stdout.strip().splitlines()[0],
     }
+
+
+def solved_from_eval(history: list[dict], threshold: float) -> int | None:
+    """The first evaluation of ``history`` (a run's ``progress.json``) from which on every evaluation was solved
+    (distance below ``threshold`` with no episode ended early), counted from 1; None if the last was not."""
+    solved = [h["success_value"] < threshold and h["terminated_rate"] == 0 for h in history]
+    return next((i + 1 for i in range(len(solved)) if all(solved[i:])), None)
+
+
+def ops_to_solved(row: dict, run: dict) -> float | None:
+    """The sequential operations of ``run`` (`train`'s result) up to its first evaluation from which on every
+    evaluation was solved: the updates done by then (the run's share of env steps) × operations per update + the
+    evaluations up to it × operations per evaluation; None if the run ended unsolved."""
+    if run["solved_from_eval"] is None:
+        return None
+    updates = round(row["iterations"] * run["solved_from_share"])
+    return updates * row["ops_update"] + run["solved_from_eval"] * row["ops_evaluation"]
 
 
 def operations_by_loop(dump_dir: str, module: str, names: collections.Counter) -> list[tuple[int, str]]:
@@ -385,7 +402,7 @@ def main(argv=None) -> int:
         for profile in args.profiles:
             by_name = {} if dump_dir else None
             row = count(algo, profile, args.count_updates, by_name)
-            row["ops_to_solved"] = row["iterations"] * row["ops_update"] + row["num_evals"] * row["ops_evaluation"]
+            row["ops_to_end"] = row["iterations"] * row["ops_update"] + row["num_evals"] * row["ops_evaluation"]
             if dump_dir:
                 print_by_loop(dump_dir, by_name, row, args.count_updates)
             if not args.no_train:
@@ -401,7 +418,8 @@ def main(argv=None) -> int:
                 row["final_m"] = [r["success_value"] for r in runs]
                 row["terminated"] = [r["eval"]["terminated_rate"] for r in runs]
                 row["env_steps"] = runs[-1]["env_steps"]
-                row["first_solved_eval"] = runs[-1]["first_solved_eval"]
+                row["solved_from_eval"] = [r["solved_from_eval"] for r in runs]
+                row["ops_to_solved"] = [ops_to_solved(row, r) for r in runs]
                 row["first_chunk_s"] = statistics.median(r["first_chunk_s"] for r in runs)
                 row["chunk_s"] = statistics.median(r["chunk_s"] for r in runs)
                 row["verdict"] = runs[-1]["verdict"]
@@ -409,19 +427,22 @@ def main(argv=None) -> int:
             print(json.dumps(row), flush=True)
     print(
         "\n| trainer | defaults | worlds | iterations | ops/rollout | ops/update | ops/evaluation | evaluations "
-        "| sequential ops to the end | wall s (runs) | train s | final m | crashed |"
+        "| sequential ops to the end | wall s (runs) | train s | final m | crashed | solved from evaluation "
+        "| sequential ops to a solved policy |"
     )
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---|---|")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---|---|---|---|")
     for r in rows:
         trained = (
             f"{', '.join(f'{w:.1f}' for w in r['wall_s'])} | {r['train_s']:.1f} | "
-            f"{', '.join(f'{v:.4f}' for v in r['final_m'])} | {', '.join(f'{t:.1%}' for t in r['terminated'])}"
+            f"{', '.join(f'{v:.4f}' for v in r['final_m'])} | {', '.join(f'{t:.1%}' for t in r['terminated'])} | "
+            f"{', '.join(str(e) for e in r['solved_from_eval'])} | "
+            f"{', '.join('never' if n is None else f'{n:,.0f}' for n in r['ops_to_solved'])}"
             if "wall_s" in r
-            else "| | |"
+            else "| | | | |"
         )
         print(
             f"| {r['algo']} | {r['profile']} | {r['worlds']} | {r['iterations']} | {r['ops_rollout']:,.0f} | "
-            f"{r['ops_update']:,.0f} | {r['ops_evaluation']:,.0f} | {r['num_evals']} | {r['ops_to_solved']:,.0f} | "
+            f"{r['ops_update']:,.0f} | {r['ops_evaluation']:,.0f} | {r['num_evals']} | {r['ops_to_end']:,.0f} | "
             f"{trained} |"
         )
     if args.json:
