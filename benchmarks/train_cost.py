@@ -435,7 +435,7 @@ def main(argv=None) -> int:
         trained = (
             f"{', '.join(f'{w:.1f}' for w in r['wall_s'])} | {r['train_s']:.1f} | "
             f"{', '.join(f'{v:.4f}' for v in r['final_m'])} | {', '.join(f'{t:.1%}' for t in r['terminated'])} | "
-            f"{', '.join(str(e) for e in r['solved_from_eval'])} | "
+            f"{', '.join('never' if e is None else str(e) for e in r['solved_from_eval'])} | "
             f"{', '.join('never' if n is None else f'{n:,.0f}' for n in r['ops_to_solved'])}"
             if "wall_s" in r
             else "| | | | |"
