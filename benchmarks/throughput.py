@@ -64,6 +64,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         action="store_true",
         help="write the substeps out in the compiled step (SimConfig.unroll_substeps=True; default: a loop)",
     )
+    parser.add_argument(
+        "--pallas",
+        action="store_true",
+        help="the control step as one Pallas kernel (SimConfig.pallas=True; for a GPU, interpreted on the CPU); "
+        "downwash off, as the kernel takes no coupling between drones",
+    )
     parser.add_argument("--sim-freq", type=int, default=240, help="physics rate, Hz")
     parser.add_argument("--ctrl-freq", type=int, default=48, help="control rate, Hz (sim_freq/ctrl_freq substeps)")
     parser.add_argument(
@@ -147,9 +153,10 @@ def measure(jax, jd, args, n_worlds: int, n_drones: int, effects_on: bool) -> di
         ctrl_freq=args.ctrl_freq,
         drag=effects_on,
         ground_effect=effects_on,
-        downwash=effects_on,
+        downwash=effects_on and not args.pallas,
         integrator=args.integrator,
         unroll_substeps=args.unroll_substeps,
+        pallas=args.pallas,
     )
     substeps = config.n_substeps
     steps = args.steps or int(np.clip(TARGET_DRONE_STEPS // (n_worlds * n_drones * substeps), 2, 2000))

@@ -59,13 +59,21 @@ class SimConfig:
             costs. On the CPU the unrolled step ran 1.4-3 times slower (`benchmarks/train_cost.py --per-step`,
             docs/benchmarks.md). The results are the same either way (to float rounding: XLA may fuse the
             arithmetic differently).
+        pallas: the whole control step (the RPM clip, the motors, every substep and its ground contact) as one
+            Pallas kernel, lowered through Triton on an NVIDIA GPU, and its gradient as a second, whose reverse pass
+            is the hand-written adjoint's (`jaxdrones.physics.kernel`): two kernel launches per differentiated control
+            step instead of about 44 forward and 260 with the gradient (docs/benchmarks.md). Off by default; on the
+            CPU it runs in Pallas's interpret mode, to check it, slowly. It takes the hand-written adjoint's settings
+            (``adjoint=True``, the Euler integrator, exact kinks) and drones that do not act on each other (no
+            downwash with several drones); a step given a `Disturbance` runs on the XLA path. The values are the XLA
+            path's to float rounding.
 
     Raises:
         ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, an unknown
             integrator or kink treatment, a ``downwash_radius`` neither None nor > 0, a ``cell_capacity`` below 1,
             a ``drag``, ``ground_effect``, ``adjoint`` or ``motor_dynamics`` that is not a bool (a string or number
             would otherwise be truthy), an ``unroll_substeps`` neither a bool nor None, or a ``downwash`` that is none
-            of False, True, ``"paper"``, ``"per_rotor"``.
+            of False, True, ``"paper"``, ``"per_rotor"``; ``pallas=True`` with other settings than those it takes.
     """
 
     n_drones: int = 1
@@ -81,6 +89,7 @@ class SimConfig:
     adjoint: bool = True
     motor_dynamics: bool = False
     unroll_substeps: bool | None = False
+    pallas: bool = False
 
     def __post_init__(self):
         if isinstance(self.kinks, str):
@@ -98,7 +107,7 @@ class SimConfig:
             what = "None (every drone) or a finite radius in m"
             check_real("SimConfig.downwash_radius", self.downwash_radius, 0, low_open=True, what=what)
         check_int("SimConfig.cell_capacity", self.cell_capacity)
-        for name in ("drag", "ground_effect", "adjoint", "motor_dynamics"):
+        for name in ("drag", "ground_effect", "adjoint", "motor_dynamics", "pallas"):
             object.__setattr__(self, name, check_bool(f"SimConfig.{name}", getattr(self, name)))
         unroll = self.unroll_substeps
         if unroll is not None and not isinstance(unroll, (bool, np.bool_)):
@@ -109,6 +118,12 @@ class SimConfig:
             raise ValueError(
                 f"SimConfig.integrator must be one of {tuple(dynamics.INTEGRATORS)}, got {self.integrator!r}"
             )
+        if self.pallas:
+            from jaxdrones.physics import kernel
+
+            why = kernel.supported(self)
+            if why is not None:
+                raise ValueError(f"SimConfig.pallas=True takes {why}; got {self}")
 
     @property
     def n_substeps(self) -> int:

@@ -15,7 +15,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxdrones.physics import adjoint, dynamics
+from jaxdrones.physics import adjoint, dynamics, kernel
 from jaxdrones.physics.checks import check_disturbance, check_motor_time_constants, check_params_batch, check_rpm
 from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.params import DroneParams, align_params
@@ -166,6 +166,8 @@ def _compiled_step(config: SimConfig):
     """(`_core_step_c`, `_core_step`) of ``config``, shared by every `JaxStep` of an equal config: an env built
     again (an evaluation env beside the training env, a second run in a notebook) compiles nothing again."""
     core_c = _core_step_c(config)
+    if config.pallas:
+        core_c = kernel.control_step_c(config, core_c)
     return core_c, _core_step(core_c, remat=not adjoint.supported(config))
 
 
