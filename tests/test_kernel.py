@@ -8,6 +8,8 @@ for an NVIDIA GPU without one."""
 
 from __future__ import annotations
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -198,3 +200,9 @@ def test_kernels_lower_through_triton_for_a_gpu(monkeypatch):
         gradient = jax.jit(jax.grad(loss)).trace(rpm, state).lower(lowering_platforms=("cuda",))
     assert forward.as_text().count("xla.gpu.triton") == 1
     assert gradient.as_text().count("xla.gpu.triton") == 2
+    # Triton's loads and stores of a block are not masked: every operand and result is whole blocks of drones (the
+    # drones padded; the shared params one vector of a power of two).
+    calls = [line.split(" : ")[-1] for line in gradient.as_text().splitlines() if "xla.gpu.triton" in line]
+    sizes = [int(size) for call in calls for size in re.findall(r"tensor<(?:\d+x)?(\d+)x[fi]\d+>", call)]
+    assert sizes and all(size % kernel.BLOCK == 0 or size & (size - 1) == 0 for size in sizes)
+    assert any(size % kernel.BLOCK == 0 and size > WORLDS for size in sizes)

@@ -64,7 +64,7 @@ class _Entries(np.ndarray):
 def _substeps(config, params, state: DroneState, command: tuple, keep: list | None = None) -> DroneState:
     """The control step on values (in the kernel): ``state``'s vectors as tuples of per-drone values, ``command`` the
     RPM command as 4 values. As `jaxdrones.sim`'s control step, the substeps written out; each substep's input
-    kinematics, RPM state and motors are appended to ``keep`` when given (for the backward pass)."""
+    kinematics and RPM state are appended to ``keep`` when given (for the backward pass)."""
     command, quat = _prepare(config, params, command, state.quat)
     kin = dynamics.Kinematics(state.pos, quat, state.vel, state.ang_vel)
     rpm, touched = state.rpm, False
@@ -100,7 +100,7 @@ def _backward(config, params, state: DroneState, command: tuple, ct: DroneState)
     with `adjoint.substep_vjp`; the motors, the clip and the normalisation with JAX's derivative."""
     keep: list = []
     _substeps(config, params, state, command, keep)
-    clipped, quat = _prepare(config, params, command, state.quat)
+    clipped, _ = _prepare(config, params, command, state.quat)
     kin_b = dynamics.Kinematics(ct.pos, ct.quat, ct.vel, ct.ang_vel)
     rpm_b = ct.rpm
     clipped_b = tuple(jnp.zeros_like(c) for c in clipped)
@@ -120,7 +120,7 @@ def _backward(config, params, state: DroneState, command: tuple, ct: DroneState)
 
 def _flat_params(params: DroneParams, shape: tuple[int, ...]) -> tuple[list, list, jax.Array | None]:
     """The params as kernel inputs: ``(names, per_drone, shared)``, ``names`` ``(field, entry shape)`` in order;
-    ``per_drone`` (when the params differ between drones) one array per entry, broadcast to ``shape``
+    ``per_drone`` (when the params differ between drones) one array per entry, of ``shape``
     (the state's ``[..., D]``), else ``shared`` one vector of every entry, padded to a power of two (a Triton block)."""
     names = [
         (f.name, jnp.shape(getattr(params, f.name))[jnp.ndim(getattr(params, f.name)) - _CORE_NDIM.get(f.name, 0) :])
@@ -191,40 +191,47 @@ def _kernel(body, n_out: int, int_out: bool):
 
 def _call(body, params: DroneParams, arrays: list, n_out: int, int_out: bool) -> list:
     """``body(params, values) -> (outputs, contact)`` run as one Pallas kernel over the drones: ``arrays`` broadcast
-    to their common shape ``[..., D]`` and flattened, blocks of `BLOCK` drones per program; returns the ``n_out``
-    float outputs (and the i32 contact when ``int_out``), each of that shape."""
+    to their common shape ``[..., D]``, flattened and stacked into one f[len(arrays), N] input (one XLA fusion before
+    the kernel rather than one per array), N padded to whole blocks of `BLOCK` drones (with the last drone's values:
+    Triton's loads of a block are not masked), one block per program; returns the ``n_out`` float outputs (and the
+    i32 contact when ``int_out``), each of that shape."""
     from jax.experimental import pallas as pl
 
     shape = jnp.broadcast_shapes(*(jnp.shape(x) for x in arrays))
     n = math.prod(shape)
+    padded = pl.cdiv(n, BLOCK) * BLOCK
     dtype = jnp.result_type(*arrays)
     names, per_drone, shared = _flat_params(params, shape)
-    arrays = [jnp.reshape(jnp.broadcast_to(a, shape), (n,)).astype(dtype) for a in per_drone + arrays]
-    n_per_drone = len(per_drone)
+
+    def stack(xs):
+        rows = jnp.stack([jnp.reshape(jnp.broadcast_to(x, shape), (n,)) for x in xs]).astype(dtype)
+        return jnp.pad(rows, ((0, 0), (0, padded - n)), mode="edge")
+
+    def rows(count):  # one row of a stacked input, the block of drones of program i
+        return [pl.BlockSpec((None, BLOCK), lambda i, j=j: (j, i)) for j in range(count)]
+
+    inputs, in_specs = [stack(arrays)] * len(arrays), rows(len(arrays))
+    if per_drone:
+        inputs, in_specs = [stack(per_drone)] * len(per_drone) + inputs, rows(len(per_drone)) + in_specs
+    if shared is not None:
+        inputs, in_specs = [shared.astype(dtype), *inputs], [pl.BlockSpec(shared.shape, lambda i: (0,)), *in_specs]
 
     def kernel(*refs):
         if shared is not None:
             shared_ref, refs = refs[0], refs[1:]
             entries = [shared_ref[i] for i in range(sum(math.prod(core) for _, core in names))]
-        ins, outs = refs[: len(arrays)], refs[len(arrays) :]
-        values = [ref[...] for ref in ins]
-        if shared is None:
-            entries = values[:n_per_drone]
-        floats, contact = body(_kernel_params(names, entries), values[n_per_drone:])
+        values = [ref[...] for ref in refs[: len(inputs) - (shared is not None)]]
+        outs = refs[len(values) :]
+        if per_drone:
+            entries, values = values[: len(per_drone)], values[len(per_drone) :]
+        floats, contact = body(_kernel_params(names, entries), values)
         for ref, value in zip(outs, floats, strict=False):
             ref[...] = jnp.broadcast_to(value, ref.shape).astype(ref.dtype)
         if int_out:
             outs[-1][...] = contact
 
-    block = pl.BlockSpec((BLOCK,), lambda i: (i,))
-    in_specs = [block] * len(arrays)
-    inputs = list(arrays)
-    if shared is not None:
-        in_specs = [pl.BlockSpec(shared.shape, lambda i: (0,)), *in_specs]
-        inputs = [shared.astype(dtype), *inputs]
-    out_shape = [jax.ShapeDtypeStruct((n,), dtype)] * n_out + (
-        [jax.ShapeDtypeStruct((n,), jnp.int32)] if int_out else []
-    )
+    out_shape = [jax.ShapeDtypeStruct((padded,), dtype)] * n_out
+    out_shape += [jax.ShapeDtypeStruct((padded,), jnp.int32)] if int_out else []
     interpret = _interpret()
     compiler_params = None
     if not interpret:
@@ -234,14 +241,14 @@ def _call(body, params: DroneParams, arrays: list, n_out: int, int_out: bool) ->
     outputs = pl.pallas_call(
         kernel,
         out_shape=out_shape,
-        grid=(pl.cdiv(n, BLOCK),),
+        grid=(padded // BLOCK,),
         in_specs=in_specs,
-        out_specs=[block] * len(out_shape),
+        out_specs=[pl.BlockSpec((BLOCK,), lambda i: (i,))] * len(out_shape),
         interpret=interpret,
         compiler_params=compiler_params,
         name="jaxdrones_control_step",
     )(*inputs)
-    return [jnp.reshape(x, shape) for x in outputs]
+    return [jnp.reshape(x[:n], shape) for x in outputs]
 
 
 def control_step_c(config, xla_step):
