@@ -27,6 +27,7 @@ checkout, so that the current folder does not come first), e.g. a commit against
     python benchmarks/first_run.py --rounds 3 --xla-timers
     python benchmarks/first_run.py --rounds 1 --warm 2 --timeline --setting default
     python benchmarks/first_run.py --setting nokernel JAX_THREEFRY_GPU_KERNEL_LOWERING=0 --train-args --defaults gpu
+    python benchmarks/first_run.py --setting xla --setting pallas TRAIN_ARGS=--pallas   # a setting's own options
 
 Results: a table of medians on stdout and every run in ``benchmarks/results/first_run_<TASK>.json`` (``--out``).
 """
@@ -148,7 +149,8 @@ def main() -> int:
         nargs="+",
         action="append",
         metavar=("NAME", "VAR=VALUE"),
-        help="a setting to compare: its name and environment variables (repeatable; default: the command line's "
+        help="a setting to compare: its name and environment variables, and its own jaxdrones train options as "
+        "TRAIN_ARGS='--OPTION ...' (repeatable; default: the command line's "
         f"and each GPU setting turned off: {list(DEFAULT_SETTINGS)})",
     )
     parser.add_argument("--xla-timers", action="store_true", help="log XLA:GPU's timers per compiled program")
@@ -161,6 +163,7 @@ def main() -> int:
     if args.rounds < 1 or args.warm < 1:
         parser.error("--rounds and --warm must be >= 1")
     settings = DEFAULT_SETTINGS
+    setting_args: dict[str, list[str]] = collections.defaultdict(list)  # a setting's own jaxdrones train options
     if args.setting:
         settings = {}
         for name, *variables in args.setting:
@@ -168,6 +171,7 @@ def main() -> int:
             if any(not sep or not key for key, sep, _ in pairs):
                 parser.error(f"--setting {name}: variables are VAR=VALUE, got {variables}")
             settings[name] = {key: value for key, _, value in pairs}
+            setting_args[name] = settings[name].pop("TRAIN_ARGS", "").split()
     records = []
     with tempfile.TemporaryDirectory(prefix="jaxdrones-first-run-") as tmp:
         folders = {name: os.path.join(tmp, f"setting{k}") for k, name in enumerate(settings)}
@@ -177,8 +181,9 @@ def main() -> int:
                     cache, out = folders[name] + "-cache", folders[name] + "-run"
                     if mode == "cold":
                         shutil.rmtree(cache, ignore_errors=True)
-                    record = run_once(args.task, env, cache, out, args.train_args, args.xla_timers, args.timeline)
-                    record.update(setting=name, env=env, mode=mode, round=round_)
+                    train_args = [*args.train_args, *setting_args[name]]
+                    record = run_once(args.task, env, cache, out, train_args, args.xla_timers, args.timeline)
+                    record.update(setting=name, env=env, train_args=setting_args[name], mode=mode, round=round_)
                     records.append(record)
                     print(json.dumps(record), flush=True)
     print(

@@ -53,10 +53,10 @@ if TYPE_CHECKING:
 
 
 def supported(config: SimConfig) -> bool:
-    """Whether a `jaxdrones.config.SimConfig` steps with `euler_substep_c`: ``adjoint=True`` with the Euler
-    integrator and the kinks treated exactly (the defaults). Smooth and straight-through kinks (`jaxdrones.kinks`)
-    and RK4 keep JAX's derived derivatives."""
-    return config.adjoint and config.integrator == "euler" and config.kinks.mode == "exact"
+    """Whether a `jaxdrones.config.SimConfig` steps with `euler_substep_c` (`SimConfig.hand_written_adjoint`):
+    ``adjoint=True`` with the Euler integrator and the kinks treated exactly (the defaults). Smooth and
+    straight-through kinks (`jaxdrones.kinks`) and RK4 keep JAX's derived derivatives."""
+    return config.hand_written_adjoint
 
 
 def euler_substep_c(

@@ -61,8 +61,9 @@ class SimConfig:
             arithmetic differently).
         pallas: the whole control step (the RPM clip, the motors, every substep and its ground contact) as one
             Pallas kernel, lowered through Triton on an NVIDIA GPU, and its gradient as a second, whose reverse pass
-            is the hand-written adjoint's (`jaxdrones.physics.kernel`): two kernel launches per differentiated control
-            step instead of about 44 forward and 260 with the gradient (docs/benchmarks.md). Off by default; on the
+            is the hand-written adjoint's (`jaxdrones.physics.kernel`): the physics of a differentiated control step in
+            two launches (and the fusions that stack their inputs), where the default hover env's whole step ran
+            about 44 kernels forward and 261 with its gradient on an H200 (docs/benchmarks.md). Off by default; on the
             CPU it runs in Pallas's interpret mode, to check it, slowly. It takes the hand-written adjoint's settings
             (``adjoint=True``, the Euler integrator, exact kinks) and drones that do not act on each other (no
             downwash with several drones); a step given a `Disturbance` runs on the XLA path. The values are the XLA
@@ -118,12 +119,8 @@ class SimConfig:
             raise ValueError(
                 f"SimConfig.integrator must be one of {tuple(dynamics.INTEGRATORS)}, got {self.integrator!r}"
             )
-        if self.pallas:
-            from jaxdrones.physics import kernel
-
-            why = kernel.supported(self)
-            if why is not None:
-                raise ValueError(f"SimConfig.pallas=True takes {why}; got {self}")
+        if self.pallas and (why := self.pallas_unsupported) is not None:
+            raise ValueError(f"SimConfig.pallas=True takes {why}; got {self}")
 
     @property
     def n_substeps(self) -> int:
@@ -150,6 +147,24 @@ class SimConfig:
         if unroll is None:
             unroll = jax.default_backend() != "cpu"
         return self.n_substeps if unroll else 1
+
+    @property
+    def hand_written_adjoint(self) -> bool:
+        """Whether the step's reverse-mode derivative is the hand-written adjoint of `jaxdrones.adjoint`:
+        ``adjoint=True`` with the Euler integrator and exact kinks (the defaults). Smooth and straight-through
+        kinks (`jaxdrones.kinks`) and RK4 keep JAX's derived derivatives."""
+        return self.adjoint and self.integrator == "euler" and self.kinks.mode == "exact"
+
+    @property
+    def pallas_unsupported(self) -> str | None:
+        """None when the control step can run as the Pallas kernel of `jaxdrones.physics.kernel` (`pallas`), else
+        what it takes: the hand-written adjoint's settings (`hand_written_adjoint`) and drones that do not act on
+        each other (no downwash between several drones of a world: the kernel steps each drone on its own)."""
+        if not self.hand_written_adjoint:
+            return "the hand-written adjoint's settings: adjoint=True, integrator='euler', kinks='exact'"
+        if self.downwash and self.n_drones > 1:
+            return "drones that do not act on each other: downwash=False with several drones per world"
+        return None
 
     @property
     def effects(self) -> dynamics.Effects:

@@ -1,27 +1,29 @@
 """The JAX core's control step as one Pallas kernel, and its reverse-mode derivative as a second (`SimConfig.pallas`).
 
 On a GPU every XLA operation is at least one kernel launch of a few microseconds, and a control step of the default
-hover env compiles to about 44 of them forward and 260 with its gradient (docs/benchmarks.md): a training run of
-many small updates is bound by those launches, not by the arithmetic. Here the whole control step (the RPM clip,
-the quaternion's normalisation, the motors and every physics substep with its ground contact) is one
-`jax.experimental.pallas` kernel, lowered through Triton on an NVIDIA GPU, and its vector-Jacobian product a second:
-the backward kernel recomputes the substeps from the control step's input, then transposes them one by one with the
-hand-written adjoint of `jaxdrones.adjoint` (`substep_vjp`) and the few element-wise operations around them with
-JAX's derivative, all inside the kernel. On the CPU both run in Pallas's interpret mode (as the XLA operations the
-kernel's body traces to): what the suite checks against the XLA path (tests/test_kernel.py), not a way to run fast.
+hover env (physics, observation, reward) ran about 44 of them forward and 261 with its gradient on an H200
+(docs/benchmarks.md): a training run of many small updates is bound by those launches, not by the arithmetic. Here
+the whole control step's physics (the RPM clip, the quaternion's normalisation, the motors and every physics substep
+with its ground contact) is one `jax.experimental.pallas` kernel, lowered through Triton on an NVIDIA GPU, and its
+vector-Jacobian product a second: the backward kernel recomputes the substeps from the control step's input, then
+transposes them one by one with the hand-written adjoint of `jaxdrones.adjoint` (`substep_vjp`) and the few
+element-wise operations around them with JAX's derivative, all inside the kernel. On the CPU both run in Pallas's
+interpret mode (as the XLA operations the kernel's body traces to): what the suite checks against the XLA path
+(tests/test_kernel.py), not a way to run fast.
 
 The kernel's body is the physics of `jaxdrones.dynamics` itself, traced on blocks of drones, one value per drone:
-each drone is independent within a control step, so the kernel takes configs without coupling between drones
-(no downwash with more than one drone per world; `supported`) and the hand-written adjoint's (the Euler integrator,
-exact kinks). The params are read in the kernel entry by entry (`_Entries`): one scalar each when every drone has
-the same, else one value per drone. A step given a `Disturbance` runs on the XLA path; a gradient with respect to
-the params (system identification) takes JAX's derivative of the XLA path.
+each drone is independent within a control step, so the kernel takes configs without coupling between drones (no
+downwash with more than one drone per world) and the hand-written adjoint's (the Euler integrator, exact kinks):
+`SimConfig.pallas_unsupported`. The params are read in the kernel entry by entry (`_Entries`): one scalar each when
+every drone has the same, else one value per drone. A step given a `Disturbance` runs on the XLA path; a gradient
+with respect to the params (system identification) takes JAX's derivative of the XLA path.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -29,26 +31,16 @@ import numpy as np
 from jax.custom_derivatives import CustomVJPPrimal, SymbolicZero
 
 from jaxdrones.physics import adjoint, dynamics
+from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.params import _CORE_NDIM, DroneParams, params_batch_shape
 from jaxdrones.physics.rotations import normalize_c
 from jaxdrones.physics.state import CONTACT_GROUND, DroneState
 
-__all__ = ["BLOCK", "control_step_c", "supported"]
+__all__ = ["BLOCK", "control_step_c"]
 
 #: Drones per kernel program (one Triton program of 4 warps, one drone per thread).
 BLOCK = 128
 _VECTORS = (("pos", 3), ("quat", 4), ("vel", 3), ("ang_vel", 3), ("rpm", 4))
-
-
-def supported(config) -> str | None:
-    """None when ``config`` (a `jaxdrones.config.SimConfig`) can step in the kernel, else why not: it needs the
-    hand-written adjoint's configs (``adjoint=True``, the Euler integrator, exact kinks: `adjoint.supported`) and
-    independent drones (no downwash between several drones of a world)."""
-    if not adjoint.supported(config):
-        return "the hand-written adjoint's settings: adjoint=True, integrator='euler', kinks='exact'"
-    if config.downwash and config.n_drones > 1:
-        return "drones that do not act on each other: downwash=False with several drones per world"
-    return None
 
 
 class _Entries(np.ndarray):
@@ -251,11 +243,11 @@ def _call(body, params: DroneParams, arrays: list, n_out: int, int_out: bool) ->
     return [jnp.reshape(x[:n], shape) for x in outputs]
 
 
-def control_step_c(config, xla_step):
-    """The control step of ``config`` (which `supported` accepts) in component form, as `jaxdrones.sim`'s
-    ``core_c(params, state_c, rpm_c, disturbance_c=None) -> state_c`` and with its values (to float rounding), run
-    as one Pallas kernel forward and one backward; ``xla_step``, the XLA path's ``core_c``, steps a call with a
-    disturbance and gives the derivative with respect to the params."""
+def control_step_c(config: SimConfig, xla_step: Callable[..., DroneState]) -> Callable[..., DroneState]:
+    """The control step of ``config`` (one that `SimConfig.pallas_unsupported` accepts) in component form, as
+    `jaxdrones.sim`'s ``core_c(params, state_c, rpm_c, disturbance_c=None) -> state_c`` and with its values (to float
+    rounding), run as one Pallas kernel forward and one backward; ``xla_step``, the XLA path's ``core_c``, steps a
+    call with a disturbance and gives the derivative with respect to the params."""
 
     def forward_body(params, values):
         out = _substeps(config, params, _state_of(values[:17]), tuple(values[17:]))
