@@ -22,8 +22,7 @@ from jaxdrones.physics.params import stack_params
 pytestmark = pytest.mark.unit
 
 WORLDS = 6
-OPTIONS = {
-    "none": {},
+OPTIONS = {  # two substeps per control step unless told (the kernel writes the substeps out: a short compilation)
     "drag_ground": {"drag": True, "ground_effect": True},
     "motors": {"drag": True, "motor_dynamics": True},
     "one_substep": {"ground_effect": True, "sim_freq": 240, "ctrl_freq": 240},
@@ -36,7 +35,7 @@ def _case(options: dict, seed: int = 0, dtype=np.float32):
     """Configs with and without the kernel, params (per drone, different, for several drones; lagged motors where
     asked), a start state (random pose and velocities, an unnormalised quaternion, drones at and below the rest
     height and falling) and a command (some beyond 0 and max_rpm, one exactly at 0)."""
-    options = {"sim_freq": 240, "ctrl_freq": 60, **options}
+    options = {"sim_freq": 240, "ctrl_freq": 120, **options}
     n = options.get("n_drones", 1)
     config = jd.SimConfig(**options)
     params = jd.load_params("cf2x")
@@ -150,7 +149,7 @@ def test_hover_env_with_the_kernel():
     worlds, as the XLA path's."""
     results = []
     for pallas in (False, True):
-        env = jd.make("hover", pallas=pallas, episode_len_s=1.0)
+        env = jd.make("hover", pallas=pallas, episode_len_s=1.0, ctrl_freq=120)
         start = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 4))
         actions = jax.random.uniform(jax.random.PRNGKey(1), (6, 4, 1, 4), minval=-1, maxval=1)
 
