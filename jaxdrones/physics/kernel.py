@@ -54,11 +54,11 @@ class _Entries(np.ndarray):
 
 
 def _substeps(config, params, state: DroneState, command: tuple, keep: list | None = None) -> DroneState:
-    """The control step on values (in the kernel): ``state``'s vectors as tuples of per-drone values, ``command`` the
-    RPM command as 4 values. As `jaxdrones.sim`'s control step, the substeps written out; each substep's input
-    kinematics and RPM state are appended to ``keep`` when given (for the backward pass)."""
-    command, quat = _prepare(config, params, command, state.quat)
-    kin = dynamics.Kinematics(state.pos, quat, state.vel, state.ang_vel)
+    """The physics substeps of the control step on values (in the kernel): ``state``'s vectors as tuples of per-drone
+    values, its quaternion normalised, ``command`` the clipped RPM command as 4 values (`_prepare`). As
+    `jaxdrones.sim`'s control step, the substeps written out; each substep's input kinematics and RPM state are
+    appended to ``keep`` when given (for the backward pass)."""
+    kin = dynamics.Kinematics(state.pos, state.quat, state.vel, state.ang_vel)
     rpm, touched = state.rpm, False
     for k in range(config.n_substeps):
         motors, rpm_prev, rpm_next = _motors(config, params, k, command, rpm)
@@ -68,6 +68,12 @@ def _substeps(config, params, state: DroneState, command: tuple, keep: list | No
         rpm, touched = rpm_next, touched | touching
     contact = jnp.where(touched, CONTACT_GROUND, 0).astype(jnp.int32)
     return DroneState(*kin, rpm=rpm, contact=contact)
+
+
+def _control_step(config, params, state: DroneState, command: tuple) -> DroneState:
+    """The control step on values (in the kernel), from the raw command and quaternion: `_prepare`, `_substeps`."""
+    command, quat = _prepare(config, params, command, state.quat)
+    return _substeps(config, params, state.replace(quat=quat), command)
 
 
 def _prepare(config, params, command: tuple, quat: tuple) -> tuple[tuple, tuple]:
@@ -90,9 +96,9 @@ def _backward(config, params, state: DroneState, command: tuple, ct: DroneState)
     """The cotangents of the control step's ``state`` (its vectors; the contact has none) and ``command`` for the
     cotangent ``ct`` of its output (in the kernel, on values): the substeps recomputed, then transposed in reverse
     with `adjoint.substep_vjp`; the motors, the clip and the normalisation with JAX's derivative."""
+    (clipped, quat), prepare_vjp = jax.vjp(lambda c, q: _prepare(config, params, c, q), command, state.quat)
     keep: list = []
-    _substeps(config, params, state, command, keep)
-    clipped, _ = _prepare(config, params, command, state.quat)
+    _substeps(config, params, state.replace(quat=quat), clipped, keep)
     kin_b = dynamics.Kinematics(ct.pos, ct.quat, ct.vel, ct.ang_vel)
     rpm_b = ct.rpm
     clipped_b = tuple(jnp.zeros_like(c) for c in clipped)
@@ -104,7 +110,6 @@ def _backward(config, params, state: DroneState, command: tuple, ct: DroneState)
         )
         command_b, rpm_b = motors_vjp((motors_b, rpm_prev_b, rpm_b))
         clipped_b = tuple(a + b for a, b in zip(clipped_b, command_b, strict=True))
-    _, prepare_vjp = jax.vjp(lambda c, q: _prepare(config, params, c, q), command, state.quat)
     command_b, quat_b = prepare_vjp((clipped_b, kin_b.quat))
     state_b = DroneState(kin_b.pos, quat_b, kin_b.vel, kin_b.ang_vel, rpm=rpm_b, contact=None)
     return state_b, command_b
@@ -250,7 +255,7 @@ def control_step_c(config: SimConfig, xla_step: Callable[..., DroneState]) -> Ca
     call with a disturbance and gives the derivative with respect to the params."""
 
     def forward_body(params, values):
-        out = _substeps(config, params, _state_of(values[:17]), tuple(values[17:]))
+        out = _control_step(config, params, _state_of(values[:17]), tuple(values[17:]))
         return _components(out), out.contact
 
     def backward_body(params, values):
