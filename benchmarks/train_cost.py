@@ -242,7 +242,9 @@ def train(algo: str, profile: str, out: str, extra: list[str], env: dict | None 
         summary = json.load(f)
     with open(os.path.join(out, "progress.json")) as f:
         history = json.load(f)
-    solved_from = solved_from_eval(history, summary["success_threshold"])
+    from jaxdrones.envs import make
+
+    solved_from = solved_from_eval(history, make(summary["task"]).task)
     chunks = [b["time_s"] - a["time_s"] for a, b in zip(history, history[1:], strict=False)]
     return {
         **summary,
@@ -254,10 +256,13 @@ def train(algo: str, profile: str, out: str, extra: list[str], env: dict | None 
     }
 
 
-def solved_from_eval(history: list[dict], threshold: float) -> int | None:
-    """The first evaluation of ``history`` (a run's ``progress.json``) from which on every evaluation was solved
-    (distance below ``threshold`` with no episode ended early), counted from 1; None if the last was not."""
-    solved = [h["success_value"] < threshold and h["terminated_rate"] == 0 for h in history]
+def solved_from_eval(history: list[dict], task) -> int | None:
+    """The first evaluation of ``history`` (a run's ``progress.json``) from which on every evaluation solved ``task``
+    (the run's verdict, `jaxdrones.training.run.failed_criteria`: for hover, the distance below its threshold with no
+    episode ended early), counted from 1; None if the last did not."""
+    from jaxdrones.training.run import failed_criteria
+
+    solved = [not failed_criteria(task, h) for h in history]
     return next((i + 1 for i in range(len(solved)) if all(solved[i:])), None)
 
 
