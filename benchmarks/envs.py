@@ -417,7 +417,7 @@ def profile_vector_step(jax, gymnasium, n: int, calls: int = 100) -> dict:
 def _timed_step_body(jax, adapter, venv, actions, parts: dict) -> float:
     """Run the body of ``GymnasiumVectorEnv.step`` once, appending each part's time to ``parts``; returns the total."""
     t0 = time.perf_counter()
-    checked = adapter._check_action(actions, venv.single_action_space, (venv.num_envs,))
+    checked = adapter.check_action(actions, venv.single_action_space, (venv.num_envs,), strict=venv.strict_actions)
     t1 = time.perf_counter()
     was_reset = venv._needs_reset
     venv._state, venv._needs_reset = jax.block_until_ready(venv._step(venv._state, checked, venv._needs_reset))
