@@ -242,9 +242,9 @@ def train(algo: str, profile: str, out: str, extra: list[str], env: dict | None 
         summary = json.load(f)
     with open(os.path.join(out, "progress.json")) as f:
         history = json.load(f)
-    from jaxdrones.envs import make
+    from jaxdrones.envs.registry import get_task
 
-    solved_from = solved_from_eval(history, make(summary["task"]).task)
+    solved_from = solved_from_eval(history, get_task(summary["task"]))
     chunks = [b["time_s"] - a["time_s"] for a, b in zip(history, history[1:], strict=False)]
     return {
         **summary,
