@@ -3,8 +3,8 @@ preset, and under the preset with domain randomisation, each evaluated under the
 harsher setting.
 
 Every policy is trained as ``jaxdrones train TASK --realism crazyflie`` trains it (`jaxdrones.training.run.train_task`
-with the preset's defaults: `jaxdrones.training.trainers.REALISM_TRAINING`'s algorithm and budget,
-`jaxdrones.training.run.REALISM_ENV`'s action and memory: collective thrust and body rates, ``ctbr``, the Crazyflie
+with the task's recipe under the preset, `jaxdrones.training.recipes.RECIPES`: its algorithm and budget, its
+action and memory, `jaxdrones.training.recipes.REALISM_ENV`: collective thrust and body rates, ``ctbr``, the Crazyflie
 firmware's own interface, and the integral of the tracking error in the observation), only the physics of its
 training env differing (`TRAIN`), with a seed (``--steps`` overrides the budget):
 
@@ -80,18 +80,17 @@ def train_and_evaluate(
     import jax
 
     import jaxdrones as jd
-    from jaxdrones.training import checkpoint, trainers
+    from jaxdrones.training import checkpoint
     from jaxdrones.training.evaluation import evaluate
-    from jaxdrones.training.run import REALISM_ENV, train_task
+    from jaxdrones.training.recipes import recipe
+    from jaxdrones.training.run import train_task
 
-    algo = trainers.default_algo(task, defaults=defaults, realism=True)
-    config = trainers.run_config(trainers.get(algo), task, defaults=defaults, realism=True)
-    config = dataclasses.replace(config, seed=seed, **({} if steps is None else {"num_timesteps": steps}))
-    overrides = {**REALISM_ENV.get(task, {}), **TRAIN[setting]}
+    # The recipe under the preset (its trainer, budget, action and memory), in the setting's physics.
+    plan = recipe(task, defaults, {"realism": "crazyflie"}).with_options(seed=seed, steps=steps)
+    plan = dataclasses.replace(plan, env={**{k: v for k, v in plan.env.items() if k != "realism"}, **TRAIN[setting]})
+    algo, overrides = plan.algo, dict(plan.env)
     run = os.path.join(folder, f"{task}-{setting}-{seed}")
-    summary = train_task(
-        task, run, overwrite=True, algo=algo, config=config, env_overrides=overrides, progress=False, defaults=defaults
-    )
+    summary = train_task(plan, run, overwrite=True, progress=False)
     record = {
         "task": task,
         "train": setting,

@@ -104,14 +104,10 @@ def per_run(counted: tuple[int, int | None], expected: int) -> float:
 def profile_config(algo: str, profile: str):
     """The trainer's config and the env's settings of ``jaxdrones train hover --algo ALGO --defaults PROFILE``."""
     from jaxdrones.training import trainers
-    from jaxdrones.training.run import default_env
+    from jaxdrones.training.recipes import recipe
 
-    trainer = trainers.get(algo)
-    return (
-        trainer,
-        trainer.default_config(TASK, False, profile),
-        default_env(TASK, {}),
-    )
+    plan = recipe(TASK, profile, algo=algo)
+    return trainers.get(algo), plan.config, dict(plan.env)
 
 
 def iterations(config) -> int:
@@ -172,11 +168,12 @@ def count(algo: str, profile: str, updates: int, by_name: dict | None = None) ->
     ``by_name`` as in `trace_operations`."""
 
     from jaxdrones.envs import make
-    from jaxdrones.training.run import _eval_program, train_starts
+    from jaxdrones.training.recipes import recipe
+    from jaxdrones.training.run import _eval_program
 
     trainer, config, env_options = profile_config(algo, profile)
     env = make(TASK, **env_options)
-    train_env = make(TASK, **env_options, **train_starts(TASK, algo))
+    train_env = make(TASK, **env_options, **recipe(TASK, profile, algo=algo).train_env)
     if algo == "brax_ppo":
         per_step = config.batch_size * config.unroll_length * config.num_minibatches
         short = dataclasses.replace(config, num_timesteps=updates * per_step, num_evals=2)

@@ -56,10 +56,11 @@ def main(argv=None) -> int:
     import jaxdrones as jd  # before JAX starts: its XLA flags
     from jaxdrones.adapters import brax as adapter
     from jaxdrones.training import brax_ppo
-    from jaxdrones.training.run import default_env
+    from jaxdrones.training.recipes import recipe
 
-    env = jd.make(args.task, **default_env(args.task, {"vision": ("depth",)}))
-    base = brax_ppo.default_config(args.task, vision=True)
+    plan = recipe(args.task, "cpu", {"vision": ("depth",)})
+    env = jd.make(args.task, **plan.env)
+    base = plan.config
     per_iteration = base.batch_size * base.unroll_length * base.num_minibatches
     base = dataclasses.replace(
         base, num_timesteps=per_iteration * args.iterations * args.epochs, num_evals=args.epochs + 1

@@ -149,8 +149,9 @@ def test_brax_vision_networks_act_on_the_camera_observation(env):
 
     from jaxdrones.training import brax_ppo
     from jaxdrones.training.evaluation import act
+    from jaxdrones.training.recipes import recipe
 
-    config = brax_ppo.default_config("avoid")
+    config = recipe("avoid", "cpu").config
     networks = brax_ppo.make_network(config, env)
     state = jax.jit(env.reset)(jax.random.key(0))
     seen = policy_input(state.obs)
@@ -227,8 +228,9 @@ def test_the_brax_view_with_a_privileged_critic(env):
     assert not np.allclose(p(blank), p(obs)) and np.array_equal(p(moved), p(obs))
     # The trainer's config: the asymmetric critic where the env has a privileged observation, the usual one elsewhere.
     from jaxdrones.training import brax_ppo
+    from jaxdrones.training.recipes import recipe
 
-    config = brax_ppo.default_config("avoid", vision=True)
+    config = recipe("avoid", "cpu").config
     assert config.privileged_critic
     value = brax_ppo.make_network(config, env).value_network.init(jax.random.key(0))
     assert not [k for k in value["params"] if "CNN" in k]

@@ -15,9 +15,9 @@ from jaxdrones.envs.tasks.gate import GATE_OPENING_HALF_X
 @pytest.fixture(scope="module")
 def env():
     """The env ``jaxdrones train fly_thru_gate --vision depth`` trains in."""
-    from jaxdrones.training.run import default_env
+    from jaxdrones.training.recipes import recipe
 
-    env = jd.make("fly_thru_gate", **default_env("fly_thru_gate", {"vision": ("depth",)}))
+    env = jd.make("fly_thru_gate", **recipe("fly_thru_gate", "cpu", {"vision": ("depth",)}).env)
     assert env.config.gate_pose == "random" and env.config.image_size == (64, 48)
     return env
 

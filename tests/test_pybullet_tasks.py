@@ -122,10 +122,12 @@ def test_trained_hover_policy_flies_alike_on_both_backends():
     compared on the statistics, not episode by episode.
     """
     from jaxdrones.training import rollout_policy, trainers
+    from jaxdrones.training.recipes import recipe
 
-    env_jax = jd.make("hover", action_type="one_d_rpm", obs_type="kin")  # the paper's 1-D setting
+    setting = {"action_type": "one_d_rpm", "obs_type": "kin"}  # the paper's 1-D setting
+    env_jax = jd.make("hover", **setting)
     apg = trainers.get("apg")
-    policy = apg.make_policy(*apg.train(env_jax, apg.default_config("hover")))
+    policy = apg.make_policy(*apg.train(env_jax, recipe("hover", "cpu", setting, "apg").config))
     keys = jax.random.split(jax.random.key(1), 16)
     runs = {}
     with jd.make("hover", action_type="one_d_rpm", obs_type="kin", backend="pybullet") as env_pb:

@@ -468,17 +468,21 @@ def test_train_cli_mappo_leader_follower_saves_and_reloads(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_train_multi_hover_trains_from_wider_starts_and_evaluates_the_tasks(tmp_path, monkeypatch):
-    """``multi_hover`` trains from `TRAIN_STARTS` (for the start fields the run does not set, not with 1-D
-    actions) and is evaluated and saved with the task's own starts."""
+    """``multi_hover`` trained by MAPPO trains from its recipe's training env (for the start fields the run does not
+    set, not with 1-D actions) and is evaluated and saved with the task's own starts."""
     from jaxdrones.training import mappo
-    from jaxdrones.training.run import TRAIN_STARTS, train_task
+    from jaxdrones.training.recipes import RECIPES
+    from jaxdrones.training.run import train_task
+
+    wider = RECIPES["multi_hover"].cpu.tuned["mappo"].train_env
+    assert wider == {"start_ang_vel": 1.0}
 
     trained_in = []
     real_train = mappo.train
     monkeypatch.setattr(mappo, "train", lambda env, *a, **k: trained_in.append(env) or real_train(env, *a, **k))
     tiny = mappo.MAPPOConfig(num_timesteps=8, num_envs=4, unroll_length=2, minibatches=1, num_evals=2)
     cases = [
-        ({"n_drones": 3}, TRAIN_STARTS["multi_hover"]),
+        ({"n_drones": 3}, wider),
         ({"n_drones": 3, "start_ang_vel": 0.5}, {}),
         ({"n_drones": 3, "action_type": "one_d_rpm"}, {}),
     ]
@@ -508,8 +512,8 @@ def test_train_cli_multi_agent_bad_team_size(capsys):
 
 @pytest.mark.slow
 def test_train_cli_crossing_without_downwash(tmp_path, capsys):
-    """``jaxdrones train crossing --no-downwash``: the flag turns the task's default downwash off, MAPPO trains it,
-    and the summary judges the largest altitude error over the episode."""
+    """``jaxdrones train crossing --no-downwash``: the flag turns the task's default downwash off, its recipe's
+    trainer (APG, ctbr actions) trains it, and the summary judges the largest altitude error over the episode."""
     run = tmp_path / "crossing"
     assert (
         main(
@@ -531,7 +535,8 @@ def test_train_cli_crossing_without_downwash(tmp_path, capsys):
         == 0
     )
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["algo"] == "mappo" and summary["env"]["downwash"] is False
+    assert summary["algo"] == "apg" and summary["env"]["downwash"] is False
+    assert summary["env"]["action_type"] == "ctbr"
     assert summary["success_metric"] == "max_altitude_error (max over episode)"
     assert summary["success_value"] == pytest.approx(summary["eval"]["max_max_altitude_error"])
     assert summary["success_value"] >= summary["eval"]["final_max_altitude_error"]
@@ -570,15 +575,16 @@ def test_train_cli_defaults_profiles(tmp_path, capsys):
     """``--defaults gpu`` trains with the large-batch settings on any device (here the CPU) and the summary records
     the profile; without it the device's profile is used (the CPU's here); the profiles differ where tuned."""
     from jaxdrones.training import trainers
+    from jaxdrones.training.recipes import recipe
 
     assert trainers.default_profile() == ("cpu" if jax.default_backend() == "cpu" else "gpu")
     for algo in ("apg", "ppo", "brax_ppo"):
-        cpu, gpu = (trainers.get(algo).default_config("hover", False, d) for d in trainers.DEFAULTS)
+        cpu, gpu = (recipe("hover", d, algo=algo).config for d in trainers.DEFAULTS)
         assert gpu.num_envs >= 4096 > cpu.num_envs
     with pytest.raises(ValueError, match="defaults must be one of"):
-        trainers.get("ppo").default_config("hover", False, "tpu")
+        recipe("hover", "tpu")
     for algo in ("apg", "ppo"):  # the gpu profile builds its updates for a GPU; the CPU's as before
-        cpu, gpu = (trainers.get(algo).default_config("hover", False, d) for d in trainers.DEFAULTS)
+        cpu, gpu = (recipe("hover", d, algo=algo).config for d in trainers.DEFAULTS)
         assert gpu.starts_per_window and gpu.flat_params and not cpu.starts_per_window and not cpu.flat_params
         if algo == "ppo":  # APG draws no noise
             assert gpu.noise_per_window and not cpu.noise_per_window
@@ -586,8 +592,7 @@ def test_train_cli_defaults_profiles(tmp_path, capsys):
             dataclasses.replace(cpu, flat_params=1)
     run = tmp_path / "run"
     args = ["train", "hover", "--steps", "1", "--num-evals", "1", "--out", str(run), "--no-progress"]
-    assert trainers.default_algo("hover", defaults="cpu") == "apg"
-    assert trainers.default_algo("hover", defaults="gpu") == "ppo"
+    assert recipe("hover", "cpu").algo == "apg" and recipe("hover", "gpu").algo == "ppo"
     assert main([*args, "--algo", "apg", "--defaults", "gpu", "--eval-episodes", "64"]) == 0
     summary = json.loads((run / "summary.json").read_text())
     assert summary["defaults"] == "gpu" and summary["config"]["num_envs"] == 4096
@@ -622,28 +627,28 @@ def test_train_cli_realism_defaults(tmp_path):
     """Under sim-to-real options ``jaxdrones train hover`` trains as tuned for them: our PPO with its budget,
     ``ctbr`` actions, the error integral and ground contact as a crash; what the command line sets wins; the saved
     env has them."""
-    from jaxdrones.training import trainers
-    from jaxdrones.training.run import default_env
+    from jaxdrones.training.recipes import recipe
 
-    assert trainers.default_algo("hover", realism=True) == "ppo" and trainers.default_algo("hover") == "apg"
-    assert trainers.default_algo("hover", backend="pybullet", realism=True) == "brax_ppo"
-    plain = trainers.run_config(trainers.get("ppo"), "hover")
-    tuned = trainers.run_config(trainers.get("ppo"), "hover", realism=True)
+    realism = {"realism": "crazyflie"}
+    assert recipe("hover", "cpu", realism).algo == "ppo" and recipe("hover", "cpu").algo == "apg"
+    # On the PyBullet backend, which APG cannot differentiate: the first other trainer of the recipe.
+    assert recipe("hover", "cpu", {"backend": "pybullet"}).algo == "brax_ppo"
+    assert recipe("multi_hover", "cpu", {"backend": "pybullet"}).algo == "mappo"
+    plain = recipe("hover", "cpu", algo="ppo").config
+    tuned = recipe("hover", "cpu", realism).config
     assert tuned.num_timesteps > plain.num_timesteps and tuned.anneal_lr and not plain.anneal_lr
-    assert trainers.run_config(trainers.get("apg"), "hover", realism=True) == trainers.get("apg").default_config(
-        "hover"
-    )
-    assert default_env("hover", {"realism": "crazyflie"}) == {
+    assert recipe("hover", "cpu", realism, "apg").config == recipe("hover", "cpu").config
+    assert recipe("hover", "cpu", realism).env == {
         "realism": "crazyflie",
         "action_type": "ctbr",
         "error_integral": True,
         "terminate_on_ground": True,
     }
-    assert default_env("hover", {"realism": "crazyflie", "action_type": "rpm"})["action_type"] == "rpm"
+    assert recipe("hover", "cpu", {**realism, "action_type": "rpm"}).env["action_type"] == "rpm"
     parsed = build_parser().parse_args(["train", "hover", "--realism", "crazyflie", "--no-terminate-on-ground"])
     assert parsed.terminate_on_ground is False
-    assert default_env("hover", {"realism": "crazyflie", "terminate_on_ground": False})["terminate_on_ground"] is False
-    assert default_env("hover", {}) == {}
+    assert recipe("hover", "cpu", {**realism, "terminate_on_ground": False}).env["terminate_on_ground"] is False
+    assert recipe("hover", "cpu").env == {}
     run = tmp_path / "run"
     args = ["train", "hover", "--realism", "crazyflie", "--steps", "1", "--num-evals", "1", "--out", str(run)]
     assert main([*args, "--no-progress", "--eval-episodes", "64", "--num-envs", "8", "--no-error-integral"]) == 0

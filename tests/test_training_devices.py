@@ -27,6 +27,7 @@ os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_p
 import jax, numpy as np
 import jaxdrones as jd
 from jaxdrones.training import trainers
+from jaxdrones.training.recipes import recipe
 from jaxdrones.training.evaluation import episode_outcomes
 
 out = {}
@@ -40,7 +41,7 @@ cases = (("ppo", "ppo", "hover", {}, dict(num_envs=8, unroll_length=4, minibatch
 for name, algo, task, env_kw, kw in cases:
     trainer = trainers.get(algo)
     env = jd.make(task, **env_kw)
-    config = dataclasses.replace(trainer.default_config(task), **kw, num_timesteps=96, num_evals=4)
+    config = dataclasses.replace(recipe(task, "cpu", env_kw, algo).config, **kw, num_timesteps=96, num_evals=4)
     keys = jax.random.split(jax.random.key(3), 8)
     seen = []
     network, params = trainer.train(env, config, progress=lambda steps, m: seen.append(m["eval"]),

@@ -431,9 +431,9 @@ def test_flight_of_a_vision_env_with_a_gate_per_episode(tmp_path):
     import jax
 
     import jaxdrones as jd
-    from jaxdrones.training.run import VISION_ENV
+    from jaxdrones.training.recipes import recipe
 
-    env = jd.make("fly_thru_gate", **VISION_ENV["fly_thru_gate"], vision=("rgb",))
+    env = jd.make("fly_thru_gate", **recipe("fly_thru_gate", "cpu", {"vision": ("rgb",)}).env)
 
     def episode(key):  # the reset state and 3 steps of a zero action
         state = env.reset(key)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import sys
 
@@ -12,8 +11,9 @@ from jaxdrones._validate import check_int
 from jaxdrones.envs.config import START_RPMS
 from jaxdrones.io.runs import enable_compilation_cache
 from jaxdrones.training import trainers
-from jaxdrones.training.run import default_env, train_task
-from jaxdrones.training.trainers import ALGOS, TRAINABLE, default_algo
+from jaxdrones.training.recipes import recipe
+from jaxdrones.training.run import train_task
+from jaxdrones.training.trainers import ALGOS, TRAINABLE
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -46,10 +46,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--algo",
         choices=ALGOS,
         default=None,
-        help="apg (analytic policy gradients through the simulator, the default for hover with --defaults cpu), "
-        "ppo (our batched PPO, the default for hover with --defaults gpu), brax_ppo (brax's PPO, the default for "
-        "the other single-agent tasks), shac (short-horizon actor-critic through the simulator), mappo "
-        "(multi-agent PPO with a centralised critic, the default for multi-agent tasks) or ippo (independent PPO)",
+        help="apg (analytic policy gradients through the simulator), ppo (our batched PPO), brax_ppo (brax's PPO, "
+        "which also takes camera images), shac (short-horizon actor-critic through the simulator), mappo "
+        "(multi-agent PPO with a centralised critic) or ippo (independent PPO); default: the task's recipe "
+        "(jaxdrones.training.recipes: apg for the tasks with a smooth loss)",
     )
     ppo.add_argument(
         "--defaults",
@@ -59,7 +59,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "gpu (thousands of worlds, few large updates: fastest where each sequential operation costs a kernel "
         "launch); default: the device's (gpu on a GPU or TPU)",
     )
-    ppo.add_argument("--steps", type=int, default=None, help="env steps to train (default: the task's tuned budget)")
+    ppo.add_argument("--steps", type=int, default=None, help="env steps to train (default: the task's recipe's)")
     ppo.add_argument("--num-envs", type=int, default=None, help="parallel environments")
     ppo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     ppo.add_argument(
@@ -374,35 +374,16 @@ def run_cli(args: argparse.Namespace) -> int:
             env["realism"] = realism
         if "target" in env and args.task not in ("hover", "takeoff"):
             raise ValueError(f"--target applies to hover and takeoff, not {args.task}")
-        from jaxdrones.envs import make_config
-
-        task_config = make_config(args.task, **default_env(args.task, env))
-        vision, realism = bool(task_config.vision), task_config.realism is not None
-        defaults = args.defaults or trainers.default_profile()
-        algo = args.algo or default_algo(args.task, args.backend or "jax", vision, defaults, realism)
-        trainer = trainers.get(algo)
-        overrides = {"seed": args.seed}
-        if args.steps is not None:
-            overrides["num_timesteps"] = args.steps
-        if args.num_evals is not None:
-            # brax's PPO counts an evaluation before training too.
-            overrides["num_evals"] = args.num_evals + (trainer.name == "brax_ppo")
-        if args.num_envs is not None:
-            overrides["num_envs"] = args.num_envs
-            if trainer.name == "brax_ppo":
-                overrides["batch_size"] = args.num_envs
-        config = dataclasses.replace(trainers.run_config(trainer, args.task, vision, defaults, realism), **overrides)
+        run = recipe(args.task, args.defaults, env, args.algo).with_options(
+            seed=args.seed, steps=args.steps, num_envs=args.num_envs, num_evals=args.num_evals
+        )
         summary = train_task(
-            args.task,
+            run,
             args.out,
             overwrite=args.overwrite,
-            env_overrides=env,
-            config=config,
             n_eval_episodes=args.eval_episodes,
             progress=not args.no_progress,
             t_start=getattr(args, "t_start", None),
-            algo=trainer.name,
-            defaults=defaults,
         )
     except (ValueError, OSError, ImportError, devices.DeviceError) as err:
         print(f"jaxdrones train: error: {err}", file=sys.stderr)

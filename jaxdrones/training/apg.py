@@ -103,12 +103,19 @@ def make_network(config: APGConfig, env: Env) -> linen.Module:
 
 
 def make_policy(network: linen.Module, params: Any) -> Callable:
-    """``policy(obs, key) -> (action, {})``, deterministic, with the signature of brax's policies (on one drone's
-    flat observation for the single-agent tasks)."""
+    """``policy(obs, key) -> (action, {})``, deterministic, with the signature of brax's policies: on one drone's
+    observation f[..., n_obs] it gives that drone's action f[..., n_act]; on a world's flat observation
+    f[..., D·n_obs] (the drones' observations one after another, as brax's policies see a team) the drones' actions
+    one after another, f[..., D·n_act], every drone flying the same network."""
+    n_obs = params["params"]["Dense_0"]["kernel"].shape[0]
 
     def policy(obs, key):
         del key
-        return network.apply(params, obs), {}
+        if obs.shape[-1] == n_obs:
+            return network.apply(params, obs), {}
+        drones = obs.reshape(*obs.shape[:-1], -1, n_obs)
+        action = network.apply(params, drones)
+        return action.reshape(*obs.shape[:-1], -1), {}
 
     return policy
 

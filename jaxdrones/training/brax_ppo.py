@@ -14,7 +14,7 @@ import numpy as np
 
 from jaxdrones._validate import check_fields, check_real
 from jaxdrones.envs.base import Env
-from jaxdrones.training.common import Interrupted, check_defaults
+from jaxdrones.training.common import Interrupted
 
 if TYPE_CHECKING:
     from brax.training.agents.ppo import networks as ppo_networks
@@ -144,88 +144,6 @@ def _rank_promotion_allowed(fn: Callable) -> Callable:
             return fn(*args, **kwargs)
 
     return wrapped
-
-
-def default_config(task: str, vision: bool = False, defaults: str = "cpu") -> BraxPPOConfig:
-    """The settings brax's PPO was tuned with per task (the hover settings for tasks without their own; with
-    ``defaults="gpu"``, hover's for a large batch: 8192 worlds, 60 updates); with
-    camera images (``vision``), those tuned on ``avoid`` (which itself now trains on 512 worlds for 3 M steps) for
-    every task: 256 worlds of 16-step unrolls; the adaptive
-    KL learning rate (on ``avoid``, 2.1 M steps, consecutive evaluations from 1 M steps on differed by up to 31
-    points of success with a constant 1e-3, ending at 63 %, and by up to 7 with the schedule, ending at 69 % and
-    59 % in two runs); the asymmetric critic (``privileged_critic``; with ``avoid``'s crash weight of 50, 79 % in 2.1 M
-    steps, its iterations a little cheaper: ``benchmarks/vision_ppo.py``)."""
-    tuned = {
-        "hover": dict(
-            num_timesteps=2_500_000,
-            num_envs=1024,
-            batch_size=1024,
-            num_minibatches=8,
-            unroll_length=10,
-            learning_rate=2e-3,
-            entropy_cost=1e-3,
-            discounting=0.97,
-        ),
-        "velocity": dict(
-            num_timesteps=4_000_000,
-            num_envs=1024,
-            batch_size=1024,
-            num_minibatches=8,
-            unroll_length=10,
-            discounting=0.97,
-        ),
-        "waypoints": dict(
-            num_timesteps=6_000_000,
-            num_envs=1024,
-            batch_size=1024,
-            num_minibatches=8,
-            unroll_length=10,
-            discounting=0.97,
-        ),
-        "vision": dict(
-            num_timesteps=2_000_000,
-            num_envs=256,
-            batch_size=256,
-            num_minibatches=4,
-            unroll_length=16,
-            learning_rate=1e-3,
-            entropy_cost=1e-3,
-            discounting=0.98,
-            num_updates_per_batch=2,
-            policy_hidden_layer_sizes=(64, 64),
-            value_hidden_layer_sizes=(64, 64),
-            num_evals=9,
-            learning_rate_schedule="ADAPTIVE_KL",
-            privileged_critic=True,
-        ),
-    }
-    # avoid: twice the worlds and batch (its collisions fell from 10-16 % to 6 % in 2.1 M steps). Rewards scaled by
-    # 0.1: brax clips the gradient of the policy's, the value's and the entropy's losses together (one global norm,
-    # ``max_grad_norm``), and the value's error on returns of tens (a crash costs 50) can make most of that norm and
-    # shrink the policy's steps too; scaled, two runs (seeds 0 and 1) rose at every evaluation to 92 % at 3.1 M
-    # steps. 4.5 M steps (4.7 M in whole epochs): at 3.1 M a third run was at 88 % and still rising (83 %, 87 %, 88 %
-    # over the last 800,000 steps); at 4.7 M, 95 % and 92 % (seeds 0 and 1, docs/experiments.md).
-    tuned["avoid"] = dict(tuned["vision"], num_envs=512, batch_size=512, num_timesteps=4_500_000, reward_scaling=0.1)
-    check_defaults(defaults)
-    if defaults == "gpu" and task == "hover" and not vision:
-        # Few large updates (`jaxdrones.training.common.DEFAULTS`): one 32-step unroll of 8192 worlds per
-        # update, in 4 minibatches, as our PPO's gpu settings.
-        return BraxPPOConfig(
-            **dict(
-                tuned["hover"],
-                num_timesteps=8192 * 32 * 60,
-                num_envs=8192,
-                batch_size=2048,
-                num_minibatches=4,
-                unroll_length=32,
-                learning_rate=3e-3,
-                discounting=0.99,
-                num_evals=6,
-            )
-        )
-    return BraxPPOConfig(
-        **tuned["avoid" if task == "avoid" else "vision" if vision else task if task in tuned else "hover"]
-    )
 
 
 def make_network(config: BraxPPOConfig, env: Env) -> PPONetworks:

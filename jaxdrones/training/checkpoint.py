@@ -72,8 +72,9 @@ def read_payload(path: str | os.PathLike) -> tuple[str, dict]:
         payload = pickle.load(f)
     if not isinstance(payload, dict) or not {"params", "env_name"} <= set(payload):
         raise ValueError(f"{path!r} is not a jaxdrones policy file")
-    # Files from before FORMAT 1: brax's PPO wrote no "algo", and MAPPO's independent critic was "ippo".
-    algo = payload.get("algo") or ("brax_ppo" if "ppo_config" in payload else None)
+    # Files from before FORMAT 1 wrote no "algo" (`jaxdrones.training.trainers.LEGACY_CONFIG_KEYS`).
+    legacy = (name for key, name in trainers.LEGACY_CONFIG_KEYS.items() if key in payload)
+    algo = payload.get("algo") or next(legacy, None)
     if algo not in trainers.ALGOS:
         raise ValueError(f"{path!r} is not a jaxdrones policy file (algorithm {algo!r})")
     return path, {**payload, "algo": algo}
@@ -113,7 +114,7 @@ def load_policy(path: str | os.PathLike, deterministic: bool = True, env: Env | 
         _check_same_agents(path, payload["env_name"], trained_on, env)
     trainer = trainers.get(algo)
     network = trainer.make_network(trainer.config_cls(**fields), env)
-    if algo == "brax_ppo":
+    if trainer.stochastic:
         return env, trainer.make_policy(network, payload["params"], deterministic=deterministic)
     return env, trainer.make_policy(network, payload["params"])
 

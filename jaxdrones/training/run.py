@@ -11,76 +11,12 @@ import threading
 import time
 from typing import TYPE_CHECKING
 
-from jaxdrones.training.trainers import default_algo, run_config
+from jaxdrones.training.recipes import Recipe, recipe
 
 if TYPE_CHECKING:
     from jaxdrones.envs.task import Task
     from jaxdrones.training.brax_ppo import BraxPPOConfig
     from jaxdrones.training.common import Schedule
-
-#: Task settings ``jaxdrones train`` uses unless told otherwise: the paper's multi-agent example trains
-#: leader-follower with one_d_rpm actions (docs: reference facts §11.4).
-DEFAULT_ENV = {"leader_follower": {"action_type": "one_d_rpm"}}
-#: What ``jaxdrones train`` adds to `DEFAULT_ENV` when a run asks for camera images: ``fly_thru_gate`` with
-#: ``--vision`` flies through a gate drawn per episode (`jaxdrones.envs.tasks.gate.GatePass`) with ``avoid``'s
-#: actions and camera rate, on the paper's 64 × 48 images (at 32 × 24 the gate's 5 cm columns and architrave fall
-#: between the pixels' rays from 2 m).
-VISION_ENV = {
-    "fly_thru_gate": {
-        "gate_pose": "random",
-        "action_type": "pid",
-        "pid_target": "relative",
-        "pid_scale": 0.3,
-        "camera_freq": 15.0,
-        "episode_len_s": 6.0,
-    }
-}
-#: What ``jaxdrones train`` adds to `DEFAULT_ENV` under sim-to-real options (``realism``; the trainer's side is
-#: `jaxdrones.training.trainers.REALISM_TRAINING`): collective thrust and body rates (``ctbr``: the ``crazyflie``
-#: preset's random force, σ 5 % of the weight per axis, exceeds the ``rpm`` action's ±5 % of the hover RPM in about
-#: one episode in twenty) and the integral of the tracking error, which cancels that force: without it the
-#: policies kept a steady offset (velocity: APG's 0.124 m/s mean error without it, 0.081 m/s with it;
-#: docs/experiments.md); and a touch of the ground ends the episode as a crash (``terminate_on_ground``), as it ends
-#: a Crazyflie's flight: without it a policy that struck the floor and lay there counted as flying (hover under the
-#: preset, 2 CPU cores, seeds 1 and 2: 4 and 9 of the 256 evaluation starts touched the floor, 0 and 2 ended on it,
-#: none counted as crashed); trained with it, none touched the floor (seeds 0-2), and the distance left fell from
-#: 4.0-5.6 to 2.1-3.3 cm (docs/experiments.md).
-REALISM_ENV = {
-    task: {"action_type": "ctbr", "error_integral": True, "terminate_on_ground": True} for task in ("hover", "velocity")
-}
-#: Random starts ``jaxdrones train`` trains from in place of the task's own, for the fields a run does not set and
-#: actions of more than one entry (a 1-D action cannot level a drone); the evaluation and the saved policy's env keep
-#: the task's starts. In ``multi_hover`` the drone that climbs 1 m does so with its four RPM actions near their +5 %
-#: bound, where little authority is left for the attitude, and its policy's own corrections can spin it up in yaw:
-#: trained from the task's starts (body rates up to 0.1 rad/s), 8-drone teams lost a drone in 0.4-1.2 % of
-#: evaluation episodes (5 runs of 3-6 M env steps, with γ 0.97 or 0.99, learning rate 1e-3 or 3e-4, 64 or 128
-#: units); trained from body rates up to 1 rad/s, a policy has met such spins and learned to stop them. (Tilts and
-#: speeds up to 0.3 rad and 0.3 m/s as well slowed the 1 m climb's learning: 31 and 15 cm short after 3 and 6 M
-#: steps with seed 1.)
-TRAIN_STARTS = {"multi_hover": {"start_ang_vel": 1.0}}
-#: Random starts of a task's training env for one trainer, over `TRAIN_STARTS`' (same rules). Our PPO (``ppo``)
-#: on ``hover``: its policies trained from the task's own starts left the arena from 1 and 2 of the 256 evaluation
-#: starts at 60 updates of 8192 worlds (seeds 0 and 1; 1.2-2.7 % at 512 worlds, docs/training.md), from starts near
-#: the edges of the distribution (spinning at about 1 rad/s about every axis); trained from tilts up to 0.8 rad and
-#: body rates up to 2 rad/s (the task's: 0.5 rad, 1 rad/s), a policy has met such starts and worse.
-TRAIN_STARTS_BY_ALGO = {("hover", "ppo"): {"start_tilt": 0.8, "start_ang_vel": 2.0}}
-
-
-def train_starts(task: str, algo: str) -> dict:
-    """The task settings of the training env of ``task`` trained by ``algo``: `TRAIN_STARTS`' and
-    `TRAIN_STARTS_BY_ALGO`'s."""
-    return {**TRAIN_STARTS.get(task, {}), **TRAIN_STARTS_BY_ALGO.get((task, algo), {})}
-
-
-def default_env(task: str, env_overrides: dict | None = None) -> dict:
-    """The task settings of a ``jaxdrones train`` run: ``env_overrides`` over `DEFAULT_ENV`'s and, when they ask
-    for camera images, `VISION_ENV`'s, and with sim-to-real options (``realism``), `REALISM_ENV`'s."""
-    requested = {**DEFAULT_ENV.get(task, {}), **(env_overrides or {})}
-    if requested.get("vision"):
-        requested = {**VISION_ENV.get(task, {}), **requested}
-    if requested.get("realism") is not None:
-        requested = {**REALISM_ENV.get(task, {}), **requested}
-    return requested
 
 
 def _eval_program(env, trainer, n_episodes: int, seed: int):
@@ -110,7 +46,7 @@ def _eval_program(env, trainer, n_episodes: int, seed: int):
 
 
 def train_task(
-    task: str = "hover",
+    task: str | Recipe = "hover",
     out: str | None = None,
     *,
     overwrite: bool = False,
@@ -140,23 +76,23 @@ def train_task(
 
     Args:
         task: a registered task's name (`jaxdrones.envs.registered`: `TRAINABLE` and those added by
-            `jaxdrones.envs.register`).
+            `jaxdrones.envs.register`), trained at its recipe (`jaxdrones.training.recipes.recipe` of ``task``,
+            ``defaults``, ``env_overrides`` and ``algo``) with ``config`` and ``train_env_overrides`` in place of
+            the recipe's where given; or a `jaxdrones.training.recipes.Recipe`, trained as it is (then give none of
+            ``algo``, ``config``, ``env_overrides``, ``train_env_overrides``, ``defaults``).
         out: output folder (default ``runs/<task>``).
         overwrite: replace an existing ``out``.
-        algo: one of `ALGOS` (default `default_algo` for ``defaults``).
-        config: the trainer's config (default: the trainer's for the task and ``defaults``,
-            `Trainer.default_config`).
-        env_overrides: task config fields for ``jd.make(task, ...)``, over `DEFAULT_ENV`'s: the env the policy is
+        algo: one of `jaxdrones.training.trainers.ALGOS` (default: the recipe's).
+        config: the trainer's config (default: the recipe's).
+        env_overrides: task config fields for ``jd.make(task, ...)``, over the recipe's: the env the policy is
             trained in, evaluated in and saved with.
-        train_env_overrides: task config fields of the training env only, for the fields ``env_overrides`` does not
-            set (default: `train_starts` of the task and algorithm unless its action has one entry; ``{}`` trains in the
-            evaluation env).
+        train_env_overrides: task config fields of the training env only, for the fields the env does not set
+            (default: the recipe's; ``{}`` trains in the evaluation env).
         n_eval_episodes: evaluation episodes from random starts (≥ 64).
         progress: show the progress bar.
         t_start: ``time.perf_counter()`` at which the wall-clock measurement starts (default: now).
-        defaults: the profile of default settings (`jaxdrones.training.common.DEFAULTS`: ``"cpu"`` or ``"gpu"``)
-            that ``config`` comes from, or that builds it when None; default: the device's
-            (`jaxdrones.training.trainers.default_profile`).
+        defaults: the recipe's profile (`jaxdrones.training.common.DEFAULTS`: ``"cpu"`` or ``"gpu"``; default: the
+            device's, `jaxdrones.training.trainers.default_profile`).
 
     Returns:
         The summary dict (also written to ``summary.json``): ``wall_time_s`` (everything from ``t_start``: imports,
@@ -178,38 +114,26 @@ def train_task(
     phases = {"startup": t_phase - t_start}  # from t_start: Python, imports, the command line's parsing and devices
     import jax
 
-    from jaxdrones.envs import make, registered
+    from jaxdrones.envs import make
     from jaxdrones.io.runs import new_run_dir, provenance
     from jaxdrones.training import checkpoint, trainers
-    from jaxdrones.training.common import Interrupted, check_defaults
+    from jaxdrones.training.common import Interrupted
     from jaxdrones.training.evaluation import episode_statistics
     from jaxdrones.training.progress import AGGREGATES, ProgressLog
 
-    if task not in registered():
-        raise ValueError(
-            f"train: task must be one of {registered()} (a task of your own: register it with "
-            f"jaxdrones.envs.register), got {task!r}"
-        )
-    env_overrides = default_env(task, env_overrides)
-    env = make(task, **env_overrides)
-    vision = bool(env.config.vision)
-    defaults = trainers.default_profile() if defaults is None else defaults
-    check_defaults(defaults)
-    realism = env.config.realism is not None
-    algo = default_algo(task, env.config.backend, vision, defaults, realism) if algo is None else algo
+    run = _run_recipe(task, algo, config, env_overrides, train_env_overrides, defaults)
+    task, algo, config, env_overrides = run.task, run.algo, run.config, dict(run.env)
     trainer = trainers.get(algo)
     if n_eval_episodes < 64:
         raise ValueError(f"n_eval_episodes must be >= 64, got {n_eval_episodes}")
-    config = run_config(trainer, task, vision, defaults, realism) if config is None else config
-    if type(config) is not trainer.config_cls or getattr(config, "algo", algo) not in (algo, "ippo"):
+    if type(config) is not trainer.config_cls:
         raise ValueError(f"train: algo {algo!r} takes a {trainer.config_cls.__name__}, got {config!r}")
-    if train_env_overrides is None:
-        train_env_overrides = train_starts(task, algo) if env.action_size > 1 else {}
-    train_env_overrides = {k: v for k, v in train_env_overrides.items() if k not in env_overrides}
-    train_env = make(task, **env_overrides, **train_env_overrides) if train_env_overrides else env
-    if env.config.vision and algo != "brax_ppo":
-        raise ValueError(f"train: camera images are taken by --algo brax_ppo (brax's vision PPO), not {algo!r}")
-    if algo in ("apg", "shac") and env.config.backend != "jax":
+    env = make(task, **env_overrides)
+    train_env = make(task, **env_overrides, **run.train_env) if run.train_env else env
+    if env.config.vision and not trainer.images:
+        takes = [name for name in trainers.ALGOS if trainers.get(name).images]
+        raise ValueError(f"train: camera images are taken by --algo {' or '.join(takes)}, not {algo!r}")
+    if trainer.differentiable and env.config.backend != "jax":
         raise ValueError(f"train: --algo {algo} differentiates the simulator and needs backend='jax'")
     writer = jax.process_index() == 0
     out = new_run_dir(out or os.path.join("runs", task), overwrite=overwrite) if writer else out
@@ -273,8 +197,8 @@ def train_task(
         "eval": stats,
         "out_dir": out,
         "env": json.loads(json.dumps(dataclasses.asdict(env.config), default=str)),
-        "train_env_overrides": train_env_overrides,
-        "defaults": defaults,
+        "train_env_overrides": dict(run.train_env),
+        "defaults": run.defaults,
         "config": dataclasses.asdict(config),
         "provenance": provenance(),
     }
@@ -283,6 +207,24 @@ def train_task(
     with open(os.path.join(out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=2)
     return summary
+
+
+def _run_recipe(task, algo, config, env_overrides, train_env_overrides, defaults) -> Recipe:
+    """`train_task`'s recipe: ``task`` if it is one (and nothing else is given), else the task's
+    (`jaxdrones.training.recipes.recipe`) with ``config`` and ``train_env_overrides`` in its place where given."""
+    given = {"algo": algo, "config": config, "env_overrides": env_overrides, "defaults": defaults}
+    given["train_env_overrides"] = train_env_overrides
+    if isinstance(task, Recipe):
+        if any(value is not None for value in given.values()):
+            named = ", ".join(name for name, value in given.items() if value is not None)
+            raise ValueError(f"train: a Recipe holds the run's settings; set them in it, not as {named}")
+        return task
+    run = recipe(task, defaults, env_overrides, algo)
+    if config is not None:
+        run = dataclasses.replace(run, config=config)
+    if train_env_overrides is not None:
+        run = dataclasses.replace(run, train_env={k: v for k, v in train_env_overrides.items() if k not in run.env})
+    return run
 
 
 def failed_criteria(task: Task, stats: dict) -> list[str]:

@@ -115,6 +115,12 @@ class MultiTask(Task):
             return {"paper": self.paper_reward(config, task, sim)}
         return self.shaped_terms(config, task, sim)
 
+    def loss_terms(self, config: MultiConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> dict:
+        """`Task.loss_terms` with the squared distance to each drone's reference point `ref_points` (m², which
+        moves with the other drones: the gradient reaches both ends of a pair)."""
+        terms = super().loss_terms(config, task, sim, steps)
+        return {**terms, "distance_sq": rewards.distance_sq(sim.pos, self.ref_points(config, task, sim))}
+
     def metrics(self, config: MultiConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> dict[str, jax.Array]:
         return {"distance": jnp.mean(rewards.distance(sim.pos, self.ref_points(config, task, sim)))}
 
@@ -420,6 +426,10 @@ class Crossing(MultiTask):
     def observe(self, config: CrossingConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> jax.Array:
         ref = self.reference(config, task, steps)
         return jnp.concatenate([ref.pos - sim.pos, ref.vel], axis=-1)
+
+    def loss_terms(self, config: CrossingConfig, task: TaskParams, sim: DroneState, steps: jax.Array) -> dict:
+        """`Task.loss_terms`: towards the moving reference (`reference`), not the paths' centres."""
+        return Task.loss_terms(self, config, task, sim, steps)
 
     def weights(self, config: CrossingConfig) -> dict[str, float]:
         if config.reward == "paper":
