@@ -102,8 +102,8 @@ def describe(record: dict) -> str:
 def table(records: list[dict]) -> str:
     """The suite's table (Markdown): one row per task."""
     lines = [
-        "| task | trainer | env steps | first run (s) | warm (s) | result per seed (threshold) | ended early "
-        "(most) | seeds solved |",
+        "| task | trainer | env steps | first run (s) | warm (s) | result per seed (not solved: bold) | ended "
+        "early (most) | seeds solved |",
         "|---|---|---:|---:|---:|---|---:|---:|",
     ]
     for task in dict.fromkeys(r["task"] for r in records):
@@ -117,8 +117,12 @@ def table(records: list[dict]) -> str:
             continue
         first = [r["wall_s"] for r in runs if r["cache"] == "first"]
         warm = [r["wall_s"] for r in runs if r["cache"] == "warm" and "error" not in r]
-        results = ", ".join(
-            "error" if "error" in r else f"{r['success_value']:.3g}" + ("" if r["success"] else " ✗")
+        results = " / ".join(  # a run not solved in bold
+            "error"
+            if "error" in r
+            else f"{r['success_value']:.3g}"
+            if r["success"]
+            else f"**{r['success_value']:.3g}**"
             for r in by_seed.values()
         )
         head = ok[0]
