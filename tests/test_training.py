@@ -16,6 +16,7 @@ from jax.experimental.compilation_cache import compilation_cache
 from jaxdrones import viz
 from jaxdrones.cli import build_parser, main
 from jaxdrones.training import evaluate, load_policy
+from jaxdrones.training.trainers import TRAINABLE
 
 #: What a training run writes; flight.html where viser (the viewer extra, in the test extra) is installed.
 TRAIN_OUTPUTS = ("policy.pkl", "learning_curve.png", "flight.png", "progress.json", "summary.json") + (
@@ -508,6 +509,30 @@ def test_train_multi_hover_trains_from_wider_starts_and_evaluates_the_tasks(tmp_
 def test_train_cli_multi_agent_bad_team_size(capsys):
     assert main(["train", "leader_follower", "--num-drones", "1", "--no-progress"]) == 2
     assert "n_drones" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task", TRAINABLE)
+def test_every_task_trains_at_its_recipe_through_the_command_line(task, tmp_path, capsys):
+    """``jaxdrones train TASK`` for every task at its recipe, for one update of 8 worlds: the run folder holds every
+    output, the summary records the recipe's trainer, profile and env, and the saved policy flies in its env.
+    Whether the recipe solves the task is ``benchmarks/suite.py``'s to say (docs/benchmarks.md)."""
+    from jaxdrones.training.evaluation import act
+    from jaxdrones.training.recipes import recipe
+
+    plan = recipe(task, "cpu")
+    run = tmp_path / task
+    args = ["train", task, "--defaults", "cpu", "--steps", "1", "--num-evals", "1", "--num-envs", "8"]
+    assert main([*args, "--eval-episodes", "64", "--out", str(run), "--no-progress"]) == 0
+    assert "saved policy.pkl, learning_curve.png, flight.png" in capsys.readouterr().out
+    assert sorted(p.name for p in run.iterdir()) == sorted(TRAIN_OUTPUTS)
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["algo"] == plan.algo and summary["defaults"] == "cpu" and summary["eval"]["n_episodes"] == 64
+    assert {k: summary["env"][k] for k in plan.env} == json.loads(json.dumps(dict(plan.env)))
+    assert summary["train_env_overrides"] == plan.train_env
+    env, policy = load_policy(run)
+    action = act(env, policy, env.reset(jax.random.key(1)).obs, jax.random.key(2))
+    assert action.shape == (env.n_drones, env.action_size) and np.all(np.isfinite(action))
 
 
 @pytest.mark.slow

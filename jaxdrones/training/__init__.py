@@ -1,4 +1,5 @@
-"""Training: the table of trainers (`jaxdrones.training.trainers`: our PPO, brax's PPO, APG, SHAC, MAPPO, IPPO),
+"""Training: the tasks' recipes (`jaxdrones.training.recipes`: how ``jaxdrones train TASK`` trains each), the table
+of trainers (`jaxdrones.training.trainers`: our PPO, brax's PPO, APG, SHAC, MAPPO, IPPO),
 their shared loop (`common`), evaluation (`evaluation`), progress display (`progress`), checkpoints (`checkpoint`)
 and the run of ``jaxdrones train`` (`run.train_task`).
 

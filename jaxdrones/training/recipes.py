@@ -62,8 +62,8 @@ class TaskRecipe:
         cpu, gpu: the plain run's settings per profile.
         realism: per profile, the settings of a run under sim-to-real options (``--realism``; absent: the plain
             ones).
-        vision: the settings of a run with camera images, either profile (absent: the plain ones, with the
-            trainer that takes images, `Trainer.images`).
+        vision: the settings of a run with camera images, either profile (absent: the plain ones where their
+            trainer takes images, `Trainer.images`, else `VISION`).
     """
 
     cpu: Setting
@@ -86,26 +86,30 @@ class TaskRecipe:
 # ---------------------------------------------------------------------------------------------------------------
 
 #: APG on a smooth task (a target or a reference to reach, a loss without contacts), ``cpu``: 0.6 M env steps of 16
-#: worlds, a step size of 3e-3 decayed to 0 along a half cosine (docs/training.md, "APG's settings";
-#: docs/experiments.md, "The suite at its defaults").
+#: worlds, a step size of 3e-3 decayed to 0 along a half cosine (docs/training.md, "Which trainer for hover", the
+#: ``apg`` row; docs/experiments.md, "The suite at its defaults").
 APG_CPU = Tuned({"num_timesteps": 600_000, "learning_rate": 3e-3, "cosine_decay": True})
 #: APG, ``gpu``: 200 updates of 4096 worlds (26.2 M env steps) at a step size of 1e-2 with the same decay
-#: (docs/training.md, "APG's settings").
+#: (docs/training.md, "Defaults per device", the ``apg``, 4096 × 200 row).
 APG_GPU = Tuned(
     {"num_timesteps": 4096 * 32 * 200, "num_envs": 4096, "learning_rate": 1e-2, "cosine_decay": True, "num_evals": 5}
 )
 #: APG on the smooth tasks whose 0.6 M steps left little margin (velocity 0.093 / 0.103 m/s, flock 4.5-6.0 cm, the
 #: gate 0.095 m): 1.2 M env steps in 64-step windows (docs/experiments.md, "The suite at its defaults").
 APG_LONG = Tuned({**APG_CPU.config, "num_timesteps": 1_200_000, "horizon": 64})
-#: Our PPO trains hover from wider starts than the task's (docs/training.md, "Starts").
+#: Our PPO trains hover from wider starts than the task's (docs/training.md, "Defaults per device", the ``ppo`` rows
+#: from wider starts).
 PPO_HOVER_STARTS = {"start_tilt": 0.8, "start_ang_vel": 2.0}
-#: Our PPO on hover, ``cpu``: 512 worlds, 1.2 M env steps; ``gpu``: 8192 worlds, 80 updates (docs/training.md).
+#: Our PPO on hover, ``cpu``: 512 worlds, 1.2 M env steps (docs/training.md, "Which trainer for hover", the ``ppo``
+#: rows); ``gpu``: 8192 worlds, 80 updates (docs/training.md, "Defaults per device", the ``ppo``, 8192 × 100 rows).
 PPO_HOVER_CPU = Tuned({"num_timesteps": 1_200_000, "num_envs": 512}, PPO_HOVER_STARTS)
 PPO_HOVER_GPU = Tuned({"num_timesteps": 8192 * 32 * 80, "num_envs": 8192, "num_evals": 5}, PPO_HOVER_STARTS)
-#: brax's PPO on the tasks without images: 1024 worlds of 10-step unrolls (docs/training.md, "brax's PPO").
+#: brax's PPO on the tasks without images: 1024 worlds of 10-step unrolls (docs/training.md, "Which trainer for
+#: hover", the ``brax_ppo`` row).
 BRAX_CPU = {"num_envs": 1024, "batch_size": 1024, "num_minibatches": 8, "unroll_length": 10, "discounting": 0.97}
 BRAX_HOVER = Tuned({**BRAX_CPU, "num_timesteps": 2_500_000, "learning_rate": 2e-3})
-#: brax's PPO, ``gpu``: one 32-step unroll of 8192 worlds per update, in 4 minibatches (docs/training.md).
+#: brax's PPO, ``gpu``: one 32-step unroll of 8192 worlds per update, in 4 minibatches, as our PPO's (docs/training.md,
+#: "Defaults per device").
 BRAX_GPU = Tuned(
     {
         **BRAX_CPU,
