@@ -15,7 +15,7 @@ solved (`jaxdrones.training.run.failed_criteria`: below the threshold, and none 
 does not count them itself).
 
     python benchmarks/suite.py --seeds 0 1 2                      # every task, cpu or gpu by the device
-    python benchmarks/suite.py --tasks takeoff crossing --seeds 0
+    python benchmarks/suite.py --tasks takeoff crossing --seeds 0 --no-rerun
     python benchmarks/suite.py --defaults gpu --seeds 0 1 2       # the gpu profile (on a GPU: the warm goal 60 s)
 
 Results: the table (Markdown) on stdout and in ``OUT/suite.md``, every run's record in ``OUT/suite.json`` (default
@@ -70,13 +70,13 @@ def train(task: str, seed: int, out: str, cache: str, extra: list[str]) -> dict:
     }
 
 
-def run_task(task: str, seeds: list[int], out: str, extra: list[str], log) -> list[dict]:
+def run_task(task: str, seeds: list[int], out: str, extra: list[str], log, rerun: bool = True) -> list[dict]:
     """Every seed of ``task``: the first from an empty compilation cache, the others (or the first again, with one
-    seed) from the cache it filled."""
+    seed and ``rerun``) from the cache it filled."""
     cache = tempfile.mkdtemp(prefix=f"suite-cache-{task}-")
     try:
         records = []
-        plan = [(seed, "first") for seed in seeds[:1]] + [(seed, "warm") for seed in seeds[1:] or seeds[:1]]
+        plan = [(seed, "first") for seed in seeds[:1]] + [(seed, "warm") for seed in seeds[1:] or seeds[:rerun]]
         for seed, kind in plan:
             record = {**train(task, seed, os.path.join(out, f"{task}-{seed}"), cache, extra), "cache": kind}
             records.append(record)
@@ -150,6 +150,9 @@ def main() -> int:
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--defaults", choices=("cpu", "gpu"), default=None, help="the profile (default: the device's)")
     parser.add_argument("--out", default=os.path.join(HERE, "results", "suite"))
+    parser.add_argument(
+        "--no-rerun", action="store_true", help="with one seed, no second (warm) run: the first run's time only"
+    )
     parser.add_argument("--train-args", nargs=argparse.REMAINDER, default=[], help="more jaxdrones train options")
     args = parser.parse_args()
     extra = ([] if args.defaults is None else ["--defaults", args.defaults]) + args.train_args
@@ -170,7 +173,7 @@ def main() -> int:
         log(record)
 
     for task in args.tasks:
-        run_task(task, args.seeds, args.out, extra, keep)
+        run_task(task, args.seeds, args.out, extra, keep, rerun=not args.no_rerun)
     text = (
         f"Suite at its defaults ({started}, commit {commit}, {machine()}; "
         f"`python benchmarks/suite.py {' '.join(sys.argv[1:])}`)\n\n{table(records)}\n"
