@@ -634,6 +634,36 @@ def test_train_cli_defaults_profiles(tmp_path, capsys):
     assert "invalid choice: 'tpu'" in capsys.readouterr().err
 
 
+def test_recipes_resolve_a_runs_options_once():
+    """`recipe` gives each kind of run its setting (team size, camera images, an unknown task's kind) and
+    `Recipe.with_options` applies the command line's flags through the trainer table's fields (brax's PPO: an
+    evaluation before training, its batch tied to the envs); nothing else."""
+    from jaxdrones.training import trainers
+    from jaxdrones.training.recipes import RECIPES, recipe
+
+    assert set(RECIPES) == set(TRAINABLE)
+    brax = recipe("tune", "cpu").with_options(seed=3, steps=1000, num_envs=16, num_evals=2)
+    assert (brax.config.seed, brax.config.num_timesteps, brax.config.num_evals) == (3, 1000, 3)
+    assert brax.config.num_envs == brax.config.batch_size == 16
+    apg = recipe("takeoff", "cpu").with_options(num_envs=16, num_evals=2)
+    assert (apg.config.num_envs, apg.config.num_evals) == (16, 2) and apg.config == dataclasses.replace(
+        recipe("takeoff", "cpu").config, num_envs=16, num_evals=2
+    )
+    assert recipe("multi_hover", "cpu", {"n_drones": 6}).algo == "apg"
+    large = recipe("multi_hover", "cpu", {"n_drones": 7})
+    assert large.algo == "mappo" and large.train_env == {"start_ang_vel": 1.0}
+    seen = recipe("hover", "cpu", {"vision": ("depth",), "image_size": (32, 24)})
+    assert seen.algo == "brax_ppo" and trainers.get(seen.algo).images and seen.config.privileged_critic
+    with pytest.raises(ValueError, match="task must be one of"):
+        recipe("hoover", "cpu")
+    with pytest.raises(ValueError, match="algo must be one of"):
+        recipe("hover", "cpu", algo="sac")
+    from jaxdrones.training.run import train_task
+
+    with pytest.raises(ValueError, match="a Recipe holds the run's settings; set them in it, not as algo"):
+        train_task(recipe("hover", "cpu"), algo="apg")
+
+
 def test_failed_criteria_name_what_kept_a_run_from_success():
     """The verdict names the criterion a run missed: the metric above its threshold, episodes that ended early, or
     both; a solved run misses none."""
