@@ -664,6 +664,17 @@ def test_recipes_resolve_a_runs_options_once():
         train_task(recipe("hover", "cpu"), algo="apg")
 
 
+@pytest.mark.pybullet
+def test_recipes_on_the_pybullet_backend_take_a_trainer_that_does_not_differentiate():
+    """On the PyBullet backend, which APG cannot differentiate: the first other trainer of the task's setting, else
+    the default of the task's kind."""
+    from jaxdrones.training.recipes import recipe
+
+    assert recipe("hover", "cpu", {"backend": "pybullet"}).algo == "brax_ppo"
+    assert recipe("multi_hover", "cpu", {"backend": "pybullet"}).algo == "mappo"
+    assert recipe("takeoff", "cpu", {"backend": "pybullet"}).algo == "brax_ppo"
+
+
 def test_failed_criteria_name_what_kept_a_run_from_success():
     """The verdict names the criterion a run missed: the metric above its threshold, episodes that ended early, or
     both; a solved run misses none."""
@@ -686,9 +697,6 @@ def test_train_cli_realism_defaults(tmp_path):
 
     realism = {"realism": "crazyflie"}
     assert recipe("hover", "cpu", realism).algo == "ppo" and recipe("hover", "cpu").algo == "apg"
-    # On the PyBullet backend, which APG cannot differentiate: the first other trainer of the recipe.
-    assert recipe("hover", "cpu", {"backend": "pybullet"}).algo == "brax_ppo"
-    assert recipe("multi_hover", "cpu", {"backend": "pybullet"}).algo == "mappo"
     plain = recipe("hover", "cpu", algo="ppo").config
     tuned = recipe("hover", "cpu", realism).config
     assert tuned.num_timesteps > plain.num_timesteps and tuned.anneal_lr and not plain.anneal_lr
