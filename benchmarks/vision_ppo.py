@@ -2,7 +2,8 @@
 
 The work: ``brax.training.agents.ppo.train`` on the training env of ``jaxdrones train TASK --vision depth``
 (the task's recipe, `jaxdrones.training.recipes.recipe`: for ``avoid`` its own 64 × 16 depth, for ``fly_thru_gate``
-the gate drawn per episode on 64 × 48 depth) with the recipe's config of brax's PPO (16-step unrolls × 4 minibatches of 512 worlds for ``avoid``, 32,768 env steps an iteration, and of 256 worlds,
+the gate drawn per episode on 64 × 48 depth) with the recipe's config of brax's PPO (16-step unrolls × 4
+minibatches of 512 worlds for ``avoid``, 32,768 env steps an iteration, and of 256 worlds,
 16,384 steps, for the gate) for ``--epochs`` epochs of ``--iterations`` iterations. The time of each epoch is
 that between brax's progress calls; brax compiles its epoch at the first call (at times again at the second), so
 the steady iteration time is taken from the third epoch on. Iterations of ``jaxdrones train`` are the same program,
