@@ -212,8 +212,13 @@ def train_task(
 def _run_recipe(task, algo, config, env_overrides, train_env_overrides, defaults) -> Recipe:
     """`train_task`'s recipe: ``task`` if it is one (and nothing else is given), else the task's
     (`jaxdrones.training.recipes.recipe`) with ``config`` and ``train_env_overrides`` in its place where given."""
-    given = {"algo": algo, "config": config, "env_overrides": env_overrides, "defaults": defaults}
-    given["train_env_overrides"] = train_env_overrides
+    given = {
+        "algo": algo,
+        "config": config,
+        "env_overrides": env_overrides,
+        "train_env_overrides": train_env_overrides,
+        "defaults": defaults,
+    }
     if isinstance(task, Recipe):
         if any(value is not None for value in given.values()):
             named = ", ".join(name for name, value in given.items() if value is not None)
