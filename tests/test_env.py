@@ -516,6 +516,25 @@ def test_brax_adapter_auto_resets_with_fresh_starts():
     np.testing.assert_array_equal(typed.obs, first)
 
 
+@pytest.mark.parametrize("randomize", [None, {"mass": 0.1}], ids=["shared params", "params per world"])
+def test_brax_training_wrapper_steps_as_brax_vmap_wrapper(randomize):
+    """`wrap_for_brax_training` resets only the worlds whose episode ended (`VmapAutoReset`); its states are those of
+    brax's ``VmapWrapper`` of the same `BraxEnv`, which resets every world at every step, through two episodes."""
+    from brax.envs.wrappers.training import VmapWrapper
+
+    env = jd.make("hover", episode_len_s=0.3, randomize=randomize)
+    ours, brax = wrap_for_brax_training(BraxEnv(env)), VmapWrapper(BraxEnv(env))
+    keys = jax.random.split(jax.random.PRNGKey(0), 8)
+    a, b = jax.jit(ours.reset)(keys), jax.jit(brax.reset)(keys)
+    actions = jax.random.uniform(jax.random.key(1), (2 * env.episode_length + 1, 8, 4), minval=-1, maxval=1)
+    step_a, step_b = jax.jit(ours.step), jax.jit(brax.step)
+    for action in actions:
+        a, b = step_a(a, action), step_b(b, action)
+        fields = lambda state: (state.obs, state.reward, state.done, state.info)  # noqa: E731
+        jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6), fields(a), fields(b))
+    assert float(a.info["episode_done"].sum()) == 0 and float(a.info["steps"][0]) == 1  # just restarted
+
+
 def test_brax_rejects_randomization_fn():
     with pytest.raises(ValueError, match="randomize="):
         wrap_for_brax_training(BraxEnv(jd.make("hover")), 150, randomization_fn=lambda sys: (sys, None))

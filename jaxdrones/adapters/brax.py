@@ -31,12 +31,13 @@ import numpy as np
 with contextlib.redirect_stdout(io.StringIO()):
     from brax.envs.base import Env as BraxBaseEnv
     from brax.envs.base import State as BraxState
+    from brax.envs.base import Wrapper as BraxWrapper
     from brax.envs.wrappers import training as brax_training
     from brax.training.agents.ppo import networks, train  # noqa: F401  (imported here, quietly, for patch_brax)
 
-from jaxdrones.envs.base import Env
+from jaxdrones.envs.base import Env, EnvState, world_axes
 from jaxdrones.envs.observations import policy_input
-from jaxdrones.wrappers.autoreset import AutoReset
+from jaxdrones.wrappers.autoreset import AutoReset, VmapAutoReset
 
 #: brax's modules that call ``jax.device_put_replicated`` (brax 0.14.2): `patch_brax` gives them a stand-in.
 BRAX_REPLICATING_MODULES = (
@@ -140,10 +141,18 @@ class BraxEnv(BraxBaseEnv):
             )
         self.env = env
         self.privileged = privileged
+        self.auto_reset = auto_reset
         self._inner = AutoReset(env) if auto_reset else env
 
     def reset(self, rng: jax.Array) -> BraxState:
-        state = self._inner.reset(rng)
+        return self.start(self._inner.reset(rng))
+
+    def step(self, state: BraxState, action: jax.Array) -> BraxState:
+        action = jnp.reshape(action, (self.env.n_drones, self.env.action_size))
+        return self.advance(state, self._inner.step(state.pipeline_state, action))
+
+    def start(self, state: EnvState) -> BraxState:
+        """The brax state of a world's first jaxdrones state ``state``."""
         zero = jnp.zeros((), state.reward.dtype)
         episode = {k: zero for k in ("sum_reward", "length", *state.metrics)}
         info = {"truncation": zero, "steps": zero, "episode_done": zero, "episode_metrics": episode}
@@ -151,9 +160,9 @@ class BraxEnv(BraxBaseEnv):
             pipeline_state=state, obs=self._flat(state), reward=zero, done=zero, metrics=dict(state.metrics), info=info
         )
 
-    def step(self, state: BraxState, action: jax.Array) -> BraxState:
-        action = jnp.reshape(action, (self.env.n_drones, self.env.action_size))
-        new = self._inner.step(state.pipeline_state, action)
+    def advance(self, state: BraxState, new: EnvState) -> BraxState:
+        """The brax state after ``state`` of a world whose jaxdrones state stepped (and reset, where its episode
+        ended) to ``new``."""
         dtype = new.reward.dtype
         metrics = {**state.metrics, **new.metrics}
         steps = new.info["final_steps"] if "final_steps" in new.info else new.steps  # the episode's length so far
@@ -198,13 +207,43 @@ class BraxEnv(BraxBaseEnv):
         return "jaxdrones"
 
 
+class BatchedBraxEnv(BraxWrapper):
+    """A `BraxEnv` over a batch of worlds, as brax's ``VmapWrapper`` of it gives, but reset by `VmapAutoReset`:
+    only the worlds whose episode ended compute a reset, where ``vmap`` of `AutoReset` computes one for every world
+    at every step (with cameras a reset renders the first images, so that nearly doubles a step's cost).
+
+    ``reset(rng)`` takes keys [W] (raw uint32 [W, 2] or typed); ``step(state, action)`` actions f[W, D·n_act]. The
+    states are those of ``VmapWrapper(env)``, except that the jaxdrones state in ``pipeline_state`` holds the drones'
+    params once (batch shape [D]) when the env does not randomise them (`VmapAutoReset`).
+    """
+
+    def __init__(self, env: BraxEnv):
+        super().__init__(env)
+        self._worlds = VmapAutoReset(env.env)
+        self._axes = world_axes(self._worlds.params_shared)
+        self._state_axes = BraxState(pipeline_state=self._axes, obs=0, reward=0, done=0, metrics=0, info=0)
+
+    def reset(self, rng: jax.Array) -> BraxState:
+        start = jax.vmap(self.env.start, in_axes=(self._axes,), out_axes=self._state_axes)
+        return start(self._worlds.reset(rng))
+
+    def step(self, state: BraxState, action: jax.Array) -> BraxState:
+        inner = self.env.env
+        new = self._worlds.step(
+            state.pipeline_state, jnp.reshape(action, (action.shape[0], inner.n_drones, inner.action_size))
+        )
+        advance = jax.vmap(self.env.advance, in_axes=(self._state_axes, self._axes), out_axes=self._state_axes)
+        return advance(state, new)
+
+
 def wrap_for_brax_training(
     env: BraxEnv | Env,
     episode_length: int | None = None,
     action_repeat: int = 1,
     randomization_fn: Callable | None = None,
-) -> brax_training.VmapWrapper:
-    """``wrap_env_fn`` for brax's trainers: a `BraxEnv` (with our `AutoReset`) under brax's ``VmapWrapper``.
+) -> BatchedBraxEnv | brax_training.VmapWrapper:
+    """``wrap_env_fn`` for brax's trainers: a `BraxEnv` over a batch of worlds, `BatchedBraxEnv` (brax's
+    ``VmapWrapper`` of it when it does not reset, ``auto_reset=False``).
 
     Args:
         env: a `BraxEnv` or a jaxdrones env.
@@ -224,4 +263,4 @@ def wrap_for_brax_training(
         raise ValueError(f"action_repeat must be 1 (set the env's ctrl_freq instead), got {action_repeat}")
     if not isinstance(env, BraxEnv):
         env = BraxEnv(env)
-    return brax_training.VmapWrapper(env)
+    return BatchedBraxEnv(env) if env.auto_reset else brax_training.VmapWrapper(env)

@@ -202,6 +202,9 @@ def distance(scene: Scene, points: jax.Array) -> jax.Array:
         scene: a `Scene` with leading axes [...] (or none, shared by every point).
         points: f[..., P, 3] m, world frame.
     """
+    # The component axis first ([3, ..., P, N] arrays), so that each step is one elementwise operation over every
+    # point and primitive: with the 3 components last, the rotation and the norms were 3-wide reductions.
+    point = jnp.moveaxis(points, -1, 0)[..., :, None]  # [3, ..., P, 1]
     out = jnp.full(points.shape[:-1], jnp.inf, points.dtype)
     for shape in SHAPES:
         prims = getattr(scene, shape)
@@ -209,35 +212,35 @@ def distance(scene: Scene, points: jax.Array) -> jax.Array:
             continue
         extra = (1,) * max(0, points.ndim - 1 - prims.valid.ndim)  # a scene shared by every point: [1..., N]
         prims = jax.tree.map(lambda x, extra=extra: jnp.reshape(x, extra + x.shape), prims)
-        rel = points[..., :, None, :] - prims.pos[..., None, :, :]  # [..., P, N, 3]
-        local = jnp.einsum("...nji,...pnj->...pni", prims.rot, rel)  # Rᵀ (p − c), the shape's frame
-        size = prims.size[..., None, :, :]
+        rel = point - jnp.moveaxis(prims.pos, -1, 0)[..., None, :]  # p − c: [3, ..., P, N]
+        rot = jnp.moveaxis(prims.rot, (-2, -1), (0, 1))[..., None, :]  # R[j, i]: [3, 3, ..., 1, N]
+        local = jnp.sum(rot * rel[:, None], axis=0)  # Rᵀ (p − c), the shape's frame: [3, ..., P, N]
+        size = jnp.moveaxis(prims.size, -1, 0)[..., None, :]
         d = _SDF[shape](local, size)
         out = jnp.minimum(out, jnp.min(jnp.where(prims.valid[..., None, :], d, jnp.inf), axis=-1))
     return out
 
 
+# Signed distance functions of a point p f[3, ...] in the shape's frame and its size f[k, ...] (component axis first).
 def _sdf_box(p, size):
     q = jnp.abs(p) - size
-    outside = jnp.linalg.norm(jnp.maximum(q, 0.0) + 1e-30, axis=-1)
-    return jnp.where(jnp.all(q <= 0, axis=-1), jnp.max(q, axis=-1), outside)
+    outside = jnp.linalg.norm(jnp.maximum(q, 0.0) + 1e-30, axis=0)
+    return jnp.where(jnp.all(q <= 0, axis=0), jnp.max(q, axis=0), outside)
 
 
 def _sdf_sphere(p, size):
-    return jnp.linalg.norm(p, axis=-1) - size[..., 0]
+    return jnp.linalg.norm(p, axis=0) - size[0]
 
 
 def _sdf_cylinder(p, size):
-    q = jnp.stack([jnp.linalg.norm(p[..., :2], axis=-1) - size[..., 0], jnp.abs(p[..., 2]) - size[..., 1]], -1)
-    outside = jnp.linalg.norm(jnp.maximum(q, 0.0) + 1e-30, axis=-1)
-    return jnp.where(jnp.all(q <= 0, axis=-1), jnp.max(q, axis=-1), outside)
+    q = jnp.stack([jnp.linalg.norm(p[:2], axis=0) - size[0], jnp.abs(p[2]) - size[1]])
+    outside = jnp.linalg.norm(jnp.maximum(q, 0.0) + 1e-30, axis=0)
+    return jnp.where(jnp.all(q <= 0, axis=0), jnp.max(q, axis=0), outside)
 
 
 def _sdf_capsule(p, size):
-    axis = jnp.clip(p[..., 2], -size[..., 1], size[..., 1])
-    return (
-        jnp.linalg.norm(p - jnp.stack([jnp.zeros_like(axis), jnp.zeros_like(axis), axis], -1), axis=-1) - size[..., 0]
-    )
+    axis = jnp.clip(p[2], -size[1], size[1])
+    return jnp.linalg.norm(jnp.stack([p[0], p[1], p[2] - axis]), axis=0) - size[0]
 
 
 _SDF = {"box": _sdf_box, "sphere": _sdf_sphere, "cylinder": _sdf_cylinder, "capsule": _sdf_capsule}
