@@ -8,30 +8,13 @@ from __future__ import annotations
 import os
 import sys
 
-from jaxdrones import _xla
+from jaxdrones.cli import xla
 
 # The suite compiles several hundred programs, most of them run for a few steps: it compiles them as the
-# ``jaxdrones`` command line does (`jaxdrones._xla.CLI_FLAGS`, where the installed XLA accepts them: LLVM's cheaper
-# passes, and XLA:CPU's classic emitters up to jaxlib 0.10; tests/test_avoid.py and tests/test_gate.py in 45-50 s
-# instead of 65-67 s), where it compiles for the CPU, and `jaxdrones._xla.GPU_FLAGS` where it compiles for a GPU.
-# On the CPU it goes one step further than the command line, whose programs run thousands of steps while most of the
-# suite's run a few: LLVM's optimisation level 0 instead of 1 (`SUITE_CPU_FLAGS`). On 2 cores XLA then compiles
-# tests/test_env.py's programs in 45 % of the time, and the module runs in 75 % (tests/test_training.py with
-# tests/test_dynamics.py in 77 %, tests/test_env.py with tests/test_adjoint.py on jax 0.12 in 78 %); the command
-# line's hover would take 1.5 times as long with it. ``JAXDRONES_XLA_FLAGS=0`` runs the suite with XLA's defaults.
-SUITE_CPU_FLAGS = ("--xla_backend_optimization_level=0",)
-
-
-def _suite_flags() -> tuple[str, ...]:
-    """`jaxdrones._xla.flags_for`'s flags, on the CPU each of `SUITE_CPU_FLAGS` in place of the command line's."""
-    if not _xla.compiles_for_cpu():
-        return _xla.flags_for()
-    ours = {_xla._flag_name(f) for f in SUITE_CPU_FLAGS}
-    return SUITE_CPU_FLAGS + tuple(f for f in _xla.CLI_FLAGS if _xla._flag_name(f) not in ours)
-
-
-_xla.add_flags(_suite_flags())
-_xla.set_jax_options(_xla.jax_options_for())  # the command line's JAX options on a GPU (none on the CPU)
+# ``jaxdrones`` command line does (`jaxdrones.cli.xla.configure`), and on the CPU one step further, at LLVM's
+# optimisation level 0 instead of 1 (the command line's programs run thousands of steps, the suite's a few).
+# ``JAXDRONES_XLA_FLAGS=0`` runs the suite with XLA's defaults.
+xla.configure(cpu=xla.cpu_flags(optimization_level=0))
 # Every broadcast between arrays of different ranks is written out (``x[None]``, `jnp.broadcast_to`,
 # `jaxdrones.physics.params.align_params`): JAX raises on an implicit one, here and in the suite's subprocesses.
 os.environ.setdefault("JAX_NUMPY_RANK_PROMOTION", "raise")

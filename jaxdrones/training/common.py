@@ -4,9 +4,7 @@ loop."""
 
 from __future__ import annotations
 
-import concurrent.futures
 import math
-import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -73,9 +71,9 @@ def mlp(
 #:   as a loop of about 90 operations; a GPU as one kernel and the normal's transform). The same distribution,
 #:   other draws.
 #:
-#: On a GPU every operation of an update is a kernel run after the previous one, and each cuts them
-#: (`benchmarks/train_cost.py`); on 2 CPU cores the first two each made APG's default hover run 20-40 % slower per
-#: update, and the third left our PPO's `cpu` settings as fast (each chunk 1.21 s against 1.20 s).
+#: On a GPU every operation of an update is a kernel run after the previous one, and each cuts them; on the CPU the
+#: first two slow APG's updates and the third gains nothing (`benchmarks/train_cost.py`, docs/benchmarks.md,
+#: "Training at a GPU's speed").
 BUILD_SETTINGS = ("starts_per_window", "flat_params", "noise_per_window")
 
 #: The profiles of default settings (``jaxdrones train --defaults``): ``"cpu"``, tuned for the fewest seconds to a
@@ -175,6 +173,32 @@ def described(fn: Callable, evaluate: Callable) -> Callable:
     return fn
 
 
+def _programs(init, chunk, evaluate, seed, n_worlds: int, description: str | None) -> tuple:
+    """`run_updates`' three programs, jitted: ``(init, chunk, evaluate or None)``. Over several devices, the carry
+    spread over them (`world_shardings`); on one, loaded from the program cache (`jaxdrones.training.programs`)
+    where ``description`` and the evaluation's own ``description`` name them and the cache is on."""
+    from jaxdrones.training.programs import cache_folder, cached_eval_shape, cached_jit
+
+    eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
+    cached = description is not None and eval_description is not None and cache_folder() is not None
+    shapes = cached_eval_shape(init, seed, f"{description}\ninit" if cached else None)
+    shardings = world_shardings(shapes, n_worlds)
+    if shardings is not None:
+        replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())
+        return (
+            jax.jit(init, out_shardings=shardings),
+            jax.jit(chunk, in_shardings=(shardings,), out_shardings=(shardings, replicated)),
+            evaluate and jax.jit(evaluate, in_shardings=(shardings,), out_shardings=replicated),
+        )
+    if not cached:
+        return jax.jit(init), jax.jit(chunk), evaluate and jax.jit(evaluate)
+    return (
+        cached_jit(init, seed, f"{description}\ninit"),
+        cached_jit(chunk, shapes, f"{description}\nchunk"),
+        evaluate and cached_jit(evaluate, shapes, f"{description}\n{eval_description}"),
+    )
+
+
 def run_updates(
     config: Schedule,
     init: Callable,
@@ -185,27 +209,13 @@ def run_updates(
     evaluate: Callable | None = None,
     description: str | None = None,
 ) -> Any:
-    """The training loop of our trainers: three compiled programs, ``init``, a chunk of updates and the evaluation.
-
-    ``init(key) -> carry`` builds the parameters, optimiser state and the worlds' states (jitted, with the carry
-    spread over every device: `world_shardings`). Then ``config.num_evals`` calls of one jitted chunk, a
-    `jax.lax.scan` of ``config.updates_per_eval`` calls of ``update(carry, None) -> (carry, metrics)``, each followed
-    by a call of the jitted ``evaluate(carry)`` (a pytree of arrays, e.g. per-episode outcomes of the current
-    policy). Each chunk is dispatched before the previous chunk's metrics are read, so that the host's work (the
-    progress display) overlaps the next chunk; nothing else leaves the device during training. On one device, with
-    the program cache (``description``, below), the chunk and then the evaluation are traced or loaded and compiled
-    in two threads while ``init`` is (the chunk first: tracing holds Python's lock, XLA's compilation does not);
-    without it, the evaluation is traced and compiled in a second thread, on its first run on the initial carry,
-    while the chunk is compiled and the first chunk trains (on 2 CPU cores this hides its 2 s of tracing and
-    compiling).
-
-    ``progress(env_steps, metrics)`` is called after each chunk, with the last update's metrics (floats) and the
+    """The training loop of our trainers: ``init(key) -> carry`` (the parameters, optimiser state and worlds), then
+    ``config.num_evals`` chunks, each a `jax.lax.scan` of ``config.updates_per_eval`` calls of ``update(carry, None)
+    -> (carry, metrics)`` followed by ``evaluate(carry)`` (a pytree of arrays), three compiled programs
+    (`_programs`; ``description``, the trainer, its config and its env's config as text, keys them in the program
+    cache). Each chunk is dispatched before the previous one's metrics are read, so the progress display overlaps
+    it. ``progress(env_steps, metrics)`` is called after each chunk with the last update's metrics (floats) and the
     evaluation under ``"eval"`` (NumPy arrays).
-
-    ``description`` (the trainer, its config and its env's config, as text) lets a later process load the traced
-    init, chunk and evaluation, and the shapes of init's result, from disk instead of tracing them
-    (`jaxdrones.training.programs`), when ``evaluate`` has a ``description`` too (or is None); otherwise they are
-    traced as usual.
 
     Returns:
         ``result(carry)`` of the final carry.
@@ -223,83 +233,21 @@ def run_updates(
         carry, metrics = jax.lax.scan(update, carry, None, length=config.updates_per_eval)
         return carry, {name: value[-1] for name, value in metrics.items()}
 
-    steps_per_chunk = config.updates_per_eval * config.steps_per_update
-    init_c, carry, done = jax.jit(init_seeded), None, 0
-    chunk_what = f"updates {config.updates_per_eval}"
-    # Programs traced and compiled beside the training thread; `Future.result` raises their errors there.
-    background = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="jaxdrones-compile")
-    building = compiling = eval_fn = None
+    init_c, chunk_c, eval_c = _programs(init_seeded, chunk, evaluate, seed, n_worlds, description)
+    carry, done = None, 0
     try:
-        from jaxdrones.training.programs import cache_folder, cached_eval_shape, cached_jit
-
-        # Read from the program cache where it is on: init is not traced in a warm run.
-        shapes = cached_eval_shape(init_seeded, seed, None if description is None else f"{description}\ninit")
-        shardings = world_shardings(shapes, n_worlds)
-        eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
-        if shardings is None:
-            replicated = None
-            cached = description is not None and eval_description is not None and cache_folder() is not None
-
-            def jit(fn, what, out_shardings, example=shapes):  # what: the program's key beyond ``description``
-                return cached_jit(fn, example, f"{description}\n{what}") if cached else jax.jit(fn)
-
-            def build(fn, what, after=None, traced=None):
-                # Traced (or loaded) once ``after`` is set, then compiled; sets ``traced`` when its tracing is done.
-                try:
-                    if after is not None:
-                        after.wait()
-                    program = jit(fn, what, None)
-                finally:
-                    if traced is not None:
-                        traced.set()
-                program.precompile()
-                return program
-
-            if cached:
-                # The chunk's and the evaluation's programs (their inputs' shapes known) traced or loaded and
-                # compiled beside the init's: the chunk, the longest to compile, traced first and alone (tracing
-                # holds Python's lock; XLA's compilation does not), the evaluation once it is.
-                chunk_traced = threading.Event()
-                building = background.submit(build, chunk, chunk_what, None, chunk_traced)
-                if evaluate is not None:
-                    compiling = background.submit(build, evaluate, eval_description, chunk_traced)
-            init_c = jit(init_seeded, "init", None, seed)
-        else:
-            replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())
-            init_c = jax.jit(init_seeded, out_shardings=shardings)
-
-            def jit(fn, what, out_shardings):
-                return jax.jit(fn, in_shardings=(shardings,), out_shardings=out_shardings)
-
         carry = init_c(seed)
-        if evaluate is not None and shardings is None and compiling is None:
-            # One device, no program cache: trace and compile the evaluation (on its first call) beside the chunk
-            # (several devices, or processes, run their programs in the same order everywhere, so there it is
-            # compiled in turn).
-            def compile_eval(first=carry):
-                fn = jit(evaluate, eval_description, replicated)
-                jax.block_until_ready(fn(first))
-                return fn
-
-            compiling = background.submit(compile_eval)
-        elif evaluate is not None and shardings is not None:
-            eval_fn = jit(evaluate, eval_description, replicated)
-        chunk_c = jit(chunk, chunk_what, (shardings, replicated)) if building is None else building.result()
         pending = chunk_c(carry)
         for k in range(1, config.num_evals + 1):
             finished, metrics = pending
-            if compiling is not None:
-                eval_fn, compiling = compiling.result(), None
-            if evaluate is not None:
-                metrics = {**metrics, "eval": eval_fn(finished)}
+            if eval_c is not None:
+                metrics = {**metrics, "eval": eval_c(finished)}
             if k < config.num_evals:
                 pending = chunk_c(finished)  # runs while this chunk's metrics are read and shown
             metrics = jax.tree.map(host_array, metrics)
-            carry, done = finished, k * steps_per_chunk
+            carry, done = finished, k * config.updates_per_eval * config.steps_per_update
             if progress is not None:
                 progress(done, {name: (value if name == "eval" else float(value)) for name, value in metrics.items()})
     except KeyboardInterrupt:
         raise Interrupted(result(init_c(seed) if carry is None else carry), done) from None
-    finally:
-        background.shutdown(wait=True)  # never leave XLA compiling in a thread while Python shuts down
     return result(carry)

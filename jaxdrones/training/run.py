@@ -7,7 +7,6 @@ import dataclasses
 import json
 import math
 import os
-import threading
 import time
 from typing import TYPE_CHECKING
 
@@ -142,11 +141,7 @@ def train_task(
     log = ProgressLog(config.total_steps, env.task, enabled=progress and writer)
     last = {}
 
-    importing: list[threading.Thread] = []  # the writers' imports, started at the first report (`_import_writers`)
-
     def report(steps, metrics):
-        if writer and not importing:
-            importing.append(_import_writers())
         last.update(eval=metrics["eval"])
         log(steps, episode_statistics(env, metrics["eval"]["outcomes"]))
 
@@ -171,8 +166,6 @@ def train_task(
     stats = episode_statistics(env, last["eval"]["outcomes"]) if last else {}
     phases["save"] = time.perf_counter() - t_phase
     t_phase = time.perf_counter()
-    for thread in importing:
-        thread.join()
     _plot(env, task, algo, log, last.get("eval"), out)
     phases["plots"] = time.perf_counter() - t_phase
     t_phase = time.perf_counter()
@@ -252,31 +245,6 @@ def failed_criteria(task: Task, stats: dict) -> list[str]:
             f"{round(rate * n)} of {n} episodes ended early (crashed or left the arena; a solved run has none)"
         )
     return failed
-
-
-def _import_writers() -> threading.Thread:
-    """Import what writes the run's plots and viewer (matplotlib, viser and trimesh, which draws the viewer's drone:
-    2-3 s on 2 cores) in a thread, started at the trainer's first report, once its programs are compiled or loaded:
-    the main thread then mostly waits on the device, and the run's files are written sooner after training. Started
-    with training, the imports held Python's lock while the programs were loaded: on 2 CPU cores the default hover
-    run's first evaluation ended 1.85 s into training instead of 1.36 s, the warm run took 7.57 s instead of 6.91 s
-    (``benchmarks/first_run.py``, docs/benchmarks.md)."""
-
-    def load():
-        try:
-            from jaxdrones import viz
-            from jaxdrones.io.plotting import _pyplot
-
-            _pyplot()
-            if viz.viewer_available():
-                import trimesh  # noqa: F401
-                import viser  # noqa: F401
-        except Exception:  # noqa: BLE001, S110  (the writers, run in the main thread, raise it again where it matters)
-            pass
-
-    thread = threading.Thread(target=load, name="jaxdrones-import-writers", daemon=True)
-    thread.start()
-    return thread
 
 
 def _write_viewer(env, evaluation: dict | None, out: str) -> None:
