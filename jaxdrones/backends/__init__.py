@@ -15,8 +15,7 @@ RENDERERS = ("tiny", "egl")
 #: How to install pybullet, in every error that asks for it.
 PYBULLET_INSTALL = (
     'pip install pybullet, or the pybullet extra (pip install ".[pybullet]" from a clone): a wheel '
-    "on Python 3.11; on Python >= 3.12 pip builds it from source (a C++ build, about 3 minutes on "
-    "2 cores)"
+    "on Python 3.11; on Python >= 3.12 pip builds it from source (a C++ build of a few minutes)"
 )
 
 

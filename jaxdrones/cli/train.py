@@ -55,7 +55,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--defaults",
         choices=trainers.DEFAULTS,
         default=None,
-        help="the trainer's default settings: cpu (few worlds, many small updates: fastest on a few CPU cores) or "
+        help="the trainer's default settings: cpu (few worlds, many small updates: fastest on a CPU) or "
         "gpu (thousands of worlds, few large updates: fastest where each sequential operation costs a kernel "
         "launch); default: the device's (gpu on a GPU or TPU)",
     )

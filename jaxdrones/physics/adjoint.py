@@ -11,11 +11,8 @@ Why: JAX derives the reverse pass one operation at a time, and XLA:CPU then comp
 cotangent terms into loops that recompute what the forward pass shares between components (the rotation matrix,
 the exponential map). The hand-written pass recomputes the forward quantities once from the substep's input and
 transposes the update equation by equation, so the control step needs no rematerialisation (``jax.checkpoint``).
-Measured with `benchmarks/gradients.py` on 2 idle CPU cores (100 steps, 1024 worlds, drag and ground effect;
-the gradient w.r.t. the commands over the forward pass, XLA:CPU's classic / fusion emitters, the latter jax 0.11's
-only ones): through `jaxdrones.rollout` 3.5x / 3.5x before, 2.4x / 2.6x after; through a user's own ``lax.scan``
-over the step 2.9x / 5.0x before, 2.4x / 2.1x after; through the hover env's ``step`` 3.7x / 2.9x before,
-3.0x / 2.3x after (docs/benchmarks.md).
+The gradient's cost over the forward pass, before and after, through `jaxdrones.rollout`, a user's own
+``lax.scan`` and the hover env's ``step``: `benchmarks/gradients.py`, docs/benchmarks.md, "Gradients".
 
 tests/test_adjoint.py checks it against JAX's derived derivative to float64 rounding. Two parts keep JAX's
 derivative: the downwash (the paper's force, or the per-rotor thrust changes, which enter the lifts) is computed

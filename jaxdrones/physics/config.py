@@ -52,18 +52,15 @@ class SimConfig:
         unroll_substeps: the control step's physics substeps written out one after the other in the compiled
             program (True), as a loop (False, default), or None: unrolled on a GPU or TPU and a loop on the CPU,
             chosen when the step is traced. Unrolled, XLA fuses the element-wise work of all substeps into a few
-            kernels: on an NVIDIA H200 one control step of 8192 worlds ran in 0.082 ms instead of 0.164 ms forward
-            and 0.285 ms instead of 0.641 ms with its gradient, but the default ``jaxdrones train hover`` there
-            compiled 10 s longer (32.6 s instead of about 22 s from an empty cache) and trained no faster from a
-            warm one (2.75 s against 2.86 s): worth it for long runs, not for the compilation every new setting
-            costs. On the CPU the unrolled step ran 1.4-3 times slower (`benchmarks/train_cost.py --per-step`,
-            docs/benchmarks.md). The results are the same either way (to float rounding: XLA may fuse the
-            arithmetic differently).
+            kernels: on a GPU the step runs about twice as fast but compiles longer, worth it for long runs, not for
+            the compilation every new setting costs; on the CPU it runs slower (`benchmarks/train_cost.py
+            --per-step`, docs/benchmarks.md, "Training at a GPU's speed"). The results are the same either way (to
+            float rounding: XLA may fuse the arithmetic differently).
         pallas: the whole control step (the RPM clip, the motors, every substep and its ground contact) as one
             Pallas kernel, lowered through Triton on an NVIDIA GPU, and its gradient as a second, whose reverse pass
             is the hand-written adjoint's (`jaxdrones.physics.kernel`): the physics of a differentiated control step in
-            two launches (and the fusions that stack their inputs), where the default hover env's whole step ran
-            about 44 kernels forward and 261 with its gradient on an H200 (docs/benchmarks.md). Off by default; on the
+            two launches (and the fusions that stack their inputs), where the default hover env's whole step runs
+            dozens of kernels forward and hundreds with its gradient (docs/benchmarks.md). Off by default; on the
             CPU it runs in Pallas's interpret mode, to check it, slowly. It takes the hand-written adjoint's settings
             (``adjoint=True``, the Euler integrator, exact kinks) and drones that do not act on each other (no
             downwash with several drones); a step given a `Disturbance` runs on the XLA path. The values are the XLA

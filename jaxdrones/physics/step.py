@@ -217,11 +217,9 @@ def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Arra
     """Apply ``step`` to a sequence of RPM commands under ``lax.scan``.
 
     Differentiated, each control step is rematerialised (``jax.checkpoint``): the backward pass recomputes a step
-    from its input state rather than storing all its intermediates. Measured with `benchmarks/gradients.py` (100
-    steps, 1024 worlds, drag and ground effect, 2 CPU cores) this made the gradient about 1.5 times faster and
-    used a third of the memory; the forward pass is unchanged. With the hand-written adjoint (the default config)
-    it still uses less memory (13 against 18 MiB) and, on jax 0.12, is faster: 2.6 against 3.1 times the forward
-    pass for the gradient w.r.t. the commands (equal on jax 0.10; docs/benchmarks.md).
+    from its input state rather than storing all its intermediates: a faster gradient in less memory, also with the
+    hand-written adjoint (the default config); the forward pass is unchanged (`benchmarks/gradients.py`,
+    docs/benchmarks.md, "Gradients").
 
     Args:
         step: a step function from `make_step`.

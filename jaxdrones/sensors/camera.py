@@ -322,8 +322,7 @@ def _images(spec, kinds, scene, params, pos, quat, fast: bool) -> dict:
         return _trace(spec, scene, drones, eye, ray, near, shading)
 
     # Row by row blocks (`ROWS_PER_BLOCK`), so that a pass over a block's pixels stays in the CPU's cache however
-    # many worlds are vmapped (on 2 cores, 1024 worlds, 16 primitives: 3,300 against 2,300 frames/s for the
-    # whole image at once; 1 to 12 rows a block measured alike within the machine's noise).
+    # many worlds are vmapped (docs/benchmarks.md, "Cameras").
     rays = spec.pixel_rays()
     blocks = -(-spec.height // ROWS_PER_BLOCK)
     rays = np.concatenate([rays, np.repeat(rays[-1:], blocks * ROWS_PER_BLOCK - spec.height, 0)])

@@ -77,7 +77,7 @@ def mlp(
 BUILD_SETTINGS = ("starts_per_window", "flat_params", "noise_per_window")
 
 #: The profiles of default settings (``jaxdrones train --defaults``): ``"cpu"``, tuned for the fewest seconds to a
-#: solved policy on a few CPU cores (few worlds, many small updates), and ``"gpu"``, for the fewest sequential
+#: solved policy on a CPU (few worlds, many small updates), and ``"gpu"``, for the fewest sequential
 #: operations (many worlds, few large updates: a GPU steps thousands of worlds in the time of one, while every
 #: operation of an update runs after the previous one, each at least one kernel launch; `benchmarks/train_cost.py`).
 #: The results do not depend on the device that runs them: ``--defaults gpu --device cpu`` trains the same policy.

@@ -100,7 +100,7 @@ def _key(description: str, treedef, is_key: list[bool], raw_avals: list) -> str:
 def cached_eval_shape(fn: Callable, example: Any, description: str | None) -> Any:
     """``jax.eval_shape(fn, example)`` (one pytree argument, as `cached_jit`'s ``example``, e.g. a trainer's seed),
     read from the program cache where a process with the same key (as `cached_jit`'s) computed it before, else
-    computed (a trace of ``fn``: 0.16 s for APG's init on 2 CPU cores) and saved there; without the cache, or
+    computed (a trace of ``fn``) and saved there; without the cache, or
     without a ``description`` of what ``fn`` closes over (None), computed."""
     folder = cache_folder()
     if folder is None or description is None:

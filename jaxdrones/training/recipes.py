@@ -100,12 +100,11 @@ APG_CPU = Tuned({"num_timesteps": 600_000, "learning_rate": 3e-3, "cosine_decay"
 APG_GPU = Tuned(
     {"num_timesteps": 4096 * 32 * 200, "num_envs": 4096, "learning_rate": 1e-2, "cosine_decay": True, "num_evals": 5}
 )
-#: APG, ``gpu``, in 64-step windows (100 updates): fly_thru_gate 7.6 cm and meetup 5.5 cm where 32-step windows ended
-#: 10.3 and 12.1 cm (seed 0; velocity and flock did worse in them: docs/experiments.md, "The suite at its defaults":
-#: the gpu profile).
+#: APG, ``gpu``, in 64-step windows (100 updates), for the tasks that 32-step windows left short (docs/experiments.md,
+#: "The suite at its defaults": the gpu profile).
 APG_GPU_LONG = Tuned({**APG_GPU.config, "horizon": 64})
-#: APG on the smooth tasks whose 0.6 M steps left little margin (velocity 0.093 / 0.103 m/s, flock 4.5-6.0 cm, the
-#: gate 0.095 m): 1.2 M env steps in 64-step windows (docs/experiments.md, "The suite at its defaults").
+#: APG on the smooth tasks that 0.6 M steps left close to their thresholds: 1.2 M env steps in 64-step windows
+#: (docs/experiments.md, "The suite at its defaults").
 APG_LONG = Tuned({**APG_CPU.config, "num_timesteps": 1_200_000, "horizon": 64})
 #: Our PPO trains hover from wider starts than the task's (docs/training.md, "Defaults per device", the ``ppo`` rows
 #: from wider starts).
@@ -230,12 +229,11 @@ RECIPES: dict[str, TaskRecipe] = {
             },
         ),
     ),
-    # APG through the tun action's PID lost 41 of 256 episodes (docs/experiments.md, "The suite at its defaults").
+    # APG through the tun action's PID lost episodes (docs/experiments.md, "The suite at its defaults").
     "tune": TaskRecipe(cpu=Setting(BRAX_PPO, {BRAX_PPO: BRAX_HOVER}), gpu=Setting(BRAX_PPO, {BRAX_PPO: BRAX_GPU})),
     "avoid": TaskRecipe(**_both(Setting(BRAX_PPO, {BRAX_PPO: BRAX_AVOID}))),
-    # APG's shared policy ends 9.0 cm from the farthest target with 6 drones and 17 cm with 8; from 7 drones on,
-    # MAPPO, 6 M env steps from body rates up to 1 rad/s (docs/experiments.md, "The suite at its defaults": team
-    # sizes; docs/multi-agent.md, the multi_hover rows).
+    # APG's shared policy falls short from 7 drones on: MAPPO there, 6 M env steps from body rates up to 1 rad/s
+    # (docs/experiments.md, "The suite at its defaults": team sizes; docs/multi-agent.md, the multi_hover rows).
     "multi_hover": TaskRecipe(
         **_smooth(**{MAPPO: Tuned({}, MULTI_HOVER_STARTS)}),
         teams={7: _both(Setting(MAPPO, {MAPPO: Tuned({"num_timesteps": 6_000_000}, MULTI_HOVER_STARTS)}))},
