@@ -4,7 +4,7 @@ Machines of one kind differ (four NVIDIA H200 machines took 8.5-16.5 s for the s
 compared only between runs interleaved on one machine. Each setting is a set of environment variables given to
 ``python -m jaxdrones.cli train TASK`` (e.g. ``JAX_THREEFRY_GPU_KERNEL_LOWERING=0``, which turns off the command
 line's JAX option, or ``XLA_PYTHON_CLIENT_PREALLOCATE=true``, which brings back JAX's preallocation of the GPU's
-memory; `jaxdrones._xla`); each has its own compilation cache (``JAXDRONES_CACHE_DIR``), emptied before each round.
+memory; `jaxdrones.cli.xla`); each has its own compilation cache (``JAXDRONES_CACHE_DIR``), emptied before each round.
 A round runs every setting from the empty cache (``cold``), then every setting again (``warm``, ``--warm`` times).
 Per run: the wall time from outside (the process, its exit included), the run's phases and result
 (``summary.json``), the seconds after training started at which each evaluation ended (``progress.json``: the
@@ -27,7 +27,6 @@ checkout, so that the current folder does not come first), e.g. a commit against
     python benchmarks/first_run.py --rounds 3 --xla-timers
     python benchmarks/first_run.py --rounds 1 --warm 2 --timeline --setting default
     python benchmarks/first_run.py --setting nokernel JAX_THREEFRY_GPU_KERNEL_LOWERING=0 --train-args --defaults gpu
-    python benchmarks/first_run.py --setting xla --setting pallas TRAIN_ARGS=--pallas   # a setting's own options
 
 Results: a table of medians on stdout and every run in ``benchmarks/results/first_run_<TASK>.json`` (``--out``).
 """
@@ -49,7 +48,7 @@ import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 #: The settings compared by default: the command line's own, and each of its GPU settings turned off by the
-#: user's environment variable (`jaxdrones._xla.GPU_JAX_OPTIONS`, `jaxdrones._xla.GPU_ENV`).
+#: user's environment variable (`jaxdrones.cli.xla.GPU_JAX_OPTIONS`, `jaxdrones.cli.xla.GPU_ENV`).
 DEFAULT_SETTINGS = {
     "command line": {},
     "no threefry kernel": {"JAX_THREEFRY_GPU_KERNEL_LOWERING": "0"},

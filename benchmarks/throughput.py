@@ -67,7 +67,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--pallas",
         action="store_true",
-        help="the control step as one Pallas kernel (SimConfig.pallas=True; for a GPU, interpreted on the CPU); "
+        help="the control step as Pallas kernels (jaxdrones.experimental.pallas; for a GPU, interpreted on the CPU); "
         "downwash off, as the kernel takes no coupling between drones",
     )
     parser.add_argument("--sim-freq", type=int, default=240, help="physics rate, Hz")
@@ -156,7 +156,6 @@ def measure(jax, jd, args, n_worlds: int, n_drones: int, effects_on: bool) -> di
         downwash=effects_on and not args.pallas,
         integrator=args.integrator,
         unroll_substeps=args.unroll_substeps,
-        pallas=args.pallas,
     )
     substeps = config.n_substeps
     steps = args.steps or int(np.clip(TARGET_DRONE_STEPS // (n_worlds * n_drones * substeps), 2, 2000))
@@ -173,7 +172,12 @@ def measure(jax, jd, args, n_worlds: int, n_drones: int, effects_on: bool) -> di
     devices = jax.devices()
     n_dev = max(k for k in range(1, len(devices) + 1) if n_worlds % k == 0 and len(devices) % k == 0)
     state, rpm = jd.sim.shard_worlds((state, rpm), devices=devices[:n_dev])
-    step = jd.make_step(config)
+    if args.pallas:
+        from jaxdrones.experimental import pallas
+
+        step = pallas.make_step(config)
+    else:
+        step = jd.make_step(config)
 
     def run(params, state, rpm):
         return jax.lax.fori_loop(0, steps, lambda _, s: step(params, s, rpm), state)

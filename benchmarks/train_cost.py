@@ -338,16 +338,14 @@ def print_by_loop(dump_dir: str, by_name: dict, row: dict, updates: int) -> None
 def per_step_table(worlds: list[int]) -> int:
     """Print operations and milliseconds per control step of the default hover env (`control_step_cost`): as the
     trainers stepped it before (the substeps in a loop, the resets computed in each step) and now (the worlds' next
-    episodes drawn once per window, the substeps looped or unrolled, or the control step's physics as one Pallas
-    kernel forward and one backward, `SimConfig.pallas`: on the CPU in Pallas's interpret mode, which runs the kernel's
-    body as XLA operations per block of drones, a check rather than a way to run)."""
+    episodes drawn once per window, the substeps looped or unrolled)."""
     from jaxdrones.envs import make
 
     print("| worlds | substeps | resets | forward ops | forward ms | gradient ops | gradient ms | gradient ÷ forward |")
     print("|---:|---|---|---:|---:|---:|---:|---:|")
     for w in worlds:
-        for substeps, predrawn in (("loop", False), ("loop", True), ("unrolled", True), ("Pallas kernel", True)):
-            env = make(TASK, unroll_substeps=substeps == "unrolled", pallas=substeps == "Pallas kernel")
+        for substeps, predrawn in (("loop", False), ("loop", True), ("unrolled", True)):
+            env = make(TASK, unroll_substeps=substeps == "unrolled")
             fwd, grad = (control_step_cost(env, w, 32, grad=g, predrawn=predrawn) for g in (False, True))
             print(
                 f"| {w} | {substeps} | {'drawn per window' if predrawn else 'in each step'} "
@@ -372,7 +370,7 @@ def main(argv=None) -> int:
         default=None,
         metavar="W",
         help="only the table of operations and time per control step of the default hover env (32-step windows "
-        "with auto-reset and a 64x64 MLP), forward and gradient, substeps looped, unrolled or in a Pallas kernel, "
+        "with auto-reset and a 64x64 MLP), forward and gradient, substeps looped or unrolled, "
         "resets in each step or drawn per window, at these worlds (default 4096)",
     )
     parser.add_argument(

@@ -110,13 +110,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     env.add_argument("--ctrl-freq", type=int, default=None, help="control rate, Hz (default 30)")
     env.add_argument("--episode-len", type=float, default=None, help="episode length, s")
     env.add_argument(
-        "--pallas",
-        action="store_true",
-        default=None,
-        help="step the physics of each control step as one Pallas kernel and its gradient as a second "
-        "(SimConfig.pallas; for a GPU: on the CPU it runs in Pallas's interpret mode, slowly)",
-    )
-    env.add_argument(
         "--reward",
         choices=("shaped", "paper"),
         default=None,
@@ -300,7 +293,6 @@ _ENV_OPTIONS = {
     "camera_freq": "camera_freq",
     "camera_fov": "camera_fov",
     "frame_stack": "frame_stack",
-    "pallas": "pallas",
 }
 
 

@@ -121,8 +121,6 @@ class TaskConfig:
             default True); False for forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``) through ``step``.
         unroll_substeps: the physics substeps of a control step unrolled in the compiled program
             (`SimConfig.unroll_substeps`): False (default, a loop), True, or None (unrolled on a GPU or TPU only).
-        pallas: the control step's physics as one Pallas kernel and its gradient as a second (`SimConfig.pallas`;
-            default False).
         reward: ``"shaped"`` (the task's shaped reward) or ``"paper"`` (the original's reward).
         init_pos: f[D, 3] m, fixed start positions (the original's ``initial_xyzs``): they override the random
             start ranges; the drones start at rest and level (unless ``init_rpy`` is given).
@@ -199,7 +197,6 @@ class TaskConfig:
     kinks: Any = "exact"
     adjoint: bool = True
     unroll_substeps: bool | None = False
-    pallas: bool = False
     reward: str = "shaped"
     init_pos: Any = None
     init_rpy: Any = None
@@ -247,7 +244,7 @@ class TaskConfig:
         self._set("downwash", downwash_model(self.downwash))
         self._set("realism", resolve_realism(self.realism))
         sim = self.sim  # built here, once: it checks the rates and the physics' options
-        for name in ("kinks", "unroll_substeps", "pallas"):  # as the physics stores them
+        for name in ("kinks", "unroll_substeps"):  # as the physics stores them
             self._set(name, getattr(sim, name))
         for name in ("init_pos", "init_rpy"):
             self._set(name, fixed_triples(name, getattr(self, name), n))
@@ -349,7 +346,6 @@ class TaskConfig:
             downwash_radius=self.downwash_radius,
             adjoint=self.adjoint,
             unroll_substeps=self.unroll_substeps,
-            pallas=self.pallas,
             motor_dynamics=realism is not None and realism.motor_dynamics,
         )
 

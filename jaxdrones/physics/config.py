@@ -56,22 +56,13 @@ class SimConfig:
             the compilation every new setting costs; on the CPU it runs slower (`benchmarks/train_cost.py
             --per-step`, docs/benchmarks.md, "Training at a GPU's speed"). The results are the same either way (to
             float rounding: XLA may fuse the arithmetic differently).
-        pallas: the whole control step (the RPM clip, the motors, every substep and its ground contact) as one
-            Pallas kernel, lowered through Triton on an NVIDIA GPU, and its gradient as a second, whose reverse pass
-            is the hand-written adjoint's (`jaxdrones.physics.kernel`): the physics of a differentiated control step in
-            two launches (and the fusions that stack their inputs), where the default hover env's whole step runs
-            dozens of kernels forward and hundreds with its gradient (docs/benchmarks.md). Off by default; on the
-            CPU it runs in Pallas's interpret mode, to check it, slowly. It takes the hand-written adjoint's settings
-            (``adjoint=True``, the Euler integrator, exact kinks) and drones that do not act on each other (no
-            downwash with several drones); a step given a `Disturbance` runs on the XLA path. The values are the XLA
-            path's to float rounding.
 
     Raises:
         ValueError: on a non-positive count or rate, ``sim_freq`` not a multiple of ``ctrl_freq``, an unknown
             integrator or kink treatment, a ``downwash_radius`` neither None nor > 0, a ``cell_capacity`` below 1,
             a ``drag``, ``ground_effect``, ``adjoint`` or ``motor_dynamics`` that is not a bool (a string or number
             would otherwise be truthy), an ``unroll_substeps`` neither a bool nor None, or a ``downwash`` that is none
-            of False, True, ``"paper"``, ``"per_rotor"``; ``pallas=True`` with other settings than those it takes.
+            of False, True, ``"paper"``, ``"per_rotor"``.
     """
 
     n_drones: int = 1
@@ -87,7 +78,6 @@ class SimConfig:
     adjoint: bool = True
     motor_dynamics: bool = False
     unroll_substeps: bool | None = False
-    pallas: bool = False
 
     def __post_init__(self):
         if isinstance(self.kinks, str):
@@ -105,7 +95,7 @@ class SimConfig:
             what = "None (every drone) or a finite radius in m"
             check_real("SimConfig.downwash_radius", self.downwash_radius, 0, low_open=True, what=what)
         check_int("SimConfig.cell_capacity", self.cell_capacity)
-        for name in ("drag", "ground_effect", "adjoint", "motor_dynamics", "pallas"):
+        for name in ("drag", "ground_effect", "adjoint", "motor_dynamics"):
             object.__setattr__(self, name, check_bool(f"SimConfig.{name}", getattr(self, name)))
         unroll = self.unroll_substeps
         if unroll is not None and not isinstance(unroll, (bool, np.bool_)):
@@ -116,8 +106,6 @@ class SimConfig:
             raise ValueError(
                 f"SimConfig.integrator must be one of {tuple(dynamics.INTEGRATORS)}, got {self.integrator!r}"
             )
-        if self.pallas and (why := self.pallas_unsupported) is not None:
-            raise ValueError(f"SimConfig.pallas=True takes {why}; got {self}")
 
     @property
     def n_substeps(self) -> int:
@@ -151,17 +139,6 @@ class SimConfig:
         ``adjoint=True`` with the Euler integrator and exact kinks (the defaults). Smooth and straight-through
         kinks (`jaxdrones.kinks`) and RK4 keep JAX's derived derivatives."""
         return self.adjoint and self.integrator == "euler" and self.kinks.mode == "exact"
-
-    @property
-    def pallas_unsupported(self) -> str | None:
-        """None when the control step can run as the Pallas kernel of `jaxdrones.physics.kernel` (`pallas`), else
-        what it takes: the hand-written adjoint's settings (`hand_written_adjoint`) and drones that do not act on
-        each other (no downwash between several drones of a world: the kernel steps each drone on its own)."""
-        if not self.hand_written_adjoint:
-            return "the hand-written adjoint's settings: adjoint=True, integrator='euler', kinks='exact'"
-        if self.downwash and self.n_drones > 1:
-            return "drones that do not act on each other: downwash=False with several drones per world"
-        return None
 
     @property
     def effects(self) -> dynamics.Effects:

@@ -122,7 +122,7 @@ class DroneParams:
 
 
 #: Number of trailing (per-drone) axes of each `DroneParams` field; the other fields are per-drone scalars.
-_CORE_NDIM = {
+CORE_NDIM = {
     "inertia": 2,
     "inertia_inv": 2,
     "prop_pos": 2,
@@ -142,7 +142,7 @@ def params_batch_shape(params: DroneParams) -> tuple[int, ...]:
     shapes = {}
     for field in dataclasses.fields(params):
         shape = np.shape(getattr(params, field.name))  # a Python number (params.replace(kf=...)) too
-        core = _CORE_NDIM.get(field.name, 0)
+        core = CORE_NDIM.get(field.name, 0)
         shapes[field.name] = tuple(shape[: len(shape) - core])
     batch = shapes["mass"]
     odd = {k: v for k, v in shapes.items() if v != batch}
@@ -164,7 +164,7 @@ def broadcast_params(params: DroneParams, lead: tuple[int, ...], xp: ModuleType 
     """
 
     def widen(name, leaf):
-        core = _CORE_NDIM.get(name, 0)
+        core = CORE_NDIM.get(name, 0)
         shape = tuple(lead) + tuple(leaf.shape[leaf.ndim - core :])
         try:
             return xp.broadcast_to(xp.asarray(leaf), shape)

@@ -50,7 +50,7 @@ def split(x: jax.Array, contiguous: bool = False) -> Components:
             physics, instead of strided reads of ``x`` repeated in every loop that uses them. For a state or
             command split once per control step (see `jaxdrones.sim`).
     """
-    if isinstance(x, np.ndarray) and x.dtype == object:  # entry by entry (`jaxdrones.physics.kernel`'s params)
+    if isinstance(x, np.ndarray) and x.dtype == object:  # entry by entry (`jaxdrones.experimental.pallas`'s params)
         return _slices(x)
     return _split(x, bool(contiguous))
 

@@ -15,7 +15,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxdrones.physics import adjoint, dynamics, kernel
+from jaxdrones.physics import adjoint, dynamics
 from jaxdrones.physics.checks import check_disturbance, check_motor_time_constants, check_params_batch, check_rpm
 from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.params import DroneParams, align_params
@@ -136,10 +136,12 @@ def _split_disturbance(disturbance: Disturbance | None, contiguous: bool = False
     return jax.tree.map(lambda x: split(x, contiguous), disturbance)
 
 
+@functools.cache
 def _core_step(core_c, remat: bool):
     """The jitted control step of the JAX core on checked inputs, in array form, around `_core_step_c`'s step.
 
-    The state is split into contiguous components and joined back with ``contiguous=True``
+    Cached: the `JaxStep`s of one ``core_c`` (`compiled_step_c`'s, per config) share one jitted function. The state
+    is split into contiguous components and joined back with ``contiguous=True``
     (`jaxdrones.rotations.split`, `jaxdrones.rotations.join`). With ``remat`` (a step without the hand-written
     adjoint of `jaxdrones.adjoint`, whose reverse pass keeps only each substep's input) the step is rematerialised
     (``jax.checkpoint``) when differentiated: the backward pass of a scan over this step (a user's own, or an
@@ -162,13 +164,11 @@ def _core_step(core_c, remat: bool):
 
 
 @functools.cache
-def _compiled_step(config: SimConfig):
-    """(`_core_step_c`, `_core_step`) of ``config``, shared by every `JaxStep` of an equal config: an env built
-    again (an evaluation env beside the training env, a second run in a notebook) compiles nothing again."""
-    core_c = _core_step_c(config)
-    if config.pallas:
-        core_c = kernel.control_step_c(config, core_c)
-    return core_c, _core_step(core_c, remat=not adjoint.supported(config))
+def compiled_step_c(config: SimConfig):
+    """The control step of ``config`` in component form (`_core_step_c`), shared by every `JaxStep` of an equal
+    config: an env built again (an evaluation env beside the training env, a second run in a notebook) compiles
+    nothing again."""
+    return _core_step_c(config)
 
 
 class JaxStep:
@@ -181,9 +181,10 @@ class JaxStep:
 
     has_cameras = False
 
-    def __init__(self, config: SimConfig):
+    def __init__(self, config: SimConfig, core_c: Callable[..., DroneState] | None = None):
         self.config = config
-        self._core_c, self._core = _compiled_step(config)
+        self._core_c = compiled_step_c(config) if core_c is None else core_c
+        self._core = _core_step(self._core_c, remat=not adjoint.supported(config))
 
     def __call__(
         self, params: DroneParams, state: DroneState, rpm, disturbance: Disturbance | None = None
@@ -198,10 +199,10 @@ class JaxStep:
         return self._core(params, state, rpm, check_disturbance(self.config, state, disturbance))
 
     def __hash__(self) -> int:
-        return hash((JaxStep, self.config))
+        return hash((JaxStep, self.config, self._core_c))
 
     def __eq__(self, other) -> bool:
-        return isinstance(other, JaxStep) and other.config == self.config
+        return isinstance(other, JaxStep) and (other.config, other._core_c) == (self.config, self._core_c)
 
     def close(self) -> None:
         """Nothing to release."""

@@ -1,8 +1,9 @@
-"""The JAX core's control step as one Pallas kernel, and its reverse-mode derivative as a second (`SimConfig.pallas`).
+"""The JAX core's control step as one Pallas kernel, and its reverse-mode derivative as a second: `make_step`.
 
-On a GPU every XLA operation is at least one kernel launch of a few microseconds, and a control step of the default
-hover env (physics, observation, reward) ran about 44 of them forward and 261 with its gradient on an H200
-(docs/benchmarks.md): a training run of many small updates is bound by those launches, not by the arithmetic. Here
+Experimental: checked against the XLA path on the CPU (tests/test_pallas.py), never yet timed on a GPU, where it is
+meant to pay. On a GPU every XLA operation is at least one kernel launch, and a control step of the default hover env
+(physics, observation, reward) runs dozens of them forward and hundreds with its gradient (docs/benchmarks.md): a
+training run of many small updates is bound by those launches, not by the arithmetic. Here
 the whole control step's physics (the RPM clip, the quaternion's normalisation, the motors and every physics substep
 with its ground contact) is one `jax.experimental.pallas` kernel, lowered through Triton on an NVIDIA GPU, and its
 vector-Jacobian product a second: the backward kernel recomputes the substeps from the control step's input, then
@@ -14,7 +15,7 @@ interpret mode (as the XLA operations the kernel's body traces to): what the sui
 The kernel's body is the physics of `jaxdrones.dynamics` itself, traced on blocks of drones, one value per drone:
 each drone is independent within a control step, so the kernel takes configs without coupling between drones (no
 downwash with more than one drone per world) and the hand-written adjoint's (the Euler integrator, exact kinks):
-`SimConfig.pallas_unsupported`. The params are read in the kernel entry by entry (`_Entries`): one scalar each when
+`unsupported`. The params are read in the kernel entry by entry (`_Entries`): one scalar each when
 every drone has the same, else one value per drone. A step given a `Disturbance` runs on the XLA path; a gradient
 with respect to the params (system identification) takes JAX's derivative of the XLA path.
 """
@@ -32,15 +33,44 @@ from jax.custom_derivatives import CustomVJPPrimal, SymbolicZero
 
 from jaxdrones.physics import adjoint, dynamics
 from jaxdrones.physics.config import SimConfig
-from jaxdrones.physics.params import _CORE_NDIM, DroneParams, params_batch_shape
+from jaxdrones.physics.params import CORE_NDIM, DroneParams, params_batch_shape
 from jaxdrones.physics.rotations import normalize_c
 from jaxdrones.physics.state import CONTACT_GROUND, DroneState
+from jaxdrones.physics.step import JaxStep, compiled_step_c
 
-__all__ = ["BLOCK", "control_step_c"]
+__all__ = ["BLOCK", "control_step_c", "make_step", "unsupported"]
 
 #: Drones per kernel program (one Triton program of 4 warps, one drone per thread).
 BLOCK = 128
+#: The state's vectors and their sizes, in the kernels' order of values.
 _VECTORS = (("pos", 3), ("quat", 4), ("vel", 3), ("ang_vel", 3), ("rpm", 4))
+#: Values of a state (`_VECTORS`) and of a command (one RPM per motor) in the kernels' inputs and outputs.
+STATE_SIZE = sum(size for _, size in _VECTORS)
+COMMAND_SIZE = dict(_VECTORS)["rpm"]
+
+
+def unsupported(config: SimConfig) -> str | None:
+    """None when ``config``'s control step can run as the Pallas kernels, else what they take: the hand-written
+    adjoint's settings (`SimConfig.hand_written_adjoint`) and drones that do not act on each other (no downwash
+    between several drones of a world: the kernel steps each drone on its own)."""
+    if not config.hand_written_adjoint:
+        return "the hand-written adjoint's settings: adjoint=True, integrator='euler', kinks='exact'"
+    if config.downwash and config.n_drones > 1:
+        return "drones that do not act on each other: downwash=False with several drones per world"
+    return None
+
+
+def make_step(config: SimConfig) -> JaxStep:
+    """The control step of ``config`` as `jaxdrones.make_step` gives it, ``step(params, state, rpm, disturbance=None)
+    -> state``, with its physics run as one Pallas kernel forward and one backward (`control_step_c`); the values
+    are the XLA path's to float rounding. On the CPU the kernels run in Pallas's interpret mode, slowly.
+
+    Raises:
+        ValueError: a config the kernels do not take (`unsupported`).
+    """
+    if (why := unsupported(config)) is not None:
+        raise ValueError(f"the Pallas control step takes {why}; got {config}")
+    return JaxStep(config, control_step_c(config, compiled_step_c(config)))
 
 
 class _Entries(np.ndarray):
@@ -64,7 +94,8 @@ def _substeps(config, params, state: DroneState, command: tuple, keep: list | No
         motors, rpm_prev, rpm_next = _motors(config, params, k, command, rpm)
         if keep is not None:
             keep.append((kin, rpm))
-        kin, touching = adjoint._reference(params, config.effects, kin, motors, rpm_prev, None, None, config.dt)
+        kin = dynamics.euler_step_c(params, config.effects, kin, motors, rpm_prev, config.dt, True, None, None, None)
+        kin, touching = dynamics.ground_contact_c(params, kin, config.effects.kinks)
         rpm, touched = rpm_next, touched | touching
     contact = jnp.where(touched, CONTACT_GROUND, 0).astype(jnp.int32)
     return DroneState(*kin, rpm=rpm, contact=contact)
@@ -120,7 +151,7 @@ def _flat_params(params: DroneParams, shape: tuple[int, ...]) -> tuple[list, lis
     ``per_drone`` (when the params differ between drones) one array per entry, of ``shape``
     (the state's ``[..., D]``), else ``shared`` one vector of every entry, padded to a power of two (a Triton block)."""
     names = [
-        (f.name, jnp.shape(getattr(params, f.name))[jnp.ndim(getattr(params, f.name)) - _CORE_NDIM.get(f.name, 0) :])
+        (f.name, jnp.shape(getattr(params, f.name))[jnp.ndim(getattr(params, f.name)) - CORE_NDIM.get(f.name, 0) :])
         for f in dataclasses.fields(params)
     ]
     if math.prod(params_batch_shape(params)) == 1:
@@ -249,27 +280,34 @@ def _call(body, params: DroneParams, arrays: list, n_out: int, int_out: bool) ->
 
 
 def control_step_c(config: SimConfig, xla_step: Callable[..., DroneState]) -> Callable[..., DroneState]:
-    """The control step of ``config`` (one that `SimConfig.pallas_unsupported` accepts) in component form, as
+    """The control step of ``config`` (one that `unsupported` accepts) in component form, as
     `jaxdrones.sim`'s ``core_c(params, state_c, rpm_c, disturbance_c=None) -> state_c`` and with its values (to float
     rounding), run as one Pallas kernel forward and one backward; ``xla_step``, the XLA path's ``core_c``, steps a
     call with a disturbance and gives the derivative with respect to the params."""
 
     def forward_body(params, values):
-        out = _control_step(config, params, _state_of(values[:17]), tuple(values[17:]))
+        out = _control_step(config, params, _state_of(values[:STATE_SIZE]), tuple(values[STATE_SIZE:]))
         return _components(out), out.contact
 
     def backward_body(params, values):
         state_b, command_b = _backward(
-            config, params, _state_of(values[:17]), tuple(values[17:21]), _state_of(values[21:])
+            config,
+            params,
+            _state_of(values[:STATE_SIZE]),
+            tuple(values[STATE_SIZE : STATE_SIZE + COMMAND_SIZE]),
+            _state_of(values[STATE_SIZE + COMMAND_SIZE :]),
         )
         return [*_components(state_b), *command_b], None
 
-    forward, backward = _kernel(forward_body, 17, True), _kernel(backward_body, 21, False)
+    forward, backward = (
+        _kernel(forward_body, STATE_SIZE, True),
+        _kernel(backward_body, STATE_SIZE + COMMAND_SIZE, False),
+    )
 
     @jax.custom_vjp
     def step(params, state, command):
         outputs = forward(params, [*_components(state), *command])
-        return _state_of(outputs[:17], outputs[17])
+        return _state_of(outputs[:STATE_SIZE], outputs[STATE_SIZE])
 
     def step_fwd(params, state, command):
         is_primal = lambda x: isinstance(x, CustomVJPPrimal)  # noqa: E731
@@ -287,7 +325,7 @@ def control_step_c(config: SimConfig, xla_step: Callable[..., DroneState]) -> Ca
             params_b, state_b, command_b = vjp(ct)
             return params_b, state_b.replace(contact=None), command_b
         grads = backward(params, [*_components(state), *command, *_components(ct)])
-        return None, _state_of(grads[:17]), tuple(grads[17:])
+        return None, _state_of(grads[:STATE_SIZE]), tuple(grads[STATE_SIZE:])
 
     def _xla(params, state, command, contact):
         out = xla_step(params, state.replace(contact=contact), command)

@@ -1,8 +1,8 @@
-"""The control step as a Pallas kernel (``SimConfig(pallas=True)``, `jaxdrones.physics.kernel`), in Pallas's
+"""The control step as a Pallas kernel (`jaxdrones.experimental.pallas.make_step`), in Pallas's
 interpret mode on the CPU: the values and the reverse-mode derivatives of the XLA path (float32 to 1e-5 of each
 quantity's scale, float64 to rounding) for every physics option it takes (drag, ground effect, lagged motors,
 several drones, per-drone params, one or several substeps), across the RPM clip and the ground contact, under
-``jax.vmap`` and through the hover env; the params' gradient (system identification) and a step with a
+``jax.vmap`` and through `jaxdrones.rollout`; the params' gradient (system identification) and a step with a
 disturbance through the XLA path; the settings it does not take refused; and both kernels lowered through Triton
 for an NVIDIA GPU without one."""
 
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import jaxdrones as jd
-from jaxdrones.physics import kernel
+from jaxdrones.experimental import pallas
 from jaxdrones.physics.params import stack_params
 
 pytestmark = pytest.mark.unit
@@ -32,7 +32,7 @@ VECTORS = ("pos", "quat", "vel", "ang_vel", "rpm")
 
 
 def _case(options: dict, seed: int = 0, dtype=np.float32):
-    """Configs with and without the kernel, params (per drone, different, for several drones; lagged motors where
+    """The XLA path's step and the kernel's, params (per drone, different, for several drones; lagged motors where
     asked), a start state (random pose and velocities, an unnormalised quaternion, drones at and below the rest
     height and falling) and a command (some beyond 0 and max_rpm, one exactly at 0)."""
     options = {"sim_freq": 240, "ctrl_freq": 120, **options}
@@ -60,7 +60,7 @@ def _case(options: dict, seed: int = 0, dtype=np.float32):
     state = state.replace(quat=jnp.asarray(quat, dtype))
     rpm = hover * (1 + 0.3 * rng.normal(size=(WORLDS, n, 4)))
     rpm[:3, 0, 0] = [-5.0, 1e6, 0.0]
-    return config, jd.SimConfig(**options, pallas=True), params, state, jnp.asarray(rpm, dtype)
+    return jd.make_step(config), pallas.make_step(config), params, state, jnp.asarray(rpm, dtype)
 
 
 def _cotangent(out, rng):
@@ -72,8 +72,7 @@ def _cotangent(out, rng):
     return jax.tree.map(draw, out)
 
 
-def _value_and_vjp(config, params, state, rpm, ct):
-    step = jd.make_step(config)
+def _value_and_vjp(step, params, state, rpm, ct):
     out, vjp = jax.vjp(lambda s, r: step(params, s, r), state, rpm)
     state_b, rpm_b = vjp(ct)
     return out, state_b, rpm_b
@@ -88,7 +87,7 @@ def _close(got, want, rtol):
 @pytest.mark.parametrize("name", OPTIONS)
 def test_kernel_matches_the_xla_path(name):
     config, fused, params, state, rpm = _case(OPTIONS[name])
-    ct = _cotangent(jd.make_step(config)(params, state, rpm), np.random.default_rng(1))
+    ct = _cotangent(config(params, state, rpm), np.random.default_rng(1))
     want = _value_and_vjp(config, params, state, rpm, ct)
     got = _value_and_vjp(fused, params, state, rpm, ct)
     for field in VECTORS:
@@ -102,7 +101,7 @@ def test_kernel_matches_the_xla_path(name):
 def test_kernel_matches_the_xla_path_in_float64():
     with jax.enable_x64(True):
         config, fused, params, state, rpm = _case(OPTIONS["drag_ground"], seed=2, dtype=np.float64)
-        ct = _cotangent(jd.make_step(config)(params, state, rpm), np.random.default_rng(3))
+        ct = _cotangent(config(params, state, rpm), np.random.default_rng(3))
         want = _value_and_vjp(config, params, state, rpm, ct)
         got = _value_and_vjp(fused, params, state, rpm, ct)
         for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
@@ -115,10 +114,9 @@ def test_kernel_under_vmap_with_per_world_params():
     the drones of one kernel launch, the params differ per drone."""
     config, fused, params, state, rpm = _case(OPTIONS["drag_ground"], seed=4)
     mass = params.mass * (1 + 0.2 * jnp.linspace(-1, 1, WORLDS))
-    ct = _cotangent(jd.make_step(config)(params, state, rpm), np.random.default_rng(5))
+    ct = _cotangent(config(params, state, rpm), np.random.default_rng(5))
 
-    def one_world(config, mass, s, r, c):
-        step = jd.make_step(config)
+    def one_world(step, mass, s, r, c):
         out, vjp = jax.vjp(lambda s, r: step(params.replace(mass=mass), s, r), s, r)
         return out, *vjp(c)
 
@@ -133,7 +131,7 @@ def test_params_gradient_and_disturbance_take_the_xla_path():
     config, fused, params, state, rpm = _case(OPTIONS["drag_ground"], seed=6)
 
     def loss(config, params, disturbance=None):
-        out = jd.make_step(config)(params, state, rpm, disturbance)
+        out = config(params, state, rpm, disturbance)
         return jnp.sum(out.pos**2) + jnp.sum(out.vel * out.ang_vel)
 
     want, got = jax.grad(loss, 1)(config, params), jax.grad(loss, 1)(fused, params)
@@ -144,25 +142,19 @@ def test_params_gradient_and_disturbance_take_the_xla_path():
     assert loss(fused, params, disturbance) != loss(fused, params)
 
 
-def test_hover_env_with_the_kernel():
-    """``jd.make("hover", pallas=True)``: the return and the gradient of a short rollout, the env mapped over
-    worlds, as the XLA path's."""
-    results = []
-    for pallas in (False, True):
-        env = jd.make("hover", pallas=pallas, episode_len_s=1.0, ctrl_freq=120)
-        start = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 4))
-        actions = jax.random.uniform(jax.random.PRNGKey(1), (6, 4, 1, 4), minval=-1, maxval=1)
+def test_rollout_with_the_kernel():
+    """`jaxdrones.rollout` through the kernel's step: the final state and the gradient of a loss of it with respect to
+    the commands, as the XLA path's."""
+    xla, fused, params, state, rpm = _case(OPTIONS["motors"], seed=7)
+    rpms = jnp.stack([rpm * (1 + 0.01 * k) for k in range(5)])
 
-        def ret(actions, start=start, env=env):
-            def body(s, a):
-                s = jax.vmap(env.step)(s, a)
-                return s, s.reward
+    def loss(step, rpms):
+        out = jd.rollout(step, params, state, rpms)
+        return jnp.sum(out.pos[-1] ** 2) + jnp.sum(out.ang_vel[-1] ** 2)
 
-            return jnp.sum(jax.lax.scan(body, start, actions)[1])
-
-        results.append(jax.jit(jax.value_and_grad(ret))(actions))
-    _close(results[1][0], results[0][0], 1e-5)
-    _close(results[1][1], results[0][1], 1e-5)
+    want, got = jax.value_and_grad(loss, 1)(xla, rpms), jax.value_and_grad(loss, 1)(fused, rpms)
+    _close(got[0], want[0], 1e-5)
+    _close(got[1], want[1], 1e-5)
 
 
 @pytest.mark.parametrize(
@@ -175,20 +167,17 @@ def test_hover_env_with_the_kernel():
     ],
 )
 def test_settings_the_kernel_does_not_take_are_refused(options, why):
-    with pytest.raises(ValueError, match="SimConfig.pallas=True takes") as err:
-        jd.SimConfig(pallas=True, **options)
+    with pytest.raises(ValueError, match="the Pallas control step takes") as err:
+        pallas.make_step(jd.SimConfig(**options))
     assert why in str(err.value)
-    with pytest.raises(ValueError, match="pallas"):
-        jd.make("hover", pallas="yes")
 
 
 def test_kernels_lower_through_triton_for_a_gpu(monkeypatch):
     """Forward and gradient traced as on a GPU and lowered for CUDA (Pallas's Triton lowering; the last step, Triton to
     PTX, runs in XLA's GPU compiler): one Triton call each way."""
     pytest.importorskip("jax.experimental.pallas.triton")
-    monkeypatch.setattr(kernel, "_interpret", lambda: False)
-    _, fused, params, state, rpm = _case(OPTIONS["drag_ground"])
-    step = jd.make_step(fused)
+    monkeypatch.setattr(pallas, "_interpret", lambda: False)
+    _, step, params, state, rpm = _case(OPTIONS["drag_ground"])
 
     def loss(rpm, state):
         return jnp.sum(step(params, state, rpm).pos ** 2)
@@ -203,5 +192,5 @@ def test_kernels_lower_through_triton_for_a_gpu(monkeypatch):
     # drones padded; the shared params one vector of a power of two).
     calls = [line.split(" : ")[-1] for line in gradient.as_text().splitlines() if "xla.gpu.triton" in line]
     sizes = [int(size) for call in calls for size in re.findall(r"tensor<(?:\d+x)?(\d+)x[fi]\d+>", call)]
-    assert sizes and all(size % kernel.BLOCK == 0 or size & (size - 1) == 0 for size in sizes)
-    assert any(size % kernel.BLOCK == 0 and size > WORLDS for size in sizes)
+    assert sizes and all(size % pallas.BLOCK == 0 or size & (size - 1) == 0 for size in sizes)
+    assert any(size % pallas.BLOCK == 0 and size > WORLDS for size in sizes)
