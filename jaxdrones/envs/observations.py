@@ -48,8 +48,6 @@ VEL_BOUND = 30.0
 ANG_VEL_BOUND = 200.0
 #: The paper's normalisation limits (HoverAviary._clipAndNormalizeState): xy m, z m, vxy m/s, vz m/s.
 NORM_XY, NORM_Z, NORM_VXY, NORM_VZ = 15.0, 5.0, 3.0, 1.0
-#: The registered observation type names (`_LAYOUTS`' keys).
-OBS_TYPES = ("kin", "kin_norm", "kin_rotmat", "neighbors")
 
 
 def kinematic_obs(sim: DroneState) -> jax.Array:
@@ -245,6 +243,8 @@ _LAYOUTS = {
     "kin_rotmat": _Layout(lambda o: 21, _rotmat_bounds, _rotmat_obs),
     "neighbors": _Layout(_neighbors_size, _neighbors_bounds, _neighbors_obs),
 }
+#: The observation types' names.
+OBS_TYPES = tuple(_LAYOUTS)
 
 #: Depth in a policy's image input: metres / DEPTH_SCALE, clipped to [0, 1] (nearer than 5 m is what a drone at a
 #: few m/s must see; beyond, one value).

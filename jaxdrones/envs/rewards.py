@@ -65,11 +65,6 @@ def velocity_tracking(vel: jax.Array, target_vel: jax.Array, scale: float = 0.25
     return jnp.exp(-_safe_norm(vel - target_vel) / scale)
 
 
-def action_sq(action: jax.Array) -> jax.Array:
-    """‖a‖² of the normalised action."""
-    return jnp.sum(action**2, axis=-1)
-
-
 def takeoff_paper(z: jax.Array) -> jax.Array:
     """The paper's TakeoffAviary reward: −5 if z < 0.02 m, else −1/(10 z)."""
     low = z < 0.02

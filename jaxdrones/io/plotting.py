@@ -225,50 +225,6 @@ def plot_task_flight(
     return _save(plt, fig, path, title)
 
 
-def plot_hover_flight(
-    times: ArrayLike,
-    pos: ArrayLike,
-    vel: ArrayLike,
-    rpm: ArrayLike,
-    target_z: float,
-    path: str | os.PathLike,
-    *,
-    title: str | None = None,
-) -> str:
-    """The paper's hover figure: altitude, vertical velocity and the four motor speeds against time.
-
-    Args:
-        times: f[T] s.
-        pos: f[T, 3] m, world frame.
-        vel: f[T, 3] m/s, world frame.
-        rpm: f[T, 4] RPM.
-        target_z: target altitude, m (drawn dashed).
-        path: output image file.
-        title: figure title.
-
-    Returns:
-        ``path`` as a string.
-    """
-    plt = _pyplot()
-
-    times, pos, vel, rpm = (np.asarray(x) for x in (times, pos, vel, rpm))
-    fig, axes = plt.subplots(3, 1, figsize=(7, 7), sharex=True)
-    axes[0].plot(times, pos[:, 2], label="z")
-    axes[0].axhline(target_z, color="k", ls="--", lw=0.8, label="target")
-    axes[0].set_ylabel("z (m)")
-    axes[0].legend(fontsize=8)
-    axes[1].plot(times, vel[:, 2])
-    axes[1].set_ylabel("vz (m/s)")
-    for k in range(rpm.shape[-1]):
-        axes[2].plot(times, rpm[:, k], lw=1.0, label=f"motor {k}")
-    axes[2].set_ylabel("motor speed (RPM)")
-    axes[2].set_xlabel("time (s)")
-    axes[2].legend(fontsize=8, ncol=4)
-    for ax in axes:
-        ax.grid(alpha=0.3)
-    return _save(plt, fig, path, title)
-
-
 def plot_velocity_tracking(
     times: ArrayLike,
     vel: ArrayLike,
