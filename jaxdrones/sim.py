@@ -22,7 +22,7 @@ def make_step(config: SimConfig, backend: str = "jax", **options: Any) -> StepFn
 
     One call holds ``rpm`` over ``config.n_substeps`` physics substeps (run under ``lax.scan``). RPMs are clipped
     to [0, max_rpm] as the paper's code does (smoothly or straight-through with ``config.kinks``, see
-    `jaxdrones.kinks`). The step is pure (no hidden state, no key), jitted, and works under
+    `jaxdrones.physics.kinks`). The step is pure (no hidden state, no key), jitted, and works under
     ``jit``, ``vmap`` and ``grad``; arrays may carry leading world axes ``[W, D, ...]``. Worlds spread over several
     devices with `shard_worlds` are stepped on each device in parallel, in the same jitted call.
 
@@ -38,7 +38,7 @@ def make_step(config: SimConfig, backend: str = "jax", **options: Any) -> StepFn
         The backend's step (a `JaxStep` or a `jaxdrones.backends.pybullet.PyBulletStep`, both with ``config``,
         ``has_cameras`` and ``close``), called as ``step(params, state, rpm, disturbance=None)`` where ``rpm`` is
         f[..., D, 4] in RPM (ints are cast to the state's float dtype) with the leading shape of ``state``, and
-        ``disturbance`` an optional `jaxdrones.state.Disturbance` (external force, torque, wind) held over the
+        ``disturbance`` an optional `jaxdrones.physics.state.Disturbance` (external force, torque, wind) held over the
         step. ``state.contact`` reports ground contact during this step. With ``config.motor_dynamics`` the
         returned ``state.rpm`` is the motors' actual speeds at the end of the step.
 

@@ -2,7 +2,7 @@
 
 The paper names "an analytical model that could be leveraged by model predictive control" (symbolic dynamics through
 CasADi) as its extension (iii). This module writes the JAX core's equations once more in CasADi, from the same
-`jaxdrones.params.DroneParams` and `jaxdrones.config.SimConfig`:
+`jaxdrones.physics.params.DroneParams` and `jaxdrones.physics.config.SimConfig`:
 
 - `continuous_dynamics`: ẋ = f(x, u), the explicit model (docs/physics.md §3-§4: thrust kf·rpm², the x/+ mixer, the
   yaw reaction, Euler's equation with the gyroscopic term ω × Jω, q̇ = ½ q ⊗ (ω, 0)) with drag (§6.2) and ground
@@ -150,17 +150,17 @@ def _check_config(config: SimConfig) -> SimConfig:
 
 # The equations, on CasADi column vectors (SX or MX), each as in the JAX core (jaxdrones.dynamics).
 
-# The component-form functions of `jaxdrones.rotations` that are plain arithmetic take CasADi entries as they
+# The component-form functions of `jaxdrones.physics.rotations` that are plain arithmetic take CasADi entries as they
 # take arrays: the Hamilton product and the rotation matrix are written once, there.
 
 
 def _entries(v) -> tuple:
-    """A CasADi column vector as the tuple of its entries (the component form of `jaxdrones.rotations`)."""
+    """A CasADi column vector as the tuple of its entries (the component form of `jaxdrones.physics.rotations`)."""
     return tuple(v[i] for i in range(v.shape[0]))
 
 
 def _quat_mul(a, b):
-    """A ⊗ b (`jaxdrones.rotations.quat_mul_c`) of CasADi 4-vectors (x, y, z, w)."""
+    """A ⊗ b (`jaxdrones.physics.rotations.quat_mul_c`) of CasADi 4-vectors (x, y, z, w)."""
     return require_casadi().vertcat(*quat_mul_c(_entries(a), _entries(b)))
 
 
@@ -170,7 +170,7 @@ def _normalize(v):
 
 
 def _rotmat(q):
-    """R(q), body→world, of a unit quaternion (x, y, z, w) (`jaxdrones.rotations.quat_to_rotmat_c`), 3 x 3."""
+    """R(q), body→world, of a unit quaternion (x, y, z, w) (`jaxdrones.physics.rotations.quat_to_rotmat_c`), 3 x 3."""
     cs = require_casadi()
     return cs.vertcat(*(cs.horzcat(*row) for row in quat_to_rotmat_c(_entries(q), unit=True)))
 
@@ -254,7 +254,7 @@ def _ground_contact(a, pos, vel, ang_vel):
 
 
 def _motor_decay(tau: float, dt: float) -> float:
-    """`jaxdrones.dynamics.motor_decay` on a float, in float64 whatever JAX's precision: exp(-dt/τ), 0 for τ <= 0."""
+    """`jaxdrones.physics.dynamics.motor_decay` on a float, in float64 whatever JAX's precision: exp(-dt/τ), 0 for τ <= 0."""
     return math.exp(-dt / tau) if tau > 0 else 0.0
 
 
@@ -367,7 +367,7 @@ def _names(rotor_state: bool) -> list[str]:
 
 
 def state_vector(state: DroneState, rotor_state: bool = True) -> np.ndarray:
-    """One drone's `jaxdrones.state.DroneState` (leading shape ``[1]`` or none) as this module's state vector
+    """One drone's `jaxdrones.physics.state.DroneState` (leading shape ``[1]`` or none) as this module's state vector
     f64[17] (pos, quat, vel, ang_vel, rpm; `STATE_NAMES`, `ROTOR_NAMES`), or f64[13] without the rotor speeds."""
     fields = ("pos", "quat", "vel", "ang_vel") + (("rpm",) if rotor_state else ())
     return np.concatenate([np.asarray(getattr(state, k), np.float64).reshape(-1) for k in fields])

@@ -222,7 +222,7 @@ def fit(
             trajectory jump at window boundaries (unmodelled disturbances), at the cost of precision.
 
     Returns:
-        ``(params, report)``: the fitted params (derived fields recomputed, `jaxdrones.params.with_derived`) and a
+        ``(params, report)``: the fitted params (derived fields recomputed, `jaxdrones.physics.params.with_derived`) and a
         dict with ``loss`` (two numbers: the loss at the initial guess and at the fit, each the mean squared
         residual in noise units), ``steps`` (the solver steps taken, accepted or rejected), ``estimates`` (field ->
         fitted value), ``initial`` (field -> initial guess), ``std`` (field -> Gauss-Newton standard error of the

@@ -40,7 +40,7 @@ class HumanView:
     shown for ``1 / fps`` s (``plt.pause``).
 
     It needs an interactive matplotlib backend (a display). With a non-interactive one (Agg, e.g. on a headless
-    machine or after `jaxdrones.plotting` has written files) matplotlib warns that the figure cannot be shown, and
+    machine or after `jaxdrones.io.plotting` has written files) matplotlib warns that the figure cannot be shown, and
     the env runs on, paced at ``fps``.
     """
 

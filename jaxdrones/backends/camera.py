@@ -138,7 +138,7 @@ def check_pose(config: SimConfig, state: DroneState) -> tuple[int, ...]:
     """Check that ``state`` has real pos f[..., D, 3] and quat f[..., D, 4] with D = n_drones; returns [..., D].
 
     Raises:
-        ValueError: on other shapes (`jaxdrones.checks.check_state_shape`), or a non-numeric dtype.
+        ValueError: on other shapes (`jaxdrones.physics.checks.check_state_shape`), or a non-numeric dtype.
     """
     lead = check_state_shape(config, state)
     for name, x in (("pos", state.pos), ("quat", state.quat)):

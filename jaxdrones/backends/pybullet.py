@@ -11,9 +11,9 @@ Forces, as in the paper's PyBullet update (docs/physics.md §3.2, §5, §6), re-
   the roll and pitch torques from the geometry; the yaw reaction torque -Σ spin_i km rpm_i² about body z;
 - drag (world frame, at the centre of mass) and downwash (the paper's: body -z, at the centre of mass; the
   per-rotor model's: each rotor's thrust change, added to its force at its lever-arm point), computed by the same
-  functions as the JAX core (`jaxdrones.aerodynamics`);
+  functions as the JAX core (`jaxdrones.physics.aerodynamics`);
 - gravity 9.8 m/s² (params), the gyroscopic term by Bullet's rigid-body solver;
-- a step's `jaxdrones.state.Disturbance`: its force (world frame, at the centre of mass) and torque (body frame),
+- a step's `jaxdrones.physics.state.Disturbance`: its force (world frame, at the centre of mass) and torque (body frame),
   and its wind in the drag; with ``SimConfig.motor_dynamics`` the motors' speeds follow the command with the
   params' time constants before each Bullet step, as in the JAX core (docs/physics.md §3.3).
 
@@ -529,7 +529,7 @@ class PyBulletStep:
         yaw: float = -30.0,
         pitch: float = -30.0,
     ) -> np.ndarray:
-        """A third-person RGB image of one world, e.g. for a video frame (`jaxdrones.video.VideoWriter`).
+        """A third-person RGB image of one world, e.g. for a video frame (`jaxdrones.io.video.VideoWriter`).
 
         The world's drones are placed at ``state``'s poses; the camera orbits ``target`` as in PyBullet's
         ``computeViewMatrixFromYawPitchRoll`` (z up), with a 60° vertical field of view, aspect W/H, near 0.01 m
@@ -618,7 +618,7 @@ def _host_params(params: DroneParams, lead: tuple[int, ...]) -> dict:
 
 
 def _decay(tau: float, dt: float) -> float:
-    """exp(-dt/τ), 0 for τ ≤ 0: as `jaxdrones.dynamics.motor_decay`."""
+    """exp(-dt/τ), 0 for τ ≤ 0: as `jaxdrones.physics.dynamics.motor_decay`."""
     return math.exp(-dt / tau) if tau > 0 else 0.0
 
 

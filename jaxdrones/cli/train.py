@@ -298,12 +298,12 @@ _ENV_OPTIONS = {
 
 def realism_options(preset: str | None, settings: list[str]) -> str | dict | None:
     """``--realism`` and ``--realism-set``'s NAME=VALUE settings as a task config's ``realism`` (None, the preset's
-    name, or a dict of `jaxdrones.realism.Realism` fields with the preset under ``"preset"``), kept as plain data
+    name, or a dict of `jaxdrones.envs.realism.Realism` fields with the preset under ``"preset"``), kept as plain data
     so that the run's summary and checkpoint record it.
 
     Raises:
         ValueError: a setting that is not NAME=VALUE or NAME=LOW,HIGH with numbers (the names and values are
-            checked by `jaxdrones.realism.resolve`).
+            checked by `jaxdrones.envs.realism.resolve`).
     """
     if not settings:
         return preset

@@ -2,7 +2,7 @@
 
 A quadrotor's four motor speeds set a body wrench (collective thrust T along body +z and the body torques τx, τy,
 τz). The map is linear in the squared speeds s = rpm², ``wrench = A s``, with A = `allocation_matrix`, built from
-the same constants and signs as `jaxdrones.dynamics` (docs/physics.md §2, §3.1). Its inverse with the constraint s ≥ 0
+the same constants and signs as `jaxdrones.physics.dynamics` (docs/physics.md §2, §3.1). Its inverse with the constraint s ≥ 0
 is the paper's DYN action conversion (docs/physics.md §10.3, ``paper:gym_pybullet_drones/utils/utils.py:58-133``): solve
 A s = b; if a squared speed comes out negative, take the non-negative least-squares (NNLS) solution instead;
 rpm = √s. `nnls_rpm_squared` solves that NNLS problem exactly, batched and jittable, by enumerating the 16 passive
@@ -72,7 +72,7 @@ class RateGains:
 
 
 def allocation_matrix(params: DroneParams) -> jax.Array:
-    """The motor mixer of the explicit dynamics: wrench = A @ rpm², exactly as `jaxdrones.dynamics` computes it.
+    """The motor mixer of the explicit dynamics: wrench = A @ rpm², exactly as `jaxdrones.physics.dynamics` computes it.
 
     Rows (docs/physics.md §3.1, ``main:BA:838-855``): collective thrust T = kf Σ rpm_i²;
     (τx, τy) = kf · torque_arm @ rpm² (the explicit model's lever arms: L/√2 along each diagonal for an x frame, L

@@ -40,7 +40,7 @@ class EnvState:
         steps: i32[...] control steps taken since reset.
         metrics: dict of f[...] per-step diagnostics (per world: means over the drones).
         info: dict of extra per-step data (wrappers add theirs, e.g. the auto-reset's final observation).
-        realism: the sim-to-real options' `jaxdrones.realism.RealismState` (drawn values, delay buffers, wind and
+        realism: the sim-to-real options' `jaxdrones.envs.realism.RealismState` (drawn values, delay buffers, wind and
             disturbance processes), or None when the config has no ``realism``.
     """
 
@@ -114,7 +114,7 @@ class Env(abc.ABC):
         self, params: DroneParams, sim: DroneState, width: int = 480, height: int = 360
     ) -> np.ndarray | None:
         """One world's frame u8[H, W, 3] from the backend's renderer, or None where the backend has none (the
-        default; the JAX backend: `jaxdrones.viz` and `jaxdrones.plotting` draw its flights).
+        default; the JAX backend: `jaxdrones.viz` and `jaxdrones.io.plotting` draw its flights).
 
         Args:
             params: one world's drone params, batch shape [D].

@@ -43,7 +43,7 @@ class DomainRandomization:
     and drone): each field's value is multiplied by a factor uniform in [1 − r, 1 + r].
 
     The derived quantities (hover and max RPM, max thrust and torques, J⁻¹) are recomputed from the sampled values
-    by `jaxdrones.params.with_derived`.
+    by `jaxdrones.physics.params.with_derived`.
 
     Attributes:
         mass: of ``mass``.
@@ -115,8 +115,8 @@ class TaskConfig:
         episode_len_s: episode length, s.
         drag, ground_effect, downwash: aerodynamic effects of the physics (docs/physics.md §6); ``downwash`` is False,
             True or ``"paper"`` (the paper's model; stored as True) or ``"per_rotor"`` (`SimConfig.downwash`).
-        kinks: the treatment of the physics' kinks for gradients (`SimConfig.kinks`, `jaxdrones.kinks`):
-            ``"exact"`` (default), ``"smooth"`` or ``"straight_through"``, or a `jaxdrones.kinks.Kinks`.
+        kinks: the treatment of the physics' kinks for gradients (`SimConfig.kinks`, `jaxdrones.physics.kinks`):
+            ``"exact"`` (default), ``"smooth"`` or ``"straight_through"``, or a `jaxdrones.physics.kinks.Kinks`.
         adjoint: reverse-mode derivatives of the physics through its hand-written adjoint (`SimConfig.adjoint`;
             default True); False for forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``) through ``step``.
         unroll_substeps: the physics substeps of a control step unrolled in the compiled program
@@ -168,9 +168,9 @@ class TaskConfig:
             been taken (gymnasium's ``FrameStackObservation`` with ``padding_type="reset"``; the frame stack of
             Mnih et al. 2015, "Human-level control through deep reinforcement learning"). A memory for a policy
             without one: what it passed and no longer sees, and its motion relative to the scene.
-        realism: sim-to-real options (`jaxdrones.realism`): None (the paper's physics, default), a preset name
+        realism: sim-to-real options (`jaxdrones.envs.realism`): None (the paper's physics, default), a preset name
             (``"crazyflie"``: Learning to Fly in Seconds' Crazyflie values; ``"crazyflie_harsh"``), a
-            `jaxdrones.realism.Realism`, or a dict of its fields (with an optional ``"preset"`` they override).
+            `jaxdrones.envs.realism.Realism`, or a dict of its fields (with an optional ``"preset"`` they override).
             `jaxdrones.make` also takes each `Realism` field as a keyword (``jd.make("hover", realism="crazyflie",
             action_delay=1)``). Motor time constants turn on `SimConfig.motor_dynamics`; wind turns on ``drag``
             (through which it acts). Stored as a `Realism` (or None).

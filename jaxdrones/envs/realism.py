@@ -45,8 +45,8 @@ class Realism:
     ``(low, high)`` (uniform per world and episode, drawn at reset). Stored as ``(low, high)`` pairs.
 
     Attributes:
-        motor_tau_up: s, the motors' time constant while speeding up (`jaxdrones.dynamics.motor_response_c`);
-            > 0 turns on first-order motor dynamics (`jaxdrones.config.SimConfig.motor_dynamics`). Drawn per drone.
+        motor_tau_up: s, the motors' time constant while speeding up (`jaxdrones.physics.dynamics.motor_response_c`);
+            > 0 turns on first-order motor dynamics (`jaxdrones.physics.config.SimConfig.motor_dynamics`). Drawn per drone.
         motor_tau_down: s, the same while slowing down.
         action_delay: control steps (integers) between the policy's action and its effect on the motors.
         obs_delay: control steps (integers) between the drone's state and the observation of it.
@@ -323,7 +323,7 @@ _SECOND_ORDER_CHOL = np.linalg.cholesky(np.array([[0.5, 0.25], [0.25, 0.25]]))
 
 class RealismModel:
     """The options of one env: `reset` draws an episode's `RealismState`, `delay_action` and `observe` act around
-    the physics, `disturbance` draws the step's `jaxdrones.state.Disturbance`.
+    the physics, `disturbance` draws the step's `jaxdrones.physics.state.Disturbance`.
 
     Args:
         realism: the `Realism`.

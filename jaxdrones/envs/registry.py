@@ -81,7 +81,7 @@ def make(name: str, **overrides: Any) -> TaskEnv:
     Args:
         name: registered task name (see `registered`).
         **overrides: fields of the task's config (`TaskConfig` and the task's subclass, e.g. `HoverConfig`), and
-            the fields of `jaxdrones.realism.Realism` (e.g. ``action_delay=1``, ``motor_tau_up=(0.05, 0.2)``),
+            the fields of `jaxdrones.envs.realism.Realism` (e.g. ``action_delay=1``, ``motor_tau_up=(0.05, 0.2)``),
             which set the config's ``realism`` on top of its preset: ``jd.make("hover", realism="crazyflie",
             turbulence=0.5)``.
 

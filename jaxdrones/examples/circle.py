@@ -222,7 +222,7 @@ def fly_circle(
             sequence of `jaxdrones.scene.Obstacle` / URDF paths.
         gui: PyBullet only: show the flight in PyBullet's GUI, paced to real time (needs a display).
         video: PyBullet only: write a third-person video of the flight to this new ``.mp4`` or ``.gif`` file (see
-            `jaxdrones.video.VideoWriter`); an existing file is never replaced.
+            `jaxdrones.io.video.VideoWriter`); an existing file is never replaced.
         video_size: (width, height) of the video, pixels.
         video_fps: video frame rate asked for, Hz. A frame is rendered every k = max(1, round(ctrl_freq /
             video_fps)) control steps, so the video plays at ctrl_freq / k frames per second in real time (24 fps

@@ -7,12 +7,12 @@ training run of many small updates is bound by those launches, not by the arithm
 the whole control step's physics (the RPM clip, the quaternion's normalisation, the motors and every physics substep
 with its ground contact) is one `jax.experimental.pallas` kernel, lowered through Triton on an NVIDIA GPU, and its
 vector-Jacobian product a second: the backward kernel recomputes the substeps from the control step's input, then
-transposes them one by one with the hand-written adjoint of `jaxdrones.adjoint` (`substep_vjp`) and the few
+transposes them one by one with the hand-written adjoint of `jaxdrones.physics.adjoint` (`substep_vjp`) and the few
 element-wise operations around them with JAX's derivative, all inside the kernel. On the CPU both run in Pallas's
 interpret mode (as the XLA operations the kernel's body traces to): what the suite checks against the XLA path
 (tests/test_kernel.py), not a way to run fast.
 
-The kernel's body is the physics of `jaxdrones.dynamics` itself, traced on blocks of drones, one value per drone:
+The kernel's body is the physics of `jaxdrones.physics.dynamics` itself, traced on blocks of drones, one value per drone:
 each drone is independent within a control step, so the kernel takes configs without coupling between drones (no
 downwash with more than one drone per world) and the hand-written adjoint's (the Euler integrator, exact kinks):
 `unsupported`. The params are read in the kernel entry by entry (`_Entries`): one scalar each when
@@ -76,7 +76,7 @@ def make_step(config: SimConfig) -> JaxStep:
 class _Entries(np.ndarray):
     """A params field (e.g. ``inertia``, 3 x 3) as a NumPy object array of its entries, each a JAX value (a scalar,
     or one value per drone of the kernel's block): indexed as the physics indexes the field (``m[..., i, j]``,
-    ``m[..., i, :]``, `jaxdrones.rotations.split`), it gives the entry itself rather than a 0-d array."""
+    ``m[..., i, :]``, `jaxdrones.physics.rotations.split`), it gives the entry itself rather than a 0-d array."""
 
     def __getitem__(self, index):
         out = super().__getitem__(index)

@@ -1,6 +1,6 @@
 """The Euler physics substep with a hand-written reverse-mode derivative (vector-Jacobian product).
 
-`euler_substep_c` computes what `jaxdrones.dynamics.euler_step_c` followed by `jaxdrones.dynamics.ground_contact_c`
+`euler_substep_c` computes what `jaxdrones.physics.dynamics.euler_step_c` followed by `jaxdrones.physics.dynamics.ground_contact_c`
 compute (the paper's explicit update with drag and ground effect, docs/physics.md §3-§6, and the ground contact),
 value for value, and gives ``jax.grad``, ``jax.vjp`` and everything built on them the derivative written out below
 (`substep_vjp`) instead of the one JAX derives. Forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``) are not
@@ -50,9 +50,9 @@ if TYPE_CHECKING:
 
 
 def supported(config: SimConfig) -> bool:
-    """Whether a `jaxdrones.config.SimConfig` steps with `euler_substep_c` (`SimConfig.hand_written_adjoint`):
+    """Whether a `jaxdrones.physics.config.SimConfig` steps with `euler_substep_c` (`SimConfig.hand_written_adjoint`):
     ``adjoint=True`` with the Euler integrator and the kinks treated exactly (the defaults). Smooth and
-    straight-through kinks (`jaxdrones.kinks`) and RK4 keep JAX's derived derivatives."""
+    straight-through kinks (`jaxdrones.physics.kinks`) and RK4 keep JAX's derived derivatives."""
     return config.hand_written_adjoint
 
 
@@ -79,7 +79,7 @@ def euler_substep_c(
         rpm_prev: 4-tuple of f[..., D] RPM, the previous substep's command (drag).
         dt: the substep, s.
         neighbors: the downwash's neighbour list (`dynamics.Effects.downwash_neighbors`), or None.
-        disturbance: a `jaxdrones.state.Disturbance` in component form (its given fields 3-tuples of f[..., D]),
+        disturbance: a `jaxdrones.physics.state.Disturbance` in component form (its given fields 3-tuples of f[..., D]),
             or None.
 
     Returns:

@@ -5,7 +5,7 @@ Each function is pure, differentiable and broadcasts over leading (world) axes; 
 of one world along the drone axis. Equations are those of the paper (eqs. drag, ground, down) as the paper's code
 applies them in its PyBullet modes (docs/physics.md §6). The per-rotor downwash (`downwash_thrust`, docs/physics.md
 §6.4) samples the jet of Bauersfeld et al. at each rotor of the lower drone and turns it into a thrust change with the
-law of Su et al. Each is written once, in component form (``*_c``, see `jaxdrones.rotations`), which the simulation
+law of Su et al. Each is written once, in component form (``*_c``, see `jaxdrones.physics.rotations`), which the simulation
 core runs on; the array-form functions wrap it.
 """
 
@@ -19,7 +19,7 @@ from jaxdrones.physics.neighbors import gather
 from jaxdrones.physics.params import DroneParams, align_params
 from jaxdrones.physics.rotations import GIMBAL_SNAP, Components, dot, join, split
 
-#: The downwash models of `jaxdrones.config.SimConfig.downwash`: the paper's one force at the lower drone's centre
+#: The downwash models of `jaxdrones.physics.config.SimConfig.downwash`: the paper's one force at the lower drone's centre
 #: of mass (`downwash_force`, docs/physics.md §6.3) and the per-rotor thrust changes (`downwash_thrust`, §6.4).
 DOWNWASH_MODELS = ("paper", "per_rotor")
 #: Downwash acts only between drones closer than this horizontally, m (docs/physics.md §6.3; the original's).
@@ -83,7 +83,7 @@ def ground_effect_thrust(
     h_i is the world height of propeller i, clipped from below at ``gnd_eff_h_clip`` (so the gain is at most 4/15).
     The effect is on only while |roll| < π/2 and |pitch| < π/2 in PyBullet's Euler angles (docs/physics.md §6.1):
     R[2, 2] > 0, and |sin pitch| = |R[2, 0]| below PyBullet's gimbal-lock snap (0.99999), where it reports
-    pitch = ±π/2. The extra force acts along body +z at each propeller, like thrust. ``kinks`` (`jaxdrones.kinks`)
+    pitch = ±π/2. The extra force acts along body +z at each propeller, like thrust. ``kinks`` (`jaxdrones.physics.kinks`)
     may smooth the height clip and the attitude condition.
 
     Args:
@@ -143,10 +143,10 @@ def downwash_force(
     α = c1 (R / (4 Δz))², β = c2 Δz + c3, F = -α exp(-½ (d/β)²) (docs/physics.md §6.3). Contributions add up; the upper
     drone's RPM plays no part; drones at equal height do not interact. The coefficients are the lower drone's.
     Where β = 0 (Δz = 0.6875 m for the shipped models) the d → 0 limit is used instead of the original's 0/0.
-    ``kinks`` (`jaxdrones.kinks`) may smooth the onset at Δz = 0 (where α is unbounded) and the cut-off.
+    ``kinks`` (`jaxdrones.physics.kinks`) may smooth the onset at Δz = 0 (where α is unbounded) and the cut-off.
 
     Every pair costs the same whether it interacts or not, so the cost grows as D². A shorter ``cutoff`` with a
-    neighbour list ``neighbors`` (`jaxdrones.neighbors.cell_candidates`) bounds it to the listed pairs: beyond
+    neighbour list ``neighbors`` (`jaxdrones.physics.neighbors.cell_candidates`) bounds it to the listed pairs: beyond
     d = 1 m no drone, at any Δz, pushes a cf2x with more than 0.41 % of its weight (0.12 % beyond 2 m).
 
     Args:
@@ -247,8 +247,8 @@ def downwash_thrust(
 
     A source acts where s > 0.1 l (`JET_ONSET`; the fit was identified beyond 2.5 l) and the centres are closer than
     ``cutoff`` horizontally. ΔT acts like thrust, along the lower drone's body +z at the rotor, so that unequal losses
-    give a roll and pitch torque. ``kinks`` (`jaxdrones.kinks`) may smooth the onset (over 2·``kinks.downwash`` m
-    below 0.1 l) and the cut-off. ``neighbors`` (`jaxdrones.neighbors.cell_candidates`) bounds the pairs, as in
+    give a roll and pitch torque. ``kinks`` (`jaxdrones.physics.kinks`) may smooth the onset (over 2·``kinks.downwash`` m
+    below 0.1 l) and the cut-off. ``neighbors`` (`jaxdrones.physics.neighbors.cell_candidates`) bounds the pairs, as in
     `downwash_force`.
 
     Args:

@@ -31,19 +31,19 @@ class SimConfig:
         integrator: ``"euler"`` (the paper code's semi-implicit Euler with exact quaternion exponential map) or
             ``"rk4"``.
         kinks: how the JAX core treats the kinks of the physics (RPM clip, ground contact, ground effect's height
-            clip and attitude condition, downwash's onset and cut-off) for gradients: a `jaxdrones.kinks.Kinks`, or
+            clip and attitude condition, downwash's onset and cut-off) for gradients: a `jaxdrones.physics.kinks.Kinks`, or
             its mode ``"exact"`` (the original's physics, default), ``"smooth"`` (C¹ within small bands, so that
             gradients agree with finite differences across each kink) or ``"straight_through"`` (the original's
             forward pass, identity gradients through the clips and the contact). Stored as a `Kinks`.
         downwash_radius: downwash: None (every pair of drones closer than the original's 10 m horizontally; D² pairs
-            per substep) or a cut-off r in m, within which a cell list (`jaxdrones.neighbors.cell_candidates`, cells
+            per substep) or a cut-off r in m, within which a cell list (`jaxdrones.physics.neighbors.cell_candidates`, cells
             of side r, built at the start of each control step and held over its substeps: a drone that comes
             within r during the step may be missed until the next) finds each drone's neighbours: O(D) pairs.
             Beyond 1 m no drone pushes a cf2x with more than 0.41 % of its weight (docs/physics.md §6.3). The JAX
             core only.
         cell_capacity: with ``downwash_radius``: drones per cell the list holds (a denser cell loses the extra ones).
         adjoint: take reverse-mode derivatives (``jax.grad``, ``jax.vjp``, ``jax.jacrev``) of the Euler integrator
-            with exact kinks through the hand-written adjoint of `jaxdrones.adjoint` (default True): a gradient
+            with exact kinks through the hand-written adjoint of `jaxdrones.physics.adjoint` (default True): a gradient
             then costs 2-3 forward passes however the step is called (`benchmarks/gradients.py`). Such a step has
             no forward-mode derivative: ``jax.jvp`` and ``jax.jacfwd`` raise JAX's "can't apply forward-mode
             autodiff (jvp) to a custom_vjp function". False gives JAX's derived derivatives in both modes (the
@@ -135,9 +135,9 @@ class SimConfig:
 
     @property
     def hand_written_adjoint(self) -> bool:
-        """Whether the step's reverse-mode derivative is the hand-written adjoint of `jaxdrones.adjoint`:
+        """Whether the step's reverse-mode derivative is the hand-written adjoint of `jaxdrones.physics.adjoint`:
         ``adjoint=True`` with the Euler integrator and exact kinks (the defaults). Smooth and straight-through
-        kinks (`jaxdrones.kinks`) and RK4 keep JAX's derived derivatives."""
+        kinks (`jaxdrones.physics.kinks`) and RK4 keep JAX's derived derivatives."""
         return self.adjoint and self.integrator == "euler" and self.kinks.mode == "exact"
 
     @property

@@ -7,7 +7,7 @@ in the world frame.
 All functions broadcast over leading axes; the drone axis is ``-2`` for f[..., D, k] arrays.
 
 Each equation is written once, in component form (``*_c``: vectors as tuples of f[..., D] arrays, see
-`jaxdrones.rotations`), which the simulation core steps on.
+`jaxdrones.physics.rotations`), which the simulation core steps on.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ class Effects(NamedTuple):
 
     def downwash_neighbors(self, pos: Components) -> jax.Array | None:
         """The drones that may act on each drone through downwash, i32[..., D, 9·cell_capacity]
-        (`jaxdrones.neighbors.cell_candidates`) when ``downwash_radius`` is set and the list is shorter than the
+        (`jaxdrones.physics.neighbors.cell_candidates`) when ``downwash_radius`` is set and the list is shorter than the
         team, else None (every drone)."""
         n = pos[0].shape[-1]
         if not self.downwash or self.downwash_radius is None or 9 * self.cell_capacity >= n - 1:
@@ -154,8 +154,8 @@ def accelerations_c(
     ``unit_quat=True`` tells that ``kin.quat`` is of unit norm (as every step leaves it), which skips normalising it
     again for the rotation matrix. ``neighbors`` i32[..., D, K]: the drones whose downwash acts on each drone
     (`Effects.downwash_neighbors`; default: chosen from ``kin.pos``). ``downwash``: `downwash_c`'s output when
-    already computed (see `jaxdrones.adjoint`).
-    ``disturbance``: a `jaxdrones.state.Disturbance` in component form (each given field a 3-tuple of f[..., D]):
+    already computed (see `jaxdrones.physics.adjoint`).
+    ``disturbance``: a `jaxdrones.physics.state.Disturbance` in component form (each given field a 3-tuple of f[..., D]):
     its force (world) adds to the force, its torque (body) to the torque, its wind to the drag's air velocity.
 
     Returns:
@@ -308,7 +308,7 @@ def ground_contact_c(params: DroneParams, kin: Kinematics, kinks: Kinks = Kinks(
     is below its resting height ``collision_height / 2`` (0.0125 m for the shipped models, where the original's
     PyBullet drones rest), it is put back at that height and the contact is perfectly inelastic and sticking:
     the velocity becomes (0, 0, max(v_z, 0)) and the angular velocity 0. Orientation is left unchanged. ``kinks``
-    (`jaxdrones.kinks`) may smooth the contact over a band of ``kinks.height`` about the rest height, or pass
+    (`jaxdrones.physics.kinks`) may smooth the contact over a band of ``kinks.height`` about the rest height, or pass
     gradients straight through it.
 
     Returns:

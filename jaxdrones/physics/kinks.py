@@ -8,7 +8,7 @@ kink                      original (``"exact"``)                                
 ========================  =====================================================  ================================
 RPM clip                  rpm ← clip(rpm, 0, max_rpm)                            ``rpm`` RPM about 0 and max_rpm
 ground contact            z ← max(z, rest), v ← (0, 0, max(v_z, 0)), ω ← 0       ``height`` m about the rest height;
-                          while z < rest (`jaxdrones.dynamics.ground_contact_c`)  ``speed`` m/s about v_z = 0
+                          while z < rest (`jaxdrones.physics.dynamics.ground_contact_c`)  ``speed`` m/s about v_z = 0
 ground-effect height      h_i ← max(h_i, gnd_eff_h_clip)                         ``height`` m about the clip
 ground-effect attitude    on while R[2,2] > 0 and |R[2,0]| < 0.99999             ``attitude`` about each bound
 downwash onset            on while Δz > 0; α = c1 (R / 4Δz)² grows without       on from Δz = 0 to 2·``downwash`` m

@@ -61,7 +61,7 @@ class DroneState:
 class Disturbance:
     """What acts on the drones from outside during a control step, held over its physics substeps: an input of
     the step (``step(params, state, rpm, disturbance)``), not part of the state. Each field is None (nothing) or
-    an array with the state's leading shape ``[..., D, 3]``; `jaxdrones.realism` draws them for the envs.
+    an array with the state's leading shape ``[..., D, 3]``; `jaxdrones.envs.realism` draws them for the envs.
 
     Attributes:
         force: f[..., D, 3] N, world frame, at the centre of mass (e.g. a random disturbance force).

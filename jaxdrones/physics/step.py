@@ -45,7 +45,7 @@ def physics_substep_c(
     ``state.rpm`` is the previous substep's (drag uses it); the result's is ``rpm``, the speeds applied.
 
     With ``config.adjoint`` (`SimConfig`), the Euler integrator and exact kinks (the defaults), and ``unit_quat``,
-    the substep has the hand-written reverse-mode derivative of `jaxdrones.adjoint` and no forward-mode one; other
+    the substep has the hand-written reverse-mode derivative of `jaxdrones.physics.adjoint` and no forward-mode one; other
     configs keep JAX's derived derivatives."""
     if motors is None:
         motors = dynamics.motors_c(params, rpm)
@@ -76,7 +76,7 @@ def _join_state(state: DroneState, contiguous: bool = False) -> DroneState:
 def _core_step_c(config: SimConfig):
     """The control step of the JAX core in component form: ``core_c(params, state_c, rpm_c, disturbance_c) ->
     state_c`` with the state's vectors, the RPM command and the disturbance's given fields as tuples of f[..., D]
-    arrays (see `jaxdrones.rotations`); ``disturbance_c`` may be None."""
+    arrays (see `jaxdrones.physics.rotations`); ``disturbance_c`` may be None."""
 
     def core_c(
         params: DroneParams, state: DroneState, rpm: tuple, disturbance: Disturbance | None = None
@@ -142,14 +142,14 @@ def _core_step(core_c, remat: bool):
 
     Cached: the `JaxStep`s of one ``core_c`` (`compiled_step_c`'s, per config) share one jitted function. The state
     is split into contiguous components and joined back with ``contiguous=True``
-    (`jaxdrones.rotations.split`, `jaxdrones.rotations.join`). With ``remat`` (a step without the hand-written
-    adjoint of `jaxdrones.adjoint`, whose reverse pass keeps only each substep's input) the step is rematerialised
+    (`jaxdrones.physics.rotations.split`, `jaxdrones.physics.rotations.join`). With ``remat`` (a step without the hand-written
+    adjoint of `jaxdrones.physics.adjoint`, whose reverse pass keeps only each substep's input) the step is rematerialised
     (``jax.checkpoint``) when differentiated: the backward pass of a scan over this step (a user's own, or an
     env's) recomputes each step from its input state, as `rollout` does, instead of storing every intermediate of
     the physics (see `benchmarks/gradients.py`: on CPU that scan's gradient is otherwise several times slower).
     None of this changes a value. The command is sliced (with its components from the product, a level drone given
     four equal commands drifted sideways by 5e-5 m in 60 steps: XLA then rounds the terms of equal and opposite
-    torques differently, see `jaxdrones.rotations.dot`; sliced, it stays exactly level, as on PyBullet).
+    torques differently, see `jaxdrones.physics.rotations.dot`; sliced, it stays exactly level, as on PyBullet).
     """
 
     def core(

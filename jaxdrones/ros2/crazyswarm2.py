@@ -52,7 +52,7 @@ class Backend:
         names: the drones' names.
         states: their initial ``State`` (crazyflie_sim's ``sim_data_types.State``; ``pos``, and ``vel``, ``quat``,
             ``omega`` where given).
-        model: the airframe (`jaxdrones.params.load_params`), default ``"cf2x"``.
+        model: the airframe (`jaxdrones.physics.params.load_params`), default ``"cf2x"``.
         sim_freq: physics rate, Hz (one ``step`` is one physics step).
         drag, ground_effect, downwash: the aerodynamic effects (`jaxdrones.sim.SimConfig`); ground effect on by
             default (crazyflies take off from the ground).

@@ -60,7 +60,7 @@ def obs_vector(
     pos: ArrayLike, quat: ArrayLike, rpy: ArrayLike, vel: ArrayLike, ang_vel: ArrayLike, rpm: ArrayLike
 ) -> np.ndarray:
     """The paper's observation of one drone, f32[20] (`OBS_NAMES`); ``rpy`` from
-    `jaxdrones.rotations.quat_to_euler` (PyBullet's ``getEulerFromQuaternion``)."""
+    `jaxdrones.physics.rotations.quat_to_euler` (PyBullet's ``getEulerFromQuaternion``)."""
     return np.concatenate(
         [np.ravel(pos), np.ravel(quat), np.ravel(rpy), np.ravel(vel), np.ravel(ang_vel), np.ravel(rpm)]
     ).astype(np.float32)

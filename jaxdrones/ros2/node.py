@@ -91,7 +91,7 @@ class EnvNode:
     """The node (see the module docstring).
 
     Args:
-        task: a registered task (`jaxdrones.registered`), e.g. ``"hover"``.
+        task: a registered task (`jaxdrones.envs.registry.registered`), e.g. ``"hover"``.
         n_drones: the task's drone count (default: the task's).
         namespace: the drones' topic prefix (`check_namespace`).
         realtime: step on a wall-clock timer (True) or as fast as possible with ``/clock`` (False).

@@ -101,7 +101,7 @@ class Scene:
 
 def _rotmat_from_rpy(rpy) -> np.ndarray:
     """R(roll, pitch, yaw) = Rz(yaw) Ry(pitch) Rx(roll), in NumPy (host-side scene building): the URDF's and
-    PyBullet's convention, as `jaxdrones.rotations.quat_from_euler`."""
+    PyBullet's convention, as `jaxdrones.physics.rotations.quat_from_euler`."""
     r, p, y = rpy
     cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
     return np.array(
@@ -256,8 +256,8 @@ def drone_primitives(params: DroneParams, pos: jax.Array, rot: jax.Array, first_
     disks), with the drone's segmentation id ``first_seg + d``.
 
     Args:
-        params: `jaxdrones.params.DroneParams` broadcastable to [..., D] (arm, prop_pos, prop_radius).
-        pos: f[..., D, 3] m; rot: f[..., D, 3, 3], body → world (`jaxdrones.rotations.quat_to_rotmat`).
+        params: `jaxdrones.physics.params.DroneParams` broadcastable to [..., D] (arm, prop_pos, prop_radius).
+        pos: f[..., D, 3] m; rot: f[..., D, 3, 3], body → world (`jaxdrones.physics.rotations.quat_to_rotmat`).
         first_seg: the id of drone 0.
 
     Returns:

@@ -269,7 +269,7 @@ def render(
     Args:
         spec: the `CameraSpec`.
         scene: a `Scene` (`make_scene`), unbatched or with the state's leading world axes.
-        params: `jaxdrones.params.DroneParams` broadcastable to [..., D] (collision_radius, arm, prop_pos,
+        params: `jaxdrones.physics.params.DroneParams` broadcastable to [..., D] (collision_radius, arm, prop_pos,
             prop_radius).
         pos: f[..., D, 3] m, world frame; quat: f[..., D, 4] (x, y, z, w), body → world.
         kinds: which images to return, a subset of ``("rgb", "depth", "seg")``.

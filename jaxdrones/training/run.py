@@ -61,7 +61,7 @@ def train_task(
     """Train a policy on a task with a trainer of `jaxdrones.training.trainers` and save it with a learning curve,
     a flight plot and a summary.
 
-    Outputs in a new run folder (see `jaxdrones.runs.new_run_dir`; an existing run is never overwritten unless
+    Outputs in a new run folder (see `jaxdrones.io.runs.new_run_dir`; an existing run is never overwritten unless
     ``overwrite``): ``policy.pkl`` (`jaxdrones.training.checkpoint`; load with `jaxdrones.training.load_policy`),
     ``learning_curve.png`` (the task's success metric as the run is judged, with its threshold), ``progress.json``,
     ``flight.png`` (position against the task's reference, speed and RPMs of one evaluation episode),

@@ -10,7 +10,7 @@ orbit. It needs viser (the ``viewer`` extra: ``pip install ".[viewer]"`` from a 
 a viser server bound to localhost, which no client ever joins, and recorded message by message.
 
 `write_video` draws the same flight from a chase or fixed camera with the JAX ray caster
-(`jaxdrones.cameras.render`, no PyBullet) and writes a GIF or MP4 (`jaxdrones.video.VideoWriter`).
+(`jaxdrones.cameras.render`, no PyBullet) and writes a GIF or MP4 (`jaxdrones.io.video.VideoWriter`).
 
     import jaxdrones as jd
     from jaxdrones.viz import Flight, write_html

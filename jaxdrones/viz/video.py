@@ -1,5 +1,5 @@
 """A `jaxdrones.viz.Flight` drawn from a chase or fixed camera with the JAX ray caster (`jaxdrones.cameras.render`,
-no PyBullet), written as a GIF or MP4 (`jaxdrones.video.VideoWriter`)."""
+no PyBullet), written as a GIF or MP4 (`jaxdrones.io.video.VideoWriter`)."""
 
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def write_video(
     overwrite: bool = False,
 ) -> str:
     """Draw one world of ``flight`` with the JAX cameras (`jaxdrones.cameras.render`, no PyBullet) and write it as an
-    MP4 or GIF (`jaxdrones.video.VideoWriter`).
+    MP4 or GIF (`jaxdrones.io.video.VideoWriter`).
 
     The view is a pinhole camera (the cameras' model, `jaxdrones.cameras.CameraSpec`) placed by ``camera``; it sees
     the ground, the scene's primitives in their colours, and the drones as the cameras draw them (dark plates and

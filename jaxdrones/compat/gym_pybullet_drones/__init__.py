@@ -11,7 +11,7 @@ Provided: `HoverAviary`, `MultiHoverAviary`, `CtrlAviary` (with `BaseAviary` and
 `DSLPIDControl`, `Logger`, `sync`, `str2bool`, and the enums `DroneModel`, `Physics`, `ActionType`,
 `ObservationType`, `ImageType`. Importing this package registers the original's gymnasium ids
 ``hover-aviary-v0``, ``multihover-aviary-v0`` and ``ctrl-aviary-v0``. The first aviary or controller built turns
-on JAX's persistent compilation cache unless one is set (`jaxdrones.runs.enable_compilation_cache`:
+on JAX's persistent compilation cache unless one is set (`jaxdrones.io.runs.enable_compilation_cache`:
 ``~/.cache/jaxdrones/xla``, or ``$JAXDRONES_CACHE_DIR``), so that a script run again reads its compiled steps from
 disk rather than compiling them (about 1 s). docs/migrating.md lists the differences, and how to move to
 `jaxdrones.make`'s batched envs.

@@ -28,7 +28,7 @@ class KeywordHints:
 
 
 def use_compilation_cache() -> None:
-    """Turn on JAX's persistent compilation cache (`jaxdrones.runs.enable_compilation_cache`) unless one is set, so
+    """Turn on JAX's persistent compilation cache (`jaxdrones.io.runs.enable_compilation_cache`) unless one is set, so
     that a script run again reads its compiled steps from disk rather than compiling them."""
     import jax
 

@@ -53,7 +53,7 @@ class BaseAviary(KeywordHints, gym.Env, metaclass=abc.ABCMeta):
         output_folder: kept as ``OUTPUT_FOLDER``.
         backend: ``"jax"`` (default) or ``"pybullet"`` (PyBullet's integrator and collisions; needs pybullet).
 
-    Attributes: the original's constants, from the model's URDF (`jaxdrones.params`): ``M``, ``L``,
+    Attributes: the original's constants, from the model's URDF (`jaxdrones.physics.params`): ``M``, ``L``,
     ``THRUST2WEIGHT_RATIO``, ``J``, ``J_INV``, ``KF``, ``KM``, ``COLLISION_H``, ``COLLISION_R``, ``MAX_SPEED_KMH``,
     ``GND_EFF_COEFF``, ``PROP_RADIUS``, ``DRAG_COEFF``, ``DW_COEFF_1..3``, ``G``, ``GRAVITY``, ``HOVER_RPM``,
     ``MAX_RPM``, ``MAX_THRUST``, ``MAX_XY_TORQUE``, ``MAX_Z_TORQUE``, ``GND_EFF_H_CLIP``; the rates ``CTRL_FREQ``,

@@ -6,7 +6,7 @@ from enum import Enum
 
 
 class DroneModel(Enum):
-    """Drone models: the value is the URDF's name in `jaxdrones.assets` (`jaxdrones.params.MODELS`)."""
+    """Drone models: the value is the URDF's name in ``jaxdrones/assets`` (`jaxdrones.physics.params.MODELS`)."""
 
     CF2X = "cf2x"  # Crazyflie 2.x, X configuration
     CF2P = "cf2p"  # Crazyflie 2.x, + configuration
