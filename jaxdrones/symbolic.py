@@ -254,7 +254,8 @@ def _ground_contact(a, pos, vel, ang_vel):
 
 
 def _motor_decay(tau: float, dt: float) -> float:
-    """`jaxdrones.physics.dynamics.motor_decay` on a float, in float64 whatever JAX's precision: exp(-dt/τ), 0 for τ <= 0."""
+    """`jaxdrones.physics.dynamics.motor_decay` on a float, in float64 whatever JAX's precision: exp(-dt/τ), 0 for τ
+    <= 0."""
     return math.exp(-dt / tau) if tau > 0 else 0.0
 
 

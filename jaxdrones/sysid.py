@@ -222,12 +222,12 @@ def fit(
             trajectory jump at window boundaries (unmodelled disturbances), at the cost of precision.
 
     Returns:
-        ``(params, report)``: the fitted params (derived fields recomputed, `jaxdrones.physics.params.with_derived`) and a
-        dict with ``loss`` (two numbers: the loss at the initial guess and at the fit, each the mean squared
+        ``(params, report)``: the fitted params (derived fields recomputed, `jaxdrones.physics.params.with_derived`)
+        and a dict with ``loss`` (two numbers: the loss at the initial guess and at the fit, each the mean squared
         residual in noise units), ``steps`` (the solver steps taken, accepted or rejected), ``estimates`` (field ->
-        fitted value), ``initial`` (field -> initial guess), ``std`` (field -> Gauss-Newton standard error of the
-        fitted value, the start states unknown too, from the residuals' scatter; inf where the data do not
-        determine it), ``windows`` and ``window``.
+        fitted value), ``initial`` (field -> initial guess), ``std`` (field -> Gauss-Newton standard error of the fitted
+        value, the start states unknown too, from the residuals' scatter; inf where the data do not determine it),
+        ``windows`` and ``window``.
 
     Raises:
         ValueError: an unknown field, ``rpms`` or ``observed`` of the wrong shape, a non-finite observation, a

@@ -13,8 +13,8 @@ Forces, as in the paper's PyBullet update (docs/physics.md §3.2, §5, §6), re-
   per-rotor model's: each rotor's thrust change, added to its force at its lever-arm point), computed by the same
   functions as the JAX core (`jaxdrones.physics.aerodynamics`);
 - gravity 9.8 m/s² (params), the gyroscopic term by Bullet's rigid-body solver;
-- a step's `jaxdrones.physics.state.Disturbance`: its force (world frame, at the centre of mass) and torque (body frame),
-  and its wind in the drag; with ``SimConfig.motor_dynamics`` the motors' speeds follow the command with the
+- a step's `jaxdrones.physics.state.Disturbance`: its force (world frame, at the centre of mass) and torque (body
+  frame), and its wind in the drag; with ``SimConfig.motor_dynamics`` the motors' speeds follow the command with the
   params' time constants before each Bullet step, as in the JAX core (docs/physics.md §3.3).
 
 Differences from the original's PyBullet modes (docs/physics.md §14.3), so that both backends share one model:

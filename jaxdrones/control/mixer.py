@@ -2,11 +2,11 @@
 
 A quadrotor's four motor speeds set a body wrench (collective thrust T along body +z and the body torques τx, τy,
 τz). The map is linear in the squared speeds s = rpm², ``wrench = A s``, with A = `allocation_matrix`, built from
-the same constants and signs as `jaxdrones.physics.dynamics` (docs/physics.md §2, §3.1). Its inverse with the constraint s ≥ 0
-is the paper's DYN action conversion (docs/physics.md §10.3, ``paper:gym_pybullet_drones/utils/utils.py:58-133``): solve
-A s = b; if a squared speed comes out negative, take the non-negative least-squares (NNLS) solution instead;
-rpm = √s. `nnls_rpm_squared` solves that NNLS problem exactly, batched and jittable, by enumerating the 16 passive
-sets of the 4-motor problem.
+the same constants and signs as `jaxdrones.physics.dynamics` (docs/physics.md §2, §3.1). Its inverse with the
+constraint s ≥ 0 is the paper's DYN action conversion (docs/physics.md §10.3,
+``paper:gym_pybullet_drones/utils/utils.py:58-133``): solve A s = b; if a squared speed comes out negative, take the
+non-negative least-squares (NNLS) solution instead; rpm = √s. `nnls_rpm_squared` solves that NNLS problem exactly,
+batched and jittable, by enumerating the 16 passive sets of the 4-motor problem.
 
 `mixer_matrix` is the PID controller's mixer (PWM units), derived from the airframe as the original's
 DSLPIDControl writes it (docs/physics.md §12.1).

@@ -46,7 +46,8 @@ class Realism:
 
     Attributes:
         motor_tau_up: s, the motors' time constant while speeding up (`jaxdrones.physics.dynamics.motor_response_c`);
-            > 0 turns on first-order motor dynamics (`jaxdrones.physics.config.SimConfig.motor_dynamics`). Drawn per drone.
+            > 0 turns on first-order motor dynamics (`jaxdrones.physics.config.SimConfig.motor_dynamics`). Drawn per
+            drone.
         motor_tau_down: s, the same while slowing down.
         action_delay: control steps (integers) between the policy's action and its effect on the motors.
         obs_delay: control steps (integers) between the drone's state and the observation of it.

@@ -12,12 +12,12 @@ element-wise operations around them with JAX's derivative, all inside the kernel
 interpret mode (as the XLA operations the kernel's body traces to): what the suite checks against the XLA path
 (tests/test_kernel.py), not a way to run fast.
 
-The kernel's body is the physics of `jaxdrones.physics.dynamics` itself, traced on blocks of drones, one value per drone:
-each drone is independent within a control step, so the kernel takes configs without coupling between drones (no
+The kernel's body is the physics of `jaxdrones.physics.dynamics` itself, traced on blocks of drones, one value per
+drone: each drone is independent within a control step, so the kernel takes configs without coupling between drones (no
 downwash with more than one drone per world) and the hand-written adjoint's (the Euler integrator, exact kinks):
-`unsupported`. The params are read in the kernel entry by entry (`_Entries`): one scalar each when
-every drone has the same, else one value per drone. A step given a `Disturbance` runs on the XLA path; a gradient
-with respect to the params (system identification) takes JAX's derivative of the XLA path.
+`unsupported`. The params are read in the kernel entry by entry (`_Entries`): one scalar each when every drone has the
+same, else one value per drone. A step given a `Disturbance` runs on the XLA path; a gradient with respect to the params
+(system identification) takes JAX's derivative of the XLA path.
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
 """The Euler physics substep with a hand-written reverse-mode derivative (vector-Jacobian product).
 
-`euler_substep_c` computes what `jaxdrones.physics.dynamics.euler_step_c` followed by `jaxdrones.physics.dynamics.ground_contact_c`
-compute (the paper's explicit update with drag and ground effect, docs/physics.md §3-§6, and the ground contact),
-value for value, and gives ``jax.grad``, ``jax.vjp`` and everything built on them the derivative written out below
-(`substep_vjp`) instead of the one JAX derives. Forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``) are not
-defined for it (a ``jax.custom_vjp`` has none); `jaxdrones.sim` keeps the derived path for configs that ask for
-them (see `supported`).
+`euler_substep_c` computes what `jaxdrones.physics.dynamics.euler_step_c` followed by
+`jaxdrones.physics.dynamics.ground_contact_c` compute (the paper's explicit update with drag and ground effect,
+docs/physics.md §3-§6, and the ground contact), value for value, and gives ``jax.grad``, ``jax.vjp`` and everything
+built on them the derivative written out below (`substep_vjp`) instead of the one JAX derives. Forward-mode derivatives
+(``jax.jvp``, ``jax.jacfwd``) are not defined for it (a ``jax.custom_vjp`` has none); `jaxdrones.sim` keeps the derived
+path for configs that ask for them (see `supported`).
 
 Why: JAX derives the reverse pass one operation at a time, and XLA:CPU then compiles each of the many small
 cotangent terms into loops that recompute what the forward pass shares between components (the rotation matrix,

@@ -5,8 +5,8 @@ Each function is pure, differentiable and broadcasts over leading (world) axes; 
 of one world along the drone axis. Equations are those of the paper (eqs. drag, ground, down) as the paper's code
 applies them in its PyBullet modes (docs/physics.md §6). The per-rotor downwash (`downwash_thrust`, docs/physics.md
 §6.4) samples the jet of Bauersfeld et al. at each rotor of the lower drone and turns it into a thrust change with the
-law of Su et al. Each is written once, in component form (``*_c``, see `jaxdrones.physics.rotations`), which the simulation
-core runs on; the array-form functions wrap it.
+law of Su et al. Each is written once, in component form (``*_c``, see `jaxdrones.physics.rotations`), which the
+simulation core runs on; the array-form functions wrap it.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from jaxdrones.physics.neighbors import gather
 from jaxdrones.physics.params import DroneParams, align_params
 from jaxdrones.physics.rotations import GIMBAL_SNAP, Components, dot, join, split
 
-#: The downwash models of `jaxdrones.physics.config.SimConfig.downwash`: the paper's one force at the lower drone's centre
-#: of mass (`downwash_force`, docs/physics.md §6.3) and the per-rotor thrust changes (`downwash_thrust`, §6.4).
+#: The downwash models of `jaxdrones.physics.config.SimConfig.downwash`: the paper's one force at the lower drone's
+#: centre of mass (`downwash_force`, docs/physics.md §6.3) and the per-rotor thrust changes (`downwash_thrust`, §6.4).
 DOWNWASH_MODELS = ("paper", "per_rotor")
 #: Downwash acts only between drones closer than this horizontally, m (docs/physics.md §6.3; the original's).
 DOWNWASH_MAX_DIST = 10.0
@@ -83,8 +83,8 @@ def ground_effect_thrust(
     h_i is the world height of propeller i, clipped from below at ``gnd_eff_h_clip`` (so the gain is at most 4/15).
     The effect is on only while |roll| < π/2 and |pitch| < π/2 in PyBullet's Euler angles (docs/physics.md §6.1):
     R[2, 2] > 0, and |sin pitch| = |R[2, 0]| below PyBullet's gimbal-lock snap (0.99999), where it reports
-    pitch = ±π/2. The extra force acts along body +z at each propeller, like thrust. ``kinks`` (`jaxdrones.physics.kinks`)
-    may smooth the height clip and the attitude condition.
+    pitch = ±π/2. The extra force acts along body +z at each propeller, like thrust. ``kinks``
+    (`jaxdrones.physics.kinks`) may smooth the height clip and the attitude condition.
 
     Args:
         params: DroneParams.
@@ -247,9 +247,9 @@ def downwash_thrust(
 
     A source acts where s > 0.1 l (`JET_ONSET`; the fit was identified beyond 2.5 l) and the centres are closer than
     ``cutoff`` horizontally. ΔT acts like thrust, along the lower drone's body +z at the rotor, so that unequal losses
-    give a roll and pitch torque. ``kinks`` (`jaxdrones.physics.kinks`) may smooth the onset (over 2·``kinks.downwash`` m
-    below 0.1 l) and the cut-off. ``neighbors`` (`jaxdrones.physics.neighbors.cell_candidates`) bounds the pairs, as in
-    `downwash_force`.
+    give a roll and pitch torque. ``kinks`` (`jaxdrones.physics.kinks`) may smooth the onset (over
+    2·``kinks.downwash`` m below 0.1 l) and the cut-off. ``neighbors`` (`jaxdrones.physics.neighbors.cell_candidates`)
+    bounds the pairs, as in `downwash_force`.
 
     Args:
         params: DroneParams (the source's mass, gravity, prop_radius and arm; the lower drone's lever arms).

@@ -31,16 +31,16 @@ class SimConfig:
         integrator: ``"euler"`` (the paper code's semi-implicit Euler with exact quaternion exponential map) or
             ``"rk4"``.
         kinks: how the JAX core treats the kinks of the physics (RPM clip, ground contact, ground effect's height
-            clip and attitude condition, downwash's onset and cut-off) for gradients: a `jaxdrones.physics.kinks.Kinks`, or
-            its mode ``"exact"`` (the original's physics, default), ``"smooth"`` (C¹ within small bands, so that
-            gradients agree with finite differences across each kink) or ``"straight_through"`` (the original's
-            forward pass, identity gradients through the clips and the contact). Stored as a `Kinks`.
+            clip and attitude condition, downwash's onset and cut-off) for gradients: a
+            `jaxdrones.physics.kinks.Kinks`, or its mode ``"exact"`` (the original's physics, default), ``"smooth"`` (C¹
+            within small bands, so that gradients agree with finite differences across each kink) or
+            ``"straight_through"`` (the original's forward pass, identity gradients through the clips and the contact).
+            Stored as a `Kinks`.
         downwash_radius: downwash: None (every pair of drones closer than the original's 10 m horizontally; D² pairs
-            per substep) or a cut-off r in m, within which a cell list (`jaxdrones.physics.neighbors.cell_candidates`, cells
-            of side r, built at the start of each control step and held over its substeps: a drone that comes
-            within r during the step may be missed until the next) finds each drone's neighbours: O(D) pairs.
-            Beyond 1 m no drone pushes a cf2x with more than 0.41 % of its weight (docs/physics.md §6.3). The JAX
-            core only.
+            per substep) or a cut-off r in m, within which a cell list (`jaxdrones.physics.neighbors.cell_candidates`,
+            cells of side r, built at the start of each control step and held over its substeps: a drone that comes
+            within r during the step may be missed until the next) finds each drone's neighbours: O(D) pairs. Beyond 1 m
+            no drone pushes a cf2x with more than 0.41 % of its weight (docs/physics.md §6.3). The JAX core only.
         cell_capacity: with ``downwash_radius``: drones per cell the list holds (a denser cell loses the extra ones).
         adjoint: take reverse-mode derivatives (``jax.grad``, ``jax.vjp``, ``jax.jacrev``) of the Euler integrator
             with exact kinks through the hand-written adjoint of `jaxdrones.physics.adjoint` (default True): a gradient

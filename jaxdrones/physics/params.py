@@ -83,8 +83,8 @@ class DroneParams:
         max_z_torque: f[] N·m, 2 km max_rpm².
         gnd_eff_h_clip: f[] m, (R/4)·√(15 C_gnd / 4): below it the ground-effect height is clipped.
         motor_tau_up: f[] s, the motors' time constant while speeding up, for first-order motor dynamics
-            (`jaxdrones.physics.config.SimConfig.motor_dynamics`, docs/physics.md §3.3); 0 = the commanded speed at once.
-            URDF ``properties/@motor_tau_up`` when given, else 0 (the paper's instant motors).
+            (`jaxdrones.physics.config.SimConfig.motor_dynamics`, docs/physics.md §3.3); 0 = the commanded speed at
+            once. URDF ``properties/@motor_tau_up`` when given, else 0 (the paper's instant motors).
         motor_tau_down: f[] s, the same while slowing down (``properties/@motor_tau_down``, else 0).
     """
 

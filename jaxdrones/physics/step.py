@@ -45,8 +45,8 @@ def physics_substep_c(
     ``state.rpm`` is the previous substep's (drag uses it); the result's is ``rpm``, the speeds applied.
 
     With ``config.adjoint`` (`SimConfig`), the Euler integrator and exact kinks (the defaults), and ``unit_quat``,
-    the substep has the hand-written reverse-mode derivative of `jaxdrones.physics.adjoint` and no forward-mode one; other
-    configs keep JAX's derived derivatives."""
+    the substep has the hand-written reverse-mode derivative of `jaxdrones.physics.adjoint` and no forward-mode one;
+    other configs keep JAX's derived derivatives."""
     if motors is None:
         motors = dynamics.motors_c(params, rpm)
     kin = dynamics.Kinematics(state.pos, state.quat, state.vel, state.ang_vel)
@@ -142,14 +142,14 @@ def _core_step(core_c, remat: bool):
 
     Cached: the `JaxStep`s of one ``core_c`` (`compiled_step_c`'s, per config) share one jitted function. The state
     is split into contiguous components and joined back with ``contiguous=True``
-    (`jaxdrones.physics.rotations.split`, `jaxdrones.physics.rotations.join`). With ``remat`` (a step without the hand-written
-    adjoint of `jaxdrones.physics.adjoint`, whose reverse pass keeps only each substep's input) the step is rematerialised
-    (``jax.checkpoint``) when differentiated: the backward pass of a scan over this step (a user's own, or an
-    env's) recomputes each step from its input state, as `rollout` does, instead of storing every intermediate of
-    the physics (see `benchmarks/gradients.py`: on CPU that scan's gradient is otherwise several times slower).
-    None of this changes a value. The command is sliced (with its components from the product, a level drone given
-    four equal commands drifted sideways by 5e-5 m in 60 steps: XLA then rounds the terms of equal and opposite
-    torques differently, see `jaxdrones.physics.rotations.dot`; sliced, it stays exactly level, as on PyBullet).
+    (`jaxdrones.physics.rotations.split`, `jaxdrones.physics.rotations.join`). With ``remat`` (a step without the
+    hand-written adjoint of `jaxdrones.physics.adjoint`, whose reverse pass keeps only each substep's input) the step is
+    rematerialised (``jax.checkpoint``) when differentiated: the backward pass of a scan over this step (a user's own,
+    or an env's) recomputes each step from its input state, as `rollout` does, instead of storing every intermediate of
+    the physics (see `benchmarks/gradients.py`: on CPU that scan's gradient is otherwise several times slower). None of
+    this changes a value. The command is sliced (with its components from the product, a level drone given four equal
+    commands drifted sideways by 5e-5 m in 60 steps: XLA then rounds the terms of equal and opposite torques
+    differently, see `jaxdrones.physics.rotations.dot`; sliced, it stays exactly level, as on PyBullet).
     """
 
     def core(
