@@ -156,7 +156,8 @@ def accelerations_c(
     (`Effects.downwash_neighbors`; default: chosen from ``kin.pos``). ``downwash``: `downwash_c`'s output when
     already computed (see `jaxdrones.physics.adjoint`).
     ``disturbance``: a `jaxdrones.physics.state.Disturbance` in component form (each given field a 3-tuple of
-    f[..., D]): its force (world) adds to the force, its torque (body) to the torque, its wind to the drag's air velocity.
+    f[..., D]): its force (world) adds to the force, its torque (body) to the torque, its wind to the drag's air
+    velocity.
 
     Returns:
         (ax, ay, az) m/s², world frame, and (ω̇x, ω̇y, ω̇z) rad/s², body frame, each f[..., D].
