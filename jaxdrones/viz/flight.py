@@ -259,19 +259,19 @@ def _check_images(images, lead: tuple[int, ...]):
     return np.ascontiguousarray(x.reshape((lead[0], n_worlds, lead[-1]) + x.shape[n:]))
 
 
-def _wxyz(xyzw: np.ndarray) -> np.ndarray:
+def wxyz(xyzw: np.ndarray) -> np.ndarray:
     """(x, y, z, w) → (w, x, y, z), viser's order."""
     return np.concatenate([xyzw[..., 3:], xyzw[..., :3]], axis=-1)
 
 
-def _wxyz_from_rotmat(r: np.ndarray) -> np.ndarray:
+def wxyz_from_rotmat(r: np.ndarray) -> np.ndarray:
     """A rotation matrix f[3, 3] as a unit quaternion (w, x, y, z) (SciPy's, a dependency of JAX)."""
     from scipy.spatial.transform import Rotation
 
-    return _wxyz(Rotation.from_matrix(np.asarray(r, np.float64)).as_quat())
+    return wxyz(Rotation.from_matrix(np.asarray(r, np.float64)).as_quat())
 
 
-def _view(flight: Flight, offsets: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
+def resolve_view(flight: Flight, offsets: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
     """The initial camera (position, look-at point), m: ``camera`` if given, else looking at the centre of the
     drones' paths from the front left and above, far enough to see them all."""
     if camera is not None:
@@ -289,14 +289,17 @@ def _view(flight: Flight, offsets: np.ndarray, camera) -> tuple[np.ndarray, np.n
     return target + direction / np.linalg.norm(direction) * radius * 2.6, target
 
 
-def _check_target(path: str, overwrite: bool) -> None:
+def check_target(path: str, overwrite: bool) -> None:
+    """Raise ``ValueError`` where ``path`` is a folder, ``FileExistsError`` where it is a file and ``overwrite`` is
+    off."""
     if os.path.isdir(path):
         raise ValueError(f"{path!r} is a folder; give a file name such as flight.html")
     if os.path.exists(path) and not overwrite:
         raise FileExistsError(errno.EEXIST, "exists; pass overwrite=True to replace it", path)
 
 
-def _palette(colors) -> np.ndarray:
+def drone_palette(colors) -> np.ndarray:
+    """u8[K, 3]: ``colors`` (RGB triples in 0-255; None: `DRONE_COLORS`), checked."""
     colors = DRONE_COLORS if colors is None else colors
     try:
         palette = np.asarray(colors, np.float64)
@@ -307,7 +310,7 @@ def _palette(colors) -> np.ndarray:
     return palette.astype(np.uint8)
 
 
-def _colours(palette: np.ndarray, n_worlds: int, n_drones: int) -> np.ndarray:
+def drone_colours(palette: np.ndarray, n_worlds: int, n_drones: int) -> np.ndarray:
     """u8[W, D, 3]: the palette cycled over the drones of a world, or over the worlds when each has one drone."""
     if n_drones == 1:
         return palette[np.arange(n_worlds) % len(palette)][:, None]

@@ -17,12 +17,12 @@ from jaxdrones.viz.flight import (
     Colors,
     Flight,
     View,
-    _check_target,
-    _colours,
-    _palette,
-    _view,
-    _wxyz,
-    _wxyz_from_rotmat,
+    check_target,
+    drone_colours,
+    drone_palette,
+    resolve_view,
+    wxyz,
+    wxyz_from_rotmat,
 )
 
 #: What installs viser (the HTML viewer's only optional dependency): the ``viewer`` extra, from a clone of the project.
@@ -154,16 +154,16 @@ def write_html(
             f"flight must be a jaxdrones.viz.Flight (e.g. Flight(pos, quat, dt)), got {type(flight).__name__}"
         )
     path = os.fspath(path)
-    _check_target(path, overwrite)
+    check_target(path, overwrite)
     if trail_s is not None:
         check_real("trail_s", trail_s, 0, what="None or a finite number of seconds")
     for name, value in (("max_fps", max_fps), ("drone_scale", drone_scale)):
         check_real(name, value, 0, low_open=True, what="a finite number")
     if spacing is not None:
         check_real("spacing", spacing, 0, what="None or a finite number of metres")
-    palette = _palette(colors)
+    palette = drone_palette(colors)
     offsets = _world_offsets(flight, spacing)
-    eye, target = _view(flight, offsets, camera)
+    eye, target = resolve_view(flight, offsets, camera)
     viser = _viser()
     html = _record(viser, flight, offsets, eye, target, trail_s, max_fps, drone_scale, palette, dark_mode)
     folder = os.path.dirname(path)
@@ -199,7 +199,7 @@ def _build(server, flight: Flight, offsets, eye, target, trail_s, max_fps, drone
     n_w, n_d = flight.n_worlds, flight.n_drones
     pos = flight.pos + offsets[None, :, None, :]  # [T, W, D, 3]
     n = n_w * n_d
-    colours = _colours(palette, n_w, n_d).reshape(n, 3)
+    colours = drone_colours(palette, n_w, n_d).reshape(n, 3)
     corners = [pos.reshape(-1, 3), target[None]]
     corners += [
         (c + offsets[w] + np.abs(r) @ h)[None] for w in range(n_w) for _, c, r, h, _ in _primitives(flight.scene, w)
@@ -237,7 +237,7 @@ def _build(server, flight: Flight, offsets, eye, target, trail_s, max_fps, drone
         "/drones",
         vertices,
         faces,
-        batched_wxyzs=_wxyz(flight.quat[0]).reshape(n, 4),
+        batched_wxyzs=wxyz(flight.quat[0]).reshape(n, 4),
         batched_positions=pos[0].reshape(n, 3),
         batched_colors=colours,
         lod="off",
@@ -261,7 +261,7 @@ def _build(server, flight: Flight, offsets, eye, target, trail_s, max_fps, drone
         if i > 0:
             serializer.insert_sleep((t - frames[i - 1]) * flight.dt)
             drones.batched_positions = pos[t].reshape(n, 3)
-            drones.batched_wxyzs = _wxyz(flight.quat[t]).reshape(n, 4)
+            drones.batched_wxyzs = wxyz(flight.quat[t]).reshape(n, 4)
             if keep != 0:
                 segment = np.stack([pos[frames[i - 1]], pos[t]], axis=-2).reshape(n, 2, 3)
                 trails.append(
@@ -285,10 +285,10 @@ def _build(server, flight: Flight, offsets, eye, target, trail_s, max_fps, drone
 
 def _add_primitive(scene, name: str, shape: str, centre, rot, half, rgb) -> None:
     """One obstacle (`jaxdrones.cameras.Primitives` conventions) as a viser shape."""
-    wxyz = _wxyz_from_rotmat(rot)
+    quat = wxyz_from_rotmat(rot)
     centre = tuple(float(c) for c in centre)
     if shape == "box":
-        scene.add_box(name, color=rgb, dimensions=tuple(2 * float(h) for h in half), wxyz=wxyz, position=centre)
+        scene.add_box(name, color=rgb, dimensions=tuple(2 * float(h) for h in half), wxyz=quat, position=centre)
     elif shape == "sphere":
         scene.add_icosphere(name, radius=float(half[0]), color=rgb, position=centre)
     elif shape == "cylinder":
@@ -324,7 +324,7 @@ def _add_panels(scene, flight: Flight, eye, target, lo, hi) -> list:
     right /= max(np.linalg.norm(right), 1e-9)
     up = np.cross(right, forward)
     rot = np.stack([right, -up, forward], axis=1)  # the image plane's x right, y down, z away from the viewer
-    wxyz = _wxyz_from_rotmat(rot)
+    quat = wxyz_from_rotmat(rot)
     h, w = flight.images.shape[3:5]
     extent = float(np.linalg.norm(hi - lo))
     height = max(0.5 * extent / MAX_PANELS, 0.15)

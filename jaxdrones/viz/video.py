@@ -15,11 +15,11 @@ from jaxdrones.viz.flight import (
     Colors,
     Flight,
     View,
-    _check_target,
-    _colours,
-    _palette,
-    _view,
-    _wxyz_from_rotmat,
+    check_target,
+    drone_colours,
+    drone_palette,
+    resolve_view,
+    wxyz_from_rotmat,
 )
 
 #: Camera presets of `write_video`.
@@ -91,7 +91,7 @@ def write_video(
         raise TypeError(f"flight must be a jaxdrones.viz.Flight, got {type(flight).__name__}")
     path = os.fspath(path)
     video_format(path)
-    _check_target(path, overwrite)
+    check_target(path, overwrite)
     for name, value, n in (("world", world, flight.n_worlds), ("drone", drone, flight.n_drones)):
         if not (is_integer(value) and 0 <= value < n):
             raise ValueError(f"{name} must be an index in [0, {n}), got {value!r}")
@@ -128,7 +128,7 @@ def write_video(
     drone_pos = pos[frames].astype(np.float32)
     drone_quat = flight.quat[frames, world].astype(np.float32)
     eyes32 = eyes.astype(np.float32)
-    colours = _colours(_palette(colors), 1, flight.n_drones)[0]
+    colours = drone_colours(drone_palette(colors), 1, flight.n_drones)[0]
     lookup = _seg_colours(scene, colours)
     keep = None if trail_s is None else math.ceil(trail_s / (stride * flight.dt))
     with VideoWriter(path, fps=1.0 / (stride * flight.dt), overwrite=overwrite) as video:
@@ -219,7 +219,7 @@ def _video_cameras(flight: Flight, world: int, drone: int, camera, chase, frames
         raise ValueError(f"camera must be one of {VIDEO_CAMERAS} or (position, look_at), got {camera!r}")
     if isinstance(camera, str) and camera == "fixed":
         one = Flight(flight.pos[:, world : world + 1], flight.quat[:, world : world + 1], flight.dt)
-        eye, target = _view(one, np.zeros((1, 3)), None)
+        eye, target = resolve_view(one, np.zeros((1, 3)), None)
         return np.tile(eye, (n, 1)), np.tile(_look(eye, target), (n, 1, 1))
     if isinstance(camera, str) and camera == "chase":
         try:
@@ -242,13 +242,13 @@ def _video_cameras(flight: Flight, world: int, drone: int, camera, chase, frames
             eyes[i] = target[i] - behind * np.array([h[0], h[1], 0.0]) + (0.0, 0.0, above)
             axes[i] = _look(eyes[i], target[i])
         return eyes, axes
-    eye, target = _view(flight, np.zeros((flight.n_worlds, 3)), camera)
+    eye, target = resolve_view(flight, np.zeros((flight.n_worlds, 3)), camera)
     return np.tile(eye, (n, 1)), np.tile(_look(eye, target), (n, 1, 1))
 
 
 def _xyzw_from_rotmat(r: np.ndarray) -> np.ndarray:
     """A rotation matrix f[3, 3] as a unit quaternion (x, y, z, w)."""
-    w, x, y, z = _wxyz_from_rotmat(r)
+    w, x, y, z = wxyz_from_rotmat(r)
     return np.array([x, y, z, w])
 
 
