@@ -293,7 +293,7 @@ def _add_primitive(scene, name: str, shape: str, centre, rot, half, rgb) -> None
         scene.add_icosphere(name, radius=float(half[0]), color=rgb, position=centre)
     elif shape == "cylinder":
         scene.add_cylinder(
-            name, radius=float(half[0]), height=2 * float(half[1]), color=rgb, wxyz=wxyz, position=centre
+            name, radius=float(half[0]), height=2 * float(half[1]), color=rgb, wxyz=quat, position=centre
         )
     else:
         import trimesh
@@ -304,7 +304,7 @@ def _add_primitive(scene, name: str, shape: str, centre, rot, half, rgb) -> None
             np.asarray(mesh.vertices, np.float32),
             np.asarray(mesh.faces, np.int32),
             color=rgb,
-            wxyz=wxyz,
+            wxyz=quat,
             position=centre,
         )
 
@@ -345,7 +345,7 @@ def _add_panels(scene, flight: Flight, eye, target, lo, hi) -> list:
                 width,
                 height,
                 format="png",
-                wxyz=wxyz,
+                wxyz=quat,
                 position=tuple(centre),
                 cast_shadow=False,
                 receive_shadow=False,
