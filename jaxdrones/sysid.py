@@ -26,7 +26,7 @@ import numpy as np
 import optimistix as optx
 from jax.typing import ArrayLike
 
-from jaxdrones._validate import is_real
+from jaxdrones._validate import check_int, check_real, is_real
 from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.params import DroneParams, with_derived
 from jaxdrones.physics.rotations import quat_integrate
@@ -146,12 +146,9 @@ def _check(init_state, rpms, observed, fields, window, iterations, noise, defect
             )
         if not bool(jnp.all(jnp.isfinite(value))):
             raise ValueError(f"observed.{name} contains NaN or inf")
-    if not (isinstance(window, int) and 1 <= window <= rpms.shape[0]):
-        raise ValueError(f"window must be an integer in [1, T={rpms.shape[0]}] control steps, got {window!r}")
-    if not (isinstance(iterations, int) and iterations >= 0):
-        raise ValueError(f"iterations must be an integer >= 0, got {iterations!r}")
-    if not _positive(defect):
-        raise ValueError(f"defect must be a number > 0 (a fraction of the noise), got {defect!r}")
+    check_int("window", window, 1, rpms.shape[0], what="control steps, at most the commands' T")
+    check_int("iterations", iterations, 0)
+    check_real("defect", defect, 0, low_open=True, what="a number")
     noise = {**NOISE, **(noise or {})}
     if set(noise) != set(NOISE) or not all(_positive(v) for v in noise.values()):
         raise ValueError(f"noise must map some of {tuple(NOISE)} to standard deviations > 0, got {noise!r}")

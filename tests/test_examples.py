@@ -214,7 +214,7 @@ def test_unknown_example_is_a_usage_error(capsys):
 
 
 def test_python_api_checks_its_arguments():
-    with pytest.raises(ValueError, match="backend must be one of"):
+    with pytest.raises(ValueError, match="unknown backend 'mujoco'"):
         downwash.fly(backend="mujoco")
     with pytest.raises(ValueError, match="settle_s"):
         velocity.fly(settle_s=float("nan"))

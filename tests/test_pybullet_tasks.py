@@ -95,7 +95,7 @@ def test_circle_reports_collisions():
 
 
 def test_circle_backend_options_are_checked():
-    with pytest.raises(ValueError, match="backend must be one of"):
+    with pytest.raises(ValueError, match="unknown backend 'mujoco'"):
         circle.fly_circle(duration_s=1.0, settle_s=0.0, backend="mujoco")
     for option in (dict(obstacles=True), dict(gui=True), dict(video="x.mp4")):
         with pytest.raises(ValueError, match="needs backend='pybullet'"):

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from jaxdrones._validate import is_real
+from jaxdrones._validate import check_choice, is_real
 from jaxdrones.control.pid import PIDGains, PIDState, pid_control, pid_init
 from jaxdrones.physics.params import DroneParams, load_params
 from jaxdrones.physics.rotations import quat_to_euler
@@ -214,8 +214,7 @@ def check_steps(duration_s: float, ctrl_freq: int) -> int:
 
 def check_backend(backend: str) -> None:
     """Raises ValueError unless ``backend`` is one of `BACKENDS`."""
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    check_choice("backend", backend, BACKENDS)
 
 
 def bind_arguments(fly: Callable, args: tuple, kwargs: dict) -> dict:

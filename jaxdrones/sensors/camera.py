@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from jaxdrones._validate import check_int
+from jaxdrones._validate import check_int, check_real
 from jaxdrones.physics.params import DroneParams
 from jaxdrones.physics.rotations import quat_to_rotmat
 from jaxdrones.scene.primitives import (
@@ -151,17 +151,12 @@ def check_camera_args(
             not None or finite with 0 < near < far.
     """
     width, height = check_image_size(width, height)
-    fov, far = real("fov", fov), real("far", far)
-    if not 0.0 < fov < 180.0:
-        raise ValueError(f"fov must be the vertical field of view in degrees, in (0, 180), got {fov}")
-    if not (math.isfinite(far) and far > 0.0):
-        raise ValueError(f"far must be a positive finite distance in m, got {far}")
+    what = "the vertical field of view in degrees,"
+    fov = check_real("fov", real("fov", fov), 0, 180, low_open=True, high_open=True, what=what)
+    far = check_real("far", real("far", far), 0, low_open=True, what="a finite distance in m")
     if near is not None:
-        near = real("near", near)
-        if not (math.isfinite(near) and 0.0 < near < far):
-            raise ValueError(
-                f"near must be None (the drone's arm) or a distance in m with 0 < near < far={far}, got {near}"
-            )
+        what = "None (the drone's arm) or a distance in m below far,"
+        near = check_real("near", real("near", near), 0, far, low_open=True, high_open=True, what=what)
     return width, height, fov, near, far
 
 

@@ -49,20 +49,39 @@ def _drone_mesh(arm: float) -> tuple[np.ndarray, np.ndarray]:
     """A quadrotor of arm length ``arm`` m as one triangle mesh (vertices f[V, 3] m, body frame; faces i32[F, 3]):
     a square plate, four rotor disks on the diagonals (the cf2x's X layout) and a nose along body +x that shows the
     heading."""
-    import trimesh
-
-    side = 1.13 * arm  # `jaxdrones.cameras.BODY_SIDE_PER_ARM`, as the cameras draw the plate
+    side = 1.13 * arm  # `jaxdrones.sensors.camera.BODY_SIDE_PER_ARM`, as the cameras draw the plate
     d = arm / math.sqrt(2)
-    parts = [trimesh.creation.box((side, side, 0.012))]
-    nose = trimesh.creation.box((0.9 * arm, 0.25 * arm, 0.012))
-    nose.apply_translation((side / 2 + 0.3 * arm, 0.0, 0.0))
-    parts.append(nose)
-    for sx, sy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
-        disk = trimesh.creation.cylinder(radius=0.58 * arm, height=0.004, sections=20)
-        disk.apply_translation((sx * d, sy * d, 0.008))
-        parts.append(disk)
-    mesh = trimesh.util.concatenate(parts)
-    return np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)
+    parts = [
+        _prism(4, (side / 2, side / 2, 0.006), (0.0, 0.0, 0.0)),
+        _prism(4, (0.45 * arm, 0.125 * arm, 0.006), (side / 2 + 0.3 * arm, 0.0, 0.0)),
+    ]
+    parts += [_prism(20, (0.58 * arm, 0.58 * arm, 0.002), (sx * d, sy * d, 0.008)) for sx in (1, -1) for sy in (1, -1)]
+    offsets = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
+    vertices = np.concatenate([v for v, _ in parts]).astype(np.float32)
+    faces = np.concatenate([f + o for (_, f), o in zip(parts, offsets, strict=True)]).astype(np.int32)
+    return vertices, faces
+
+
+def _prism(sections: int, half: tuple[float, float, float], centre: tuple[float, float, float]):
+    """A closed right prism along z over a regular polygon of ``sections`` sides (4: a box, its sides along x and y;
+    more: a cylinder), half extents ``half`` m, at ``centre``: (vertices f[2n + 2, 3], faces i[4n, 3]), each face
+    wound counter-clockwise seen from outside."""
+    n = sections
+    angle = 2 * np.pi * (np.arange(n) + 0.5) / n
+    scale = np.sqrt(2) if n == 4 else 1.0  # the square's corners at (±hx, ±hy)
+    ring = np.stack([scale * np.cos(angle) * half[0], scale * np.sin(angle) * half[1]], -1)
+    bottom, top = np.c_[ring, -np.full(n, half[2])], np.c_[ring, np.full(n, half[2])]
+    vertices = np.concatenate([bottom, top, [[0.0, 0.0, -half[2]], [0.0, 0.0, half[2]]]]) + np.asarray(centre)
+    i, j = np.arange(n), (np.arange(n) + 1) % n
+    faces = np.concatenate(
+        [
+            np.stack([i, j, j + n], -1),  # the sides, counter-clockwise from outside
+            np.stack([i, j + n, i + n], -1),
+            np.stack([np.full(n, 2 * n), j, i], -1),  # the bottom cap, seen from below
+            np.stack([np.full(n, 2 * n + 1), i + n, j + n], -1),  # the top cap, seen from above
+        ]
+    )
+    return vertices, faces
 
 
 def _world_offsets(flight: Flight, spacing: float | None) -> np.ndarray:
