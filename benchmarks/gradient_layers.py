@@ -4,7 +4,7 @@ The work of `benchmarks/gradients.py`'s ``default_env`` caller (``jd.make("hover
 control, 8 physics substeps per step; T control steps of W worlds; per-step offsets 0.4 N(0, 1); the env's loss
 averaged over the steps), built up one layer at a time. Each variant is a ``lax.scan`` of T steps:
 
-- ``physics``: the env's physics step alone (``jd.make_step(env.sim_config)``, ``env.params``), commanded
+- ``physics``: the env's physics step alone (``jd.make_step(env.config.sim)``, ``env.params``), commanded
   ``hover_rpm (1 + 0.05 tanh(offset))`` (the hover env's RPM action of ``tanh(offset)``: 0.05 is
   ``jaxdrones.envs.actions.RPM_ACTION_SCALE``), the env's loss of the state;
 - ``open_loop``: the env's ``step`` with the action ``tanh(offset)``. Nothing reads the observation, so XLA leaves
@@ -46,7 +46,7 @@ def losses(jax, jd, np, horizon: int, worlds: int) -> tuple[dict, tuple]:
     jnp = jax.numpy
     parts = default_env_parts(jax, jd, np, horizon, worlds)
     env, start, env_loss = parts["env"], parts["start"], parts["env_loss"]
-    physics_step = jd.make_step(env.sim_config)
+    physics_step = jd.make_step(env.config.sim)
     hover_rpm = env.params.hover_rpm[:, None]
 
     def physics(policy, offsets, state):

@@ -1,6 +1,6 @@
 """Where the time of a gradient through the default env's physics goes: an XLA:CPU trace, summed by operation.
 
-The work: a ``lax.scan`` of T control steps over ``jaxdrones.make_step(jd.make("hover").sim_config)`` (the hover
+The work: a ``lax.scan`` of T control steps over ``jaxdrones.make_step(jd.make("hover").config.sim)`` (the hover
 env's physics at its defaults: 240 Hz physics, 30 Hz control, 8 substeps per step) for W worlds of one cf2x,
 starting 5-30 cm up, RPM commands within 2 % of hover, the loss of `benchmarks/gradients.py` (its start positions
 and ``trajectory_loss``). The forward pass and the value and gradient w.r.t. the commands are timed in
@@ -70,7 +70,7 @@ def main(argv=None) -> int:
 
     w, t = args.worlds, args.horizon
     if args.caller == "physics":
-        config = jd.make("hover").sim_config
+        config = jd.make("hover").config.sim
         params = jd.load_params("cf2x")
         init = jd.init_state(config, pos=jnp.asarray(start_positions(np, w)))
         step = jd.make_step(config)

@@ -25,10 +25,10 @@ def _reference(env, steps):
 
 def test_registered_with_downwash_on_by_default():
     env = jd.make("crossing")
-    assert isinstance(env.task, Crossing) and env.config.downwash and env.sim_config.downwash
+    assert isinstance(env.task, Crossing) and env.config.sim.downwash and env.config.sim.downwash
     assert env.n_drones == 2 and env.episode_length == 150
     off = jd.make("crossing", downwash=False)
-    assert not off.config.downwash and not off.sim_config.downwash
+    assert not off.config.sim.downwash and not off.config.sim.downwash
     assert "crossing" in jd.envs.MULTI_AGENT
     task = env.task
     assert (task.success_metric, task.success_at, task.success_threshold) == ("max_altitude_error", "max", 0.05)
@@ -60,7 +60,7 @@ def test_reference_crosses_at_quarter_periods(n_drones):
 
 def test_reference_velocity_is_the_derivative_of_the_position():
     env = jd.make("crossing", n_drones=3, amplitude=0.7, period_s=3.0)
-    dt = 1 / env.config.ctrl_freq
+    dt = 1 / env.config.sim.ctrl_freq
     for k in (1, 17, 40, 101):
         before, _ = _reference(env, k - 1)
         after, _ = _reference(env, k + 1)
@@ -133,7 +133,7 @@ def test_downwash_pushes_the_lower_drone_down():
     alpha = c1 * (float(params.prop_radius[1]) / (4 * 0.5)) ** 2
     assert 0.25 < alpha < 0.35
     dvz = float(runs[True].vel[1, 2] - runs[False].vel[1, 2])
-    np.testing.assert_allclose(dvz, -alpha / float(params.mass[1]) / env.config.ctrl_freq, rtol=0.05)
+    np.testing.assert_allclose(dvz, -alpha / float(params.mass[1]) / env.config.sim.ctrl_freq, rtol=0.05)
     assert runs[True].pos[1, 2] < runs[False].pos[1, 2] - 3e-3
     np.testing.assert_allclose(runs[True].pos[0], runs[False].pos[0], atol=1e-7)
     np.testing.assert_allclose(runs[True].vel[0], runs[False].vel[0], atol=1e-7)

@@ -297,8 +297,8 @@ def test_choices_and_bad_input():
     assert jd.SimConfig(downwash="per_rotor").effects.downwash == "per_rotor"
     from jaxdrones.envs.config import TaskConfig
 
-    assert TaskConfig(downwash="paper") == TaskConfig(downwash=True)
-    assert TaskConfig(downwash="per_rotor").sim_config().downwash == "per_rotor"
+    assert TaskConfig(sim={"downwash": "paper"}) == TaskConfig(sim={"downwash": True})
+    assert TaskConfig(sim={"downwash": "per_rotor"}).sim.downwash == "per_rotor"
     choices = r"False \(off\), True or 'paper' \(the paper's model\) or 'per_rotor'"
     for value, hint in (
         ("per-rotor", "did you mean 'per_rotor'"),
@@ -311,7 +311,9 @@ def test_choices_and_bad_input():
         match = rf"SimConfig.downwash must be {choices}.*got {value!r}" + (rf".*{hint}" if hint else "")
         with pytest.raises(ValueError, match=match):
             jd.SimConfig(downwash=value)
-    with pytest.raises(ValueError, match=rf"^downwash must be {choices}.*got 'perrotor' \(did you mean 'per_rotor'"):
+    with pytest.raises(
+        ValueError, match=rf"^SimConfig.downwash must be {choices}.*got 'perrotor' \(did you mean 'per_rotor'"
+    ):
         jd.make("multi_hover", n_drones=2, downwash="perrotor")
 
 

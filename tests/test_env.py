@@ -120,8 +120,8 @@ def test_the_control_rate_has_one_home(monkeypatch):
     monkeypatch.setattr(physics_config.SimConfig, "__post_init__", lambda self: built.append(post_init(self)))
     env = jd.make("velocity", ctrl_freq=48, episode_len_s=2.0)
     assert len(built) == 1
-    assert env.sim_config is env.config.sim is env.config.sim_config() is env._step.config
-    assert (env.sim_config.ctrl_freq, env.sim_config.n_substeps, env.episode_length) == (48, 5, 96)
+    assert env.config.sim is env._step.config
+    assert (env.config.sim.ctrl_freq, env.config.sim.n_substeps, env.episode_length) == (48, 5, 96)
     state = env.reset(jax.random.key(0))
     ref = env.task.reference(env.config, state.task, jnp.asarray(48))  # one second in: the commanded velocity
     assert np.all(np.abs(state.task.data["target_vel"]) > 0.01)
@@ -130,10 +130,6 @@ def test_the_control_rate_has_one_home(monkeypatch):
 
     loaded = pickle.loads(pickle.dumps(env.config))
     assert loaded == env.config and loaded.sim == env.config.sim and len(built) == 1
-    # A config pickled before `sim` existed (its __dict__ without it) builds it when first read.
-    old = object.__new__(type(env.config))
-    old.__dict__.update({k: v for k, v in env.config.__dict__.items() if k != "sim"})
-    assert old.sim == env.config.sim and old.sim.ctrl_freq == 48
 
 
 def test_hover_default_is_3d_with_random_starts(hover):
@@ -262,7 +258,7 @@ def test_non_finite_action_terminates_and_is_reported(hover, bad):
 
 def test_action_buffer_holds_last_actions_and_is_cleared_at_reset():
     env = jd.make("hover", obs_type="kin", action_buffer=True)
-    k = env.config.ctrl_freq // 2
+    k = env.config.sim.ctrl_freq // 2
     assert env.observation_size == 12 + 4 * k
     s = env.reset(jax.random.key(0))
     np.testing.assert_array_equal(s.obs[0, 12:], 0.0)
@@ -307,13 +303,13 @@ def test_error_integral_sums_the_tracking_error(task):
         return np.asarray(s.task.target - s.sim.pos, np.float64)
 
     s = env.reset(jax.random.key(2))
-    expected = error(s) / env.config.ctrl_freq
+    expected = error(s) / env.config.sim.ctrl_freq
     np.testing.assert_allclose(s.obs[:, -3:], expected, rtol=1e-5, atol=1e-7)
     np.testing.assert_array_equal(s.obs[:, :-3], plain.reset(jax.random.key(2)).obs)
     step = jax.jit(env.step)
     for _ in range(40):
         s = step(s, jnp.full((1, env.action_size), 0.3))  # climbs away: the integral grows, then saturates
-        expected = np.clip(expected + error(s) / env.config.ctrl_freq, -1.0, 1.0)
+        expected = np.clip(expected + error(s) / env.config.sim.ctrl_freq, -1.0, 1.0)
         np.testing.assert_allclose(s.obs[:, -3:], expected, rtol=1e-4, atol=1e-6)
     assert np.abs(expected).max() > 0.1
 
@@ -360,7 +356,7 @@ def test_nearest_neighbors_observation():
     env = jd.make(
         "multi_hover", n_drones=16, obs_type="neighbors", max_neighbors=3, neighbor_radius=0.5, downwash_radius=1.0
     )
-    assert env.observation_size == 12 + 4 * 3 + 3 and env.sim_config.downwash_radius == 1.0
+    assert env.observation_size == 12 + 4 * 3 + 3 and env.config.sim.downwash_radius == 1.0
     assert (
         jd.make("multi_hover", n_drones=64, obs_type="neighbors", max_neighbors=3).observation_size
         == env.observation_size

@@ -28,7 +28,7 @@ def _case(dtype, adjoint: bool = True):
     ``adjoint``: the physics' hand-written adjoint (`jaxdrones.SimConfig.adjoint`) or JAX's derived derivatives."""
     env = jd.make("hover", ctrl_freq=240, drag=True, ground_effect=True, adjoint=adjoint)
     rng = np.random.default_rng(3)
-    config = env.sim_config
+    config = env.config.sim
     sim = jd.init_state(
         config,
         pos=np.c_[rng.uniform(-0.5, 0.5, (WORLDS, 2)), rng.uniform(0.06, 0.2, WORLDS)][:, None],
@@ -46,7 +46,7 @@ def _losses(env, start, axes):
     """loss(actions, pos, vel, quat, ang_vel) of each caller: the squared distance to (0, 0, 1) m, the squared
     velocities and body rates and the quaternion's vector part, averaged over steps and worlds."""
     params = start.params
-    step = jd.make_step(env.sim_config)
+    step = jd.make_step(env.config.sim)
     env_step = jax.vmap(env.step, in_axes=(axes, 0), out_axes=axes)
 
     def loss_of(pos, vel, quat, ang_vel):
@@ -110,7 +110,7 @@ def test_gradients_of_rollout_user_scan_and_env_step_agree(x64):
             np.testing.assert_allclose(g, ref, rtol=1e-9, atol=1e-12)
     assert all(np.any(np.asarray(g) != 0) for g in grads["rollout"])
     out = jd.rollout(
-        jd.make_step(env.sim_config),
+        jd.make_step(env.config.sim),
         start.params,
         start.sim,
         jnp.broadcast_to(start.params.hover_rpm[..., None], actions.shape) * (1.0 + RPM_ACTION_SCALE * actions),

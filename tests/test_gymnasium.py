@@ -154,7 +154,7 @@ def test_vector_env_call_get_attr_set_attr_as_sync_vector_env():
 def test_sb3_style_keywords_pass_through():
     # SB3's make_vec_env calls gymnasium.make(id, render_mode=None, ...) for each env.
     env = gym.make("jaxdrones/Hover-v0", render_mode=None, action_type="one_d_rpm", ctrl_freq=48, model="cf2p")
-    assert env.action_space.shape == (1,) and env.unwrapped.env.config.ctrl_freq == 48
+    assert env.action_space.shape == (1,) and env.unwrapped.env.config.sim.ctrl_freq == 48
 
 
 def test_bad_options_name_what_was_expected():

@@ -140,7 +140,7 @@ def test_trained_hover_policy_flies_alike_on_both_backends():
                 "pos": np.asarray(episodes.sim.pos[:, :, 0]),
             }
     jx, pb = runs["jax"], runs["pybullet"]
-    last = slice(-env_jax.config.ctrl_freq, None)
+    last = slice(-env_jax.config.sim.ctrl_freq, None)
     print(
         f"\nMEASURED hover policy, {len(keys)} starts: mean distance over the last second jax "
         f"{jx['distance'][:, last].mean() * 1e3:.1f} mm, pybullet {pb['distance'][:, last].mean() * 1e3:.1f} mm; "
@@ -148,7 +148,7 @@ def test_trained_hover_policy_flies_alike_on_both_backends():
     )
     np.testing.assert_array_equal(pb["pos"][:, 0], jx["pos"][:, 0])  # the same reset
     np.testing.assert_allclose(pb["pos"][:, 1], jx["pos"][:, 1], atol=1e-6)  # the same first step
-    last_second = slice(-env_jax.config.ctrl_freq, None)
+    last_second = slice(-env_jax.config.sim.ctrl_freq, None)
     for run in (jx, pb):
         assert not run["terminated"].any() and run["truncated"][:, -1].all()
         assert run["distance"][:, last_second].mean() < 0.02 and run["distance"][:, -1].mean() < 0.03
@@ -200,9 +200,9 @@ def vision_env():
 
 def test_camera_rate_is_decoupled_from_control():
     for ctrl_freq, period in ((30, 1), (48, 2), (240, 10), (80, 3)):
-        cfg = jd.envs.HoverConfig(ctrl_freq=ctrl_freq)
+        cfg = jd.envs.HoverConfig(sim={"ctrl_freq": ctrl_freq})
         assert cfg.camera_period == period and cfg.camera_rate == pytest.approx(ctrl_freq / period)
-    assert jd.envs.HoverConfig(ctrl_freq=30, camera_freq=10).camera_period == 3
+    assert jd.envs.HoverConfig(sim={"ctrl_freq": 30}, camera_freq=10).camera_period == 3
 
 
 def test_vision_obs_shapes_and_render_schedule(vision_env):

@@ -467,10 +467,10 @@ def test_presets_and_options():
     """The preset turns on motor dynamics with L2F's 0.15 s and draws no delays; options override it; wind turns
     drag on; a range of time constants makes the params per episode."""
     env = jd.make("hover", realism="crazyflie")
-    assert env.sim_config.motor_dynamics and not env.sim_config.drag
+    assert env.config.sim.motor_dynamics and not env.config.sim.drag
     assert float(env.params.motor_tau_up[0]) == pytest.approx(0.15) and env.shared_params is not None
     env = jd.make("hover", realism="crazyflie", turbulence=0.5, motor_tau_up=(0.1, 0.2))
-    assert env.sim_config.drag and env.shared_params is None
+    assert env.config.sim.drag and env.shared_params is None
     state = env.reset(jax.random.key(0))
     assert 0.1 <= float(state.params.motor_tau_up[0]) <= 0.2
     assert env.config.realism.obs_noise_pos == (0.001, 0.001)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import pickle
 
 import jax
@@ -588,7 +589,7 @@ def test_load_policy_into_another_env_checks_the_team(tmp_path):
     )
     coupled = jd.make("leader_follower", n_drones=3, action_type="one_d_rpm", downwash=True)
     got, policy = load_policy(tmp_path, env=coupled)
-    assert got is coupled and got.config.downwash
+    assert got is coupled and got.config.sim.downwash
     assert policy(coupled.reset(jax.random.key(0)).obs.reshape(-1), None)[0].shape == (3,)
     with pytest.raises(ValueError, match="trained on 'leader_follower' with 3 drones.*with 2 drones"):
         load_policy(tmp_path, env=jd.make("leader_follower", n_drones=2, action_type="one_d_rpm"))
@@ -719,3 +720,16 @@ def test_train_cli_realism_defaults(tmp_path):
     assert summary["algo"] == "ppo" and summary["config"]["anneal_lr"]
     assert summary["env"]["action_type"] == "ctbr" and summary["env"]["error_integral"] is False
     assert summary["env"]["terminate_on_ground"] is True
+
+
+def test_a_run_saved_with_the_physics_options_at_the_top_level_loads_and_flies():
+    """tests/data/hover_48hz_65b4528: ``jaxdrones train hover --ctrl-freq 48`` saved at 65b4528, when the physics'
+    options were fields of `TaskConfig` itself. Its flat ``ctrl_freq`` goes into the config's ``sim``, and the policy
+    flies its 256 evaluation starts as it did then."""
+    run = os.path.join(os.path.dirname(__file__), "data", "hover_48hz_65b4528")
+    env, policy = load_policy(run)
+    assert env.config.sim.ctrl_freq == 48 and env.episode_length == 240
+    summary = json.loads(open(os.path.join(run, "summary.json")).read())
+    stats = evaluate(env, policy, jax.random.split(jax.random.key(0 + 1))[0], 256)
+    assert stats["final_pos_error_m"] == pytest.approx(summary["success_value"], abs=1e-4)
+    assert stats["terminated_rate"] == 0

@@ -448,7 +448,7 @@ def test_flight_of_a_vision_env_with_a_gate_per_episode(tmp_path):
     states = jax.jit(jax.vmap(episode))(jax.random.split(jax.random.key(0), 2))
     flight = Flight.from_states(env, states, time_axis=1)
     assert (flight.n_frames, flight.n_worlds, flight.n_drones) == (4, 2, 1)
-    assert flight.dt == pytest.approx(1 / env.config.ctrl_freq)
+    assert flight.dt == pytest.approx(1 / env.config.sim.ctrl_freq)
     assert flight.images.shape == (4, 2, 1, 48, 64, 3)
     gates = [np.array([c for _, c, *_ in viz_html._primitives(flight.scene, w)]) for w in range(2)]
     assert len(gates[0]) == 3 and not np.allclose(gates[0], gates[1])  # the gate's three boxes, drawn per episode

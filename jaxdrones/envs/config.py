@@ -9,7 +9,6 @@ A `jaxdrones.envs.task.Task` supplies what differs between tasks; `jaxdrones.env
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from typing import Any
 
@@ -22,7 +21,6 @@ from jaxdrones.backends import BACKENDS, RENDERERS, require_pybullet
 from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS
 from jaxdrones.envs.observations import OBS_TYPES
 from jaxdrones.envs.realism import resolve as resolve_realism
-from jaxdrones.physics.config import downwash_model
 from jaxdrones.physics.params import MODELS, DroneParams, with_derived
 from jaxdrones.scene import resolve_obstacles
 from jaxdrones.sensors.camera import ENV_IMAGES
@@ -110,17 +108,13 @@ class TaskConfig:
         pid_target: ``pid`` action: ``"absolute"`` (main) or ``"relative"`` (the paper).
         pid_scale: ``pid`` with relative targets: target = pos + pid_scale · a, m, in (0, 1]; the paper's 0.1 m,
             which the DSL PID flies at up to about 0.5 m/s (0.3 m: about 1 m/s).
-        sim_freq: physics rate, Hz.
-        ctrl_freq: control (env step) rate, Hz.
         episode_len_s: episode length, s.
-        drag, ground_effect, downwash: aerodynamic effects of the physics (docs/physics.md §6); ``downwash`` is False,
-            True or ``"paper"`` (the paper's model; stored as True) or ``"per_rotor"`` (`SimConfig.downwash`).
-        kinks: the treatment of the physics' kinks for gradients (`SimConfig.kinks`, `jaxdrones.physics.kinks`):
-            ``"exact"`` (default), ``"smooth"`` or ``"straight_through"``, or a `jaxdrones.physics.kinks.Kinks`.
-        adjoint: reverse-mode derivatives of the physics through its hand-written adjoint (`SimConfig.adjoint`;
-            default True); False for forward-mode derivatives (``jax.jvp``, ``jax.jacfwd``) through ``step``.
-        unroll_substeps: the physics substeps of a control step unrolled in the compiled program
-            (`SimConfig.unroll_substeps`): False (default, a loop), True, or None (unrolled on a GPU or TPU only).
+        sim: the physics (`jaxdrones.physics.config.SimConfig`, or a dict of its fields): its rates ``sim_freq`` and
+            ``ctrl_freq`` (the env steps at ``ctrl_freq``), the aerodynamic effects ``drag``, ``ground_effect``,
+            ``downwash`` (docs/physics.md §6), ``downwash_radius``, ``kinks``, ``adjoint``, ``unroll_substeps``,
+            ``integrator``. `jaxdrones.make` takes each of these by its own name (``jd.make("hover", ctrl_freq=48,
+            drag=True)``), on top of the task's own. Stored with the config's ``n_drones``, ``drag`` on where the
+            ``realism`` has wind and ``motor_dynamics`` where it has motor time constants: what the env steps.
         reward: ``"shaped"`` (the task's shaped reward) or ``"paper"`` (the original's reward).
         init_pos: f[D, 3] m, fixed start positions (the original's ``initial_xyzs``): they override the random
             start ranges; the drones start at rest and level (unless ``init_rpy`` is given).
@@ -145,8 +139,6 @@ class TaskConfig:
         neighbor_radius: ``neighbors`` observation: radius of the adjacency, m.
         max_neighbors: ``neighbors`` observation: None (every drone) or K ≥ 1: the min(K, D - 1) nearest drones
             only, 12 + 4·min(K, D - 1) entries whatever the team's size (`jaxdrones.envs.observations`).
-        downwash_radius: the downwash's cut-off with a neighbour list for large teams, m (`SimConfig`; None: every
-            pair of drones, the original).
         backend: ``"jax"`` (differentiable) or ``"pybullet"`` (collisions, obstacles, cameras; not differentiable;
             call ``close``).
         obstacles: None, True or ``"paper"``, or a sequence of `Obstacle` / URDF paths. On the PyBullet backend
@@ -188,15 +180,8 @@ class TaskConfig:
     error_integral: bool = False
     pid_target: str = "absolute"
     pid_scale: float = 0.1
-    sim_freq: int = 240
-    ctrl_freq: int = 30
     episode_len_s: float = 5.0
-    drag: bool = False
-    ground_effect: bool = False
-    downwash: bool | str = False
-    kinks: Any = "exact"
-    adjoint: bool = True
-    unroll_substeps: bool | None = False
+    sim: Any = SimConfig(ctrl_freq=30)
     reward: str = "shaped"
     init_pos: Any = None
     init_rpy: Any = None
@@ -213,7 +198,6 @@ class TaskConfig:
     randomize: Any = None
     neighbor_radius: float = math.inf
     max_neighbors: int | None = None
-    downwash_radius: float | None = None
     backend: str = "jax"
     obstacles: Any = None
     vision: tuple[str, ...] = ()
@@ -241,11 +225,9 @@ class TaskConfig:
         check_real("pid_scale", self.pid_scale, 0, PID_MAX_STEP, low_open=True, what="a distance in m")
         n = check_int("n_drones", self.n_drones)
         self._check_model()
-        self._set("downwash", downwash_model(self.downwash))
         self._set("realism", resolve_realism(self.realism))
-        sim = self.sim  # built here, once: it checks the rates and the physics' options
-        for name in ("kinks", "unroll_substeps"):  # as the physics stores them
-            self._set(name, getattr(sim, name))
+        self._set("sim", self._physics())
+        sim = self.sim
         for name in ("init_pos", "init_rpy"):
             self._set(name, fixed_triples(name, getattr(self, name), n))
         if self.start_pos_range is not None:
@@ -264,7 +246,7 @@ class TaskConfig:
         ):
             raise ValueError(
                 f"episode_len_s·ctrl_freq must give at least one control step, got "
-                f"{self.episode_len_s!r} s at {self.ctrl_freq!r} Hz"
+                f"{self.episode_len_s!r} s at {sim.ctrl_freq!r} Hz"
             )
         if isinstance(self.randomize, dict):
             self._set("randomize", DomainRandomization(**self.randomize))
@@ -328,30 +310,26 @@ class TaskConfig:
             raise ValueError(f"frame_stack={k} stacks camera frames: it needs vision=('depth',), ('rgb',) or ('seg',)")
         self._set("frame_stack", k)
 
-    @functools.cached_property
-    def sim(self) -> SimConfig:
-        """The `SimConfig` of the physics, built once (when the config is): the one home of the rates
-        (``sim_freq``, ``ctrl_freq``, ``ctrl_dt``, ``n_substeps``) and of the physics' options for every reader
-        downstream (the env, the tasks, the realism, the trainers). Its ``drag`` is also on where the ``realism`` has
-        wind, its ``motor_dynamics`` where it has motor time constants."""
-        realism = self.realism  # resolved by __post_init__ before it builds this
-        return SimConfig(
+    def _physics(self) -> SimConfig:
+        """``sim`` as a `SimConfig` (a dict: its fields over the task's default ``sim``), with the config's
+        ``n_drones``, and the realism's wind and motor time constants turning on ``drag`` and ``motor_dynamics``."""
+        sim, realism = self.sim, self.realism
+        if isinstance(sim, dict):
+            unknown = sorted(set(sim) - {f.name for f in dataclasses.fields(SimConfig)})
+            if unknown:
+                raise ValueError(f"sim: {unknown[0]!r} is not a SimConfig field")
+            base, given = next(f.default for f in dataclasses.fields(self) if f.name == "sim"), sim  # the task's own
+        elif isinstance(sim, SimConfig):
+            base, given = sim, {}
+        else:
+            raise ValueError(f"sim must be a SimConfig or a dict of its fields, got {sim!r}")
+        return dataclasses.replace(  # built once, here: it checks the rates and the physics' options
+            base,
+            **given,
             n_drones=self.n_drones,
-            sim_freq=self.sim_freq,
-            ctrl_freq=self.ctrl_freq,
-            drag=self.drag or (realism is not None and realism.wind),
-            ground_effect=self.ground_effect,
-            downwash=self.downwash,
-            kinks=self.kinks,
-            downwash_radius=self.downwash_radius,
-            adjoint=self.adjoint,
-            unroll_substeps=self.unroll_substeps,
+            drag=given.get("drag", base.drag) or (realism is not None and realism.wind),
             motor_dynamics=realism is not None and realism.motor_dynamics,
         )
-
-    def sim_config(self) -> SimConfig:
-        """The `SimConfig` of the physics: `sim`."""
-        return self.sim
 
     @property
     def buffer_len(self) -> int:

@@ -23,7 +23,7 @@ from jaxdrones.physics.params import DroneParams, broadcast_params, load_params,
 from jaxdrones.physics.rotations import quat_from_euler
 from jaxdrones.physics.state import DroneState
 from jaxdrones.sensors.camera import image_shapes
-from jaxdrones.sim import SimConfig, make_step
+from jaxdrones.sim import make_step
 
 #: How far (in action units) an entry may lie outside its box before ``metrics["clipped_actions"]`` counts it:
 #: float32 round-off of actions computed at the bounds (e.g. ``tanh`` saturating to 1 + 1 ulp) is not a clip.
@@ -80,11 +80,11 @@ class TaskEnv(Env):
             config.max_neighbors,
         )
         options = {"obstacles": config.obstacles, "renderer": config.renderer} if config.backend == "pybullet" else {}
-        self._step = make_step(self.sim_config, backend=config.backend, **options)
+        self._step = make_step(self.config.sim, backend=config.backend, **options)
         self._default_task = None
         self.realism = None
         if config.realism is not None:
-            self.realism = RealismModel(config.realism, config.n_drones, self.action_type.size, self.sim_config.ctrl_dt)
+            self.realism = RealismModel(config.realism, config.n_drones, self.action_type.size, self.config.sim.ctrl_dt)
             if config.realism.motor_dynamics and not config.realism.randomizes_params:
                 taus = {
                     name: jnp.full((config.n_drones,), getattr(config.realism, name)[0], self.params.mass.dtype)
@@ -96,11 +96,6 @@ class TaskEnv(Env):
         return type(self), (self.task, self.config)
 
     # -- sizes and spaces ------------------------------------------------------------------------------------------
-
-    @property
-    def sim_config(self) -> SimConfig:
-        """The physics' `SimConfig`: the config's (`TaskConfig.sim`)."""
-        return self.config.sim
 
     @property
     def n_drones(self) -> int:
@@ -121,7 +116,7 @@ class TaskEnv(Env):
 
     @property
     def episode_length(self) -> int:
-        return int(round(self.config.episode_len_s * self.sim_config.ctrl_freq))
+        return int(round(self.config.episode_len_s * self.config.sim.ctrl_freq))
 
     @property
     def dtype(self) -> np.dtype:
@@ -158,7 +153,7 @@ class TaskEnv(Env):
         if not self.integral_size:
             return integral
         error = self.task.tracking_error(self.config, task, seen, steps).astype(integral.dtype)
-        return jnp.clip(integral + error / self.sim_config.ctrl_freq, -ERROR_INTEGRAL_BOUND, ERROR_INTEGRAL_BOUND)
+        return jnp.clip(integral + error / self.config.sim.ctrl_freq, -ERROR_INTEGRAL_BOUND, ERROR_INTEGRAL_BOUND)
 
     def _observe(
         self, task: TaskParams, sim: DroneState, history: jax.Array, integral: jax.Array, steps: jax.Array
@@ -287,7 +282,7 @@ class TaskEnv(Env):
         task = self.task.sample(cfg, self.default_task_params() if task is None else task, k_task)
         params = cfg.randomize.sample(k_params, self.params) if cfg.randomize is not None else self.params
         sim = sample_start(k_start, task.start, self.dtype)
-        if self.sim_config.motor_dynamics and cfg.start_rpm == "hover":  # the motors already turning (start_rpm)
+        if self.config.sim.motor_dynamics and cfg.start_rpm == "hover":  # the motors already turning (start_rpm)
             sim = sim.replace(rpm=jnp.broadcast_to(params.hover_rpm[..., None], sim.rpm.shape).astype(self.dtype))
         history = jnp.zeros((cfg.n_drones, self.obs_type.buffer_len, self.action_size), self.dtype)
         integral = jnp.zeros((cfg.n_drones, self.integral_size), self.dtype)
@@ -349,7 +344,7 @@ class TaskEnv(Env):
         if self.realism is not None:  # the delayed action, and the wind and disturbance of this step
             applied, realism = self.realism.delay_action(realism, action)
             disturbance, realism = self.realism.disturbance(realism, state.sim)
-        rpm, ctrl = self.action_type.to_rpm(state.params, state.sim, state.ctrl, applied, ref, self.sim_config.ctrl_dt)
+        rpm, ctrl = self.action_type.to_rpm(state.params, state.sim, state.ctrl, applied, ref, self.config.sim.ctrl_dt)
         sim = self._step(state.params, state.sim, rpm, disturbance)
         steps = state.steps + 1
         history = state.history

@@ -17,9 +17,13 @@ from jaxdrones.envs.tasks.avoid import AVOID
 from jaxdrones.envs.tasks.gate import FLY_THRU_GATE
 from jaxdrones.envs.tasks.multi import MULTI_AGENT_TASKS
 from jaxdrones.envs.tasks.single import Hover, Takeoff, Tune, Velocity, Waypoints
+from jaxdrones.sim import SimConfig
 
 #: The `Realism` fields that `make` and `make_config` take as keywords.
 REALISM_OPTIONS = frozenset(f.name for f in dataclasses.fields(Realism))
+#: The physics' options `make` takes by their own names into the config's ``sim``: `SimConfig`'s fields but the team's
+#: size (the config's ``n_drones``) and the motors' dynamics (on with the realism's motor time constants).
+SIM_OPTIONS = frozenset(f.name for f in dataclasses.fields(SimConfig)) - {"n_drones", "motor_dynamics"}
 
 #: The built-in single-agent tasks but ``avoid`` (`jaxdrones.envs.tasks.single`, `jaxdrones.envs.tasks.gate`).
 SINGLE_AGENT_TASKS = (Hover(), Takeoff(), Velocity(), Waypoints(), FLY_THRU_GATE, Tune())
@@ -57,7 +61,15 @@ def make_config(name: str, **overrides: Any) -> TaskConfig:
     if options:  # a realism option given alone: on top of the preset (or of none)
         realism = resolve_realism(overrides.get("realism"))
         overrides["realism"] = dataclasses.replace(realism or Realism(), **options)
+    physics = {k: overrides.pop(k) for k in list(overrides) if k in SIM_OPTIONS and k not in fields}
+    if physics:  # physics options by their own names: on top of the given sim (the config puts a dict's on the task's)
+        sim = overrides.get("sim") or {}
+        overrides["sim"] = {**(sim if isinstance(sim, dict) else _sim_fields(sim)), **physics}
     return task.config_cls(**overrides)
+
+
+def _sim_fields(sim: SimConfig) -> dict:
+    return {f.name: getattr(sim, f.name) for f in dataclasses.fields(sim)}
 
 
 def check_options(name: str, options: Iterable[str], also: Iterable[str] = ()) -> None:
@@ -68,7 +80,7 @@ def check_options(name: str, options: Iterable[str], also: Iterable[str] = ()) -
     Raises:
         ValueError: an unknown task or option.
     """
-    fields = {f.name for f in dataclasses.fields(get_task(name).config_cls)} | REALISM_OPTIONS | set(also)
+    fields = {f.name for f in dataclasses.fields(get_task(name).config_cls)} | REALISM_OPTIONS | SIM_OPTIONS | set(also)
     unknown = sorted(set(options) - fields)
     if unknown:
         raise ValueError(unknown_option(name, unknown[0], fields))
@@ -80,8 +92,9 @@ def make(name: str, **overrides: Any) -> TaskEnv:
 
     Args:
         name: registered task name (see `registered`).
-        **overrides: fields of the task's config (`TaskConfig` and the task's subclass, e.g. `HoverConfig`), and
-            the fields of `jaxdrones.envs.realism.Realism` (e.g. ``action_delay=1``, ``motor_tau_up=(0.05, 0.2)``),
+        **overrides: fields of the task's config (`TaskConfig` and the task's subclass, e.g. `HoverConfig`), the
+            physics' (`SIM_OPTIONS`: ``ctrl_freq=48``, ``drag=True``, ..., into the config's ``sim``), and the fields
+            of `jaxdrones.envs.realism.Realism` (e.g. ``action_delay=1``, ``motor_tau_up=(0.05, 0.2)``),
             which set the config's ``realism`` on top of its preset: ``jd.make("hover", realism="crazyflie",
             turbulence=0.5)``.
 

@@ -148,7 +148,7 @@ class SimConfig:
 
 
 def downwash_model(value: bool | str, name: str = "downwash") -> bool | str:
-    """A downwash setting (`SimConfig.downwash`, `jaxdrones.envs.config.TaskConfig.downwash`) normalised: False
+    """A downwash setting (`SimConfig.downwash`, `jd.make(..., downwash=...)`) normalised: False
     (off), True (the paper's model, for True or ``"paper"``) or ``"per_rotor"``.
 
     Raises:

@@ -164,7 +164,7 @@ def _core_step(core_c, remat: bool):
 
 
 @functools.cache
-def compiled_step_c(config: SimConfig):
+def compiled_step_c(config: SimConfig) -> Callable[..., DroneState]:
     """The control step of ``config`` in component form (`_core_step_c`), shared by every `JaxStep` of an equal
     config: an env built again (an evaluation env beside the training env, a second run in a notebook) compiles
     nothing again."""

@@ -141,7 +141,7 @@ class EnvNode:
         self.state, self.params = start.sim, start.params
         self.n_drones = self.env.config.n_drones
         self.ctrl_dt = 1.0 / self.env.config.sim.ctrl_freq
-        self._step = make_step(self.env.sim_config)
+        self._step = make_step(self.env.config.sim)
         self._pid = pid_init(self.state)
         n = self.n_drones
         self.mode = np.zeros(n, np.int32)

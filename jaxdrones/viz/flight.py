@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from jaxdrones._validate import check_real, is_integer
 
@@ -271,7 +272,7 @@ def wxyz_from_rotmat(r: np.ndarray) -> np.ndarray:
     return wxyz(Rotation.from_matrix(np.asarray(r, np.float64)).as_quat())
 
 
-def resolve_view(flight: Flight, offsets: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
+def resolve_view(flight: Flight, offsets: np.ndarray, camera: tuple | None) -> tuple[np.ndarray, np.ndarray]:
     """The initial camera (position, look-at point), m: ``camera`` if given, else looking at the centre of the
     drones' paths from the front left and above, far enough to see them all."""
     if camera is not None:
@@ -298,7 +299,7 @@ def check_target(path: str, overwrite: bool) -> None:
         raise FileExistsError(errno.EEXIST, "exists; pass overwrite=True to replace it", path)
 
 
-def drone_palette(colors) -> np.ndarray:
+def drone_palette(colors: ArrayLike | None) -> np.ndarray:
     """u8[K, 3]: ``colors`` (RGB triples in 0-255; None: `DRONE_COLORS`), checked."""
     colors = DRONE_COLORS if colors is None else colors
     try:

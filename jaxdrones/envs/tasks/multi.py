@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -23,6 +24,7 @@ from jaxdrones.envs.config import TaskConfig
 from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
 from jaxdrones.envs.task import Task, TaskParams
 from jaxdrones.envs.tasks.single import ANG_SPEED_WEIGHT, SPEED_WEIGHT
+from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.state import DroneState, default_start_pos
 
 
@@ -322,8 +324,8 @@ class CrossingConfig(MultiConfig):
     """Settings of `Crossing`.
 
     Attributes:
-        downwash: on by default, unlike the other tasks: the drones fly over each other, and the upper drone's
-            downwash on the lower one is what the task is about.
+        sim: the downwash on by default, unlike the other tasks: the drones fly over each other, and the upper
+            drone's downwash on the lower one is what the task is about.
         period_s: period of each drone's back-and-forth along x, s (the original: 5 s).
         amplitude: half the length of each drone's path along x, m (the original: 0.5 m).
         spacing: vertical spacing of the drones' paths, m: drone i flies at 0.5 m + spacing·(D − 1 − i) (the
@@ -335,7 +337,7 @@ class CrossingConfig(MultiConfig):
             arena (``amplitude`` ≥ ``arena_xy``, or the top drone's altitude ≥ ``arena_z``).
     """
 
-    downwash: bool = True
+    sim: Any = SimConfig(ctrl_freq=30, downwash=True)
     period_s: float = 5.0
     amplitude: float = 0.5
     spacing: float = 0.5
