@@ -99,8 +99,8 @@ class PyBulletStep:
     Call it as ``step(params, state, rpm) -> state``, like the JAX backend: ``state`` is a `DroneState` with leading
     world axes ``[..., D, ...]`` (one Bullet world per world), ``rpm`` f[..., D, 4] in RPM, clipped to
     [0, max_rpm]. Called on concrete arrays, NumPy or JAX, it returns NumPy arrays: Bullet runs on the host, a JAX
-    array is read into NumPy once (about 2 µs), and building JAX arrays of the result would cost about 50 µs per field
-    on the CPU (as much as the step itself), while every JAX function takes NumPy arrays as they are. Inside
+    array is read into NumPy once, and building JAX arrays of the result would cost per field about as much as the
+    step itself on the CPU, while every JAX function takes NumPy arrays as they are. Inside
     ``jit``, ``vmap`` or ``lax.scan`` (e.g. `jd.rollout`, the envs) the step runs as a host callback
     (`jax.pure_callback`). It is not differentiable. ``state.contact`` reports what each drone touched (ground,
     obstacle, drone). Bullet worlds are created on first use and released by `close` (or a ``with`` block, or

