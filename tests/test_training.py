@@ -561,7 +561,7 @@ def test_train_cli_crossing_without_downwash(tmp_path, capsys):
         == 0
     )
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["algo"] == "apg" and summary["env"]["downwash"] is False
+    assert summary["algo"] == "apg" and summary["env"]["sim"]["downwash"] is False
     assert summary["env"]["action_type"] == "ctbr"
     assert summary["success_metric"] == "max_altitude_error (max over episode)"
     assert summary["success_value"] == pytest.approx(summary["eval"]["max_max_altitude_error"])

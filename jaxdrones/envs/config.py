@@ -323,12 +323,15 @@ class TaskConfig:
             base, given = sim, {}
         else:
             raise ValueError(f"sim must be a SimConfig or a dict of its fields, got {sim!r}")
+        wind = realism is not None and realism.wind  # the wind acts through the drag
         return dataclasses.replace(  # built once, here: it checks the rates and the physics' options
             base,
-            **given,
-            n_drones=self.n_drones,
-            drag=given.get("drag", base.drag) or (realism is not None and realism.wind),
-            motor_dynamics=realism is not None and realism.motor_dynamics,
+            **{
+                **given,
+                "n_drones": self.n_drones,
+                "drag": True if wind else given.get("drag", base.drag),
+                "motor_dynamics": realism is not None and realism.motor_dynamics,
+            },
         )
 
     @property
