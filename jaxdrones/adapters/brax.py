@@ -9,7 +9,7 @@ brax's trainers take an env and a ``wrap_env_fn``; give them `BraxEnv` and `wrap
     make_policy, params, _ = ppo.train(environment=BraxEnv(env), wrap_env_fn=wrap_for_brax_training,
                                        episode_length=env.episode_length, num_timesteps=1_000_000, ...)
 
-(`jaxdrones.training.train` does this.) Importing this module also makes brax's trainers run on JAX releases
+(`jaxdrones.training.brax_ppo.train` does this.) Importing this module also makes brax's trainers run on JAX releases
 without ``jax.device_put_replicated`` (removed in jax 0.10; brax 0.14 still calls it): see `patch_brax`.
 
 Passing ``jd.make("hover")`` itself as brax's ``environment`` does not
