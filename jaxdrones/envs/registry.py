@@ -64,12 +64,8 @@ def make_config(name: str, **overrides: Any) -> TaskConfig:
     physics = {k: overrides.pop(k) for k in list(overrides) if k in SIM_OPTIONS and k not in fields}
     if physics:  # physics options by their own names: on top of the given sim (the config puts a dict's on the task's)
         sim = overrides.get("sim") or {}
-        overrides["sim"] = {**(sim if isinstance(sim, dict) else _sim_fields(sim)), **physics}
+        overrides["sim"] = dataclasses.replace(sim, **physics) if isinstance(sim, SimConfig) else {**sim, **physics}
     return task.config_cls(**overrides)
-
-
-def _sim_fields(sim: SimConfig) -> dict:
-    return {f.name: getattr(sim, f.name) for f in dataclasses.fields(sim)}
 
 
 def check_options(name: str, options: Iterable[str], also: Iterable[str] = ()) -> None:

@@ -10,7 +10,7 @@ vector-Jacobian product a second: the backward kernel recomputes the substeps fr
 transposes them one by one with the hand-written adjoint of `jaxdrones.physics.adjoint` (`substep_vjp`) and the few
 element-wise operations around them with JAX's derivative, all inside the kernel. On the CPU both run in Pallas's
 interpret mode (as the XLA operations the kernel's body traces to): what the suite checks against the XLA path
-(tests/test_kernel.py), not a way to run fast.
+(tests/test_pallas.py), not a way to run fast.
 
 The kernel's body is the physics of `jaxdrones.physics.dynamics` itself, traced on blocks of drones, one value per
 drone: each drone is independent within a control step, so the kernel takes configs without coupling between drones (no
