@@ -401,6 +401,29 @@ def test_domain_randomisation_recomputes_derived_params():
     np.testing.assert_allclose(edited.hover_rpm, base.hover_rpm * np.sqrt(2), rtol=1e-6)
 
 
+def test_motor_time_constants_are_drawn_with_the_other_params():
+    # Given in randomize: drawn per drone and episode in the range, and the motors get their dynamics.
+    env = jd.make("hover", randomize={"mass": 0.1, "motor_tau_up": (0.05, 0.2)})
+    assert env.config.sim.motor_dynamics and env.shared_params is None
+    s = jax.vmap(env.reset)(keys(256))
+    up = np.asarray(s.params.motor_tau_up[:, 0])
+    assert np.all((up >= 0.05) & (up <= 0.2)) and np.ptp(up) > 0.1
+    np.testing.assert_array_equal(s.params.motor_tau_down, 0.0)  # not given: the URDF's
+    # From the realism: the same draw, one home (TaskConfig.param_draws).
+    env = jd.make("hover", motor_tau_up=(0.05, 0.2), motor_tau_down=0.1)
+    assert env.config.randomize is None and env.config.param_draws.motor_tau_up == (0.05, 0.2)
+    s = jax.vmap(env.reset)(keys(64))
+    assert np.ptp(np.asarray(s.params.motor_tau_up)) > 0.05
+    np.testing.assert_allclose(s.params.motor_tau_down, 0.1)
+    # A time constant without a range: every episode shares the params, which hold it.
+    env = jd.make("hover", realism="crazyflie")
+    assert env.shared_params is not None and float(env.params.motor_tau_up[0]) > 0
+    with pytest.raises(ValueError, match="give them once"):
+        jd.make("hover", motor_tau_up=0.1, randomize={"motor_tau_up": (0.05, 0.2)})
+    with pytest.raises(ValueError, match="low <= high"):
+        jd.make("hover", randomize={"motor_tau_down": (0.2, 0.1)})
+
+
 def test_auto_reset_draws_fresh_episodes():
     env = AutoReset(jd.make("velocity", episode_len_s=0.2, randomize={"mass": 0.1}))
     step = jax.jit(env.step)

@@ -13,6 +13,7 @@ import math
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -37,11 +38,13 @@ START_RPMS = ("hover", "zero")
 
 @dataclasses.dataclass(frozen=True)
 class DomainRandomization:
-    """Relative half-widths of per-drone parameter randomisation, drawn anew at every reset (per world, episode
-    and drone): each field's value is multiplied by a factor uniform in [1 − r, 1 + r].
+    """The drones' params drawn anew at every reset (per world, episode and drone): relative half-widths, each
+    field's value multiplied by a factor uniform in [1 − r, 1 + r], and the motors' time constants, drawn uniform in
+    a range of seconds.
 
     The derived quantities (hover and max RPM, max thrust and torques, J⁻¹) are recomputed from the sampled values
-    by `jaxdrones.physics.params.with_derived`.
+    by `jaxdrones.physics.params.with_derived`. A task's config gives the one it draws from as
+    `TaskConfig.param_draws` (its ``randomize`` with its realism's motor time constants).
 
     Attributes:
         mass: of ``mass``.
@@ -49,9 +52,13 @@ class DomainRandomization:
         kf: of the thrust coefficient.
         km: of the torque coefficient.
         drag: of the drag coefficients.
+        motor_tau_up, motor_tau_down: (low, high) s, the motors' time constants (`DroneParams.motor_tau_up`,
+            `jaxdrones.physics.dynamics.motor_response_c`), or None to keep the params' (the URDF's); low = high sets
+            every episode's. The realism's (`jaxdrones.envs.realism.Realism.motor_tau_up`) come here.
 
     Raises:
-        ValueError: a range that is not finite or not in [0, 1) (1 or more would allow a non-positive value).
+        ValueError: a relative range that is not finite or not in [0, 1) (1 or more would allow a non-positive
+            value); a time-constant range that is not 0 <= low <= high, finite.
     """
 
     mass: float = 0.0
@@ -59,25 +66,60 @@ class DomainRandomization:
     kf: float = 0.0
     km: float = 0.0
     drag: float = 0.0
+    motor_tau_up: tuple[float, float] | None = None
+    motor_tau_down: tuple[float, float] | None = None
 
     def __post_init__(self):
-        for f in dataclasses.fields(self):
-            what = f"a relative half-width (a factor in [1 - r, 1 + r]; r >= 1 allows a non-positive {f.name})"
-            check_real(f"randomize.{f.name}", getattr(self, f.name), 0, 1, high_open=True, what=what)
+        for name in RELATIVE_DRAWS:
+            what = f"a relative half-width (a factor in [1 - r, 1 + r]; r >= 1 allows a non-positive {name})"
+            check_real(f"randomize.{name}", getattr(self, name), 0, 1, high_open=True, what=what)
+        for name in TAU_DRAWS:
+            value = getattr(self, name)
+            if value is None:
+                continue
+            low, high = check_reals(f"randomize.{name}", value, 2, nonneg=True)
+            if low > high:
+                raise ValueError(f"randomize.{name} must be (low, high) s with low <= high, got {value!r}")
+            object.__setattr__(self, name, (low, high))
+
+    @property
+    def draws(self) -> bool:
+        """Whether a reset draws params of its own (a relative half-width above 0 or a time-constant range wider than
+        a point); False: every episode has the same params (`fixed`)."""
+        ranges = [getattr(self, n) for n in TAU_DRAWS if getattr(self, n) is not None]
+        return any(getattr(self, n) != 0 for n in RELATIVE_DRAWS) or any(low != high for low, high in ranges)
+
+    def fixed(self, params: DroneParams) -> DroneParams:
+        """``params`` with the time constants that every episode shares (low = high) set."""
+        new = {}
+        for name in TAU_DRAWS:
+            value = getattr(self, name)
+            if value is not None and value[0] == value[1]:
+                new[name] = jnp.full(params.mass.shape, value[0], params.mass.dtype)
+        return params.replace(**new) if new else params
 
     def sample(self, key: jax.Array, params: DroneParams) -> DroneParams:
         """Randomised ``params`` (batch shape [..., D]), with the derived fields recomputed."""
-        fields = {"mass": "mass", "inertia": "inertia", "kf": "kf", "km": "km", "drag": "drag_coeff"}
-        lead = params.mass.shape
+        lead, dtype = params.mass.shape, params.mass.dtype
         new = {}
-        for k, (name, attr) in zip(jax.random.split(key, len(fields)), fields.items(), strict=False):
+        for k, (name, attr) in zip(jax.random.split(key, len(RELATIVE_DRAWS)), RELATIVE_DRAWS.items(), strict=True):
             r = getattr(self, name)
             if r == 0:
                 continue
-            factor = jax.random.uniform(k, lead, params.mass.dtype, 1.0 - r, 1.0 + r)
+            factor = jax.random.uniform(k, lead, dtype, 1.0 - r, 1.0 + r)
             value = getattr(params, attr)
             new[attr] = value * factor.reshape(lead + (1,) * (value.ndim - len(lead)))
+        for i, name in enumerate(TAU_DRAWS):
+            if getattr(self, name) is not None:
+                k = jax.random.fold_in(key, len(RELATIVE_DRAWS) + i)
+                new[name] = jax.random.uniform(k, lead, dtype, *getattr(self, name))
         return with_derived(params.replace(**new)) if new else params
+
+
+#: `DomainRandomization`'s relative draws: its field → the `DroneParams` field it scales.
+RELATIVE_DRAWS = {"mass": "mass", "inertia": "inertia", "kf": "kf", "km": "km", "drag": "drag_coeff"}
+#: `DomainRandomization`'s ranges of the motors' time constants (s), named as the `DroneParams` fields.
+TAU_DRAWS = ("motor_tau_up", "motor_tau_down")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,7 +177,8 @@ class TaskConfig:
         arena_z: ... or its z exceeds this, m.
         max_tilt: ... or its tilt exceeds this, rad.
         terminate_on_ground: a touch of the ground terminates the episode as a crash.
-        randomize: `DomainRandomization` (or a dict of its fields) applied at every reset; None for none.
+        randomize: `DomainRandomization` (or a dict of its fields) drawn at every reset; None for none. The realism's
+            motor time constants join it (`param_draws`).
         neighbor_radius: ``neighbors`` observation: radius of the adjacency, m.
         max_neighbors: ``neighbors`` observation: None (every drone) or K ≥ 1: the min(K, D - 1) nearest drones
             only, 12 + 4·min(K, D - 1) entries whatever the team's size (`jaxdrones.envs.observations`).
@@ -226,6 +269,7 @@ class TaskConfig:
         n = check_int("n_drones", self.n_drones)
         self._check_model()
         self._set("realism", resolve_realism(self.realism))
+        self._check_randomize()
         self._set("sim", self._physics())
         sim = self.sim
         for name in ("init_pos", "init_rpy"):
@@ -247,13 +291,6 @@ class TaskConfig:
             raise ValueError(
                 f"episode_len_s·ctrl_freq must give at least one control step, got "
                 f"{self.episode_len_s!r} s at {sim.ctrl_freq!r} Hz"
-            )
-        if isinstance(self.randomize, dict):
-            self._set("randomize", DomainRandomization(**self.randomize))
-        elif self.randomize is not None and not isinstance(self.randomize, DomainRandomization):
-            raise ValueError(
-                f"randomize must be None, a DomainRandomization or a dict of its fields "
-                f"{[f.name for f in dataclasses.fields(DomainRandomization)]}, got {self.randomize!r}"
             )
         self._check_backend()
 
@@ -310,9 +347,37 @@ class TaskConfig:
             raise ValueError(f"frame_stack={k} stacks camera frames: it needs vision=('depth',), ('rgb',) or ('seg',)")
         self._set("frame_stack", k)
 
+    def _check_randomize(self) -> None:
+        if isinstance(self.randomize, dict):
+            self._set("randomize", DomainRandomization(**self.randomize))
+        elif self.randomize is not None and not isinstance(self.randomize, DomainRandomization):
+            raise ValueError(
+                f"randomize must be None, a DomainRandomization or a dict of its fields "
+                f"{[f.name for f in dataclasses.fields(DomainRandomization)]}, got {self.randomize!r}"
+            )
+        realism, randomize = self.realism, self.randomize
+        if realism is not None and realism.motor_dynamics and randomize is not None:
+            given = [name for name in TAU_DRAWS if getattr(randomize, name) is not None]
+            if given:
+                raise ValueError(
+                    f"randomize.{given[0]} and the realism's motor time constants both set the motors' time "
+                    f"constants: give them once (realism: {realism.motor_tau_up}, {realism.motor_tau_down} s)"
+                )
+
+    @property
+    def param_draws(self) -> DomainRandomization | None:
+        """What a reset draws the drones' params from: ``randomize`` with the realism's motor time constants (where
+        its motors have dynamics), or None for the model's params in every episode."""
+        realism, randomize = self.realism, self.randomize
+        if realism is None or not realism.motor_dynamics:
+            return randomize
+        taus = {name: getattr(realism, name) for name in TAU_DRAWS}
+        return dataclasses.replace(randomize or DomainRandomization(), **taus)
+
     def _physics(self) -> SimConfig:
         """``sim`` as a `SimConfig` (a dict: its fields over the task's default ``sim``), with the config's
-        ``n_drones``, and the realism's wind and motor time constants turning on ``drag`` and ``motor_dynamics``."""
+        ``n_drones``, the realism's wind turning on ``drag`` and the motors' time constants (`param_draws`)
+        ``motor_dynamics``."""
         sim, realism = self.sim, self.realism
         if isinstance(sim, dict):
             unknown = sorted(set(sim) - {f.name for f in dataclasses.fields(SimConfig)})
@@ -330,9 +395,15 @@ class TaskConfig:
                 **given,
                 "n_drones": self.n_drones,
                 "drag": True if wind else given.get("drag", base.drag),
-                "motor_dynamics": realism is not None and realism.motor_dynamics,
+                "motor_dynamics": self._motor_dynamics(),
             },
         )
+
+    def _motor_dynamics(self) -> bool:
+        """The motors have first-order dynamics: some time constant of `param_draws` above 0."""
+        draws = self.param_draws
+        ranges = [] if draws is None else [getattr(draws, n) for n in TAU_DRAWS if getattr(draws, n) is not None]
+        return any(high > 0 for _, high in ranges)
 
     @property
     def buffer_len(self) -> int:

@@ -49,7 +49,7 @@ class TaskEnv(Env):
     were outside it, by more than `CLIP_TOLERANCE`); a non-finite action is replaced by 0 for the physics,
     terminates the episode and sets ``metrics["invalid_action"]``. Reward ``f[D]``; ``terminated``/``truncated``
     per world. `reset` draws the start, the task params (from ``task`` or the config's defaults) and, with
-    ``config.randomize``, the drones' params.
+    ``config.param_draws``, the drones' params.
 
     Pickling keeps the task and its config only (no JAX arrays, compiled functions or PyBullet connections): the
     copy is built anew when unpickled, e.g. in a worker process started with ``spawn``.
@@ -85,12 +85,8 @@ class TaskEnv(Env):
         self.realism = None
         if config.realism is not None:
             self.realism = RealismModel(config.realism, config.n_drones, self.action_type.size, self.config.sim.ctrl_dt)
-            if config.realism.motor_dynamics and not config.realism.randomizes_params:
-                taus = {
-                    name: jnp.full((config.n_drones,), getattr(config.realism, name)[0], self.params.mass.dtype)
-                    for name in ("motor_tau_up", "motor_tau_down")
-                }
-                self.params = self.params.replace(**taus)
+        if config.param_draws is not None:  # what every episode shares (a time constant without a range)
+            self.params = config.param_draws.fixed(self.params)
 
     def __reduce__(self):
         return type(self), (self.task, self.config)
@@ -124,11 +120,10 @@ class TaskEnv(Env):
 
     @property
     def shared_params(self) -> DroneParams | None:
-        """``params`` (batch shape [D]) when every episode uses them, else None: ``config.randomize`` or a range of
-        motor time constants in ``config.realism`` draws them per episode."""
-        realism = self.config.realism
-        drawn = self.config.randomize is not None or (realism is not None and realism.randomizes_params)
-        return None if drawn else self.params
+        """``params`` (batch shape [D]) when every episode uses them, else None: ``config.param_draws`` draws them
+        per episode."""
+        draws = self.config.param_draws
+        return None if draws is not None and draws.draws else self.params
 
     @property
     def observation_spec(self) -> jax.ShapeDtypeStruct | dict[str, jax.ShapeDtypeStruct]:
@@ -280,7 +275,8 @@ class TaskEnv(Env):
         k_realism = jax.random.fold_in(key, _REALISM_STREAM)  # apart from the other draws, which stay as they were
         k_task, k_start, k_params, key = jax.random.split(key, 4)
         task = self.task.sample(cfg, self.default_task_params() if task is None else task, k_task)
-        params = cfg.randomize.sample(k_params, self.params) if cfg.randomize is not None else self.params
+        draws = cfg.param_draws
+        params = draws.sample(k_params, self.params) if draws is not None and draws.draws else self.params
         sim = sample_start(k_start, task.start, self.dtype)
         if self.config.sim.motor_dynamics and cfg.start_rpm == "hover":  # the motors already turning (start_rpm)
             sim = sim.replace(rpm=jnp.broadcast_to(params.hover_rpm[..., None], sim.rpm.shape).astype(self.dtype))
@@ -290,10 +286,6 @@ class TaskEnv(Env):
         realism, seen = None, sim
         if self.realism is not None:
             realism = self.realism.reset(k_realism, sim, self.dtype)
-            if cfg.realism.randomizes_params:
-                params = params.replace(
-                    motor_tau_up=realism.values["motor_tau_up"], motor_tau_down=realism.values["motor_tau_down"]
-                )
             seen = self.realism.initial(realism, sim)
         integral = self._integrate(task, seen, steps, integral)
         obs = self._observe(task, seen, history, integral, steps)

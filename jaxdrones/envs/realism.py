@@ -47,7 +47,7 @@ class Realism:
     Attributes:
         motor_tau_up: s, the motors' time constant while speeding up (`jaxdrones.physics.dynamics.motor_response_c`);
             > 0 turns on first-order motor dynamics (`jaxdrones.physics.config.SimConfig.motor_dynamics`). Drawn per
-            drone.
+            drone with the drones' other params (`jaxdrones.envs.config.TaskConfig.param_draws`).
         motor_tau_down: s, the same while slowing down.
         action_delay: control steps (integers) between the policy's action and its effect on the motors.
         obs_delay: control steps (integers) between the drone's state and the observation of it.
@@ -149,11 +149,6 @@ class Realism:
     @property
     def obs_bias(self) -> bool:
         return any(self.on(f"obs_bias_{k}") for k in OBSERVED)
-
-    @property
-    def randomizes_params(self) -> bool:
-        """The motors' time constants are drawn per episode (a range), so every world has its own params."""
-        return self.motor_tau_up[0] != self.motor_tau_up[1] or self.motor_tau_down[0] != self.motor_tau_down[1]
 
     def scaled(self, lag: float = 1.0, noise: float = 1.0) -> Realism:
         """These settings with the motors' time constants times ``lag`` and the noise and bias σ times ``noise``."""
@@ -348,12 +343,10 @@ class RealismModel:
         for i, f in enumerate(dataclasses.fields(Realism)):
             low, high = getattr(r, f.name)
             k = jax.random.fold_in(k_values, i)
+            if f.name.startswith("motor_tau"):  # the drones' params: drawn by `TaskConfig.param_draws`
+                continue
             if f.name.endswith("_delay"):
                 values[f.name] = jax.random.randint(k, (), low, high + 1, jnp.int32)
-            elif f.name.startswith("motor_tau"):
-                values[f.name] = (
-                    jax.random.uniform(k, (n,), dtype, low, high) if low != high else jnp.full((n,), low, dtype)
-                )
             elif low == high or math.isinf(high):
                 values[f.name] = jnp.asarray(low if low == high else high, dtype)
             else:
