@@ -10,6 +10,18 @@ from jaxdrones.envs.base import Env, EnvState
 
 #: ``"human"``: a window shows every step (`HumanView`); ``"rgb_array"``: ``render()`` returns the frame.
 RENDER_MODES = ("human", "rgb_array")
+#: The env's metrics that count something (action entries): the adapters hand them out as integers.
+COUNTS = ("clipped_actions",)
+
+
+def host_metrics(metrics: dict) -> dict:
+    """The env's metrics as the host adapters report them: NumPy arrays (of a batch of worlds) or, for one world,
+    Python numbers; the counts (`COUNTS`) as integers (i64), the rest as the env's floats."""
+    out = {}
+    for name, value in metrics.items():
+        value = np.asarray(value).astype(np.int64) if name in COUNTS else np.asarray(value)
+        out[name] = value.item() if value.ndim == 0 else value
+    return out
 
 
 def render_frame(env: Env, state: EnvState, world: int = 0, shared_params: bool = False) -> np.ndarray:

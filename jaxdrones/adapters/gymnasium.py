@@ -46,7 +46,7 @@ except ImportError:  # gymnasium < 1.1, where `GymnasiumVectorEnv` refuses to ru
 
 from jaxdrones._fork import check_not_forked
 from jaxdrones._validate import check_int
-from jaxdrones.adapters._host import RENDER_MODES, HumanView, OneWorldRendering, render_frame
+from jaxdrones.adapters._host import RENDER_MODES, HumanView, OneWorldRendering, host_metrics, render_frame
 from jaxdrones.envs.base import Env, world_axes
 from jaxdrones.envs.env import outside_box
 from jaxdrones.envs.registry import check_options, make, registered, subscribe
@@ -210,8 +210,7 @@ class GymnasiumEnv(OneWorldRendering, gym.Env):
         return _to_numpy(self._state.obs, self.observation_space, self.env.n_drones == 1)
 
     def _info(self) -> dict:
-        info = {k: float(v) for k, v in self._state.metrics.items()}
-        info["clipped_actions"] = int(info["clipped_actions"])
+        info = host_metrics(self._state.metrics)
         if self.env.n_drones > 1:
             info["rewards"] = np.asarray(self._state.reward, np.float32)
         return info
@@ -474,9 +473,7 @@ class GymnasiumVectorEnv(VectorEnv):
         return _to_numpy(self._state.obs, self.single_observation_space, self.env.n_drones == 1)
 
     def _infos(self) -> dict:
-        infos = {k: np.asarray(v) for k, v in self._state.metrics.items()}
-        infos["clipped_actions"] = infos["clipped_actions"].astype(np.int64)
-        return infos
+        return host_metrics(self._state.metrics)
 
 
 def make_env(task: str, render_mode: str | None = None, strict_actions: bool = False, **overrides: Any) -> GymnasiumEnv:

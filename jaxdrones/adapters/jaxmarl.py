@@ -27,7 +27,7 @@ import numpy as np
 
 from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
 from jaxdrones.envs.base import EnvState
-from jaxdrones.envs.env import TaskEnv, outside_box
+from jaxdrones.envs.env import TaskEnv, clipped_per_drone, outside_box
 from jaxdrones.wrappers.autoreset import AutoReset
 
 
@@ -138,6 +138,7 @@ class JaxMARLEnv:
         action = self._stack(actions)
         low, high = (jnp.asarray(b, action.dtype) for b in self.env.action_bounds())
         outside = outside_box(action, low, high)
+        clipped = clipped_per_drone(action, low, high)
         if self.strict_actions:
             action = jnp.where(outside, jnp.nan, action)
         state = self._auto.step(state, action)
@@ -151,7 +152,7 @@ class JaxMARLEnv:
             "final_steps": state.info["final_steps"],
         }
         infos = {k: jnp.broadcast_to(v[..., None], v.shape + (self.num_agents,)) for k, v in per_world.items()}
-        infos["clipped_actions"] = jnp.sum(outside, axis=-1).astype(infos["clipped_actions"].dtype)
+        infos["clipped_actions"] = clipped.astype(infos["clipped_actions"].dtype)
         return self.get_obs(state), state, rewards, dones, infos
 
     def get_obs(self, state: EnvState) -> dict[str, jax.Array]:

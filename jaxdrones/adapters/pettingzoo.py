@@ -37,10 +37,10 @@ from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from jaxdrones._fork import check_not_forked
-from jaxdrones.adapters._host import RENDER_MODES, HumanView, OneWorldRendering
+from jaxdrones.adapters._host import RENDER_MODES, HumanView, OneWorldRendering, host_metrics
 from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
 from jaxdrones.adapters.gymnasium import check_action, compiled, spaces
-from jaxdrones.envs.env import TaskEnv, outside_box
+from jaxdrones.envs.env import TaskEnv, clipped_per_drone
 
 
 class PettingZooEnv(OneWorldRendering, ParallelEnv):
@@ -139,7 +139,7 @@ class PettingZooEnv(OneWorldRendering, ParallelEnv):
             ]
         )
         space = self.action_spaces[agents[0]]
-        clipped = np.sum(outside_box(action, space.low, space.high), axis=-1)
+        clipped = clipped_per_drone(action, space.low, space.high)
         self._state = self._step(self._state, action)
         self._show()
         s = self._state
@@ -167,7 +167,7 @@ class PettingZooEnv(OneWorldRendering, ParallelEnv):
 
     def _infos(self, agents: list[str], clipped: np.ndarray | None = None) -> dict:
         """The world's metrics for each agent, with ``clipped_actions`` that agent's own count (0 at a reset)."""
-        metrics = {k: float(v) for k, v in self._state.metrics.items()}
+        metrics = host_metrics(self._state.metrics)
         return {
             a: {**metrics, "clipped_actions": 0 if clipped is None else int(clipped[i])} for i, a in enumerate(agents)
         }

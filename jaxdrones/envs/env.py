@@ -41,6 +41,12 @@ def outside_box(action: ArrayLike, low: ArrayLike, high: ArrayLike) -> jax.Array
     return (action < low - CLIP_TOLERANCE) | (action > high + CLIP_TOLERANCE)
 
 
+def clipped_per_drone(action: ArrayLike, low: ArrayLike, high: ArrayLike) -> jax.Array | np.ndarray:
+    """i[..., D]: each drone's action entries (``action`` f[..., D, n_act]) that the env clips (`outside_box`):
+    ``metrics["clipped_actions"]`` is their sum over the drones, and the multi-agent adapters report each agent's."""
+    return outside_box(action, low, high).sum(axis=-1)
+
+
 class TaskEnv(Env):
     """Any `Task` on the jaxdrones physics, as a brax-protocol env (``reset``/``step``, jit and vmap).
 
@@ -329,7 +335,7 @@ class TaskEnv(Env):
         finite = jnp.all(jnp.isfinite(action))
         low, high = (jnp.asarray(b, self.dtype) for b in self.action_bounds())
         action = action.astype(self.dtype)
-        clipped = jnp.where(finite, jnp.sum(outside_box(action, low, high)), 0)
+        clipped = jnp.where(finite, jnp.sum(clipped_per_drone(action, low, high)), 0)
         action = jnp.where(finite, jnp.clip(action, low, high), 0.0)
         ref = self.task.reference(cfg, task, state.steps)
         realism, applied, disturbance = state.realism, action, None
