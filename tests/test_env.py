@@ -617,7 +617,7 @@ def test_registry_lists_every_task():
     assert set(ACTION_SIZES) == set(ACTION_TYPES)
     for name in registered():
         fields = {f.name for f in dataclasses.fields(jd.envs.get_task(name).config_cls)}
-        assert {"init_pos", "init_rpy", "randomize", "n_drones", "model"} <= fields
+        assert {"starts", "sim", "randomize", "n_drones", "model"} <= fields
 
 
 # ------------------------------------------------------------------------------------------------------------------

@@ -16,6 +16,7 @@ from jax.experimental.compilation_cache import compilation_cache
 
 from jaxdrones import viz
 from jaxdrones.cli import build_parser, main
+from jaxdrones.envs import START_OPTIONS
 from jaxdrones.training import evaluate, load_policy
 from jaxdrones.training.trainers import TRAINABLE
 
@@ -501,10 +502,10 @@ def test_train_multi_hover_trains_from_wider_starts_and_evaluates_the_tasks(tmp_
         assert summary["train_env_overrides"] == expected
         for field in ("start_tilt", "start_ang_vel"):
             want = expected.get(field, overrides.get(field))
-            assert getattr(trained_in[-1].config, field) == want
-            assert summary["env"][field] == overrides.get(field)  # the evaluation env: the task's starts
+            assert getattr(trained_in[-1].config.starts, START_OPTIONS[field]) == want
+            assert summary["env"]["starts"][START_OPTIONS[field]] == overrides.get(field)  # the evaluation env's
         env, _ = load_policy(tmp_path / f"run{i}")
-        assert env.config.start_ang_vel == overrides.get("start_ang_vel")
+        assert env.config.starts.ang_vel == overrides.get("start_ang_vel")
 
 
 def test_train_cli_multi_agent_bad_team_size(capsys):

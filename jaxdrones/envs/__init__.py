@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from jaxdrones.envs.actions import ACTION_TYPES
 from jaxdrones.envs.base import Env, EnvState
-from jaxdrones.envs.config import DomainRandomization, TaskConfig
+from jaxdrones.envs.config import START_OPTIONS, DomainRandomization, Starts, TaskConfig
 from jaxdrones.envs.env import TaskEnv
 from jaxdrones.envs.observations import OBS_TYPES, kinematic_obs
 from jaxdrones.envs.registry import (
@@ -34,10 +34,12 @@ __all__ = [
     "OBS_TYPES",
     "REALISM_OPTIONS",
     "SINGLE_AGENT",
+    "START_OPTIONS",
     "DomainRandomization",
     "Env",
     "EnvState",
     "HoverConfig",
+    "Starts",
     "Task",
     "TaskConfig",
     "TaskEnv",

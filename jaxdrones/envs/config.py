@@ -32,7 +32,7 @@ from jaxdrones.sim import SimConfig
 VISION = tuple(ENV_IMAGES)
 #: Reward variants: ``"shaped"`` (ours, for fast RL) and ``"paper"`` (the original's).
 REWARDS = ("shaped", "paper")
-#: The motors' speeds at an episode's start where they have dynamics (`TaskConfig.start_rpm`).
+#: The motors' speeds at an episode's start where they have dynamics (`Starts.rpm`).
 START_RPMS = ("hover", "zero")
 
 
@@ -123,6 +123,63 @@ TAU_DRAWS = ("motor_tau_up", "motor_tau_down")
 
 
 @dataclasses.dataclass(frozen=True)
+class Starts:
+    """How an episode starts (`TaskConfig.starts`): fixed poses, or random ranges around the task's start centre
+    (each None: the task's own, `jaxdrones.envs.task.Task.start_defaults`), and the motors' speeds.
+
+    Attributes:
+        init_pos: f[D, 3] m, fixed start positions (the original's ``initial_xyzs``): they override the random
+            ranges; the drones start at rest and level (unless ``init_rpy`` is given). Flat name ``init_pos``.
+        init_rpy: f[D, 3] rad, fixed start attitudes (``initial_rpys``), overriding the random attitude.
+        pos_range: (x, y, z) half-widths of random start positions, m (``start_pos_range``).
+        tilt: largest random start tilt, rad (``start_tilt``).
+        yaw: half-width of the random start yaw, rad (``start_yaw``).
+        vel: half-width of each random start velocity component, m/s (``start_vel``).
+        ang_vel: half-width of each random start body-rate component, rad/s (``start_ang_vel``).
+        rpm: the motors' speeds at the start where they have dynamics (`SimConfig.motor_dynamics`, from motor time
+            constants): ``"hover"`` (default), each drone's hover RPM with its episode's params
+            (``DroneParams.hover_rpm``), as a flying Crazyflie's motors spin when a controller takes over; ``"zero"``,
+            stopped motors (a take-off from rest: at the hover action the drone first sinks while they spin up).
+            Without motor dynamics each command is reached within a substep and the state's ``rpm`` starts at 0
+            either way (the paper's physics). Flat name ``start_rpm``.
+
+    Raises:
+        ValueError: a range that is not finite and >= 0, an unknown ``rpm``; `TaskConfig` checks the fixed poses
+            against its drones (and stores them as tuples).
+    """
+
+    init_pos: Any = None
+    init_rpy: Any = None
+    pos_range: Any = None
+    tilt: float | None = None
+    yaw: float | None = None
+    vel: float | None = None
+    ang_vel: float | None = None
+    rpm: str = "hover"
+
+    def __post_init__(self):
+        check_choice("start_rpm", self.rpm, START_RPMS)
+        if self.pos_range is not None:
+            object.__setattr__(self, "pos_range", check_reals("start_pos_range", self.pos_range, 3, nonneg=True))
+        for name in ("tilt", "yaw", "vel", "ang_vel"):
+            if getattr(self, name) is not None:
+                check_real(f"start_{name}", getattr(self, name), 0, what="a finite half-width")
+
+
+#: `TaskConfig`'s flat names of the `Starts` fields (`jaxdrones.make` takes them): flat name → field.
+START_OPTIONS = {
+    "init_pos": "init_pos",
+    "init_rpy": "init_rpy",
+    "start_pos_range": "pos_range",
+    "start_tilt": "tilt",
+    "start_yaw": "yaw",
+    "start_vel": "vel",
+    "start_ang_vel": "ang_vel",
+    "start_rpm": "rpm",
+}
+
+
+@dataclasses.dataclass(frozen=True)
 class TaskConfig:
     """Static settings shared by every task (hashable; a change recompiles). Tasks subclass it with their own
     fields and defaults.
@@ -158,21 +215,9 @@ class TaskConfig:
             drag=True)``), on top of the task's own. Stored with the config's ``n_drones``, ``drag`` on where the
             ``realism`` has wind and ``motor_dynamics`` where it has motor time constants: what the env steps.
         reward: ``"shaped"`` (the task's shaped reward) or ``"paper"`` (the original's reward).
-        init_pos: f[D, 3] m, fixed start positions (the original's ``initial_xyzs``): they override the random
-            start ranges; the drones start at rest and level (unless ``init_rpy`` is given).
-        init_rpy: f[D, 3] rad, fixed start attitudes (``initial_rpys``), overriding the random attitude.
-        start_pos_range: (x, y, z) half-widths of random start positions around the task's start centre, m
-            (None: the task's default).
-        start_tilt: largest random start tilt, rad (None: the task's default).
-        start_yaw: half-width of the random start yaw, rad (None: the task's default).
-        start_vel: half-width of each random start velocity component, m/s (None: the task's default).
-        start_ang_vel: half-width of each random start body-rate component, rad/s (None: the task's default).
-        start_rpm: the motors' speeds at an episode's start where they have dynamics (a ``realism`` with motor time
-            constants: `SimConfig.motor_dynamics`): ``"hover"`` (default), each drone's hover RPM with its episode's
-            params (``DroneParams.hover_rpm``), as a flying Crazyflie's motors spin when a controller takes over;
-            ``"zero"``, stopped motors (a take-off from rest: at the hover action the drone first sinks while they
-            spin up). Without motor dynamics each command is reached within a substep and the state's ``rpm`` starts
-            at 0 either way (the paper's physics).
+        starts: how episodes start (`Starts`, or a dict of its fields over the task's own): fixed poses or random
+            ranges around the task's start, and the motors' speeds. `jaxdrones.make` takes each by its flat name
+            (`START_OPTIONS`: ``init_pos``, ``start_tilt``, ...).
         arena_xy: an episode terminates when a drone's |x| or |y| exceeds this, m.
         arena_z: ... or its z exceeds this, m.
         max_tilt: ... or its tilt exceeds this, rad.
@@ -226,14 +271,7 @@ class TaskConfig:
     episode_len_s: float = 5.0
     sim: Any = SimConfig(ctrl_freq=30)
     reward: str = "shaped"
-    init_pos: Any = None
-    init_rpy: Any = None
-    start_pos_range: Any = None
-    start_tilt: float | None = None
-    start_yaw: float | None = None
-    start_vel: float | None = None
-    start_ang_vel: float | None = None
-    start_rpm: str = "hover"
+    starts: Any = Starts()
     arena_xy: float = 1.5
     arena_z: float = 2.5
     max_tilt: float = math.pi / 2
@@ -256,7 +294,6 @@ class TaskConfig:
         check_choice("obs_type", self.obs_type, OBS_TYPES)
         check_choice("reward", self.reward, REWARDS)
         check_choice("pid_target", self.pid_target, PID_TARGETS)
-        check_choice("start_rpm", self.start_rpm, START_RPMS)
         for name in ("error_integral", "terminate_on_ground"):
             check_bool(name, getattr(self, name))
         buffer = self.action_buffer
@@ -266,19 +303,13 @@ class TaskConfig:
                 f"keep (an integer >= 0), got {buffer!r}"
             )
         check_real("pid_scale", self.pid_scale, 0, PID_MAX_STEP, low_open=True, what="a distance in m")
-        n = check_int("n_drones", self.n_drones)
+        check_int("n_drones", self.n_drones)
         self._check_model()
         self._set("realism", resolve_realism(self.realism))
         self._check_randomize()
         self._set("sim", self._physics())
         sim = self.sim
-        for name in ("init_pos", "init_rpy"):
-            self._set(name, fixed_triples(name, getattr(self, name), n))
-        if self.start_pos_range is not None:
-            self._set("start_pos_range", check_reals("start_pos_range", self.start_pos_range, 3, nonneg=True))
-        for name in ("start_tilt", "start_yaw", "start_vel", "start_ang_vel"):
-            if getattr(self, name) is not None:
-                check_real(name, getattr(self, name), 0, what="a finite half-width")
+        self._set("starts", self._starts())
         if self.max_neighbors is not None:
             check_int("max_neighbors", self.max_neighbors, what="None for every drone")
         for name in ("arena_xy", "arena_z", "max_tilt", "neighbor_radius"):
@@ -296,6 +327,10 @@ class TaskConfig:
 
     def _set(self, name: str, value) -> None:
         object.__setattr__(self, name, value)
+
+    def _default(self, name: str) -> Any:
+        """The task's own default of the field ``name`` (its config class's)."""
+        return next(f.default for f in dataclasses.fields(self) if f.name == name)
 
     def _check_model(self) -> None:
         model = self.model
@@ -347,6 +382,20 @@ class TaskConfig:
             raise ValueError(f"frame_stack={k} stacks camera frames: it needs vision=('depth',), ('rgb',) or ('seg',)")
         self._set("frame_stack", k)
 
+    def _starts(self) -> Starts:
+        """``starts`` as `Starts` (a dict: its fields over the task's default), the fixed poses checked against
+        ``n_drones``."""
+        starts = self.starts
+        if isinstance(starts, dict):
+            unknown = sorted(set(starts) - {f.name for f in dataclasses.fields(Starts)})
+            if unknown:
+                raise ValueError(f"starts: {unknown[0]!r} is not a Starts field")
+            starts = dataclasses.replace(self._default("starts"), **starts)
+        elif not isinstance(starts, Starts):
+            raise ValueError(f"starts must be a Starts or a dict of its fields, got {starts!r}")
+        poses = {name: fixed_triples(name, getattr(starts, name), self.n_drones) for name in ("init_pos", "init_rpy")}
+        return dataclasses.replace(starts, **poses)
+
     def _check_randomize(self) -> None:
         if isinstance(self.randomize, dict):
             self._set("randomize", DomainRandomization(**self.randomize))
@@ -383,7 +432,7 @@ class TaskConfig:
             unknown = sorted(set(sim) - {f.name for f in dataclasses.fields(SimConfig)})
             if unknown:
                 raise ValueError(f"sim: {unknown[0]!r} is not a SimConfig field")
-            base, given = next(f.default for f in dataclasses.fields(self) if f.name == "sim"), sim  # the task's own
+            base, given = self._default("sim"), sim
         elif isinstance(sim, SimConfig):
             base, given = sim, {}
         else:

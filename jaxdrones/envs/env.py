@@ -213,21 +213,16 @@ class TaskEnv(Env):
     def _build_task_params(self) -> TaskParams:
         cfg, task = self.config, self.task
         start = task.start_defaults(cfg)
-        overrides = dict(
-            pos_range=cfg.start_pos_range,
-            tilt=cfg.start_tilt,
-            yaw=cfg.start_yaw,
-            vel=cfg.start_vel,
-            ang_vel=cfg.start_ang_vel,
-        )
-        start.update({k: v for k, v in overrides.items() if v is not None})
+        given = cfg.starts
+        ranges = {k: getattr(given, k) for k in ("pos_range", "tilt", "yaw", "vel", "ang_vel")}
+        start.update({k: v for k, v in ranges.items() if v is not None})
         rpy = np.zeros((cfg.n_drones, 3))
-        if cfg.init_pos is not None:  # a fixed start, at rest and (unless init_rpy says otherwise) level
+        if given.init_pos is not None:  # a fixed start, at rest and (unless init_rpy says otherwise) level
             start.update(
-                pos=np.asarray(cfg.init_pos), pos_range=(0.0, 0.0, 0.0), vel=0.0, ang_vel=0.0, tilt=0.0, yaw=0.0
+                pos=np.asarray(given.init_pos), pos_range=(0.0, 0.0, 0.0), vel=0.0, ang_vel=0.0, tilt=0.0, yaw=0.0
             )
-        if cfg.init_rpy is not None:
-            rpy = np.asarray(cfg.init_rpy)
+        if given.init_rpy is not None:
+            rpy = np.asarray(given.init_rpy)
             start.update(tilt=0.0, yaw=0.0)
         dt = self.dtype
 
@@ -284,7 +279,7 @@ class TaskEnv(Env):
         draws = cfg.param_draws
         params = draws.sample(k_params, self.params) if draws is not None and draws.draws else self.params
         sim = sample_start(k_start, task.start, self.dtype)
-        if self.config.sim.motor_dynamics and cfg.start_rpm == "hover":  # the motors already turning (start_rpm)
+        if self.config.sim.motor_dynamics and cfg.starts.rpm == "hover":  # the motors already turning
             sim = sim.replace(rpm=jnp.broadcast_to(params.hover_rpm[..., None], sim.rpm.shape).astype(self.dtype))
         history = jnp.zeros((cfg.n_drones, self.obs_type.buffer_len, self.action_size), self.dtype)
         integral = jnp.zeros((cfg.n_drones, self.integral_size), self.dtype)

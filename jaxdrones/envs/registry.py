@@ -8,7 +8,7 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from jaxdrones._hints import did_you_mean, unknown_option
-from jaxdrones.envs.config import TaskConfig
+from jaxdrones.envs.config import START_OPTIONS, TaskConfig
 from jaxdrones.envs.env import TaskEnv
 from jaxdrones.envs.realism import Realism
 from jaxdrones.envs.realism import resolve as resolve_realism
@@ -61,10 +61,11 @@ def make_config(name: str, **overrides: Any) -> TaskConfig:
     if options:  # a realism option given alone: on top of the preset (or of none)
         realism = resolve_realism(overrides.get("realism"))
         overrides["realism"] = dataclasses.replace(realism or Realism(), **options)
-    physics = {k: overrides.pop(k) for k in list(overrides) if k in SIM_OPTIONS and k not in fields}
-    if physics:  # physics options by their own names: on top of the given sim (the config puts a dict's on the task's)
-        sim = overrides.get("sim") or {}
-        overrides["sim"] = dataclasses.replace(sim, **physics) if isinstance(sim, SimConfig) else {**sim, **physics}
+    for group, names in (("sim", dict(zip(SIM_OPTIONS, SIM_OPTIONS, strict=True))), ("starts", START_OPTIONS)):
+        given = {names[k]: overrides.pop(k) for k in list(overrides) if k in names and k not in fields}
+        if given:  # by their flat names: on top of the given group (the config puts a dict's on the task's own)
+            base = overrides.get(group) or {}
+            overrides[group] = dataclasses.replace(base, **given) if not isinstance(base, dict) else {**base, **given}
     return task.config_cls(**overrides)
 
 
@@ -76,7 +77,8 @@ def check_options(name: str, options: Iterable[str], also: Iterable[str] = ()) -
     Raises:
         ValueError: an unknown task or option.
     """
-    fields = {f.name for f in dataclasses.fields(get_task(name).config_cls)} | REALISM_OPTIONS | SIM_OPTIONS | set(also)
+    fields = {f.name for f in dataclasses.fields(get_task(name).config_cls)} | REALISM_OPTIONS | SIM_OPTIONS
+    fields |= set(START_OPTIONS) | set(also)
     unknown = sorted(set(options) - fields)
     if unknown:
         raise ValueError(unknown_option(name, unknown[0], fields))
@@ -89,8 +91,9 @@ def make(name: str, **overrides: Any) -> TaskEnv:
     Args:
         name: registered task name (see `registered`).
         **overrides: fields of the task's config (`TaskConfig` and the task's subclass, e.g. `HoverConfig`), the
-            physics' (`SIM_OPTIONS`: ``ctrl_freq=48``, ``drag=True``, ..., into the config's ``sim``), and the fields
-            of `jaxdrones.envs.realism.Realism` (e.g. ``action_delay=1``, ``motor_tau_up=(0.05, 0.2)``),
+            physics' (`SIM_OPTIONS`: ``ctrl_freq=48``, ``drag=True``, ..., into the config's ``sim``), the
+            starts' (`jaxdrones.envs.config.START_OPTIONS`: ``init_pos``, ``start_tilt``, ..., into its ``starts``),
+            and the fields of `jaxdrones.envs.realism.Realism` (e.g. ``action_delay=1``, ``motor_tau_up=(0.05, 0.2)``),
             which set the config's ``realism`` on top of its preset: ``jd.make("hover", realism="crazyflie",
             turbulence=0.5)``.
 
