@@ -5,8 +5,7 @@ The work: W worlds of one cf2x hovering at (0, 0, 1) m with random tilts (±0.3 
 its onboard camera (64 × 48, 60° vertical field of view; depth and segmentation, or all of RGB, depth and
 segmentation) of a scene of P primitives (boxes, spheres, cylinders and capsules in equal shares, placed
 uniformly within 3 m) plus the ground. The JAX cameras run as one ``jit(vmap)`` call over the worlds, the poses
-already on the device; the time is the median of ``--repeats`` calls after compilation. Without RGB, its peer in
-the same run ("apart"): the chain that keeps depth and id apart, as `render` runs it with RGB. The PyBullet backend
+already on the device; the time is the median of ``--repeats`` calls after compilation. The PyBullet backend
 renders the same scene for 16 worlds, one ``getCameraImage`` per drone. Last, the envs: ``fly_thru_gate`` (3 boxes)
 and ``avoid`` (16 primitives drawn per episode) with depth and segmentation cameras at every 30 Hz control step,
 env steps/s of ``jit(vmap(step))`` in a ``lax.scan``.
@@ -79,9 +78,8 @@ def poses(worlds: int, seed: int = 1):
     return jd.init_state(config, pos=pos, rpy=rpy)
 
 
-def time_jax(worlds: int, n_primitives: int, kinds, repeats: int, packed: bool = True) -> dict:
-    """``packed=False``: depth and segmentation by the chain that keeps depth and id apart (what `render` runs
-    with RGB), the peer of the packed keys `render` runs without RGB."""
+def time_jax(worlds: int, n_primitives: int, kinds, repeats: int) -> dict:
+    """`jaxdrones.cameras.render` of ``kinds`` over ``worlds`` poses, one scene of ``n_primitives``."""
     import functools
 
     import jax
@@ -94,11 +92,7 @@ def time_jax(worlds: int, n_primitives: int, kinds, repeats: int, packed: bool =
     scene = cameras.make_scene(scene_obstacles(n_primitives))
     state = poses(worlds)
     kinds = tuple(kinds)
-    render = (
-        functools.partial(cameras.render, spec, kinds=kinds)
-        if packed or "rgb" in kinds
-        else lambda *a: cameras._images(spec, kinds, *a, fast=False)
-    )
+    render = functools.partial(cameras.render, spec, kinds=kinds)
     # The scene is an input (as a scene drawn per episode is), not a constant XLA would fold into the program.
     fn = jax.jit(jax.vmap(lambda s, p, q: render(s, params, p, q), in_axes=(None, 0, 0)))
     start = time.perf_counter()
@@ -106,7 +100,7 @@ def time_jax(worlds: int, n_primitives: int, kinds, repeats: int, packed: bool =
     compile_s = time.perf_counter() - start
     best, s = timed(lambda: jax.block_until_ready(compiled(scene, state.pos, state.quat)), repeats)
     return {
-        "sim": "jaxdrones" if packed or "rgb" in kinds else "jaxdrones-apart",
+        "sim": "jaxdrones",
         "worlds": worlds,
         "primitives": n_primitives,
         "kinds": list(kinds),
@@ -185,14 +179,13 @@ def main(argv=None) -> int:
     results = []
     for p in args.primitives:
         for w in args.worlds:
-            for packed in (True, False) if "rgb" not in args.kinds else (True,):
-                r = time_jax(w, p, args.kinds, args.repeats, packed)
-                results.append(r)
-                print(
-                    f"jax cameras{'' if packed else ' (apart)'} P={p:3d} W={w:6d}: {r['frames_per_s']:12,.0f} "
-                    f"frames/s  ({r['s'] * 1e3:.1f} ms, compile {r['compile_s']:.1f} s)",
-                    flush=True,
-                )
+            r = time_jax(w, p, args.kinds, args.repeats)
+            results.append(r)
+            print(
+                f"jax cameras P={p:3d} W={w:6d}: {r['frames_per_s']:12,.0f} "
+                f"frames/s  ({r['s'] * 1e3:.1f} ms, compile {r['compile_s']:.1f} s)",
+                flush=True,
+            )
         if args.pybullet:
             for renderer in ("tiny", "egl"):
                 try:

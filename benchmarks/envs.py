@@ -21,18 +21,13 @@ Every measurement is warmed up (its first call, which compiles, is timed on its 
 times over ``--steps`` control steps; the table gives the median rate (the JSON also the best, the CPU time over
 wall time, and the 1-minute load average, since the timings are wall-clock on a possibly shared machine).
 
-``--profile-sizes`` (default 1 and 4096 worlds) splits the vector env's ``step()`` into its parts by running a copy
-of its body with a timer around each (action check, jitted call, each NumPy conversion), and times the jitted pieces
-on their own: the physics (8 substeps), the env step, the reset computed for every world, the choice between the
-two, the bare cost of passing the env state in and out of a jitted call, and the whole jitted step.
-
 ``--devices 2`` shards the JAX-native env's worlds over two CPU devices, one per core (the vector envs use one).
 
 Usage::
 
     python benchmarks/envs.py                 # writes benchmarks/results/envs.json
     python benchmarks/envs.py --quick         # sizes 1 and 1024, fewer steps and repeats
-    python benchmarks/envs.py --sizes 4096 --no-crazyflow --profile-sizes
+    python benchmarks/envs.py --sizes 4096 --no-crazyflow
 """
 
 from __future__ import annotations
@@ -55,7 +50,6 @@ SIZES = (1, 64, 1024, 4096)
 #: The JAX-native env also runs at these sizes by default.
 NATIVE_EXTRA = (16384,)
 QUICK_SIZES = (1, 1024)
-PROFILE_SIZES = (1, 4096)
 CTRL_FREQ = 30
 CRAZYFLOW = "crazyflow==0.4.0"
 CRAZYFLOW_VENV = os.path.join(HERE, ".venv-crazyflow")
@@ -92,14 +86,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     parser.add_argument("--crazyflow-venv", default=CRAZYFLOW_VENV, help="its virtual environment (%(default)s)")
     parser.add_argument(
-        "--profile-sizes",
-        type=int,
-        nargs="*",
-        default=None,
-        help=f"worlds at which to profile the vector env's step (default {PROFILE_SIZES}; none "
-        "when --quick; give none to skip)",
-    )
-    parser.add_argument(
         "--devices",
         type=int,
         default=1,
@@ -114,8 +100,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     args.native_sizes = args.sizes if explicit_sizes or args.quick else sorted(set(args.sizes) | set(NATIVE_EXTRA))
     args.repeats = args.repeats or (3 if args.quick else 5)
     args.target = TARGET_ENV_STEPS // (8 if args.quick else 1)
-    if args.profile_sizes is None:
-        args.profile_sizes = [] if args.quick else list(PROFILE_SIZES)
     if min(args.sizes) < 1 or (args.steps is not None and args.steps < 1) or args.repeats < 1 or args.devices < 1:
         parser.error("--sizes, --steps, --repeats and --devices must be positive")
     return args
@@ -336,139 +320,6 @@ def bench_crazyflow(python: str, n: int, args) -> tuple[dict | None, dict, str |
     return result, info, None
 
 
-# -- profile of the vector env's step ------------------------------------------------------------------------------
-
-
-def profile_vector_step(jax, gymnasium, n: int, calls: int = 100) -> dict:
-    """Median seconds per part of `GymnasiumVectorEnv.step` at ``n`` worlds, and of the jitted pieces alone.
-
-    ``step_parts`` runs a copy of the body of ``GymnasiumVectorEnv.step`` (jaxdrones/adapters/gymnasium.py) with a
-    timer around each part (``jit_call`` is dispatch and compute together: on CPU, XLA runs the call in the calling
-    thread). ``jit_parts`` times jitted functions one call at a time (to ``block_until_ready``) on the same state:
-    the physics (`make_step`, all substeps), the env step (physics included), a reset of every world (what the
-    vector env computes when more than 1/16 of the worlds need one), the per-leaf choice between the two, a
-    function that only takes the state and returns it (the cost of passing the env state's leaves in and out of a
-    jitted call), and the vector env's whole jitted step. Each isolated piece pays its own
-    call overhead and writes its own outputs, which the fused step does not, so they add up to more than the
-    whole.
-    """
-    from jaxdrones.adapters import gymnasium as adapter
-
-    venv = gymnasium.make_vec(
-        "jaxdrones/Hover-v0", num_envs=n, vectorization_mode="vector_entry_point", ctrl_freq=CTRL_FREQ
-    ).unwrapped
-    rng = np.random.default_rng(0)
-    actions = rng.uniform(-1.0, 1.0, (calls, n, 4)).astype(np.float32)
-    venv.reset(seed=0)
-    for a in actions[:5]:
-        venv.step(a)
-    env = venv.env
-    state = jax.tree.map(jax.numpy.copy, venv._state)  # a copy: the vector env donates its own state to each step
-    action = jax.numpy.asarray(actions[0].reshape(n, env.n_drones, env.action_size))
-    rpm = jax.numpy.broadcast_to(env.params.hover_rpm[..., None], state.sim.rpm.shape).astype(state.sim.pos.dtype)
-    axes = venv._axes  # the vector env holds params shared by every world once
-    worlds = state.replace(params=None) if venv._shared_params else state
-    pieces = {
-        "physics": (jax.jit(jax.vmap(env._step, in_axes=(axes.params, 0, 0))), (state.params, state.sim, rpm)),
-        "env_step": (jax.jit(jax.vmap(env.step, in_axes=(axes, 0), out_axes=axes)), (state, action)),
-        "reset_all_worlds": (jax.jit(jax.vmap(env.reset, out_axes=axes)), (state.key, state.task)),
-        "select_reset_or_stepped": (jax.jit(_select), (worlds, worlds, venv._needs_reset)),
-        "state_in_and_out": (jax.jit(lambda state, needs_reset: (state, needs_reset)), (state, venv._needs_reset)),
-        "vector_env_jitted_step": (
-            jax.jit(venv._step_worlds),
-            (state, jax.numpy.asarray(actions[0]), venv._needs_reset),
-        ),
-    }
-    for fn, inputs in pieces.values():
-        jax.block_until_ready(fn(*inputs))
-
-    # One loop, each iteration timing everything once, so that every part sees the same machine load.
-    parts = {k: [] for k in ("check_action", "jit_call", "reward", "terminated_truncated", "obs", "infos")}
-    jit_times = {k: [] for k in pieces}
-    totals, step_times = [], []
-    resetting = []
-    for a in actions:
-        resetting.append(float(np.mean(np.asarray(venv._needs_reset))))
-        totals.append(_timed_step_body(jax, adapter, venv, a, parts))
-        t0 = time.perf_counter()
-        venv.step(a)
-        step_times.append(time.perf_counter() - t0)
-        for name, (fn, inputs) in pieces.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(*inputs))
-            jit_times[name].append(time.perf_counter() - t0)
-    jit_parts = {k: statistics.median(v) for k, v in jit_times.items()}
-    venv.close()
-    leaves = jax.tree.leaves(state)
-    return {
-        "worlds": n,
-        "calls": calls,
-        "step_s": statistics.median(step_times),
-        "step_parts_s": {k: statistics.median(v) for k, v in parts.items()},
-        "step_parts_total_s": statistics.median(totals),
-        "jit_parts_s": jit_parts,
-        "fraction_of_worlds_reset_per_step": statistics.mean(resetting),
-        "state_leaves": len(leaves),
-        "state_bytes_per_world": sum(getattr(x, "nbytes", 0) for x in leaves) / n,
-        "loadavg_1min": os.getloadavg()[0],
-    }
-
-
-def _timed_step_body(jax, adapter, venv, actions, parts: dict) -> float:
-    """Run the body of ``GymnasiumVectorEnv.step`` once, appending each part's time to ``parts``; returns the total."""
-    t0 = time.perf_counter()
-    checked = adapter.check_action(actions, venv.single_action_space, (venv.num_envs,), strict=venv.strict_actions)
-    t1 = time.perf_counter()
-    was_reset = venv._needs_reset
-    venv._state, venv._needs_reset = jax.block_until_ready(venv._step(venv._state, checked, venv._needs_reset))
-    t2 = time.perf_counter()
-    s = venv._state
-    reset = np.asarray(was_reset)
-    reward = np.where(reset, 0.0, np.asarray(s.reward).reshape(venv.num_envs, -1).sum(-1)).astype(np.float32)
-    t3 = time.perf_counter()
-    terminated, truncated = np.asarray(s.terminated) & ~reset, np.asarray(s.truncated) & ~reset
-    t4 = time.perf_counter()
-    venv._obs()
-    t5 = time.perf_counter()
-    venv._infos()
-    t6 = time.perf_counter()
-    for k, (u, v) in zip(parts, ((t0, t1), (t1, t2), (t2, t3), (t3, t4), (t4, t5), (t5, t6)), strict=True):
-        parts[k].append(v - u)
-    del reward, terminated, truncated
-    return t6 - t0
-
-
-def _select(fresh, stepped, needs_reset):
-    """The vector env's choice between the reset and the stepped state of each world (a `jnp.where` per leaf)."""
-    import jax
-
-    def pick(new, old):
-        return jax.numpy.where(needs_reset.reshape(needs_reset.shape + (1,) * (new.ndim - 1)), new, old)
-
-    return jax.tree.map(pick, fresh, stepped)
-
-
-def print_profile(p: dict) -> None:
-    step = p["step_s"]
-    print(
-        f"\nvector env step() at {p['worlds']} worlds: {step * 1e3:.2f} ms median "
-        f"({p['worlds'] / step:,.0f} env-steps/s); parts of a copy of its body "
-        f"(total {p['step_parts_total_s'] * 1e3:.2f} ms):"
-    )
-    for k, v in p["step_parts_s"].items():
-        print(f"  {k:<24} {v * 1e3:>8.3f} ms  {100 * v / p['step_parts_total_s']:>5.1f} %")
-    print(
-        f"jitted pieces alone (one call each, to block_until_ready; the state has {p['state_leaves']} leaves, "
-        f"{p['state_bytes_per_world']:.0f} bytes per world):"
-    )
-    for k, v in p["jit_parts_s"].items():
-        print(f"  {k:<24} {v * 1e3:>8.3f} ms  ({p['worlds'] / v:,.0f} env-steps/s)")
-    print(
-        f"  ({100 * p['fraction_of_worlds_reset_per_step']:.1f} % of the worlds reset per step; the vector env "
-        f"resets only those, unless more than 1/16 of them need it)"
-    )
-
-
 # -- report --------------------------------------------------------------------------------------------------------
 
 LABELS = {"vector": "jaxdrones vector env", "native": "jaxdrones JAX-native", "crazyflow": "crazyflow vector env"}
@@ -560,10 +411,6 @@ def main(argv=None) -> int:
             f"{setup.get('substeps')} substeps per step"
         )
 
-    profile = []
-    for n in args.profile_sizes:
-        profile.append(profile_vector_step(jax, gymnasium, n))
-        print_profile(profile[-1])
     print_table(results, note)
     settings = {k: v for k, v in vars(args).items() if k != "out"} | {"ctrl_freq": CTRL_FREQ, "task": "hover"}
     write_report(
@@ -574,7 +421,6 @@ def main(argv=None) -> int:
         results,
         loadavg_start=load_start,
         crazyflow=crazyflow,
-        profile=profile,
     )
     return 0
 

@@ -17,7 +17,7 @@ benchmark      CPU (default run)                                   GPU (default 
 ============== =================================================== =========================================
 throughput     worlds 1, 64, 1024, 16384 × drones 1, 4             worlds 1 ... 2**22 × drones 1, 4
 envs           its defaults: 1, 64, 1024, 4096 (native also        1 ... 2**20 worlds, each env at every size
-               16384), crazyflow, step profile at 1 and 4096
+               16384), crazyflow
 gradients      its defaults: T 10, 100, 1000 × W 1, 1024, 16384    T 10, 100, 1000 × W 1 ... 65536
 backends       its defaults (PyBullet is CPU only)                 the same
 cameras        worlds 1, 64, 1024, 4096 × primitives 4, 16, 64,    worlds 1 ... 65536, the same scenes
@@ -40,7 +40,15 @@ and the gradients at 1000 steps × 16384 worlds). The others run only when named
 - ``sb3_hover``: Stable-Baselines3's PPO for 200 k steps, about 10 minutes, and needs torch and SB3 (the ``sb3``
   extra);
 - ``jaxmarl_ippo``: JaxMARL's IPPO for 10 M steps, needs a JaxMARL checkout (``--jaxmarl-baselines
-  PATH/baselines/IPPO``); skipped without one.
+  PATH/baselines/IPPO``); skipped without one;
+- the scripts behind docs/benchmarks.md's other tables, each shown as it prints it: ``suite`` (every task at its
+  recipe, three seeds: hours on a CPU), ``first_run`` (the quick start's first and warm run), ``train_cost`` (a
+  trained policy's operations per trainer and profile), ``gradient_profile`` and ``gradient_layers`` (where a
+  gradient's time goes), ``install`` (a fresh install, per Python; it downloads wheels).
+
+Every script of ``benchmarks/`` is one of these, or a worker of one (``_crazyflow_*.py``), or ``original.py``
+(the original gym-pybullet-drones beside them, ``table2 --original``). The runs that chose a setting of the package,
+cited by docs/experiments.md and the guides, are in ``benchmarks/experiments/``, each run on its own.
 
 ``--quick`` runs the same benchmarks on small grids, a smoke run of minutes rather than a measurement, and writes to
 ``benchmarks/results/quick`` unless ``--out`` says otherwise, so that it never replaces a full report. crazyflow's
@@ -274,6 +282,44 @@ BENCHMARKS = {
             _json("sb3_hover.json"),
         ),
         Benchmark("jaxmarl_ippo", False, jaxmarl_args, _json("jaxmarl_ippo.json")),
+        # docs/benchmarks.md's other tables: each script prints its own, which the report shows as printed.
+        Benchmark(
+            "suite",
+            False,
+            lambda ctx: (["--tasks", "hover", "--seeds", "0"] if ctx.quick else []) + ["--out", _json("suite")(ctx)],
+            lambda ctx: None,
+        ),
+        Benchmark(
+            "first_run",
+            False,
+            lambda ctx: (
+                (["--rounds", "1"] if ctx.quick else ["--rounds", "3", "--warm", "2"])
+                + ["--out", _json("first_run.json")(ctx)]
+            ),
+            lambda ctx: None,
+        ),
+        Benchmark("train_cost", False, lambda ctx: ["--no-train"] if ctx.quick else [], lambda ctx: None),
+        Benchmark(
+            "gradient_profile",
+            False,
+            lambda ctx: ["--worlds", "64", "--horizon", "10", "--repeats", "2"] if ctx.quick else [],
+            lambda ctx: None,
+        ),
+        Benchmark(
+            "gradient_layers",
+            False,
+            lambda ctx: (
+                (["--worlds", "64", "--horizon", "10", "--repeats", "2"] if ctx.quick else [])
+                + ["--out", _json("gradient_layers.json")(ctx)]
+            ),
+            lambda ctx: None,
+        ),
+        Benchmark(
+            "install",
+            False,
+            lambda ctx: ["--python", sys.executable, "--out", _json("install.json")(ctx)],
+            lambda ctx: None,
+        ),
     )
 }
 
@@ -634,17 +680,6 @@ def render_envs(data: dict, out: str) -> str:
             f"(vector envs) time:\n\n{first}"
         )
     ]
-    for p in data.get("profile") or []:
-        parts = [
-            [k, num(1e3 * v, 3), f"{100 * v / p['step_parts_total_s']:.1f} %"] for k, v in p["step_parts_s"].items()
-        ]
-        jit = [[k, num(1e3 * v, 3), num(p["worlds"] / v)] for k, v in p["jit_parts_s"].items()]
-        sections.append(
-            f"Vector env `step()` at {num(p['worlds'])} worlds: {1e3 * p['step_s']:.2f} ms median. "
-            f"Parts of "
-            f"a copy of its body:\n\n{table(['part', 'ms', 'share'], parts)}\n\nJitted pieces alone:\n\n"
-            f"{table(['piece', 'ms', 'env-steps/s'], jit)}"
-        )
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     for e in envs:
@@ -1086,8 +1121,10 @@ def _train_plot(rows: list[dict], algos: list[str], first: dict, speed: list[tup
     return _save(fig, out, "train_algos.png")
 
 
-def render_sysid_noise(record: dict, out: str) -> str:
-    return f"Its printed table (relative errors in %):\n\n```\n{record.get('stdout', '').strip()}\n```"
+def render_printed(record: dict, out: str) -> str:
+    """The section of a benchmark whose printed output is its result (its table)."""
+    what = " (relative errors in %)" if record["name"] == "sysid_noise" else ""
+    return f"Its printed output{what}:\n\n```\n{record.get('stdout', '').strip()}\n```"
 
 
 def render_multi_agent(data: dict, out: str) -> str:
@@ -1253,7 +1290,7 @@ def render_section(record: dict, out: str) -> str:
         )
     try:
         if record["output"] is None:
-            return "\n".join(lines + ["", render_sysid_noise(record, out), ""])
+            return "\n".join(lines + ["", render_printed(record, out), ""])
         with open(record["output"]) as f:
             data = json.load(f)
         machine = data.get("machine")

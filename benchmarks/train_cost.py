@@ -169,7 +169,7 @@ def count(algo: str, profile: str, updates: int, by_name: dict | None = None) ->
 
     from jaxdrones.envs import make
     from jaxdrones.training.recipes import recipe
-    from jaxdrones.training.run import _eval_program
+    from jaxdrones.training.run import eval_program
 
     trainer, config, env_options = profile_config(algo, profile)
     env = make(TASK, **env_options)
@@ -179,7 +179,7 @@ def count(algo: str, profile: str, updates: int, by_name: dict | None = None) ->
         short = dataclasses.replace(config, num_timesteps=updates * per_step, num_evals=2)
     else:
         short = dataclasses.replace(config, num_timesteps=updates * config.steps_per_update, num_evals=1)
-    evaluate = _eval_program(env, trainer, 256, config.seed)
+    evaluate = eval_program(env, trainer, 256, config.seed)
     modules = trace_operations(lambda: trainer.train(train_env, short, lambda *_: None, evaluate)[1], by_name)
     # Runs where the trace does not count them (GPU): our trainers run the evaluation on the initial parameters
     # while the chunk compiles and after the chunk (`jaxdrones.training.common.run_updates`), brax's PPO after its

@@ -192,25 +192,3 @@ def test_image_observation_gives_policy_input_images():
     raw.close()
     with pytest.raises(ValueError, match="depth or RGB camera"):
         ImageObservation(gym.make("jaxdrones/Hover-v0"))
-
-
-@pytest.mark.slow
-def test_the_envs_benchmark_profiles_the_vector_step_as_it_is(monkeypatch):
-    """``benchmarks/envs.py --profile-sizes`` (run by ``benchmarks/report.py``) times a copy of
-    `GymnasiumVectorEnv.step`'s body part by part, through the adapter's own functions: it runs against them as
-    they are, and its parts are the step's."""
-    import importlib.util
-    import pathlib
-
-    import jax
-
-    folder = pathlib.Path(__file__).parents[1] / "benchmarks"
-    monkeypatch.syspath_prepend(str(folder))  # as when run as a script: its sibling modules import
-    spec = importlib.util.spec_from_file_location("_envs_benchmark", folder / "envs.py")
-    envs = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(envs)
-    profile = envs.profile_vector_step(jax, gym, 2, calls=3)
-    parts = ("check_action", "jit_call", "reward", "terminated_truncated", "obs", "infos")
-    assert tuple(profile["step_parts_s"]) == parts
-    assert all(t > 0 for t in profile["step_parts_s"].values()) and profile["step_s"] > 0
-    assert profile["step_parts_total_s"] >= profile["step_parts_s"]["jit_call"]

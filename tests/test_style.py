@@ -1,6 +1,8 @@
 """The code's form: ruff's lint rules and its formatting (pyproject.toml, ``[tool.ruff]``) hold over the repository,
-at the ruff version of constraints.txt (the formatter's style can change between ruff's minor releases)."""
+at the ruff version of constraints.txt (the formatter's style can change between ruff's minor releases); benchmarks/
+holds what its report runs, and uses the package through its public names."""
 
+import ast
 import pathlib
 import subprocess
 import sys
@@ -14,3 +16,63 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 def test_ruff(command):
     result = subprocess.run([sys.executable, "-m", "ruff", *command, "."], cwd=ROOT, capture_output=True, text=True)
     assert result.returncode == 0, result.stdout + result.stderr  # the files and rules it names
+
+
+def _report_benchmarks() -> set[str]:
+    """The names of the benchmarks that ``benchmarks/report.py`` runs (its ``BENCHMARKS``), read from its source."""
+    tree = ast.parse((ROOT / "benchmarks" / "report.py").read_text())
+    return {
+        node.args[0].value
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Call)
+        and getattr(node.func, "id", None) == "Benchmark"
+        and node.args
+        and isinstance(node.args[0], ast.Constant)
+    }
+
+
+def test_every_benchmark_is_run_by_the_report_or_kept_with_the_experiments():
+    """benchmarks/ holds what ``report.py`` runs (docs/benchmarks.md's tables), the workers of those (``_*.py``) and
+    the original's runner; the runs that chose a setting live in benchmarks/experiments/."""
+    top = {p.stem for p in (ROOT / "benchmarks").glob("*.py")}
+    others = {name for name in top if name.startswith("_")} | {"report", "original"}
+    assert top - others == _report_benchmarks()
+    assert sorted(p.name for p in (ROOT / "benchmarks" / "experiments").glob("*.py"))
+
+
+def _private_uses(path: pathlib.Path) -> list[str]:
+    """The package's private names that a script imports or reads off a module it imported from the package."""
+    tree = ast.parse(path.read_text())
+    modules, found = set(), []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("jaxdrones"):
+            modules |= {a.asname or a.name for a in node.names}
+            found += [f"{node.module}.{a.name}" for a in node.names if a.name.startswith("_")]
+        elif isinstance(node, ast.Import):
+            modules |= {(a.asname or a.name).split(".")[0] for a in node.names if a.name.startswith("jaxdrones")}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
+            base = node.value
+            while isinstance(base, ast.Attribute):
+                base = base.value
+            if isinstance(base, ast.Name) and base.id in modules:
+                found.append(ast.unparse(node))
+    return found
+
+
+def test_benchmarks_use_the_package_through_its_public_names():
+    uses = {str(p.relative_to(ROOT)): _private_uses(p) for p in sorted((ROOT / "benchmarks").rglob("*.py"))}
+    assert {path: names for path, names in uses.items() if names} == {}
+    assert _private_uses_of("from jaxdrones.training.run import _x\nimport jaxdrones.cameras as c\nc._images") == [
+        "jaxdrones.training.run._x",
+        "c._images",
+    ]
+
+
+def _private_uses_of(source: str) -> list[str]:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = pathlib.Path(folder) / "script.py"
+        path.write_text(source)
+        return _private_uses(path)

@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from jaxdrones.training.common import Schedule
 
 
-def _eval_program(env, trainer, n_episodes: int, seed: int):
+def eval_program(env, trainer, n_episodes: int, seed: int):
     """The evaluation compiled beside the trainer's chunks: ``n_episodes`` episodes from random starts (the same keys
     at every evaluation; `outcomes_of`) and the flight of the first one for the plot (positions, the task's
     reference, velocities, RPMs)."""
@@ -149,7 +149,7 @@ def train_task(
     interrupted = False
     try:
         _, params = trainer.train(
-            train_env, config, progress=report, evaluate=_eval_program(env, trainer, n_eval_episodes, config.seed)
+            train_env, config, progress=report, evaluate=eval_program(env, trainer, n_eval_episodes, config.seed)
         )
     except Interrupted as stop:
         (_, params), interrupted = stop.result, True

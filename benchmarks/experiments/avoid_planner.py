@@ -14,8 +14,8 @@ An upper reference for policies that see the field only through their camera. Fo
 It also reports the share of episodes whose grid has a free path from the start to the goal at all, and what a
 flight straight at the goal does. Usage::
 
-    python benchmarks/avoid_planner.py                # 256 episodes, margin 0.08 m
-    python benchmarks/avoid_planner.py --margin 0.15
+    python benchmarks/experiments/avoid_planner.py                # 256 episodes, margin 0.08 m
+    python benchmarks/experiments/avoid_planner.py --margin 0.15
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import argparse
 import json
 import pathlib
 
-DEFAULT_OUT = pathlib.Path(__file__).resolve().parent / "results" / "avoid_planner.json"
+DEFAULT_OUT = pathlib.Path(__file__).resolve().parents[1] / "results" / "avoid_planner.json"
 GRID_M = 0.05
 LOOK_M = 0.3
 

@@ -6,9 +6,9 @@ The ports are made here from the original's files: every ``gym_pybullet_drones.`
 not installed (Python >= 3.12); the number of changed lines is printed. Each run is a fresh process calling the
 script's ``run()`` with ``gui=False, plot=False`` (the scripts' own command-line flags), its prints discarded.
 
-    python benchmarks/gpd_examples.py --original /path/to/gym-pybullet-drones                 # pid.py, both
-    python benchmarks/gpd_examples.py --original DIR --original-python /venv-with-pybullet/bin/python
-    python benchmarks/gpd_examples.py --original DIR --learn                                  # + learn.py
+    python benchmarks/experiments/gpd_examples.py --original /path/to/gym-pybullet-drones                 # pid.py, both
+    python benchmarks/experiments/gpd_examples.py --original DIR --original-python /venv-with-pybullet/bin/python
+    python benchmarks/experiments/gpd_examples.py --original DIR --learn                                  # + learn.py
 
 pid.py (3 drones, 12 s at 48 Hz: 576 control steps, each a step of the aviary, three DSL PID calls, three log
 entries and a text render): control steps per second over ``run()``, the first call (what a user waits for) and a

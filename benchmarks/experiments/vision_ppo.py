@@ -1,13 +1,13 @@
 """Seconds per iteration of brax's vision PPO on a task with cameras, as ``jaxdrones train TASK`` runs it.
 
-The work: ``brax.training.agents.ppo.train`` on the training env of ``jaxdrones train TASK --vision depth``
-(the task's recipe, `jaxdrones.training.recipes.recipe`: for ``avoid`` its own 64 × 16 depth, for ``fly_thru_gate``
-the gate drawn per episode on 64 × 48 depth) with the recipe's config of brax's PPO (16-step unrolls × 4
-minibatches of 512 worlds for ``avoid``, 32,768 env steps an iteration, and of 256 worlds,
+The work: `jaxdrones.training.brax_ppo.train` (brax's ``ppo.train``) on the env of ``jaxdrones train TASK --vision
+depth`` (the task's recipe, `jaxdrones.training.recipes.recipe`: for ``avoid`` its own 64 × 16 depth, for
+``fly_thru_gate`` the gate drawn per episode on 64 × 48 depth) with the recipe's config of brax's PPO (16-step
+unrolls × 4 minibatches of 512 worlds for ``avoid``, 32,768 env steps an iteration, and of 256 worlds,
 16,384 steps, for the gate) for ``--epochs`` epochs of ``--iterations`` iterations. The time of each epoch is
-that between brax's progress calls; brax compiles its epoch at the first call (at times again at the second), so
-the steady iteration time is taken from the third epoch on. Iterations of ``jaxdrones train`` are the same program,
-so the run's wall time is about (steps / steps an iteration) × the steady time plus the compilations and
+that between its progress calls (the first from the start, with brax's compilation; at times it compiles again in
+the second), so the steady iteration time is taken from the third epoch on. Iterations of ``jaxdrones train`` are the
+same program, so the run's wall time is about (steps / steps an iteration) × the steady time plus the compilations and
 evaluations.
 
 Both critics are timed in the same run, one after the other: the asymmetric one of the defaults
@@ -16,8 +16,8 @@ architecture (a CNN on the images too); ``--critic`` times one.
 
 Usage::
 
-    python benchmarks/vision_ppo.py                        # avoid; writes benchmarks/results/vision_ppo.json
-    python benchmarks/vision_ppo.py --task fly_thru_gate --epochs 4
+    python benchmarks/experiments/vision_ppo.py    # avoid; writes benchmarks/results/vision_ppo.json
+    python benchmarks/experiments/vision_ppo.py --task fly_thru_gate --epochs 4
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ import json
 import os
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-DEFAULT_OUT = os.path.join(HERE, "results", "vision_ppo.json")
+RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "results")
+DEFAULT_OUT = os.path.join(RESULTS, "vision_ppo.json")
 
 
 def parse_args(argv=None):
@@ -51,10 +51,8 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     import jax
     import numpy as np
-    from brax.training.agents.ppo import train as ppo
 
-    import jaxdrones as jd  # before JAX starts: its XLA flags
-    from jaxdrones.adapters import brax as adapter
+    import jaxdrones as jd
     from jaxdrones.training import brax_ppo
     from jaxdrones.training.recipes import recipe
 
@@ -65,23 +63,16 @@ def main(argv=None) -> int:
     base = dataclasses.replace(
         base, num_timesteps=per_iteration * args.iterations * args.epochs, num_evals=args.epochs + 1
     )
-    kwargs = {f.name: getattr(base, f.name) for f in dataclasses.fields(base) if f.name not in brax_ppo.NETWORK_FIELDS}
 
     def time_training(privileged: bool):
-        config = dataclasses.replace(base, privileged_critic=privileged)
         stamps = []
         start = time.perf_counter()
-        ppo.train(
-            brax_ppo._brax_env(adapter, config, env),
-            episode_length=env.episode_length,
-            wrap_env_fn=adapter.wrap_for_brax_training,
-            vision=True,
-            run_evals=False,
-            network_factory=brax_ppo._network_factory(config, True, brax_ppo._privileged(config, env)),
-            progress_fn=lambda steps, metrics: stamps.append((int(steps), time.perf_counter())),
-            **kwargs,
+        brax_ppo.train(
+            env,
+            dataclasses.replace(base, privileged_critic=privileged),
+            progress=lambda steps, metrics: stamps.append(time.perf_counter()),
         )
-        epochs = np.diff([start] + [t for _, t in stamps])[1:]  # the first call comes before any training
+        epochs = np.diff([start] + stamps)  # the first from the start: it compiles
         return epochs, epochs[2:] / args.iterations
 
     critics = ("privileged", "images") if args.critic == "both" else (args.critic,)

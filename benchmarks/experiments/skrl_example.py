@@ -7,7 +7,8 @@ range) and passes them to the env; jaxdrones' gymnasium envs clip them to [-1, 1
 checkout of skrl (examples/gymnasium/torch_gymnasium_pendulum_ppo.py):
 
     pip install skrl==2.1.1    # with torch; tested with skrl 2.1.1 and its 2.0.0 example file
-    python benchmarks/skrl_example.py --example /path/to/skrl/examples/gymnasium/torch_gymnasium_pendulum_ppo.py
+    python benchmarks/experiments/skrl_example.py \
+        --example /path/to/skrl/examples/gymnasium/torch_gymnasium_pendulum_ppo.py
 
 The port changes two lines (printed): ``task_name = "Pendulum"`` becomes ``"jaxdrones/Hover"``, and
 ``import jaxdrones`` is added (it registers the id). It runs in a temporary folder with ``--headless --num_envs N

@@ -9,7 +9,7 @@ each IPOPT call (median, 95th percentile, max), on this machine.
 
 Usage::
 
-    python benchmarks/mpc.py                     # writes benchmarks/results/mpc.json, prints a markdown table
+    python benchmarks/experiments/mpc.py    # writes benchmarks/results/mpc.json, prints a markdown table
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ import platform
 
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-DEFAULT_OUT = os.path.join(HERE, "results", "mpc.json")
+RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "results")
+DEFAULT_OUT = os.path.join(RESULTS, "mpc.json")
 SETTINGS = {  # name: fly_figure8 keywords
     "MPC, model = simulator": {},
     "MPC, model without drag": {"model_drag": False},

@@ -20,8 +20,8 @@ For the lower drone, over each pass (the control steps where the drones are less
 - ``vx_response_mps``: |v_x − v_x without downwash|, the change of its x-velocity;
 - ``roll_response_deg``: |roll − roll without downwash| (the drones cross along x, so the roll should stay small).
 
-    python benchmarks/downwash_models.py            # writes benchmarks/results/downwash_models.json
-    python benchmarks/downwash_models.py --backends jax --duration 6
+    python benchmarks/experiments/downwash_models.py            # writes benchmarks/results/downwash_models.json
+    python benchmarks/experiments/downwash_models.py --backends jax --duration 6
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ import time
 
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "results")
 MODELS = ("paper", "per_rotor")
 BACKENDS = ("jax", "pybullet")
 
@@ -119,7 +119,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--models", nargs="+", choices=MODELS, default=list(MODELS))
     parser.add_argument("--backends", nargs="+", choices=BACKENDS, default=list(BACKENDS))
     parser.add_argument("--duration", type=float, default=12.0, help="flight time, s (the original's 12 s)")
-    parser.add_argument("--out", default=os.path.join(HERE, "results", "downwash_models.json"))
+    parser.add_argument("--out", default=os.path.join(RESULTS, "downwash_models.json"))
     args = parser.parse_args(argv)
     results = run(args.models, args.backends, args.duration)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)

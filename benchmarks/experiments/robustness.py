@@ -26,9 +26,9 @@ task, the metric's median over seeds (each seed's value beside it) and the termi
 
 Usage::
 
-    python benchmarks/robustness.py                           # hover and velocity, seeds 0 1 2
-    python benchmarks/robustness.py --tasks hover --seeds 0 --steps 500000 --episodes 64   # a quick look
-    python benchmarks/robustness.py --tasks hover --settings crazyflie_dr --dr-turbulence 1.0   # wind in the ranges
+    python benchmarks/experiments/robustness.py       # hover and velocity, seeds 0 1 2
+    python benchmarks/experiments/robustness.py --tasks hover --seeds 0 --steps 500000 --episodes 64   # a quick look
+    python benchmarks/experiments/robustness.py --tasks hover --settings crazyflie_dr --dr-turbulence 1.0   # wind
 
 Results go to ``benchmarks/results/robustness.json`` (``--out``) and the table to stdout (markdown).
 """
@@ -42,8 +42,8 @@ import os
 import statistics
 import tempfile
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-DEFAULT_OUT = os.path.join(HERE, "results", "robustness.json")
+RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "results")
+DEFAULT_OUT = os.path.join(RESULTS, "robustness.json")
 TASKS = ("hover", "velocity")
 SEEDS = (0, 1, 2)
 
