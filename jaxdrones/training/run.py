@@ -13,15 +13,20 @@ from typing import TYPE_CHECKING
 from jaxdrones.training.recipes import Recipe, recipe
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from jaxdrones.envs.base import Env
     from jaxdrones.envs.task import Task
     from jaxdrones.training.brax_ppo import BraxPPOConfig
     from jaxdrones.training.common import Schedule
+    from jaxdrones.training.trainers import Trainer
 
 
-def eval_program(env, trainer, n_episodes: int, seed: int):
+def eval_program(env: Env, trainer: Trainer, n_episodes: int, seed: int) -> Callable:
     """The evaluation compiled beside the trainer's chunks: ``n_episodes`` episodes from random starts (the same keys
     at every evaluation; `outcomes_of`) and the flight of the first one for the plot (positions, the task's
-    reference, velocities, RPMs)."""
+    reference, velocities, RPMs), as ``evaluate(networks, params) -> pytree of arrays`` for a trainer's ``evaluate``
+    argument (`jaxdrones.training.trainers`)."""
     import jax
 
     from jaxdrones.training.evaluation import outcomes_of, rollout_policy
