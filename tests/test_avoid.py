@@ -170,9 +170,11 @@ def test_brax_vision_networks_act_on_the_camera_observation(env):
 
 
 def test_scene_clearances_map_the_obstacles_around_the_drone(env):
-    """The privileged observation: the clearance at the drone and at 16 bearings × 5 distances around it,
-    hand-derived for one cylinder 1 m ahead."""
-    from jaxdrones.envs.tasks.avoid import SAMPLE_BEARINGS, SAMPLE_RANGES, scene_clearances
+    """The privileged observation: the clearance at the drone and at 16 bearings × 5 distances around it (and at
+    avoid's own 8 × 3), hand-derived for one cylinder 1 m ahead."""
+    from jaxdrones.envs.tasks.avoid import scene_clearances
+
+    bearings, distances = 16, (0.25, 0.5, 0.75, 1.0, 1.5)
 
     state = jax.jit(env.reset)(jax.random.key(0))
     scene = cameras.make_scene(
@@ -181,15 +183,19 @@ def test_scene_clearances_map_the_obstacles_around_the_drone(env):
     task = state.task.replace(scene=scene)
     sim = state.sim.replace(pos=jnp.asarray([[0.0, 0.0, 1.0]]))
     radius = float(task.data["collision_radius"][0])
-    got = np.asarray(scene_clearances(task, sim))
-    assert got.shape == (1, 1 + len(SAMPLE_BEARINGS) * len(SAMPLE_RANGES))
+    got = np.asarray(scene_clearances(task, sim, bearings, distances))
+    assert got.shape == (1, 1 + bearings * len(distances))
     np.testing.assert_allclose(got[0, 0], 1.0 - 0.1 - radius, atol=1e-6)  # at the drone: 0.9 m to the surface
-    ahead = got[0, 1:].reshape(len(SAMPLE_BEARINGS), len(SAMPLE_RANGES))[0]  # bearing 0, along +x
-    expected = np.clip([abs(1.0 - r) - 0.1 - radius for r in SAMPLE_RANGES], -1, 1)
+    ahead = got[0, 1:].reshape(bearings, len(distances))[0]  # bearing 0, along +x
+    expected = np.clip([abs(1.0 - r) - 0.1 - radius for r in distances], -1, 1)
     np.testing.assert_allclose(ahead, expected, atol=1e-6)
-    behind = got[0, 1:].reshape(len(SAMPLE_BEARINGS), len(SAMPLE_RANGES))[8]  # bearing π: 1 + r from the axis
-    np.testing.assert_allclose(behind, np.clip([1.0 + r - 0.1 - radius for r in SAMPLE_RANGES], -1, 1), atol=1e-6)
-    np.testing.assert_allclose(np.asarray(env.privileged(state.replace(task=task, sim=sim))), got, atol=1e-6)
+    behind = got[0, 1:].reshape(bearings, len(distances))[8]  # bearing π: 1 + r from the axis
+    np.testing.assert_allclose(behind, np.clip([1.0 + r - 0.1 - radius for r in distances], -1, 1), atol=1e-6)
+    # avoid's critic reads 8 bearings × 0.25, 0.5, 1 m: the same map at those points.
+    own = np.asarray(env.privileged(state.replace(task=task, sim=sim)))
+    assert (env.task.clearance_bearings, env.task.clearance_ranges) == (8, (0.25, 0.5, 1.0))
+    coarse = got[0, 1:].reshape(bearings, len(distances))[::2][:, [0, 1, 3]]  # every other bearing, those distances
+    np.testing.assert_allclose(own, np.concatenate([got[:, :1], coarse.reshape(1, -1)], axis=1), atol=1e-6)
 
 
 def test_the_brax_view_with_a_privileged_critic(env):
@@ -201,7 +207,7 @@ def test_the_brax_view_with_a_privileged_critic(env):
     from jaxdrones.training.encoders import make_ppo_networks_vision
 
     brax_env = BraxEnv(env, privileged=True)
-    assert brax_env.observation_size == {"state": (24,), "pixels/depth": (16, 64, 1), "privileged_state": (81,)}
+    assert brax_env.observation_size == {"state": (24,), "pixels/depth": (16, 64, 1), "privileged_state": (25,)}
     state = jax.jit(brax_env.reset)(jax.random.key(0))
     np.testing.assert_allclose(
         np.asarray(state.obs["privileged_state"]), np.asarray(env.privileged(state.pipeline_state)).reshape(-1)

@@ -152,10 +152,17 @@ BRAX_VISION = Tuned(
         "privileged_critic": True,
     }
 )
-#: ``avoid``: twice the worlds, 4.5 M env steps, the rewards scaled by 0.1 (docs/experiments.md, "Vision: the avoid
-#: task").
+#: ``avoid``: twice the worlds, 4.5 M env steps, the rewards scaled by 0.1, the first convolution at stride 4
+#: (docs/experiments.md, "Vision: the avoid task").
 BRAX_AVOID = Tuned(
-    {**BRAX_VISION.config, "num_envs": 512, "batch_size": 512, "num_timesteps": 4_500_000, "reward_scaling": 0.1}
+    {
+        **BRAX_VISION.config,
+        "num_envs": 512,
+        "batch_size": 512,
+        "num_timesteps": 4_500_000,
+        "reward_scaling": 0.1,
+        "cnn_stride": (4, 2, 2),
+    }
 )
 #: MAPPO trains multi_hover from body rates up to 1 rad/s (docs/multi-agent.md, after the table).
 MULTI_HOVER_STARTS = {"start_ang_vel": 1.0}

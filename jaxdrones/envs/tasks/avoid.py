@@ -122,9 +122,13 @@ class GoalTask(Task):
     ending at its goal (`Task.reached`) without a collision; the scene is the task params' (collisions from
     `collided`, each drone's radius in `collision_data`); reward terms ``progress`` (weight 1), ``reached`` (10) and
     ``crash`` (−50). Its privileged observation (`Task.privileged`, for a critic) is the scene around each drone,
-    `scene_clearances`."""
+    `scene_clearances` at `clearance_bearings` bearings × `clearance_ranges` distances."""
 
     uses_scene = True
+    #: Where `privileged` samples the scene around a drone (`scene_clearances`): this many bearings, evenly spaced
+    #: from world +x in the horizontal plane, at these distances (m) from the drone's centre.
+    clearance_bearings: int = 16
+    clearance_ranges: tuple[float, ...] = (0.25, 0.5, 0.75, 1.0, 1.5)
     success_counts_terminations = True
     success_metric = "failure"
     success_at = "final"
@@ -135,7 +139,7 @@ class GoalTask(Task):
         return collision_data(config)
 
     def privileged(self, config: TaskConfig, task: TaskParams, sim: DroneState) -> jax.Array | None:
-        return scene_clearances(task, sim)
+        return scene_clearances(task, sim, self.clearance_bearings, self.clearance_ranges)
 
     def weights(self, config: TaskConfig) -> dict[str, float]:
         # A crash costs 50: at 10 it cost less than the speed it bought (the progress term pays up to ~1.3 per step),
@@ -162,6 +166,11 @@ class Avoid(GoalTask):
     (it ended there), else 1 (a collision, or the time ran out), read at the episode's end; solved when at most
     10 % of the evaluation episodes fail (``success_rate`` ≥ 0.9 in the evaluation's statistics).
     """
+
+    #: A coarser map for the critic than `GoalTask`'s, 8 bearings × 0.25, 0.5, 1 m: a third of the distance
+    #: computations (docs/experiments.md, "Vision: the avoid task": within 10 minutes).
+    clearance_bearings = 8
+    clearance_ranges = (0.25, 0.5, 1.0)
 
     name = "avoid"
     config_cls = AvoidConfig
@@ -294,22 +303,21 @@ def clearance(task: TaskParams, sim: DroneState) -> jax.Array:
     return distance(task.scene, sim.pos) - task.data["collision_radius"]
 
 
-#: Where `scene_clearances` samples the scene around a drone: bearings (rad, from world +x, in the horizontal plane)
-#: and distances (m) from the drone's centre, and the largest clearance it reports (m).
-SAMPLE_BEARINGS = tuple(2 * math.pi * k / 16 for k in range(16))
-SAMPLE_RANGES = (0.25, 0.5, 0.75, 1.0, 1.5)
+#: The largest clearance `scene_clearances` reports, m.
 SAMPLE_CLIP_M = 1.0
 
 
-def scene_clearances(task: TaskParams, sim: DroneState) -> jax.Array:
-    """f[D, 1 + 16·5] m: `clearance` at the drone's centre, then at 16 bearings × 5 distances around it in the
-    horizontal plane at its altitude (`SAMPLE_BEARINGS`, `SAMPLE_RANGES`; bearing-major), clipped to
+def scene_clearances(
+    task: TaskParams, sim: DroneState, bearings: int = 16, distances: tuple[float, ...] = (0.25, 0.5, 0.75, 1.0, 1.5)
+) -> jax.Array:
+    """f[D, 1 + B·R] m: `clearance` at the drone's centre, then at ``bearings`` B bearings (evenly spaced from world
+    +x, in the horizontal plane at its altitude) × the R ``distances`` (m) around it, bearing-major, clipped to
     [−`SAMPLE_CLIP_M`, `SAMPLE_CLIP_M`]: a map of the obstacles near the drone, in every direction, which its camera
     sees only in part. Privileged: for a critic (`Task.privileged`), not the policy."""
     from jaxdrones.scene.primitives import distance
 
-    bearing = np.asarray(SAMPLE_BEARINGS)[:, None]
-    ranges = np.asarray(SAMPLE_RANGES)[None, :]
+    bearing = 2 * np.pi * np.arange(bearings)[:, None] / bearings
+    ranges = np.asarray(distances, np.float64)[None, :]
     offsets = np.stack([np.cos(bearing) * ranges, np.sin(bearing) * ranges, 0 * bearing * ranges], -1)
     around = sim.pos[..., None, :] + offsets.reshape((1,) * (sim.pos.ndim - 1) + (-1, 3))
     points = jnp.concatenate([sim.pos[..., None, :], around], axis=-2)
