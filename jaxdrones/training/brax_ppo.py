@@ -66,8 +66,9 @@ class BraxPPOConfig:
     #: map flattened, which keeps where in the image a feature is, then the state appended and the MLP): filters,
     #: square kernel sizes and strides per layer. The default is the Nature-DQN encoder (Mnih et al., "Human-level
     #: control through deep reinforcement learning", Nature 2015: three convolutions with ReLU, 32-64-64 filters,
-    #: 8×8/4, 4×4/2, 3×3/1) scaled to small depth images and to the CPU: 8-16-16 filters, 4×4/2, 3×3/2, 3×3/2, a
-    #: 2×8×16 feature map of ``avoid``'s 16×64 images.
+    #: 8×8/4, 4×4/2, 3×3/1) scaled to small depth images and to the CPU: 8-16-16 filters, 4×4/2, 3×3/2, 3×3/2 (a
+    #: 6×8×16 feature map of the gate's 48×64 images; ``avoid``'s recipe strides the first by 4, a 1×4×16 map of its
+    #: 16×64 strip).
     cnn_output_channels: tuple[int, ...] = (8, 16, 16)
     cnn_kernel_size: tuple[int, ...] = (4, 3, 3)
     cnn_stride: tuple[int, ...] = (2, 2, 2)
