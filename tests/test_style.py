@@ -40,9 +40,9 @@ def test_every_benchmark_is_run_by_the_report_or_kept_with_the_experiments():
     assert sorted(p.name for p in (ROOT / "benchmarks" / "experiments").glob("*.py"))
 
 
-def _private_uses(path: pathlib.Path) -> list[str]:
+def _private_uses(source: str) -> list[str]:
     """The package's private names that a script imports or reads off a module it imported from the package."""
-    tree = ast.parse(path.read_text())
+    tree = ast.parse(source)
     modules, found = set(), []
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("jaxdrones"):
@@ -61,18 +61,10 @@ def _private_uses(path: pathlib.Path) -> list[str]:
 
 
 def test_benchmarks_use_the_package_through_its_public_names():
-    uses = {str(p.relative_to(ROOT)): _private_uses(p) for p in sorted((ROOT / "benchmarks").rglob("*.py"))}
+    scripts = sorted((ROOT / "benchmarks").rglob("*.py"))
+    uses = {str(p.relative_to(ROOT)): _private_uses(p.read_text()) for p in scripts}
     assert {path: names for path, names in uses.items() if names} == {}
-    assert _private_uses_of("from jaxdrones.training.run import _x\nimport jaxdrones.cameras as c\nc._images") == [
+    assert _private_uses("from jaxdrones.training.run import _x\nimport jaxdrones.cameras as c\nc._images") == [
         "jaxdrones.training.run._x",
         "c._images",
     ]
-
-
-def _private_uses_of(source: str) -> list[str]:
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as folder:
-        path = pathlib.Path(folder) / "script.py"
-        path.write_text(source)
-        return _private_uses(path)

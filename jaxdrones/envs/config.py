@@ -83,19 +83,26 @@ class DomainRandomization:
             object.__setattr__(self, name, (low, high))
 
     @property
+    def taus(self) -> dict[str, tuple[float, float]]:
+        """The time-constant ranges given (not None), by `TAU_DRAWS` name."""
+        return {name: getattr(self, name) for name in TAU_DRAWS if getattr(self, name) is not None}
+
+    @property
+    def motor_dynamics(self) -> bool:
+        """Some time constant can be above 0: the motors have first-order dynamics (`SimConfig.motor_dynamics`)."""
+        return any(high > 0 for _, high in self.taus.values())
+
+    @property
     def draws(self) -> bool:
         """Whether a reset draws params of its own (a relative half-width above 0 or a time-constant range wider than
         a point); False: every episode has the same params (`fixed`)."""
-        ranges = [getattr(self, n) for n in TAU_DRAWS if getattr(self, n) is not None]
-        return any(getattr(self, n) != 0 for n in RELATIVE_DRAWS) or any(low != high for low, high in ranges)
+        relative = any(getattr(self, name) != 0 for name in RELATIVE_DRAWS)
+        return relative or any(low != high for low, high in self.taus.values())
 
     def fixed(self, params: DroneParams) -> DroneParams:
         """``params`` with the time constants that every episode shares (low = high) set."""
-        new = {}
-        for name in TAU_DRAWS:
-            value = getattr(self, name)
-            if value is not None and value[0] == value[1]:
-                new[name] = jnp.full(params.mass.shape, value[0], params.mass.dtype)
+        lead, dtype = params.mass.shape, params.mass.dtype
+        new = {name: jnp.full(lead, low, dtype) for name, (low, high) in self.taus.items() if low == high}
         return params.replace(**new) if new else params
 
     def sample(self, key: jax.Array, params: DroneParams) -> DroneParams:
@@ -109,10 +116,9 @@ class DomainRandomization:
             factor = jax.random.uniform(k, lead, dtype, 1.0 - r, 1.0 + r)
             value = getattr(params, attr)
             new[attr] = value * factor.reshape(lead + (1,) * (value.ndim - len(lead)))
-        for i, name in enumerate(TAU_DRAWS):
-            if getattr(self, name) is not None:
-                k = jax.random.fold_in(key, len(RELATIVE_DRAWS) + i)
-                new[name] = jax.random.uniform(k, lead, dtype, *getattr(self, name))
+        for name, (low, high) in self.taus.items():
+            k = jax.random.fold_in(key, len(RELATIVE_DRAWS) + TAU_DRAWS.index(name))
+            new[name] = jax.random.uniform(k, lead, dtype, low, high)
         return with_derived(params.replace(**new)) if new else params
 
 
@@ -166,6 +172,8 @@ class Starts:
                 check_real(f"start_{name}", getattr(self, name), 0, what="a finite half-width")
 
 
+#: The fixed poses of `Starts`, checked against the team by `TaskConfig`.
+POSES = ("init_pos", "init_rpy")
 #: `TaskConfig`'s flat names of the `Starts` fields (`jaxdrones.make` takes them): flat name → field.
 START_OPTIONS = {
     "init_pos": "init_pos",
@@ -328,9 +336,22 @@ class TaskConfig:
     def _set(self, name: str, value) -> None:
         object.__setattr__(self, name, value)
 
-    def _default(self, name: str) -> Any:
-        """The task's own default of the field ``name`` (its config class's)."""
-        return next(f.default for f in dataclasses.fields(self) if f.name == name)
+    def _group(self, name: str, cls: type) -> tuple[Any, dict]:
+        """The field ``name``, a ``cls`` or a dict of its fields, as (base, given): the value itself and no fields,
+        or the task's own default (its config class's) and the dict's fields over it.
+
+        Raises:
+            ValueError: neither, or a dict key that is not a ``cls`` field.
+        """
+        value = getattr(self, name)
+        if isinstance(value, dict):
+            unknown = sorted(set(value) - {f.name for f in dataclasses.fields(cls)})
+            if unknown:
+                raise ValueError(f"{name}: {unknown[0]!r} is not a {cls.__name__} field")
+            return next(f.default for f in dataclasses.fields(self) if f.name == name), value
+        if isinstance(value, cls):
+            return value, {}
+        raise ValueError(f"{name} must be a {cls.__name__} or a dict of its fields, got {value!r}")
 
     def _check_model(self) -> None:
         model = self.model
@@ -385,16 +406,9 @@ class TaskConfig:
     def _starts(self) -> Starts:
         """``starts`` as `Starts` (a dict: its fields over the task's default), the fixed poses checked against
         ``n_drones``."""
-        starts = self.starts
-        if isinstance(starts, dict):
-            unknown = sorted(set(starts) - {f.name for f in dataclasses.fields(Starts)})
-            if unknown:
-                raise ValueError(f"starts: {unknown[0]!r} is not a Starts field")
-            starts = dataclasses.replace(self._default("starts"), **starts)
-        elif not isinstance(starts, Starts):
-            raise ValueError(f"starts must be a Starts or a dict of its fields, got {starts!r}")
-        poses = {name: fixed_triples(name, getattr(starts, name), self.n_drones) for name in ("init_pos", "init_rpy")}
-        return dataclasses.replace(starts, **poses)
+        base, given = self._group("starts", Starts)
+        poses = {name: fixed_triples(name, given.get(name, getattr(base, name)), self.n_drones) for name in POSES}
+        return dataclasses.replace(base, **{**given, **poses})
 
     def _check_randomize(self) -> None:
         if isinstance(self.randomize, dict):
@@ -405,13 +419,11 @@ class TaskConfig:
                 f"{[f.name for f in dataclasses.fields(DomainRandomization)]}, got {self.randomize!r}"
             )
         realism, randomize = self.realism, self.randomize
-        if realism is not None and realism.motor_dynamics and randomize is not None:
-            given = [name for name in TAU_DRAWS if getattr(randomize, name) is not None]
-            if given:
-                raise ValueError(
-                    f"randomize.{given[0]} and the realism's motor time constants both set the motors' time "
-                    f"constants: give them once (realism: {realism.motor_tau_up}, {realism.motor_tau_down} s)"
-                )
+        if realism is not None and realism.motor_dynamics and randomize is not None and randomize.taus:
+            raise ValueError(
+                f"randomize.{next(iter(randomize.taus))} and the realism's motor time constants both set the motors' "
+                f"time constants: give them once (realism: {realism.motor_tau_up}, {realism.motor_tau_down} s)"
+            )
 
     @property
     def param_draws(self) -> DomainRandomization | None:
@@ -427,16 +439,8 @@ class TaskConfig:
         """``sim`` as a `SimConfig` (a dict: its fields over the task's default ``sim``), with the config's
         ``n_drones``, the realism's wind turning on ``drag`` and the motors' time constants (`param_draws`)
         ``motor_dynamics``."""
-        sim, realism = self.sim, self.realism
-        if isinstance(sim, dict):
-            unknown = sorted(set(sim) - {f.name for f in dataclasses.fields(SimConfig)})
-            if unknown:
-                raise ValueError(f"sim: {unknown[0]!r} is not a SimConfig field")
-            base, given = self._default("sim"), sim
-        elif isinstance(sim, SimConfig):
-            base, given = sim, {}
-        else:
-            raise ValueError(f"sim must be a SimConfig or a dict of its fields, got {sim!r}")
+        base, given = self._group("sim", SimConfig)
+        realism = self.realism
         wind = realism is not None and realism.wind  # the wind acts through the drag
         return dataclasses.replace(  # built once, here: it checks the rates and the physics' options
             base,
@@ -444,15 +448,9 @@ class TaskConfig:
                 **given,
                 "n_drones": self.n_drones,
                 "drag": True if wind else given.get("drag", base.drag),
-                "motor_dynamics": self._motor_dynamics(),
+                "motor_dynamics": self.param_draws is not None and self.param_draws.motor_dynamics,
             },
         )
-
-    def _motor_dynamics(self) -> bool:
-        """The motors have first-order dynamics: some time constant of `param_draws` above 0."""
-        draws = self.param_draws
-        ranges = [] if draws is None else [getattr(draws, n) for n in TAU_DRAWS if getattr(draws, n) is not None]
-        return any(high > 0 for _, high in ranges)
 
     @property
     def buffer_len(self) -> int:

@@ -24,6 +24,8 @@ REALISM_OPTIONS = frozenset(f.name for f in dataclasses.fields(Realism))
 #: The physics' options `make` takes by their own names into the config's ``sim``: `SimConfig`'s fields but the team's
 #: size (the config's ``n_drones``) and the motors' dynamics (on with the realism's motor time constants).
 SIM_OPTIONS = frozenset(f.name for f in dataclasses.fields(SimConfig)) - {"n_drones", "motor_dynamics"}
+#: The config's fields that group options `make` takes by flat names: field → {flat name: the group's field}.
+GROUPED_OPTIONS = {"sim": {name: name for name in sorted(SIM_OPTIONS)}, "starts": START_OPTIONS}
 
 #: The built-in single-agent tasks but ``avoid`` (`jaxdrones.envs.tasks.single`, `jaxdrones.envs.tasks.gate`).
 SINGLE_AGENT_TASKS = (Hover(), Takeoff(), Velocity(), Waypoints(), FLY_THRU_GATE, Tune())
@@ -61,7 +63,7 @@ def make_config(name: str, **overrides: Any) -> TaskConfig:
     if options:  # a realism option given alone: on top of the preset (or of none)
         realism = resolve_realism(overrides.get("realism"))
         overrides["realism"] = dataclasses.replace(realism or Realism(), **options)
-    for group, names in (("sim", dict(zip(SIM_OPTIONS, SIM_OPTIONS, strict=True))), ("starts", START_OPTIONS)):
+    for group, names in GROUPED_OPTIONS.items():
         given = {names[k]: overrides.pop(k) for k in list(overrides) if k in names and k not in fields}
         if given:  # by their flat names: on top of the given group (the config puts a dict's on the task's own)
             base = overrides.get(group) or {}
