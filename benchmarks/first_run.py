@@ -27,6 +27,7 @@ checkout, so that the current folder does not come first), e.g. a commit against
     python benchmarks/first_run.py --rounds 3 --xla-timers
     python benchmarks/first_run.py --rounds 1 --warm 2 --timeline --setting default
     python benchmarks/first_run.py --setting nokernel JAX_THREEFRY_GPU_KERNEL_LOWERING=0 --train-args --defaults gpu
+    python benchmarks/first_run.py --setting one --setting seeds4 TRAIN_ARGS='--seeds 4'    # 4 seeds against 1
 
 Results: a table of medians on stdout and every run in ``benchmarks/results/first_run_<TASK>.json`` (``--out``).
 """
@@ -129,8 +130,12 @@ def run_once(
     # .get: an older checkout (a setting's PYTHONPATH) writes fewer fields
     fields = ("wall_time_s", "phases_s", "success_value", "success", "algo", "defaults")
     record.update({("summary_" if k == "wall_time_s" else "") + k: summary.get(k) for k in fields})
+    if "aggregate" in summary:  # --seeds N: each seed's result, and the evaluations of the first seed's rows
+        record.update(success_value=[r["success_value"] for r in summary["runs"]], success=summary["aggregate"])
     with open(os.path.join(out, "progress.json")) as f:
-        record["evals_at_s"] = [round(row["time_s"], 3) for row in json.load(f)]
+        rows = json.load(f)
+    rows = next(iter(rows.values())) if isinstance(rows, dict) else rows
+    record["evals_at_s"] = [round(row["time_s"], 3) for row in rows]
     if timers:
         record["xla_timers_s"] = xla_timers(done.stderr)
     if log:

@@ -179,12 +179,11 @@ def count(algo: str, profile: str, updates: int, by_name: dict | None = None) ->
         short = dataclasses.replace(config, num_timesteps=updates * per_step, num_evals=2)
     else:
         short = dataclasses.replace(config, num_timesteps=updates * config.steps_per_update, num_evals=1)
-    evaluate = eval_program(env, trainer, 256, config.seed)
+    evaluate = eval_program(env, trainer, 256)
     modules = trace_operations(lambda: trainer.train(train_env, short, lambda *_: None, evaluate)[1], by_name)
-    # Runs where the trace does not count them (GPU): our trainers run the evaluation on the initial parameters
-    # while the chunk compiles and after the chunk (`jaxdrones.training.common.run_updates`), brax's PPO after its
-    # one training epoch; the chunk (brax: the epoch) runs once.
-    eval_runs = 1 if algo == "brax_ppo" else 2
+    # Runs where the trace does not count them (GPU): the evaluation runs once, after the one chunk
+    # (`jaxdrones.training.common.run_updates`; brax's PPO: after its one training epoch), and so does the chunk.
+    eval_runs = 1
     eval_ops = max((per_run(v, eval_runs) for name, v in modules.items() if "evaluate" in name), default=0.0)
     # The chunk of updates: the program with the most operations other than the evaluation.
     chunk_name, chunk = max(((n, v) for n, v in modules.items() if "evaluate" not in n), key=lambda item: item[1][0])

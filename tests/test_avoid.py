@@ -222,14 +222,15 @@ def test_the_brax_view_with_a_privileged_critic(env):
     stats = running_statistics.init_state(
         {k: jax.ShapeDtypeStruct(v, jnp.float32) for k, v in brax_env.observation_size.items() if k[:7] != "pixels/"}
     )
-    value = nets.value_network.init(jax.random.key(1))
+    value = jax.jit(nets.value_network.init)(jax.random.key(1))  # jitted: one program, not one per operation
     assert not [k for k in value["params"] if "CNN" in k]  # no convolutions in the critic
-    policy = nets.policy_network.init(jax.random.key(2))
+    policy = jax.jit(nets.policy_network.init)(jax.random.key(2))
     obs = state.obs
     blank = {**obs, "pixels/depth": jnp.zeros_like(obs["pixels/depth"])}
     moved = {**obs, "privileged_state": obs["privileged_state"] + 1.0}
-    v = lambda o: float(nets.value_network.apply(stats, value, o))
-    p = lambda o: np.asarray(nets.policy_network.apply(stats, policy, o))
+    value_apply, policy_apply = jax.jit(nets.value_network.apply), jax.jit(nets.policy_network.apply)
+    v = lambda o: float(value_apply(stats, value, o))
+    p = lambda o: np.asarray(policy_apply(stats, policy, o))
     assert v(blank) == v(obs) and v(moved) != v(obs)
     assert not np.allclose(p(blank), p(obs)) and np.array_equal(p(moved), p(obs))
     # The trainer's config: the asymmetric critic where the env has a privileged observation, the usual one elsewhere.
@@ -238,10 +239,10 @@ def test_the_brax_view_with_a_privileged_critic(env):
 
     config = recipe("avoid", "cpu").config
     assert config.privileged_critic
-    value = brax_ppo.make_network(config, env).value_network.init(jax.random.key(0))
+    value = jax.eval_shape(brax_ppo.make_network(config, env).value_network.init, jax.random.key(0))
     assert not [k for k in value["params"] if "CNN" in k]
     hover = jd.make("hover", vision=("depth",), image_size=(32, 24))
-    value = brax_ppo.make_network(config, hover).value_network.init(jax.random.key(0))
+    value = jax.eval_shape(brax_ppo.make_network(config, hover).value_network.init, jax.random.key(0))
     assert [k for k in value["params"] if "CNN" in k]
     with pytest.raises(ValueError, match="value_obs_key 'privileged_state' is not a key"):
         make_ppo_networks_vision(BraxEnv(env).observation_size, 3, value_obs_key="privileged_state")

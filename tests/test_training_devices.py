@@ -37,15 +37,20 @@ cases = (("ppo", "ppo", "hover", {}, dict(num_envs=8, unroll_length=4, minibatch
          ("mappo", "mappo", "leader_follower", {"n_drones": 3, "action_type": "one_d_rpm"},
           dict(num_envs=8, unroll_length=4, minibatches=2)),
          ("apg", "apg", "hover", {}, dict(num_envs=8, horizon=4)),
-         ("shac", "shac", "hover", {}, dict(num_envs=8, horizon=4)))
+         ("shac", "shac", "hover", {}, dict(num_envs=8, horizon=4)),
+         ("apg_seeds", "apg", "hover", {}, dict(num_envs=8, horizon=4)))  # seeds 0, 1 mapped: seed 1's
 for name, algo, task, env_kw, kw in cases:
     trainer = trainers.get(algo)
     env = jd.make(task, **env_kw)
     config = dataclasses.replace(recipe(task, "cpu", env_kw, algo).config, **kw, num_timesteps=96, num_evals=4)
     keys = jax.random.split(jax.random.key(3), 8)
     seen = []
-    network, params = trainer.train(env, config, progress=lambda steps, m: seen.append(m["eval"]),
-                                    evaluate=lambda n, p: episode_outcomes(env, trainer.make_policy(n, p), keys)[0])
+    outcomes = lambda n, p, seed: episode_outcomes(env, trainer.make_policy(n, p), keys)[0]
+    if name.endswith("_seeds"):
+        network, params = trainer.train(env, config, lambda steps, m: seen.append(m["eval"]), outcomes, seeds=(0, 1))[1]
+        seen = [jax.tree.map(lambda x: x[1], m) for m in seen]
+    else:
+        network, params = trainer.train(env, config, lambda steps, m: seen.append(m["eval"]), outcomes)
     obs = jax.vmap(env.reset)(jax.random.split(jax.random.key(4), 64)).obs.reshape(64, -1)
     actions = jax.vmap(lambda o: trainer.make_policy(network, params)(o, None)[0])(obs)
     out[name] = np.asarray(actions)
@@ -60,7 +65,8 @@ np.savez(sys.argv[2], **out)
 @pytest.mark.devices
 def test_every_trainer_gives_one_devices_result_on_two_devices(tmp_path):
     """PPO (also built as the ``gpu`` profile builds it: `trainers.gpu_build`), MAPPO, APG and SHAC spread their
-    worlds over 2 forced CPU devices (parameters replicated on both) and train the policy of one device: its actions
+    worlds over 2 forced CPU devices (parameters replicated on both; APG's two mapped seeds, one per device) and train
+    the policy of one device: its actions
     on 64 observations agree to 1e-4 and the evaluation after the last chunk (final distances of 8 episodes, flown
     in closed loop) to 1e-3 relative."""
     results, runs = {}, {}
@@ -75,7 +81,7 @@ def test_every_trainer_gives_one_devices_result_on_two_devices(tmp_path):
         _, err = run.communicate(timeout=900)
         assert run.returncode == 0, err[-3000:]
         results[devices] = dict(np.load(tmp_path / f"devices_{devices}.npz"))
-    for algo in ("ppo", "ppo_gpu_build", "mappo", "apg", "shac"):
+    for algo in ("ppo", "ppo_gpu_build", "mappo", "apg", "shac", "apg_seeds"):
         # (flat parameters come back split on the host: `common.param_maps`)
         spread = 1 if algo == "ppo_gpu_build" else 2
         assert int(results["1"][algo + "_devices"]) == 1 and int(results["2"][algo + "_devices"]) == spread

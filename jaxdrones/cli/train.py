@@ -63,6 +63,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ppo.add_argument("--num-envs", type=int, default=None, help="parallel environments")
     ppo.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     ppo.add_argument(
+        "--seeds",
+        type=int,
+        default=None,
+        metavar="N",
+        help="train N independent runs, seeds --seed to --seed + N - 1, as one program mapped over the seeds (brax_ppo:"
+        " one after another): each seed's run in seed_<k>/ of the output folder, and there the summary of all with"
+        " their median, interquartile mean and its 95%% bootstrap interval, and the share solved",
+    )
+    ppo.add_argument(
         "--num-evals",
         type=int,
         default=None,
@@ -349,6 +358,7 @@ def run_cli(args: argparse.Namespace) -> int:
         _positive("--num-envs", args.num_envs)
         _positive("--eval-episodes", args.eval_episodes)
         _positive("--num-evals", args.num_evals)
+        _positive("--seeds", args.seeds)
         _positive("--distributed-timeout", args.distributed_timeout)
         devices.start(
             platform=args.device,
@@ -376,6 +386,7 @@ def run_cli(args: argparse.Namespace) -> int:
             n_eval_episodes=args.eval_episodes,
             progress=not args.no_progress,
             t_start=getattr(args, "t_start", None),
+            seeds=args.seeds,
         )
     except (ValueError, OSError, ImportError, devices.DeviceError) as err:
         print(f"jaxdrones train: error: {err}", file=sys.stderr)
@@ -385,6 +396,8 @@ def run_cli(args: argparse.Namespace) -> int:
         return 130
     if "out_dir" not in summary:  # a process other than 0: process 0 reports and saves
         return 0
+    if "aggregate" in summary:
+        return _report_seeds(summary)
     if summary["interrupted"]:
         print(
             f"interrupted after {summary['env_steps']:,} env steps: saved the policy so far in {summary['out_dir']}",
@@ -403,4 +416,24 @@ def run_cli(args: argparse.Namespace) -> int:
         print(f"not solved: {'; '.join(summary['failed_criteria'])}. {result}")
     viewer = ", flight.html" if os.path.exists(os.path.join(summary["out_dir"], "flight.html")) else ""
     print(f"saved policy.pkl, learning_curve.png, flight.png{viewer}, summary.json in {summary['out_dir']}")
+    return 0
+
+
+def _report_seeds(summary: dict) -> int:
+    """Print a run of several seeds: each seed's result and the aggregate."""
+    for run in summary["runs"]:
+        verdict = "solved" if run["success"] else "not solved"
+        print(f"seed {run['seed']}: {verdict}, {summary['success_metric']} {run['success_value']:.4g}")
+    agg = summary["aggregate"]
+    low, high = agg["iqm_ci95"] or (None, None)
+    interval = "" if low is None else f" (95% CI {low:.4g} to {high:.4g})"
+    print(
+        f"{agg['solved_share']:.0%} of {agg['n_seeds']} seeds solved (threshold {summary['success_threshold']:g}); "
+        f"median {agg['median']:.4g}, interquartile mean {agg['iqm']:.4g}{interval}; "
+        f"{summary['wall_time_s']:.1f} s wall time"
+    )
+    print(f"saved seed_<k>/ (each a run), learning_curve.png, summary.json in {summary['out_dir']}")
+    if summary["interrupted"]:
+        print("interrupted: the seeds' policies so far are saved", file=sys.stderr)
+        return 130
     return 0

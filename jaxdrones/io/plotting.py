@@ -177,6 +177,50 @@ def plot_learning_curve(
     return _save(plt, fig, path, title)
 
 
+def plot_learning_curves(
+    histories: Sequence[Sequence[Mapping]],
+    path: str | os.PathLike,
+    *,
+    title: str | None = None,
+    metric_label: str = "final distance (m)",
+    threshold: float | None = None,
+) -> str:
+    """Plot the evaluation return and the success metric (``success_value``) of several runs (seeds) against env
+    steps: each run thin, the runs' median thick, the band between their lowest and highest value.
+
+    Args:
+        histories: one list of rows per run, as `plot_learning_curve` takes (the runs evaluated at the same steps).
+        path, title, metric_label, threshold: as `plot_learning_curve`.
+
+    Returns:
+        ``path`` as a string.
+    """
+    plt = _pyplot()
+    from matplotlib.ticker import EngFormatter
+
+    n = min(len(h) for h in histories)
+    steps = np.array([row["env_steps"] for row in histories[0][:n]], dtype=float)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    for ax, key, color, label in (
+        (axes[0], "episode_reward", "tab:blue", "evaluation episode return"),
+        (axes[1], "success_value", "tab:red", metric_label),
+    ):
+        values = np.array([[row[key] for row in h[:n]] for h in histories], dtype=float)
+        for run in values:
+            ax.plot(steps, run, color=color, alpha=0.3, linewidth=0.8)
+        ax.fill_between(steps, values.min(0), values.max(0), color=color, alpha=0.15, linewidth=0)
+        ax.plot(steps, np.median(values, 0), color=color, marker="o", label=f"median of {len(histories)} seeds")
+        ax.set_ylabel(label)
+        ax.set_xlabel("env steps")
+        ax.xaxis.set_major_formatter(EngFormatter())
+        ax.grid(alpha=0.3)
+    axes[1].set_yscale("log")
+    if threshold is not None:
+        axes[1].axhline(threshold, color="k", linestyle="--", linewidth=1, label=f"solved below {threshold:g}")
+    axes[1].legend(loc="upper right")
+    return _save(plt, fig, path, title)
+
+
 def plot_task_flight(
     times: ArrayLike,
     pos: ArrayLike,

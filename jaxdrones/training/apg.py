@@ -125,20 +125,22 @@ def train(
     config: APGConfig = APGConfig(),
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable[..., dict] | None = None,
+    seeds: tuple[int, ...] | None = None,
 ) -> tuple[linen.Module, Any]:
     """Train a policy on ``env`` (one world; D drones share the policy, each seeing its own observation).
 
     Args:
         env: a jaxdrones env without camera images.
         config: `APGConfig`.
-        progress, evaluate: as every trainer takes them (`jaxdrones.training.trainers`); the metrics are
+        progress, evaluate, seeds: as every trainer takes them (`jaxdrones.training.trainers`); the metrics are
             ``train/loss``, the mean window loss of the last update, ``train/grad_norm``.
 
     Raises:
         jaxdrones.training.common.Interrupted: on Ctrl-C, with the result of the last completed chunk.
 
     Returns:
-        ``(network, params)``: the flax module and its trained parameters (see `make_policy`).
+        ``(network, params)``: the flax module and its trained parameters (see `make_policy`); with ``seeds``, a list
+        of one per seed.
     """
     import optax
 
@@ -179,7 +181,15 @@ def train(
     def result(carry):
         return network, unravel(carry[0])
 
-    run_eval = None if evaluate is None else described(lambda carry: evaluate(*result(carry)), evaluate)
+    run_eval = None if evaluate is None else described(lambda carry, seed: evaluate(*result(carry), seed), evaluate)
     return run_updates(
-        config, init, update, result, config.num_envs, progress, run_eval, description=program_description(config, env)
+        config,
+        init,
+        update,
+        result,
+        config.num_envs,
+        progress,
+        run_eval,
+        description=program_description(config, env),
+        seeds=seeds,
     )

@@ -203,8 +203,8 @@ def train(
         config: PPO hyperparameters.
         progress: called as ``progress(env_steps, metrics)`` at each of brax's evaluations after the first, with
             brax's training metrics and, under ``"eval"``, what ``evaluate`` returns (NumPy arrays).
-        evaluate: ``evaluate(networks, params) -> pytree of arrays`` (jitted here, compiled once), as in the other
-            trainers (`jaxdrones.training.trainers`).
+        evaluate: ``evaluate(networks, params, seed) -> pytree of arrays`` (jitted here, compiled once), as in the
+            other trainers (`jaxdrones.training.trainers`).
         eval_env: the env of brax's own evaluations (``eval/...`` metrics); without one brax evaluates nothing
             itself.
 
@@ -223,7 +223,7 @@ def train(
     latest = {"params": None, "steps": 0}
 
     def evaluate_params(params):
-        return evaluate(networks, params)
+        return evaluate(networks, params, np.int64(config.seed))
 
     run_eval = None if evaluate is None else jax.jit(evaluate_params)
 

@@ -173,29 +173,31 @@ def described(fn: Callable, evaluate: Callable) -> Callable:
     return fn
 
 
-def _programs(init, chunk, evaluate, seed, n_worlds: int, description: str | None) -> tuple:
-    """`run_updates`' three programs, jitted: ``(init, chunk, evaluate or None)``. Over several devices, the carry
-    spread over them (`world_shardings`); on one, loaded from the program cache (`jaxdrones.training.programs`)
-    where ``description`` and the evaluation's own ``description`` name them and the cache is on."""
+def _programs(init, chunk, evaluate, seed, n_batch: int, description: str | None) -> tuple:
+    """`run_updates`' three programs, jitted: ``(init, chunk, evaluate or None)``, ``evaluate`` taking ``(carry,
+    seed)``. Over several devices, the carry spread over them along its leading axis of ``n_batch`` entries
+    (`world_shardings`: the worlds, or the seeds of a mapped run); on one, loaded from the program cache
+    (`jaxdrones.training.programs`) where ``description`` and the evaluation's own ``description`` name them and the
+    cache is on."""
     from jaxdrones.training.programs import cache_folder, cached_eval_shape, cached_jit
 
     eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
     cached = description is not None and eval_description is not None and cache_folder() is not None
     shapes = cached_eval_shape(init, seed, f"{description}\ninit" if cached else None)
-    shardings = world_shardings(shapes, n_worlds)
+    shardings = world_shardings(shapes, n_batch)
     if shardings is not None:
         replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())
         return (
             jax.jit(init, out_shardings=shardings),
             jax.jit(chunk, in_shardings=(shardings,), out_shardings=(shardings, replicated)),
-            evaluate and jax.jit(evaluate, in_shardings=(shardings,), out_shardings=replicated),
+            evaluate and jax.jit(evaluate, in_shardings=((shardings, replicated),), out_shardings=replicated),
         )
     if not cached:
         return jax.jit(init), jax.jit(chunk), evaluate and jax.jit(evaluate)
     return (
         cached_jit(init, seed, f"{description}\ninit"),
         cached_jit(chunk, shapes, f"{description}\nchunk"),
-        evaluate and cached_jit(evaluate, shapes, f"{description}\n{eval_description}"),
+        evaluate and cached_jit(evaluate, (shapes, seed), f"{description}\n{eval_description}"),
     )
 
 
@@ -208,23 +210,22 @@ def run_updates(
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable | None = None,
     description: str | None = None,
+    seeds: tuple[int, ...] | None = None,
 ) -> Any:
-    """The training loop of our trainers: ``init(key) -> carry`` (the parameters, optimiser state and worlds), then
+    """The training loop of our trainers: ``init(key) -> carry`` (parameters, optimiser state, worlds), then
     ``config.num_evals`` chunks, each a `jax.lax.scan` of ``config.updates_per_eval`` calls of ``update(carry, None)
-    -> (carry, metrics)`` followed by ``evaluate(carry)`` (a pytree of arrays), three compiled programs
-    (`_programs`; ``description``, the trainer, its config and its env's config as text, keys them in the program
-    cache). Each chunk is dispatched before the previous one's metrics are read, so the progress display overlaps
-    it. ``progress(env_steps, metrics)`` is called after each chunk with the last update's metrics (floats) and the
-    evaluation under ``"eval"`` (NumPy arrays).
+    -> (carry, metrics)`` followed by ``evaluate(carry, seed)`` (a pytree of arrays): three compiled programs
+    (`_programs`; ``description`` keys them in the program cache). Each chunk is dispatched before the previous
+    one's metrics are read. ``progress(env_steps, metrics)`` gets the last update's metrics and the evaluation under
+    ``"eval"`` (NumPy arrays) after each chunk. With ``seeds``, one run per seed (not ``config.seed``) in the same
+    three programs mapped over the seeds (`jax.vmap`; over several devices, the seeds spread over them): each seed
+    computes what its single run computes, and each array gets a leading axis over the seeds.
 
-    Returns:
-        ``result(carry)`` of the final carry.
-
-    Raises:
-        Interrupted: on Ctrl-C, with ``result`` of the last completed chunk's carry.
+    Returns ``result(carry)`` of the final carry (with ``seeds``, a list of one per seed); on Ctrl-C raises
+    `Interrupted` with that of the last completed chunk.
     """
     # The key is made inside the compiled init from the seed: a key made here would compile programs of its own.
-    seed = np.asarray(config.seed).astype(jax.dtypes.canonicalize_dtype(np.int64))
+    seed = np.asarray(config.seed if seeds is None else seeds).astype(jax.dtypes.canonicalize_dtype(np.int64))
 
     def init_seeded(seed):
         return init(jax.random.key(seed))
@@ -233,7 +234,16 @@ def run_updates(
         carry, metrics = jax.lax.scan(update, carry, None, length=config.updates_per_eval)
         return carry, {name: value[-1] for name, value in metrics.items()}
 
-    init_c, chunk_c, eval_c = _programs(init_seeded, chunk, evaluate, seed, n_worlds, description)
+    programs = (init_seeded, chunk, evaluate and (lambda carry_and_seed: evaluate(*carry_and_seed)))
+    if seeds is not None:
+        programs = tuple(fn and jax.vmap(fn) for fn in programs)
+    init_c, chunk_c, eval_c = _programs(*programs, seed, n_worlds if seeds is None else len(seeds), description)
+
+    def results(carry):
+        if seeds is None:
+            return result(carry)
+        return [result(jax.tree.map(lambda x, k=k: x[k], carry)) for k in range(len(seeds))]
+
     carry, done = None, 0
     try:
         carry = init_c(seed)
@@ -241,13 +251,13 @@ def run_updates(
         for k in range(1, config.num_evals + 1):
             finished, metrics = pending
             if eval_c is not None:
-                metrics = {**metrics, "eval": eval_c(finished)}
+                metrics = {**metrics, "eval": eval_c((finished, seed))}
             if k < config.num_evals:
                 pending = chunk_c(finished)  # runs while this chunk's metrics are read and shown
             metrics = jax.tree.map(host_array, metrics)
             carry, done = finished, k * config.updates_per_eval * config.steps_per_update
             if progress is not None:
-                progress(done, {name: (value if name == "eval" else float(value)) for name, value in metrics.items()})
+                progress(done, metrics if seeds else {k: v if k == "eval" else float(v) for k, v in metrics.items()})
     except KeyboardInterrupt:
-        raise Interrupted(result(init_c(seed) if carry is None else carry), done) from None
-    return result(carry)
+        raise Interrupted(results(init_c(seed) if carry is None else carry), done) from None
+    return results(carry)

@@ -317,20 +317,21 @@ def train(
     config: MAPPOConfig = MAPPOConfig(),
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable[..., dict] | None = None,
+    seeds: tuple[int, ...] | None = None,
 ) -> tuple[Networks, dict]:
     """Train the agents of ``env`` (D drones per world) with MAPPO or independent PPO (module doc).
 
     Args:
         env: a jaxdrones env without camera images (any D ≥ 1).
         config: `MAPPOConfig`.
-        progress, evaluate: as every trainer takes them (`jaxdrones.training.trainers`); the metrics are
+        progress, evaluate, seeds: as every trainer takes them (`jaxdrones.training.trainers`); the metrics are
             ``train/policy_loss``, ``train/value_loss``, ``train/entropy``, ``train/std`` of the last update.
 
     Raises:
         jaxdrones.training.common.Interrupted: on Ctrl-C, with the result of the last completed chunk.
 
     Returns:
-        ``(networks, params)`` (see `make_policy`).
+        ``(networks, params)`` (see `make_policy`); with ``seeds``, a list of one per seed.
     """
     import optax
 
@@ -450,7 +451,15 @@ def train(
     def result(carry):
         return nets, {**unravel(carry[0]), "norm": carry[1]}
 
-    run_eval = None if evaluate is None else described(lambda carry: evaluate(*result(carry)), evaluate)
+    run_eval = None if evaluate is None else described(lambda carry, seed: evaluate(*result(carry), seed), evaluate)
     return run_updates(
-        config, init, update, result, config.num_envs, progress, run_eval, description=program_description(config, env)
+        config,
+        init,
+        update,
+        result,
+        config.num_envs,
+        progress,
+        run_eval,
+        description=program_description(config, env),
+        seeds=seeds,
     )

@@ -4,16 +4,19 @@ run: what ``jaxdrones train TASK`` runs (`train_task`)."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
 import time
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from jaxdrones.training.recipes import Recipe, recipe
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Sequence
 
     from jaxdrones.envs.base import Env
     from jaxdrones.envs.task import Task
@@ -22,17 +25,18 @@ if TYPE_CHECKING:
     from jaxdrones.training.trainers import Trainer
 
 
-def eval_program(env: Env, trainer: Trainer, n_episodes: int, seed: int) -> Callable:
-    """The evaluation compiled beside the trainer's chunks: ``n_episodes`` episodes from random starts (the same keys
-    at every evaluation; `outcomes_of`) and the flight of the first one for the plot (positions, the task's
-    reference, velocities, RPMs), as ``evaluate(networks, params) -> pytree of arrays`` for a trainer's ``evaluate``
-    argument (`jaxdrones.training.trainers`)."""
+def eval_program(env: Env, trainer: Trainer, n_episodes: int) -> Callable:
+    """The evaluation compiled beside the trainer's chunks: ``n_episodes`` episodes from random starts (for a run of
+    seed ``s``, the same keys at every evaluation: ``jax.random.split(key(s + 1))[0]`` split ``n_episodes`` ways;
+    `outcomes_of`) and the flight of the first one for the plot (positions, the task's reference, velocities, RPMs),
+    as ``evaluate(networks, params, seed) -> pytree of arrays`` for a trainer's ``evaluate`` argument
+    (`jaxdrones.training.trainers`)."""
     import jax
 
     from jaxdrones.training.evaluation import outcomes_of, rollout_policy
     from jaxdrones.viz import VIEW_EPISODES, flight_data
 
-    def evaluate(network, params):
+    def evaluate(network, params, seed):
         keys = jax.random.split(jax.random.split(jax.random.key(seed + 1))[0], n_episodes)
         policy = trainer.make_policy(network, params)
         states = jax.vmap(lambda k: rollout_policy(env, policy, k))(keys)
@@ -45,7 +49,7 @@ def eval_program(env: Env, trainer: Trainer, n_episodes: int, seed: int) -> Call
             "viewer": jax.tree.map(lambda x: x[:VIEW_EPISODES], flight_data(states)),
         }  # for flight.html
 
-    evaluate.description = f"evaluation {n_episodes} {seed} {trainer.name} {env.task.name} {env.config!r}"
+    evaluate.description = f"evaluation {n_episodes} {trainer.name} {env.task.name} {env.config!r}"
     return evaluate
 
 
@@ -62,6 +66,7 @@ def train_task(
     progress: bool = True,
     t_start: float | None = None,
     defaults: str | None = None,
+    seeds: int | Sequence[int] | None = None,
 ) -> dict:
     """Train a policy on a task with a trainer of `jaxdrones.training.trainers` and save it with a learning curve,
     a flight plot and a summary.
@@ -97,6 +102,13 @@ def train_task(
         t_start: ``time.perf_counter()`` at which the wall-clock measurement starts (default: now).
         defaults: the recipe's profile (`jaxdrones.training.common.DEFAULTS`: ``"cpu"`` or ``"gpu"``; default: the
             device's, `jaxdrones.training.trainers.default_profile`).
+        seeds: train several independent runs: ``N`` (seeds ``config.seed`` to ``config.seed + N - 1``) or the
+            seeds. Our trainers run them as one program mapped over the seeds (`jaxdrones.training.common.
+            run_updates`: seed ``k`` trains the policy of the single run of seed ``k``, within float rounding);
+            brax's PPO runs them one after another (`jaxdrones.training.trainers.Trainer.maps_seeds`). Each seed's
+            run is written to ``seed_<k>/`` of ``out`` as a single run is (and loads alone), and ``out`` holds
+            ``summary.json`` with every seed's result and their aggregate (`aggregate`), ``progress.json`` (each
+            seed's rows) and ``learning_curve.png`` (the seeds' median and range).
 
     Returns:
         The summary dict (also written to ``summary.json``): ``wall_time_s`` (everything from ``t_start``: imports,
@@ -109,9 +121,12 @@ def train_task(
         evaluation statistics), ``interrupted``, ``provenance`` (versions, commit, devices, processes, CPU), the
         output folder and the settings.
 
+        With ``seeds``: ``task``, ``algo``, ``seeds``, ``runs`` (each seed's summary as above), ``aggregate``,
+        ``wall_time_s``, ``env_steps`` (per seed), ``out_dir``, ``interrupted``.
+
     Raises:
         ValueError: bad settings (unknown task, algorithm or env option, fewer than 64 evaluation episodes, a config
-            of another trainer, ...).
+            of another trainer, seeds not distinct non-negative integers, ...).
     """
     t_phase = time.perf_counter()
     t_start = t_phase if t_start is None else t_start
@@ -120,10 +135,10 @@ def train_task(
 
     from jaxdrones.envs import make
     from jaxdrones.io.runs import new_run_dir, provenance
-    from jaxdrones.training import checkpoint, trainers
+    from jaxdrones.training import trainers
     from jaxdrones.training.common import Interrupted
     from jaxdrones.training.evaluation import episode_statistics
-    from jaxdrones.training.progress import AGGREGATES, ProgressLog
+    from jaxdrones.training.progress import ProgressLog
 
     run = _run_recipe(task, algo, config, env_overrides, train_env_overrides, defaults)
     task, algo, config, env_overrides = run.task, run.algo, run.config, dict(run.env)
@@ -139,32 +154,143 @@ def train_task(
         raise ValueError(f"train: camera images are taken by --algo {' or '.join(takes)}, not {algo!r}")
     if trainer.differentiable and env.config.backend != "jax":
         raise ValueError(f"train: --algo {algo} differentiates the simulator and needs backend='jax'")
+    seed_list = _seeds(seeds, config.seed)
     writer = jax.process_index() == 0
     out = new_run_dir(out or os.path.join("runs", task), overwrite=overwrite) if writer else out
     phases["setup"] = time.perf_counter() - t_phase
+    n_runs = 1 if seed_list is None else len(seed_list)
+    mapped = seed_list is not None and trainer.maps_seeds
+    total = config.total_steps * (1 if mapped or seed_list is None else n_runs)
+    bar = ProgressLog(total, env.task, enabled=progress and writer)
+    logs = [bar] if seed_list is None else [ProgressLog(config.total_steps, env.task, False) for _ in seed_list]
+    last = [{} for _ in range(n_runs)]
+    evaluate = eval_program(env, trainer, n_eval_episodes)
 
-    log = ProgressLog(config.total_steps, env.task, enabled=progress and writer)
-    last = {}
-
-    def report(steps, metrics):
-        last.update(eval=metrics["eval"])
-        log(steps, episode_statistics(env, metrics["eval"]["outcomes"]))
+    def report(steps, metrics, runs=range(n_runs)):
+        """Record an evaluation of the runs ``runs`` (all, or the one seed a sequential run is training)."""
+        for k in runs:
+            evaluation = jax.tree.map(lambda x, k=k: x[k], metrics["eval"]) if mapped else metrics["eval"]
+            last[k].update(eval=evaluation)
+            logs[k](steps, episode_statistics(env, evaluation["outcomes"]))
+        if seed_list is not None:  # the display: the seeds' median at their latest evaluation
+            rows = [log.history[-1] for log in logs if log.history]
+            median = {name: float(np.median([row[name] for row in rows])) for name in MEDIAN_OF}
+            bar(steps if mapped else runs[0] * config.total_steps + steps, median)
 
     t_train = time.perf_counter()
-    interrupted = False
+    interrupted, results = False, []
     try:
-        _, params = trainer.train(
-            train_env, config, progress=report, evaluate=eval_program(env, trainer, n_eval_episodes, config.seed)
-        )
-    except Interrupted as stop:
-        (_, params), interrupted = stop.result, True
+        if seed_list is None:
+            results = [trainer.train(train_env, config, progress=report, evaluate=evaluate)]
+        elif mapped:
+            results = trainer.train(train_env, config, progress=report, evaluate=evaluate, seeds=seed_list)
+        else:  # one after another, each compiled program read back from the compilation cache after the first
+            for k, seed in enumerate(seed_list):
+                one = dataclasses.replace(config, seed=seed)
+                results.append(trainer.train(train_env, one, functools.partial(report, runs=(k,)), evaluate))
+    except Interrupted as stop:  # a sequential run: the seeds after the one stopped are not trained
+        interrupted = True
+        results = stop.result if mapped else [*results, stop.result]
     finally:
-        log.close()
+        bar.close()
     phases["train"] = train_time = time.perf_counter() - t_train
-    env_steps = log.history[-1]["env_steps"] if log.history else 0
     if not writer:
-        return {"process_index": jax.process_index(), "env_steps": env_steps, "interrupted": interrupted}
+        steps = [log.history[-1]["env_steps"] if log.history else 0 for log in logs]
+        return {"process_index": jax.process_index(), "env_steps": steps[0], "interrupted": interrupted}
+    settings = dict(run=run, algo=algo, config=config, env=env, phases=phases, train_time=train_time)
+    if seed_list is None:
+        return _write_run(out, results[0][1], logs[0], last[0], interrupted, t_start, **settings)
+    runs = []
+    for k, (seed, (_, params)) in enumerate(zip(seed_list, results, strict=False)):  # the seeds trained
+        one = dict(settings, config=dataclasses.replace(config, seed=seed), phases={})
+        folder = os.path.join(out, f"seed_{seed}")
+        runs.append(_write_run(folder, params, logs[k], last[k], interrupted, t_start, **one))
+    summary = {
+        "task": task,
+        "algo": algo,
+        "seeds": list(seed_list),
+        "mapped": mapped,
+        "wall_time_s": time.perf_counter() - t_start,
+        "train_time_s": train_time,
+        "interrupted": interrupted,
+        "env_steps": [r["env_steps"] for r in runs],
+        "success_metric": runs[0]["success_metric"],
+        "success_threshold": env.task.success_threshold,
+        "aggregate": aggregate([r["success_value"] for r in runs], [r["success"] for r in runs]),
+        "runs": [{"seed": seed, **{k: r[k] for k in PER_SEED}} for seed, r in zip(seed_list, runs, strict=False)],
+        "out_dir": out,
+        "provenance": provenance(),
+    }
+    histories = {f"seed_{seed}": log.history for seed, log in zip(seed_list, logs, strict=True)}
+    with open(os.path.join(out, "progress.json"), "w") as f:
+        json.dump(histories, f, indent=1)
+    from jaxdrones.io.plotting import plot_learning_curves
 
+    plot_learning_curves(
+        list(histories.values()),
+        os.path.join(out, "learning_curve.png"),
+        metric_label=f"evaluation {bar.label}",
+        threshold=env.task.success_threshold,
+        title=f"{algo.upper()} on {task}, seeds {', '.join(map(str, seed_list))}",
+    )
+    with open(os.path.join(out, "summary.json"), "w") as f:
+        json.dump(summary, f, indent=2)
+    return summary
+
+
+#: What the summary of several seeds keeps of each seed's own summary (in ``seed_<k>/summary.json``).
+PER_SEED = ("success_value", "success", "failed_criteria", "env_steps", "out_dir")
+
+#: The evaluation statistics whose median over the seeds the progress display shows.
+MEDIAN_OF = ("success_value", "terminated_rate", "episode_reward")
+
+
+def _seeds(seeds, seed: int) -> tuple[int, ...] | None:
+    """`train_task`'s ``seeds`` as a tuple of ints (None for a single run)."""
+    if seeds is None:
+        return None
+    if isinstance(seeds, int | np.integer) and not isinstance(seeds, bool):
+        if seeds < 1:
+            raise ValueError(f"seeds must be >= 1, got {seeds}")
+        return tuple(range(seed, seed + int(seeds)))
+    out = tuple(int(s) for s in seeds)
+    if not out or len(set(out)) != len(out) or min(out) < 0:
+        raise ValueError(f"seeds must be distinct non-negative integers, got {seeds!r}")
+    return out
+
+
+def aggregate(values: Sequence[float], solved: Sequence[bool]) -> dict:
+    """The seeds' results as reported over runs (Agarwal et al., "Deep Reinforcement Learning at the Edge of the
+    Statistical Precipice", NeurIPS 2021): ``median``, ``iqm`` (the interquartile mean, `scipy.stats.trim_mean` at
+    25 %), ``iqm_ci95`` (its 95 % percentile bootstrap interval over the seeds, `scipy.stats.bootstrap`, 10,000
+    resamples, fixed seed; None for fewer than 3 seeds), ``solved_share`` and ``n_seeds``."""
+    from scipy import stats
+
+    x = np.asarray(values, dtype=float)
+    iqm = functools.partial(stats.trim_mean, proportiontocut=0.25)
+    interval = None
+    if len(x) >= 3 and np.all(np.isfinite(x)):
+        boot = stats.bootstrap((x,), iqm, n_resamples=10_000, method="percentile", random_state=0, vectorized=False)
+        interval = [float(boot.confidence_interval.low), float(boot.confidence_interval.high)]
+    return {
+        "median": float(np.median(x)),
+        "iqm": float(iqm(x)),
+        "iqm_ci95": interval,
+        "solved_share": float(np.mean(solved)),
+        "n_seeds": len(x),
+    }
+
+
+def _write_run(out, params, log, last, interrupted, t_start, *, run, algo, config, env, phases, train_time) -> dict:
+    """Write one run's folder (`train_task`'s outputs) and return its summary."""
+    from jaxdrones.io.runs import provenance
+    from jaxdrones.training import checkpoint
+    from jaxdrones.training.evaluation import episode_statistics
+    from jaxdrones.training.progress import AGGREGATES
+
+    os.makedirs(out, exist_ok=True)
+    task, env_overrides = run.task, dict(run.env)
+    env_steps = log.history[-1]["env_steps"] if log.history else 0
     t_phase = time.perf_counter()
     checkpoint.save(os.path.join(out, "policy.pkl"), algo, params, task, env_overrides, config)
     log.save(os.path.join(out, "progress.json"))

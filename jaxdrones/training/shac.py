@@ -108,6 +108,7 @@ def train(
     config: SHACConfig = SHACConfig(),
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable[..., dict] | None = None,
+    seeds: tuple[int, ...] | None = None,
 ) -> tuple[linen.Module, Any]:
     """Train a policy on ``env`` with SHAC (module doc; arguments and return as `jaxdrones.training.apg.train`).
 
@@ -230,7 +231,15 @@ def train(
     def result(carry):
         return actor, unravel_actor(carry[0])
 
-    run_eval = None if evaluate is None else described(lambda carry: evaluate(*result(carry)), evaluate)
+    run_eval = None if evaluate is None else described(lambda carry, seed: evaluate(*result(carry), seed), evaluate)
     return run_updates(
-        config, init, update, result, config.num_envs, progress, run_eval, description=program_description(config, env)
+        config,
+        init,
+        update,
+        result,
+        config.num_envs,
+        progress,
+        run_eval,
+        description=program_description(config, env),
+        seeds=seeds,
     )
