@@ -23,6 +23,8 @@ from jaxdrones.training.trainers import TRAINABLE
 TRAIN_OUTPUTS = ("policy.pkl", "learning_curve.png", "flight.png", "progress.json", "summary.json") + (
     ("flight.html",) if viz.viewer_available() else ()
 )
+#: What each seed's folder of a run of several seeds holds.
+SEED_OUTPUTS = ("policy.pkl", "progress.json", "summary.json")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -809,7 +811,7 @@ def test_train_cli_seeds_write_each_run_and_their_aggregate(tmp_path, capsys):
     for seed, value in zip([4, 5, 6], values, strict=True):
         one = json.loads((run / f"seed_{seed}" / "summary.json").read_text())
         assert one["config"]["seed"] == seed and one["success_value"] == value
-        assert sorted(p.name for p in (run / f"seed_{seed}").iterdir()) == sorted(TRAIN_OUTPUTS)
+        assert sorted(p.name for p in (run / f"seed_{seed}").iterdir()) == sorted(SEED_OUTPUTS)
     env, policy = load_policy(run / "seed_5")
     stats = evaluate(env, policy, jax.random.split(jax.random.key(5 + 1))[0], 64)
     assert stats["success_value"] == pytest.approx(values[1], rel=1e-3)
@@ -823,7 +825,7 @@ def test_train_cli_seeds_write_each_run_and_their_aggregate(tmp_path, capsys):
     assert summary["env_steps"][0] == summary["env_steps"][1] >= 2048 and not summary["interrupted"]
     for seed in (0, 1):
         one = json.loads((brax / f"seed_{seed}" / "summary.json").read_text())
-        assert sorted(p.name for p in (brax / f"seed_{seed}").iterdir()) == sorted(TRAIN_OUTPUTS)
+        assert sorted(p.name for p in (brax / f"seed_{seed}").iterdir()) == sorted(SEED_OUTPUTS)
         assert len(json.loads((brax / f"seed_{seed}" / "progress.json").read_text())) == 2
         env, policy = load_policy(brax / f"seed_{seed}")
         stats = evaluate(env, policy, jax.random.split(jax.random.key(seed + 1))[0], 64)

@@ -432,7 +432,10 @@ def _report_seeds(summary: dict) -> int:
         f"median {agg['median']:.4g}, interquartile mean {agg['iqm']:.4g}{interval}; "
         f"{summary['wall_time_s']:.1f} s wall time"
     )
-    print(f"saved seed_<k>/ (each a run), learning_curve.png, summary.json in {summary['out_dir']}")
+    print(
+        f"saved seed_<k>/ (each seed's policy.pkl and summary.json), learning_curve.png, summary.json in "
+        f"{summary['out_dir']}"
+    )
     if summary["interrupted"]:
         print("interrupted: the seeds' policies so far are saved", file=sys.stderr)
         return 130

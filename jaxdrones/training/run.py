@@ -106,9 +106,10 @@ def train_task(
             seeds. Our trainers run them as one program mapped over the seeds (`jaxdrones.training.common.
             run_updates`: seed ``k`` trains the policy of the single run of seed ``k``, within float rounding);
             brax's PPO runs them one after another (`jaxdrones.training.trainers.Trainer.maps_seeds`). Each seed's
-            run is written to ``seed_<k>/`` of ``out`` as a single run is (and loads alone), and ``out`` holds
-            ``summary.json`` with every seed's result and their aggregate (`aggregate`), ``progress.json`` (each
-            seed's rows) and ``learning_curve.png`` (the seeds' median and range).
+            ``policy.pkl``, ``progress.json`` and ``summary.json`` are written to ``seed_<k>/`` of ``out`` (it loads
+            alone; ``jaxdrones view`` draws its flights), and ``out`` holds ``summary.json`` with every seed's result
+            and their aggregate (`aggregate`), ``progress.json`` (each seed's rows) and ``learning_curve.png`` (the
+            seeds, their median and range).
 
     Returns:
         The summary dict (also written to ``summary.json``): ``wall_time_s`` (everything from ``t_start``: imports,
@@ -197,12 +198,13 @@ def train_task(
     if not writer:
         steps = [log.history[-1]["env_steps"] if log.history else 0 for log in logs]
         return {"process_index": jax.process_index(), "env_steps": steps[0], "interrupted": interrupted}
-    settings = dict(run=run, algo=algo, config=config, env=env, phases=phases, train_time=train_time)
+    source = provenance()  # the same for every seed
+    settings = dict(run=run, algo=algo, config=config, env=env, phases=phases, train_time=train_time, source=source)
     if seed_list is None:
         return _write_run(out, results[0][1], logs[0], last[0], interrupted, t_start, **settings)
     runs = []
     for k, (seed, (_, params)) in enumerate(zip(seed_list, results, strict=False)):  # the seeds trained
-        one = dict(settings, config=dataclasses.replace(config, seed=seed), phases={})
+        one = dict(settings, config=dataclasses.replace(config, seed=seed), phases={}, plots=False)
         folder = os.path.join(out, f"seed_{seed}")
         runs.append(_write_run(folder, params, logs[k], last[k], interrupted, t_start, **one))
     summary = {
@@ -219,7 +221,7 @@ def train_task(
         "aggregate": aggregate([r["success_value"] for r in runs], [r["success"] for r in runs]),
         "runs": [{"seed": seed, **{k: r[k] for k in PER_SEED}} for seed, r in zip(seed_list, runs, strict=False)],
         "out_dir": out,
-        "provenance": provenance(),
+        "provenance": source,
     }
     histories = {f"seed_{seed}": log.history for seed, log in zip(seed_list, logs, strict=True)}
     with open(os.path.join(out, "progress.json"), "w") as f:
@@ -270,7 +272,7 @@ def aggregate(values: Sequence[float], solved: Sequence[bool]) -> dict:
     iqm = functools.partial(stats.trim_mean, proportiontocut=0.25)
     interval = None
     if len(x) >= 3 and np.all(np.isfinite(x)):
-        boot = stats.bootstrap((x,), iqm, n_resamples=10_000, method="percentile", random_state=0, vectorized=False)
+        boot = stats.bootstrap((x,), iqm, n_resamples=10_000, method="percentile", random_state=0)
         interval = [float(boot.confidence_interval.low), float(boot.confidence_interval.high)]
     return {
         "median": float(np.median(x)),
@@ -281,9 +283,11 @@ def aggregate(values: Sequence[float], solved: Sequence[bool]) -> dict:
     }
 
 
-def _write_run(out, params, log, last, interrupted, t_start, *, run, algo, config, env, phases, train_time) -> dict:
-    """Write one run's folder (`train_task`'s outputs) and return its summary."""
-    from jaxdrones.io.runs import provenance
+def _write_run(
+    out, params, log, last, interrupted, t_start, *, run, algo, config, env, phases, train_time, source, plots=True
+) -> dict:
+    """Write one run's folder (`train_task`'s outputs; without ``plots``, no learning curve, flight plot or viewer
+    page) and return its summary (``source``: its ``provenance``)."""
     from jaxdrones.training import checkpoint
     from jaxdrones.training.evaluation import episode_statistics
     from jaxdrones.training.progress import AGGREGATES
@@ -296,12 +300,13 @@ def _write_run(out, params, log, last, interrupted, t_start, *, run, algo, confi
     log.save(os.path.join(out, "progress.json"))
     stats = episode_statistics(env, last["eval"]["outcomes"]) if last else {}
     phases["save"] = time.perf_counter() - t_phase
-    t_phase = time.perf_counter()
-    _plot(env, task, algo, log, last.get("eval"), out)
-    phases["plots"] = time.perf_counter() - t_phase
-    t_phase = time.perf_counter()
-    _write_viewer(env, last.get("eval"), out)
-    phases["viewer"] = time.perf_counter() - t_phase
+    if plots:
+        t_phase = time.perf_counter()
+        _plot(env, task, algo, log, last.get("eval"), out)
+        phases["plots"] = time.perf_counter() - t_phase
+        t_phase = time.perf_counter()
+        _write_viewer(env, last.get("eval"), out)
+        phases["viewer"] = time.perf_counter() - t_phase
     value = stats.get("success_value", math.nan)
     failed = failed_criteria(env.task, stats)
     summary = {
@@ -324,7 +329,7 @@ def _write_run(out, params, log, last, interrupted, t_start, *, run, algo, confi
         "train_env_overrides": dict(run.train_env),
         "defaults": run.defaults,
         "config": dataclasses.asdict(config),
-        "provenance": provenance(),
+        "provenance": source,
     }
     if "final_pos_error_m" in stats:
         summary["eval_final_pos_error_m"] = stats["final_pos_error_m"]
