@@ -5,8 +5,10 @@ Each run is ``python -m jaxdrones.cli train TASK --seed S --no-progress`` in a s
 given), into ``OUT/TASK-S``. The first seed of each task runs from an empty compilation cache (a folder of its own,
 ``JAXDRONES_CACHE_DIR``): its wall time is the ``first run``; the task's other seeds load those programs (the seed is
 an input of the compiled programs, not part of them) and their median is the ``warm`` time. With one seed, that
-seed runs a second time, warm. Wall times are taken from outside the process: Python's start, imports,
-compilation, training, evaluation and the saved plots.
+seed runs a second time, warm. With ``--mapped`` a task's seeds run as one ``jaxdrones train TASK --seeds N``
+(one program mapped over the seeds; brax's PPO, one seed after another), from the empty cache, its wall time in the
+``first run`` column. Wall times are taken from outside the process: Python's start, imports, compilation, training,
+evaluation and the saved plots.
 
 Per task the table gives the trainer and env steps of the task's recipe (`jaxdrones.training.recipes`), the wall
 times, each seed's result against the task's threshold (``summary.json``: the success metric over 256 evaluation
@@ -17,6 +19,7 @@ does not count them itself).
     python benchmarks/suite.py --seeds 0 1 2                      # every task, cpu or gpu by the device
     python benchmarks/suite.py --tasks takeoff crossing --seeds 0 --no-rerun
     python benchmarks/suite.py --defaults gpu --seeds 0 1 2       # the gpu profile (on a GPU: the warm goal 60 s)
+    python benchmarks/suite.py --mapped --seeds 0 1 2 3           # each task's seeds in one run (--seeds 4)
 
 Results: the table (Markdown) on stdout and in ``OUT/suite.md``, every run's record in ``OUT/suite.json`` (default
 ``OUT``: ``benchmarks/results/suite``).
@@ -38,11 +41,12 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def train(task: str, seed: int, out: str, cache: str, extra: list[str]) -> dict:
-    """One ``jaxdrones train`` run in a subprocess with the compilation cache ``cache``: its record (the summary's
-    fields the table reads and the wall time from outside), or the error's last lines when it failed."""
+def train(task: str, seed: int, out: str, cache: str, extra: list[str], n_seeds: int = 0) -> list[dict]:
+    """One ``jaxdrones train`` run in a subprocess with the compilation cache ``cache`` (with ``n_seeds``, of seeds
+    ``seed`` to ``seed + n_seeds - 1``: ``--seeds``): a record per seed (the summary's fields the table reads and
+    the wall time of the whole process from outside), or the error's last lines when it failed."""
     command = [sys.executable, "-m", "jaxdrones.cli", "train", task, "--seed", str(seed), "--no-progress"]
-    command += ["--out", out, "--overwrite", *extra]
+    command += ["--out", out, "--overwrite", *extra] + (["--seeds", str(n_seeds)] if n_seeds else [])
     env = {**os.environ, "JAXDRONES_CACHE_DIR": cache}
     start = time.perf_counter()
     done = subprocess.run(command, env=env, capture_output=True, text=True, check=False)
@@ -50,7 +54,17 @@ def train(task: str, seed: int, out: str, cache: str, extra: list[str]) -> dict:
     record = {"task": task, "seed": seed, "wall_s": wall, "returncode": done.returncode, "command": command}
     summary_path = os.path.join(out, "summary.json")
     if done.returncode != 0 or not os.path.exists(summary_path):
-        return {**record, "error": (done.stderr or done.stdout).strip().splitlines()[-5:]}
+        return [{**record, "error": (done.stderr or done.stdout).strip().splitlines()[-5:]}]
+    if not n_seeds:
+        return [_record(record, summary_path)]
+    return [
+        _record({**record, "seed": s}, os.path.join(out, f"seed_{s}", "summary.json"))
+        for s in range(seed, seed + n_seeds)
+    ]
+
+
+def _record(record: dict, summary_path: str) -> dict:
+    """``record`` with the fields of a run's ``summary.json`` that the table reads."""
     with open(summary_path) as f:
         summary = json.load(f)
     stats = summary["eval"]
@@ -70,17 +84,24 @@ def train(task: str, seed: int, out: str, cache: str, extra: list[str]) -> dict:
     }
 
 
-def run_task(task: str, seeds: list[int], out: str, extra: list[str], log, rerun: bool = True) -> list[dict]:
+def run_task(
+    task: str, seeds: list[int], out: str, extra: list[str], log, rerun: bool = True, mapped: bool = False
+) -> list[dict]:
     """Every seed of ``task``: the first from an empty compilation cache, the others (or the first again, with one
-    seed and ``rerun``) from the cache it filled."""
+    seed and ``rerun``) from the cache it filled; with ``mapped``, all in one run from the empty cache (``--seeds``).
+    """
     cache = tempfile.mkdtemp(prefix=f"suite-cache-{task}-")
     try:
         records = []
-        plan = [(seed, "first") for seed in seeds[:1]] + [(seed, "warm") for seed in seeds[1:] or seeds[:rerun]]
-        for seed, kind in plan:
-            record = {**train(task, seed, os.path.join(out, f"{task}-{seed}"), cache, extra), "cache": kind}
-            records.append(record)
-            log(record)
+        if mapped:
+            plan = [(seeds[0], "mapped", len(seeds))]
+        else:
+            plan = [(seed, "first", 0) for seed in seeds[:1]]
+            plan += [(seed, "warm", 0) for seed in seeds[1:] or seeds[:rerun]]
+        for seed, kind, n_seeds in plan:
+            for record in train(task, seed, os.path.join(out, f"{task}-{seed}"), cache, extra, n_seeds):
+                records.append({**record, "cache": kind})
+                log(records[-1])
         return records
     finally:
         shutil.rmtree(cache, ignore_errors=True)
@@ -115,7 +136,7 @@ def table(records: list[dict]) -> str:
         if not ok:
             lines.append(f"| {task} | failed: {' / '.join(runs[0]['error'])} | | | | | | 0/{len(by_seed)} |")
             continue
-        first = [r["wall_s"] for r in runs if r["cache"] == "first"]
+        first = [r["wall_s"] for r in runs if r["cache"] in ("first", "mapped")]  # mapped: every seed's
         warm = [r["wall_s"] for r in runs if r["cache"] == "warm" and "error" not in r]
         results = " / ".join(  # a run not solved in bold
             "error"
@@ -153,8 +174,16 @@ def main() -> int:
     parser.add_argument(
         "--no-rerun", action="store_true", help="with one seed, no second (warm) run: the first run's time only"
     )
+    parser.add_argument(
+        "--mapped",
+        action="store_true",
+        help="each task's seeds (consecutive) in one run, `jaxdrones train TASK --seeds N`; its wall time in 'first "
+        "run'",
+    )
     parser.add_argument("--train-args", nargs=argparse.REMAINDER, default=[], help="more jaxdrones train options")
     args = parser.parse_args()
+    if args.mapped and args.seeds != list(range(args.seeds[0], args.seeds[0] + len(args.seeds))):
+        parser.error(f"--mapped trains consecutive seeds (--seeds N from --seed), got {args.seeds}")
     extra = ([] if args.defaults is None else ["--defaults", args.defaults]) + args.train_args
     os.makedirs(args.out, exist_ok=True)
     started = time.strftime("%Y-%m-%d %H:%M")
@@ -173,7 +202,7 @@ def main() -> int:
         log(record)
 
     for task in args.tasks:
-        run_task(task, args.seeds, args.out, extra, keep, rerun=not args.no_rerun)
+        run_task(task, args.seeds, args.out, extra, keep, rerun=not args.no_rerun, mapped=args.mapped)
     text = (
         f"Suite at its defaults ({started}, commit {commit}, {machine()}; "
         f"`python benchmarks/suite.py {' '.join(sys.argv[1:])}`)\n\n{table(records)}\n"

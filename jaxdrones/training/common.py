@@ -173,7 +173,7 @@ def described(fn: Callable, evaluate: Callable) -> Callable:
     return fn
 
 
-def _programs(init, chunk, evaluate, seed, n_batch: int, description: str | None) -> tuple:
+def _programs(init, chunk, evaluate, seed, n_batch: int, description: str | None, eval_description: str | None):
     """`run_updates`' three programs, jitted: ``(init, chunk, evaluate or None)``, ``evaluate`` taking ``(carry,
     seed)``. Over several devices, the carry spread over them along its leading axis of ``n_batch`` entries
     (`world_shardings`: the worlds, or the seeds of a mapped run); on one, loaded from the program cache
@@ -181,7 +181,6 @@ def _programs(init, chunk, evaluate, seed, n_batch: int, description: str | None
     cache is on."""
     from jaxdrones.training.programs import cache_folder, cached_eval_shape, cached_jit
 
-    eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
     cached = description is not None and eval_description is not None and cache_folder() is not None
     shapes = cached_eval_shape(init, seed, f"{description}\ninit" if cached else None)
     shardings = world_shardings(shapes, n_batch)
@@ -215,15 +214,12 @@ def run_updates(
     """The training loop of our trainers: ``init(key) -> carry`` (parameters, optimiser state, worlds), then
     ``config.num_evals`` chunks, each a `jax.lax.scan` of ``config.updates_per_eval`` calls of ``update(carry, None)
     -> (carry, metrics)`` followed by ``evaluate(carry, seed)`` (a pytree of arrays): three compiled programs
-    (`_programs`; ``description`` keys them in the program cache). Each chunk is dispatched before the previous
-    one's metrics are read. ``progress(env_steps, metrics)`` gets the last update's metrics and the evaluation under
-    ``"eval"`` (NumPy arrays) after each chunk. With ``seeds``, one run per seed (not ``config.seed``) in the same
-    three programs mapped over the seeds (`jax.vmap`; over several devices, the seeds spread over them): each seed
-    computes what its single run computes, and each array gets a leading axis over the seeds.
-
-    Returns ``result(carry)`` of the final carry (with ``seeds``, a list of one per seed); on Ctrl-C raises
-    `Interrupted` with that of the last completed chunk.
-    """
+    (`_programs`; ``description`` keys them in the program cache), each chunk dispatched before the previous one's
+    metrics are read and passed to ``progress(env_steps, metrics)`` (the evaluation under ``"eval"``). With
+    ``seeds``, one run per seed (not ``config.seed``) in the three programs mapped over the seeds (`jax.vmap`; over
+    several devices, spread along the seeds): each seed computes its single run, each array gets a seeds axis.
+    Returns ``result(carry)`` of the final carry (a list over ``seeds``); on Ctrl-C raises `Interrupted` with that of
+    the last completed chunk."""
     # The key is made inside the compiled init from the seed: a key made here would compile programs of its own.
     seed = np.asarray(config.seed if seeds is None else seeds).astype(jax.dtypes.canonicalize_dtype(np.int64))
 
@@ -237,7 +233,9 @@ def run_updates(
     programs = (init_seeded, chunk, evaluate and (lambda carry_and_seed: evaluate(*carry_and_seed)))
     if seeds is not None:
         programs = tuple(fn and jax.vmap(fn) for fn in programs)
-    init_c, chunk_c, eval_c = _programs(*programs, seed, n_worlds if seeds is None else len(seeds), description)
+    n_batch = n_worlds if seeds is None else len(seeds)
+    eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
+    init_c, chunk_c, eval_c = _programs(*programs, seed, n_batch, description, eval_description)
 
     def results(carry):
         if seeds is None:
