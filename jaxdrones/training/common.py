@@ -165,14 +165,6 @@ def program_description(config: object, env: Env) -> str:
     return f"{type(config).__module__}.{config!r}\n{type(env).__name__} {env.task.name} {env.config!r}"
 
 
-def described(fn: Callable, evaluate: Callable) -> Callable:
-    """``fn`` with the ``description`` of the ``evaluate`` it calls (None if that has none), named ``evaluate`` (the
-    name of its compiled program)."""
-    fn.description = getattr(evaluate, "description", None)
-    fn.__name__ = fn.__qualname__ = "evaluate"
-    return fn
-
-
 def _programs(init, chunk, evaluate, seed, n_batch: int, description: str | None, eval_description: str | None):
     """`run_updates`' three programs, jitted: ``(init, chunk, evaluate or None)``, ``evaluate`` taking ``(carry,
     seed)``. Over several devices, the carry spread over them along its leading axis of ``n_batch`` entries
@@ -211,15 +203,14 @@ def run_updates(
     description: str | None = None,
     seeds: tuple[int, ...] | None = None,
 ) -> Any:
-    """The training loop of our trainers: ``init(key) -> carry`` (parameters, optimiser state, worlds), then
-    ``config.num_evals`` chunks, each a `jax.lax.scan` of ``config.updates_per_eval`` calls of ``update(carry, None)
-    -> (carry, metrics)`` followed by ``evaluate(carry, seed)`` (a pytree of arrays): three compiled programs
-    (`_programs`; ``description`` keys them in the program cache), each chunk dispatched before the previous one's
-    metrics are read and passed to ``progress(env_steps, metrics)`` (the evaluation under ``"eval"``). With
-    ``seeds``, one run per seed (not ``config.seed``) in the three programs mapped over the seeds (`jax.vmap`; over
-    several devices, spread along the seeds): each seed computes its single run, each array gets a seeds axis.
-    Returns ``result(carry)`` of the final carry (a list over ``seeds``); on Ctrl-C raises `Interrupted` with that of
-    the last completed chunk."""
+    """Our trainers' loop: ``init(key) -> carry`` (parameters, optimiser state, worlds), then ``config.num_evals``
+    chunks, each a `jax.lax.scan` of ``config.updates_per_eval`` calls of ``update(carry, None) -> (carry, metrics)``
+    and the trainer's ``evaluate(*result(carry), seed)``: three compiled programs (`_programs`; ``description`` and
+    ``evaluate.description`` key them in the program cache), each chunk dispatched before the previous one's metrics
+    go to ``progress(env_steps, metrics)`` (the evaluation under ``"eval"``). With ``seeds``, one run per seed (not
+    ``config.seed``) in the three programs mapped over the seeds (`jax.vmap`; over several devices, spread along the
+    seeds), each array with a seeds axis. Returns ``result(carry)`` of the final carry (a list over ``seeds``); on
+    Ctrl-C raises `Interrupted` with that of the last completed chunk."""
     # The key is made inside the compiled init from the seed: a key made here would compile programs of its own.
     seed = np.asarray(config.seed if seeds is None else seeds).astype(jax.dtypes.canonicalize_dtype(np.int64))
 
@@ -230,12 +221,14 @@ def run_updates(
         carry, metrics = jax.lax.scan(update, carry, None, length=config.updates_per_eval)
         return carry, {name: value[-1] for name, value in metrics.items()}
 
-    programs = (init_seeded, chunk, evaluate and (lambda carry_and_seed: evaluate(*carry_and_seed)))
-    if seeds is not None:
-        programs = tuple(fn and jax.vmap(fn) for fn in programs)
-    n_batch = n_worlds if seeds is None else len(seeds)
+    def evaluate_seeded(carry_and_seed):  # named: benchmarks/train_cost.py finds the evaluation by its name
+        return evaluate(*result(carry_and_seed[0]), carry_and_seed[1])
+
+    programs = tuple(
+        fn and (fn if seeds is None else jax.vmap(fn)) for fn in (init_seeded, chunk, evaluate and evaluate_seeded)
+    )
     eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
-    init_c, chunk_c, eval_c = _programs(*programs, seed, n_batch, description, eval_description)
+    init_c, chunk_c, eval_c = _programs(*programs, seed, len(seeds or ()) or n_worlds, description, eval_description)
 
     def results(carry):
         if seeds is None:

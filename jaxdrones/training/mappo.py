@@ -35,7 +35,6 @@ from jaxdrones._validate import check_fields
 from jaxdrones.envs.base import Env, EnvState
 from jaxdrones.training.common import (
     Schedule,
-    described,
     param_maps,
     program_description,
     run_updates,
@@ -451,15 +450,5 @@ def train(
     def result(carry):
         return nets, {**unravel(carry[0]), "norm": carry[1]}
 
-    run_eval = None if evaluate is None else described(lambda carry, seed: evaluate(*result(carry), seed), evaluate)
-    return run_updates(
-        config,
-        init,
-        update,
-        result,
-        config.num_envs,
-        progress,
-        run_eval,
-        description=program_description(config, env),
-        seeds=seeds,
-    )
+    description = program_description(config, env)
+    return run_updates(config, init, update, result, config.num_envs, progress, evaluate, description, seeds)

@@ -28,7 +28,7 @@ import numpy as np
 from jaxdrones._validate import check_fields
 from jaxdrones.envs.base import Env
 from jaxdrones.training.apg import APGConfig, make_network
-from jaxdrones.training.common import described, mlp, param_maps, program_description, run_updates
+from jaxdrones.training.common import mlp, param_maps, program_description, run_updates
 
 if TYPE_CHECKING:
     from flax import linen
@@ -231,15 +231,5 @@ def train(
     def result(carry):
         return actor, unravel_actor(carry[0])
 
-    run_eval = None if evaluate is None else described(lambda carry, seed: evaluate(*result(carry), seed), evaluate)
-    return run_updates(
-        config,
-        init,
-        update,
-        result,
-        config.num_envs,
-        progress,
-        run_eval,
-        description=program_description(config, env),
-        seeds=seeds,
-    )
+    description = program_description(config, env)
+    return run_updates(config, init, update, result, config.num_envs, progress, evaluate, description, seeds)
