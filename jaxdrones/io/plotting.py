@@ -161,20 +161,27 @@ def plot_learning_curve(
     steps = np.array([row["env_steps"] for row in history], dtype=float)
     fig, (ax_r, ax_d) = plt.subplots(1, 2, figsize=(10, 3.8))
     ax_r.plot(steps, [row["episode_reward"] for row in history], marker="o")
-    ax_r.set_ylabel("evaluation episode return")
     ax_d.plot(steps, [row[metric] for row in history], marker="o", color="tab:red", label="evaluation")
+    _curve_axes(ax_r, ax_d, metric_label, threshold)
     if threshold is not None:
-        ax_d.axhline(threshold, color="k", linestyle="--", linewidth=1, label=f"solved below {threshold:g}")
         ax_d.legend(loc="upper right")
-    ax_d.set_ylabel(metric_label)
-    ax_d.set_yscale("log")
+    return _save(plt, fig, path, title)
+
+
+def _curve_axes(ax_return, ax_metric, metric_label: str, threshold: float | None) -> None:
+    """The axes of a learning curve: env steps (200k, 1M: no overlapping tick labels) against the evaluation return
+    and the metric (log scale), with the threshold as a dashed line."""
     from matplotlib.ticker import EngFormatter
 
-    for ax in (ax_r, ax_d):
+    ax_return.set_ylabel("evaluation episode return")
+    ax_metric.set_ylabel(metric_label)
+    ax_metric.set_yscale("log")
+    if threshold is not None:
+        ax_metric.axhline(threshold, color="k", linestyle="--", linewidth=1, label=f"solved below {threshold:g}")
+    for ax in (ax_return, ax_metric):
         ax.set_xlabel("env steps")
-        ax.xaxis.set_major_formatter(EngFormatter())  # 200k, 1M: no overlapping tick labels
+        ax.xaxis.set_major_formatter(EngFormatter())
         ax.grid(alpha=0.3)
-    return _save(plt, fig, path, title)
 
 
 def plot_learning_curves(
@@ -196,27 +203,16 @@ def plot_learning_curves(
         ``path`` as a string.
     """
     plt = _pyplot()
-    from matplotlib.ticker import EngFormatter
-
     n = min(len(h) for h in histories)
     steps = np.array([row["env_steps"] for row in histories[0][:n]], dtype=float)
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-    for ax, key, color, label in (
-        (axes[0], "episode_reward", "tab:blue", "evaluation episode return"),
-        (axes[1], "success_value", "tab:red", metric_label),
-    ):
+    for ax, key, color in ((axes[0], "episode_reward", "tab:blue"), (axes[1], "success_value", "tab:red")):
         values = np.array([[row[key] for row in h[:n]] for h in histories], dtype=float)
         for run in values:
             ax.plot(steps, run, color=color, alpha=0.3, linewidth=0.8)
         ax.fill_between(steps, values.min(0), values.max(0), color=color, alpha=0.15, linewidth=0)
         ax.plot(steps, np.median(values, 0), color=color, marker="o", label=f"median of {len(histories)} seeds")
-        ax.set_ylabel(label)
-        ax.set_xlabel("env steps")
-        ax.xaxis.set_major_formatter(EngFormatter())
-        ax.grid(alpha=0.3)
-    axes[1].set_yscale("log")
-    if threshold is not None:
-        axes[1].axhline(threshold, color="k", linestyle="--", linewidth=1, label=f"solved below {threshold:g}")
+    _curve_axes(*axes, metric_label, threshold)
     axes[1].legend(loc="upper right")
     return _save(plt, fig, path, title)
 

@@ -196,8 +196,8 @@ def train_task(
         bar.close()
     phases["train"] = train_time = time.perf_counter() - t_train
     if not writer:
-        steps = [log.history[-1]["env_steps"] if log.history else 0 for log in logs]
-        return {"process_index": jax.process_index(), "env_steps": steps[0], "interrupted": interrupted}
+        steps = logs[0].history[-1]["env_steps"] if logs[0].history else 0
+        return {"process_index": jax.process_index(), "env_steps": steps, "interrupted": interrupted}
     source = provenance()  # the same for every seed
     settings = dict(run=run, algo=algo, config=config, env=env, phases=phases, train_time=train_time, source=source)
     if seed_list is None:
