@@ -406,7 +406,7 @@ def test_ppo_noise_per_window_draws_an_unrolls_noise_before_it(monkeypatch):
     env = jd.make("hover")
     for per_window in (False, True):
         built = {}
-        monkeypatch.setattr(mappo, "run_updates", lambda config, init, update, *a, **k: built.update(i=init, u=update))
+        monkeypatch.setattr(mappo, "run_updates", lambda config, build, *a, **k: built.update(zip("iu", build(config))))
         config = mappo.MAPPOConfig(
             num_timesteps=36,
             num_envs=4,
@@ -739,19 +739,20 @@ def test_a_run_saved_with_the_physics_options_at_the_top_level_loads_and_flies()
 
 
 #: Each trainer of the table at a budget of a few updates, on a task it trains: (task, env options, config fields).
-#: (ppo and ippo are `jaxdrones.training.mappo.train` with a local critic, SHAC maps its seeds in the command line's
-#: test below: each training function of the table once.)
+#: (ppo and ippo are `jaxdrones.training.mappo.train` with a local critic: each training function of the table once.)
 SEEDED = {
     "apg": ("hover", {}, dict(num_envs=4, horizon=8)),
+    "shac": ("hover", {}, dict(num_envs=4, horizon=8, critic_minibatches=2)),
     "mappo": ("leader_follower", {}, dict(num_envs=4, unroll_length=8, minibatches=2)),
 }
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", SEEDED)
-def test_mapped_seeds_train_what_each_single_run_trains(algo):
-    """``seeds=(0, 1)``: one program mapped over the seeds, whose seed 1 trains the parameters and evaluates the
-    outcomes of the single run of seed 1, within float rounding."""
+def test_mapped_runs_train_what_each_single_run_trains(algo):
+    """Two runs as one program mapped over them, the second with another seed and every float setting of the
+    config changed: the second trains the parameters and evaluates the outcomes of its single run, within float
+    rounding."""
     import jaxdrones as jd
     from jaxdrones.training import trainers
     from jaxdrones.training.recipes import recipe
@@ -759,16 +760,18 @@ def test_mapped_seeds_train_what_each_single_run_trains(algo):
 
     task, options, fields = SEEDED[algo]
     trainer, env = trainers.get(algo), jd.make(task, **options)
-    config = dataclasses.replace(recipe(task, "cpu", options, algo).config, **fields, num_evals=2, seed=1)
+    config = dataclasses.replace(recipe(task, "cpu", options, algo).config, **fields, num_evals=2, seed=0)
     config = dataclasses.replace(config, num_timesteps=2 * config.steps_per_update * 2)
+    values = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
+    second = dataclasses.replace(config, seed=1, **{k: 0.9 * v for k, v in values.items() if type(v) is float})
     evaluate = eval_program(env, trainer, 64) if algo == "apg" else None  # the evaluation's seed: once is enough
     seen = {"mapped": [], "single": []}
-    both = trainer.train(env, config, lambda s, m: seen["mapped"].append(m), evaluate, seeds=(0, 1))
-    _, single = trainer.train(env, config, lambda s, m: seen["single"].append(m), evaluate)
+    both = trainer.train(env, config, lambda s, m: seen["mapped"].append(m), evaluate, runs=(config, second))
+    _, single = trainer.train(env, second, lambda s, m: seen["single"].append(m), evaluate)
     assert len(both) == 2 and [len(seen[k]) for k in seen] == [2, 2]
     for got, want in zip(jax.tree.leaves(both[1][1]), jax.tree.leaves(single), strict=True):
-        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)
-    assert not np.allclose(jax.tree.leaves(both[0][1])[0], jax.tree.leaves(single)[0])  # seed 0 is another run
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+    assert not np.allclose(jax.tree.leaves(both[0][1])[0], jax.tree.leaves(single)[0])  # the first is another run
     if evaluate is None:
         return
     outcomes = jax.tree.map(lambda x: x[1], seen["mapped"][-1]["eval"]["outcomes"])
@@ -828,3 +831,55 @@ def test_train_cli_seeds_write_each_run_and_their_aggregate(tmp_path, capsys):
         stats = evaluate(env, policy, jax.random.split(jax.random.key(seed + 1))[0], 64)
         assert stats["final_pos_error_m"] == pytest.approx(one["eval_final_pos_error_m"], abs=1e-5)
     assert main([*args, "--seeds", "0", "--out", str(tmp_path / "none"), "--no-progress"]) == 2
+
+
+@pytest.mark.slow
+def test_train_cli_sweep_maps_float_settings_and_compiles_a_program_per_shape(tmp_path, capsys):
+    """``--sweep learning_rate=...`` (mapped with the seeds) ``--sweep horizon=...`` (a program per horizon): a run
+    folder per setting and seed, each loading alone with its own settings, and each setting's aggregate."""
+    from jaxdrones.training.run import aggregate
+
+    run = tmp_path / "sweep"
+    args = ["train", "hover", "--steps", "2048", "--num-envs", "8", "--num-evals", "2", "--eval-episodes", "64"]
+    sweep = ["--sweep", "learning_rate=1e-3,4e-3", "--sweep", "horizon=8,16", "--seeds", "2"]
+    assert main([*args, *sweep, "--out", str(run), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "8 runs as 2 programs" in out and "horizon changes the program" in out and "learning_rate are mapped" in out
+    assert "learning_rate=0.004,horizon=16: seed 1:" in out and "2 compiled programs" in out
+    settings = [f"learning_rate={lr},horizon={h}" for lr in (0.001, 0.004) for h in (8, 16)]
+    assert sorted(p.name for p in run.iterdir()) == sorted(
+        ["learning_curve.png", "progress.json", "summary.json", *settings]
+    )
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["programs"] == 2 and summary["sweep"] == {"learning_rate": [0.001, 0.004], "horizon": [8, 16]}
+    assert [s["setting"] for s in summary["settings"]] == [
+        {"learning_rate": lr, "horizon": h} for lr in (0.001, 0.004) for h in (8, 16)
+    ]
+    for label, setting in zip(settings, summary["settings"], strict=True):
+        runs = setting["runs"]
+        assert [r["seed"] for r in runs] == [0, 1]
+        assert setting["aggregate"] == aggregate([r["success_value"] for r in runs], [r["success"] for r in runs])
+        one = json.loads((run / label / "seed_1" / "summary.json").read_text())
+        assert {k: one["config"][k] for k in setting["setting"]} == setting["setting"] and one["config"]["seed"] == 1
+        assert one["success_value"] == runs[1]["success_value"]
+    env, policy = load_policy(run / settings[-1] / "seed_1")
+    stats = evaluate(env, policy, jax.random.split(jax.random.key(1 + 1))[0], 64)
+    assert stats["success_value"] == pytest.approx(summary["settings"][-1]["runs"][1]["success_value"], rel=1e-3)
+    assert len(json.loads((run / "progress.json").read_text())) == 8
+
+
+@pytest.mark.parametrize(
+    "sweep, message",
+    [
+        ("learning_rat=1e-3,2e-3", "did you mean 'learning_rate'"),
+        ("learning_rate=fast", "takes float values"),
+        ("horizon=8.5", "takes int values"),
+        ("hidden_layer_sizes=64", "numbers or true/false"),
+        ("seed=1,2", "--seeds"),
+        ("learning_rate=1e-3,1e-3", "distinct values"),
+        ("learning_rate", "NAME=V1,V2"),
+    ],
+)
+def test_train_cli_refuses_a_bad_sweep(sweep, message, capsys):
+    assert main(["train", "hover", "--sweep", sweep, "--no-progress", "--out", "unused"]) == 2
+    assert message in capsys.readouterr().err

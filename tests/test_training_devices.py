@@ -47,7 +47,8 @@ for name, algo, task, env_kw, kw in cases:
     seen = []
     outcomes = lambda n, p, seed: episode_outcomes(env, trainer.make_policy(n, p), keys)[0]
     if name.endswith("_seeds"):
-        network, params = trainer.train(env, config, lambda steps, m: seen.append(m["eval"]), outcomes, seeds=(0, 1))[1]
+        runs = tuple(dataclasses.replace(config, seed=s) for s in (0, 1))
+        network, params = trainer.train(env, config, lambda steps, m: seen.append(m["eval"]), outcomes, runs=runs)[1]
         seen = [jax.tree.map(lambda x: x[1], m) for m in seen]
     else:
         network, params = trainer.train(env, config, lambda steps, m: seen.append(m["eval"]), outcomes)
@@ -312,7 +313,7 @@ def test_second_run_loads_the_traced_program_and_trains_the_same(tmp_path):
     first, log_first = run("first")
     assert len(list(programs.glob("*.jaxexport"))) == 3  # the init, the chunk of updates and the evaluation
     assert traced.search(log_first)
-    init_traced = re.compile(r"Finished tracing (\+ transforming )?init_seeded")  # jax.eval_shape's trace
+    init_traced = re.compile(r"Finished tracing (\+ transforming )?init_run")  # jax.eval_shape's trace
     assert len(list(programs.glob("*.shapes"))) == 1 and init_traced.search(log_first)
     # One compilation of each program for all its calls: the first call's input (from init) and the later calls'
     # (the chunk's own output) are committed to the device alike.

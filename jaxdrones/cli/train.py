@@ -12,7 +12,7 @@ from jaxdrones.envs.config import START_RPMS
 from jaxdrones.io.runs import enable_compilation_cache
 from jaxdrones.training import trainers
 from jaxdrones.training.recipes import recipe
-from jaxdrones.training.run import train_task
+from jaxdrones.training.run import setting_label, train_task
 from jaxdrones.training.trainers import ALGOS, TRAINABLE
 
 
@@ -70,6 +70,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="train N independent runs, seeds --seed to --seed + N - 1, as one program mapped over the seeds (brax_ppo:"
         " one after another): each seed's run in seed_<k>/ of the output folder, and there the summary of all with"
         " their median, interquartile mean and its 95%% bootstrap interval, and the share solved",
+    )
+    ppo.add_argument(
+        "--sweep",
+        action="append",
+        default=[],
+        metavar="NAME=V1,V2,...",
+        help="train a run for each value of the trainer's setting NAME (a field of its config, e.g. learning_rate,"
+        " entropy_cost, discounting; repeatable: every combination), each with the seeds of --seeds, in"
+        " NAME=V/seed_<k>/ of the output folder, with each setting's aggregate in summary.json. Float settings are"
+        " mapped with the seeds in one program; a setting that changes shapes or steps (num_envs, horizon, ...)"
+        " trains as a program of its own, after the previous one",
     )
     ppo.add_argument(
         "--num-evals",
@@ -330,6 +341,51 @@ def realism_options(preset: str | None, settings: list[str]) -> str | dict | Non
     return options
 
 
+def sweep_options(config, settings: list[str]) -> dict[str, list] | None:
+    """``--sweep``'s NAME=V1,V2,... settings as `jaxdrones.training.run.train_task`'s ``sweep``, each value read as
+    the type of the field's value in ``config`` (a number, or true/false), or None without any.
+
+    Raises:
+        ValueError: a setting that is not NAME=V1,V2,..., a name given twice, a name that is not one of ``config``'s
+            fields (with the closest ones), a value of another type, or a field that takes no single number or
+            switch (a tuple, a name).
+    """
+    if not settings:
+        return None
+    import dataclasses
+
+    from jaxdrones._hints import unknown_option
+
+    fields = {field.name: getattr(config, field.name) for field in dataclasses.fields(config)}
+    sweep = {}
+    for setting in settings:
+        name, sep, text = (part.strip() for part in setting.partition("="))
+        if not sep or not name or not text:
+            raise ValueError(f"--sweep takes NAME=V1,V2,..., got {setting!r}")
+        if name in sweep:
+            raise ValueError(f"--sweep {name} is given twice")
+        if name not in fields:
+            raise ValueError(unknown_option(f"--sweep ({type(config).__name__})", name, fields))
+        kind = type(fields[name])
+        if kind not in (int, float, bool):
+            raise ValueError(f"--sweep takes settings that are numbers or true/false; {name} is {fields[name]!r}")
+        words = [word.strip() for word in text.split(",")]
+        try:
+            sweep[name] = [_read(kind, word) for word in words]
+        except ValueError:
+            raise ValueError(f"--sweep {name} takes {kind.__name__} values, got {text!r}") from None
+    return sweep
+
+
+def _read(kind: type, word: str):
+    """A --sweep value of type ``kind`` (int, float or bool)."""
+    if kind is bool:
+        if word.lower() not in ("true", "false"):
+            raise ValueError(word)
+        return word.lower() == "true"
+    return kind(word)
+
+
 def _positive(name: str, value) -> None:
     if value is not None:
         check_int(name, value)
@@ -387,6 +443,7 @@ def run_cli(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             t_start=getattr(args, "t_start", None),
             seeds=args.seeds,
+            sweep=sweep_options(run.config, args.sweep),
         )
     except (ValueError, OSError, ImportError, devices.DeviceError) as err:
         print(f"jaxdrones train: error: {err}", file=sys.stderr)
@@ -396,7 +453,7 @@ def run_cli(args: argparse.Namespace) -> int:
         return 130
     if "out_dir" not in summary:  # a process other than 0: process 0 reports and saves
         return 0
-    if "aggregate" in summary:
+    if "seeds" in summary:  # several seeds or settings
         return _report_seeds(summary)
     if summary["interrupted"]:
         print(
@@ -420,23 +477,28 @@ def run_cli(args: argparse.Namespace) -> int:
 
 
 def _report_seeds(summary: dict) -> int:
-    """Print a run of several seeds: each seed's result and the aggregate."""
-    for run in summary["runs"]:
-        verdict = "solved" if run["success"] else "not solved"
-        print(f"seed {run['seed']}: {verdict}, {summary['success_metric']} {run['success_value']:.4g}")
-    agg = summary["aggregate"]
-    low, high = agg["iqm_ci95"] or (None, None)
-    interval = "" if low is None else f" (95% CI {low:.4g} to {high:.4g})"
+    """Print a run of several seeds or settings: each run's result and each setting's aggregate."""
+    metric, threshold = summary["success_metric"], summary["success_threshold"]
+    for label, part in [(f"{setting_label(s['setting'])}: ", s) for s in summary.get("settings", [])] or [
+        ("", summary)
+    ]:
+        for run in part["runs"]:
+            verdict = "solved" if run["success"] else "not solved"
+            print(f"{label}seed {run['seed']}: {verdict}, {metric} {run['success_value']:.4g}")
+        agg = part["aggregate"]
+        low, high = agg["iqm_ci95"] or (None, None)
+        interval = "" if low is None else f" (95% CI {low:.4g} to {high:.4g})"
+        print(
+            f"{label}{agg['solved_share']:.0%} of {agg['n_seeds']} seeds solved (threshold {threshold:g}); "
+            f"median {agg['median']:.4g}, interquartile mean {agg['iqm']:.4g}{interval}"
+        )
+    folders = "NAME=V/seed_<k>/" if "settings" in summary else "seed_<k>/"
     print(
-        f"{agg['solved_share']:.0%} of {agg['n_seeds']} seeds solved (threshold {summary['success_threshold']:g}); "
-        f"median {agg['median']:.4g}, interquartile mean {agg['iqm']:.4g}{interval}; "
-        f"{summary['wall_time_s']:.1f} s wall time"
-    )
-    print(
-        f"saved seed_<k>/ (each seed's policy.pkl and summary.json), learning_curve.png, summary.json in "
-        f"{summary['out_dir']}"
+        f"{summary['wall_time_s']:.1f} s wall time, {summary['programs']} compiled program"
+        f"{'s' * (summary['programs'] > 1)}; saved {folders} (each run's policy.pkl and summary.json), "
+        f"learning_curve.png, summary.json in {summary['out_dir']}"
     )
     if summary["interrupted"]:
-        print("interrupted: the seeds' policies so far are saved", file=sys.stderr)
+        print("interrupted: the runs' policies so far are saved", file=sys.stderr)
         return 130
     return 0

@@ -188,15 +188,18 @@ def plot_learning_curves(
     histories: Sequence[Sequence[Mapping]],
     path: str | os.PathLike,
     *,
+    groups: Sequence[str] | None = None,
     title: str | None = None,
     metric_label: str = "final distance (m)",
     threshold: float | None = None,
 ) -> str:
     """Plot the evaluation return and the success metric (``success_value``) of several runs (seeds) against env
-    steps: each run thin, the runs' median thick, the band between their lowest and highest value.
+    steps: each run thin, the runs' median thick, the band between their lowest and highest value; with ``groups``,
+    one colour, median and band per group (e.g. a sweep's settings).
 
     Args:
         histories: one list of rows per run, as `plot_learning_curve` takes (the runs evaluated at the same steps).
+        groups: each run's group, as its legend label (default: one group).
         path, title, metric_label, threshold: as `plot_learning_curve`.
 
     Returns:
@@ -205,15 +208,21 @@ def plot_learning_curves(
     plt = _pyplot()
     n = min(len(h) for h in histories)
     steps = np.array([row["env_steps"] for row in histories[0][:n]], dtype=float)
+    labels = list(groups) if groups is not None else [""] * len(histories)
+    names = list(dict.fromkeys(labels))
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     for ax, key, color in ((axes[0], "episode_reward", "tab:blue"), (axes[1], "success_value", "tab:red")):
-        values = np.array([[row[key] for row in h[:n]] for h in histories], dtype=float)
-        for run in values:
-            ax.plot(steps, run, color=color, alpha=0.3, linewidth=0.8)
-        ax.fill_between(steps, values.min(0), values.max(0), color=color, alpha=0.15, linewidth=0)
-        ax.plot(steps, np.median(values, 0), color=color, marker="o", label=f"median of {len(histories)} seeds")
+        for g, name in enumerate(names):
+            shade = color if len(names) == 1 else f"C{g % 10}"
+            runs = [h for h, label in zip(histories, labels, strict=True) if label == name]
+            values = np.array([[row[key] for row in h[:n]] for h in runs], dtype=float)
+            for run in values:
+                ax.plot(steps, run, color=shade, alpha=0.3, linewidth=0.8)
+            ax.fill_between(steps, values.min(0), values.max(0), color=shade, alpha=0.15, linewidth=0)
+            legend = f"{name + ': ' if name else ''}median of {len(values)} seeds"
+            ax.plot(steps, np.median(values, 0), color=shade, marker="o", label=legend)
     _curve_axes(*axes, metric_label, threshold)
-    axes[1].legend(loc="upper right")
+    axes[1].legend(loc="upper right", fontsize="small" if len(names) > 1 else None)
     return _save(plt, fig, path, title)
 
 

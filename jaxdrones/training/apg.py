@@ -15,7 +15,7 @@ The policy is an MLP (tanh hidden layers, tanh output in the action box), determ
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import jax
@@ -124,22 +124,22 @@ def train(
     config: APGConfig = APGConfig(),
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable[..., dict] | None = None,
-    seeds: tuple[int, ...] | None = None,
+    runs: Sequence[APGConfig] | None = None,
 ) -> tuple[linen.Module, Any]:
     """Train a policy on ``env`` (one world; D drones share the policy, each seeing its own observation).
 
     Args:
         env: a jaxdrones env without camera images.
         config: `APGConfig`.
-        progress, evaluate, seeds: as every trainer takes them (`jaxdrones.training.trainers`); the metrics are
+        progress, evaluate, runs: as every trainer takes them (`jaxdrones.training.trainers`); the metrics are
             ``train/loss``, the mean window loss of the last update, ``train/grad_norm``.
 
     Raises:
         jaxdrones.training.common.Interrupted: on Ctrl-C, with the result of the last completed chunk.
 
     Returns:
-        ``(network, params)``: the flax module and its trained parameters (see `make_policy`); with ``seeds``, a list
-        of one per seed.
+        ``(network, params)``: the flax module and its trained parameters (see `make_policy`); with ``runs``, a list
+        of one per run.
     """
     import optax
 
@@ -149,36 +149,40 @@ def train(
     auto = VmapAutoReset(env)
     batched_loss = jax.vmap(env.loss, in_axes=(world_axes(auto.params_shared),))
     network = make_network(config, env)
-    optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.schedule()))
-
     obs0 = np.zeros((env.observation_size,), env.dtype)
-    ravel, unravel = param_maps(jax.eval_shape(lambda: network.init(jax.random.key(0), obs0)), config.flat_params)
 
-    def window_loss(flat, state):
-        params = unravel(flat)
-        starts = auto.starts(state) if config.starts_per_window else None  # the worlds' next episodes
+    def build(config):
+        """The trainer's functions (`jaxdrones.training.common.run_updates`)."""
+        optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.schedule()))
+        ravel, unravel = param_maps(jax.eval_shape(lambda: network.init(jax.random.key(0), obs0)), config.flat_params)
 
-        def body(s, _):
-            ended, s = auto.step_ended(s, network.apply(params, s.obs), starts)
-            return s, jnp.mean(batched_loss(ended))  # the loss of the step, also where it ended an episode
+        def window_loss(flat, state):
+            params = unravel(flat)
+            starts = auto.starts(state) if config.starts_per_window else None  # the worlds' next episodes
 
-        state, losses = jax.lax.scan(body, state, None, length=config.horizon)
-        return jnp.mean(losses), state
+            def body(s, _):
+                ended, s = auto.step_ended(s, network.apply(params, s.obs), starts)
+                return s, jnp.mean(batched_loss(ended))  # the loss of the step, also where it ended an episode
 
-    def update(carry, _):
-        params, opt_state, state = carry
-        (loss, state), grad = jax.value_and_grad(window_loss, has_aux=True)(params, state)
-        updates, opt_state = optimizer.update(grad, opt_state, params)
-        carry = (optax.apply_updates(params, updates), opt_state, jax.lax.stop_gradient(state))
-        return carry, {"train/loss": loss, "train/grad_norm": optax.tree.norm(grad)}
+            state, losses = jax.lax.scan(body, state, None, length=config.horizon)
+            return jnp.mean(losses), state
 
-    def init(key):
-        key_init, key_reset = jax.random.split(key)
-        params = ravel(network.init(key_init, obs0))
-        return params, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs))
+        def update(carry, _):
+            params, opt_state, state = carry
+            (loss, state), grad = jax.value_and_grad(window_loss, has_aux=True)(params, state)
+            updates, opt_state = optimizer.update(grad, opt_state, params)
+            carry = (optax.apply_updates(params, updates), opt_state, jax.lax.stop_gradient(state))
+            return carry, {"train/loss": loss, "train/grad_norm": optax.tree.norm(grad)}
 
-    def result(carry):
-        return network, unravel(carry[0])
+        def init(key):
+            key_init, key_reset = jax.random.split(key)
+            params = ravel(network.init(key_init, obs0))
+            return params, optimizer.init(params), auto.reset(jax.random.split(key_reset, config.num_envs))
+
+        def result(carry):
+            return network, unravel(carry[0])
+
+        return init, update, result
 
     description = program_description(config, env)
-    return run_updates(config, init, update, result, config.num_envs, progress, evaluate, description, seeds)
+    return run_updates(config, build, config.num_envs, progress, evaluate, description, runs)

@@ -4,8 +4,10 @@ loop."""
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import jax
@@ -165,90 +167,139 @@ def program_description(config: object, env: Env) -> str:
     return f"{type(config).__module__}.{config!r}\n{type(env).__name__} {env.task.name} {env.config!r}"
 
 
-def _programs(init, chunk, evaluate, seed, n_batch: int, description: str | None, eval_description: str | None):
-    """`run_updates`' three programs, jitted: ``(init, chunk, evaluate or None)``, ``evaluate`` taking ``(carry,
-    seed)``. Over several devices, the carry spread over them along its leading axis of ``n_batch`` entries
-    (`world_shardings`: the worlds, or the seeds of a mapped run); on one, loaded from the program cache
-    (`jaxdrones.training.programs`) where ``description`` and the evaluation's own ``description`` name them and the
-    cache is on."""
+def mapped_fields(config: Schedule, runs: Sequence[Schedule]) -> tuple[str, ...]:
+    """The fields other than ``seed`` whose values differ between ``runs`` and ``config``: `run_updates` maps each
+    over the runs as an input of the compiled programs, so each must be a float (a step size, a discount, a weight).
+
+    Raises:
+        ValueError: no runs, a run of another config class, or one that differs in a field that is not a float (a
+            count, a shape, a switch: it changes the program, so it is trained as a program of its own).
+    """
+    if not runs:
+        raise ValueError("runs must hold at least one config")
+    for run in runs:
+        if type(run) is not type(config):
+            raise ValueError(f"runs must be {type(config).__name__}s, got {type(run).__name__}")
+    names = []
+    for field in dataclasses.fields(config):
+        values = [getattr(run, field.name) for run in runs]
+        if field.name == "seed" or all(value == getattr(config, field.name) for value in values):
+            continue
+        if not all(type(value) is float for value in [*values, getattr(config, field.name)]):
+            raise ValueError(
+                f"runs mapped in one program differ only in their seed and float fields; {field.name!r} takes "
+                f"{sorted({repr(v) for v in values})} (train each value as its own program)"
+            )
+        names.append(field.name)
+    return tuple(names)
+
+
+def traced_config(config: Schedule, values: Mapping[str, Any]) -> Schedule:
+    """``config`` with the fields of ``values`` set to them (inside a trace: arrays, a mapped run's own values;
+    `mapped_fields`), without the config's checks, which every run's config passed."""
+    if not values:
+        return config
+    traced = copy.copy(config)
+    for name, value in values.items():
+        object.__setattr__(traced, name, value)
+    return traced
+
+
+def _programs(init, chunk, evaluate, inputs, n_batch: int, description: str | None, eval_description: str | None):
+    """`run_updates`' three programs, jitted: ``(init, chunk, evaluate or None)``. Over several devices, the carry
+    spread over them along its leading axis of ``n_batch`` entries (`world_shardings`: the worlds, or the runs of a
+    mapped run); on one, loaded from the program cache (`jaxdrones.training.programs`) where ``description`` and the
+    evaluation's own ``description`` name them and the cache is on."""
     from jaxdrones.training.programs import cache_folder, cached_eval_shape, cached_jit
 
     cached = description is not None and eval_description is not None and cache_folder() is not None
-    shapes = cached_eval_shape(init, seed, f"{description}\ninit" if cached else None)
+    shapes = cached_eval_shape(init, inputs, f"{description}\ninit" if cached else None)
     shardings = world_shardings(shapes, n_batch)
     if shardings is not None:
         replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())
         return (
             jax.jit(init, out_shardings=shardings),
             jax.jit(chunk, in_shardings=(shardings,), out_shardings=(shardings, replicated)),
-            evaluate and jax.jit(evaluate, in_shardings=((shardings, replicated),), out_shardings=replicated),
+            evaluate and jax.jit(evaluate, in_shardings=(shardings,), out_shardings=replicated),
         )
     if not cached:
         return jax.jit(init), jax.jit(chunk), evaluate and jax.jit(evaluate)
     return (
-        cached_jit(init, seed, f"{description}\ninit"),
+        cached_jit(init, inputs, f"{description}\ninit"),
         cached_jit(chunk, shapes, f"{description}\nchunk"),
-        evaluate and cached_jit(evaluate, (shapes, seed), f"{description}\n{eval_description}"),
+        evaluate and cached_jit(evaluate, shapes, f"{description}\n{eval_description}"),
     )
 
 
 def run_updates(
     config: Schedule,
-    init: Callable,
-    update: Callable,
-    result: Callable,
+    build: Callable[[Schedule], tuple[Callable, Callable, Callable]],
     n_worlds: int,
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable | None = None,
     description: str | None = None,
-    seeds: tuple[int, ...] | None = None,
+    runs: Sequence[Schedule] | None = None,
 ) -> Any:
-    """Our trainers' loop: ``init(key) -> carry`` (parameters, optimiser state, worlds), then ``config.num_evals``
-    chunks, each a `jax.lax.scan` of ``config.updates_per_eval`` calls of ``update(carry, None) -> (carry, metrics)``
-    and the trainer's ``evaluate(*result(carry), seed)``: three compiled programs (`_programs`; ``description`` and
-    ``evaluate.description`` key them in the program cache), each chunk dispatched before the previous one's metrics
-    go to ``progress(env_steps, metrics)`` (the evaluation under ``"eval"``). With ``seeds``, one run per seed (not
-    ``config.seed``) in the three programs mapped over the seeds (`jax.vmap`; over several devices, spread along the
-    seeds), each array with a seeds axis. Returns ``result(carry)`` of the final carry (a list over ``seeds``); on
-    Ctrl-C raises `Interrupted` with that of the last completed chunk."""
-    # The key is made inside the compiled init from the seed: a key made here would compile programs of its own.
-    seed = np.asarray(config.seed if seeds is None else seeds).astype(jax.dtypes.canonicalize_dtype(np.int64))
+    """Our trainers' loop. ``build(config) -> (init, update, result)`` gives the trainer's ``init(key) -> carry``
+    (parameters, optimiser state, worlds), ``update(carry, None) -> (carry, metrics)`` and ``result(carry) ->
+    (network, params)``; then ``config.num_evals`` chunks, each a `jax.lax.scan` of ``config.updates_per_eval``
+    updates and the trainer's ``evaluate(network, params, seed)``: three compiled programs (`_programs`;
+    ``description`` and ``evaluate.description`` key them in the program cache), each chunk dispatched before the
+    previous one's metrics go to ``progress(env_steps, metrics)`` (the evaluation under ``"eval"``).
 
-    def init_seeded(seed):
-        return init(jax.random.key(seed))
+    With ``runs`` (configs of ``config``'s class that differ from it in their seed and float fields,
+    `mapped_fields`), one run per config in the three programs mapped over the runs (`jax.vmap`; over several
+    devices, spread along the runs), each array with a runs axis: the seeds and those fields are the programs'
+    inputs, and ``build`` sees them as arrays (`traced_config`). Returns ``result`` of the final carry (a list over
+    ``runs``); on Ctrl-C raises `Interrupted` with that of the last completed chunk."""
+    fields = () if runs is None else mapped_fields(config, runs)
+    group = [config] if runs is None else runs
+    # The key is made inside the compiled init from the seed: a key made here would compile programs of its own.
+    seeds = np.asarray([run.seed for run in group]).astype(jax.dtypes.canonicalize_dtype(np.int64))
+    values = {name: np.asarray([getattr(run, name) for run in group], np.float32) for name in fields}
+    inputs = (seeds, values) if runs is not None else (seeds[0], {})
+    result = build(config)[2]  # the network and the parameters' layout: the same for every run
+
+    def init_run(inputs):
+        init = build(traced_config(config, inputs[1]))[0]
+        return inputs, init(jax.random.key(inputs[0]))
 
     def chunk(carry):
-        carry, metrics = jax.lax.scan(update, carry, None, length=config.updates_per_eval)
-        return carry, {name: value[-1] for name, value in metrics.items()}
+        inputs, state = carry
+        update = build(traced_config(config, inputs[1]))[1]
+        state, metrics = jax.lax.scan(update, state, None, length=config.updates_per_eval)
+        return (inputs, state), {name: value[-1] for name, value in metrics.items()}
 
-    def evaluate_seeded(carry_and_seed):  # named: benchmarks/train_cost.py finds the evaluation by its name
-        return evaluate(*result(carry_and_seed[0]), carry_and_seed[1])
+    def evaluate_run(carry):  # named: benchmarks/train_cost.py finds the evaluation by its name
+        return evaluate(*result(carry[1]), carry[0][0])
 
     programs = tuple(
-        fn and (fn if seeds is None else jax.vmap(fn)) for fn in (init_seeded, chunk, evaluate and evaluate_seeded)
+        fn and (fn if runs is None else jax.vmap(fn)) for fn in (init_run, chunk, evaluate and evaluate_run)
     )
     eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
-    init_c, chunk_c, eval_c = _programs(*programs, seed, len(seeds or ()) or n_worlds, description, eval_description)
+    init_c, chunk_c, eval_c = _programs(
+        *programs, inputs, len(group) if runs else n_worlds, description, eval_description
+    )
 
     def results(carry):
-        if seeds is None:
-            return result(carry)
-        return [result(jax.tree.map(lambda x, k=k: x[k], carry)) for k in range(len(seeds))]
+        if runs is None:
+            return result(carry[1])
+        return [result(jax.tree.map(lambda x, k=k: x[k], carry[1])) for k in range(len(runs))]
 
     carry, done = None, 0
     try:
-        carry = init_c(seed)
+        carry = init_c(inputs)
         pending = chunk_c(carry)
         for k in range(1, config.num_evals + 1):
             finished, metrics = pending
             if eval_c is not None:
-                metrics = {**metrics, "eval": eval_c((finished, seed))}
+                metrics = {**metrics, "eval": eval_c(finished)}
             if k < config.num_evals:
                 pending = chunk_c(finished)  # runs while this chunk's metrics are read and shown
             metrics = jax.tree.map(host_array, metrics)
             carry, done = finished, k * config.updates_per_eval * config.steps_per_update
             if progress is not None:
-                progress(done, metrics if seeds else {k: v if k == "eval" else float(v) for k, v in metrics.items()})
+                progress(done, metrics if runs else {k: v if k == "eval" else float(v) for k, v in metrics.items()})
     except KeyboardInterrupt:
-        raise Interrupted(results(init_c(seed) if carry is None else carry), done) from None
+        raise Interrupted(results(init_c(inputs) if carry is None else carry), done) from None
     return results(carry)

@@ -24,7 +24,7 @@ everything between two evaluations is one jitted `lax.scan`. With several local 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import jax
@@ -215,7 +215,7 @@ class Networks:
             params = one(*keys)
         else:
             params = jax.vmap(one)(*(jax.random.split(k, self.n_agents) for k in keys))
-        log_std = jnp.full((self.action_size,), np.log(self.config.init_std), jnp.float32)
+        log_std = jnp.full((self.action_size,), jnp.log(self.config.init_std), jnp.float32)
         norm = {"mean": jnp.zeros(self.obs_size), "var": jnp.ones(self.obs_size), "count": jnp.zeros(())}
         return {**params, "log_std": log_std, "norm": norm}
 
@@ -316,21 +316,21 @@ def train(
     config: MAPPOConfig = MAPPOConfig(),
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable[..., dict] | None = None,
-    seeds: tuple[int, ...] | None = None,
+    runs: Sequence[MAPPOConfig] | None = None,
 ) -> tuple[Networks, dict]:
     """Train the agents of ``env`` (D drones per world) with MAPPO or independent PPO (module doc).
 
     Args:
         env: a jaxdrones env without camera images (any D ≥ 1).
         config: `MAPPOConfig`.
-        progress, evaluate, seeds: as every trainer takes them (`jaxdrones.training.trainers`); the metrics are
+        progress, evaluate, runs: as every trainer takes them (`jaxdrones.training.trainers`); the metrics are
             ``train/policy_loss``, ``train/value_loss``, ``train/entropy``, ``train/std`` of the last update.
 
     Raises:
         jaxdrones.training.common.Interrupted: on Ctrl-C, with the result of the last completed chunk.
 
     Returns:
-        ``(networks, params)`` (see `make_policy`); with ``seeds``, a list of one per seed.
+        ``(networks, params)`` (see `make_policy`); with ``runs``, a list of one per run.
     """
     import optax
 
@@ -340,115 +340,120 @@ def train(
     auto = VmapAutoReset(env)
     axes = world_axes(auto.params_shared)
     central = config.critic == "central"
-    nets = make_network(config, env)
-    steps = config.num_evals * config.updates_per_eval * config.epochs * config.minibatches
-    rate = optax.linear_schedule(config.learning_rate, 0.0, steps) if config.anneal_lr else config.learning_rate
-    optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(rate))
     features = jax.vmap(world_features, in_axes=(axes,)) if central else (lambda s: None)
-    gamma = config.discounting
 
-    def collect(params, state, key):  # params with "norm"
-        starts = auto.starts(state) if config.starts_per_window else None  # the worlds' next episodes
-        # The actions' standard normal noise: drawn for the whole unroll before it, or in each step from its key.
-        if config.noise_per_window:
-            action_shape = jax.eval_shape(nets.actor, params, state.obs)
-            noises = jax.random.normal(key, (config.unroll_length, *action_shape.shape), action_shape.dtype)
-        else:
-            noises = jax.random.split(key, config.unroll_length)
+    def build(config):
+        """The trainer's functions (`jaxdrones.training.common.run_updates`)."""
+        nets = make_network(config, env)
+        steps = config.num_evals * config.updates_per_eval * config.epochs * config.minibatches
+        rate = optax.linear_schedule(config.learning_rate, 0.0, steps) if config.anneal_lr else config.learning_rate
+        optimizer = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(rate))
+        gamma = config.discounting
 
-        def body(state, noise):
-            world = features(state)
-            mean = nets.actor(params, state.obs)
-            std = jnp.broadcast_to(jnp.exp(params["log_std"]), mean.shape)
-            if not config.noise_per_window:  # a key
-                noise = jax.random.normal(noise, mean.shape, mean.dtype)
-            action = mean + std * noise
-            ended, nxt = auto.step_ended(state, jnp.tanh(action) if config.squash else action, starts)
-            sample = {
-                "obs": state.obs,
-                "world": world,
-                "action": action,
-                "log_prob": _log_prob(mean, params["log_std"], action),
-                "value": nets.critic(params, state.obs, world),
-                "reward": ended.reward,
-                "bootstrap": nets.critic(params, ended.obs, features(ended)),
-                "terminated": jnp.broadcast_to(ended.terminated[:, None], ended.reward.shape),
-                "ended": jnp.broadcast_to(ended.done[:, None], ended.reward.shape),
-            }
-            return nxt, sample
+        def collect(params, state, key):  # params with "norm"
+            starts = auto.starts(state) if config.starts_per_window else None  # the worlds' next episodes
+            # The actions' standard normal noise: drawn for the whole unroll before it, or in each step from its key.
+            if config.noise_per_window:
+                action_shape = jax.eval_shape(nets.actor, params, state.obs)
+                noises = jax.random.normal(key, (config.unroll_length, *action_shape.shape), action_shape.dtype)
+            else:
+                noises = jax.random.split(key, config.unroll_length)
 
-        return jax.lax.scan(body, state, noises)
+            def body(state, noise):
+                world = features(state)
+                mean = nets.actor(params, state.obs)
+                std = jnp.broadcast_to(jnp.exp(params["log_std"]), mean.shape)
+                if not config.noise_per_window:  # a key
+                    noise = jax.random.normal(noise, mean.shape, mean.dtype)
+                action = mean + std * noise
+                ended, nxt = auto.step_ended(state, jnp.tanh(action) if config.squash else action, starts)
+                sample = {
+                    "obs": state.obs,
+                    "world": world,
+                    "action": action,
+                    "log_prob": _log_prob(mean, params["log_std"], action),
+                    "value": nets.critic(params, state.obs, world),
+                    "reward": ended.reward,
+                    "bootstrap": nets.critic(params, ended.obs, features(ended)),
+                    "terminated": jnp.broadcast_to(ended.terminated[:, None], ended.reward.shape),
+                    "ended": jnp.broadcast_to(ended.done[:, None], ended.reward.shape),
+                }
+                return nxt, sample
 
-    def trainable_init(key):
-        params = nets.init(key)
-        params.pop("norm")  # the observation statistics: updated from the data, not by the optimiser
-        return params
+            return jax.lax.scan(body, state, noises)
 
-    ravel, unravel = param_maps(jax.eval_shape(lambda: trainable_init(jax.random.key(0))), config.flat_params)
+        def trainable_init(key):
+            params = nets.init(key)
+            params.pop("norm")  # the observation statistics: updated from the data, not by the optimiser
+            return params
 
-    def ppo_loss(trainable, norm, batch):
-        params = {**unravel(trainable), "norm": norm}
-        mean = nets.actor(params, batch["obs"])
-        ratio = jnp.exp(_log_prob(mean, params["log_std"], batch["action"]) - batch["log_prob"])
-        adv = batch["advantage"]  # [B, D], standardised per agent: each drone's role weighs the same
-        adv = (adv - adv.mean(axis=0, keepdims=True)) / (adv.std(axis=0, keepdims=True) + 1e-8)
-        clipped = jnp.clip(ratio, 1 - config.clip, 1 + config.clip)
-        policy_loss = -jnp.mean(jnp.minimum(ratio * adv, clipped * adv))
-        value_loss = jnp.mean((nets.critic(params, batch["obs"], batch["world"]) - batch["return"]) ** 2)
-        entropy = jnp.sum(params["log_std"] + 0.5 * np.log(2 * np.pi * np.e))
-        total = policy_loss + config.value_cost * value_loss - config.entropy_cost * entropy
-        return total, {"train/policy_loss": policy_loss, "train/value_loss": value_loss, "train/entropy": entropy}
+        ravel, unravel = param_maps(jax.eval_shape(lambda: trainable_init(jax.random.key(0))), config.flat_params)
 
-    def update(carry, _):
-        params, norm, opt_state, state, key = carry
-        key, key_collect, key_shuffle = jax.random.split(key, 3)
-        state, data = collect({**unravel(params), "norm": norm}, state, key_collect)
-        advantage = gae(
-            data["reward"],
-            data["value"],
-            data["bootstrap"],
-            data["terminated"],
-            data["ended"],
-            gamma,
-            config.gae_lambda,
-        )
-        data = {**data, "advantage": advantage, "return": advantage + data["value"]}
-        data.pop("bootstrap")
-        samples = jax.tree.map(
-            lambda x: x.reshape((config.steps_per_update,) + x.shape[2:]),
-            {k: v for k, v in data.items() if v is not None},
-        )
+        def ppo_loss(trainable, norm, batch):
+            params = {**unravel(trainable), "norm": norm}
+            mean = nets.actor(params, batch["obs"])
+            ratio = jnp.exp(_log_prob(mean, params["log_std"], batch["action"]) - batch["log_prob"])
+            adv = batch["advantage"]  # [B, D], standardised per agent: each drone's role weighs the same
+            adv = (adv - adv.mean(axis=0, keepdims=True)) / (adv.std(axis=0, keepdims=True) + 1e-8)
+            clipped = jnp.clip(ratio, 1 - config.clip, 1 + config.clip)
+            policy_loss = -jnp.mean(jnp.minimum(ratio * adv, clipped * adv))
+            value_loss = jnp.mean((nets.critic(params, batch["obs"], batch["world"]) - batch["return"]) ** 2)
+            entropy = jnp.sum(params["log_std"] + 0.5 * np.log(2 * np.pi * np.e))
+            total = policy_loss + config.value_cost * value_loss - config.entropy_cost * entropy
+            return total, {"train/policy_loss": policy_loss, "train/value_loss": value_loss, "train/entropy": entropy}
 
-        def minibatch(carry, index):
-            params, opt_state = carry
-            batch = jax.tree.map(lambda x: x[index], samples)
-            if not central:
-                batch["world"] = None
-            (_, metrics), grad = jax.value_and_grad(ppo_loss, has_aux=True)(params, norm, batch)
-            updates, opt_state = optimizer.update(grad, opt_state, params)
-            return (optax.apply_updates(params, updates), opt_state), metrics
+        def update(carry, _):
+            params, norm, opt_state, state, key = carry
+            key, key_collect, key_shuffle = jax.random.split(key, 3)
+            state, data = collect({**unravel(params), "norm": norm}, state, key_collect)
+            advantage = gae(
+                data["reward"],
+                data["value"],
+                data["bootstrap"],
+                data["terminated"],
+                data["ended"],
+                gamma,
+                config.gae_lambda,
+            )
+            data = {**data, "advantage": advantage, "return": advantage + data["value"]}
+            data.pop("bootstrap")
+            samples = jax.tree.map(
+                lambda x: x.reshape((config.steps_per_update,) + x.shape[2:]),
+                {k: v for k, v in data.items() if v is not None},
+            )
 
-        orders = jax.vmap(lambda k: jax.random.permutation(k, config.steps_per_update))(
-            jax.random.split(key_shuffle, config.epochs)
-        )
-        (params, opt_state), metrics = jax.lax.scan(
-            minibatch, (params, opt_state), orders.reshape(config.epochs * config.minibatches, -1)
-        )
-        metrics = {k: v[-1] for k, v in metrics.items()}
-        metrics["train/std"] = jnp.mean(jnp.exp(unravel(params)["log_std"]))
-        norm = update_norm(norm, data["obs"])  # after the update, which used the statistics the data was taken with
-        return (params, norm, opt_state, state, key), metrics
+            def minibatch(carry, index):
+                params, opt_state = carry
+                batch = jax.tree.map(lambda x: x[index], samples)
+                if not central:
+                    batch["world"] = None
+                (_, metrics), grad = jax.value_and_grad(ppo_loss, has_aux=True)(params, norm, batch)
+                updates, opt_state = optimizer.update(grad, opt_state, params)
+                return (optax.apply_updates(params, updates), opt_state), metrics
 
-    def init(key):
-        key_init, key_reset, key_run = jax.random.split(key, 3)
-        params = nets.init(key_init)
-        norm = params.pop("norm")
-        params = ravel(params)
-        state = auto.reset(jax.random.split(key_reset, config.num_envs))
-        return params, norm, optimizer.init(params), state, key_run
+            orders = jax.vmap(lambda k: jax.random.permutation(k, config.steps_per_update))(
+                jax.random.split(key_shuffle, config.epochs)
+            )
+            (params, opt_state), metrics = jax.lax.scan(
+                minibatch, (params, opt_state), orders.reshape(config.epochs * config.minibatches, -1)
+            )
+            metrics = {k: v[-1] for k, v in metrics.items()}
+            metrics["train/std"] = jnp.mean(jnp.exp(unravel(params)["log_std"]))
+            norm = update_norm(norm, data["obs"])  # after the update, which used the statistics the data was taken with
+            return (params, norm, opt_state, state, key), metrics
 
-    def result(carry):
-        return nets, {**unravel(carry[0]), "norm": carry[1]}
+        def init(key):
+            key_init, key_reset, key_run = jax.random.split(key, 3)
+            params = nets.init(key_init)
+            norm = params.pop("norm")
+            params = ravel(params)
+            state = auto.reset(jax.random.split(key_reset, config.num_envs))
+            return params, norm, optimizer.init(params), state, key_run
+
+        def result(carry):
+            return nets, {**unravel(carry[0]), "norm": carry[1]}
+
+        return init, update, result
 
     description = program_description(config, env)
-    return run_updates(config, init, update, result, config.num_envs, progress, evaluate, description, seeds)
+    return run_updates(config, build, config.num_envs, progress, evaluate, description, runs)

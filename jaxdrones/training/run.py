@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import json
 import math
 import os
@@ -16,7 +17,7 @@ import numpy as np
 from jaxdrones.training.recipes import Recipe, recipe
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Sequence
+    from collections.abc import Callable, Mapping, Sequence
 
     from jaxdrones.envs.base import Env
     from jaxdrones.envs.task import Task
@@ -67,6 +68,7 @@ def train_task(
     t_start: float | None = None,
     defaults: str | None = None,
     seeds: int | Sequence[int] | None = None,
+    sweep: Mapping[str, Sequence] | None = None,
 ) -> dict:
     """Train a policy on a task with a trainer of `jaxdrones.training.trainers` and save it with a learning curve,
     a flight plot and a summary.
@@ -105,11 +107,17 @@ def train_task(
         seeds: train several independent runs: ``N`` (seeds ``config.seed`` to ``config.seed + N - 1``) or the
             seeds. Our trainers run them as one program mapped over the seeds (`jaxdrones.training.common.
             run_updates`: seed ``k`` trains the policy of the single run of seed ``k``, within float rounding);
-            brax's PPO runs them one after another (`jaxdrones.training.trainers.Trainer.maps_seeds`). Each seed's
+            brax's PPO runs them one after another (`jaxdrones.training.trainers.Trainer.maps_runs`). Each seed's
             ``policy.pkl``, ``progress.json`` and ``summary.json`` are written to ``seed_<k>/`` of ``out`` (it loads
             alone; ``jaxdrones view`` draws its flights), and ``out`` holds ``summary.json`` with every seed's result
             and their aggregate (`aggregate`), ``progress.json`` (each seed's rows) and ``learning_curve.png`` (the
             seeds, their median and range).
+        sweep: ``{name: values}`` over fields of the trainer's config: a run for every combination of the values
+            (`sweep_settings`) and every seed, each in ``<name>=<value>,.../seed_<k>/`` of ``out``. Our trainers map
+            the runs that differ only in float settings (step sizes, discounts, weights) and their seeds in one
+            program; a setting that changes shapes or steps (``num_envs``, ``horizon``, layer sizes, ...) takes a
+            program of its own, trained after the previous one (`program_groups`). ``summary.json`` then holds each
+            setting's runs and aggregate under ``"settings"``, and ``learning_curve.png`` each setting's median.
 
     Returns:
         The summary dict (also written to ``summary.json``): ``wall_time_s`` (everything from ``t_start``: imports,
@@ -123,11 +131,13 @@ def train_task(
         output folder and the settings.
 
         With ``seeds``: ``task``, ``algo``, ``seeds``, ``runs`` (each seed's summary as above), ``aggregate``,
-        ``wall_time_s``, ``env_steps`` (per seed), ``out_dir``, ``interrupted``.
+        ``wall_time_s``, ``env_steps`` (per run), ``programs`` (how many were compiled), ``out_dir``,
+        ``interrupted``; with ``sweep``, ``sweep`` and ``settings`` (each setting's ``runs`` and ``aggregate``) in
+        place of ``runs`` and ``aggregate``.
 
     Raises:
         ValueError: bad settings (unknown task, algorithm or env option, fewer than 64 evaluation episodes, a config
-            of another trainer, seeds not distinct non-negative integers, ...).
+            of another trainer, seeds not distinct non-negative integers, a sweep `sweep_settings` refuses, ...).
     """
     t_phase = time.perf_counter()
     t_start = t_phase if t_start is None else t_start
@@ -156,84 +166,104 @@ def train_task(
     if trainer.differentiable and env.config.backend != "jax":
         raise ValueError(f"train: --algo {algo} differentiates the simulator and needs backend='jax'")
     seed_list = _seeds(seeds, config.seed)
+    settings = sweep_settings(config, sweep)
+    multi = seed_list is not None or settings is not None
+    grid = [(setting, seed) for setting in settings or [{}] for seed in seed_list or [config.seed]]
+    configs = [dataclasses.replace(config, **setting, seed=seed) for setting, seed in grid]
+    mapped = multi and trainer.maps_runs
+    groups = program_groups(configs, config) if mapped else [(k,) for k in range(len(configs))]
     writer = jax.process_index() == 0
     out = new_run_dir(out or os.path.join("runs", task), overwrite=overwrite) if writer else out
     phases["setup"] = time.perf_counter() - t_phase
-    n_runs = 1 if seed_list is None else len(seed_list)
-    mapped = seed_list is not None and trainer.maps_seeds
-    total = config.total_steps * (1 if mapped or seed_list is None else n_runs)
-    bar = ProgressLog(total, env.task, enabled=progress and writer)
-    logs = [bar] if seed_list is None else [ProgressLog(config.total_steps, env.task, False) for _ in seed_list]
-    last = [{} for _ in range(n_runs)]
+    if writer and len(groups) > 1:
+        print(_plan(trainer, sweep, config, len(configs), len(groups)))
+    offsets = np.cumsum([0, *(configs[group[0]].total_steps for group in groups)])  # of each program's env steps
+    bar = ProgressLog(int(offsets[-1]), env.task, enabled=progress and writer)
+    logs = [ProgressLog(c.total_steps, env.task, False) for c in configs] if multi else [bar]
+    last = [{} for _ in configs]
     evaluate = eval_program(env, trainer, n_eval_episodes)
 
-    def report(steps, metrics, runs=range(n_runs)):
-        """Record an evaluation of the runs ``runs`` (all, or the one seed a sequential run is training)."""
-        for k in runs:
-            evaluation = jax.tree.map(lambda x, k=k: x[k], metrics["eval"]) if mapped else metrics["eval"]
+    def report(steps, metrics, group=(0,), offset=0):
+        """Record an evaluation of the runs ``group`` (those of the program training), ``offset`` env steps of the
+        progress display after the start."""
+        for j, k in enumerate(group):
+            evaluation = jax.tree.map(lambda x, j=j: x[j], metrics["eval"]) if mapped else metrics["eval"]
             last[k].update(eval=evaluation)
             logs[k](steps, episode_statistics(env, evaluation["outcomes"]))
-        if seed_list is not None:  # the display: the seeds' median at their latest evaluation
+        if multi:  # the display: the runs' median at their latest evaluation
             rows = [log.history[-1] for log in logs if log.history]
             median = {name: float(np.median([row[name] for row in rows])) for name in MEDIAN_OF}
-            bar(steps if mapped else runs[0] * config.total_steps + steps, median)
+            bar(offset + steps, median)
 
     t_train = time.perf_counter()
-    interrupted, results = False, []
+    interrupted, results = False, {}
     try:
-        if seed_list is None:
-            results = [trainer.train(train_env, config, progress=report, evaluate=evaluate)]
-        elif mapped:
-            results = trainer.train(train_env, config, progress=report, evaluate=evaluate, seeds=seed_list)
-        else:  # one after another, each compiled program read back from the compilation cache after the first
-            for k, seed in enumerate(seed_list):
-                one = dataclasses.replace(config, seed=seed)
-                results.append(trainer.train(train_env, one, functools.partial(report, runs=(k,)), evaluate))
-    except Interrupted as stop:  # a sequential run: the seeds after the one stopped are not trained
+        for g, group in enumerate(groups):  # compiled programs after the first are read back from the cache
+            calls = dict(progress=functools.partial(report, group=group, offset=int(offsets[g])), evaluate=evaluate)
+            if mapped:
+                trained = trainer.train(train_env, configs[group[0]], **calls, runs=[configs[k] for k in group])
+                results.update(zip(group, trained, strict=True))
+            else:
+                results[group[0]] = trainer.train(train_env, configs[group[0]], **calls)
+    except Interrupted as stop:  # the programs after the one stopped are not trained
         interrupted = True
-        results = stop.result if mapped else [*results, stop.result]
+        results.update(zip(group, stop.result, strict=True) if mapped else {group[0]: stop.result})
     finally:
         bar.close()
     phases["train"] = train_time = time.perf_counter() - t_train
     if not writer:
         steps = logs[0].history[-1]["env_steps"] if logs[0].history else 0
         return {"process_index": jax.process_index(), "env_steps": steps, "interrupted": interrupted}
-    source = provenance()  # the same for every seed
-    settings = dict(run=run, algo=algo, config=config, env=env, phases=phases, train_time=train_time, source=source)
-    if seed_list is None:
-        return _write_run(out, results[0][1], logs[0], last[0], interrupted, t_start, **settings)
-    runs = []
-    for k, (seed, (_, params)) in enumerate(zip(seed_list, results, strict=False)):  # the seeds trained
-        one = dict(settings, config=dataclasses.replace(config, seed=seed), phases={}, plots=False)
-        folder = os.path.join(out, f"seed_{seed}")
-        runs.append(_write_run(folder, params, logs[k], last[k], interrupted, t_start, **one))
+    source = provenance()  # the same for every run
+    settings_of = dict(run=run, algo=algo, config=config, env=env, phases=phases, train_time=train_time, source=source)
+    if not multi:
+        return _write_run(out, results[0][1], logs[0], last[0], interrupted, t_start, **settings_of)
+    summaries = {}
+    for k in sorted(results):  # the runs trained
+        setting, seed = grid[k]
+        one = dict(settings_of, config=configs[k], phases={}, plots=False)
+        folder = os.path.join(out, *([setting_label(setting)] if settings else []), f"seed_{seed}")
+        summaries[k] = _write_run(folder, results[k][1], logs[k], last[k], interrupted, t_start, **one)
+
+    def results_of(setting):
+        ks = [k for k in summaries if grid[k][0] == setting]
+        return {
+            "aggregate": aggregate([summaries[k]["success_value"] for k in ks], [summaries[k]["success"] for k in ks]),
+            "runs": [{"seed": grid[k][1], **{name: summaries[k][name] for name in PER_SEED}} for k in ks],
+        }
+
     summary = {
         "task": task,
         "algo": algo,
-        "seeds": list(seed_list),
+        "seeds": list(seed_list or [config.seed]),
         "mapped": mapped,
+        "programs": len(groups),
         "wall_time_s": time.perf_counter() - t_start,
         "train_time_s": train_time,
         "interrupted": interrupted,
-        "env_steps": [r["env_steps"] for r in runs],
-        "success_metric": runs[0]["success_metric"],
+        "env_steps": [summaries[k]["env_steps"] for k in summaries],
+        "success_metric": next(iter(summaries.values()))["success_metric"],
         "success_threshold": env.task.success_threshold,
-        "aggregate": aggregate([r["success_value"] for r in runs], [r["success"] for r in runs]),
-        "runs": [{"seed": seed, **{k: r[k] for k in PER_SEED}} for seed, r in zip(seed_list, runs, strict=False)],
         "out_dir": out,
         "provenance": source,
     }
-    histories = {f"seed_{seed}": log.history for seed, log in zip(seed_list, logs, strict=True)}
+    if settings:
+        summary["sweep"] = {name: list(values) for name, values in sweep.items()}
+        summary["settings"] = [{"setting": setting, **results_of(setting)} for setting in settings]
+    else:
+        summary.update(results_of({}))
+    labels = [setting_label(grid[k][0]) + f"{',' if settings else ''}seed_{grid[k][1]}" for k in summaries]
     with open(os.path.join(out, "progress.json"), "w") as f:
-        json.dump(histories, f, indent=1)
+        json.dump({label: logs[k].history for label, k in zip(labels, summaries, strict=True)}, f, indent=1)
     from jaxdrones.io.plotting import plot_learning_curves
 
     plot_learning_curves(
-        list(histories.values()),
+        [logs[k].history for k in summaries],
         os.path.join(out, "learning_curve.png"),
+        groups=[setting_label(grid[k][0]) for k in summaries] if settings else None,
         metric_label=f"evaluation {bar.label}",
         threshold=env.task.success_threshold,
-        title=f"{algo.upper()} on {task}, seeds {', '.join(map(str, seed_list))}",
+        title=f"{algo.upper()} on {task}, seeds {', '.join(map(str, seed_list or [config.seed]))}",
     )
     with open(os.path.join(out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=2)
@@ -259,6 +289,70 @@ def _seeds(seeds, seed: int) -> tuple[int, ...] | None:
     if not out or len(set(out)) != len(out) or min(out) < 0:
         raise ValueError(f"seeds must be distinct non-negative integers, got {seeds!r}")
     return out
+
+
+def sweep_settings(config: Schedule | BraxPPOConfig, sweep: Mapping[str, Sequence] | None) -> list[dict] | None:
+    """The settings of a sweep ``{name: values}`` over fields of ``config``: every combination of the values (the
+    product, the last name's values changing fastest), as dicts of field values; None without a sweep. Numbers for a
+    float field become floats.
+
+    Raises:
+        ValueError: an empty sweep, ``seed`` (set with ``seeds``), a name that is not a field of ``config`` (with the
+            closest one), no values or a value twice.
+    """
+    from jaxdrones._hints import unknown_option
+
+    if sweep is None:
+        return None
+    fields = [field.name for field in dataclasses.fields(config)]
+    if not sweep:
+        raise ValueError("sweep must name at least one setting")
+    cast = {}
+    for name, values in sweep.items():
+        if name == "seed":
+            raise ValueError("sweep: seeds are set with seeds (--seeds), not swept")
+        if name not in fields:
+            raise ValueError(unknown_option(f"sweep ({type(config).__name__})", name, fields))
+        is_float = type(getattr(config, name)) is float
+        cast[name] = [
+            float(v) if is_float and isinstance(v, int | float) and not isinstance(v, bool) else v for v in values
+        ]
+        if not cast[name] or len({repr(v) for v in cast[name]}) != len(cast[name]):
+            raise ValueError(f"sweep: {name} takes distinct values, got {list(values)!r}")
+    return [dict(zip(cast, combination, strict=True)) for combination in itertools.product(*cast.values())]
+
+
+def program_groups(configs: Sequence[Schedule], config: Schedule) -> list[tuple[int, ...]]:
+    """The indices of ``configs`` (``config`` with other seeds and settings) grouped into the programs that train
+    them: runs that differ only in their seed and float fields share one program mapped over them
+    (`jaxdrones.training.common.mapped_fields`); any other field (a count, a shape, a switch) changes the program."""
+    programs: dict[str, list[int]] = {}
+    for k, run in enumerate(configs):
+        shape = [
+            repr(getattr(run, field.name))
+            for field in dataclasses.fields(config)
+            if field.name != "seed" and type(getattr(run, field.name)) is not float
+        ]
+        programs.setdefault("\n".join(shape), []).append(k)
+    return [tuple(group) for group in programs.values()]
+
+
+def setting_label(setting: Mapping) -> str:
+    """A sweep's setting as its folder's name: ``name=value`` joined by commas (empty without a sweep)."""
+    return ",".join(f"{name}={value}" for name, value in setting.items())
+
+
+def _plan(trainer: Trainer, sweep: Mapping | None, config, n_runs: int, n_programs: int) -> str:
+    """The line that says how the runs are trained, where they take several programs."""
+    if not trainer.maps_runs:
+        return f"{n_runs} runs one after another: {trainer.name} runs its own training loop, which cannot be mapped"
+    separate = [name for name in sweep or {} if type(getattr(config, name)) is not float]
+    mapped = ["the seeds", *(name for name in sweep or {} if name not in separate)]
+    return (
+        f"{n_runs} runs as {n_programs} programs, one after another: {', '.join(separate)} "
+        f"change{'s' * (len(separate) == 1)} the program (its shapes or its steps); {' and '.join(mapped)} are mapped "
+        f"within each"
+    )
 
 
 def aggregate(values: Sequence[float], solved: Sequence[bool]) -> dict:

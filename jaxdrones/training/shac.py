@@ -18,7 +18,7 @@ The policy is deterministic, the network of `jaxdrones.training.apg`; the loop i
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import jax
@@ -108,7 +108,7 @@ def train(
     config: SHACConfig = SHACConfig(),
     progress: Callable[[int, dict], None] | None = None,
     evaluate: Callable[..., dict] | None = None,
-    seeds: tuple[int, ...] | None = None,
+    runs: Sequence[SHACConfig] | None = None,
 ) -> tuple[linen.Module, Any]:
     """Train a policy on ``env`` with SHAC (module doc; arguments and return as `jaxdrones.training.apg.train`).
 
@@ -132,104 +132,114 @@ def train(
     auto = VmapAutoReset(env)
     batched_loss = jax.vmap(env.loss, in_axes=(world_axes(auto.params_shared),))
     actor, critic = make_network(config, env), make_critic(config)
-    actor_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.schedule()))
-    critic_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.critic_learning_rate))
-    gamma = config.discounting
-
     obs0 = np.zeros((env.observation_size,), env.dtype)
 
-    # The actor's and the critic's parameters, as flat vectors with ``config.flat_params``.
     def shapes(net):
         return jax.eval_shape(lambda: net.init(jax.random.key(0), obs0))
 
-    ravel_actor, unravel_actor = param_maps(shapes(actor), config.flat_params)
-    ravel_critic, unravel_critic = param_maps(shapes(critic), config.flat_params)
-
-    def actor_loss(flat, target_flat, state):
-        """Minus the mean discounted window return per step, and what the critic learns from."""
-        params, target_params = unravel_actor(flat), unravel_critic(target_flat)
-        starts = auto.starts(state) if config.starts_per_window else None  # the worlds' next episodes
-
-        def body(carry, last):
-            s, discount, acc, total = carry
-            ended, s_next = auto.step_ended(s, actor.apply(params, s.obs), starts)
-            reward = -batched_loss(ended)  # [W, D]
-            term, end = (jnp.broadcast_to(x[:, None], reward.shape) for x in (ended.terminated, ended.done))
-            # The value after the step: of the last observation before any reset; 0 where the episode terminated.
-            next_value = jnp.where(term, 0.0, critic.apply(target_params, ended.obs)[..., 0])
-            acc = acc + discount * reward
-            closes = end | last  # an episode's return closes where it ends, and every one at the window's end
-            total = total + jnp.sum(jnp.where(closes, acc + discount * gamma * next_value, 0.0))
-            discount, acc = jnp.where(end, 1.0, discount * gamma), jnp.where(end, 0.0, acc)
-            record = jax.lax.stop_gradient((s.obs, reward, next_value, end))
-            return (s_next, discount, acc, total), record
-
-        shape = (config.num_envs, env.n_drones)
-        zeros = jnp.zeros(shape, env.dtype)
-        last = jnp.arange(config.horizon) == config.horizon - 1
-        (state, _, _, total), record = jax.lax.scan(body, (state, jnp.ones(shape, env.dtype), zeros, 0.0), last)
-        return -total / (config.horizon * config.num_envs * env.n_drones), (state, record)
-
-    def fit_critic(critic_params, opt_state, obs, targets, key):
-        obs, targets = obs.reshape(samples, -1), targets.reshape(samples)
-        size = samples // config.critic_minibatches
-
-        def mse(p, o, t):
-            return jnp.mean((critic.apply(unravel_critic(p), o)[..., 0] - t) ** 2)
-
-        def minibatch(carry, index):
-            p, opt_state = carry
-            grad = jax.grad(mse)(p, obs[index], targets[index])
-            updates, opt_state = critic_opt.update(grad, opt_state, p)
-            return (optax.apply_updates(p, updates), opt_state), None
-
-        order = jax.vmap(lambda k: jax.random.permutation(k, samples))(jax.random.split(key, config.critic_epochs))
-        before = mse(critic_params, obs, targets)
-        (critic_params, opt_state), _ = jax.lax.scan(minibatch, (critic_params, opt_state), order.reshape(-1, size))
-        return critic_params, opt_state, before
-
-    def update(carry, _):
-        actor_params, critic_params, target_params, actor_state, critic_state, state, key = carry
-        key, key_fit = jax.random.split(key)
-        (loss, (state, (obs, rewards, next_values, ended))), grad = jax.value_and_grad(actor_loss, has_aux=True)(
-            actor_params, target_params, state
+    def build(config):
+        """The trainer's functions (`jaxdrones.training.common.run_updates`)."""
+        actor_opt = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.schedule()))
+        critic_opt = optax.chain(
+            optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.critic_learning_rate)
         )
-        updates, actor_state = actor_opt.update(grad, actor_state, actor_params)
-        actor_params = optax.apply_updates(actor_params, updates)
-        targets = td_lambda_returns(rewards, next_values, ended, gamma, config.td_lambda)
-        critic_params, critic_state, critic_loss = fit_critic(critic_params, critic_state, obs, targets, key_fit)
-        target_params = jax.tree.map(
-            lambda t, c: config.target_alpha * t + (1 - config.target_alpha) * c, target_params, critic_params
-        )
-        carry = (
-            actor_params,
-            critic_params,
-            target_params,
-            actor_state,
-            critic_state,
-            jax.lax.stop_gradient(state),
-            key,
-        )
-        return carry, {"train/loss": loss, "train/grad_norm": optax.tree.norm(grad), "train/critic_loss": critic_loss}
+        gamma = config.discounting
 
-    def init(key):
-        key_actor, key_critic, key_reset, key_shuffle = jax.random.split(key, 4)
-        actor_params, critic_params = (
-            ravel_actor(actor.init(key_actor, obs0)),
-            ravel_critic(critic.init(key_critic, obs0)),
-        )
-        return (
-            actor_params,
-            critic_params,
-            critic_params,
-            actor_opt.init(actor_params),
-            critic_opt.init(critic_params),
-            auto.reset(jax.random.split(key_reset, config.num_envs)),
-            key_shuffle,
-        )
+        # The actor's and the critic's parameters, as flat vectors with ``config.flat_params``.
+        ravel_actor, unravel_actor = param_maps(shapes(actor), config.flat_params)
+        ravel_critic, unravel_critic = param_maps(shapes(critic), config.flat_params)
 
-    def result(carry):
-        return actor, unravel_actor(carry[0])
+        def actor_loss(flat, target_flat, state):
+            """Minus the mean discounted window return per step, and what the critic learns from."""
+            params, target_params = unravel_actor(flat), unravel_critic(target_flat)
+            starts = auto.starts(state) if config.starts_per_window else None  # the worlds' next episodes
+
+            def body(carry, last):
+                s, discount, acc, total = carry
+                ended, s_next = auto.step_ended(s, actor.apply(params, s.obs), starts)
+                reward = -batched_loss(ended)  # [W, D]
+                term, end = (jnp.broadcast_to(x[:, None], reward.shape) for x in (ended.terminated, ended.done))
+                # The value after the step: of the last observation before any reset; 0 where the episode terminated.
+                next_value = jnp.where(term, 0.0, critic.apply(target_params, ended.obs)[..., 0])
+                acc = acc + discount * reward
+                closes = end | last  # an episode's return closes where it ends, and every one at the window's end
+                total = total + jnp.sum(jnp.where(closes, acc + discount * gamma * next_value, 0.0))
+                discount, acc = jnp.where(end, 1.0, discount * gamma), jnp.where(end, 0.0, acc)
+                record = jax.lax.stop_gradient((s.obs, reward, next_value, end))
+                return (s_next, discount, acc, total), record
+
+            shape = (config.num_envs, env.n_drones)
+            zeros = jnp.zeros(shape, env.dtype)
+            last = jnp.arange(config.horizon) == config.horizon - 1
+            (state, _, _, total), record = jax.lax.scan(body, (state, jnp.ones(shape, env.dtype), zeros, 0.0), last)
+            return -total / (config.horizon * config.num_envs * env.n_drones), (state, record)
+
+        def fit_critic(critic_params, opt_state, obs, targets, key):
+            obs, targets = obs.reshape(samples, -1), targets.reshape(samples)
+            size = samples // config.critic_minibatches
+
+            def mse(p, o, t):
+                return jnp.mean((critic.apply(unravel_critic(p), o)[..., 0] - t) ** 2)
+
+            def minibatch(carry, index):
+                p, opt_state = carry
+                grad = jax.grad(mse)(p, obs[index], targets[index])
+                updates, opt_state = critic_opt.update(grad, opt_state, p)
+                return (optax.apply_updates(p, updates), opt_state), None
+
+            order = jax.vmap(lambda k: jax.random.permutation(k, samples))(jax.random.split(key, config.critic_epochs))
+            before = mse(critic_params, obs, targets)
+            (critic_params, opt_state), _ = jax.lax.scan(minibatch, (critic_params, opt_state), order.reshape(-1, size))
+            return critic_params, opt_state, before
+
+        def update(carry, _):
+            actor_params, critic_params, target_params, actor_state, critic_state, state, key = carry
+            key, key_fit = jax.random.split(key)
+            (loss, (state, (obs, rewards, next_values, ended))), grad = jax.value_and_grad(actor_loss, has_aux=True)(
+                actor_params, target_params, state
+            )
+            updates, actor_state = actor_opt.update(grad, actor_state, actor_params)
+            actor_params = optax.apply_updates(actor_params, updates)
+            targets = td_lambda_returns(rewards, next_values, ended, gamma, config.td_lambda)
+            critic_params, critic_state, critic_loss = fit_critic(critic_params, critic_state, obs, targets, key_fit)
+            target_params = jax.tree.map(
+                lambda t, c: config.target_alpha * t + (1 - config.target_alpha) * c, target_params, critic_params
+            )
+            carry = (
+                actor_params,
+                critic_params,
+                target_params,
+                actor_state,
+                critic_state,
+                jax.lax.stop_gradient(state),
+                key,
+            )
+            return carry, {
+                "train/loss": loss,
+                "train/grad_norm": optax.tree.norm(grad),
+                "train/critic_loss": critic_loss,
+            }
+
+        def init(key):
+            key_actor, key_critic, key_reset, key_shuffle = jax.random.split(key, 4)
+            actor_params, critic_params = (
+                ravel_actor(actor.init(key_actor, obs0)),
+                ravel_critic(critic.init(key_critic, obs0)),
+            )
+            return (
+                actor_params,
+                critic_params,
+                critic_params,
+                actor_opt.init(actor_params),
+                critic_opt.init(critic_params),
+                auto.reset(jax.random.split(key_reset, config.num_envs)),
+                key_shuffle,
+            )
+
+        def result(carry):
+            return actor, unravel_actor(carry[0])
+
+        return init, update, result
 
     description = program_description(config, env)
-    return run_updates(config, init, update, result, config.num_envs, progress, evaluate, description, seeds)
+    return run_updates(config, build, config.num_envs, progress, evaluate, description, runs)

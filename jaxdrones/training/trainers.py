@@ -7,8 +7,10 @@ after each of its ``config.num_evals`` chunks of updates, with its training metr
 ``"eval"``, the arrays that ``evaluate(network, params, seed)`` returned (compiled and called after each chunk, with
 the run's seed as an int array; e.g. `jaxdrones.training.evaluation.episode_outcomes` of ``make_policy(network,
 params)``); on Ctrl-C it raises `jaxdrones.training.common.Interrupted` with the result of the last completed
-chunk. A trainer that maps seeds (`Trainer.maps_seeds`) also takes ``seeds``, a tuple of ints: one run per seed as
-one program, a list of ``(network, params)`` returned, each metric an array over the seeds.
+chunk. A trainer that maps runs (`Trainer.maps_runs`) also takes ``runs``, configs of its class that differ in their
+seed and float fields (step sizes, discounts, weights): one run per config as one program mapped over them
+(`jaxdrones.training.common.run_updates`), a list of ``(network, params)`` returned, each metric an array over the
+runs.
 ``make_network(config, env)`` rebuilds the network of a saved policy, ``make_policy(network, params)`` gives
 ``policy(obs, key) -> (action, extras)`` on a world's flat observation (the signature of brax's policies).
 """
@@ -45,8 +47,8 @@ class Trainer:
         images: trains on camera images.
         differentiable: differentiates the simulator (needs the JAX backend).
         stochastic: ``make_policy`` takes ``deterministic`` (the distribution's mode, or samples).
-        maps_seeds: ``train`` takes ``seeds`` (module doc); the others' seeds run one after another (brax's PPO
-            runs its own training loop, which cannot be mapped).
+        maps_runs: ``train`` takes ``runs`` (module doc); the others' runs go one after another (brax's PPO runs
+            its own training loop, which cannot be mapped).
     """
 
     name: str
@@ -61,7 +63,7 @@ class Trainer:
     images: bool = False
     differentiable: bool = False
     stochastic: bool = False
-    maps_seeds: bool = True
+    maps_runs: bool = True
 
     def config(self, defaults: str = "cpu", **fields: Any) -> Any:
         """The trainer's config: `base` and ``fields`` over ``config_cls``'s defaults, with the build settings of
@@ -139,7 +141,7 @@ def _table() -> dict[str, Trainer]:
             num_envs_fields=("num_envs", "batch_size"),
             images=True,
             stochastic=True,
-            maps_seeds=False,
+            maps_runs=False,
         ),
         APG: Trainer(
             APG,
