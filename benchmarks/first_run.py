@@ -28,6 +28,8 @@ checkout, so that the current folder does not come first), e.g. a commit against
     python benchmarks/first_run.py --rounds 1 --warm 2 --timeline --setting default
     python benchmarks/first_run.py --setting nokernel JAX_THREEFRY_GPU_KERNEL_LOWERING=0 --train-args --defaults gpu
     python benchmarks/first_run.py --setting one --setting seeds4 TRAIN_ARGS='--seeds 4'    # 4 seeds against 1
+    python benchmarks/first_run.py --setting one --setting sweep \
+        TRAIN_ARGS='--sweep learning_rate=1.5e-3,3e-3,6e-3 --seeds 3'                         # 9 runs against 1
 
 Results: a table of medians on stdout and every run in ``benchmarks/results/first_run_<TASK>.json`` (``--out``).
 """
@@ -132,6 +134,11 @@ def run_once(
     record.update({("summary_" if k == "wall_time_s" else "") + k: summary.get(k) for k in fields})
     if "aggregate" in summary:  # --seeds N: each seed's result, and the evaluations of the first seed's rows
         record.update(success_value=[r["success_value"] for r in summary["runs"]], success=summary["aggregate"])
+    if "settings" in summary:  # --sweep: each setting's results and aggregate
+        labels = [",".join(f"{k}={v}" for k, v in part["setting"].items()) for part in summary["settings"]]
+        parts = dict(zip(labels, summary["settings"], strict=True))
+        record["success_value"] = {label: [r["success_value"] for r in p["runs"]] for label, p in parts.items()}
+        record["success"] = {label: p["aggregate"] for label, p in parts.items()}
     with open(os.path.join(out, "progress.json")) as f:
         rows = json.load(f)
     rows = next(iter(rows.values())) if isinstance(rows, dict) else rows

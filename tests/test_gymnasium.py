@@ -122,6 +122,18 @@ def test_vector_env_same_step_autoreset_returns_the_final_observation():
         gym.make_vec("jaxdrones/Hover-v0", num_envs=2, vectorization_mode="vector_entry_point", autoreset_mode="x")
 
 
+@pytest.mark.parametrize("mode", list(gym.vector.AutoresetMode))
+def test_vector_env_takes_gymnasiums_autoreset_mode_members(mode):
+    """gymnasium's own ``AutoresetMode.NEXT_STEP`` and ``SAME_STEP`` select those modes; ``DISABLED`` is refused by
+    name."""
+    kwargs = dict(num_envs=2, vectorization_mode="vector_entry_point", autoreset_mode=mode)
+    if mode == gym.vector.AutoresetMode.DISABLED:
+        with pytest.raises(ValueError, match="autoreset_mode must be one of .* got <AutoresetMode.DISABLED"):
+            gym.make_vec("jaxdrones/Hover-v0", **kwargs)
+        return
+    assert gym.make_vec("jaxdrones/Hover-v0", **kwargs).metadata["autoreset_mode"] == mode
+
+
 def test_vector_env_call_get_attr_set_attr_as_sync_vector_env():
     """`call`, `get_attr` and `set_attr` give what gymnasium's SyncVectorEnv gives over single envs: one entry per
     world (spaces of one world, the render mode, each world's frame for ``render``, the env's own attributes and
@@ -147,6 +159,10 @@ def test_vector_env_call_get_attr_set_attr_as_sync_vector_env():
         vec.set_attr("user_note", ["a", "a"])
     with pytest.raises(AttributeError):
         vec.get_attr("no_such_attribute")
+    for compiled in ("ctrl_freq", "episode_len_s", "n_drones", "config"):  # options and the env's own attributes
+        with pytest.raises(ValueError, match=f"set_attr: '{compiled}' is the env's own and was compiled"):
+            vec.set_attr(compiled, 10)
+    assert vec.get_attr("n_drones") == (1,) * n and vec.unwrapped.env.config.sim.ctrl_freq == 30
     plain = gym.make_vec("jaxdrones/Hover-v0", num_envs=2, vectorization_mode="vector_entry_point")
     assert plain.call("render") == (None, None)
 

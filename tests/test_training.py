@@ -175,6 +175,17 @@ def test_load_policy_rejects_missing_and_foreign_files(tmp_path):
         load_policy(tmp_path)
 
 
+@pytest.mark.parametrize("content", [b"", b"\x80\x05garbage", pickle.dumps({"params": 1, "env_name": "hover"})[:-9]])
+@pytest.mark.parametrize("command", ["view", "export"])
+def test_view_and_export_refuse_an_empty_or_damaged_policy_file(tmp_path, content, command, capsys):
+    """An empty or cut ``policy.pkl``: a ValueError from `load_policy`, and the commands end with its message."""
+    (tmp_path / "policy.pkl").write_bytes(content)
+    with pytest.raises(ValueError, match="empty or damaged"):
+        load_policy(tmp_path)
+    assert main([command, str(tmp_path), "--out", str(tmp_path / "out")]) != 0
+    assert "empty or damaged" in capsys.readouterr().err
+
+
 def test_fly_cli(tmp_path, capsys):
     out = tmp_path / "fly"
     assert main(["fly", "--num-drones", "2", "--duration", "3", "--out", str(out)]) == 0

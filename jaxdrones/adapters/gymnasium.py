@@ -49,7 +49,7 @@ from jaxdrones._validate import check_int
 from jaxdrones.adapters._host import RENDER_MODES, HumanView, OneWorldRendering, host_metrics, render_frame
 from jaxdrones.envs.base import Env, world_axes
 from jaxdrones.envs.env import outside_box
-from jaxdrones.envs.registry import check_options, make, registered, subscribe
+from jaxdrones.envs.registry import check_options, make, option_names, registered, subscribe
 from jaxdrones.sensors.camera import ENV_IMAGES
 from jaxdrones.wrappers.autoreset import reset_where
 
@@ -270,6 +270,14 @@ class ImageObservation(gym.ObservationWrapper):
         return {k: np.asarray(v, np.float32) for k, v in out.items()}
 
 
+def _options(env: Env) -> set[str]:
+    """The options `jaxdrones.make` takes for ``env``'s task (none for an env of an unregistered task)."""
+    try:
+        return option_names(env.task.name)
+    except (AttributeError, ValueError):
+        return set()
+
+
 class GymnasiumVectorEnv(VectorEnv):
     """N worlds of a jaxdrones env as a gymnasium ``VectorEnv``: one jitted, vmapped call per ``step``.
 
@@ -311,11 +319,17 @@ class GymnasiumVectorEnv(VectorEnv):
             )
         _check_render_mode(render_mode)
         check_int("num_envs", num_envs)
-        mode = str(getattr(autoreset_mode, "value", autoreset_mode))  # a name, or gymnasium's AutoresetMode
+        # Our names, or gymnasium's AutoresetMode members (whose values are "NextStep" and "SameStep").
+        names = {str(getattr(member, "value", name)): name for name, member in AUTORESET_MODES.items()}
+        mode = names.get(str(getattr(autoreset_mode, "value", autoreset_mode)), autoreset_mode)
         if mode not in AUTORESET_MODES:
-            raise ValueError(f"autoreset_mode must be one of {list(AUTORESET_MODES)}, got {autoreset_mode!r}")
+            raise ValueError(
+                f"autoreset_mode must be one of {list(AUTORESET_MODES)} or gymnasium's AutoresetMode.NEXT_STEP or "
+                f"SAME_STEP, got {autoreset_mode!r}"
+            )
         check_not_forked()
         self._init_args = (env, num_envs, render_mode, strict_actions, autoreset_mode)
+        self._user_attrs: set[str] = set()  # the attributes set_attr set
         self.autoreset_mode = AUTORESET_MODES[mode]
         self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
         self.env = env
@@ -426,12 +440,21 @@ class GymnasiumVectorEnv(VectorEnv):
         return self.call(name)
 
     def set_attr(self, name: str, values: Any) -> None:
-        """Set ``name`` on the env that the worlds share: one value, or a list or tuple of one per world, all equal.
-        The compiled step was traced before: what it reads (the config, params) does not change it.
+        """Set ``name`` on the env that the worlds share: one value, or a list or tuple of one per world, all equal;
+        an attribute of your own (the env's own attributes and options were compiled into its step, which a new
+        value would not change).
 
         Raises:
-            ValueError: a list or tuple of another length than ``num_envs``, or of different values.
+            ValueError: a list or tuple of another length than ``num_envs``, or of different values; an option of
+                the env (``ctrl_freq``, ``episode_len_s``, ...: make a new env with it) or another of its own
+                attributes.
         """
+        if name in _options(self.env) or (hasattr(self.env, name) and name not in self._user_attrs):
+            raise ValueError(
+                f"set_attr: {name!r} is the env's own and was compiled into its step, which a new value would not "
+                f"change; make a new env with it instead, e.g. gym.make_vec(id, num_envs, {name}=...) or "
+                f"jaxdrones.make(task, {name}=...)"
+            )
         if isinstance(values, (list, tuple)):
             if len(values) != self.num_envs:
                 raise ValueError(f"set_attr: expected one value or {self.num_envs} values, got {len(values)}")
@@ -439,6 +462,7 @@ class GymnasiumVectorEnv(VectorEnv):
                 raise ValueError(f"set_attr: the {self.num_envs} worlds share one env; give {name!r} one value")
             values = values[0]
         setattr(self.env, name, values)
+        self._user_attrs.add(name)
 
     def _world_attr(self, name: str) -> Any:
         own = {

@@ -71,16 +71,26 @@ def make_config(name: str, **overrides: Any) -> TaskConfig:
     return task.config_cls(**overrides)
 
 
+def option_names(name: str) -> set[str]:
+    """The options `make` takes for the task ``name``: its config's fields, the physics' (`SIM_OPTIONS`), the
+    starts' and the `Realism` fields.
+
+    Raises:
+        ValueError: an unknown task.
+    """
+    fields = {f.name for f in dataclasses.fields(get_task(name).config_cls)} | REALISM_OPTIONS | SIM_OPTIONS
+    return fields | set(START_OPTIONS)
+
+
 def check_options(name: str, options: Iterable[str], also: Iterable[str] = ()) -> None:
-    """Raise for an option of ``options`` that is neither a field of the task ``name``'s config nor a `Realism` field
-    nor one of ``also`` (a caller's own keywords, e.g. an adapter's ``strict_actions``), naming the closest valid
-    one (`jaxdrones._hints.unknown_option`).
+    """Raise for an option of ``options`` that is not one of `option_names` of the task ``name`` nor one of ``also``
+    (a caller's own keywords, e.g. an adapter's ``strict_actions``), naming the closest valid one
+    (`jaxdrones._hints.unknown_option`).
 
     Raises:
         ValueError: an unknown task or option.
     """
-    fields = {f.name for f in dataclasses.fields(get_task(name).config_cls)} | REALISM_OPTIONS | SIM_OPTIONS
-    fields |= set(START_OPTIONS) | set(also)
+    fields = option_names(name) | set(also)
     unknown = sorted(set(options) - fields)
     if unknown:
         raise ValueError(unknown_option(name, unknown[0], fields))

@@ -59,7 +59,8 @@ def read_payload(path: str | os.PathLike) -> tuple[str, dict]:
     is set for the files from before `FORMAT` too.
 
     Raises:
-        ValueError: no policy file there, or not one of jaxdrones (or of an unknown algorithm).
+        ValueError: no policy file there, an empty or damaged one, or not one of jaxdrones (or of an unknown
+            algorithm).
     """
     from jaxdrones.training import trainers
 
@@ -68,8 +69,15 @@ def read_payload(path: str | os.PathLike) -> tuple[str, dict]:
         path = os.path.join(path, "policy.pkl")
     if not os.path.isfile(path):
         raise ValueError(f"no saved policy at {path!r}")
-    with open(path, "rb") as f:
-        payload = pickle.load(f)
+    try:
+        with open(path, "rb") as f:
+            payload = pickle.load(f)
+    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, IndexError, TypeError) as err:
+        # An empty, cut or overwritten file (or a pickle of something else), whatever pickle's error.
+        raise ValueError(
+            f"{path!r} cannot be read as a jaxdrones policy file ({type(err).__name__}: {err}); it is empty or "
+            f"damaged: train the run again, or load another run's policy.pkl"
+        ) from None
     if not isinstance(payload, dict) or not {"params", "env_name"} <= set(payload):
         raise ValueError(f"{path!r} is not a jaxdrones policy file")
     # Files from before FORMAT 1 wrote no "algo" (`jaxdrones.training.trainers.LEGACY_CONFIG_KEYS`).

@@ -231,33 +231,20 @@ def _programs(init, chunk, evaluate, inputs, n_batch: int, description: str | No
     )
 
 
-def run_updates(
-    config: Schedule,
-    build: Callable[[Schedule], tuple[Callable, Callable, Callable]],
-    n_worlds: int,
-    progress: Callable[[int, dict], None] | None = None,
-    evaluate: Callable | None = None,
-    description: str | None = None,
-    runs: Sequence[Schedule] | None = None,
-) -> Any:
-    """Our trainers' loop. ``build(config) -> (init, update, result)`` gives the trainer's ``init(key) -> carry``
-    (parameters, optimiser state, worlds), ``update(carry, None) -> (carry, metrics)`` and ``result(carry) ->
-    (network, params)``; then ``config.num_evals`` chunks, each a `jax.lax.scan` of ``config.updates_per_eval``
-    updates and the trainer's ``evaluate(network, params, seed)``: three compiled programs (`_programs`;
-    ``description`` and ``evaluate.description`` key them in the program cache), each chunk dispatched before the
-    previous one's metrics go to ``progress(env_steps, metrics)`` (the evaluation under ``"eval"``).
-
-    With ``runs`` (configs of ``config``'s class that differ from it in their seed and float fields,
-    `mapped_fields`), one run per config in the three programs mapped over the runs (`jax.vmap`; over several
-    devices, spread along the runs), each array with a runs axis: the seeds and those fields are the programs'
-    inputs, and ``build`` sees them as arrays (`traced_config`). Returns ``result`` of the final carry (a list over
-    ``runs``); on Ctrl-C raises `Interrupted` with that of the last completed chunk."""
-    fields = () if runs is None else mapped_fields(config, runs)
+def _run_functions(config: Schedule, build: Callable, evaluate: Callable | None, runs: Sequence | None):
+    """`run_updates`' programs before compilation, ``(inputs, (init, chunk, evaluate or None), result)``: the inputs
+    of a run (its seed, from which the compiled init makes the key, and the values of `mapped_fields`), ``init(inputs)
+    -> carry``, ``chunk(carry) -> (carry, metrics)`` and ``evaluate(carry)`` on a carry ``(inputs, the trainer's
+    carry)``, and the trainer's ``result``; with ``runs``, each input with a runs axis and the three mapped over it."""
     group = [config] if runs is None else runs
-    # The key is made inside the compiled init from the seed: a key made here would compile programs of its own.
     seeds = np.asarray([run.seed for run in group]).astype(jax.dtypes.canonicalize_dtype(np.int64))
-    values = {name: np.asarray([getattr(run, name) for run in group], np.float32) for name in fields}
-    inputs = (seeds, values) if runs is not None else (seeds[0], {})
+    if runs is None:
+        inputs = (seeds[0], {})
+    else:
+        inputs = (
+            seeds,
+            {name: np.asarray([getattr(r, name) for r in runs], np.float32) for name in mapped_fields(config, runs)},
+        )
     result = build(config)[2]  # the network and the parameters' layout: the same for every run
 
     def init_run(inputs):
@@ -273,13 +260,32 @@ def run_updates(
     def evaluate_run(carry):  # named: benchmarks/train_cost.py finds the evaluation by its name
         return evaluate(*result(carry[1]), carry[0][0])
 
-    programs = tuple(
-        fn and (fn if runs is None else jax.vmap(fn)) for fn in (init_run, chunk, evaluate and evaluate_run)
-    )
+    programs = (init_run, chunk, evaluate and evaluate_run)
+    return inputs, tuple(fn and (fn if runs is None else jax.vmap(fn)) for fn in programs), result
+
+
+def run_updates(
+    config: Schedule,
+    build: Callable[[Schedule], tuple[Callable, Callable, Callable]],
+    n_worlds: int,
+    progress: Callable[[int, dict], None] | None = None,
+    evaluate: Callable | None = None,
+    description: str | None = None,
+    runs: Sequence[Schedule] | None = None,
+) -> Any:
+    """Our trainers' loop. ``build(config) -> (init, update, result)`` gives the trainer's ``init(key) -> carry``,
+    ``update(carry, None) -> (carry, metrics)`` and ``result(carry) -> (network, params)``; then
+    ``config.num_evals`` chunks, each a `jax.lax.scan` of ``config.updates_per_eval`` updates and the trainer's
+    ``evaluate(network, params, seed)``: three compiled programs (`_programs`), each chunk dispatched before the
+    previous one's metrics go to ``progress(env_steps, metrics)`` (the evaluation under ``"eval"``). With ``runs``
+    (configs that differ from ``config`` in their seed and float fields, `mapped_fields`), one run per config in the
+    three programs mapped over them (`jax.vmap`; over several devices, spread along the runs), ``build`` seeing those
+    fields as arrays (`traced_config`), each metric with a runs axis. Returns ``result`` of the final carry (a list
+    over ``runs``); on Ctrl-C raises `Interrupted` with that of the last completed chunk."""
+    inputs, programs, result = _run_functions(config, build, evaluate, runs)
     eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
-    init_c, chunk_c, eval_c = _programs(
-        *programs, inputs, len(group) if runs else n_worlds, description, eval_description
-    )
+    n_batch = n_worlds if runs is None else len(runs)
+    init_c, chunk_c, eval_c = _programs(*programs, inputs, n_batch, description, eval_description)
 
     def results(carry):
         if runs is None:
