@@ -2,6 +2,8 @@
 clipped to it and counted (``clipped_actions``), as an unclipped Gaussian policy needs; ``strict_actions=True``
 refuses them; NaN and inf are always refused (a jitted step ends the episode as invalid instead)."""
 
+import warnings
+
 import gymnasium as gym
 import jax
 import jax.numpy as jnp
@@ -47,6 +49,10 @@ def test_gaussian_policy_on_the_gymnasium_env_equals_its_clipped_actions():
     for bad in (np.nan, np.inf, -np.inf):
         with pytest.raises(ValueError, match="action must be finite, got 1 NaN or inf"):
             env.step(np.array([0.0, bad, 0.0, 0.0], np.float32))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # and no overflow warning of NumPy's before the error
+        with pytest.raises(ValueError, match=r"action must lie within float32's range .* the largest 1e\+39"):
+            env.step(np.array([0.0, 1e39, 0.0, 0.0]))  # finite in float64
 
 
 def test_gaussian_policy_on_the_vector_env():

@@ -78,6 +78,9 @@ def _observations(env, n: int) -> np.ndarray:
 def test_exported_c_policy_matches_jax(tmp_path, overrides):
     run = _saved_policy(str(tmp_path / "run"), **overrides)
     assert main(["export", run]) == 0
+    if overrides.get("action_type") == "ctbr":  # the source says the constants of the action's mapping
+        with open(os.path.join(run, "jaxdrones_policy.c")) as f:
+            assert "CTBR_MAX_RATE = 6.28319 · a_1:4 (rad/s)" in f.read()
     shutil.copy(os.path.join(run, "jaxdrones_policy.c"), tmp_path / "policy.c")
     (tmp_path / "harness.c").write_text(HARNESS)
     subprocess.run(

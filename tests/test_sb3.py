@@ -88,8 +88,12 @@ def test_attributes_methods_and_wrappers(VecEnv, tmp_path):
 def test_bad_input_names_what_was_expected(VecEnv):
     import jaxdrones as jd
 
-    with pytest.raises(ValueError, match="unknown task"):
+    with pytest.raises(ValueError, match="unknown task 'hovr' \\(did you mean 'hover'\\?\\)"):
         VecEnv("hovr", num_envs=2)
+    with pytest.raises(
+        ValueError, match="unknown gymnasium id 'jaxdrones/Hovr-v0' \\(did you mean 'jaxdrones/Hover-v0'"
+    ):
+        VecEnv("jaxdrones/Hovr-v0", num_envs=2)
     with pytest.raises(ValueError, match="num_envs must be a positive integer"):
         VecEnv("hover", num_envs=0)
     with pytest.raises(ValueError, match="apply to a task's name, not to an Env"):

@@ -167,6 +167,21 @@ def test_cli_version(capsys):
     assert exit_.value.code == 0 and capsys.readouterr().out.startswith("jaxdrones 0.")
 
 
+@pytest.mark.parametrize(
+    "argv, hint",
+    [
+        (["train", "hover", "--defualts", "cpu"], "--defualts (did you mean '--defaults'?)"),
+        (["train", "hover", "--sed", "1"], "--sed (did you mean '--seed'?)"),
+        (["fly", "--durration", "3"], "--durration (did you mean '--duration'?)"),
+    ],
+)
+def test_mistyped_options_get_the_subcommands_usage_and_the_closest_option(argv, hint, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and f"usage: jaxdrones {argv[0]}" in err and hint in err
+
+
 def test_load_policy_rejects_missing_and_foreign_files(tmp_path):
     with pytest.raises(ValueError, match="no saved policy"):
         load_policy(tmp_path)
@@ -417,7 +432,9 @@ def test_ppo_noise_per_window_draws_an_unrolls_noise_before_it(monkeypatch):
     env = jd.make("hover")
     for per_window in (False, True):
         built = {}
-        monkeypatch.setattr(mappo, "run_updates", lambda config, build, *a, **k: built.update(zip("iu", build(config))))
+        monkeypatch.setattr(
+            mappo, "run_updates", lambda config, build, *a, **k: built.update(zip("iur", build(config), strict=True))
+        )
         config = mappo.MAPPOConfig(
             num_timesteps=36,
             num_envs=4,

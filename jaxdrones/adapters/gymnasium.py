@@ -125,21 +125,29 @@ def check_action(
     ``strict``; non-finite entries are always refused.
 
     Raises:
-        ValueError: not a float array of the expected shape; NaN or inf entries; with ``strict``, entries outside
-            the box by more than `jaxdrones.envs.env.CLIP_TOLERANCE`. The message names ``name``.
+        ValueError: not a float array of the expected shape; NaN or inf entries, or entries beyond float32's range;
+            with ``strict``, entries outside the box by more than `jaxdrones.envs.env.CLIP_TOLERANCE`. The message
+            names ``name``.
     """
     expected = batch + space.shape
     try:
-        action = np.asarray(action, dtype=np.float32)
+        given = np.asarray(action, dtype=np.float64)  # checked before the cast, which would overflow to inf
     except (TypeError, ValueError) as e:
         raise ValueError(f"{name} must be a float array of shape {expected}, got {action!r}") from e
-    if action.shape != expected:
-        raise ValueError(f"{name} must have shape {expected}, got {action.shape}")
-    if not np.all(np.isfinite(action)):
+    if given.shape != expected:
+        raise ValueError(f"{name} must have shape {expected}, got {given.shape}")
+    if not np.all(np.isfinite(given)):
         raise ValueError(
-            f"{name} must be finite, got {np.sum(~np.isfinite(action))} NaN or inf entries: "
-            f"{action.tolist() if action.size <= 16 else action}"
+            f"{name} must be finite, got {np.sum(~np.isfinite(given))} NaN or inf entries: "
+            f"{given.tolist() if given.size <= 16 else given}"
         )
+    beyond = np.abs(given) > np.finfo(np.float32).max
+    if np.any(beyond):
+        raise ValueError(
+            f"{name} must lie within float32's range (±{np.finfo(np.float32).max:.4g}), the env's action dtype; "
+            f"got {np.sum(beyond)} entries beyond it, the largest {given[beyond].flat[0]:.4g}"
+        )
+    action = given.astype(np.float32)
     if strict and np.any(outside_box(action, space.low, space.high)):
         raise ValueError(
             f"{name} must lie in the action space [{space.low.min():g}, {space.high.max():g}] "

@@ -40,6 +40,7 @@ def _vec_env_class() -> type:
         raise ImportError(f"jaxdrones.adapters.sb3.VecEnv needs Stable-Baselines3: {INSTALL_HINT}") from err
     import numpy as np
 
+    from jaxdrones._hints import did_you_mean
     from jaxdrones.adapters.gymnasium import GYM_IDS, GymnasiumVectorEnv
     from jaxdrones.envs.base import Env
     from jaxdrones.envs.registry import check_options, make
@@ -88,7 +89,13 @@ def _vec_env_class() -> type:
                     raise ValueError(f"VecEnv: options {sorted(options)} apply to a task's name, not to an Env")
                 env = task
             else:
-                task = {gym_id: name for name, gym_id in GYM_IDS.items()}.get(task, task)
+                ids = {gym_id: name for name, gym_id in GYM_IDS.items()}
+                if isinstance(task, str) and task.startswith("jaxdrones/") and task not in ids:
+                    raise ValueError(
+                        f"VecEnv: unknown gymnasium id {task!r}{did_you_mean(task, ids)}: expected a task's name or "
+                        f"one of {sorted(ids)}"
+                    )
+                task = ids.get(task, task)
                 check_options(task, options, also=("num_envs", "render_mode", "strict_actions"))
                 env = make(task, **options)
             self.venv = GymnasiumVectorEnv(

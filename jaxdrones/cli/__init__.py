@@ -31,10 +31,23 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     from jaxdrones.cli import xla
 
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # the subcommand's usage, and the closest of its options to each unknown one
+        _unknown_options(parser, args.command, unknown)
     xla.configure(getattr(args, "device", None))  # before JAX starts a backend
     args.t_start = t_start
     return int(args.func(args) or 0)
+
+
+def _unknown_options(parser: argparse.ArgumentParser, command: str, unknown: list[str]) -> None:
+    """Exit (status 2) with ``command``'s usage and its unknown options, each with the closest option it has."""
+    from jaxdrones._hints import did_you_mean
+
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+    options = [flag for action in sub._actions for flag in action.option_strings]
+    hints = [f"; {word}{hint}" for word in unknown if word.startswith("-") and (hint := did_you_mean(word, options))]
+    sub.error(f"unrecognized arguments: {' '.join(unknown)}{''.join(hints)}")
 
 
 if __name__ == "__main__":

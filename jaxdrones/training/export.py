@@ -21,6 +21,7 @@ the ones supported.
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import textwrap
@@ -172,8 +173,14 @@ def _action_text(env) -> str:
     from jaxdrones.envs import actions
 
     name = env.action_type.name
-    rows = [line for line in actions.__doc__.splitlines() if line.startswith(f"``{name}``")]
-    mapping = " ".join(rows[0].split()[2:]) if rows else f"see jaxdrones.envs.actions ({name})"
+    lines = actions.__doc__.splitlines()
+    start = next((k for k, line in enumerate(lines) if line.startswith(f"``{name}``")), None)
+    if start is None:
+        mapping = f"see jaxdrones.envs.actions ({name})"
+    else:  # the table's row and its continuation lines, each constant it names with its value
+        row = [lines[start], *itertools.takewhile(lambda line: line.startswith(" "), lines[start + 1 :])]
+        mapping = " ".join(" ".join(row).split()[2:])
+        mapping = re.sub(r"`([A-Z][A-Z_]+)`", lambda m: f"{m[1]} = {getattr(actions, m[1]):.6g}", mapping)
     hover = float(np.asarray(env.params.hover_rpm).reshape(-1)[0])
     return (
         f"action_type {name!r}, each entry in [-1, 1]: {mapping}. Model {env.config.model!r}: hover_rpm = "
