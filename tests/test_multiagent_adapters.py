@@ -61,6 +61,7 @@ def test_seeded_reset_is_reproducible(pz):
     d, _ = pz.reset(seed=4)
     for agent in pz.possible_agents:
         assert a[agent].dtype == np.float32 and a[agent].shape == (pz.env.observation_size,)
+        assert a[agent].flags.writeable  # torch.from_numpy takes it without a warning
         np.testing.assert_array_equal(a[agent], c[agent])
         assert not np.allclose(a[agent], b[agent]) and not np.allclose(a[agent], d[agent])
     # the three drones start at different places: the agents' rows differ

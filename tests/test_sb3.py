@@ -104,3 +104,33 @@ def test_bad_input_names_what_was_expected(VecEnv):
         env.step(np.zeros((3, 4), np.float32))
     with pytest.raises(RuntimeError, match="step_async"):
         env.step_wait()
+
+
+def test_the_adapters_warn_once_where_torch_threads_contend_with_jax(VecEnv, recwarn):
+    """torch with several threads beside JAX on the CPU: the first reset of an adapter warns once, with the fix;
+    with one thread, no warning."""
+    import warnings
+
+    import gymnasium as gym
+    import torch
+
+    from jaxdrones.adapters import TorchThreadsWarning
+    from jaxdrones.adapters.pettingzoo import parallel_env
+
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("default")  # Python's default: once per place
+            VecEnv("hover", num_envs=2).reset()
+            gym.make("jaxdrones/Hover-v0").reset(seed=0)
+            parallel_env("leader_follower").reset(seed=0)
+        ours = [w for w in seen if issubclass(w.category, TorchThreadsWarning)]
+        assert len(ours) == 1 and "torch.set_num_threads(1)" in str(ours[0].message)
+        torch.set_num_threads(1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", TorchThreadsWarning)
+            VecEnv("hover", num_envs=2).reset()
+            parallel_env("leader_follower").reset(seed=0)
+    finally:
+        torch.set_num_threads(threads)

@@ -1,7 +1,10 @@
-"""What the host-side adapters (gymnasium, PettingZoo) share: the frames of ``render_mode`` and the window of
-``"human"``."""
+"""What the host-side adapters (gymnasium, PettingZoo, SB3's VecEnv) share: the frames of ``render_mode``, the window
+of ``"human"``, and the warning where torch's threads would contend with JAX's for the CPU."""
 
 from __future__ import annotations
+
+import sys
+import warnings
 
 import jax
 import numpy as np
@@ -12,6 +15,34 @@ from jaxdrones.envs.base import Env, EnvState
 RENDER_MODES = ("human", "rgb_array")
 #: The env's metrics that count something (action entries): the adapters hand them out as integers.
 COUNTS = ("clipped_actions",)
+
+
+class TorchThreadsWarning(UserWarning):
+    """torch computes with several threads in a process where JAX computes on the CPU (`check_torch_threads`)."""
+
+
+def check_torch_threads() -> None:
+    """Warn (`TorchThreadsWarning`, once per process under Python's default warning filter) where torch has been
+    imported with more than one intra-op thread and JAX's default backend is the CPU.
+
+    Both libraries then run a thread per core and take the cores from each other at every step, and torch's updates
+    run several times slower (measured in docs/adapters.md, "torch beside JAX"). The message gives the fix,
+    ``torch.set_num_threads(1)``. The adapters warn rather than set it: torch's threads are the user's, and other
+    torch code in the process (a large network, an evaluation) may want them.
+    """
+    torch = sys.modules.get("torch")
+    if torch is None or not hasattr(torch, "get_num_threads"):
+        return
+    threads = torch.get_num_threads()
+    if threads > 1 and jax.default_backend() == "cpu":
+        warnings.warn(
+            f"torch computes with {threads} threads in this process, beside JAX on the CPU: the two contend for the "
+            f"cores and torch's updates run several times slower. Call torch.set_num_threads(1) after importing "
+            f"torch (docs/adapters.md, 'torch beside JAX'); silence this with warnings.filterwarnings('ignore', "
+            f"category=jaxdrones.adapters.TorchThreadsWarning)",
+            TorchThreadsWarning,
+            stacklevel=1,  # this one place, not the caller's: Python's default filter then shows it once
+        )
 
 
 def host_metrics(metrics: dict) -> dict:

@@ -46,7 +46,14 @@ except ImportError:  # gymnasium < 1.1, where `GymnasiumVectorEnv` refuses to ru
 
 from jaxdrones._fork import check_not_forked
 from jaxdrones._validate import check_int
-from jaxdrones.adapters._host import RENDER_MODES, HumanView, OneWorldRendering, host_metrics, render_frame
+from jaxdrones.adapters._host import (
+    RENDER_MODES,
+    HumanView,
+    OneWorldRendering,
+    check_torch_threads,
+    host_metrics,
+    render_frame,
+)
 from jaxdrones.envs.base import Env, world_axes
 from jaxdrones.envs.env import outside_box
 from jaxdrones.envs.registry import check_options, make, option_names, registered, subscribe
@@ -198,6 +205,7 @@ class GymnasiumEnv(OneWorldRendering, gym.Env):
         self, *, seed: int | None = None, options: dict | None = None
     ) -> tuple[np.ndarray | dict[str, np.ndarray], dict[str, Any]]:
         check_not_forked()
+        check_torch_threads()
         super().reset(seed=seed)
         key = jax.random.key(int(self.np_random.integers(2**31)))
         self._state = self._reset(key)
@@ -386,6 +394,7 @@ class GymnasiumVectorEnv(VectorEnv):
         self, *, seed: int | None = None, options: dict | None = None
     ) -> tuple[np.ndarray | dict[str, np.ndarray], dict[str, np.ndarray]]:
         check_not_forked()
+        check_torch_threads()
         super().reset(seed=seed)
         self._key = jax.random.key(int(self.np_random.integers(2**31)))
         self._key, sub = jax.random.split(self._key)

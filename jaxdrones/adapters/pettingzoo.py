@@ -37,7 +37,7 @@ from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from jaxdrones._fork import check_not_forked
-from jaxdrones.adapters._host import RENDER_MODES, HumanView, OneWorldRendering, host_metrics
+from jaxdrones.adapters._host import RENDER_MODES, HumanView, OneWorldRendering, check_torch_threads, host_metrics
 from jaxdrones.adapters.agents import agent_names, check_agent_keys, make_multi_agent
 from jaxdrones.adapters.gymnasium import check_action, compiled, spaces
 from jaxdrones.envs.env import TaskEnv, clipped_per_drone
@@ -103,6 +103,7 @@ class PettingZooEnv(OneWorldRendering, ParallelEnv):
     ) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
         """Start an episode; returns ``(observations, infos)``, one entry per agent."""
         check_not_forked()
+        check_torch_threads()
         if seed is not None or self.np_random is None:
             self.np_random, _ = seeding.np_random(seed)
         key = jax.random.key(int(self.np_random.integers(2**31)))
@@ -182,10 +183,11 @@ def _agent_space(space: gym.Space, i: int, stacked: bool) -> gym.Space:
 
 
 def _agent_obs(obs, space: gym.Space, i: int):
-    """Drone ``i``'s row of the stacked observation, in ``space``'s dtypes."""
+    """Drone ``i``'s row of the stacked observation, in ``space``'s dtypes: a writable copy (a view of JAX's buffer
+    is read-only, and ``torch.from_numpy`` warns on one)."""
     if isinstance(space, gym.spaces.Dict):
         return {k: _agent_obs(obs[k], space[k], i) for k in space}
-    return np.asarray(obs[i], space.dtype)
+    return np.array(obs[i], space.dtype)
 
 
 def parallel_env(

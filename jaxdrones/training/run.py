@@ -40,10 +40,14 @@ def eval_program(env: Env, trainer: Trainer, n_episodes: int) -> Callable:
     def evaluate(network, params, seed):
         keys = jax.random.split(jax.random.split(jax.random.key(seed + 1))[0], n_episodes)
         policy = trainer.make_policy(network, params)
-        states = jax.vmap(lambda k: rollout_policy(env, policy, k))(keys)
+        # The episodes' starts, as rollout_policy draws them; the task of the first episode from its start, not from
+        # the flown states, so that the compiled evaluation keeps no per-step copy of every episode's task data.
+        starts = jax.vmap(lambda k: env.reset(jax.random.split(k)[0]))(keys)
+        states = jax.vmap(lambda k, start: rollout_policy(env, policy, k, start))(keys, starts)
         flight = jax.tree.map(lambda x: x[0], states)  # the first episode, for the flight plot
         steps = jax.numpy.arange(env.episode_length + 1)
-        ref = jax.vmap(lambda s: env.task.reference(env.config, jax.tree.map(lambda x: x[0], flight.task), s))(steps)
+        task = jax.tree.map(lambda x: x[0], starts.task)
+        ref = jax.vmap(lambda s: env.task.reference(env.config, task, s))(steps)
         return {
             "outcomes": outcomes_of(states),
             "flight": {"pos": flight.sim.pos, "ref": ref.pos, "vel": flight.sim.vel, "rpm": flight.sim.rpm},

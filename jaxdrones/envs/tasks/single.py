@@ -322,7 +322,7 @@ def path_points(
     """Points of a circle (``kind`` 0) or a figure-8 (``kind`` 1, a lemniscate of Gerono) in the horizontal plane.
 
     Args:
-        kind: i32[] path kind.
+        kind: [] path kind: 0 a circle, 1 a figure-8.
         radius: f[] m.
         phase: f[] rad, where on the path the episode starts.
         direction: f[] ±1, the sense of travel.
@@ -385,13 +385,10 @@ class Waypoints(ReferenceTask):
         return np.asarray([config.centre])
 
     def data(self, config: WaypointsConfig) -> dict[str, np.ndarray]:
-        n = int(round(config.episode_len_s * config.sim.ctrl_freq)) + 2
         kind = {"circle": 0, "figure8": 1, "random": -1}[config.path]
-        return {
-            "waypoints": np.zeros((n, config.n_drones, 3)),
-            "path": np.asarray(kind),
-            "radius": np.asarray(config.radius),
-        }
+        # The episode's path: its kind, radius, start phase and sense (`sample`), whose points `reference` computes
+        # at each step (no table of waypoints in the state).
+        return {"path": np.asarray(kind), "radius": np.asarray(config.radius), "curve": np.array([0.0, 0.0, 0.0, 1.0])}
 
     def weights(self, config: WaypointsConfig) -> dict[str, float]:
         return hover_weights(config, {"distance_sq": -1.0})
@@ -405,17 +402,20 @@ class Waypoints(ReferenceTask):
         radius = jax.random.uniform(k_r, (), dtype, task.data["radius"][0], task.data["radius"][1])
         phase = jax.random.uniform(k_phase, (), dtype, 0.0, 2 * jnp.pi)
         direction = jnp.where(jax.random.bernoulli(k_dir), 1.0, -1.0).astype(dtype)
-        n = task.data["waypoints"].shape[0]
-        angle = 2 * jnp.pi * config.laps * jnp.arange(n, dtype=dtype) / (n - 2)
-        points = jax.vmap(lambda c: path_points(kind, radius, phase, direction, c, angle), out_axes=1)(task.target)
-        start = task.start.replace(pos=points[0])
-        return task.replace(start=start, data={**task.data, "waypoints": points})
+        curve = jnp.stack([kind.astype(dtype), radius, phase, direction])
+        task = task.replace(data={**task.data, "curve": curve})
+        start = task.start.replace(pos=self.reference(config, task, jnp.zeros((), jnp.int32)).pos)
+        return task.replace(start=start)
 
     def reference(self, config: WaypointsConfig, task: TaskParams, steps: jax.Array) -> Reference:
-        points = task.data["waypoints"]
-        k = jnp.minimum(steps, points.shape[0] - 2)
-        pos, nxt = points[k], points[k + 1]
-        return Reference(pos, (nxt - pos) * config.sim.ctrl_freq)
+        """The waypoint of control step ``steps`` and the next one's, ``laps`` laps of the path per episode (the
+        last waypoint held after the episode's length)."""
+        kind, radius, phase, direction = task.data["curve"]
+        n = int(round(config.episode_len_s * config.sim.ctrl_freq))  # waypoints 0 .. n, one per control step
+        k = jnp.minimum(steps, n).astype(radius.dtype)
+        angle = 2 * jnp.pi * config.laps * jnp.stack([k, k + 1]) / n
+        points = jax.vmap(lambda c: path_points(kind, radius, phase, direction, c, angle))(task.target)  # [D, 2, 3]
+        return Reference(points[:, 0], (points[:, 1] - points[:, 0]) * config.sim.ctrl_freq)
 
     def metrics(
         self, config: WaypointsConfig, task: TaskParams, sim: DroneState, steps: jax.Array
