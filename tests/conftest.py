@@ -37,7 +37,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from optional import MISSING, installed  # noqa: E402
 
 #: Markers that keep a test out of the ``fast`` tier.
-NOT_FAST = ("slow", "pybullet", "torch", "tianshou", "ros2")
+NOT_FAST = ("slow", "pybullet", "torch", "tianshou", "ros2", "ray")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -1,6 +1,7 @@
-"""Optional packages of the suite: pybullet, torch and Tianshou, which the test extra installs on Python 3.11 only.
+"""Optional packages of the suite: pybullet, torch and Tianshou, which the test extra installs on Python 3.11 only,
+and ray (RLlib), which the rllib extra installs in an environment of its own.
 
-Tests that need one are marked ``pybullet``, ``torch`` or ``tianshou`` (skipped by ``conftest.py`` where it is
+Tests that need one are marked ``pybullet``, ``torch``, ``tianshou`` or ``ray`` (skipped by ``conftest.py`` where it is
 missing); a test module that imports one at its top calls `needs` first.
 """
 
@@ -20,6 +21,8 @@ MISSING = {
     "torch": "torch is not installed: PyPI's torch for Python >= 3.12 on Linux is a CUDA build of several GB, so "
     "the test extra installs torch and stable-baselines3 on 3.11 only (the CPU build)",
     "tianshou": "tianshou is not installed: it needs torch, which the test extra installs on Python 3.11 only",
+    "ray": "ray is not installed: RLlib pins an older gymnasium than the suite's, so it has an environment of its own, "
+    'the rllib extra: pip install -c constraints-rllib.txt -e ".[rllib]" (the rllib lane of .ci/run)',
 }
 
 

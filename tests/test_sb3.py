@@ -114,14 +114,15 @@ def test_the_adapters_warn_once_where_torch_threads_contend_with_jax(VecEnv, rec
     import gymnasium as gym
     import torch
 
-    from jaxdrones.adapters import TorchThreadsWarning
+    from jaxdrones.adapters import TorchThreadsWarning, _host
     from jaxdrones.adapters.pettingzoo import parallel_env
 
     threads = torch.get_num_threads()
+    _host._warn_torch_threads.cache_clear()  # as in a new process
     try:
         torch.set_num_threads(2)
         with warnings.catch_warnings(record=True) as seen:
-            warnings.simplefilter("default")  # Python's default: once per place
+            warnings.simplefilter("always")  # every warning given is recorded: the adapters give this one once
             VecEnv("hover", num_envs=2).reset()
             gym.make("jaxdrones/Hover-v0").reset(seed=0)
             parallel_env("leader_follower").reset(seed=0)

@@ -3,6 +3,7 @@ of ``"human"``, and the warning where torch's threads would contend with JAX's f
 
 from __future__ import annotations
 
+import functools
 import sys
 import warnings
 
@@ -22,8 +23,8 @@ class TorchThreadsWarning(UserWarning):
 
 
 def check_torch_threads() -> None:
-    """Warn (`TorchThreadsWarning`, once per process under Python's default warning filter) where torch has been
-    imported with more than one intra-op thread and JAX's default backend is the CPU.
+    """Warn (`TorchThreadsWarning`, once per process) where torch has been imported with more than one intra-op
+    thread and JAX's default backend is the CPU.
 
     Both libraries then run a thread per core and take the cores from each other at every step, and torch's updates
     run several times slower (measured in docs/adapters.md, "torch beside JAX"). The message gives the fix,
@@ -35,14 +36,19 @@ def check_torch_threads() -> None:
         return
     threads = torch.get_num_threads()
     if threads > 1 and jax.default_backend() == "cpu":
-        warnings.warn(
-            f"torch computes with {threads} threads in this process, beside JAX on the CPU: the two contend for the "
-            f"cores and torch's updates run several times slower. Call torch.set_num_threads(1) after importing "
-            f"torch (docs/adapters.md, 'torch beside JAX'); silence this with warnings.filterwarnings('ignore', "
-            f"category=jaxdrones.adapters.TorchThreadsWarning)",
-            TorchThreadsWarning,
-            stacklevel=1,  # this one place, not the caller's: Python's default filter then shows it once
-        )
+        _warn_torch_threads(threads)
+
+
+@functools.cache  # once per process (Python's own once-per-place registry resets whenever any code sets a filter)
+def _warn_torch_threads(threads: int) -> None:
+    warnings.warn(
+        f"torch computes with {threads} threads in this process, beside JAX on the CPU: the two contend for the "
+        f"cores and torch's updates can run several times slower. Call torch.set_num_threads(1) after importing "
+        f"torch (docs/adapters.md, 'torch beside JAX'); silence this with warnings.filterwarnings('ignore', "
+        f"category=jaxdrones.adapters.TorchThreadsWarning)",
+        TorchThreadsWarning,
+        stacklevel=4,  # the adapter's caller: the user's reset
+    )
 
 
 def host_metrics(metrics: dict) -> dict:

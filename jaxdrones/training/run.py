@@ -222,56 +222,8 @@ def train_task(
     settings_of = dict(run=run, algo=algo, config=config, env=env, phases=phases, train_time=train_time, source=source)
     if not multi:
         return _write_run(out, results[0][1], logs[0], last[0], interrupted, t_start, **settings_of)
-    summaries = {}
-    for k in sorted(results):  # the runs trained
-        setting, seed = grid[k]
-        one = dict(settings_of, config=configs[k], phases={}, plots=False)
-        folder = os.path.join(out, *([setting_label(setting)] if settings else []), f"seed_{seed}")
-        summaries[k] = _write_run(folder, results[k][1], logs[k], last[k], interrupted, t_start, **one)
-
-    def results_of(setting):
-        ks = [k for k in summaries if grid[k][0] == setting]
-        return {
-            "aggregate": aggregate([summaries[k]["success_value"] for k in ks], [summaries[k]["success"] for k in ks]),
-            "runs": [{"seed": grid[k][1], **{name: summaries[k][name] for name in PER_SEED}} for k in ks],
-        }
-
-    summary = {
-        "task": task,
-        "algo": algo,
-        "seeds": list(seed_list or [config.seed]),
-        "mapped": mapped,
-        "programs": len(groups),
-        "wall_time_s": time.perf_counter() - t_start,
-        "train_time_s": train_time,
-        "interrupted": interrupted,
-        "env_steps": [summaries[k]["env_steps"] for k in summaries],
-        "success_metric": next(iter(summaries.values()))["success_metric"],
-        "success_threshold": env.task.success_threshold,
-        "out_dir": out,
-        "provenance": source,
-    }
-    if settings:
-        summary["sweep"] = {name: list(values) for name, values in sweep.items()}
-        summary["settings"] = [{"setting": setting, **results_of(setting)} for setting in settings]
-    else:
-        summary.update(results_of({}))
-    labels = [setting_label(grid[k][0]) + f"{',' if settings else ''}seed_{grid[k][1]}" for k in summaries]
-    with open(os.path.join(out, "progress.json"), "w") as f:
-        json.dump({label: logs[k].history for label, k in zip(labels, summaries, strict=True)}, f, indent=1)
-    from jaxdrones.io.plotting import plot_learning_curves
-
-    plot_learning_curves(
-        [logs[k].history for k in summaries],
-        os.path.join(out, "learning_curve.png"),
-        groups=[setting_label(grid[k][0]) for k in summaries] if settings else None,
-        metric_label=f"evaluation {bar.label}",
-        threshold=env.task.success_threshold,
-        title=f"{algo.upper()} on {task}, seeds {', '.join(map(str, seed_list or [config.seed]))}",
-    )
-    with open(os.path.join(out, "summary.json"), "w") as f:
-        json.dump(summary, f, indent=2)
-    return summary
+    head = dict(task=task, algo=algo, seeds=list(seed_list or [config.seed]), mapped=mapped, programs=len(groups))
+    return _write_runs(out, grid, configs, results, logs, last, interrupted, t_start, head, bar.label, **settings_of)
 
 
 #: What the summary of several seeds keeps of each seed's own summary (in ``seed_<k>/summary.json``).
@@ -431,6 +383,64 @@ def _write_run(
     }
     if "final_pos_error_m" in stats:
         summary["eval_final_pos_error_m"] = stats["final_pos_error_m"]
+    with open(os.path.join(out, "summary.json"), "w") as f:
+        json.dump(summary, f, indent=2)
+    return summary
+
+
+def _write_runs(
+    out, grid, configs, results, logs, last, interrupted, t_start, head, label, *, run, env, train_time, source, **one
+) -> dict:
+    """Write the runs of several seeds or settings (`train_task`'s ``seeds`` and ``sweep``): each run's folder (its
+    setting's, then ``seed_<k>/``), and in ``out`` their ``summary.json`` (``head``'s fields, each setting's runs and
+    aggregate), ``progress.json`` and ``learning_curve.png``; returns the summary."""
+    from jaxdrones.io.plotting import plot_learning_curves
+
+    sweep = any(setting for setting, _ in grid)
+    summaries = {}
+    for k in sorted(results):  # the runs trained
+        setting, seed = grid[k]
+        folder = os.path.join(out, *([setting_label(setting)] if sweep else []), f"seed_{seed}")
+        settings = dict(one, run=run, env=env, train_time=train_time, source=source, config=configs[k], phases={})
+        summaries[k] = _write_run(
+            folder, results[k][1], logs[k], last[k], interrupted, t_start, **settings, plots=False
+        )
+
+    def results_of(setting):
+        ks = [k for k in summaries if grid[k][0] == setting]
+        return {
+            "aggregate": aggregate([summaries[k]["success_value"] for k in ks], [summaries[k]["success"] for k in ks]),
+            "runs": [{"seed": grid[k][1], **{name: summaries[k][name] for name in PER_SEED}} for k in ks],
+        }
+
+    summary = {
+        **head,
+        "wall_time_s": time.perf_counter() - t_start,
+        "train_time_s": train_time,
+        "interrupted": interrupted,
+        "env_steps": [summaries[k]["env_steps"] for k in summaries],
+        "success_metric": next(iter(summaries.values()))["success_metric"],
+        "success_threshold": env.task.success_threshold,
+        "out_dir": out,
+        "provenance": source,
+    }
+    trained = list(dict.fromkeys(grid[k][0] for k in summaries))  # the settings with a run trained, in order
+    if sweep:
+        summary["sweep"] = {name: list(dict.fromkeys(setting[name] for setting, _ in grid)) for name in grid[0][0]}
+        summary["settings"] = [{"setting": setting, **results_of(setting)} for setting in trained]
+    else:
+        summary.update(results_of({}))
+    names = [f"{setting_label(grid[k][0]) + ',' if sweep else ''}seed_{grid[k][1]}" for k in summaries]
+    with open(os.path.join(out, "progress.json"), "w") as f:
+        json.dump({name: logs[k].history for name, k in zip(names, summaries, strict=True)}, f, indent=1)
+    plot_learning_curves(
+        [logs[k].history for k in summaries],
+        os.path.join(out, "learning_curve.png"),
+        groups=[setting_label(grid[k][0]) for k in summaries] if sweep else None,
+        metric_label=f"evaluation {label}",
+        threshold=env.task.success_threshold,
+        title=f"{head['algo'].upper()} on {head['task']}, seeds {', '.join(map(str, head['seeds']))}",
+    )
     with open(os.path.join(out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=2)
     return summary
