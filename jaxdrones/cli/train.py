@@ -341,7 +341,7 @@ def realism_options(preset: str | None, settings: list[str]) -> str | dict | Non
     return options
 
 
-def sweep_options(config, settings: list[str]) -> dict[str, list] | None:
+def sweep_options(config: object, settings: list[str]) -> dict[str, list] | None:
     """``--sweep``'s NAME=V1,V2,... settings as `jaxdrones.training.run.train_task`'s ``sweep``, each value read as
     the type of the field's value in ``config`` (a number, or true/false), or None without any.
 

@@ -424,7 +424,10 @@ def _write_runs(
         "out_dir": out,
         "provenance": source,
     }
-    trained = list(dict.fromkeys(grid[k][0] for k in summaries))  # the settings with a run trained, in order
+    trained = []  # the settings with a run trained, in order
+    for k in summaries:
+        if grid[k][0] not in trained:
+            trained.append(grid[k][0])
     if sweep:
         summary["sweep"] = {name: list(dict.fromkeys(setting[name] for setting, _ in grid)) for name in grid[0][0]}
         summary["settings"] = [{"setting": setting, **results_of(setting)} for setting in trained]

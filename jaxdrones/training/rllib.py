@@ -17,7 +17,7 @@ tanh layers for both. Here the same on RLlib's RLModule/Learner stack (ray 2.60)
 The paper's kinematic observation is ``obs_type="kin"`` and its rewards ``reward="paper"``; the defaults are the
 task's (``neighbors``, ``shaped``). Run it in the environment of the ``rllib`` extra (docs/adapters.md, "RLlib")::
 
-    python -m jaxdrones.examples.rllib_leader_follower --timesteps 400000 --out runs/rllib_leader_follower
+    python -m jaxdrones.training.rllib --timesteps 400000 --out runs/rllib_leader_follower
 
 Ray starts its processes before JAX runs anything in this one (`main`): a process that has started JAX warns at
 ``fork``, and Ray's start forks.
@@ -29,6 +29,7 @@ import argparse
 import json
 import os
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -164,7 +165,7 @@ def algorithm_config(
     )
 
 
-def policy_of(algo: Any, obs_type: str | None = None, reward: str | None = None):
+def policy_of(algo: Any, obs_type: str | None = None, reward: str | None = None) -> Callable:
     """The trained drones' actions as a jaxdrones policy, ``policy(obs, key) -> (action, {})`` on a world's flat
     observation f[D·n_obs] (`jaxdrones.training.evaluation`): each drone's action model on its own observation,
     its Gaussian's mean clipped to the action box, called from JAX through ``jax.pure_callback``."""
@@ -228,7 +229,7 @@ def train(
     num_env_runners: int = 1,
     train_batch_size: int = 4000,
     eval_every: int = 0,
-    log=print,
+    log: Callable[[str], None] = print,
 ) -> dict:
     """Train the two drones with RLlib's PPO and the centralised critic until ``timesteps`` env steps (rounded up to
     whole iterations of ``train_batch_size``), evaluating every ``eval_every`` iterations (0: at the end only).
