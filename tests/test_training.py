@@ -811,14 +811,14 @@ def test_mapped_runs_train_what_each_single_run_trains(algo):
 
 @pytest.mark.slow
 def test_train_cli_seeds_write_each_run_and_their_aggregate(tmp_path, capsys):
-    """``jaxdrones train hover --algo shac --seeds 3``: a run folder per seed that loads alone, and the summary of
+    """``jaxdrones train hover --seeds 3`` (APG): a run folder per seed that loads alone, and the summary of
     all: each seed's result, the median, the interquartile mean with its bootstrap interval and the share solved;
     brax's PPO runs its seeds one after another."""
     from jaxdrones.training.run import aggregate
 
     run = tmp_path / "seeds"
     args = ["train", "hover", "--steps", "2048", "--num-envs", "8", "--num-evals", "2", "--eval-episodes", "64"]
-    assert main([*args, "--algo", "shac", "--seeds", "3", "--seed", "4", "--out", str(run), "--no-progress"]) == 0
+    assert main([*args, "--seeds", "3", "--seed", "4", "--out", str(run), "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "seed 6:" in out and "interquartile mean" in out and "95% CI" in out
     assert sorted(p.name for p in run.iterdir()) == [
@@ -830,7 +830,7 @@ def test_train_cli_seeds_write_each_run_and_their_aggregate(tmp_path, capsys):
         "summary.json",
     ]
     summary = json.loads((run / "summary.json").read_text())
-    assert summary["seeds"] == [4, 5, 6] and summary["mapped"] and summary["algo"] == "shac"
+    assert summary["seeds"] == [4, 5, 6] and summary["mapped"] and summary["algo"] == "apg"
     values = [r["success_value"] for r in summary["runs"]]
     assert summary["aggregate"] == aggregate(values, [r["success"] for r in summary["runs"]])
     assert summary["aggregate"]["median"] == pytest.approx(np.median(values))
