@@ -1,7 +1,8 @@
 """Training: the tasks' recipes (`jaxdrones.training.recipes`: how ``jaxdrones train TASK`` trains each), the table
 of trainers (`jaxdrones.training.trainers`: our PPO, brax's PPO, APG, SHAC, MAPPO, IPPO),
-their shared loop (`common`), evaluation (`evaluation`), progress display (`progress`), checkpoints (`checkpoint`)
-and the run of ``jaxdrones train`` (`run.train_task`).
+their shared loop (`common`), evaluation (`evaluation`), progress display (`progress`), checkpoints (`checkpoint`),
+the run of ``jaxdrones train`` (`run.train_task`), and the paper's two-drone workflow on RLlib (`rllib`, the rllib
+extra).
 
 The names below are loaded on first use, so that importing ``jaxdrones.training`` imports no trainer.
 """
