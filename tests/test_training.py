@@ -896,6 +896,35 @@ def test_train_cli_sweep_maps_float_settings_and_compiles_a_program_per_shape(tm
     assert len(json.loads((run / "progress.json").read_text())) == 8
 
 
+@pytest.mark.slow
+def test_ctrl_c_between_a_sweeps_programs_saves_the_runs_trained(tmp_path, monkeypatch):
+    """Ctrl-C while a sweep's second program is being built: the first program's runs are saved and the summary is
+    marked interrupted (``train_task`` returns, as it does for a stop inside a program)."""
+    from jaxdrones.training import trainers
+    from jaxdrones.training.recipes import recipe
+    from jaxdrones.training.run import train_task
+
+    real, calls = trainers.get, []
+
+    def get(name):
+        trainer = real(name)
+
+        def train(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == 2:
+                raise KeyboardInterrupt
+            return trainer.train(*args, **kwargs)
+
+        return dataclasses.replace(trainer, train=train)
+
+    monkeypatch.setattr(trainers, "get", get)
+    run = recipe("hover", "cpu").with_options(seed=0, steps=1024, num_envs=8, num_evals=1)
+    summary = train_task(run, str(tmp_path / "sweep"), n_eval_episodes=64, progress=False, sweep={"horizon": [8, 16]})
+    assert summary["interrupted"] and [s["setting"] for s in summary["settings"]] == [{"horizon": 8}]
+    assert (tmp_path / "sweep" / "horizon=8" / "seed_0" / "policy.pkl").exists()
+    assert not (tmp_path / "sweep" / "horizon=16").exists()
+
+
 @pytest.mark.parametrize(
     "sweep, message",
     [

@@ -87,7 +87,8 @@ def train_task(
 
     An evaluation on ``n_eval_episodes`` random starts runs after each of the trainer's chunks of updates (compiled
     beside them, for our trainers); the last one is the run's result. On Ctrl-C the run stops after the chunk
-    running, and the policy so far, its learning curve and a summary marked ``"interrupted": true`` are saved.
+    running, and the policy so far, its learning curve and a summary marked ``"interrupted": true`` are saved
+    (with several programs, those of the runs trained before; the later programs are not trained).
 
     Args:
         task: a registered task's name (`jaxdrones.envs.registered`: `TRAINABLE` and those added by
@@ -212,6 +213,10 @@ def train_task(
     except Interrupted as stop:  # the programs after the one stopped are not trained
         interrupted = True
         results.update(zip(group, stop.result, strict=True) if mapped else {group[0]: stop.result})
+    except KeyboardInterrupt:  # while a later program was built or compiled: the runs trained so far are saved
+        if not results:
+            raise
+        interrupted = True
     finally:
         bar.close()
     phases["train"] = train_time = time.perf_counter() - t_train
