@@ -167,6 +167,12 @@ def program_description(config: object, env: Env) -> str:
     return f"{type(config).__module__}.{config!r}\n{type(env).__name__} {env.task.name} {env.config!r}"
 
 
+def mappable(value: Any) -> bool:
+    """Whether a config field's value can be an input of the compiled programs, mapped over runs (`run_updates`): a
+    float (a step size, a discount, a weight). Any other value (a count, a shape, a switch) shapes the program."""
+    return type(value) is float
+
+
 def mapped_fields(config: Schedule, runs: Sequence[Schedule]) -> tuple[str, ...]:
     """The fields other than ``seed`` whose values differ between ``runs`` and ``config``: `run_updates` maps each
     over the runs as an input of the compiled programs, so each must be a float (a step size, a discount, a weight).
@@ -185,7 +191,7 @@ def mapped_fields(config: Schedule, runs: Sequence[Schedule]) -> tuple[str, ...]
         values = [getattr(run, field.name) for run in runs]
         if field.name == "seed" or all(value == getattr(config, field.name) for value in values):
             continue
-        if not all(type(value) is float for value in [*values, getattr(config, field.name)]):
+        if not all(mappable(value) for value in [*values, getattr(config, field.name)]):
             raise ValueError(
                 f"runs mapped in one program differ only in their seed and float fields; {field.name!r} takes "
                 f"{sorted({repr(v) for v in values})} (train each value as its own program)"

@@ -165,19 +165,19 @@ def algorithm_config(
     )
 
 
-def policy_of(algo: Any, obs_type: str | None = None, reward: str | None = None) -> Callable:
-    """The trained drones' actions as a jaxdrones policy, ``policy(obs, key) -> (action, {})`` on a world's flat
-    observation f[D·n_obs] (`jaxdrones.training.evaluation`): each drone's action model on its own observation,
+def policy_of(algo: Any, env: Any) -> Callable:
+    """The trained drones' actions as a jaxdrones policy on ``env`` (the task's env, `jaxdrones.make`),
+    ``policy(obs, key) -> (action, {})`` on a world's flat observation f[D·n_obs] (`jaxdrones.training.evaluation`):
+    each drone's action model (RLlib module ``drone_<i>``, the PettingZoo adapter's agent) on its own observation,
     its Gaussian's mean clipped to the action box, called from JAX through ``jax.pure_callback``."""
     import jax
     import jax.numpy as jnp
     import torch
     from ray.rllib.core.columns import Columns
 
-    probe = make_parallel_env(obs_type, reward)
-    agents = list(probe.possible_agents)
+    agents = [f"drone_{i}" for i in range(env.n_drones)]
     modules = [algo.get_module(a) for a in agents]
-    n_obs, n_act = probe.observation_space(agents[0]).shape[0], probe.action_space(agents[0]).shape[0]
+    n_obs, n_act = env.observation_size, env.action_size
 
     def actions(obs: np.ndarray) -> np.ndarray:
         obs = np.asarray(obs, np.float32).reshape(-1, len(agents), n_obs)
@@ -208,7 +208,7 @@ def evaluate(algo: Any, obs_type: str | None = None, reward: str | None = None, 
 
     options = {k: v for k, v in {"obs_type": obs_type, "reward": reward}.items() if v is not None}
     env = jd.make(TASK, n_drones=N_DRONES, action_type=ACTION_TYPE, **options)
-    stats = evaluate_policy(env, policy_of(algo, obs_type, reward), jax.random.key(1), n_episodes)
+    stats = evaluate_policy(env, policy_of(algo, env), jax.random.key(1), n_episodes)
     failed = failed_criteria(env.task, stats)
     return {
         "success_metric": env.task.success_metric,

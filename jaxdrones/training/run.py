@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from jaxdrones.training.common import mappable
 from jaxdrones.training.recipes import Recipe, recipe
 
 if TYPE_CHECKING:
@@ -274,7 +275,7 @@ def sweep_settings(config: Schedule | BraxPPOConfig, sweep: Mapping[str, Sequenc
             raise ValueError("sweep: seeds are set with seeds (--seeds), not swept")
         if name not in fields:
             raise ValueError(unknown_option(f"sweep ({type(config).__name__})", name, fields))
-        is_float = type(getattr(config, name)) is float
+        is_float = mappable(getattr(config, name))
         cast[name] = [
             float(v) if is_float and isinstance(v, int | float) and not isinstance(v, bool) else v for v in values
         ]
@@ -292,7 +293,7 @@ def program_groups(configs: Sequence[Schedule], config: Schedule) -> list[tuple[
         shape = [
             repr(getattr(run, field.name))
             for field in dataclasses.fields(config)
-            if field.name != "seed" and type(getattr(run, field.name)) is not float
+            if field.name != "seed" and not mappable(getattr(run, field.name))
         ]
         programs.setdefault("\n".join(shape), []).append(k)
     return [tuple(group) for group in programs.values()]
@@ -307,7 +308,7 @@ def _plan(trainer: Trainer, sweep: Mapping | None, config, n_runs: int, n_progra
     """The line that says how the runs are trained, where they take several programs."""
     if not trainer.maps_runs:
         return f"{n_runs} runs one after another: {trainer.name} runs its own training loop, which cannot be mapped"
-    separate = [name for name in sweep or {} if type(getattr(config, name)) is not float]
+    separate = [name for name in sweep or {} if not mappable(getattr(config, name))]
     mapped = ["the seeds", *(name for name in sweep or {} if name not in separate)]
     return (
         f"{n_runs} runs as {n_programs} programs, one after another: {', '.join(separate)} "
