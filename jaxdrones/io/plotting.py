@@ -1,4 +1,5 @@
-"""Plots of flights: states and motor speeds against time (matplotlib, Agg backend, written to a file)."""
+"""Plots of flights and training runs, written to files (matplotlib's `matplotlib.figure.Figure`, without pyplot:
+the user's backend and open figures are left alone, e.g. a notebook's inline plots)."""
 
 from __future__ import annotations
 
@@ -48,12 +49,10 @@ def plot_flight(
     Raises:
         ValueError: if a key is missing or the shapes do not agree.
     """
-    plt = _pyplot()
-
     data = _check(flight)
     times, n_drones = data["times"], data["pos"].shape[1]
-    colors = plt.get_cmap("tab10")(np.arange(n_drones) % 10)
-    fig, axes = plt.subplots(4, len(_GROUPS), figsize=(4.2 * len(_GROUPS), 10), sharex=True, squeeze=False)
+    colors = _colors(n_drones)
+    fig, axes = _figure(4, len(_GROUPS), figsize=(4.2 * len(_GROUPS), 10), sharex=True, squeeze=False)
     for col, (key, name, labels, unit) in enumerate(_GROUPS):
         for row in range(4):
             ax = axes[row, col]
@@ -91,27 +90,30 @@ def plot_flight(
     fig.tight_layout(rect=(0, 0, 1, 0.94 if note else 0.97))
     path = os.fspath(path)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 
-def _pyplot():
-    """matplotlib.pyplot on the non-interactive Agg backend (files only, no display needed)."""
+def _figure(rows: int, cols: int, figsize: tuple[float, float], **kwargs):
+    """A figure of ``figsize`` inches and its ``rows`` x ``cols`` axes (``Figure.subplots``' keyword arguments)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(rows, cols, **kwargs)
+
+
+def _colors(n: int) -> np.ndarray:
+    """``n`` colours of matplotlib's ``tab10`` cycle, RGBA f[n, 4]."""
     import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return matplotlib.colormaps["tab10"](np.arange(n) % 10)
 
 
-def _save(plt, fig, path: str | os.PathLike, title: str | None) -> str:
+def _save(fig, path: str | os.PathLike, title: str | None) -> str:
     if title:
         fig.suptitle(title)
     fig.tight_layout()
     path = os.fspath(path)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 
@@ -156,16 +158,14 @@ def plot_learning_curve(
     Returns:
         ``path`` as a string.
     """
-    plt = _pyplot()
-
     steps = np.array([row["env_steps"] for row in history], dtype=float)
-    fig, (ax_r, ax_d) = plt.subplots(1, 2, figsize=(10, 3.8))
+    fig, (ax_r, ax_d) = _figure(1, 2, figsize=(10, 3.8))
     ax_r.plot(steps, [row["episode_reward"] for row in history], marker="o")
     ax_d.plot(steps, [row[metric] for row in history], marker="o", color="tab:red", label="evaluation")
     _curve_axes(ax_r, ax_d, metric_label, threshold)
     if threshold is not None:
         ax_d.legend(loc="upper right")
-    return _save(plt, fig, path, title)
+    return _save(fig, path, title)
 
 
 def _curve_axes(ax_return, ax_metric, metric_label: str, threshold: float | None) -> None:
@@ -205,12 +205,11 @@ def plot_learning_curves(
     Returns:
         ``path`` as a string.
     """
-    plt = _pyplot()
     n = min(len(h) for h in histories)
     steps = np.array([row["env_steps"] for row in histories[0][:n]], dtype=float)
     labels = list(groups) if groups is not None else [""] * len(histories)
     names = list(dict.fromkeys(labels))
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    fig, axes = _figure(1, 2, figsize=(10, 3.8))
     for ax, key, color in ((axes[0], "episode_reward", "tab:blue"), (axes[1], "success_value", "tab:red")):
         for g, name in enumerate(names):
             shade = color if len(names) == 1 else f"C{g % 10}"
@@ -223,7 +222,7 @@ def plot_learning_curves(
             ax.plot(steps, np.median(values, 0), color=shade, marker="o", label=legend)
     _curve_axes(*axes, metric_label, threshold)
     axes[1].legend(loc="upper right", fontsize="small" if len(names) > 1 else None)
-    return _save(plt, fig, path, title)
+    return _save(fig, path, title)
 
 
 def plot_task_flight(
@@ -250,10 +249,8 @@ def plot_task_flight(
     Returns:
         ``path`` as a string.
     """
-    plt = _pyplot()
-
     times, pos, ref_pos, vel, rpm = (np.asarray(x) for x in (times, pos, ref_pos, vel, rpm))
-    fig, axes = plt.subplots(5, 1, figsize=(8, 10), sharex=True)
+    fig, axes = _figure(5, 1, figsize=(8, 10), sharex=True)
     for d in range(pos.shape[1]):
         for k, name in enumerate("xyz"):
             line = axes[k].plot(times, pos[:, d, k], label=f"drone {d}")[0]
@@ -271,7 +268,7 @@ def plot_task_flight(
     axes[4].legend(fontsize=6, ncol=4)
     for ax in axes:
         ax.grid(alpha=0.3)
-    return _save(plt, fig, path, title)
+    return _save(fig, path, title)
 
 
 def plot_velocity_tracking(
@@ -299,12 +296,10 @@ def plot_velocity_tracking(
     Returns:
         ``path`` as a string.
     """
-    plt = _pyplot()
-
     times, vel, vel_cmd = (np.asarray(x) for x in (times, vel, vel_cmd))
     n_drones = vel.shape[1]
-    colors = plt.get_cmap("tab10")(np.arange(n_drones) % 10)
-    fig, axes = plt.subplots(n_drones, 3, figsize=(12, 2.1 * n_drones + 1.2), sharex=True, squeeze=False)
+    colors = _colors(n_drones)
+    fig, axes = _figure(n_drones, 3, figsize=(12, 2.1 * n_drones + 1.2), sharex=True, squeeze=False)
     for d in range(n_drones):
         for axis, label in enumerate(("vx", "vy", "vz")):
             ax = axes[d, axis]
@@ -326,7 +321,7 @@ def plot_velocity_tracking(
     for ax in axes[-1]:
         ax.set_xlabel("time (s)")
     axes[0, 0].legend(fontsize=7, loc="best")
-    return _save_with_note(plt, fig, path, title, note)
+    return _save_with_note(fig, path, title, note)
 
 
 def plot_takeoff_comparison(
@@ -352,11 +347,9 @@ def plot_takeoff_comparison(
     Returns:
         ``path`` as a string.
     """
-    plt = _pyplot()
-
     times, target_z = np.asarray(times), np.asarray(target_z)
     styles = ("-", "--", ":", "-.")
-    fig, axes = plt.subplots(3, 1, figsize=(8, 8.5), sharex=True)
+    fig, axes = _figure(3, 1, figsize=(8, 8.5), sharex=True)
     axes[0].plot(times, target_z, color="k", lw=0.8, label="target")
     for j, (label, run) in enumerate(runs.items()):
         ls = styles[j % len(styles)]
@@ -376,7 +369,7 @@ def plot_takeoff_comparison(
     axes[2].legend(fontsize=7, ncol=2)
     for ax in axes:
         ax.grid(alpha=0.3)
-    return _save_with_note(plt, fig, path, title, note)
+    return _save_with_note(fig, path, title, note)
 
 
 def plot_altitude_comparison(
@@ -405,15 +398,13 @@ def plot_altitude_comparison(
     Returns:
         ``path`` as a string.
     """
-    plt = _pyplot()
-
     times = np.asarray(times)
     first = np.asarray(next(iter(runs.values())))
     n_drones = first.shape[1]
     target_z = np.broadcast_to(np.asarray(target_z), first.shape)
     labels = drone_labels or [f"drone {d}" for d in range(n_drones)]
     styles = ("-", "--", ":", "-.")
-    fig, axes = plt.subplots(n_drones, 1, figsize=(10, 2.6 * n_drones + 1.0), sharex=True, squeeze=False)
+    fig, axes = _figure(n_drones, 1, figsize=(10, 2.6 * n_drones + 1.0), sharex=True, squeeze=False)
     for d, ax in enumerate(axes[:, 0]):
         if shade is not None:
             ax.fill_between(
@@ -426,10 +417,10 @@ def plot_altitude_comparison(
         ax.grid(alpha=0.3)
     axes[-1, 0].set_xlabel("time (s)")
     axes[0, 0].legend(fontsize=8, loc="best")
-    return _save_with_note(plt, fig, path, title, note)
+    return _save_with_note(fig, path, title, note)
 
 
-def _save_with_note(plt, fig, path: str | os.PathLike, title: str | None, note: str | None) -> str:
+def _save_with_note(fig, path: str | os.PathLike, title: str | None, note: str | None) -> str:
     """Save like `_save`, with ``note`` printed under the title."""
     if note:
         fig.text(0.5, 0.955, note, ha="center", va="top", fontsize=8)
@@ -438,7 +429,6 @@ def _save_with_note(plt, fig, path: str | os.PathLike, title: str | None, note: 
     fig.tight_layout(rect=(0, 0, 1, 0.93 if note else 0.97))
     path = os.fspath(path)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 

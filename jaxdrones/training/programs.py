@@ -127,8 +127,7 @@ def cached_jit(fn: Callable, example: Any, description: str) -> Callable:
             program would.
 
     Returns:
-        A function of a tree like ``example`` returning what ``fn`` returns; where the program is cached, its
-        ``precompile()`` compiles it ahead of the first call (without the cache: ``jax.jit(fn)``).
+        A function of a tree like ``example`` returning what ``fn`` returns (without the cache: ``jax.jit(fn)``).
     """
     folder = cache_folder()
     if folder is None:
@@ -164,13 +163,6 @@ def cached_jit(fn: Callable, example: Any, description: str) -> Callable:
         out = [jax.random.wrap_key_data(r) if k else r for r, k in zip(out, out_tree["is_key"], strict=True)]
         return jax.tree.unflatten(out_tree["treedef"], out)
 
-    def precompile() -> None:
-        """Compile the program (or load it from the compilation cache) for inputs committed to the device, as
-        ``run`` gives them, so that its first call runs at once: e.g. in a thread while another program runs."""
-        sharding = jax.sharding.SingleDeviceSharding(device)
-        call.lower(*[jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=sharding) for a in raw_avals]).compile()
-
-    run.precompile = precompile
     return run
 
 
