@@ -214,13 +214,11 @@ def traced_config(config: Schedule, values: Mapping[str, Any]) -> Schedule:
 def _programs(init, chunk, evaluate, inputs, n_batch: int, description: str | None, eval_description: str | None):
     """`run_updates`' three programs, jitted: ``(init, chunk, evaluate or None)``. Over several devices, the carry
     spread over them along its leading axis of ``n_batch`` entries (`world_shardings`: the worlds, or the runs of a
-    mapped run); on one, loaded from the program cache (`jaxdrones.training.programs`) where ``description`` and the
+    mapped run); on one, kept in the program cache (`jaxdrones.training.programs`) where ``description`` and the
     evaluation's own ``description`` name them and the cache is on."""
-    from jaxdrones.training.programs import cache_folder, cached_eval_shape, cached_jit
+    from jaxdrones.training.programs import cache_folder, cached_jit
 
-    cached = description is not None and eval_description is not None and cache_folder() is not None
-    shapes = cached_eval_shape(init, inputs, f"{description}\ninit" if cached else None)
-    shardings = world_shardings(shapes, n_batch)
+    shardings = world_shardings(jax.eval_shape(init, inputs), n_batch) if jax.device_count() > 1 else None
     if shardings is not None:
         replicated = jax.sharding.NamedSharding(jax.tree.leaves(shardings)[0].mesh, jax.sharding.PartitionSpec())
         return (
@@ -228,12 +226,12 @@ def _programs(init, chunk, evaluate, inputs, n_batch: int, description: str | No
             jax.jit(chunk, in_shardings=(shardings,), out_shardings=(shardings, replicated)),
             evaluate and jax.jit(evaluate, in_shardings=(shardings,), out_shardings=replicated),
         )
-    if not cached:
+    if description is None or eval_description is None or cache_folder() is None:
         return jax.jit(init), jax.jit(chunk), evaluate and jax.jit(evaluate)
     return (
-        cached_jit(init, inputs, f"{description}\ninit"),
-        cached_jit(chunk, shapes, f"{description}\nchunk"),
-        evaluate and cached_jit(evaluate, shapes, f"{description}\n{eval_description}"),
+        cached_jit(init, f"{description}\ninit"),
+        cached_jit(chunk, f"{description}\nchunk"),
+        evaluate and cached_jit(evaluate, f"{description}\n{eval_description}"),
     )
 
 

@@ -4,9 +4,8 @@ JAX's compilation cache skips XLA's compilation on a second run, but not the tra
 program and its lowering to StableHLO, which take seconds for a trainer's chunk (the env's step traced for
 collection, for the gradient and for the evaluation). `cached_jit` saves the lowered program with `jax.export`
 (serialised StableHLO, JAX's stable format for exported programs) and a later process with the same program key
-loads it instead of tracing; XLA then finds the compiled program in the compilation cache. `cached_eval_shape`
-keeps the shapes of a function's result the same way (a trainer's init, whose result shapes the other programs'
-inputs), so that a warm run traces nothing.
+loads it instead of tracing; XLA then finds the compiled program in the compilation cache. As with ``jax.jit``, a
+program is traced (or loaded) at its first call with inputs of new shapes, so that a warm run traces nothing.
 
 The key of a program is a hash of everything it is built from: the caller's description of its closure (the
 trainer, its config, the env's config, the evaluation's settings), the shapes, dtypes and tree structure of its
@@ -97,44 +96,49 @@ def _key(description: str, treedef, is_key: list[bool], raw_avals: list) -> str:
     ).hexdigest()
 
 
-def cached_eval_shape(fn: Callable, example: Any, description: str | None) -> Any:
-    """``jax.eval_shape(fn, example)`` (one pytree argument, as `cached_jit`'s ``example``, e.g. a trainer's seed),
-    read from the program cache where a process with the same key (as `cached_jit`'s) computed it before, else
-    computed (a trace of ``fn``) and saved there; without the cache, or
-    without a ``description`` of what ``fn`` closes over (None), computed."""
-    folder = cache_folder()
-    if folder is None or description is None:
-        return jax.eval_shape(fn, example)
-    path = os.path.join(folder, _key(description, *_signature(example))) + ".shapes"
-    try:
-        with open(path, "rb") as f:
-            return pickle.load(f)
-    except Exception:  # noqa: BLE001  (absent, damaged or foreign, whatever its error: only a cache miss)
-        pass
-    shapes = jax.eval_shape(fn, example)
-    _write(path, _pickled(shapes))
-    return shapes
-
-
-def cached_jit(fn: Callable, example: Any, description: str) -> Callable:
-    """``jax.jit(fn)`` for inputs shaped like ``example`` (one pytree argument), read from the program cache when
-    a process with the same key traced it before (see the module doc), else traced and saved there.
+def cached_jit(fn: Callable, description: str) -> Callable:
+    """``jax.jit(fn)`` whose traced program is kept in the program cache (see the module doc): at the first call
+    with inputs of a given tree, shapes and dtypes, loaded where a process with the same program key traced it
+    before, else traced and saved there.
 
     Args:
-        fn: ``fn(tree) -> pytree`` of arrays (PRNG keys allowed).
-        example: a pytree of arrays (or ``jax.ShapeDtypeStruct``) with the inputs' shapes and dtypes.
+        fn: ``fn(tree) -> pytree`` of arrays (PRNG keys allowed), of one pytree argument.
         description: what ``fn`` closes over, as text (e.g. the repr of its configs); it must change whenever the
             program would.
 
     Returns:
-        A function of a tree like ``example`` returning what ``fn`` returns (without the cache: ``jax.jit(fn)``).
+        A function of a tree of arrays returning what ``fn`` returns (without the cache: ``jax.jit(fn)``).
     """
     folder = cache_folder()
     if folder is None:
         return jax.jit(fn)
-    treedef, is_key, raw_avals = _signature(example)
     device = jax.devices()[0]
-    path = os.path.join(folder, _key(description, treedef, is_key, raw_avals))
+    programs: dict = {}  # (tree, shapes and dtypes) -> (jitted exported program, its output structure)
+
+    def run(tree):
+        # Committed to the device, as the program's outputs are: a later call with its own outputs then reuses the
+        # compiled program (jit compiles anew for inputs committed otherwise).
+        leaves, treedef = jax.tree.flatten(jax.device_put(tree, device))
+        signature = (treedef, tuple((x.shape, x.dtype) for x in leaves))
+        if signature not in programs:
+            programs[signature] = _program(fn, os.path.join(folder, _key(description, *_signature(tree))), tree)
+        call, out_tree = programs[signature]
+        is_key = [_is_key(x) for x in leaves]
+        out = call(*[jax.random.key_data(x) if k else x for x, k in zip(leaves, is_key, strict=True)])
+        out = [jax.random.wrap_key_data(r) if k else r for r, k in zip(out, out_tree["is_key"], strict=True)]
+        return jax.tree.unflatten(out_tree["treedef"], out)
+
+    return run
+
+
+def _program(fn: Callable, path: str, example: Any) -> tuple[Callable, dict]:
+    """``fn``'s program for inputs like ``example``, jitted, and its output structure ``{"treedef", "is_key"}``:
+    read from ``path`` (`_load`), else traced, exported and saved there."""
+    loaded = _load(path)
+    if loaded is not None:
+        exported, out_tree = loaded
+        return jax.jit(exported.call), out_tree
+    treedef, is_key, raw_avals = _signature(example)
     out_tree: dict = {}
 
     def traced_program(*raw):
@@ -145,25 +149,10 @@ def cached_jit(fn: Callable, example: Any, description: str) -> Callable:
         out_tree["is_key"] = [_is_key(x) for x in out_leaves]
         return [jax.random.key_data(x) if k else x for x, k in zip(out_leaves, out_tree["is_key"], strict=True)]
 
-    loaded = _load(path)
-    if loaded is None:
-        serialized = jax.export.export(jax.jit(traced_program))(*raw_avals).serialize()
-        _save(path, serialized, out_tree)
-        # Run what later processes will load, so that all of them share one entry of the compilation cache.
-        exported = jax.export.deserialize(serialized)
-    else:
-        exported, out_tree = loaded
-    call = jax.jit(exported.call)
-
-    def run(tree):
-        # Committed to the device, as the program's outputs are: a later call with its own outputs then reuses the
-        # compiled program (jit compiles anew for inputs committed otherwise).
-        leaves = jax.device_put(jax.tree.leaves(tree), device)
-        out = call(*[jax.random.key_data(x) if k else x for x, k in zip(leaves, is_key, strict=True)])
-        out = [jax.random.wrap_key_data(r) if k else r for r, k in zip(out, out_tree["is_key"], strict=True)]
-        return jax.tree.unflatten(out_tree["treedef"], out)
-
-    return run
+    serialized = jax.export.export(jax.jit(traced_program))(*raw_avals).serialize()
+    _save(path, serialized, out_tree)
+    # Run what later processes will load, so that all of them share one entry of the compilation cache.
+    return jax.jit(jax.export.deserialize(serialized).call), out_tree
 
 
 def _load(path: str):
