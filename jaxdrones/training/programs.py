@@ -113,7 +113,7 @@ def cached_jit(fn: Callable, description: str) -> Callable:
     if folder is None:
         return jax.jit(fn)
     device = jax.devices()[0]
-    programs: dict = {}  # (tree, shapes and dtypes) -> (jitted exported program, its output structure)
+    programs: dict = {}  # (tree, shapes and dtypes) -> (jitted exported program, inputs' is_key, output structure)
 
     def run(tree):
         # Committed to the device, as the program's outputs are: a later call with its own outputs then reuses the
@@ -121,9 +121,8 @@ def cached_jit(fn: Callable, description: str) -> Callable:
         leaves, treedef = jax.tree.flatten(jax.device_put(tree, device))
         signature = (treedef, tuple((x.shape, x.dtype) for x in leaves))
         if signature not in programs:
-            programs[signature] = _program(fn, os.path.join(folder, _key(description, *_signature(tree))), tree)
-        call, out_tree = programs[signature]
-        is_key = [_is_key(x) for x in leaves]
+            programs[signature] = _program(fn, folder, description, *_signature(tree))
+        call, is_key, out_tree = programs[signature]
         out = call(*[jax.random.key_data(x) if k else x for x, k in zip(leaves, is_key, strict=True)])
         out = [jax.random.wrap_key_data(r) if k else r for r, k in zip(out, out_tree["is_key"], strict=True)]
         return jax.tree.unflatten(out_tree["treedef"], out)
@@ -131,14 +130,15 @@ def cached_jit(fn: Callable, description: str) -> Callable:
     return run
 
 
-def _program(fn: Callable, path: str, example: Any) -> tuple[Callable, dict]:
-    """``fn``'s program for inputs like ``example``, jitted, and its output structure ``{"treedef", "is_key"}``:
-    read from ``path`` (`_load`), else traced, exported and saved there."""
+def _program(fn: Callable, folder: str, description: str, treedef, is_key: list[bool], raw_avals: list):
+    """``(call, is_key, out_tree)``: ``fn``'s program for inputs of this signature (`_signature`), jitted, which
+    leaves of its input are PRNG keys, and its output structure ``{"treedef", "is_key"}``; read from the program
+    cache (`_load`), else traced, exported and saved there."""
+    path = os.path.join(folder, _key(description, treedef, is_key, raw_avals))
     loaded = _load(path)
     if loaded is not None:
         exported, out_tree = loaded
-        return jax.jit(exported.call), out_tree
-    treedef, is_key, raw_avals = _signature(example)
+        return jax.jit(exported.call), is_key, out_tree
     out_tree: dict = {}
 
     def traced_program(*raw):
@@ -152,7 +152,7 @@ def _program(fn: Callable, path: str, example: Any) -> tuple[Callable, dict]:
     serialized = jax.export.export(jax.jit(traced_program))(*raw_avals).serialize()
     _save(path, serialized, out_tree)
     # Run what later processes will load, so that all of them share one entry of the compilation cache.
-    return jax.jit(jax.export.deserialize(serialized).call), out_tree
+    return jax.jit(jax.export.deserialize(serialized).call), is_key, out_tree
 
 
 def _load(path: str):
@@ -182,11 +182,9 @@ def _pickled(obj) -> bytes | None:
         return None
 
 
-def _write(path: str, data: bytes | None) -> None:
-    """Write ``data`` to ``path`` atomically (a reader never sees half a file); with no data or no writable
-    folder, nothing (a later run computes it again)."""
-    if data is None:
-        return
+def _write(path: str, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (a reader never sees half a file); with no writable folder, nothing (a
+    later run traces the program again)."""
     try:
         os.makedirs(os.path.dirname(path), exist_ok=True)
         tmp = f"{path}.{os.getpid()}.tmp"

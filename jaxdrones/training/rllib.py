@@ -42,13 +42,25 @@ ENV_NAME = "jaxdrones_leader_follower"
 HIDDEN = (256, 256)
 
 
+def _options(obs_type: str | None, reward: str | None) -> dict:
+    """The task's settings: 2 drones, ``one_d_rpm``, and the paper's ``obs_type="kin"`` or ``reward="paper"`` where
+    given."""
+    given = {k: v for k, v in {"obs_type": obs_type, "reward": reward}.items() if v is not None}
+    return dict(n_drones=N_DRONES, action_type=ACTION_TYPE, **given)
+
+
 def make_parallel_env(obs_type: str | None = None, reward: str | None = None) -> Any:
-    """The task's PettingZoo env (2 drones, ``one_d_rpm``), with the paper's ``obs_type="kin"`` or ``reward="paper"``
-    where given."""
+    """The task's PettingZoo env (`_options`), which RLlib's env runners step."""
     from jaxdrones.adapters.pettingzoo import parallel_env
 
-    options = {k: v for k, v in {"obs_type": obs_type, "reward": reward}.items() if v is not None}
-    return parallel_env(TASK, n_drones=N_DRONES, action_type=ACTION_TYPE, **options)
+    return parallel_env(TASK, **_options(obs_type, reward))
+
+
+def make_env(obs_type: str | None = None, reward: str | None = None) -> Any:
+    """The task's jaxdrones env (`jaxdrones.make`, `_options`), on which the policies are evaluated."""
+    import jaxdrones as jd
+
+    return jd.make(TASK, **_options(obs_type, reward))
 
 
 def _env_classes():
@@ -135,11 +147,12 @@ def algorithm_config(
     from ray.rllib.core.rl_module.rl_module import RLModuleSpec
     from ray.tune.registry import register_env
 
+    from jaxdrones.adapters.agents import agent_names
+
     central_env, central_module = _env_classes()
     register_env(ENV_NAME, lambda cfg: central_env(make_parallel_env(cfg.get("obs_type"), cfg.get("reward"))))
-    probe = make_parallel_env(obs_type, reward)
-    agents = list(probe.possible_agents)
-    own = probe.observation_space(agents[0]).shape[0]
+    agents = agent_names(N_DRONES)
+    own = make_env(obs_type, reward).observation_size  # a drone's own observation: an agent's of the adapter
     specs = {
         a: RLModuleSpec(module_class=central_module, model_config={"own_obs_size": own, "hidden": list(HIDDEN)})
         for a in agents
@@ -175,7 +188,9 @@ def policy_of(algo: Any, env: Any) -> Callable:
     import torch
     from ray.rllib.core.columns import Columns
 
-    agents = [f"drone_{i}" for i in range(env.n_drones)]
+    from jaxdrones.adapters.agents import agent_names
+
+    agents = agent_names(env.n_drones)
     modules = [algo.get_module(a) for a in agents]
     n_obs, n_act = env.observation_size, env.action_size
 
@@ -202,12 +217,10 @@ def evaluate(algo: Any, obs_type: str | None = None, reward: str | None = None, 
     terminated early."""
     import jax
 
-    import jaxdrones as jd
     from jaxdrones.training.evaluation import evaluate as evaluate_policy
     from jaxdrones.training.run import failed_criteria
 
-    options = {k: v for k, v in {"obs_type": obs_type, "reward": reward}.items() if v is not None}
-    env = jd.make(TASK, n_drones=N_DRONES, action_type=ACTION_TYPE, **options)
+    env = make_env(obs_type, reward)
     stats = evaluate_policy(env, policy_of(algo, env), jax.random.key(1), n_episodes)
     failed = failed_criteria(env.task, stats)
     return {

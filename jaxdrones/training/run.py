@@ -394,23 +394,21 @@ def _write_run(
     return summary
 
 
-def _write_runs(
-    out, grid, configs, results, logs, last, interrupted, t_start, head, label, *, run, env, train_time, source, **one
-) -> dict:
+def _write_runs(out, grid, configs, results, logs, last, interrupted, t_start, head, label, **settings_of) -> dict:
     """Write the runs of several seeds or settings (`train_task`'s ``seeds`` and ``sweep``): each run's folder (its
-    setting's, then ``seed_<k>/``), and in ``out`` their ``summary.json`` (``head``'s fields, each setting's runs and
-    aggregate), ``progress.json`` and ``learning_curve.png``; returns the summary."""
+    setting's, then ``seed_<k>/``; `_write_run` with ``settings_of`` and the run's config), and in ``out`` their
+    ``summary.json`` (``head``'s fields, each setting's runs and aggregate), ``progress.json`` and
+    ``learning_curve.png``; returns the summary."""
     from jaxdrones.io.plotting import plot_learning_curves
 
+    env, train_time = settings_of["env"], settings_of["train_time"]
     sweep = any(setting for setting, _ in grid)
     summaries = {}
     for k in sorted(results):  # the runs trained
         setting, seed = grid[k]
         folder = os.path.join(out, *([setting_label(setting)] if sweep else []), f"seed_{seed}")
-        settings = dict(one, run=run, env=env, train_time=train_time, source=source, config=configs[k], phases={})
-        summaries[k] = _write_run(
-            folder, results[k][1], logs[k], last[k], interrupted, t_start, **settings, plots=False
-        )
+        one = dict(settings_of, config=configs[k], phases={})
+        summaries[k] = _write_run(folder, results[k][1], logs[k], last[k], interrupted, t_start, **one, plots=False)
 
     def results_of(setting):
         ks = [k for k in summaries if grid[k][0] == setting]
@@ -428,7 +426,7 @@ def _write_runs(
         "success_metric": next(iter(summaries.values()))["success_metric"],
         "success_threshold": env.task.success_threshold,
         "out_dir": out,
-        "provenance": source,
+        "provenance": settings_of["source"],
     }
     trained = []  # the settings with a run trained, in order
     for k in summaries:
