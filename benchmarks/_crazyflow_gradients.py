@@ -22,7 +22,7 @@ from gradients import SIM_FREQ, measure, start_positions, trajectory_loss
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--horizons", type=int, nargs="+", required=True)
     parser.add_argument("--worlds", type=int, nargs="+", required=True)
     parser.add_argument("--repeats", type=int, default=3)

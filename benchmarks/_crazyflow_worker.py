@@ -29,7 +29,7 @@ ENV_ID = "DroneReachPos-v0"
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", required=True)
     parser.add_argument("--steps", type=int, default=None, help=f"default: {MIN_STEPS} to {MAX_STEPS}, by --target")
     parser.add_argument("--target", type=int, default=TARGET_ENV_STEPS, help="env-steps per timed run")

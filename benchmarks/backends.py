@@ -50,7 +50,7 @@ SIM_FREQ = 240
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+        allow_abbrev=False, description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--quick", action="store_true", help="fewer simulated seconds and 3 repeats")
     parser.add_argument("--drones", type=int, nargs="+", default=list(DRONES), help="drones per world")

@@ -30,7 +30,7 @@ DEFAULT_OUT = os.path.join(HERE, "results", "cameras.json")
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--worlds", type=int, nargs="+", default=[1, 64, 1024, 4096])
     parser.add_argument("--primitives", type=int, nargs="+", default=[4, 16, 64])
     parser.add_argument("--kinds", nargs="+", default=["depth", "seg"], choices=["rgb", "depth", "seg"])

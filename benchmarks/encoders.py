@@ -26,7 +26,7 @@ DEFAULT_OUT = os.path.join(HERE, "results", "encoders.json")
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--batch", type=int, default=4096, help="samples per minibatch (brax's PPO for avoid: 4096)")
     parser.add_argument("--minibatches", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=5)

@@ -151,7 +151,9 @@ def run_once(
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        allow_abbrev=False, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--task", default="hover")
     parser.add_argument("--rounds", type=int, default=2, help="rounds of a cold and warm runs (default 2)")
     parser.add_argument("--warm", type=int, default=1, help="warm runs per setting and round (default 1)")

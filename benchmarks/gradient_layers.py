@@ -71,7 +71,7 @@ def losses(jax, jd, np, horizon: int, worlds: int) -> tuple[dict, tuple]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+        allow_abbrev=False, description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--horizon", type=int, default=100, help="control steps T (default 100)")
     parser.add_argument("--worlds", type=int, default=1024, help="worlds W (default 1024)")

@@ -38,7 +38,7 @@ _PROFILER_EVENTS = ("$", "ThunkExecutor", "PjitFunction", "end:", "ThreadpoolLis
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--worlds", type=int, default=1024)
     parser.add_argument("--horizon", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=7, help="timed rounds (median)")

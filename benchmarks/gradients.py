@@ -65,7 +65,7 @@ CRAZYFLOW_WORKER = os.path.join(HERE, "_crazyflow_gradients.py")
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+        allow_abbrev=False, description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--horizons", type=int, nargs="+", help=f"control steps T (default {HORIZONS})")
     parser.add_argument("--worlds", type=int, nargs="+", help=f"worlds W (default {WORLDS})")

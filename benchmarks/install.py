@@ -88,7 +88,7 @@ def install(python: str, extras: str, jax: str | None, constraints: bool, source
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--python", action="append", help="interpreter (repeatable; default python3.11, 3.12)")
     parser.add_argument("--extras", default="", help="extras to install, e.g. pybullet or test")
     parser.add_argument("--jax", help="a jax version to install with it (default: what pip chooses)")

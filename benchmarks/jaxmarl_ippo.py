@@ -38,7 +38,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--baselines", required=True, help="JaxMARL's baselines/IPPO folder (a checkout)")
     parser.add_argument("--task", default="leader_follower")
     parser.add_argument("--n-drones", type=int, default=2)

@@ -147,7 +147,7 @@ def mappo_rate(n_drones: int, worlds: int, downwash: bool, repeats: int, lists: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--drones", type=int, nargs="+", default=[2, 8, 64, 256, 1024])
     parser.add_argument("--agents", type=int, default=4096, help="drones simulated at once (default 4096)")
     parser.add_argument("--steps", type=int, default=30, help="control steps per timed call")

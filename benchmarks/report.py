@@ -1370,7 +1370,7 @@ def write_report(records: dict, probe_info: dict, out: str, invocation: str) -> 
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+        allow_abbrev=False, description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     names = list(BENCHMARKS)
     parser.add_argument("--quick", action="store_true", help="small grids: a smoke run (output in results/quick)")

@@ -81,7 +81,7 @@ def evaluate(model, env_kwargs: dict, n_episodes: int, seed: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n")[0])
     parser.add_argument("--action-type", default="one_d_rpm", help="one_d_rpm (1-D, level starts) or rpm (3-D)")
     parser.add_argument("--obs-type", default=None, help="observation type (default: the env's, kin_rotmat)")
     parser.add_argument("--steps", type=int, default=200_000, help="at most this many env steps (default 200000)")

@@ -13,7 +13,7 @@ evaluation and the saved plots.
 Per task the table gives the trainer and env steps of the task's recipe (`jaxdrones.training.recipes`), the wall
 times, each seed's result against the task's threshold (``summary.json``: the success metric over 256 evaluation
 starts), the largest share of evaluation episodes that ended early (crashed or left the arena), and the seeds
-solved (`jaxdrones.training.run.failed_criteria`: below the threshold, and none ended early where the task's metric
+solved (`jaxdrones.training.evaluation.failed_criteria`: below the threshold, and none ended early where the task's metric
 does not count them itself).
 
     python benchmarks/suite.py --seeds 0 1 2                      # every task, cpu or gpu by the device
@@ -166,7 +166,7 @@ def table(records: list[dict]) -> str:
 def main() -> int:
     from jaxdrones.training.trainers import TRAINABLE
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--tasks", nargs="+", default=list(TRAINABLE), choices=TRAINABLE, metavar="TASK")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--defaults", choices=("cpu", "gpu"), default=None, help="the profile (default: the device's)")

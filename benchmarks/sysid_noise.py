@@ -25,7 +25,7 @@ VALUES = ("kf", "km", "drag_x", "drag_y", "drag_z")
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+        allow_abbrev=False, description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="noise seeds (default 0 1 2)")
     parser.add_argument("--pos", type=float, default=1e-3, help="position noise std, m (default 1e-3)")

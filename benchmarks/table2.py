@@ -62,7 +62,7 @@ ROWS = (
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=4.0, help="simulated seconds per timed run")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument(

@@ -168,8 +168,8 @@ def count(algo: str, profile: str, updates: int, by_name: dict | None = None) ->
     ``by_name`` as in `trace_operations`."""
 
     from jaxdrones.envs import make
+    from jaxdrones.training.evaluation import eval_program
     from jaxdrones.training.recipes import recipe
-    from jaxdrones.training.run import eval_program
 
     trainer, config, env_options = profile_config(algo, profile)
     env = make(TASK, **env_options)
@@ -254,9 +254,9 @@ def train(algo: str, profile: str, out: str, extra: list[str], env: dict | None 
 
 def solved_from_eval(history: list[dict], task) -> int | None:
     """The first evaluation of ``history`` (a run's ``progress.json``) from which on every evaluation solved ``task``
-    (the run's verdict, `jaxdrones.training.run.failed_criteria`: for hover, the distance below its threshold with no
+    (the run's verdict, `jaxdrones.training.evaluation.failed_criteria`: for hover, the distance below its threshold with no
     episode ended early), counted from 1; None if the last did not."""
-    from jaxdrones.training.run import failed_criteria
+    from jaxdrones.training.evaluation import failed_criteria
 
     solved = [not failed_criteria(task, h) for h in history]
     return next((i + 1 for i in range(len(solved)) if all(solved[i:])), None)
@@ -356,7 +356,7 @@ def per_step_table(worlds: list[int]) -> int:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--algos", nargs="+", default=["apg", "ppo", "brax_ppo"])
     parser.add_argument("--profiles", nargs="+", default=["cpu", "gpu"])
     parser.add_argument("--count-updates", type=int, default=2, help="updates of the traced short run")

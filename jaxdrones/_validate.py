@@ -132,8 +132,9 @@ def check_fields(
 ) -> None:
     """Check a config's fields by kind, each message naming the config's class and the field
     (``"ApgConfig: num_envs must be an integer >= 1, got 0"``): ``integers`` maps fields to their least value;
-    ``positive`` fields must be > 0, ``nonnegative`` >= 0, ``fractions`` in [0, 1] and ``open_fractions`` in
-    [0, 1); ``booleans`` True or False.
+    ``positive`` fields must be finite and > 0, ``nonnegative`` finite and >= 0, ``fractions`` in [0, 1] and
+    ``open_fractions`` in [0, 1); ``booleans`` True or False. A non-finite setting (an infinite step size or norm)
+    trains a NaN policy, so none passes.
 
     Raises:
         ValueError: the first field out of its range.
@@ -153,4 +154,4 @@ def check_fields(
     )
     for fields, bounds in ranges:
         for field in fields:
-            check_real(f"{owner}: {field}", getattr(config, field), finite=False, what="", **bounds)
+            check_real(f"{owner}: {field}", getattr(config, field), what="a finite number", **bounds)

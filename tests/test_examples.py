@@ -18,6 +18,7 @@ import pytest
 
 from jaxdrones.cli import main
 from jaxdrones.examples import downwash, ground_effect, velocity
+from jaxdrones.io.runs import MARKER
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 EXAMPLES = ("velocity", "ground-effect", "downwash")
@@ -52,7 +53,7 @@ def flown(tmp_path_factory):
 @pytest.mark.parametrize("example", EXAMPLES)
 def test_example_runs_and_saves_its_plot(flown, example, backend):
     out, metrics, arrays, printed = flown(example, backend)
-    assert sorted(os.listdir(out)) == ["flight.npz", "flight.png", "metrics.json"]
+    assert sorted(os.listdir(out)) == [MARKER, "flight.npz", "flight.png", "metrics.json"]
     png = (out / "flight.png").read_bytes()
     assert png.startswith(PNG_MAGIC) and len(png) > 20_000
     s = metrics["settings"]

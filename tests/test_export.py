@@ -115,6 +115,11 @@ def test_export_header_sizes_and_bad_input(tmp_path, capsys):
     assert main(["export", run]) == 0 and main(["export", run]) == 2  # never overwritten without asking
     assert "exists; pass --overwrite" in capsys.readouterr().err
     assert main(["export", run, "--overwrite"]) == 0
+    theirs = tmp_path / "controller.c"  # a user's file: --overwrite replaces only a file export wrote
+    theirs.write_text("int main(void) { return 0; }\n")
+    assert main(["export", run, "--out", str(theirs), "--overwrite"]) == 2
+    assert "replaces only a file that jaxdrones export wrote" in capsys.readouterr().err
+    assert theirs.read_text() == "int main(void) { return 0; }\n"
     with pytest.raises(ValueError, match="C identifier"):
         c_source(load_payload(run), name="my-policy")
     with pytest.raises(ValueError, match="no saved policy"):

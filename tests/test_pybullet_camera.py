@@ -20,6 +20,7 @@ import pybullet  # noqa: E402
 import jaxdrones as jd  # noqa: E402
 from jaxdrones.backends import camera  # noqa: E402
 from jaxdrones.examples import camera_scene as cs  # noqa: E402
+from jaxdrones.io.runs import MARKER  # noqa: E402
 from jaxdrones.scene import Obstacle  # noqa: E402
 from jaxdrones.video import VideoWriter  # noqa: E402
 
@@ -177,7 +178,7 @@ def test_cli_camera(tmp_path, capsys):
 
     out = tmp_path / "run"
     assert main(["camera", "--out", str(out), "--width", "64", "--height", "48"]) == 0
-    assert sorted(os.listdir(out)) == sorted(cs.FILES)
+    assert sorted(os.listdir(out)) == sorted([MARKER, *cs.FILES])
     assert Image.open(out / "rgb.png").size == (64, 48)
     assert main(["camera", "--out", str(out), "--width", "64", "--height", "48"]) == 0  # a new sibling folder
     assert sorted(os.listdir(tmp_path)) == ["run", "run-1"]

@@ -28,6 +28,7 @@ from jaxdrones.cameras import EYE_MARGIN  # noqa: E402
 from jaxdrones.cli import main  # noqa: E402
 from jaxdrones.envs.observations import kinematic_obs  # noqa: E402
 from jaxdrones.examples import circle  # noqa: E402
+from jaxdrones.io.runs import MARKER  # noqa: E402
 from jaxdrones.scene import Obstacle  # noqa: E402
 
 #: How far apart the RMS tracking errors of the two backends may be, overall and per drone, m. The two float32
@@ -366,11 +367,11 @@ def test_fly_cli_pybullet_writes_a_video(tmp_path, capsys):
     assert main(args) == 0
     printed = capsys.readouterr().out
     assert "on pybullet" in printed and "contacts with obstacles or other drones: none" in printed
-    assert sorted(os.listdir(out)) == ["flight.mp4", "flight.npz", "flight.png", "metrics.json"]
+    assert sorted(os.listdir(out)) == [MARKER, "flight.mp4", "flight.npz", "flight.png", "metrics.json"]
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["settings"]["backend"] == "pybullet" and len(metrics["settings"]["obstacles"]) == 4
     assert metrics["contacts"]["collided"] is False
-    assert metrics["video"] == str(out / "flight.mp4")
+    assert metrics["video"] == "flight.mp4"  # inside the run folder, wherever it is moved
     assert metrics["video_frames"] == 1 + 72 // 2  # 1.5 s at 48 Hz control, a frame every 2 steps, plus the start
     reader = imageio.get_reader(out / "flight.mp4")
     try:

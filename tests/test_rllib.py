@@ -1,5 +1,5 @@
 """RLlib on the PettingZoo adapter: the paper's two-drone workflow with a centralised critic
-(`jaxdrones.training.rllib`), one PPO iteration as a user runs the example. Needs the rllib extra's
+(`jaxdrones.examples.rllib_leader_follower`), one PPO iteration as a user runs the example. Needs the rllib extra's
 environment (marker ``ray``; the rllib lane of .ci/run); where ray is missing the test is skipped with the reason."""
 
 import json
@@ -13,11 +13,11 @@ pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
 
 def test_one_iteration_of_the_papers_workflow_trains_and_evaluates(tmp_path):
-    """``python -m jaxdrones.training.rllib`` for one PPO iteration: Ray starts before JAX (no fork
+    """``python -m jaxdrones.examples.rllib_leader_follower`` for one PPO iteration: Ray starts before JAX (no fork
     warning), the critic's input holds both drones' observations and the other's action, and the policies are
     evaluated on the task's 256 starts."""
     out = tmp_path / "run"
-    command = [sys.executable, "-m", "jaxdrones.training.rllib", "--timesteps", "500"]
+    command = [sys.executable, "-m", "jaxdrones.examples.rllib_leader_follower", "--timesteps", "500"]
     command += ["--train-batch-size", "500", "--num-env-runners", "1", "--out", str(out)]
     done = subprocess.run(
         command, capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONUNBUFFERED": "1"}

@@ -16,11 +16,13 @@ from jax.experimental.compilation_cache import compilation_cache
 
 from jaxdrones import viz
 from jaxdrones.cli import build_parser, main
+from jaxdrones.io.runs import MARKER
 from jaxdrones.training import evaluate, load_policy
 from jaxdrones.training.trainers import TRAINABLE
 
-#: What a training run writes; flight.html where viser (the viewer extra, in the test extra) is installed.
-TRAIN_OUTPUTS = ("policy.pkl", "learning_curve.png", "flight.png", "progress.json", "summary.json") + (
+#: What a training run writes (with the mark of a folder jaxdrones wrote, `jaxdrones.io.runs.MARKER`); flight.html
+#: where viser (the viewer extra, in the test extra) is installed.
+TRAIN_OUTPUTS = (MARKER, "policy.pkl", "learning_curve.png", "flight.png", "progress.json", "summary.json") + (
     ("flight.html",) if viz.viewer_available() else ()
 )
 #: What each seed's folder of a run of several seeds holds.
@@ -145,7 +147,7 @@ def test_train_cli_outputs_run_folders_and_reload(tmp_path, capsys, compile_cach
 @pytest.mark.parametrize(
     "extra, message",
     [
-        (("--eval-episodes", "10"), "n_eval_episodes must be >= 64"),
+        (("--eval-episodes", "10"), "n_eval_episodes must be an integer >= 64"),
         (("--steps", "-5"), "--steps must be a positive integer"),
         (("--num-envs", "0"), "--num-envs must be a positive integer"),
         (("--target", "0", "0", "-1"), "above the ground"),
@@ -321,7 +323,7 @@ def test_td_lambda_returns_by_hand():
 def test_shac_config_bad_input():
     from jaxdrones.training.shac import SHACConfig
 
-    with pytest.raises(ValueError, match="discounting must be in"):
+    with pytest.raises(ValueError, match="discounting must be a finite number in"):
         SHACConfig(discounting=1.0)
     with pytest.raises(ValueError, match="critic_minibatches must be an integer"):
         SHACConfig(critic_minibatches=0)
@@ -713,7 +715,7 @@ def test_failed_criteria_name_what_kept_a_run_from_success():
     """The verdict names the criterion a run missed: the metric above its threshold, episodes that ended early, or
     both; a solved run misses none."""
     import jaxdrones as jd
-    from jaxdrones.training.run import failed_criteria
+    from jaxdrones.training.evaluation import failed_criteria
 
     task = jd.make("hover").task
     assert failed_criteria(task, {"success_value": 0.02, "terminated_rate": 0.0, "n_episodes": 256}) == []
@@ -783,8 +785,8 @@ def test_mapped_runs_train_what_each_single_run_trains(algo):
     rounding."""
     import jaxdrones as jd
     from jaxdrones.training import trainers
+    from jaxdrones.training.evaluation import eval_program
     from jaxdrones.training.recipes import recipe
-    from jaxdrones.training.run import eval_program
 
     task, options, fields = SEEDED[algo]
     trainer, env = trainers.get(algo), jd.make(task, **options)
@@ -814,7 +816,7 @@ def test_train_cli_seeds_write_each_run_and_their_aggregate(tmp_path, capsys):
     """``jaxdrones train hover --seeds 3`` (APG): a run folder per seed that loads alone, and the summary of
     all: each seed's result, the median, the interquartile mean with its bootstrap interval and the share solved;
     brax's PPO runs its seeds one after another."""
-    from jaxdrones.training.run import aggregate
+    from jaxdrones.training.runs import aggregate
 
     run = tmp_path / "seeds"
     args = ["train", "hover", "--steps", "2048", "--num-envs", "8", "--num-evals", "2", "--eval-episodes", "64"]
@@ -822,6 +824,7 @@ def test_train_cli_seeds_write_each_run_and_their_aggregate(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "seed 6:" in out and "interquartile mean" in out and "95% CI" in out
     assert sorted(p.name for p in run.iterdir()) == [
+        MARKER,
         "learning_curve.png",
         "progress.json",
         "seed_4",
@@ -865,7 +868,7 @@ def test_train_cli_seeds_write_each_run_and_their_aggregate(tmp_path, capsys):
 def test_train_cli_sweep_maps_float_settings_and_compiles_a_program_per_shape(tmp_path, capsys):
     """``--sweep learning_rate=...`` (mapped with the seeds) ``--sweep horizon=...`` (a program per horizon): a run
     folder per setting and seed, each loading alone with its own settings, and each setting's aggregate."""
-    from jaxdrones.training.run import aggregate
+    from jaxdrones.training.runs import aggregate
 
     run = tmp_path / "sweep"
     args = ["train", "hover", "--steps", "2048", "--num-envs", "8", "--num-evals", "2", "--eval-episodes", "64"]
@@ -876,7 +879,7 @@ def test_train_cli_sweep_maps_float_settings_and_compiles_a_program_per_shape(tm
     assert "learning_rate=0.004,horizon=16: seed 1:" in out and "2 compiled programs" in out
     settings = [f"learning_rate={lr},horizon={h}" for lr in (0.001, 0.004) for h in (8, 16)]
     assert sorted(p.name for p in run.iterdir()) == sorted(
-        ["learning_curve.png", "progress.json", "summary.json", *settings]
+        [MARKER, "learning_curve.png", "progress.json", "summary.json", *settings]
     )
     summary = json.loads((run / "summary.json").read_text())
     assert summary["programs"] == 2 and summary["sweep"] == {"learning_rate": [0.001, 0.004], "horizon": [8, 16]}
@@ -899,10 +902,10 @@ def test_train_cli_sweep_maps_float_settings_and_compiles_a_program_per_shape(tm
 @pytest.mark.slow
 def test_ctrl_c_between_a_sweeps_programs_saves_the_runs_trained(tmp_path, monkeypatch):
     """Ctrl-C while a sweep's second program is being built: the first program's runs are saved and the summary is
-    marked interrupted (``train_task`` returns, as it does for a stop inside a program)."""
+    marked interrupted (``train_task`` raises `Stopped` with it, as it does for a stop inside a program)."""
     from jaxdrones.training import trainers
     from jaxdrones.training.recipes import recipe
-    from jaxdrones.training.run import train_task
+    from jaxdrones.training.run import Stopped, train_task
 
     real, calls = trainers.get, []
 
@@ -919,8 +922,11 @@ def test_ctrl_c_between_a_sweeps_programs_saves_the_runs_trained(tmp_path, monke
 
     monkeypatch.setattr(trainers, "get", get)
     run = recipe("hover", "cpu").with_options(seed=0, steps=1024, num_envs=8, num_evals=1)
-    summary = train_task(run, str(tmp_path / "sweep"), n_eval_episodes=64, progress=False, sweep={"horizon": [8, 16]})
+    with pytest.raises(Stopped) as stop:
+        train_task(run, str(tmp_path / "sweep"), n_eval_episodes=64, progress=False, sweep={"horizon": [8, 16]})
+    summary = stop.value.summary
     assert summary["interrupted"] and [s["setting"] for s in summary["settings"]] == [{"horizon": 8}]
+    assert json.loads((tmp_path / "sweep" / "summary.json").read_text()) == summary
     assert (tmp_path / "sweep" / "horizon=8" / "seed_0" / "policy.pkl").exists()
     assert not (tmp_path / "sweep" / "horizon=16").exists()
 

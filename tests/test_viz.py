@@ -154,10 +154,10 @@ def test_missing_viser_names_the_extra(tmp_path, monkeypatch):
 
 
 def test_train_without_viser_prints_how_to_get_it(tmp_path, monkeypatch, capsys):
-    from jaxdrones.training import run
+    from jaxdrones.training import writing
 
     monkeypatch.setattr(viz, "viewer_available", lambda: False)
-    run._write_viewer(None, {"viewer": {}}, str(tmp_path))
+    writing._write_viewer(None, {"viewer": {}}, str(tmp_path))
     assert capsys.readouterr().out.strip() == (
         f"flight.html not written: the flight viewer needs viser ({viz.VIEWER_INSTALL})"
     )
@@ -480,8 +480,11 @@ def test_train_writes_flight_html_and_view_writes_a_run(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out and (tmp_path / "v.html").stat().st_size > 100_000
     assert main(["view", out, "--episodes", "2", "--out", str(tmp_path / "v.html")]) == 2
     assert "exists; pass --overwrite" in capsys.readouterr().err
-    assert main(["view", str(tmp_path), "--out", str(tmp_path / "w.html")]) == 2  # no policy there
+    (tmp_path / "empty").mkdir()
+    assert main(["view", str(tmp_path / "empty"), "--out", str(tmp_path / "w.html")]) == 2  # no policy there
     assert "no saved policy" in capsys.readouterr().err
+    assert main(["view", str(tmp_path), "--out", str(tmp_path / "w.html")]) == 2  # runs in its folders
+    assert "holds no policy of its own but runs in its folders: give one of them (hover)" in capsys.readouterr().err
 
 
 @pytest.mark.slow

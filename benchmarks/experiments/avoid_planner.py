@@ -30,7 +30,7 @@ LOOK_M = 0.3
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--episodes", type=int, default=256)
     parser.add_argument("--margin", type=float, default=0.08, help="clearance a free cell keeps, m (default 0.08)")
     parser.add_argument("--seed", type=int, default=1)

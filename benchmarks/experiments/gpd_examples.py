@@ -99,7 +99,7 @@ def run_script(
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--original", required=True, metavar="DIR", help="a checkout of gym-pybullet-drones")
     parser.add_argument(
         "--original-python", default=sys.executable, help="the interpreter that runs the original (default: this one)"

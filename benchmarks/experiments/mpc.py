@@ -33,7 +33,7 @@ SETTINGS = {  # name: fly_figure8 keywords
 def main(argv=None) -> int:
     from jaxdrones.examples import mpc
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--duration", type=float, default=6.0, help="flight time, s (default 6: one lap)")
     parser.add_argument("--out", default=DEFAULT_OUT, help="JSON output (default: %(default)s)")
     args = parser.parse_args(argv)

@@ -90,7 +90,7 @@ def evaluate(checkpoint: str, episodes: int = 64, seed: int = 0) -> dict:
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--example", required=True, help="skrl's examples/gymnasium/torch_gymnasium_pendulum_ppo.py")
     parser.add_argument("--num-envs", type=int, default=16)
     parser.add_argument("--out", default=None)

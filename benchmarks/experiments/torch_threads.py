@@ -53,7 +53,7 @@ def run(block: str, steps: int | None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps-without", type=int, default=16_384, help="env steps without the threads line")
     args = parser.parse_args(argv)
     block = docs_block()

@@ -33,7 +33,7 @@ DEFAULT_OUT = os.path.join(RESULTS, "vision_ppo.json")
 
 
 def parse_args(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--task", default="avoid", choices=("avoid", "fly_thru_gate"))
     parser.add_argument("--epochs", type=int, default=4, help="epochs timed (the first two compile)")
     parser.add_argument("--iterations", type=int, default=2, help="PPO iterations per epoch")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from jaxdrones.examples.camera_scene import BOX_DISTANCE, camera_scene, save_camera_images
@@ -22,7 +23,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default="runs/camera",
         help="output folder (default runs/camera; a numbered sibling is used if it exists, unless --overwrite)",
     )
-    parser.add_argument("--overwrite", action="store_true", help="replace the contents of an existing --out")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing --out that jaxdrones wrote, once the new one is complete",
+    )
     parser.add_argument("--width", type=int, default=320, help="image width, pixels (default 320)")
     parser.add_argument("--height", type=int, default=240, help="image height, pixels (default 240)")
     parser.add_argument("--fov", type=float, default=60.0, help="vertical field of view, degrees (default 60)")
@@ -38,12 +43,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_cli(args: argparse.Namespace) -> int:
     """Run the ``camera`` subcommand; returns the exit status."""
-    from jaxdrones.io.runs import new_run_dir
+    from jaxdrones.io.runs import output_folder
 
     try:
         scene = camera_scene(args.model, args.width, args.height, args.fov, args.distance, args.renderer)
-        out = new_run_dir(args.out, overwrite=args.overwrite)
-        paths = save_camera_images(scene, out, overwrite=args.overwrite)
+        with output_folder(args.out, overwrite=args.overwrite, kind="camera") as folder:
+            names = [os.path.basename(p) for p in save_camera_images(scene, folder.path).values()]
+        paths = [os.path.join(folder.final, name) for name in names]
     except (ValueError, RuntimeError, OSError, ImportError) as err:
         print(f"jaxdrones camera: error: {err}", file=sys.stderr)
         return 2
@@ -53,5 +59,5 @@ def run_cli(args: argparse.Namespace) -> int:
         f"{w} × {h} image, box face {args.distance:g} m ahead: depth at the image centre "
         f"{scene['depth'][h // 2, w // 2]:.4f} m, box covers {int(box.sum())} pixels"
     )
-    print("saved " + ", ".join(paths.values()))
+    print("saved " + ", ".join(paths))
     return 0

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 
@@ -23,6 +22,7 @@ from jaxdrones.examples.circle import (
     plot_flight,
 )
 from jaxdrones.examples.closed_loop import BACKENDS
+from jaxdrones.io.runs import write_json
 from jaxdrones.io.video import video_format
 from jaxdrones.physics.params import MODELS
 
@@ -153,7 +153,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="output folder (default runs/fly for the circle, runs/<example> for the others; a "
         "numbered sibling is used if it exists, unless --overwrite)",
     )
-    parser.add_argument("--overwrite", action="store_true", help="replace the contents of an existing --out")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing --out that jaxdrones wrote (a flight folder), once the new one is complete",
+    )
     parser.set_defaults(func=run_cli)
 
 
@@ -170,7 +174,7 @@ def run_cli(args: argparse.Namespace) -> int:
     """Run the ``fly`` subcommand; returns the exit status."""
     if args.example != "circle":
         return _run_example(args)
-    from jaxdrones.io.runs import new_run_dir
+    from jaxdrones.io.runs import open_output
 
     backend, video = args.backend, args.video
     if backend == "pybullet" and video is None and not args.no_video:
@@ -197,32 +201,57 @@ def run_cli(args: argparse.Namespace) -> int:
             video_format(video)
         # Validate before creating the run folder (a relative video path is inside the new folder, so it is new).
         check_flight(**kwargs, video=video if video is not None and os.path.isabs(video) else None)
-        out = new_run_dir("runs/fly" if args.out is None else args.out, overwrite=args.overwrite)
+        folder = open_output("runs/fly" if args.out is None else args.out, overwrite=args.overwrite, kind="flight")
     except (ValueError, RuntimeError, ImportError) as err:
         print(f"jaxdrones fly: error: {err}", file=sys.stderr)
         return 2
+    out = folder.path
     if video is not None:
         video = os.path.join(out, video)
     try:
         result = fly_circle(**kwargs, feedforward=feedforward, video=video, progress=not args.no_progress)
-    except (ValueError, RuntimeError) as err:
+        _write_circle(result, out)
+    except BaseException as err:
+        folder.discard()
+        if not isinstance(err, ValueError | RuntimeError):
+            raise
         print(f"jaxdrones fly: error: {err}", file=sys.stderr)
         return 2
-    plot_path = plot_flight(result, os.path.join(out, "flight.png"))
+    final = folder.commit()
     m, c = result["metrics"], result["contacts"]
-    with open(os.path.join(out, "metrics.json"), "w") as f:
-        json.dump(
-            {
-                "settings": result["settings"],
-                "metrics": m,
-                "contacts": c,
-                "wall_s": result["wall_s"],
-                "video": result["video"],
-                "video_frames": result["video_frames"],
-            },
-            f,
-            indent=2,
+    s = result["settings"]
+    print(
+        f"{s['num_drones']} × {s['model']}, {s['duration_s']:g} s on {s['backend']}, feed-forward "
+        f"{'on' if s['feedforward'] else 'off'}: simulated in {result['wall_s']:.2f} s (compilation included)"
+    )
+    print(f"RMS tracking error for t ≥ {m['settle_s']:g} s (cm):  to the moving way-point | to the circle path")
+    for d, (w, ct) in enumerate(zip(m["waypoint_rms_per_drone_m"], m["cross_track_rms_per_drone_m"], strict=True)):
+        print(f"  drone {d}: {100 * w:8.3f} | {100 * ct:8.3f}")
+    print(f"  overall: {100 * m['waypoint_rms_m']:8.3f} | {100 * m['cross_track_rms_m']:8.3f}")
+    if backend == "pybullet":
+        touched = "none" if not c["collided"] else f"first at {c['first_collision_s']:.2f} s"
+        print(
+            f"contacts with obstacles or other drones: {touched} (steps per drone: obstacle "
+            f"{c['obstacle_steps']}, drone {c['drone_steps']}; ground {c['ground_steps']})"
         )
+    saved = [os.path.join(final, name) for name in ("flight.png", "metrics.json", "flight.npz")]
+    if result["video"] is not None:
+        saved.append(f"{os.path.join(final, _inside(result['video'], out))} ({result['video_frames']} frames)")
+    print(f"saved {', '.join(saved[:-1])} and {saved[-1]}")
+    return 0
+
+
+def _inside(path: str | None, out: str) -> str | None:
+    """``path`` relative to the folder ``out`` where it lies inside it (a video written there), else as it is."""
+    return os.path.relpath(path, out) if path and path.startswith(out + os.sep) else path
+
+
+def _write_circle(result: dict, out: str) -> None:
+    """The circle's files in ``out``: ``flight.png``, ``metrics.json`` and ``flight.npz``."""
+    plot_flight(result, os.path.join(out, "flight.png"))
+    video = _inside(result["video"], out)
+    metrics = {key: result[key] for key in ("settings", "metrics", "contacts", "wall_s", "video_frames")}
+    write_json(os.path.join(out, "metrics.json"), {**metrics, "video": video})
     np.savez_compressed(
         os.path.join(out, "flight.npz"),
         **{
@@ -242,26 +271,6 @@ def run_cli(args: argparse.Namespace) -> int:
             )
         },
     )
-    s = result["settings"]
-    print(
-        f"{s['num_drones']} × {s['model']}, {s['duration_s']:g} s on {s['backend']}, feed-forward "
-        f"{'on' if s['feedforward'] else 'off'}: simulated in {result['wall_s']:.2f} s (compilation included)"
-    )
-    print(f"RMS tracking error for t ≥ {m['settle_s']:g} s (cm):  to the moving way-point | to the circle path")
-    for d, (w, ct) in enumerate(zip(m["waypoint_rms_per_drone_m"], m["cross_track_rms_per_drone_m"], strict=True)):
-        print(f"  drone {d}: {100 * w:8.3f} | {100 * ct:8.3f}")
-    print(f"  overall: {100 * m['waypoint_rms_m']:8.3f} | {100 * m['cross_track_rms_m']:8.3f}")
-    if backend == "pybullet":
-        touched = "none" if not c["collided"] else f"first at {c['first_collision_s']:.2f} s"
-        print(
-            f"contacts with obstacles or other drones: {touched} (steps per drone: obstacle "
-            f"{c['obstacle_steps']}, drone {c['drone_steps']}; ground {c['ground_steps']})"
-        )
-    saved = [plot_path, os.path.join(out, "metrics.json"), os.path.join(out, "flight.npz")]
-    if result["video"] is not None:
-        saved.append(f"{result['video']} ({result['video_frames']} frames)")
-    print(f"saved {', '.join(saved[:-1])} and {saved[-1]}")
-    return 0
 
 
 def _run_example(args: argparse.Namespace) -> int:
@@ -270,7 +279,7 @@ def _run_example(args: argparse.Namespace) -> int:
     Options the example does not take, and invalid values, are reported on stderr with exit status 2 before any
     run folder is created.
     """
-    from jaxdrones.io.runs import new_run_dir
+    from jaxdrones.io.runs import open_output
 
     module = EXAMPLES[args.example]
     given = [
@@ -297,21 +306,21 @@ def _run_example(args: argparse.Namespace) -> int:
         kwargs["settle_s"] = module.DEFAULT_SETTLE_S if args.settle is None else args.settle
     try:
         module.check(**kwargs)
-        out = new_run_dir(module.DEFAULT_OUT if args.out is None else args.out, overwrite=args.overwrite)
+        folder = open_output(module.DEFAULT_OUT if args.out is None else args.out, args.overwrite, kind="flight")
     except ValueError as err:
         return _fail(str(err))
-    result = module.fly(**kwargs)
-    paths = [
-        module.plot(result, os.path.join(out, "flight.png")),
-        os.path.join(out, "metrics.json"),
-        os.path.join(out, "flight.npz"),
-    ]
-    with open(paths[1], "w") as f:
-        json.dump(
-            {"settings": result["settings"], "metrics": result["metrics"], "wall_s": result["wall_s"]}, f, indent=2
-        )
-    np.savez_compressed(paths[2], **module.arrays(result))
+    try:
+        result = module.fly(**kwargs)
+        module.plot(result, os.path.join(folder.path, "flight.png"))
+        metrics = {"settings": result["settings"], "metrics": result["metrics"], "wall_s": result["wall_s"]}
+        write_json(os.path.join(folder.path, "metrics.json"), metrics)
+        np.savez_compressed(os.path.join(folder.path, "flight.npz"), **module.arrays(result))
+    except BaseException:
+        folder.discard()
+        raise
+    final = folder.commit()
     print("\n".join(module.summary(result)))
+    paths = [os.path.join(final, name) for name in ("flight.png", "metrics.json", "flight.npz")]
     print(f"saved {', '.join(paths[:-1])} and {paths[-1]}")
     return 0
 

@@ -12,7 +12,8 @@ from jaxdrones.envs.config import START_RPMS
 from jaxdrones.io.runs import enable_compilation_cache
 from jaxdrones.training import trainers
 from jaxdrones.training.recipes import recipe
-from jaxdrones.training.run import setting_label, train_task
+from jaxdrones.training.run import train_task
+from jaxdrones.training.runs import Stopped, TrainingFailed, parse_sweep, setting_label
 from jaxdrones.training.trainers import ALGOS, TRAINABLE
 
 
@@ -242,7 +243,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="output folder (default runs/TASK; a numbered sibling is used if it exists, unless --overwrite)",
     )
-    out.add_argument("--overwrite", action="store_true", help="replace the contents of an existing --out")
+    out.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing --out that jaxdrones wrote (a run folder) once the new run is complete; an "
+        "interrupted or failed run goes to a numbered sibling instead",
+    )
     out.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     out.add_argument(
         "--no-compile-cache",
@@ -341,51 +347,6 @@ def realism_options(preset: str | None, settings: list[str]) -> str | dict | Non
     return options
 
 
-def sweep_options(config: object, settings: list[str]) -> dict[str, list] | None:
-    """``--sweep``'s NAME=V1,V2,... settings as `jaxdrones.training.run.train_task`'s ``sweep``, each value read as
-    the type of the field's value in ``config`` (a number, or true/false), or None without any.
-
-    Raises:
-        ValueError: a setting that is not NAME=V1,V2,..., a name given twice, a name that is not one of ``config``'s
-            fields (with the closest ones), a value of another type, or a field that takes no single number or
-            switch (a tuple, a name).
-    """
-    if not settings:
-        return None
-    import dataclasses
-
-    from jaxdrones._hints import unknown_option
-
-    fields = {field.name: getattr(config, field.name) for field in dataclasses.fields(config)}
-    sweep = {}
-    for setting in settings:
-        name, sep, text = (part.strip() for part in setting.partition("="))
-        if not sep or not name or not text:
-            raise ValueError(f"--sweep takes NAME=V1,V2,..., got {setting!r}")
-        if name in sweep:
-            raise ValueError(f"--sweep {name} is given twice")
-        if name not in fields:
-            raise ValueError(unknown_option(f"--sweep ({type(config).__name__})", name, fields))
-        kind = type(fields[name])
-        if kind not in (int, float, bool):
-            raise ValueError(f"--sweep takes settings that are numbers or true/false; {name} is {fields[name]!r}")
-        words = [word.strip() for word in text.split(",")]
-        try:
-            sweep[name] = [_read(kind, word) for word in words]
-        except ValueError:
-            raise ValueError(f"--sweep {name} takes {kind.__name__} values, got {text!r}") from None
-    return sweep
-
-
-def _read(kind: type, word: str):
-    """A --sweep value of type ``kind`` (int, float or bool)."""
-    if kind is bool:
-        if word.lower() not in ("true", "false"):
-            raise ValueError(word)
-        return word.lower() == "true"
-    return kind(word)
-
-
 def _positive(name: str, value) -> None:
     if value is not None:
         check_int(name, value)
@@ -443,24 +404,25 @@ def run_cli(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             t_start=getattr(args, "t_start", None),
             seeds=args.seeds,
-            sweep=sweep_options(run.config, args.sweep),
+            sweep=parse_sweep(args.sweep),
         )
     except (ValueError, OSError, ImportError, devices.DeviceError) as err:
         print(f"jaxdrones train: error: {err}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # before training started (during training, the policy so far is saved)
-        print("interrupted before training started: nothing saved", file=sys.stderr)
+    except TrainingFailed as err:
+        if "seeds" in err.summary:
+            _report_seeds(err.summary)
+        print(f"jaxdrones train: error: {err}", file=sys.stderr)
+        return 1
+    except Stopped as stop:
+        return _report_stop(stop.summary)
+    except KeyboardInterrupt:  # before anything was trained: nothing written, the output folder untouched
+        print("interrupted before any training: nothing saved", file=sys.stderr)
         return 130
     if "out_dir" not in summary:  # a process other than 0: process 0 reports and saves
         return 0
     if "seeds" in summary:  # several seeds or settings
         return _report_seeds(summary)
-    if summary["interrupted"]:
-        print(
-            f"interrupted after {summary['env_steps']:,} env steps: saved the policy so far in {summary['out_dir']}",
-            file=sys.stderr,
-        )
-        return 130
     stats = summary["eval"]
     result = (
         f"{summary['success_metric']} {summary['success_value']:.4g} {summary['success_unit']} (threshold "
@@ -498,7 +460,17 @@ def _report_seeds(summary: dict) -> int:
         f"{'s' * (summary['programs'] > 1)}; saved {folders} (each run's policy.pkl and summary.json), "
         f"learning_curve.png, summary.json in {summary['out_dir']}"
     )
-    if summary["interrupted"]:
-        print("interrupted: the runs' policies so far are saved", file=sys.stderr)
-        return 130
     return 0
+
+
+def _report_stop(summary: dict) -> int:
+    """Print what a Ctrl-C left saved; returns 130, the status of a process stopped by SIGINT."""
+    if "seeds" in summary:
+        _report_seeds(summary)
+    if summary["interrupted"]:
+        steps = summary["env_steps"]
+        trained = f"{steps:,} env steps" if isinstance(steps, int) else f"{len(steps)} runs"
+        print(f"interrupted after {trained}: saved what was trained in {summary['out_dir']}", file=sys.stderr)
+    else:
+        print(f"interrupted while saving: the complete run is saved in {summary['out_dir']}", file=sys.stderr)
+    return 130

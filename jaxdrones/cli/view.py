@@ -89,6 +89,7 @@ def view_run(
 
     from jaxdrones import viz
     from jaxdrones.envs import make
+    from jaxdrones.io.runs import written_by_jaxdrones
     from jaxdrones.training import load_policy, rollout_policy
     from jaxdrones.training.checkpoint import read_payload
 
@@ -107,4 +108,7 @@ def view_run(
     env, policy = load_policy(path, env=env)
     keys = jax.random.split(jax.random.key(seed), n_episodes)
     states = jax.jit(jax.vmap(lambda k: rollout_policy(env, policy, k)))(keys)
-    return viz.write_html(out, viz.Flight.from_states(env, states, time_axis=1), overwrite=overwrite, **options)
+    flight = viz.Flight.from_states(env, states, time_axis=1)
+    if own and os.path.isfile(out) and written_by_jaxdrones(os.path.dirname(path)):
+        os.remove(out)  # the run's own page, also one written before pages carried their mark
+    return viz.write_html(out, flight, overwrite=overwrite, **options)

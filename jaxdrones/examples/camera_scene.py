@@ -16,13 +16,13 @@ exceeds 254) and ``scene.json`` (body ids and camera settings).
 
 from __future__ import annotations
 
-import json
 import os
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from jaxdrones._validate import check_real
+from jaxdrones.io.runs import write_json
 from jaxdrones.physics.params import DroneParams
 from jaxdrones.scene import Obstacle
 
@@ -151,20 +151,16 @@ def save_camera_images(scene: dict, out_dir: str | os.PathLike, overwrite: bool 
     Image.fromarray(np.ascontiguousarray(scene["rgb"][..., :3])).save(paths["rgb.png"])
     Image.fromarray(depth_to_mm(scene["depth"], scene["settings"]["far_m"])).save(paths["depth.png"])
     seg_image(scene["seg"]).save(paths["seg.png"])
-    with open(paths["scene.json"], "w") as f:
-        json.dump(
-            {
-                "body_ids": scene["body_ids"],
-                "eye_m": np.asarray(scene["eye"]).tolist(),
-                "settings": scene["settings"],
-                "files": {
-                    "depth.png": "uint16 depth along the optical axis in mm, 0 = nothing within far",
-                    "seg.png": "pixel value = Bullet body id + 1, 0 = nothing",
-                },
-            },
-            f,
-            indent=2,
-        )
+    scene_file = {
+        "body_ids": scene["body_ids"],
+        "eye_m": np.asarray(scene["eye"]).tolist(),
+        "settings": scene["settings"],
+        "files": {
+            "depth.png": "uint16 depth along the optical axis in mm, 0 = nothing within far",
+            "seg.png": "pixel value = Bullet body id + 1, 0 = nothing",
+        },
+    }
+    write_json(paths["scene.json"], scene_file)
     return paths
 
 

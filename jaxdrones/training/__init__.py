@@ -1,8 +1,8 @@
 """Training: the tasks' recipes (`jaxdrones.training.recipes`: how ``jaxdrones train TASK`` trains each), the table
 of trainers (`jaxdrones.training.trainers`: our PPO, brax's PPO, APG, SHAC, MAPPO, IPPO),
 their shared loop (`common`), evaluation (`evaluation`), progress display (`progress`), checkpoints (`checkpoint`),
-the run of ``jaxdrones train`` (`run.train_task`), and the paper's two-drone workflow on RLlib (`rllib`, the rllib
-extra).
+the run of ``jaxdrones train`` (`run.train_task`: its plan of seeds and sweeps in `runs`, its files in `writing`).
+The paper's two-drone workflow on RLlib is an example: `jaxdrones.examples.rllib_leader_follower`.
 
 The names below are loaded on first use, so that importing ``jaxdrones.training`` imports no trainer.
 """

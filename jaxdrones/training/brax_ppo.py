@@ -14,7 +14,7 @@ import numpy as np
 
 from jaxdrones._validate import check_fields, check_real
 from jaxdrones.envs.base import Env
-from jaxdrones.training.common import Interrupted
+from jaxdrones.training.common import NONFINITE, Interrupted
 
 if TYPE_CHECKING:
     from brax.training.agents.ppo import networks as ppo_networks
@@ -36,6 +36,11 @@ class BraxPPOConfig:
     """Hyperparameters of brax's PPO (``brax.training.agents.ppo.train``) and of the networks.
 
     Field names and meanings are brax's; see its documentation. ``num_timesteps`` counts env (control) steps.
+
+    Raises:
+        ValueError: a count below 1, a negative seed, a step size, clip, norm or reward scale that is not finite and
+            positive, a negative entropy cost, a discount or GAE lambda outside [0, 1], an unknown schedule, or a
+            batch brax's PPO cannot split (checked here: brax itself takes a negative step size and seed -1).
     """
 
     num_timesteps: int = 2_500_000
@@ -88,7 +93,14 @@ class BraxPPOConfig:
 
     def __post_init__(self):
         counts = ("num_timesteps", "num_envs", "batch_size", "num_minibatches", "unroll_length", "num_evals")
-        check_fields(self, integers=dict.fromkeys(counts, 1), booleans=("privileged_critic",))
+        check_fields(
+            self,
+            integers={**dict.fromkeys((*counts, "num_updates_per_batch", "num_eval_envs"), 1), "seed": 0},
+            positive=("learning_rate", "clipping_epsilon", "max_grad_norm", "reward_scaling"),
+            nonnegative=("entropy_cost",),
+            fractions=("discounting", "gae_lambda"),
+            booleans=("privileged_critic", "normalize_observations"),
+        )
         if self.learning_rate_schedule not in (None, "NONE", "ADAPTIVE_KL"):
             raise ValueError(
                 f"BraxPPOConfig: learning_rate_schedule must be None, 'NONE' or 'ADAPTIVE_KL' (brax's "
@@ -212,6 +224,9 @@ def train(
         ``(networks, params)``: brax's PPO networks (`make_network`) and the trained (normaliser, policy, value)
         parameters; `make_policy` makes the policy.
 
+    A run whose parameters go non-finite (checked at brax's evaluations) reports the update under
+    `jaxdrones.training.common.NONFINITE` and returns its last finite parameters.
+
     Raises:
         jaxdrones.training.common.Interrupted: on Ctrl-C, with the parameters of brax's last evaluation.
     """
@@ -227,13 +242,21 @@ def train(
 
     run_eval = None if evaluate is None else jax.jit(evaluate_params)
 
+    per_update = config.batch_size * config.unroll_length * config.num_minibatches  # env steps of one update
+    finite = {"params": None, "update": -1}  # the last finite parameters; the update after which they were not
+
     def keep(steps, make_policy, params):
         latest.update(params=params, steps=int(steps))
+        if finite["update"] < 0 and _finite(params):
+            finite["params"] = params
+        elif finite["update"] < 0:
+            finite["update"] = max(int(steps) // per_update, 1)
 
     def report(steps, metrics):
         if progress is not None and steps > 0:
             extra = {} if run_eval is None else {"eval": jax.tree.map(np.asarray, run_eval(latest["params"]))}
-            progress(int(steps), {**{k: float(v) for k, v in metrics.items() if np.ndim(v) == 0}, **extra})
+            scalars = {k: float(v) for k, v in metrics.items() if np.ndim(v) == 0}
+            progress(int(steps), {**scalars, **extra, NONFINITE: finite["update"]})
 
     try:
         vision = bool(env.config.vision)
@@ -254,4 +277,12 @@ def train(
         if latest["params"] is None:
             raise
         raise Interrupted((networks, latest["params"]), latest["steps"]) from None
+    if finite["update"] >= 0 and finite["params"] is not None:
+        return networks, finite["params"]
     return networks, params
+
+
+def _finite(params: Any) -> bool:
+    """Whether every float of ``params`` is finite (checked on the host, at brax's evaluations)."""
+    leaves = [np.asarray(x) for x in jax.tree.leaves(params)]
+    return all(np.all(np.isfinite(x)) for x in leaves if np.issubdtype(x.dtype, np.inexact))

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import jax
+import numpy as np
 
 from jaxdrones.envs.base import Env
 from jaxdrones.training.common import host_array
@@ -59,13 +60,19 @@ def read_payload(path: str | os.PathLike) -> tuple[str, dict]:
     is set for the files from before `FORMAT` too.
 
     Raises:
-        ValueError: no policy file there, an empty or damaged one, or not one of jaxdrones (or of an unknown
-            algorithm).
+        ValueError: no policy file there (for a folder of runs, naming them), an empty or damaged one, not
+            one of jaxdrones (or of an unknown algorithm), or one with non-finite weights.
     """
     from jaxdrones.training import trainers
 
+    if not isinstance(path, str | os.PathLike):
+        raise ValueError(f"path must be a run folder or its policy.pkl (a str or os.PathLike), got {path!r}")
     path = os.fspath(path)
     if os.path.isdir(path):
+        runs = _runs_inside(path)
+        if runs and not os.path.isfile(os.path.join(path, "policy.pkl")):
+            shown = ", ".join(runs[:6]) + (f", ... ({len(runs)} in all)" if len(runs) > 6 else "")
+            raise ValueError(f"{path!r} holds no policy of its own but runs in its folders: give one of them ({shown})")
         path = os.path.join(path, "policy.pkl")
     if not os.path.isfile(path):
         raise ValueError(f"no saved policy at {path!r}")
@@ -85,7 +92,27 @@ def read_payload(path: str | os.PathLike) -> tuple[str, dict]:
     algo = payload.get("algo") or next(legacy, None)
     if algo not in trainers.ALGOS:
         raise ValueError(f"{path!r} is not a jaxdrones policy file (algorithm {algo!r})")
+    bad = [jax.tree_util.keystr(key) for key, x in jax.tree_util.tree_leaves_with_path(payload["params"])
+           if np.issubdtype(np.asarray(x).dtype, np.inexact) and not np.all(np.isfinite(x))]  # fmt: skip
+    if bad:
+        raise ValueError(
+            f"{path!r} holds non-finite weights (NaN or infinity in {', '.join(bad[:3])}{', ...' * (len(bad) > 3)}): "
+            f"the policy would fly NaN; train it again (jaxdrones train keeps the last finite parameters of a run "
+            f"that diverges)"
+        )
     return path, {**payload, "algo": algo}
+
+
+def _runs_inside(path: str) -> list[str]:
+    """The run folders inside ``path`` (a run of several seeds or settings: ``seed_<k>/`` or
+    ``<setting>/seed_<k>/``) that hold a ``policy.pkl``, as paths relative to it."""
+    found = []
+    for folder, subfolders, files in os.walk(path):
+        subfolders.sort()
+        if folder != path and "policy.pkl" in files:
+            found.append(os.path.relpath(folder, path))
+            subfolders.clear()
+    return found
 
 
 def load_policy(path: str | os.PathLike, deterministic: bool = True, env: Env | None = None) -> tuple[Env, Callable]:
@@ -103,8 +130,9 @@ def load_policy(path: str | os.PathLike, deterministic: bool = True, env: Env | 
         ``(env, policy)``: the env and ``policy(obs, key) -> (action, extras)``.
 
     Raises:
-        ValueError: if the file is missing or is not a saved jaxdrones policy, or ``env`` is not of the policy's
-            task, team size, observation size or action size.
+        ValueError: ``path`` not a str or path; the file is missing, is not a saved jaxdrones policy or holds
+            non-finite weights; a folder of runs (naming them: ``seed_<k>/``, ...); ``env`` not of the
+            policy's task, team size, observation size or action size.
     """
     from jaxdrones.envs import make
     from jaxdrones.training import trainers

@@ -236,10 +236,13 @@ def _programs(init, chunk, evaluate, inputs, n_batch: int, description: str | No
 
 
 def _run_functions(config: Schedule, build: Callable, evaluate: Callable | None, runs: Sequence | None):
-    """`run_updates`' programs before compilation, ``(inputs, (init, chunk, evaluate or None), result)``: the inputs
-    of a run (its seed, from which the compiled init makes the key, and the values of `mapped_fields`), ``init(inputs)
-    -> carry``, ``chunk(carry) -> (carry, metrics)`` and ``evaluate(carry)`` on a carry ``(inputs, the trainer's
-    carry)``, and the trainer's ``result``; with ``runs``, each input with a runs axis and the three mapped over it."""
+    """`run_updates`' programs before compilation, ``(inputs, (init, chunk, evaluate or None, finite, replay),
+    result)``: the inputs of a run (its seed, from which the compiled init makes the key, and the values of
+    `mapped_fields`), ``init(inputs) -> carry``, ``chunk(carry) -> (carry, metrics)``, ``evaluate(carry)``,
+    ``finite(carry) -> bool`` (its parameters all finite) and ``replay(carry) -> bool[updates_per_eval]`` (the chunk
+    from ``carry`` again, whether each update's metrics and parameters are finite) on a carry ``(inputs, the
+    trainer's carry)``, and the trainer's ``result``; with ``runs``, each input with a runs axis and the programs
+    mapped over it."""
     group = [config] if runs is None else runs
     seeds = np.asarray([run.seed for run in group]).astype(jax.dtypes.canonicalize_dtype(np.int64))
     if runs is None:
@@ -261,11 +264,38 @@ def _run_functions(config: Schedule, build: Callable, evaluate: Callable | None,
         state, metrics = jax.lax.scan(update, state, None, length=config.updates_per_eval)
         return (inputs, state), {name: value[-1] for name, value in metrics.items()}
 
+    def finite(carry):  # the parameters all finite: a program of its own, so that the chunk is as it was
+        return _all_finite(result(carry[1])[1])
+
+    def replay(carry):  # each update of a chunk from ``carry`` all finite (its metrics and the parameters after it)
+        update = build(traced_config(config, carry[0][1]))[1]
+
+        def step(state, _):
+            state, metrics = update(state, None)
+            return state, _all_finite(metrics) & _all_finite(result(state)[1])
+
+        return jax.lax.scan(step, carry[1], None, length=config.updates_per_eval)[1]
+
     def evaluate_run(carry):  # named: benchmarks/train_cost.py finds the evaluation by its name
         return evaluate(*result(carry[1]), carry[0][0])
 
-    programs = (init_run, chunk, evaluate and evaluate_run)
+    programs = (init_run, chunk, evaluate and evaluate_run, finite, replay)
     return inputs, tuple(fn and (fn if runs is None else jax.vmap(fn)) for fn in programs), result
+
+
+#: The metric `run_updates` adds for a run whose metrics or parameters went non-finite: the first such update
+#: (from 1), or -1.
+NONFINITE = "nonfinite_update"
+
+
+def _all_finite(tree: Any, per_entry: bool = False) -> jax.Array:
+    """Whether every float of ``tree`` is finite: one bool, or with ``per_entry`` one per entry of the leaves'
+    leading axis (each leaf's other axes reduced)."""
+    leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.inexact)]
+    checks = [
+        jnp.isfinite(x).reshape(x.shape[0], -1).all(axis=1) if per_entry else jnp.isfinite(x).all() for x in leaves
+    ]
+    return jnp.stack(checks).all(axis=0) if checks else jnp.bool_(True)
 
 
 def run_updates(
@@ -284,17 +314,37 @@ def run_updates(
     previous one's metrics go to ``progress(env_steps, metrics)`` (the evaluation under ``"eval"``). With ``runs``
     (configs that differ from ``config`` in their seed and float fields, `mapped_fields`), one run per config in the
     three programs mapped over them (`jax.vmap`; over several devices, spread along the runs), ``build`` seeing those
-    fields as arrays (`traced_config`), each metric with a runs axis. Returns ``result`` of the final carry (a list
-    over ``runs``); on Ctrl-C raises `Interrupted` with that of the last completed chunk."""
+    fields as arrays (`traced_config`), each metric with a runs axis. A run whose metrics or parameters go
+    non-finite (checked after each chunk, in a program of its own) keeps the result of its last finite chunk and
+    reports, under `NONFINITE` in the metrics, the first update that was not (found by replaying the chunk; counted
+    from 1; -1 while finite); the loop stops once every run has. Returns ``result`` of the final carry (a list over
+    ``runs``); on Ctrl-C raises `Interrupted` with that of the last completed chunk."""
     inputs, programs, result = _run_functions(config, build, evaluate, runs)
     eval_description = "" if evaluate is None else getattr(evaluate, "description", None)
-    n_batch = n_worlds if runs is None else len(runs)
-    init_c, chunk_c, eval_c = _programs(*programs, inputs, n_batch, description, eval_description)
+    n_runs, n_updates = 1 if runs is None else len(runs), config.updates_per_eval
+    n_batch = n_worlds if runs is None else n_runs
+    init_c, chunk_c, eval_c = _programs(*programs[:3], inputs, n_batch, description, eval_description)
+    finite_c, replay_c = jax.jit(programs[3]), jax.jit(programs[4])
+    diverged, kept = np.full(n_runs, -1), {}  # each run's first non-finite update; its result before it
 
     def results(carry):
         if runs is None:
-            return result(carry[1])
-        return [result(jax.tree.map(lambda x, k=k: x[k], carry[1])) for k in range(len(runs))]
+            return kept[0] if 0 in kept else result(carry[1])
+        return [kept[k] if k in kept else result(jax.tree.map(lambda x, k=k: x[k], carry[1])) for k in range(n_runs)]
+
+    def check(previous, finished, metrics, k):
+        """Record the runs whose metrics or parameters went non-finite in chunk ``k`` (from ``previous``)."""
+        ok = np.reshape(host_array(finite_c(finished)), n_runs).copy()
+        for name, value in metrics.items():
+            if name != "eval":
+                ok &= np.isfinite(np.reshape(value, (n_runs, -1))).all(axis=1)
+        new = np.flatnonzero(~ok & (diverged < 0))
+        if new.size:  # the chunk again from its start, update by update, to name the first non-finite one
+            flags = np.reshape(host_array(replay_c(previous)), (n_runs, n_updates))
+            before = results(previous)
+            for j in new:
+                diverged[j] = (k - 1) * n_updates + (int(np.argmin(flags[j])) if not flags[j].all() else n_updates) + 1
+                kept[j] = before if runs is None else before[j]
 
     carry, done = None, 0
     try:
@@ -307,9 +357,13 @@ def run_updates(
             if k < config.num_evals:
                 pending = chunk_c(finished)  # runs while this chunk's metrics are read and shown
             metrics = jax.tree.map(host_array, metrics)
-            carry, done = finished, k * config.updates_per_eval * config.steps_per_update
+            check(carry, finished, metrics, k)
+            carry, done = finished, k * n_updates * config.steps_per_update
+            metrics[NONFINITE] = diverged.copy() if runs else int(diverged[0])
             if progress is not None:
                 progress(done, metrics if runs else {k: v if k == "eval" else float(v) for k, v in metrics.items()})
+            if np.all(diverged >= 0):  # every run stopped at its last finite parameters: nothing more to train
+                break
     except KeyboardInterrupt:
         raise Interrupted(results(init_c(inputs) if carry is None else carry), done) from None
     return results(carry)

@@ -8,7 +8,9 @@ displays, learning curves and ``summary.json`` report.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -16,6 +18,10 @@ import numpy as np
 
 from jaxdrones.envs.base import Env, EnvState
 from jaxdrones.envs.observations import policy_input
+
+if TYPE_CHECKING:
+    from jaxdrones.envs.task import Task
+    from jaxdrones.training.trainers import Trainer
 
 #: What `episode_outcomes` returns: (final metrics, episode-mean metrics, terminated, return, episode-max metrics),
 #: each with a leading episode axis.
@@ -123,3 +129,54 @@ def episode_statistics(env: Env, outcomes: Outcomes) -> dict:
         n_episodes=int(terminated.shape[0]),
     )
     return stats
+
+
+def eval_program(env: Env, trainer: Trainer, n_episodes: int) -> Callable:
+    """The evaluation compiled beside the trainer's chunks: ``n_episodes`` episodes from random starts (for a run of
+    seed ``s``, the same keys at every evaluation: ``jax.random.split(key(s + 1))[0]`` split ``n_episodes`` ways;
+    `outcomes_of`) and the flight of the first one for the plot (positions, the task's reference, velocities, RPMs),
+    as ``evaluate(networks, params, seed) -> pytree of arrays`` for a trainer's ``evaluate`` argument
+    (`jaxdrones.training.trainers`)."""
+    from jaxdrones.viz import VIEW_EPISODES, flight_data
+
+    def evaluate(network, params, seed):
+        keys = jax.random.split(jax.random.split(jax.random.key(seed + 1))[0], n_episodes)
+        policy = trainer.make_policy(network, params)
+        # The episodes' starts, as rollout_policy draws them; the task of the first episode from its start, not from
+        # the flown states, so that the compiled evaluation keeps no per-step copy of every episode's task data.
+        starts = jax.vmap(lambda k: env.reset(jax.random.split(k)[0]))(keys)
+        states = jax.vmap(lambda k, start: rollout_policy(env, policy, k, start))(keys, starts)
+        flight = jax.tree.map(lambda x: x[0], states)  # the first episode, for the flight plot
+        steps = jnp.arange(env.episode_length + 1)
+        task = jax.tree.map(lambda x: x[0], starts.task)
+        ref = jax.vmap(lambda s: env.task.reference(env.config, task, s))(steps)
+        return {
+            "outcomes": outcomes_of(states),
+            "flight": {"pos": flight.sim.pos, "ref": ref.pos, "vel": flight.sim.vel, "rpm": flight.sim.rpm},
+            "viewer": jax.tree.map(lambda x: x[:VIEW_EPISODES], flight_data(states)),
+        }  # for flight.html
+
+    evaluate.description = f"evaluation {n_episodes} {trainer.name} {env.task.name} {env.config!r}"
+    return evaluate
+
+
+def failed_criteria(task: Task, stats: dict) -> list[str]:
+    """The criteria of a solved run that the evaluation ``stats`` (`episode_statistics`) miss, as sentences (empty:
+    solved): an evaluation ran, the task's success metric is below its threshold, and, unless the task's metric
+    counts them itself (``success_counts_terminations``), no episode ended early (a crash, or leaving the arena)."""
+    from jaxdrones.training.progress import AGGREGATES
+
+    if not stats:
+        return ["no evaluation ran (the run stopped before its first)"]
+    failed = []
+    value = stats.get("success_value", math.nan)
+    if not value < task.success_threshold:
+        failed.append(
+            f"{task.success_metric} ({AGGREGATES[task.success_at]}) {value:.4g} {task.success_unit} is not below "
+            f"the threshold {task.success_threshold:g}"
+        )
+    rate, n = stats.get("terminated_rate", math.nan), stats.get("n_episodes", 0)
+    if not task.success_counts_terminations and not rate == 0.0:
+        ended = f"{round(rate * n)} of {n}" if math.isfinite(rate) else "some"
+        failed.append(f"{ended} episodes ended early (crashed or left the arena; a solved run has none)")
+    return failed

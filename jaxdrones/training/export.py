@@ -21,6 +21,7 @@ the ones supported.
 
 from __future__ import annotations
 
+import errno
 import itertools
 import os
 import re
@@ -488,8 +489,9 @@ def export(
     (`onnx_model`); returns ``(path, sizes)``. ``out`` defaults to ``<run>/<name>.c`` or ``.onnx``.
 
     Raises:
-        ValueError: an unknown format, or see `c_source`; FileExistsError: ``out`` exists and not ``overwrite``;
-        ModuleNotFoundError: ``onnx`` without the onnx package.
+        ValueError: an unknown format, a policy with non-finite weights, ``overwrite`` of a file `export` did not
+            write, or see `c_source`; FileExistsError: ``out`` exists and not ``overwrite``; ModuleNotFoundError:
+            ``onnx`` without the onnx package.
     """
     if fmt not in FORMATS:
         raise ValueError(f"export: format must be one of {FORMATS}, got {fmt!r}")
@@ -504,6 +506,29 @@ def export(
         folder = run if os.path.isdir(run) else os.path.dirname(os.fspath(run))
         out = os.path.join(folder, f"{name}.{fmt}")
     out = os.fspath(out)
-    with open(out, "wb" if overwrite else "xb") as f:
+    if os.path.lexists(out):
+        if not overwrite:
+            raise FileExistsError(errno.EEXIST, "exists; pass overwrite=True (--overwrite) to replace it", out)
+        if not _exported(out):
+            raise ValueError(
+                f"overwrite replaces only a file that jaxdrones export wrote; {out!r} is another file, which is "
+                f"kept: choose another output file"
+            )
+    tmp = f"{out}.{os.getpid()}.tmp"  # written whole, then moved into place: a reader never sees half a file
+    with open(tmp, "wb") as f:
         f.write(data)
+    os.replace(tmp, out)
     return out, sizes
+
+
+#: What every file `export` writes says of itself (the C file's header comment, the ONNX model's doc string).
+SIGNATURE = b"exported by `jaxdrones export`"
+
+
+def _exported(path: str) -> bool:
+    """Whether the file ``path`` was written by `export` (its `SIGNATURE` within its first 64 KiB)."""
+    try:
+        with open(path, "rb") as f:
+            return SIGNATURE in f.read(65536)
+    except OSError:
+        return False

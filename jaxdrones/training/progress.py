@@ -5,7 +5,6 @@ returns, nothing of any trainer's internals."""
 
 from __future__ import annotations
 
-import json
 import math
 import time
 
@@ -75,5 +74,7 @@ class ProgressLog:
         self.bar.close()
 
     def save(self, path: str) -> None:
-        with open(path, "w") as f:
-            json.dump(self.history, f, indent=1)
+        """Write the rows to ``path`` as strict JSON (`jaxdrones.io.runs.write_json`)."""
+        from jaxdrones.io.runs import write_json
+
+        write_json(path, self.history, indent=1)

@@ -392,3 +392,40 @@ def recipe(
         train_env={k: v for k, v in train_env.items() if k not in env},
         defaults=defaults,
     )
+
+
+def resolve_recipe(
+    task: str | Recipe,
+    algo: str | None = None,
+    config: Any = None,
+    env_overrides: Mapping[str, Any] | None = None,
+    train_env_overrides: Mapping[str, Any] | None = None,
+    defaults: str | None = None,
+) -> Recipe:
+    """`jaxdrones.training.run.train_task`'s recipe: ``task`` if it is one (and nothing else is given), else the
+    task's (`recipe`) with ``config`` and ``train_env_overrides`` in its place where given.
+
+    Raises:
+        ValueError: a `Recipe` with other settings beside it, a ``task`` that is neither a name nor a `Recipe`, or
+            what `recipe` raises.
+    """
+    given = {
+        "algo": algo,
+        "config": config,
+        "env_overrides": env_overrides,
+        "train_env_overrides": train_env_overrides,
+        "defaults": defaults,
+    }
+    if isinstance(task, Recipe):
+        if any(value is not None for value in given.values()):
+            named = ", ".join(name for name, value in given.items() if value is not None)
+            raise ValueError(f"train: a Recipe holds the run's settings; set them in it, not as {named}")
+        return task
+    if not isinstance(task, str):
+        raise ValueError(f"train: task must be a task's name (str) or a Recipe, got {task!r}")
+    run = recipe(task, defaults, env_overrides, algo)
+    if config is not None:
+        run = dataclasses.replace(run, config=config)
+    if train_env_overrides is not None:
+        run = dataclasses.replace(run, train_env={k: v for k, v in train_env_overrides.items() if k not in run.env})
+    return run

@@ -145,7 +145,8 @@ def write_html(
     Args:
         path: the file to write (``.html``); parent folders are created.
         flight: the `Flight`.
-        overwrite: replace an existing file (otherwise FileExistsError).
+        overwrite: replace an existing page that `write_html` wrote (`GENERATOR`; otherwise FileExistsError, and
+            ValueError for any other file, which is kept).
         trail_s: how far back each trail reaches, s; None: the whole flight; 0: no trails.
         max_fps: the recording's frame rate at most, Hz: frames are skipped to stay at or below it (the time axis
             is kept: playback runs at real time).
@@ -165,6 +166,7 @@ def write_html(
         TypeError: ``flight`` is not a `Flight`.
         ModuleNotFoundError: viser is not installed (`VIEWER_INSTALL`).
         FileExistsError: ``path`` exists and not ``overwrite``.
+        ValueError: ``overwrite`` of a file `write_html` did not write, or a bad option.
         ValueError: a bad option (a negative trail, a frame rate or scale that is not positive, a camera that is not
             two points, colours that are not RGB triples).
     """
@@ -173,7 +175,7 @@ def write_html(
             f"flight must be a jaxdrones.viz.Flight (e.g. Flight(pos, quat, dt)), got {type(flight).__name__}"
         )
     path = os.fspath(path)
-    check_target(path, overwrite)
+    check_target(path, overwrite, GENERATOR.encode())
     if trail_s is not None:
         check_real("trail_s", trail_s, 0, what="None or a finite number of seconds")
     for name, value in (("max_fps", max_fps), ("drone_scale", drone_scale)):
@@ -188,9 +190,16 @@ def write_html(
     folder = os.path.dirname(path)
     if folder:
         os.makedirs(folder, exist_ok=True)
-    with open(path, "w" if overwrite else "x", encoding="utf-8") as f:
+    html = html.replace("<head>", f"<head>{GENERATOR}", 1) if "<head>" in html else GENERATOR + html
+    tmp = f"{path}.{os.getpid()}.tmp"  # written whole, then moved into place
+    with open(tmp, "w", encoding="utf-8") as f:
         f.write(html)
+    os.replace(tmp, path)
     return path
+
+
+#: The mark of every page `write_html` writes: ``overwrite`` replaces only a page that holds it.
+GENERATOR = '<meta name="generator" content="jaxdrones flight viewer">'
 
 
 def _free_port() -> int:

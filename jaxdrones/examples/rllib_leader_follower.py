@@ -17,7 +17,7 @@ tanh layers for both. Here the same on RLlib's RLModule/Learner stack (ray 2.60)
 The paper's kinematic observation is ``obs_type="kin"`` and its rewards ``reward="paper"``; the defaults are the
 task's (``neighbors``, ``shaped``). Run it in the environment of the ``rllib`` extra (docs/adapters.md, "RLlib")::
 
-    python -m jaxdrones.training.rllib --timesteps 400000 --out runs/rllib_leader_follower
+    python -m jaxdrones.examples.rllib_leader_follower --timesteps 400000 --out runs/rllib_leader_follower
 
 Ray starts its processes before JAX runs anything in this one (`main`): a process that has started JAX warns at
 ``fork``, and Ray's start forks.
@@ -26,7 +26,6 @@ Ray starts its processes before JAX runs anything in this one (`main`): a proces
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from collections.abc import Callable
@@ -34,12 +33,18 @@ from typing import Any
 
 import numpy as np
 
+from jaxdrones.io.runs import output_folder, write_json
+
 #: The paper's team: two drones, one RPM value per drone.
 TASK, N_DRONES, ACTION_TYPE = "leader_follower", 2, "one_d_rpm"
 #: Name under which `train` registers the env with Ray.
 ENV_NAME = "jaxdrones_leader_follower"
 #: The paper's layers, for the action model and the critic.
 HIDDEN = (256, 256)
+#: How to install what this example needs (ray's RLlib and torch, at the versions it was run with).
+INSTALL = (
+    'pip install -c constraints-rllib.txt ".[rllib]" in a virtual environment of its own (docs/adapters.md, RLlib)'
+)
 
 
 def _options(obs_type: str | None, reward: str | None) -> dict:
@@ -218,7 +223,7 @@ def evaluate(algo: Any, obs_type: str | None = None, reward: str | None = None, 
     import jax
 
     from jaxdrones.training.evaluation import evaluate as evaluate_policy
-    from jaxdrones.training.run import failed_criteria
+    from jaxdrones.training.evaluation import failed_criteria
 
     env = make_env(obs_type, reward)
     stats = evaluate_policy(env, policy_of(algo, env), jax.random.key(1), n_episodes)
@@ -292,11 +297,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--num-env-runners", type=int, default=1, help="Ray's sampling processes (default 1)")
     parser.add_argument("--train-batch-size", type=int, default=4000, help="env steps per PPO iteration")
     parser.add_argument("--eval-every", type=int, default=0, help="evaluate every N iterations (default: at the end)")
-    parser.add_argument("--out", default=None, help="write summary.json to this folder")
+    parser.add_argument(
+        "--out", default=None, help="write summary.json to this new folder (a numbered sibling where it exists)"
+    )
     args = parser.parse_args(argv)
-    if args.out and os.path.exists(os.path.join(args.out, "summary.json")):
-        parser.error(f"{args.out}/summary.json exists: give another --out")
-    import ray
+    try:
+        import ray
+    except ModuleNotFoundError:
+        parser.error(f"needs ray[rllib], the rllib extra: {INSTALL}")
 
     start = time.perf_counter()
     ray.init(include_dashboard=False, log_to_driver=False)  # before JAX runs anything in this process
@@ -319,9 +327,9 @@ def main(argv: list[str] | None = None) -> int:
         f"{summary['success_threshold']:g}) after {summary['env_steps']:,} env steps, {summary['wall_time_s']:.0f} s"
     )
     if args.out:
-        os.makedirs(args.out, exist_ok=True)
-        with open(os.path.join(args.out, "summary.json"), "w") as f:
-            json.dump(summary, f, indent=2)
+        with output_folder(args.out) as folder:
+            write_json(os.path.join(folder.path, "summary.json"), summary)
+        print(f"saved summary.json in {folder.final}")
     return 0 if summary["success"] else 1
 
 
