@@ -293,3 +293,27 @@ def test_the_suite_refuses_abbreviated_options():
     script = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "suite.py")
     result = subprocess.run([sys.executable, script, "--seed", "0"], capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "unrecognized arguments: --seed 0" in result.stderr
+
+
+def test_a_ctrl_c_that_lands_in_a_garbage_collectors_callback_is_not_lost():
+    """Python ignores an exception raised in a ``gc.callbacks`` function (JAX's ``_xla_gc_callback`` runs at every
+    collection): the command's handler sends the signal again after it, so the Ctrl-C still stops the process."""
+    code = """
+import gc, os, signal, time
+from jaxdrones.cli import _interrupt
+signal.signal(signal.SIGINT, _interrupt)
+sent = []
+def callback(phase, info):
+    if not sent:
+        sent.append(1)
+        os.kill(os.getpid(), signal.SIGINT)  # handled here, inside the callback
+gc.callbacks.append(callback)
+gc.collect()
+try:
+    time.sleep(5)
+    print("lost")
+except KeyboardInterrupt:
+    print("stopped")
+"""
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.stdout.strip() == "stopped", result.stderr

@@ -8,6 +8,9 @@ import json
 import math
 import os
 import pickle
+import signal
+import subprocess
+import sys
 
 import jax
 import numpy as np
@@ -946,3 +949,125 @@ def test_ctrl_c_between_a_sweeps_programs_saves_the_runs_trained(tmp_path, monke
 def test_train_cli_refuses_a_bad_sweep(sweep, message, capsys):
     assert main(["train", "hover", "--sweep", sweep, "--no-progress", "--out", "unused"]) == 2
     assert message in capsys.readouterr().err
+
+
+def strict(constant):
+    raise ValueError(f"not strict JSON: {constant}")
+
+
+@pytest.mark.slow
+def test_a_run_whose_parameters_go_non_finite_keeps_its_last_finite_ones(tmp_path, capsys):
+    """A step size at float32's largest makes the parameters infinite at the second update: the run stops there with
+    an error naming the update and the setting, and saves the last finite parameters, which load and fly; as it is
+    not complete, it replaces no run (here: a numbered sibling). In a sweep, only that setting's runs stop."""
+    from jaxdrones.training.recipes import recipe
+    from jaxdrones.training.run import TrainingFailed, train_task
+
+    run = recipe("hover", "cpu").with_options(seed=0, steps=4096, num_envs=8, num_evals=2)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / MARKER).write_text("{}")  # an earlier run of jaxdrones
+    bad = dataclasses.replace(run, config=dataclasses.replace(run.config, learning_rate=3e38))
+    with pytest.raises(
+        TrainingFailed, match=r"non-finite at update 2 \(learning_rate=3e\+38,max_grad_norm=1.0, seed 0"
+    ):
+        train_task(bad, str(tmp_path / "run"), overwrite=True, n_eval_episodes=64, progress=False)
+    saved = tmp_path / "run-1"
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [MARKER]
+    summary = json.loads((saved / "summary.json").read_text(), parse_constant=strict)
+    assert summary["diverged"] == 2 and not summary["success"] and summary["success_value"] is None
+    env, policy = load_policy(saved)
+    obs = jax.vmap(env.reset)(jax.random.split(jax.random.key(0), 4)).obs.reshape(4, -1)
+    assert np.all(np.isfinite(jax.vmap(policy, in_axes=(0, None))(obs, jax.random.key(1))[0]))
+
+    summary = train_task(
+        run, str(tmp_path / "sweep"), n_eval_episodes=64, progress=False, seeds=2,
+        sweep={"learning_rate": [1e-3, 3e38]},
+    )  # fmt: skip
+    good, diverged = summary["settings"]
+    assert [r["diverged"] for r in good["runs"]] == [None, None] and [r["diverged"] for r in diverged["runs"]] == [2, 2]
+    assert all(r["env_steps"] == 4096 for r in good["runs"]) and not any(r["success"] for r in diverged["runs"])
+    assert "non-finite at update 2" in diverged["runs"][0]["failed_criteria"][0]
+
+
+@pytest.mark.slow
+def test_a_failure_in_a_later_program_keeps_the_runs_trained_before_it(tmp_path, monkeypatch, capsys):
+    """An error while a sweep's second program trains (out of memory, brax's own assertion): the first program's
+    runs are saved with the sweep's summary, which names the error; the command exits 1 with it."""
+    from jaxdrones.training import trainers
+
+    real, calls = trainers.get, []
+
+    def get(name):
+        trainer = real(name)
+
+        def train(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == 2:
+                raise RuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 9 GiB")
+            return trainer.train(*args, **kwargs)
+
+        return dataclasses.replace(trainer, train=train)
+
+    monkeypatch.setattr(trainers, "get", get)
+    args = ["train", "hover", "--steps", "1024", "--num-envs", "8", "--num-evals", "1", "--eval-episodes", "64"]
+    assert main([*args, "--sweep", "horizon=8,16", "--out", str(tmp_path / "sweep"), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "RESOURCE_EXHAUSTED" in err and f"the runs trained before it are saved in {tmp_path / 'sweep'}" in err
+    summary = json.loads((tmp_path / "sweep" / "summary.json").read_text())
+    assert "RESOURCE_EXHAUSTED" in summary["error"] and [s["setting"] for s in summary["settings"]] == [{"horizon": 8}]
+    assert (tmp_path / "sweep" / "horizon=8" / "seed_0" / "policy.pkl").exists()
+
+
+@pytest.mark.slow
+def test_a_ctrl_c_while_the_run_is_saved_waits_for_the_complete_run(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the plots are drawn: the run is saved complete, moved into place over the run it replaces, and
+    the command exits 130."""
+    from jaxdrones.training import writing
+
+    plot = writing._plot
+
+    def interrupted_plot(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        return plot(*args, **kwargs)
+
+    args = ["train", "hover", "--steps", "1024", "--num-envs", "8", "--num-evals", "1", "--eval-episodes", "64"]
+    assert main([*args, "--out", str(tmp_path / "run"), "--no-progress"]) == 0
+    monkeypatch.setattr(writing, "_plot", interrupted_plot)
+    assert main([*args, "--seed", "1", "--out", str(tmp_path / "run"), "--overwrite", "--no-progress"]) == 130
+    assert "interrupted while saving: the complete run is saved in" in capsys.readouterr().err
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["config"]["seed"] == 1 and not summary["interrupted"]
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == sorted(TRAIN_OUTPUTS)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("after_s", [1.0, 4.0, 8.0])
+def test_a_ctrl_c_at_any_moment_leaves_the_old_run_or_a_complete_new_one(tmp_path, after_s):
+    """``jaxdrones train hover --out R --overwrite`` over a finished run ``R``, stopped by SIGINT ``after_s`` into
+    the process (from an empty compilation cache: imports, compilation, training or saving): ``R`` holds the old run
+    or a complete new one, never a mix or nothing; the exit is 130 (0 where the run had finished); an interrupted run
+    with something trained is in ``R-1``; nothing half-written is left."""
+    env = {**os.environ, "JAXDRONES_CACHE_DIR": str(tmp_path / "cache")}
+    args = [sys.executable, "-m", "jaxdrones.cli", "train", "hover", "--steps", "100000", "--no-progress"]
+    first = subprocess.run([*args, "--out", str(tmp_path / "R")], env=env, capture_output=True, timeout=300)
+    assert first.returncode == 0
+    old = json.loads((tmp_path / "R" / "summary.json").read_text())
+    process = subprocess.Popen([*args, "--seed", "1", "--out", str(tmp_path / "R"), "--overwrite"], env=env)
+    try:
+        process.wait(timeout=after_s)
+    except subprocess.TimeoutExpired:
+        process.send_signal(signal.SIGINT)
+    status = process.wait(timeout=300)
+    summary = json.loads((tmp_path / "R" / "summary.json").read_text())
+    assert status in (0, 130) and summary["config"]["seed"] in (0, 1)
+    if summary["config"]["seed"] == 0:
+        assert summary == old and status == 130
+    else:
+        assert not summary["interrupted"] and sorted(p.name for p in (tmp_path / "R").iterdir()) == sorted(
+            TRAIN_OUTPUTS
+        )
+    left = sorted(p.name for p in tmp_path.iterdir() if p.name != "cache")
+    assert left in (["R"], ["R", "R-1"])
+    if left == ["R", "R-1"]:
+        assert json.loads((tmp_path / "R-1" / "summary.json").read_text())["interrupted"] and status == 130

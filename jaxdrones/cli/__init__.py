@@ -40,6 +40,46 @@ def main(argv: list[str] | None = None) -> int:
     return int(args.func(args) or 0)
 
 
+def run(argv: list[str] | None = None) -> None:
+    """The ``jaxdrones`` command's process: `main`, then exit with its status. A run stopped by Ctrl-C (status 130)
+    has saved what it keeps when `main` returns; its process then ends at once (``os._exit``), without Python's
+    finalisation, during which XLA's compiler or a computation still running in its threads can end the process
+    with a segmentation fault instead."""
+    import signal
+
+    signal.signal(signal.SIGINT, _interrupt)
+    try:
+        status = main(argv)
+    except KeyboardInterrupt:  # before a command took over (its imports, the arguments): nothing was written
+        print("interrupted", file=sys.stderr)
+        status = 130
+    if status == 130:
+        import os
+
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    sys.exit(status)
+
+
+def _interrupt(signum: int, frame) -> None:
+    """Ctrl-C as ``KeyboardInterrupt``, as Python's own handler raises it; but where it lands in a garbage
+    collector's callback (JAX's ``_xla_gc_callback`` runs at every collection, often while a program is traced),
+    whose exceptions Python prints and ignores, the signal is sent again 50 ms later instead of being lost."""
+    import gc
+    import os
+    import signal
+    import threading
+
+    callbacks = {getattr(callback, "__code__", None) for callback in gc.callbacks}
+    while frame is not None:
+        if frame.f_code in callbacks:
+            threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()
+            return
+        frame = frame.f_back
+    raise KeyboardInterrupt
+
+
 def _unknown_options(parser: argparse.ArgumentParser, command: str, unknown: list[str]) -> None:
     """Exit (status 2) with ``command``'s usage and its unknown options, each with the closest option it has."""
     from jaxdrones._hints import did_you_mean
@@ -51,4 +91,4 @@ def _unknown_options(parser: argparse.ArgumentParser, command: str, unknown: lis
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

@@ -1,7 +1,5 @@
 """``python -m jaxdrones.cli ...``: the ``jaxdrones`` command."""
 
-import sys
+from jaxdrones.cli import run
 
-from jaxdrones.cli import main
-
-sys.exit(main())
+run()
