@@ -13,8 +13,8 @@ evaluation and the saved plots.
 Per task the table gives the trainer and env steps of the task's recipe (`jaxdrones.training.recipes`), the wall
 times, each seed's result against the task's threshold (``summary.json``: the success metric over 256 evaluation
 starts), the largest share of evaluation episodes that ended early (crashed or left the arena), and the seeds
-solved (`jaxdrones.training.evaluation.failed_criteria`: below the threshold, and none ended early where the task's metric
-does not count them itself).
+solved (`jaxdrones.training.evaluation.failed_criteria`: below the threshold, and none ended early where the task's
+metric does not count them itself).
 
     python benchmarks/suite.py --seeds 0 1 2                      # every task, cpu or gpu by the device
     python benchmarks/suite.py --tasks takeoff crossing --seeds 0 --no-rerun

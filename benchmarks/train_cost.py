@@ -254,8 +254,8 @@ def train(algo: str, profile: str, out: str, extra: list[str], env: dict | None 
 
 def solved_from_eval(history: list[dict], task) -> int | None:
     """The first evaluation of ``history`` (a run's ``progress.json``) from which on every evaluation solved ``task``
-    (the run's verdict, `jaxdrones.training.evaluation.failed_criteria`: for hover, the distance below its threshold with no
-    episode ended early), counted from 1; None if the last did not."""
+    (the run's verdict, `jaxdrones.training.evaluation.failed_criteria`: for hover, the distance below its threshold
+    with no episode ended early), counted from 1; None if the last did not."""
     from jaxdrones.training.evaluation import failed_criteria
 
     solved = [not failed_criteria(task, h) for h in history]
