@@ -44,7 +44,9 @@ and the gradients at 1000 steps × 16384 worlds). The others run only when named
 - the scripts behind docs/benchmarks.md's other tables, each shown as it prints it: ``suite`` (every task at its
   recipe, three seeds: hours on a CPU), ``first_run`` (the quick start's first and warm run), ``train_cost`` (a
   trained policy's operations per trainer and profile), ``gradient_profile`` and ``gradient_layers`` (where a
-  gradient's time goes), ``install`` (a fresh install, per Python; it downloads wheels).
+  gradient's time goes), ``run_memory`` (the memory of mapped runs against the estimate ``jaxdrones train`` checks),
+  ``interrupt`` (a Ctrl-C at given seconds into ``jaxdrones train hover --overwrite``: what the run folder then
+  holds), ``install`` (a fresh install, per Python; it downloads wheels).
 
 Every script of ``benchmarks/`` is one of these, or a worker of one (``_crazyflow_*.py``), or ``original.py``
 (the original gym-pybullet-drones beside them, ``table2 --original``). The runs that chose a setting of the package,
@@ -314,6 +316,13 @@ BENCHMARKS = {
             ),
             lambda ctx: None,
         ),
+        Benchmark(
+            "run_memory",
+            False,
+            lambda ctx: ["--tasks", "hover", "--extra", "8"] if ctx.quick else [],
+            lambda ctx: None,
+        ),
+        Benchmark("interrupt", False, lambda ctx: ["--at", "1", "3"] if ctx.quick else [], lambda ctx: None),
         Benchmark(
             "install",
             False,

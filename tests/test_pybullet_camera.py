@@ -390,10 +390,16 @@ def test_video_writer_refuses_bad_input(tmp_path):
     (tmp_path / "old.mp4").write_bytes(b"keep")
     with pytest.raises(FileExistsError, match="overwrite"):
         VideoWriter(tmp_path / "old.mp4")
+    with pytest.raises(ValueError, match="replaces only a file jaxdrones wrote"):  # a user's file: never replaced
+        VideoWriter(tmp_path / "old.mp4", overwrite=True)
     assert (tmp_path / "old.mp4").read_bytes() == b"keep"
-    with VideoWriter(tmp_path / "old.mp4", overwrite=True) as writer:
-        writer.append(frames(1, 16, 16)[0])
-    assert (tmp_path / "old.mp4").stat().st_size > 100
+    for name in ("ours.mp4", "ours.gif"):  # a video jaxdrones wrote is replaced with overwrite, written whole
+        for _ in range(2):
+            with VideoWriter(tmp_path / name, overwrite=True) as writer:
+                writer.append(frames(1, 16, 16)[0])
+                assert not (tmp_path / name).exists() or (tmp_path / name).stat().st_size > 100
+        assert (tmp_path / name).stat().st_size > 100
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old.mp4", "ours.gif", "ours.mp4"]
     with pytest.raises(ValueError, match="extension"):
         VideoWriter(tmp_path / "a.avi")
     with pytest.raises(ValueError, match="fps"):

@@ -67,7 +67,7 @@ def test_check_fields_names_the_config():
 
     with pytest.raises(ValueError, match=r"^Config: n must be an integer >= 1, got 0$"):
         v.check_fields(Config(), integers={"n": 1})
-    with pytest.raises(ValueError, match=r"^Config: gamma must be in \[0, 1\), got 1.0$"):
+    with pytest.raises(ValueError, match=r"^Config: gamma must be a finite number in \[0, 1\), got 1.0$"):
         v.check_fields(Config(), positive=("lr",), open_fractions=("gamma",))
     with pytest.raises(ValueError, match="Config: flag must be True or False"):
         v.check_fields(Config(), booleans=("flag",))

@@ -467,10 +467,11 @@ def _report_stop(summary: dict) -> int:
     """Print what a Ctrl-C left saved; returns 130, the status of a process stopped by SIGINT."""
     if "seeds" in summary:
         _report_seeds(summary)
-    if summary["interrupted"]:
-        steps = summary["env_steps"]
-        trained = f"{steps:,} env steps" if isinstance(steps, int) else f"{len(steps)} runs"
-        print(f"interrupted after {trained}: saved what was trained in {summary['out_dir']}", file=sys.stderr)
+    if summary["interrupted"] and "seeds" in summary:
+        print(f"interrupted: saved the runs trained so far in {summary['out_dir']}", file=sys.stderr)
+    elif summary["interrupted"]:
+        steps = f"{summary['env_steps']:,}"
+        print(f"interrupted after {steps} env steps: saved the policy so far in {summary['out_dir']}", file=sys.stderr)
     else:
         print(f"interrupted while saving: the complete run is saved in {summary['out_dir']}", file=sys.stderr)
     return 130

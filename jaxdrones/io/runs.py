@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import json
 import os
 import shutil
@@ -38,6 +39,22 @@ def _finite(obj: object) -> object:
     if isinstance(obj, list | tuple):
         return [_finite(value) for value in obj]
     return obj
+
+
+def check_replace(path: str, overwrite: bool, signature: bytes, read: int = 65536) -> None:
+    """The rule for a file a writer replaces: ``FileExistsError`` where ``path`` exists and not ``overwrite``;
+    ``ValueError`` where it exists without ``signature`` (what every file of that writer holds) in its first ``read``
+    bytes: a file jaxdrones did not write is never replaced."""
+    if not os.path.exists(path):
+        return
+    if not overwrite:
+        raise FileExistsError(errno.EEXIST, "exists; pass overwrite=True to replace it", path)
+    with open(path, "rb") as f:
+        if signature not in f.read(read):
+            raise ValueError(
+                f"overwrite replaces only a file jaxdrones wrote; {path!r} is another file, which is kept: choose "
+                f"another file name"
+            )
 
 
 def written_by_jaxdrones(path: str | os.PathLike) -> bool:

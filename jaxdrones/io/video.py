@@ -5,8 +5,9 @@
             video.append(step.render(params, state))
 
 MP4 files are H.264 (yuv420p, readable by common players) written through imageio's ffmpeg plugin
-(``imageio-ffmpeg`` ships an ffmpeg binary); GIFs are written by Pillow. An existing file is never replaced unless
-``overwrite=True``.
+(``imageio-ffmpeg`` ships an ffmpeg binary); GIFs are written by Pillow. A video is written beside its path and
+moved there when closed; an existing file is replaced only with ``overwrite=True``, and only a video jaxdrones wrote
+(`SIGNATURE`).
 """
 
 from __future__ import annotations
@@ -18,6 +19,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from jaxdrones._validate import check_real
+from jaxdrones.io.runs import check_replace
+
+#: The mark of every video `VideoWriter` writes (MP4: its comment; GIF: its comment extension): ``overwrite``
+#: replaces only a video that holds it (`jaxdrones.io.runs.check_replace`).
+SIGNATURE = b"written by jaxdrones"
 
 #: File extensions and their formats.
 FORMATS = {".mp4": "mp4", ".gif": "gif"}
@@ -46,7 +52,7 @@ class VideoWriter:
         path: output file; its extension picks the format: ``.mp4`` (H.264 through imageio-ffmpeg) or ``.gif``
             (Pillow, looping forever). Missing parent folders are created.
         fps: frames per second, > 0. A GIF stores frame durations in 10 ms units, so its rate is rounded to that.
-        overwrite: replace an existing file.
+        overwrite: replace an existing video that jaxdrones wrote (`SIGNATURE`).
 
     Every frame must be uint8[H, W, 3] (RGB) with the first frame's shape. H.264 needs even sizes, so MP4 frames
     with an odd height or width are padded by repeating their last row or column. Frames are encoded as they come
@@ -55,7 +61,7 @@ class VideoWriter:
 
     Raises:
         ValueError: on an unknown extension or a bad fps (here), a frame that is not uint8[H, W, 3] or whose shape
-            differs from the first frame's (in `append`).
+            differs from the first frame's (in `append`), ``overwrite`` of a file jaxdrones did not write.
         FileExistsError: if ``path`` exists and not ``overwrite``.
     """
 
@@ -65,9 +71,10 @@ class VideoWriter:
         check_real("fps", fps, 0, low_open=True, what="a finite number of frames per second")
         if os.path.isdir(path):
             raise ValueError(f"video path {path!r} is a folder")
-        if os.path.exists(path) and not overwrite:
-            raise FileExistsError(f"{path!r} exists; pass overwrite=True to replace it")
+        check_replace(path, overwrite, SIGNATURE, read=2**20)
         self.path = path
+        root, ext = os.path.splitext(path)
+        self._partial = f"{root}.partial-{os.getpid()}{ext}"  # written here, moved to ``path`` when closed
         self.fps = float(fps)
         self.format = video_format(path)
         self._overwrite = bool(overwrite)
@@ -128,13 +135,15 @@ class VideoWriter:
         if self._frames:
             duration = max(10, int(round(100.0 / self.fps)) * 10)  # ms, in GIF's 10 ms units
             self._frames[0].save(
-                self.path, format="GIF", save_all=True, append_images=self._frames[1:], duration=duration, loop=0
-            )
+                self._partial, format="GIF", save_all=True, append_images=self._frames[1:], duration=duration,
+                loop=0, comment=SIGNATURE,
+            )  # fmt: skip
             self._frames = []
+        if os.path.exists(self._partial):
+            os.replace(self._partial, self.path)
 
     def _open(self) -> None:
-        if os.path.exists(self.path) and not self._overwrite:  # created since __init__
-            raise FileExistsError(f"{self.path!r} exists; pass overwrite=True to replace it")
+        check_replace(self.path, self._overwrite, SIGNATURE, read=2**20)  # created since __init__?
         folder = os.path.dirname(self.path)
         if folder:
             os.makedirs(folder, exist_ok=True)
@@ -142,7 +151,7 @@ class VideoWriter:
             import imageio.v2 as imageio
 
             self._writer = imageio.get_writer(
-                self.path,
+                self._partial,
                 format="FFMPEG",
                 mode="I",
                 fps=self.fps,
@@ -150,6 +159,8 @@ class VideoWriter:
                 pixelformat="yuv420p",
                 macro_block_size=1,
                 ffmpeg_log_level="error",
+                # The mark of a video jaxdrones wrote, in the index that faststart puts at the file's start.
+                output_params=["-metadata", f"comment={SIGNATURE.decode()}", "-movflags", "+faststart"],
             )
 
 

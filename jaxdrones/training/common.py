@@ -212,7 +212,7 @@ def traced_config(config: Schedule, values: Mapping[str, Any]) -> Schedule:
 
 
 def _programs(init, chunk, evaluate, inputs, n_batch: int, description: str | None, eval_description: str | None):
-    """`run_updates`' three programs, jitted: ``(init, chunk, evaluate or None)``. Over several devices, the carry
+    """`run_updates`' three programs, jitted: ``(init, chunk, evaluate)``. Over several devices, the carry
     spread over them along its leading axis of ``n_batch`` entries (`world_shardings`: the worlds, or the runs of a
     mapped run); on one, kept in the program cache (`jaxdrones.training.programs`) where ``description`` and the
     evaluation's own ``description`` name them and the cache is on."""
@@ -224,25 +224,25 @@ def _programs(init, chunk, evaluate, inputs, n_batch: int, description: str | No
         return (
             jax.jit(init, out_shardings=shardings),
             jax.jit(chunk, in_shardings=(shardings,), out_shardings=(shardings, replicated)),
-            evaluate and jax.jit(evaluate, in_shardings=(shardings,), out_shardings=replicated),
+            jax.jit(evaluate, in_shardings=(shardings,), out_shardings=replicated),
         )
     if description is None or eval_description is None or cache_folder() is None:
-        return jax.jit(init), jax.jit(chunk), evaluate and jax.jit(evaluate)
+        return jax.jit(init), jax.jit(chunk), jax.jit(evaluate)
     return (
         cached_jit(init, f"{description}\ninit"),
         cached_jit(chunk, f"{description}\nchunk"),
-        evaluate and cached_jit(evaluate, f"{description}\n{eval_description}"),
+        cached_jit(evaluate, f"{description}\n{eval_description}"),
     )
 
 
 def _run_functions(config: Schedule, build: Callable, evaluate: Callable | None, runs: Sequence | None):
-    """`run_updates`' programs before compilation, ``(inputs, (init, chunk, evaluate or None, finite, replay),
-    result)``: the inputs of a run (its seed, from which the compiled init makes the key, and the values of
-    `mapped_fields`), ``init(inputs) -> carry``, ``chunk(carry) -> (carry, metrics)``, ``evaluate(carry)``,
-    ``finite(carry) -> bool`` (its parameters all finite) and ``replay(carry) -> bool[updates_per_eval]`` (the chunk
-    from ``carry`` again, whether each update's metrics and parameters are finite) on a carry ``(inputs, the
-    trainer's carry)``, and the trainer's ``result``; with ``runs``, each input with a runs axis and the programs
-    mapped over it."""
+    """`run_updates`' programs before compilation, ``(inputs, (init, chunk, evaluate, replay), result)``: the inputs
+    of a run (its seed, from which the compiled init makes the key, and the values of `mapped_fields`), ``init(inputs)
+    -> carry``, ``chunk(carry) -> (carry, metrics)``, ``evaluate(carry) -> {FINITE: the parameters all finite,
+    "eval": the trainer's evaluation, where given}`` and ``replay(carry) -> bool[updates_per_eval]`` (the chunk from
+    ``carry`` again, whether each update's metrics and parameters are finite) on a carry ``(inputs, the trainer's
+    carry)``, and the trainer's ``result``; with ``runs``, each input with a runs axis and the programs mapped over
+    it."""
     group = [config] if runs is None else runs
     seeds = np.asarray([run.seed for run in group]).astype(jax.dtypes.canonicalize_dtype(np.int64))
     if runs is None:
@@ -264,9 +264,6 @@ def _run_functions(config: Schedule, build: Callable, evaluate: Callable | None,
         state, metrics = jax.lax.scan(update, state, None, length=config.updates_per_eval)
         return (inputs, state), {name: value[-1] for name, value in metrics.items()}
 
-    def finite(carry):  # the parameters all finite: a program of its own, so that the chunk is as it was
-        return _all_finite(result(carry[1])[1])
-
     def replay(carry):  # each update of a chunk from ``carry`` all finite (its metrics and the parameters after it)
         update = build(traced_config(config, carry[0][1]))[1]
 
@@ -277,9 +274,11 @@ def _run_functions(config: Schedule, build: Callable, evaluate: Callable | None,
         return jax.lax.scan(step, carry[1], None, length=config.updates_per_eval)[1]
 
     def evaluate_run(carry):  # named: benchmarks/train_cost.py finds the evaluation by its name
-        return evaluate(*result(carry[1]), carry[0][0])
+        network, params = result(carry[1])
+        checked = {FINITE: _all_finite(params)}  # here, not in the chunk: the chunk's program stays as it was
+        return checked if evaluate is None else {**checked, "eval": evaluate(network, params, carry[0][0])}
 
-    programs = (init_run, chunk, evaluate and evaluate_run, finite, replay)
+    programs = (init_run, chunk, evaluate_run, replay)
     return inputs, tuple(fn and (fn if runs is None else jax.vmap(fn)) for fn in programs), result
 
 
@@ -287,15 +286,14 @@ def _run_functions(config: Schedule, build: Callable, evaluate: Callable | None,
 #: (from 1), or -1.
 NONFINITE = "nonfinite_update"
 
+#: What the evaluation program of `run_updates` returns beside the evaluation: its parameters all finite.
+FINITE = "finite"
 
-def _all_finite(tree: Any, per_entry: bool = False) -> jax.Array:
-    """Whether every float of ``tree`` is finite: one bool, or with ``per_entry`` one per entry of the leaves'
-    leading axis (each leaf's other axes reduced)."""
-    leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.inexact)]
-    checks = [
-        jnp.isfinite(x).reshape(x.shape[0], -1).all(axis=1) if per_entry else jnp.isfinite(x).all() for x in leaves
-    ]
-    return jnp.stack(checks).all(axis=0) if checks else jnp.bool_(True)
+
+def _all_finite(tree: Any) -> jax.Array:
+    """Whether every float of ``tree`` is finite (one bool)."""
+    checks = [jnp.isfinite(x).all() for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.inexact)]
+    return jnp.stack(checks).all() if checks else jnp.bool_(True)
 
 
 def run_updates(
@@ -324,7 +322,7 @@ def run_updates(
     n_runs, n_updates = 1 if runs is None else len(runs), config.updates_per_eval
     n_batch = n_worlds if runs is None else n_runs
     init_c, chunk_c, eval_c = _programs(*programs[:3], inputs, n_batch, description, eval_description)
-    finite_c, replay_c = jax.jit(programs[3]), jax.jit(programs[4])
+    replay_c = jax.jit(programs[3])
     diverged, kept = np.full(n_runs, -1), {}  # each run's first non-finite update; its result before it
 
     def results(carry):
@@ -332,9 +330,10 @@ def run_updates(
             return kept[0] if 0 in kept else result(carry[1])
         return [kept[k] if k in kept else result(jax.tree.map(lambda x, k=k: x[k], carry[1])) for k in range(n_runs)]
 
-    def check(previous, finished, metrics, k):
-        """Record the runs whose metrics or parameters went non-finite in chunk ``k`` (from ``previous``)."""
-        ok = np.reshape(host_array(finite_c(finished)), n_runs).copy()
+    def check(previous, finite, metrics, k):
+        """Record the runs whose metrics or ``finite`` parameters went non-finite in chunk ``k`` (from
+        ``previous``)."""
+        ok = np.reshape(host_array(finite), n_runs).copy()
         for name, value in metrics.items():
             if name != "eval":
                 ok &= np.isfinite(np.reshape(value, (n_runs, -1))).all(axis=1)
@@ -352,12 +351,11 @@ def run_updates(
         pending = chunk_c(carry)
         for k in range(1, config.num_evals + 1):
             finished, metrics = pending
-            if eval_c is not None:
-                metrics = {**metrics, "eval": eval_c(finished)}
+            metrics = {**metrics, **eval_c(finished)}
             if k < config.num_evals:
                 pending = chunk_c(finished)  # runs while this chunk's metrics are read and shown
             metrics = jax.tree.map(host_array, metrics)
-            check(carry, finished, metrics, k)
+            check(carry, metrics.pop(FINITE), metrics, k)
             carry, done = finished, k * n_updates * config.steps_per_update
             metrics[NONFINITE] = diverged.copy() if runs else int(diverged[0])
             if progress is not None:

@@ -193,8 +193,8 @@ class _Training:
             if self.diverged[k] is None:  # a run that diverged keeps its last finite evaluation
                 self.last[k].update(eval=one["eval"])
                 self.logs[k](steps, episode_statistics(self.env, one["eval"]["outcomes"]))
-        if self.plan.several:  # the display: the runs' median at their latest evaluation
-            rows = [log.history[-1] for log in self.logs if log.history]
+        rows = [log.history[-1] for log in self.logs if log.history]
+        if self.plan.several and rows:  # the display: the runs' median at their latest evaluation
             names = ("success_value", "terminated_rate", "episode_reward")
             self.bar(
                 self.offsets[group] + steps, {name: float(np.median([row[name] for row in rows])) for name in names}

@@ -249,8 +249,8 @@ def describe(plan: RunPlan, trainer: Trainer) -> str:
 
 
 #: The factor over the arrays a run's program is known to hold (`run_bytes`) that its memory takes (the gradient's
-#: saved activations, the optimiser's moments, XLA's buffers): the largest ratio measured, over hover, velocity,
-#: crossing and leader_follower at their recipes (0.9 to 2.5; `benchmarks/run_memory.py`, docs/benchmarks.md,
+#: saved activations, the optimiser's moments, XLA's buffers): above the largest ratio measured, over hover, velocity,
+#: crossing and leader_follower at their recipes (0.8 to 2.3; `benchmarks/run_memory.py`, docs/benchmarks.md,
 #: "Memory of mapped runs").
 MEMORY_FACTOR = 2.5
 
@@ -265,11 +265,14 @@ def run_bytes(config: Any, env: Env, train_env: Env, n_eval_episodes: int) -> in
     def size(tree):
         return sum(math.prod(x.shape) * x.dtype.itemsize for x in jax.tree.leaves(tree))
 
-    state = jax.eval_shape(env.reset, jax.random.key(0))
+    def reset_shapes(e):  # traced only: no eager operation, which would compile a program of its own
+        return jax.eval_shape(lambda: e.reset(jax.random.key(0)))
+
+    state = reset_shapes(env)
     per_step = size((state.reward, state.steps, state.terminated, state.metrics))
     evaluation = n_eval_episodes * ((env.episode_length + 1) * per_step + size(state))
     steps = getattr(config, "steps_per_update", config.num_envs)
-    training = steps * size(jax.eval_shape(train_env.reset, jax.random.key(0)))
+    training = steps * size(reset_shapes(train_env))
     return int(MEMORY_FACTOR * (evaluation + training))
 
 

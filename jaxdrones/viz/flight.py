@@ -4,7 +4,6 @@ views take from it: the drones' colours, the camera's view, the target file's ch
 from __future__ import annotations
 
 import dataclasses
-import errno
 import math
 import os
 from collections.abc import Sequence
@@ -290,21 +289,15 @@ def resolve_view(flight: Flight, offsets: np.ndarray, camera: tuple | None) -> t
     return target + direction / np.linalg.norm(direction) * radius * 2.6, target
 
 
-def check_target(path: str, overwrite: bool, signature: bytes | None = None) -> None:
-    """Raise ``ValueError`` where ``path`` is a folder, ``FileExistsError`` where it is a file and ``overwrite`` is
-    off; with a ``signature`` (what every file of the writer holds in its first 64 KiB), ``ValueError`` where
-    ``overwrite`` would replace a file without it (one jaxdrones did not write)."""
+def check_target(path: str, overwrite: bool, signature: bytes) -> None:
+    """Raise ``ValueError`` where ``path`` is a folder or a file without ``signature`` that ``overwrite`` would
+    replace (one jaxdrones did not write), ``FileExistsError`` where it is a file and ``overwrite`` is off
+    (`jaxdrones.io.runs.check_replace`)."""
+    from jaxdrones.io.runs import check_replace
+
     if os.path.isdir(path):
         raise ValueError(f"{path!r} is a folder; give a file name such as flight.html")
-    if os.path.exists(path) and not overwrite:
-        raise FileExistsError(errno.EEXIST, "exists; pass overwrite=True to replace it", path)
-    if os.path.exists(path) and signature is not None:
-        with open(path, "rb") as f:
-            if signature not in f.read(65536):
-                raise ValueError(
-                    f"overwrite replaces only a file jaxdrones wrote; {path!r} is another file, which is kept: "
-                    f"choose another file name"
-                )
+    check_replace(path, overwrite, signature)
 
 
 def drone_palette(colors: ArrayLike | None) -> np.ndarray:

@@ -10,6 +10,7 @@ import os
 import numpy as np
 
 from jaxdrones._validate import check_real, is_integer
+from jaxdrones.io.video import SIGNATURE
 from jaxdrones.viz.flight import (
     CF2X_ARM,
     Colors,
@@ -68,7 +69,8 @@ def write_video(
         trail_s: how far back the trails reach, s; None: the whole flight; 0: no trails.
         chase: (distance behind, height above) of the chase camera, m.
         colors: the trails' RGB 0-255 per drone index, as `write_html`'s.
-        overwrite: replace an existing file.
+        overwrite: replace an existing video that jaxdrones wrote (`jaxdrones.io.video.SIGNATURE`; any other file
+            is refused with ``ValueError`` and kept).
 
     Returns:
         The path written.
@@ -91,7 +93,7 @@ def write_video(
         raise TypeError(f"flight must be a jaxdrones.viz.Flight, got {type(flight).__name__}")
     path = os.fspath(path)
     video_format(path)
-    check_target(path, overwrite)
+    check_target(path, overwrite, SIGNATURE)
     for name, value, n in (("world", world, flight.n_worlds), ("drone", drone, flight.n_drones)):
         if not (is_integer(value) and 0 <= value < n):
             raise ValueError(f"{name} must be an index in [0, {n}), got {value!r}")
