@@ -118,7 +118,7 @@ def test_export_header_sizes_and_bad_input(tmp_path, capsys):
     theirs = tmp_path / "controller.c"  # a user's file: --overwrite replaces only a file export wrote
     theirs.write_text("int main(void) { return 0; }\n")
     assert main(["export", run, "--out", str(theirs), "--overwrite"]) == 2
-    assert "replaces only a file that jaxdrones export wrote" in capsys.readouterr().err
+    assert "replaces only a file jaxdrones wrote" in capsys.readouterr().err
     assert theirs.read_text() == "int main(void) { return 0; }\n"
     with pytest.raises(ValueError, match="C identifier"):
         c_source(load_payload(run), name="my-policy")

@@ -195,13 +195,20 @@ def test_train_task_refuses_seeds_of_the_wrong_type_with_a_value_error(tmp_path,
         ({"sweep": {"horizon": [8.5]}}, "horizon takes int values"),
         ({"sweep": [("learning_rate", [1e-3])]}, "sweep must be a dict"),
         ({"sweep": {"learning_rate": [float("inf")]}}, "learning_rate must be a finite number > 0, got inf"),
+        ({"out": 3}, r"out must be a folder's path \(a str or os.PathLike\), got 3"),
+        ({"overwrite": "yes"}, "overwrite must be True or False, got 'yes'"),
+        ({"progress": 1}, "progress must be True or False, got 1"),
+        ({"env_overrides": [("model", "cf2x")]}, "env_overrides must be a dict of task config fields"),
+        ({"train_env_overrides": 5}, "train_env_overrides must be a dict of task config fields, got 5"),
+        ({"task": None}, "task must be a task's name"),
     ],
 )
 def test_train_task_refuses_bad_settings_with_a_value_error(tmp_path, kwargs, message):
     from jaxdrones.training import train_task
 
+    kwargs = {"out": str(tmp_path / "run"), "progress": False, **kwargs}
     with pytest.raises(ValueError, match=message):
-        train_task("hover", str(tmp_path / "run"), progress=False, **kwargs)
+        train_task(kwargs.pop("task", "hover"), **kwargs)
     assert not any(tmp_path.iterdir())
 
 
@@ -215,12 +222,12 @@ def test_runs_that_would_not_fit_in_memory_are_refused_before_compiling(tmp_path
 
 
 def test_check_memory_names_what_fits():
-    from jaxdrones.training.runs import RunPlan, check_memory
+    from jaxdrones.training.runs import check_memory
 
-    plan = RunPlan(runs=(), programs=((0, 1, 2, 3), (4,)), mapped=True, seeds=(0,), sweep=None, several=True)
-    check_memory(plan, 2**20, (5 * 2**20, "a test's memory"))  # four runs of 1 MiB within 90 % of 5 MiB
+    check_memory(4, 2**20, (5 * 2**20, "a test's memory"))  # four runs of 1 MiB within 90 % of 5 MiB
+    check_memory(10**9, 2**20, None)  # no figure of the memory free: no check
     with pytest.raises(ValueError, match=r"maps 4 runs and needs about 0.0 GiB .* at most 3 runs fit"):
-        check_memory(plan, 2**20, (4 * 2**20, "a test's memory"))
+        check_memory(4, 2**20, (4 * 2**20, "a test's memory"))
 
 
 def nan_policy(folder):

@@ -1052,9 +1052,10 @@ def test_a_ctrl_c_at_any_moment_leaves_the_old_run_or_a_complete_new_one(tmp_pat
             process.send_signal(signal.SIGINT)
         status = process.wait(timeout=300)
         summary = json.loads((tmp_path / "R" / "summary.json").read_text())
-        assert status in (0, 130) and summary["config"]["seed"] in (old["config"]["seed"], seed)
+        # -SIGINT: stopped during Python's imports, before the command's handler (a shell's status 130).
+        assert status in (0, 130, -signal.SIGINT) and summary["config"]["seed"] in (old["config"]["seed"], seed)
         if summary["config"]["seed"] != seed:
-            assert summary == old and status == 130
+            assert summary == old and status in (130, -signal.SIGINT)
         else:
             assert not summary["interrupted"] and sorted(p.name for p in (tmp_path / "R").iterdir()) == sorted(
                 TRAIN_OUTPUTS

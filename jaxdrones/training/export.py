@@ -21,7 +21,6 @@ the ones supported.
 
 from __future__ import annotations
 
-import errno
 import itertools
 import os
 import re
@@ -31,6 +30,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import jax
 import numpy as np
 
+from jaxdrones.io.runs import check_replace
 from jaxdrones.training.mappo import NORM_CLIP, NORM_EPS
 
 if TYPE_CHECKING:
@@ -506,14 +506,7 @@ def export(
         folder = run if os.path.isdir(run) else os.path.dirname(os.fspath(run))
         out = os.path.join(folder, f"{name}.{fmt}")
     out = os.fspath(out)
-    if os.path.lexists(out):
-        if not overwrite:
-            raise FileExistsError(errno.EEXIST, "exists; pass overwrite=True (--overwrite) to replace it", out)
-        if not _exported(out):
-            raise ValueError(
-                f"overwrite replaces only a file that jaxdrones export wrote; {out!r} is another file, which is "
-                f"kept: choose another output file"
-            )
+    check_replace(out, overwrite, SIGNATURE)
     tmp = f"{out}.{os.getpid()}.tmp"  # written whole, then moved into place: a reader never sees half a file
     with open(tmp, "wb") as f:
         f.write(data)
@@ -521,14 +514,6 @@ def export(
     return out, sizes
 
 
-#: What every file `export` writes says of itself (the C file's header comment, the ONNX model's doc string).
+#: What every file `export` writes says of itself (the C file's header comment, the ONNX model's doc string):
+#: ``overwrite`` replaces only a file that holds it (`jaxdrones.io.runs.check_replace`).
 SIGNATURE = b"exported by `jaxdrones export`"
-
-
-def _exported(path: str) -> bool:
-    """Whether the file ``path`` was written by `export` (its `SIGNATURE` within its first 64 KiB)."""
-    try:
-        with open(path, "rb") as f:
-            return SIGNATURE in f.read(65536)
-    except OSError:
-        return False

@@ -406,8 +406,8 @@ def resolve_recipe(
     task's (`recipe`) with ``config`` and ``train_env_overrides`` in its place where given.
 
     Raises:
-        ValueError: a `Recipe` with other settings beside it, a ``task`` that is neither a name nor a `Recipe`, or
-            what `recipe` raises.
+        ValueError: a `Recipe` with other settings beside it, a ``task`` that is neither a name nor a `Recipe`,
+            overrides that are not dicts, or what `recipe` raises.
     """
     given = {
         "algo": algo,
@@ -416,6 +416,9 @@ def resolve_recipe(
         "train_env_overrides": train_env_overrides,
         "defaults": defaults,
     }
+    for name in ("env_overrides", "train_env_overrides"):
+        if given[name] is not None and not isinstance(given[name], Mapping):
+            raise ValueError(f"train: {name} must be a dict of task config fields, got {given[name]!r}")
     if isinstance(task, Recipe):
         if any(value is not None for value in given.values()):
             named = ", ".join(name for name, value in given.items() if value is not None)

@@ -139,7 +139,7 @@ class _Training:
     def __post_init__(self):
         import jax
 
-        from jaxdrones._validate import check_int
+        from jaxdrones._validate import check_bool, check_int
         from jaxdrones.envs import make
         from jaxdrones.io.runs import open_output
         from jaxdrones.training import runs, trainers
@@ -148,6 +148,9 @@ class _Training:
 
         run, self.trainer = self.run, trainers.get(self.run.algo)
         check_int("n_eval_episodes", self.n_eval_episodes, 64)
+        check_bool("overwrite", self.overwrite), check_bool("progress", self.progress)
+        if self.out is not None and not isinstance(self.out, str | os.PathLike):
+            raise ValueError(f"train: out must be a folder's path (a str or os.PathLike), got {self.out!r}")
         if type(run.config) is not self.trainer.config_cls:
             raise ValueError(f"train: algo {run.algo!r} takes a {self.trainer.config_cls.__name__}, got {run.config!r}")
         self.env = make(run.task, **run.env)
@@ -157,9 +160,10 @@ class _Training:
             raise ValueError(f"train: camera images are taken by --algo {' or '.join(takes)}, not {run.algo!r}")
         if self.trainer.differentiable and self.env.config.backend != "jax":
             raise ValueError(f"train: --algo {run.algo} differentiates the simulator and needs backend='jax'")
-        self.plan = plan = runs.plan_runs(run.config, self.trainer, self.seeds, self.sweep)
         per_run = runs.run_bytes(run.config, self.env, self.train_env, self.n_eval_episodes)
-        runs.check_memory(plan, per_run, runs.available_bytes())
+        self.plan = plan = runs.plan_runs(
+            run.config, self.trainer, self.seeds, self.sweep, per_run, runs.available_bytes()
+        )
         self.writer = jax.process_index() == 0
         folder = self.out or os.path.join("runs", run.task)
         self.folder = open_output(folder, self.overwrite) if self.writer else None

@@ -77,7 +77,12 @@ class RunPlan:
 
 
 def plan_runs(
-    config: Any, trainer: Trainer, seeds: int | Sequence[int] | None = None, sweep: Mapping[str, Sequence] | None = None
+    config: Any,
+    trainer: Trainer,
+    seeds: int | Sequence[int] | None = None,
+    sweep: Mapping[str, Sequence] | None = None,
+    per_run: int | None = None,
+    free: tuple[int, str] | None = None,
 ) -> RunPlan:
     """The plan of ``config``'s runs over ``seeds`` and ``sweep``.
 
@@ -89,25 +94,38 @@ def plan_runs(
             distinct non-negative integer seeds.
         sweep: ``{name: values}`` over fields of ``config`` (`sweep_settings`; values may be the command line's
             strings), or None.
+        per_run, free: one run's memory (`run_bytes`) and the memory free (`available_bytes`), to refuse a plan
+            whose largest program would not fit (`check_memory`), before its runs are built; no check where None.
 
     Raises:
-        ValueError: seeds of the wrong type or range, a sweep `sweep_settings` refuses, or a setting the config
-            refuses (a non-finite or out-of-range value; named with its setting).
+        ValueError: seeds of the wrong type or range, a sweep `sweep_settings` refuses, a setting the config
+            refuses (a non-finite or out-of-range value; named with its setting), or runs that would not fit.
     """
     seed_list = check_seeds(seeds, config.seed)
     settings = sweep_settings(config, sweep)
-    runs = []
+    configs = []  # one per setting, each checked by its config
     for setting in settings or [{}]:
-        for seed in seed_list or (config.seed,):
-            try:
-                runs.append(Run(dataclasses.replace(config, **setting, seed=seed), setting, seed))
-            except ValueError as err:
-                raise ValueError(f"sweep {setting_label(setting)}: {err}" if setting else str(err)) from None
+        try:
+            configs.append(dataclasses.replace(config, **setting))
+        except ValueError as err:
+            raise ValueError(f"sweep {setting_label(setting)}: {err}" if setting else str(err)) from None
     several = seed_list is not None or settings is not None
     mapped = several and trainer.maps_runs
-    programs = program_groups([run.config for run in runs], config) if mapped else [(k,) for k in range(len(runs))]
+    all_seeds = seed_list or (config.seed,)
+    groups = program_groups(configs, config) if mapped else [(k,) for k in range(len(configs))]
+    if per_run is not None:
+        check_memory(max(map(len, groups)) * len(all_seeds) if mapped else 1, per_run, free)
+    runs = [
+        Run(dataclasses.replace(one, seed=seed), setting, seed)
+        for one, setting in zip(configs, settings or [{}], strict=True)
+        for seed in all_seeds
+    ]
+    n = len(all_seeds)
+    programs = [tuple(k * n + j for k in group for j in range(n)) for group in groups]
+    if not mapped:
+        programs = [(k,) for k in range(len(runs))]
     checked = None if settings is None else {name: tuple(dict.fromkeys(s[name] for s in settings)) for name in sweep}
-    return RunPlan(tuple(runs), tuple(programs), mapped, seed_list or (config.seed,), checked, several)
+    return RunPlan(tuple(runs), tuple(programs), mapped, all_seeds, checked, several)
 
 
 def check_seeds(seeds: Any, seed: int) -> tuple[int, ...] | None:
@@ -298,22 +316,21 @@ def available_bytes() -> tuple[int, str] | None:
 HEADROOM = 0.9
 
 
-def check_memory(plan: RunPlan, per_run: int, free: tuple[int, str] | None) -> None:
-    """Refuse a plan whose largest program would not fit: ``per_run`` bytes (`run_bytes`) times its runs against
-    `HEADROOM` of ``free`` (`available_bytes`; no check where None).
+def check_memory(largest: int, per_run: int, free: tuple[int, str] | None) -> None:
+    """Refuse a plan whose largest program, ``largest`` runs mapped, would not fit: ``per_run`` bytes (`run_bytes`)
+    each against `HEADROOM` of ``free`` (`available_bytes`; no check where None).
 
     Raises:
         ValueError: naming the largest program, its estimate, the memory free and how many runs fit in one program.
     """
     if free is None:
         return
-    largest = max(plan.programs, key=len)
-    need, usable = per_run * len(largest), int(HEADROOM * free[0])
+    need, usable = per_run * largest, int(HEADROOM * free[0])
     if need <= usable:
         return
     fits = usable // max(per_run, 1)
     raise ValueError(
-        f"the largest program maps {len(largest)} runs and needs about {need / 2**30:.1f} GiB (an estimate: "
+        f"the largest program maps {largest} runs and needs about {need / 2**30:.1f} GiB (an estimate: "
         f"{per_run / 2**20:.1f} MiB a run), more than {free[1]} allows ({free[0] / 2**30:.1f} GiB free): at most "
         f"{fits} runs fit in one program; train fewer seeds or settings at a time"
     )
