@@ -174,7 +174,7 @@ def run_cli(args: argparse.Namespace) -> int:
     """Run the ``fly`` subcommand; returns the exit status."""
     if args.example != "circle":
         return _run_example(args)
-    from jaxdrones.io.runs import open_output
+    from jaxdrones.io.runs import output_folder
 
     backend, video = args.backend, args.video
     if backend == "pybullet" and video is None and not args.no_video:
@@ -201,23 +201,15 @@ def run_cli(args: argparse.Namespace) -> int:
             video_format(video)
         # Validate before creating the run folder (a relative video path is inside the new folder, so it is new).
         check_flight(**kwargs, video=video if video is not None and os.path.isabs(video) else None)
-        folder = open_output("runs/fly" if args.out is None else args.out, overwrite=args.overwrite, kind="flight")
+        with output_folder("runs/fly" if args.out is None else args.out, args.overwrite, kind="flight") as folder:
+            out = folder.path
+            video = None if video is None else os.path.join(out, video)
+            result = fly_circle(**kwargs, feedforward=feedforward, video=video, progress=not args.no_progress)
+            _write_circle(result, out)
     except (ValueError, RuntimeError, ImportError) as err:
         print(f"jaxdrones fly: error: {err}", file=sys.stderr)
         return 2
-    out = folder.path
-    if video is not None:
-        video = os.path.join(out, video)
-    try:
-        result = fly_circle(**kwargs, feedforward=feedforward, video=video, progress=not args.no_progress)
-        _write_circle(result, out)
-    except BaseException as err:
-        folder.discard()
-        if not isinstance(err, ValueError | RuntimeError):
-            raise
-        print(f"jaxdrones fly: error: {err}", file=sys.stderr)
-        return 2
-    final = folder.commit()
+    final = folder.final
     m, c = result["metrics"], result["contacts"]
     s = result["settings"]
     print(
@@ -279,7 +271,7 @@ def _run_example(args: argparse.Namespace) -> int:
     Options the example does not take, and invalid values, are reported on stderr with exit status 2 before any
     run folder is created.
     """
-    from jaxdrones.io.runs import open_output
+    from jaxdrones.io.runs import output_folder
 
     module = EXAMPLES[args.example]
     given = [
@@ -306,19 +298,15 @@ def _run_example(args: argparse.Namespace) -> int:
         kwargs["settle_s"] = module.DEFAULT_SETTLE_S if args.settle is None else args.settle
     try:
         module.check(**kwargs)
-        folder = open_output(module.DEFAULT_OUT if args.out is None else args.out, args.overwrite, kind="flight")
+        with output_folder(module.DEFAULT_OUT if args.out is None else args.out, args.overwrite, "flight") as folder:
+            result = module.fly(**kwargs)
+            module.plot(result, os.path.join(folder.path, "flight.png"))
+            metrics = {"settings": result["settings"], "metrics": result["metrics"], "wall_s": result["wall_s"]}
+            write_json(os.path.join(folder.path, "metrics.json"), metrics)
+            np.savez_compressed(os.path.join(folder.path, "flight.npz"), **module.arrays(result))
     except ValueError as err:
         return _fail(str(err))
-    try:
-        result = module.fly(**kwargs)
-        module.plot(result, os.path.join(folder.path, "flight.png"))
-        metrics = {"settings": result["settings"], "metrics": result["metrics"], "wall_s": result["wall_s"]}
-        write_json(os.path.join(folder.path, "metrics.json"), metrics)
-        np.savez_compressed(os.path.join(folder.path, "flight.npz"), **module.arrays(result))
-    except BaseException:
-        folder.discard()
-        raise
-    final = folder.commit()
+    final = folder.final
     print("\n".join(module.summary(result)))
     paths = [os.path.join(final, name) for name in ("flight.png", "metrics.json", "flight.npz")]
     print(f"saved {', '.join(paths[:-1])} and {paths[-1]}")

@@ -20,14 +20,22 @@ from collections.abc import Iterator
 MARKER = ".jaxdrones"
 
 
-def write_json(path: str | os.PathLike, obj: object, indent: int | None = 2) -> None:
-    """Write ``obj`` as strict JSON (no ``NaN`` or ``Infinity``: a non-finite float is written as ``null``) to
-    ``path``, through a temporary file beside it, so that a reader never sees half a file."""
+def write_file(path: str | os.PathLike, data: str | bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file beside it, moved into place when whole: a reader never
+    sees half a file, and a failure leaves what ``path`` held."""
     path = os.fspath(path)
     tmp = f"{path}.{os.getpid()}.tmp"
-    with open(tmp, "w") as f:
-        json.dump(_finite(obj), f, indent=indent, allow_nan=False)
+    with open(
+        tmp, "wb" if isinstance(data, bytes) else "w", **({} if isinstance(data, bytes) else {"encoding": "utf-8"})
+    ) as f:
+        f.write(data)
     os.replace(tmp, path)
+
+
+def write_json(path: str | os.PathLike, obj: object, indent: int | None = 2) -> None:
+    """Write ``obj`` as strict JSON (no ``NaN`` or ``Infinity``: a non-finite float is written as ``null``) to
+    ``path`` (`write_file`)."""
+    write_file(path, json.dumps(_finite(obj), indent=indent, allow_nan=False))
 
 
 def _finite(obj: object) -> object:

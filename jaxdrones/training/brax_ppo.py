@@ -14,7 +14,7 @@ import numpy as np
 
 from jaxdrones._validate import check_fields, check_real
 from jaxdrones.envs.base import Env
-from jaxdrones.training.common import NONFINITE, Interrupted
+from jaxdrones.training.common import NONFINITE, Interrupted, nonfinite_leaves
 
 if TYPE_CHECKING:
     from brax.training.agents.ppo import networks as ppo_networks
@@ -247,7 +247,7 @@ def train(
 
     def keep(steps, make_policy, params):
         latest.update(params=params, steps=int(steps))
-        if finite["update"] < 0 and _finite(params):
+        if finite["update"] < 0 and not nonfinite_leaves(params):
             finite["params"] = params
         elif finite["update"] < 0:
             finite["update"] = max(int(steps) // per_update, 1)
@@ -280,9 +280,3 @@ def train(
     if finite["update"] >= 0 and finite["params"] is not None:
         return networks, finite["params"]
     return networks, params
-
-
-def _finite(params: Any) -> bool:
-    """Whether every float of ``params`` is finite (checked on the host, at brax's evaluations)."""
-    leaves = [np.asarray(x) for x in jax.tree.leaves(params)]
-    return all(np.all(np.isfinite(x)) for x in leaves if np.issubdtype(x.dtype, np.inexact))

@@ -11,10 +11,9 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import jax
-import numpy as np
 
 from jaxdrones.envs.base import Env
-from jaxdrones.training.common import host_array
+from jaxdrones.training.common import host_array, nonfinite_leaves
 
 if TYPE_CHECKING:
     from jaxdrones.training.brax_ppo import BraxPPOConfig
@@ -92,8 +91,7 @@ def read_payload(path: str | os.PathLike) -> tuple[str, dict]:
     algo = payload.get("algo") or next(legacy, None)
     if algo not in trainers.ALGOS:
         raise ValueError(f"{path!r} is not a jaxdrones policy file (algorithm {algo!r})")
-    bad = [jax.tree_util.keystr(key) for key, x in jax.tree_util.tree_leaves_with_path(payload["params"])
-           if np.issubdtype(np.asarray(x).dtype, np.inexact) and not np.all(np.isfinite(x))]  # fmt: skip
+    bad = nonfinite_leaves(payload["params"])
     if bad:
         raise ValueError(
             f"{path!r} holds non-finite weights (NaN or infinity in {', '.join(bad[:3])}{', ...' * (len(bad) > 3)}): "

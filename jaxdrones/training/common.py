@@ -134,6 +134,16 @@ class Interrupted(Exception):
         self.result, self.env_steps = result, env_steps
 
 
+def nonfinite_leaves(tree: Any) -> list[str]:
+    """The key paths (`jax.tree_util.keystr`) of the float leaves of ``tree`` holding a NaN or an infinity, read on
+    the host; empty where every one is finite."""
+    return [
+        jax.tree_util.keystr(path)
+        for path, x in jax.tree_util.tree_leaves_with_path(tree)
+        if np.issubdtype(np.asarray(x).dtype, np.inexact) and not np.all(np.isfinite(host_array(x)))
+    ]
+
+
 def host_array(x: ArrayLike) -> np.ndarray:
     """A NumPy copy of a JAX array, also of one replicated over the devices of several processes (where
     ``np.asarray`` cannot gather it: each process holds a full copy)."""

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import jax
 import numpy as np
 
-from jaxdrones.io.runs import check_replace
+from jaxdrones.io.runs import check_replace, write_file
 from jaxdrones.training.mappo import NORM_CLIP, NORM_EPS
 
 if TYPE_CHECKING:
@@ -507,10 +507,7 @@ def export(
         out = os.path.join(folder, f"{name}.{fmt}")
     out = os.fspath(out)
     check_replace(out, overwrite, SIGNATURE)
-    tmp = f"{out}.{os.getpid()}.tmp"  # written whole, then moved into place: a reader never sees half a file
-    with open(tmp, "wb") as f:
-        f.write(data)
-    os.replace(tmp, out)
+    write_file(out, data)
     return out, sizes
 
 

@@ -111,18 +111,19 @@ def plan_runs(
             raise ValueError(f"sweep {setting_label(setting)}: {err}" if setting else str(err)) from None
     several = seed_list is not None or settings is not None
     mapped = several and trainer.maps_runs
-    all_seeds = seed_list or (config.seed,)
-    groups = program_groups(configs, config) if mapped else [(k,) for k in range(len(configs))]
+    all_seeds, n = seed_list or (config.seed,), len(seed_list or (config.seed,))
+    # A program maps a group of settings with every seed (our trainers), else trains one run.
+    groups = program_groups(configs, config) if mapped else []
     if per_run is not None:
-        check_memory(max(map(len, groups)) * len(all_seeds) if mapped else 1, per_run, free)
+        check_memory(max(map(len, groups)) * n if mapped else 1, per_run, free)
     runs = [
         Run(dataclasses.replace(one, seed=seed), setting, seed)
         for one, setting in zip(configs, settings or [{}], strict=True)
         for seed in all_seeds
     ]
-    n = len(all_seeds)
-    programs = [tuple(k * n + j for k in group for j in range(n)) for group in groups]
-    if not mapped:
+    if mapped:
+        programs = [tuple(k * n + j for k in group for j in range(n)) for group in groups]
+    else:
         programs = [(k,) for k in range(len(runs))]
     checked = None if settings is None else {name: tuple(dict.fromkeys(s[name] for s in settings)) for name in sweep}
     return RunPlan(tuple(runs), tuple(programs), mapped, all_seeds, checked, several)

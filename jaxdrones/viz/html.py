@@ -13,6 +13,7 @@ from contextlib import redirect_stdout
 import numpy as np
 
 from jaxdrones._validate import check_real
+from jaxdrones.io.runs import write_file
 from jaxdrones.viz.flight import (
     Colors,
     Flight,
@@ -191,10 +192,7 @@ def write_html(
     if folder:
         os.makedirs(folder, exist_ok=True)
     html = html.replace("<head>", f"<head>{GENERATOR}", 1) if "<head>" in html else GENERATOR + html
-    tmp = f"{path}.{os.getpid()}.tmp"  # written whole, then moved into place
-    with open(tmp, "w", encoding="utf-8") as f:
-        f.write(html)
-    os.replace(tmp, path)
+    write_file(path, html)
     return path
 
 
