@@ -34,7 +34,7 @@ def test_the_critic_sees_both_drones_and_the_actor_its_own():
     """`CentralCriticEnv`: each agent's observation is its own, the other's and the other's last action."""
     import numpy as np
 
-    from jaxdrones.training import rllib as example
+    from jaxdrones.examples import rllib_leader_follower as example
 
     central_env, _ = example._env_classes()
     env = central_env(example.make_parallel_env(obs_type="kin"))
