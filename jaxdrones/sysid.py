@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -290,6 +290,73 @@ def _standard_errors(r: np.ndarray, jac: np.ndarray, p: int, size: int) -> np.nd
         if not np.all(np.isfinite(unit)) or np.linalg.cond(unit) > 1e12:
             return np.full(p, np.inf)
     return np.sqrt(np.diag(np.linalg.inv(schur)) * scale)
+
+
+def fit_forces(
+    predict: Callable[[jax.Array, object], jax.Array],
+    theta0: ArrayLike,
+    inputs: object,
+    measured: ArrayLike,
+    *,
+    iterations: int = 200,
+) -> tuple[np.ndarray, dict]:
+    """Fit the constants θ of a force model to measured forces by least squares: the aerodynamic effects held
+    against the residual forces of logged flights (docs/validation.md §3).
+
+    θ is parameterised relative to its guess, θ = θ0 (1 + u) (each constant's sign kept from the guess's start, its
+    scale the guess's; a zero guess is not allowed), and u is found by optimistix's Levenberg-Marquardt (tolerances
+    `RTOL`, `ATOL`) in float64, as in `fit`.
+
+    Args:
+        predict: ``predict(theta, inputs) -> f[N]`` the model's force for each sample (any unit, ``measured``'s),
+            traceable by JAX.
+        theta0: f[p] the initial guess, every entry nonzero.
+        inputs: a pytree of arrays the model reads (positions, thrusts, ...), cast to float64.
+        measured: f[N] the measured forces.
+        iterations: at most this many solver steps.
+
+    Returns:
+        ``(theta, report)``: f64[p] the fitted constants, and a dict with ``loss`` (the mean squared residual at the
+        guess and at the fit), ``rmse`` (the root of the fitted loss), ``std`` (f[p] Gauss-Newton standard errors,
+        inf where the data do not determine the constants) and ``steps``.
+
+    Raises:
+        ValueError: ``theta0`` not a non-empty 1-D array of finite nonzero numbers; ``measured`` not a 1-D array of
+            finite numbers; a negative number of iterations.
+    """
+    theta0 = np.asarray(theta0, np.float64)
+    measured = np.asarray(measured, np.float64)
+    if theta0.ndim != 1 or not theta0.size or not np.all(np.isfinite(theta0)) or np.any(theta0 == 0):
+        raise ValueError(f"theta0 must be a 1-D array of finite nonzero numbers, got {theta0!r}")
+    if measured.ndim != 1 or not np.all(np.isfinite(measured)):
+        raise ValueError(f"measured must be a 1-D array of finite numbers, got shape {measured.shape}")
+    check_int("iterations", iterations, low=0)
+    with jax.enable_x64(True):
+        data = (_float64(inputs), jnp.asarray(measured), jnp.asarray(theta0))
+
+        def residuals(u, args):
+            x, y, t0 = args
+            return predict(t0 * (1 + u), x) - y
+
+        u = jnp.zeros_like(data[2])
+        r0 = np.asarray(residuals(u, data))
+        steps = 0
+        if iterations:
+            solution = optx.least_squares(
+                residuals,
+                optx.LevenbergMarquardt(rtol=RTOL, atol=ATOL),
+                u,
+                args=data,
+                max_steps=iterations,
+                throw=False,
+            )
+            u, steps = solution.value, int(solution.stats["num_steps"])
+        r = np.asarray(residuals(u, data))
+        jac = np.asarray(jax.jacfwd(residuals)(u, data))
+        std = _standard_errors(r, jac, len(theta0), len(r)) * np.abs(theta0)
+        theta = np.asarray(data[2] * (1 + u))
+    loss = [float(r0 @ r0) / len(r0), float(r @ r) / len(r)]
+    return theta, {"loss": loss, "rmse": float(np.sqrt(loss[1])), "std": std, "steps": steps}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -26,6 +26,7 @@ EFFECTS = {
     "drag_ground": {"drag": True, "ground_effect": True},
     "all": {"drag": True, "ground_effect": True, "downwash": True},
     "all_per_rotor": {"drag": True, "ground_effect": True, "downwash": "per_rotor"},
+    "all_bounded": {"drag": True, "ground_effect": True, "downwash": "bounded"},
 }
 
 

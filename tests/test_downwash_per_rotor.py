@@ -299,7 +299,7 @@ def test_choices_and_bad_input():
 
     assert TaskConfig(sim={"downwash": "paper"}) == TaskConfig(sim={"downwash": True})
     assert TaskConfig(sim={"downwash": "per_rotor"}).sim.downwash == "per_rotor"
-    choices = r"False \(off\), True or 'paper' \(the paper's model\) or 'per_rotor'"
+    choices = r"False \(off\), True or 'paper' \(the paper's model\), 'per_rotor'"
     for value, hint in (
         ("per-rotor", "did you mean 'per_rotor'"),
         ("Paper", "did you mean 'paper'"),

@@ -600,6 +600,16 @@ def test_train_cli_crossing_without_downwash(planned):
     assert dict(run.env) == {**default.env, "downwash": False} and run.config == default.config
 
 
+def test_train_cli_crossing_with_the_bounded_downwash(planned, capsys):
+    """``--downwash-model bounded`` sets the env's downwash to the bounded form (docs/physics.md §6.5); with
+    ``--no-downwash`` it is refused."""
+    assert main(["train", "crossing", "--downwash-model", "bounded", "--no-progress"]) == 2
+    (run,) = planned
+    assert run.env["downwash"] == "bounded"
+    assert main(["train", "crossing", "--downwash-model", "bounded", "--no-downwash", "--no-progress"]) == 2
+    assert "--downwash-model turns the downwash on" in capsys.readouterr().err
+
+
 def test_train_cli_bad_neighbour_options(capsys):
     assert main(["train", "multi_hover", "--downwash-radius", "-1", "--no-progress"]) == 2
     assert "downwash_radius" in capsys.readouterr().err

@@ -2,6 +2,7 @@
 (the thrust stand's CSV, Neural-Swarm's CSV, both uSD formats), their errors, the firmware's own decoder as an oracle
 where its source is beside the checkout, and the thrust stand's sweeps (tests/data/bitcraze2021, MIT)."""
 
+import dataclasses
 import importlib.util
 import math
 import struct
@@ -112,7 +113,7 @@ def _flight_columns(n: int) -> dict[str, np.ndarray]:
     k = np.arange(n)
     q = np.array([0.1, -0.2, 0.05, 1.0])
     q = q / np.linalg.norm(q)
-    cols = {"tick": 1000 + 10 * k}
+    cols = {"tick": 10_000 + 10_000 * k}
     for i, axis in enumerate("xyz"):
         cols[f"stateEstimateZ.{axis}"] = 100 * (i + 1) + k
         cols[f"stateEstimateZ.v{axis}"] = -20 * (i + 1) + k
@@ -174,8 +175,8 @@ def test_usd_flight_matches_the_csv_of_the_same_flight(tmp_path):
     for name in ("time", "pos", "vel", "acc", "quat", "ang_vel", "motor_force", "pwm", "vbat"):
         np.testing.assert_allclose(getattr(flight, name), getattr(from_csv, name), atol=1e-12, err_msg=name)
     np.testing.assert_allclose(flight.acc[:, 2], np.arange(n) * 5e-3 + 9.81 - readers.FIRMWARE_GRAVITY, atol=1e-12)
-    np.testing.assert_allclose(flight.time, 1.0 + 0.01 * np.arange(n))
-    assert len(flight.select(flight.time > 1.05)) == 6
+    np.testing.assert_allclose(flight.time, 0.01 + 0.01 * np.arange(n))
+    assert len(flight.select(flight.time > 0.065)) == 6
     with pytest.raises(ValueError, match=r"missing \['pm.vbatMV'\]"):
         readers.usd_flight({"fixedFrequency": {k: v for k, v in cols.items() if k != "pm.vbatMV"}})
 
@@ -256,3 +257,137 @@ def test_thrust_stand_script_on_the_published_sweeps(tmp_path):
     assert min(paper) > 40 and max(fitted) < 13
     assert result["fitted"][0]["kf"] == pytest.approx(2.30e-10, rel=0.01)
     assert result["steady_samples"] == [1202, 799]
+
+
+def _formation(pos, motor_force, acc=None, quat=None, ids=(50, 51), rate=100.0):
+    """A `Formation` from arrays ([T, D, ...]); level attitude, zero rates and velocities unless given."""
+    import jax.numpy as jnp
+
+    from jaxdrones.physics.rotations import quat_to_rotmat
+    from jaxdrones.validation.flights import FRAMES, Formation
+
+    t, d = pos.shape[:2]
+    quat = np.broadcast_to([0.0, 0.0, 0.0, 1.0], (t, d, 4)).copy() if quat is None else quat
+    return Formation(
+        names=tuple(f"cf{i}_00" for i in ids),
+        ids=np.array(ids),
+        time=np.arange(t) / rate,
+        pos=pos,
+        vel=np.zeros((t, d, 3)),
+        acc=np.zeros((t, d, 3)) if acc is None else acc,
+        quat=quat,
+        ang_vel=np.zeros((t, d, 3)),
+        motor_force=motor_force,
+        mass=np.array([FRAMES[i][0] for i in ids]),
+        scored=np.ones(d, bool),
+        rotmat=np.asarray(quat_to_rotmat(jnp.asarray(quat))),
+    )
+
+
+def test_residual_force_is_what_the_thrust_and_gravity_leave():
+    """A hovering drone whose thrust is its weight plus 0.01 N and that accelerates at 0.1 m/s² upwards: the residual
+    is m·0.1 − 0.01 N, in every sample (the smoothing keeps a constant)."""
+    from jaxdrones.validation import flights as fl
+
+    t = 50
+    pos = np.broadcast_to([0.0, 0.0, 1.0], (t, 1, 3)).copy()
+    weight = 0.033 * readers.FIRMWARE_GRAVITY
+    form = _formation(pos, np.full((t, 1, 4), (weight + 0.01) / 4), acc=np.tile([0.0, 0.0, 0.1], (t, 1, 1)), ids=(50,))
+    for smooth in (0.0, 0.1):
+        np.testing.assert_allclose(fl.residual_force(form, smooth)[..., 2], 0.033 * 0.1 - 0.01, atol=1e-12)
+        np.testing.assert_allclose(fl.residual_force(form, smooth)[..., :2], 0.0, atol=1e-12)
+
+
+def test_masks_of_the_flights():
+    from jaxdrones.validation import flights as fl
+
+    pos = np.array([[[0.0, 0, 0.5], [0.1, 0, 0.8]], [[0.0, 0, 0.5], [0.4, 0, 0.8]], [[0, 0, 0.05], [1.0, 1, 1.0]]])
+    form = _formation(pos, np.full((3, 2, 4), 0.08))
+    np.testing.assert_array_equal(fl.crossing(form), [[True, False], [False, False], [False, False]])
+    np.testing.assert_array_equal(fl.near_ground(form)[:, 0], [False, False, True])
+    np.testing.assert_array_equal(fl.reference(form)[:, 1], [True, True, True])
+    np.testing.assert_array_equal(fl.reference(form)[:, 0], [False, True, False])
+    shifted = fl.offset_removed(form, np.arange(6.0).reshape(3, 2), fl.reference(form))
+    np.testing.assert_allclose(shifted[:, 0], [-2, 0, 2])  # drone 0's offset: its one reference sample, 2
+
+
+def test_bounded_downwash_fit_recovers_its_constants():
+    """Residuals made by the bounded form at known constants, on two drones passing over each other: `fit_forces`
+    from a guess off by × (1.3, 0.8, 1.2, 0.7) gives them back."""
+    import jax.numpy as jnp
+
+    from jaxdrones.sysid import fit_forces
+    from jaxdrones.validation import flights as fl
+
+    t = 400
+    x = np.linspace(-0.4, 0.4, t)
+    pos = np.stack(
+        [np.stack([x, 0 * x, 0.5 + 0 * x], -1), np.stack([-x, 0.02 + 0 * x, 0.5 + 0.3 * np.abs(x) + 0.15], -1)], 1
+    )
+    form = _formation(pos, np.full((t, 2, 4), 0.08))
+    params = fl.model_params(form)
+    truth = np.array([1500.0, 0.15, 0.03, 0.9])
+    measured = np.asarray(fl.downwash_bounded_z(form, params, jnp.asarray(truth))).ravel()
+    guess = truth * np.array([1.3, 0.8, 1.2, 0.7])
+    fitted, report = fit_forces(lambda th, _: fl.downwash_bounded_z(form, params, th).ravel(), guess, 0.0, measured)
+    np.testing.assert_allclose(fitted, truth, rtol=1e-4)  # the residuals were made in float32
+    assert report["rmse"] < 1e-7 and report["loss"][0] > 1e-6
+    with pytest.raises(ValueError, match="theta0 must be"):
+        fit_forces(lambda th, _: th, [0.0], 0.0, [1.0])
+
+
+def test_replay_of_a_simulated_flight_is_exact():
+    """A two-drone flight made by the simulator itself (ground effect and bounded downwash on), logged at 100 Hz as
+    Neural-Swarm logs (each motor's force kf·rpm²): replayed with the same physics, every position error is below
+    a micrometre at 0.1 s; without the downwash the lower drone strays."""
+    import jax.numpy as jnp
+
+    import jaxdrones as jd
+    from jaxdrones.physics.state import init_state
+    from jaxdrones.validation import flights as fl
+
+    config = jd.SimConfig(n_drones=2, ctrl_freq=100, sim_freq=500, ground_effect=True, downwash="bounded")
+    draft = _formation(np.zeros((1, 2, 3)), np.zeros((1, 2, 4)))
+    params = fl.model_params(draft)
+    rpm = jnp.broadcast_to(jnp.sqrt(params.mass * params.gravity / 4 / params.kf)[:, None], (120, 2, 4))
+    start = init_state(config, pos=np.array([[0.0, 0.0, 0.3], [0.03, 0.0, 0.6]]), rpm=rpm[0])
+    states = jd.rollout(jd.make_step(config), params, start, rpm * 1.01)
+    pos = np.concatenate([np.asarray(start.pos)[None], np.asarray(states.pos)[:-1]])
+    quat = np.concatenate([np.asarray(start.quat)[None], np.asarray(states.quat)[:-1]])
+    force = np.asarray(params.kf)[:, None] * np.asarray(rpm * 1.01) ** 2
+    form = dataclasses.replace(
+        _formation(pos, force, quat=quat),
+        vel=np.concatenate([np.asarray(start.vel)[None], np.asarray(states.vel)[:-1]]),
+    )
+    errors = fl.replay_errors(form, params, config, horizons=(0.1, 1.0), every_s=0.1)
+    assert errors.shape == (2, 2, 2) and np.max(errors[:, 0]) < 1e-6
+    off = fl.replay_errors(form, params, dataclasses.replace(config, downwash=False), horizons=(0.1, 1.0), every_s=0.1)
+    assert np.max(off[:, 1, 0]) > 100 * np.max(errors[:, 1, 0])
+    with pytest.raises(ValueError, match="must step 2 drones at 100 Hz"):
+        fl.replay_errors(form, params, dataclasses.replace(config, ctrl_freq=50, sim_freq=500))
+
+
+def test_load_runs_groups_a_flight_and_aligns_its_clocks(tmp_path):
+    """Two drones' binary logs of run 00 (in the fixed-frequency format, their ticks offset by 3 ms) and one of run
+    01: two formations, the first of both drones on their common span at 100 Hz."""
+    from jaxdrones.validation import flights as fl
+
+    n = 30
+    for name, shift in (("cf50_00", 0), ("cf101_00", 3000), ("cf50_01", 0)):
+        cols = _flight_columns(n)
+        cols["tick"] = cols["tick"] + shift
+        types = {"tick": "I", "stateEstimateZ.quat": "I", "pm.vbatMV": "H"}
+        columns = [(k, types.get(k, "f" if k.startswith("motor") else "h")) for k in cols]
+        rows = [tuple(cols[k][i].item() for k in cols) for i in range(n)]
+        (tmp_path / name).write_bytes(_fixed_log(columns, rows, block=7))
+    (tmp_path / "notes.txt").write_text("not a log")
+    forms = fl.load_runs(tmp_path)
+    assert [f.names for f in forms] == [("cf101_00", "cf50_00"), ("cf50_01",)]
+    first = forms[0]
+    assert first.pos.shape == (len(first.time), 2, 3) and np.allclose(np.diff(first.time), 0.01)
+    assert first.time[0] == pytest.approx(0.013) and list(first.mass) == [0.067, 0.033]
+    np.testing.assert_allclose(first.pos[0, 1, 2], 0.3 + 0.0 - 0.05 + fl.REST_HEIGHT, atol=1e-3)
+    with pytest.raises(ValueError, match="holds no Neural-Swarm flight logs"):
+        fl.load_runs(tmp_path / "missing")
+    with pytest.raises(ValueError, match="not a Neural-Swarm flight file"):
+        fl.drone_id("log.bin")

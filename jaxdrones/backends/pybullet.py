@@ -636,6 +636,9 @@ def _effect_forces(effects: Effects, params: DroneParams, pos, quat, vel, thrust
     if effects.downwash == "per_rotor" and pos.shape[0] > 1:
         change = aerodynamics.downwash_thrust_c(params, split(pos), rotmat, split(thrust))
         lift = tuple(f + c for f, c in zip(lift, change, strict=True))
+    elif effects.downwash == "bounded" and pos.shape[0] > 1:
+        total = jnp.sum(thrust, axis=-1)
+        body_z = aerodynamics.downwash_force_c(params, split(pos), bounded=aerodynamics.BOUNDED_DOWNWASH, thrust=total)
     elif effects.downwash and pos.shape[0] > 1:
         body_z = aerodynamics.downwash_force_c(params, split(pos))
     if effects.drag:

@@ -145,6 +145,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             f"(default: the task's; downwash is on in crossing)",
         )
     env.add_argument(
+        "--downwash-model",
+        choices=("paper", "per_rotor", "bounded"),
+        default=None,
+        help="the downwash's model, on with it: paper (eq. down), per_rotor (a thrust change per rotor) or bounded "
+        "(the paper's form fitted to real Crazyflie flights, finite as two drones' heights meet: docs/validation.md)",
+    )
+    env.add_argument(
         "--max-neighbors",
         type=int,
         default=None,
@@ -388,6 +395,10 @@ def run_cli(args: argparse.Namespace) -> int:
         if not args.no_compile_cache:
             enable_compilation_cache()
         env = {field: getattr(args, arg) for arg, field in _ENV_OPTIONS.items() if getattr(args, arg) is not None}
+        if args.downwash_model is not None:
+            if args.downwash is False:
+                raise ValueError("--downwash-model turns the downwash on: drop --no-downwash")
+            env["downwash"] = args.downwash_model
         realism = realism_options(args.realism, args.realism_set)
         if realism is not None:
             env["realism"] = realism

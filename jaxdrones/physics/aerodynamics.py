@@ -20,8 +20,9 @@ from jaxdrones.physics.params import DroneParams, align_params
 from jaxdrones.physics.rotations import GIMBAL_SNAP, Components, dot, join, split
 
 #: The downwash models of `jaxdrones.physics.config.SimConfig.downwash`: the paper's one force at the lower drone's
-#: centre of mass (`downwash_force`, docs/physics.md §6.3) and the per-rotor thrust changes (`downwash_thrust`, §6.4).
-DOWNWASH_MODELS = ("paper", "per_rotor")
+#: centre of mass (`downwash_force`, docs/physics.md §6.3), the per-rotor thrust changes (`downwash_thrust`, §6.4) and
+#: the bounded form fitted to real flights (`downwash_force` with `BOUNDED_DOWNWASH`, §6.5).
+DOWNWASH_MODELS = ("paper", "per_rotor", "bounded")
 #: Downwash acts only between drones closer than this horizontally, m (docs/physics.md §6.3; the original's).
 DOWNWASH_MAX_DIST = 10.0
 #: Air density, kg/m³ (ISA sea level), in the hover induced velocity of the per-rotor model's jet.
@@ -41,6 +42,13 @@ JET_ONSET = 0.1
 #: arXiv:2207.09645, Eq. (5)). The value, 0.07 s/m, is the one crazyflow's downwash example uses for the Crazyflie
 #: (learnsyslab/crazyflow, examples/plugins/downwash.py), which notes that it must be fitted to the propeller.
 THRUST_DECAY = 0.07
+#: The bounded downwash's constants (c1, c2, c3 m, δ m; `downwash_force`'s ``bounded``), least squares on the vertical
+#: residual force of the 56 two- and three-drone swaps of Neural-Swarm's datacollection21_06_16_2020/swap_*
+#: (aerorobotics/neural-swarm at 48b1851) while a drone was above within 15 cm horizontally
+#: (`python benchmarks/validation/flights.py`, docs/validation.md §3).
+BOUNDED_DOWNWASH = (1602.527, 0.14633, 0.023251, 1.08006)
+#: The thrust the bounded downwash's scaling is relative to, N: a hovering cf2x's, 0.027 kg × 9.8 m/s².
+DOWNWASH_THRUST_REF = 0.027 * 9.8
 #: Floor on the squared downwash width β², m², so that β → 0 (at Δz = -c3/c2) gives the d → 0 limit, not 0/0.
 _BETA2_FLOOR = 1e-12
 
@@ -136,6 +144,8 @@ def downwash_force(
     kinks: Kinks = Kinks(),
     neighbors: jax.Array | None = None,
     cutoff: float = DOWNWASH_MAX_DIST,
+    bounded: jax.Array | tuple[float, ...] | None = None,
+    thrust: jax.Array | None = None,
 ) -> jax.Array:
     """Downwash on each drone from every drone above it, paper eq. (down), along the lower drone's body -z.
 
@@ -156,12 +166,20 @@ def downwash_force(
         neighbors: None (every drone) or i32[..., D, K], the drones that may act on each drone (entries equal to
             the drone itself count for nothing).
         cutoff: horizontal distance beyond which drones do not interact, m (the original: 10 m).
+        bounded: None (the paper's form with ``params.dw_coeff``) or the bounded form's constants (c1, c2, c3 m,
+            δ m), f[4] (`BOUNDED_DOWNWASH` for ``SimConfig(downwash="bounded")``, docs/physics.md §6.5):
+            α = c1 (R/4)² (T_j / T_ref) √(T_i / T_ref) / (Δz² + δ²) with T_j, T_i the lower and the upper drone's
+            thrust and T_ref = `DOWNWASH_THRUST_REF`: finite as Δz → 0, and growing with either drone's thrust.
+        thrust: f[..., D] N, each drone's total rotor thrust (Σ kf rpm²); needed with ``bounded``, else unused.
 
     Returns:
         f[..., D] N, force along each drone's body z (negative: pushes down).
+
+    Raises:
+        ValueError: ``bounded`` without ``thrust``.
     """
     params = align_params(params, pos.ndim - 1)
-    return downwash_force_c(params, split(pos), kinks, neighbors, cutoff)
+    return downwash_force_c(params, split(pos), kinks, neighbors, cutoff, bounded, thrust)
 
 
 def downwash_force_c(
@@ -170,8 +188,12 @@ def downwash_force_c(
     kinks: Kinks = Kinks(),
     neighbors: jax.Array | None = None,
     cutoff: float = DOWNWASH_MAX_DIST,
+    bounded: jax.Array | tuple[float, ...] | None = None,
+    thrust: jax.Array | None = None,
 ) -> jax.Array:
-    """`downwash_force` in component form: pos (x, y, z), each f[..., D]; returns f[..., D] N."""
+    """`downwash_force` in component form: pos (x, y, z) and ``thrust``, each f[..., D]; returns f[..., D] N."""
+    if bounded is not None and thrust is None:
+        raise ValueError("downwash_force: the bounded form needs each drone's thrust (thrust=f[..., D] N)")
     if neighbors is None:  # every drone, itself included (Δz = 0: no force)
         others = tuple(p[..., None, :] for p in pos)
     else:
@@ -182,8 +204,15 @@ def downwash_force_c(
     reach = cutoff + (kinks.downwash if smooth else 0.0)
     active = (dz > 0) & (dist2 < reach**2)
     dz_safe = jnp.where(active, dz, 1.0)
-    c1, c2, c3 = (params.dw_coeff[..., k, None] for k in range(3))
-    alpha = c1 * (params.prop_radius[..., None] / (4 * dz_safe)) ** 2
+    scale = (params.prop_radius[..., None] / 4) ** 2
+    if bounded is None:
+        c1, c2, c3 = (params.dw_coeff[..., k, None] for k in range(3))
+        alpha = c1 * scale / dz_safe**2
+    else:
+        c1, c2, c3, soft = bounded[0], bounded[1], bounded[2], bounded[3]
+        upper = (thrust[..., None, :] if neighbors is None else gather(thrust, neighbors)) / DOWNWASH_THRUST_REF
+        lower = thrust[..., :, None] / DOWNWASH_THRUST_REF
+        alpha = c1 * scale * lower * jnp.sqrt(jnp.maximum(upper, 0.0)) / (dz_safe**2 + soft**2)
     beta2 = jnp.maximum((c2 * dz_safe + c3) ** 2, _BETA2_FLOOR)
     force = alpha * jnp.exp(-0.5 * dist2 / beta2)
     if smooth:

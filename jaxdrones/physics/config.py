@@ -27,7 +27,9 @@ class SimConfig:
         downwash: downwash between the drones of a world: False (off), ``"paper"`` (paper eq. (down): one force at
             the lower drone's centre of mass, docs/physics.md §6.3; True, as which it is stored) or
             ``"per_rotor"`` (the upper drones' jet sampled at each rotor of the lower drone, a thrust change per rotor
-            and hence a torque, docs/physics.md §6.4).
+            and hence a torque, docs/physics.md §6.4) or ``"bounded"`` (the paper's form, finite as the drones' heights
+            meet and scaled by their thrusts, fitted to real Crazyflie flights: docs/physics.md §6.5,
+            docs/validation.md §3).
         integrator: ``"euler"`` (the paper code's semi-implicit Euler with exact quaternion exponential map) or
             ``"rk4"``.
         kinks: how the JAX core treats the kinks of the physics (RPM clip, ground contact, ground effect's height
@@ -62,7 +64,7 @@ class SimConfig:
             integrator or kink treatment, a ``downwash_radius`` neither None nor > 0, a ``cell_capacity`` below 1,
             a ``drag``, ``ground_effect``, ``adjoint`` or ``motor_dynamics`` that is not a bool (a string or number
             would otherwise be truthy), an ``unroll_substeps`` neither a bool nor None, or a ``downwash`` that is none
-            of False, True, ``"paper"``, ``"per_rotor"``.
+            of False, True, ``"paper"``, ``"per_rotor"``, ``"bounded"``.
     """
 
     n_drones: int = 1
@@ -149,7 +151,7 @@ class SimConfig:
 
 def downwash_model(value: bool | str, name: str = "downwash") -> bool | str:
     """A downwash setting (`SimConfig.downwash`, `jd.make(..., downwash=...)`) normalised: False
-    (off), True (the paper's model, for True or ``"paper"``) or ``"per_rotor"``.
+    (off), True (the paper's model, for True or ``"paper"``), ``"per_rotor"`` or ``"bounded"``.
 
     Raises:
         ValueError: any other value, naming ``name`` and the valid choices (with a close one for a mistyped string).
@@ -160,6 +162,6 @@ def downwash_model(value: bool | str, name: str = "downwash") -> bool | str:
         return True if value == "paper" else value
     hint = did_you_mean(value, DOWNWASH_MODELS) if isinstance(value, str) else ""
     raise ValueError(
-        f"{name} must be False (off), True or 'paper' (the paper's model) or 'per_rotor' (thrust "
-        f"changes per rotor), got {value!r}{hint}"
+        f"{name} must be False (off), True or 'paper' (the paper's model), 'per_rotor' (thrust "
+        f"changes per rotor) or 'bounded' (the paper's form fitted to real flights), got {value!r}{hint}"
     )

@@ -40,7 +40,7 @@ class Effects(NamedTuple):
 
     drag: bool = False
     ground_effect: bool = False
-    downwash: bool | str = False  # False, True (the paper's model) or "per_rotor", as `SimConfig.downwash`
+    downwash: bool | str = False  # False, True (the paper's), "per_rotor" or "bounded", as `SimConfig.downwash`
     kinks: Kinks = Kinks()
     downwash_radius: float | None = None
     cell_capacity: int = 8
@@ -203,8 +203,8 @@ def downwash_c(
     (``kin``, ``motors``, ``neighbors`` and ``unit_quat`` as in `accelerations_c`).
 
     Returns:
-        the paper's model (``effects.downwash`` True): the force along each drone's body z, f[..., D] N
-        (`aerodynamics.downwash_force_c`);
+        the paper's model (``effects.downwash`` True) or the bounded one (``"bounded"``): the force along each
+        drone's body z, f[..., D] N (`aerodynamics.downwash_force_c`);
         ``"per_rotor"``: the change of each rotor's thrust, a 4-tuple of f[..., D] N
         (`aerodynamics.downwash_thrust_c`); None where no downwash acts: the effect is off, or the drone is alone in
         its world. `add_downwash_c` applies either.
@@ -218,6 +218,11 @@ def downwash_c(
         rotmat = quat_to_rotmat_c(kin.quat, unit=unit_quat)
         return aerodynamics.downwash_thrust_c(
             params, pos, rotmat, motors.thrust, effects.kinks, neighbors, effects.downwash_cutoff
+        )
+    if effects.downwash == "bounded":
+        thrust = motors.thrust[0] + motors.thrust[1] + motors.thrust[2] + motors.thrust[3]
+        return aerodynamics.downwash_force_c(
+            params, pos, effects.kinks, neighbors, effects.downwash_cutoff, aerodynamics.BOUNDED_DOWNWASH, thrust
         )
     return aerodynamics.downwash_force_c(params, pos, effects.kinks, neighbors, effects.downwash_cutoff)
 

@@ -38,6 +38,9 @@ FLIGHT_CSV_COLUMNS = tuple(
     "u4[N],u1[PWM],u2[PWM],u3[PWM],u4[PWM],Vbat[V],thrust_des[g],torquex[Nm],torquey[Nm],torquez[Nm],wx[rad/s],"
     "wy[rad/s],wz[rad/s]".split(",")
 )
+#: Seconds per tick of Neural-Swarm's logs: µs, though its CSV header says ``time[ms]`` (its drones log at 100 Hz,
+#: ``config.txt``, and their ticks step by about 9,900, over flights of 18-65 s).
+TICK_S = 1e-6
 #: The struct codes a uSD log's variables may have (the firmware's log types: ``src/modules/interface/log.h``).
 _USD_TYPES = frozenset("bBhHiIqQef")
 #: Magic byte of the event-based uSD format (``usddeck.c``; ``tools/usdlog/cfusdlog.py``).
@@ -74,7 +77,8 @@ class FlightLog:
     """One drone's flight, one row per log sample (Neural-Swarm: 100 Hz), in SI units and the world frame (z up).
 
     Attributes:
-        time: f64[T] s, the drone's clock (its own: logs of several drones are not aligned).
+        time: f64[T] s, since the drone's log started (`TICK_S` per tick). Neural-Swarm's drones start their logs
+            together (one broadcast command), so their clocks agree to the first sample (about 10 ms).
         pos: f64[T, 3] m, the onboard estimate (motion capture fused by the Kalman filter).
         vel: f64[T, 3] m/s, the onboard estimate.
         acc: f64[T, 3] m/s², the estimate's acceleration in the world frame, gravity removed (the logged z
@@ -165,7 +169,7 @@ def read_flight_csv(path: str | os.PathLike) -> FlightLog:
     d = _read_csv(path, FLIGHT_CSV_COLUMNS, "a Neural-Swarm flight CSV")
     acc = d[:, 7:10] - np.array([0.0, 0.0, FIRMWARE_GRAVITY])
     return _flight(
-        d[:, 0] / 1000.0,
+        d[:, 0] * TICK_S,
         d[:, 1:4],
         d[:, 4:7],
         acc,
@@ -206,12 +210,12 @@ def quat_decompress(packed: np.ndarray) -> np.ndarray:
 
 
 def read_usd(path: str | os.PathLike) -> dict[str, dict[str, np.ndarray]]:
-    """A micro-SD deck log, in either of the firmware's formats: event name → variable → f64[n] (each event's
-    ``timestamp`` in ms among its variables).
+    """A micro-SD deck log, in either of the firmware's formats: event name → variable → f64[n], with each event's
+    ``timestamp`` among its variables (ms in the event-based format).
 
     The event-based format (first byte `USD_MAGIC`, versions 1 and 2) keeps one entry per event type that occurs;
     the fixed-frequency format of 2019-2020 firmware gives one event, ``"fixedFrequency"``, with its columns (the
-    ``tick`` column, ms, as its ``timestamp`` where it has one).
+    ``tick`` column, as logged, as its ``timestamp`` where it has one: µs in Neural-Swarm's logs, `TICK_S`).
 
     Raises:
         ValueError: not a file; an empty file, an unknown version, a variable type the firmware does not log, a
@@ -353,7 +357,7 @@ def usd_flight(log: dict[str, dict[str, np.ndarray]], source: str = "uSD log") -
     arrays["acc"] = arrays["acc"] - np.array([0.0, 0.0, FIRMWARE_GRAVITY])
     quat = quat_decompress(variables["stateEstimateZ.quat"].astype(np.uint64))
     return _flight(
-        variables["tick"] / 1000.0,
+        variables["tick"] * TICK_S,
         arrays["pos"],
         arrays["vel"],
         arrays["acc"],
