@@ -57,7 +57,9 @@ class Formation:
         time: f64[T] s.
         pos: f64[T, D, 3] m, world frame; z shifted so that the model's resting height (``cf2x``'s collision
             half-length, 0.0125 m) is the drone's on the floor.
-        vel: f64[T, D, 3] m/s; acc: f64[T, D, 3] m/s², gravity removed; quat: f64[T, D, 4] (x, y, z, w);
+        vel: f64[T, D, 3] m/s, world frame.
+        acc: f64[T, D, 3] m/s², world frame, gravity removed.
+        quat: f64[T, D, 4] (x, y, z, w), body → world.
         ang_vel: f64[T, D, 3] rad/s, body frame.
         motor_force: f64[T, D, 4] N.
         mass: f64[D] kg.
