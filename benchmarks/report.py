@@ -50,7 +50,9 @@ and the gradients at 1000 steps × 16384 worlds). The others run only when named
 
 Every script of ``benchmarks/`` is one of these, or a worker of one (``_crazyflow_*.py``), or ``original.py``
 (the original gym-pybullet-drones beside them, ``table2 --original``). The runs that chose a setting of the package,
-cited by docs/experiments.md and the guides, are in ``benchmarks/experiments/``, each run on its own.
+cited by docs/experiments.md and the guides, are in ``benchmarks/experiments/``, each run on its own. The model
+against real Crazyflie data (a thrust stand, Neural-Swarm's flights: docs/validation.md) is in
+``benchmarks/validation/``, each script run on a clone of the data's repository.
 
 ``--quick`` runs the same benchmarks on small grids, a smoke run of minutes rather than a measurement, and writes to
 ``benchmarks/results/quick`` unless ``--out`` says otherwise, so that it never replaces a full report. crazyflow's

@@ -306,7 +306,10 @@ def main(argv=None) -> dict:
         print(f"note: the clone is at {commit[:10]}, not {COMMIT}")
     ground_sets = {k: prepared(load(args.clone, v, False), "ground") for k, v in GROUND.items()}
     swap_sets = {k: prepared(load(args.clone, v, True), "downwash") for k, v in DOWNWASH.items()}
-    result = {"commit": commit, "flights": {k: len(v) for k, v in {**ground_sets, **swap_sets}.items()}}
+    counts = {
+        name: {k: len(v) for k, v in sets.items()} for name, sets in (("ground", ground_sets), ("downwash", swap_sets))
+    }
+    result = {"commit": commit, "flights": counts}
     result["ground"] = ground_effect(ground_sets["train"], ground_sets["test"])
     result["downwash"] = downwash(swap_sets["train"], swap_sets["test"])
     both = {k: ground_sets[k] + swap_sets[k] for k in ("train", "test")}
