@@ -303,8 +303,8 @@ def fit_forces(
     """Fit the constants θ of a force model to measured forces by least squares: the aerodynamic effects held
     against the residual forces of logged flights (docs/validation.md §3).
 
-    θ is parameterised relative to its guess, θ = θ0 (1 + u) (each constant's sign kept from the guess's start, its
-    scale the guess's; a zero guess is not allowed), and u is found by optimistix's Levenberg-Marquardt (tolerances
+    θ is parameterised relative to its guess, θ = θ0 (1 + u), so that every unknown u is of order one whatever the
+    constant's scale (hence a zero guess is not allowed); u is found by optimistix's Levenberg-Marquardt (tolerances
     `RTOL`, `ATOL`) in float64, as in `fit`.
 
     Args:

@@ -25,7 +25,7 @@ class SimConfig:
         drag: rotor drag, paper eq. (drag).
         ground_effect: per-propeller ground effect, paper eq. (ground).
         downwash: downwash between the drones of a world: False (off), ``"paper"`` (paper eq. (down): one force at
-            the lower drone's centre of mass, docs/physics.md §6.3; True, as which it is stored) or
+            the lower drone's centre of mass, docs/physics.md §6.3; True, as which it is stored),
             ``"per_rotor"`` (the upper drones' jet sampled at each rotor of the lower drone, a thrust change per rotor
             and hence a torque, docs/physics.md §6.4) or ``"bounded"`` (the paper's form, finite as the drones' heights
             meet and scaled by their thrusts, fitted to real Crazyflie flights: docs/physics.md §6.5,
