@@ -391,3 +391,61 @@ def test_load_runs_groups_a_flight_and_aligns_its_clocks(tmp_path):
         fl.load_runs(tmp_path / "missing")
     with pytest.raises(ValueError, match="not a Neural-Swarm flight file"):
         fl.drone_id("log.bin")
+
+
+def _write_flight(path, x_mm, z_mm, rng):
+    """A Neural-Swarm binary log of a level drone at x (mm, the array sets the length), y = 0, height z (mm), with
+    motor forces near its weight and a noisy z acceleration."""
+    n = len(x_mm)
+    cols = _flight_columns(n)
+    cols["stateEstimateZ.x"], cols["stateEstimateZ.y"], cols["stateEstimateZ.z"] = x_mm, 0 * x_mm, z_mm
+    cols["stateEstimateZ.quat"] = np.full(n, _compress(np.array([0.0, 0.0, 0.0, 1.0])))
+    cols["stateEstimateZ.az"] = 9810 + rng.normal(0, 300, n).astype(int)
+    for m in range(1, 5):
+        cols[f"motor.f{m}"] = np.full(n, 0.033 * 9.81 / 4) + rng.normal(0, 1e-3, n)
+    types = {"tick": "I", "stateEstimateZ.quat": "I", "pm.vbatMV": "H"}
+    columns = [(k, types.get(k, "f" if k.startswith("motor") else "h")) for k in cols]
+    rows = [tuple(cols[k][i].item() for k in cols) for i in range(n)]
+    path.write_bytes(_fixed_log(columns, rows, block=25))
+
+
+@pytest.mark.slow
+def test_flights_script_on_a_clone_of_its_layout(tmp_path):
+    """benchmarks/validation/flights.py end to end on a folder laid out as Neural-Swarm's clone, one short made-up
+    flight in each of its folders (a drone low over the floor; in the swaps one drone passing under another): it fits
+    every constant, scores the held-out flights, replays them, draws its figures, scores a further folder
+    (``--score``) and writes strict JSON."""
+    import importlib
+
+    sys.path.insert(0, str(ROOT / "benchmarks" / "validation"))
+    try:
+        script = importlib.import_module("flights")
+    finally:
+        sys.path.pop(0)
+    rng = np.random.default_rng(0)
+    n = 110  # 1.1 s: the replays' longest horizon is 1 s
+    x = np.linspace(-300, 300, n).astype(int)
+    for folder in script.GROUND["train"] + script.GROUND["test"]:
+        (tmp_path / script.TRAINING / folder).mkdir(parents=True)
+        _write_flight(tmp_path / script.TRAINING / folder / "cf50_00", x, 80 + 0 * x + rng.integers(0, 60), rng)
+    for folder in [*script.DOWNWASH["train"], *script.DOWNWASH["test"], "datacollection22_06_19_2020/swap_sll"]:
+        (tmp_path / script.TRAINING / folder).mkdir(parents=True)
+        _write_flight(tmp_path / script.TRAINING / folder / "cf50_00", x, 500 + 0 * x, rng)
+        _write_flight(tmp_path / script.TRAINING / folder / "cf51_00", -x, 800 + rng.integers(0, 200) + 0 * x, rng)
+    out = tmp_path / "out.json"
+    argv = ["--clone", str(tmp_path), "--json", str(out), "--plots", str(tmp_path / "plots")]
+    result = script.main([*argv, "--score", "datacollection22_06_19_2020/swap_sll"])
+    import json
+
+    saved = json.loads(out.read_text())
+    assert saved["flights"] == {"ground": {"train": 4, "test": 6}, "downwash": {"train": 7, "test": 3}}
+    assert set(saved["downwash"]["test"]["all"]) >= {"none", "paper", "fitted paper form", "fitted bounded form"}
+    assert saved["downwash"]["test"]["all"]["samples"] > 0 and saved["ground"]["test"]["all"]["samples"] > 0
+    assert len(saved["downwash"]["constants"]["fitted bounded form"]) == 4
+    assert set(saved["replays"]["downwash"]) == {"no aerodynamics", "paper", "fitted"}
+    assert "datacollection22_06_19_2020/swap_sll" in result["scored"]
+    assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == [
+        "validation_downwash.png",
+        "validation_ground.png",
+        "validation_swap.png",
+    ]
