@@ -191,7 +191,7 @@ def drag_xy(form: Formation, params: DroneParams, coeff: jax.Array) -> jax.Array
     """f[T, D, 2] N: the horizontal world-frame force of the paper's drag (eq. drag) at the logged velocities, with
     c_xy = ``coeff`` (f[1]), the motors at the speeds that give the logged forces with the model's kf."""
     drag = jnp.broadcast_to(jnp.stack([coeff[0], coeff[0], params.drag_coeff[..., 2].mean()]), params.drag_coeff.shape)
-    rpm = jnp.sqrt(jnp.maximum(jnp.asarray(form.motor_force), 0.0) / params.kf[:, None])
+    rpm = jnp.sqrt(jnp.maximum(jnp.asarray(form.motor_force), 0.0) / params.kf[None, :, None])
     return drag_force(params.replace(drag_coeff=drag), jnp.asarray(form.vel), rpm)[..., :2]
 
 
