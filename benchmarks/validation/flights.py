@@ -114,12 +114,11 @@ def prepared(forms: list, kind: str) -> list[dict]:
     return out
 
 
-def stack(items: list[dict], model, theta, mask: str, target: str):
-    """The model's prediction and the target over the samples ``mask`` of every formation, concatenated."""
+def predictions(items: list[dict], model, theta, mask: str):
+    """The model's prediction over the samples ``mask`` of every formation, concatenated and flat."""
     import jax.numpy as jnp
 
-    predicted = [jnp.ravel(model(d["form"], d["params"], theta)[d[mask]]) for d in items]
-    return jnp.concatenate(predicted), jnp.concatenate([jnp.ravel(jnp.asarray(d[target][d[mask]])) for d in items])
+    return jnp.concatenate([jnp.ravel(model(d["form"], d["params"], theta)[d[mask]]) for d in items])
 
 
 def as32(theta):
@@ -141,7 +140,7 @@ def fit(model, theta0, items: list[dict], mask: str, target: str):
     from jaxdrones.sysid import fit_forces
 
     measured = np.concatenate([np.ravel(d[target][d[mask]]) for d in items])
-    theta, report = fit_forces(lambda t, _: stack(items, model, t, mask, target)[0], theta0, 0.0, measured)
+    theta, report = fit_forces(lambda t, _: predictions(items, model, t, mask), theta0, 0.0, measured)
     return theta, report
 
 
@@ -175,6 +174,24 @@ def pool(rows: dict, keys: list[str]) -> dict:
     return total
 
 
+def ground_models(constants: dict) -> dict:
+    """name → (model, θ) of the ground effect, from `ground_effect`'s constants."""
+    from jaxdrones.validation.flights import ground_z
+
+    return {"paper": (ground_z, constants["paper"]), "fitted paper form": (ground_z, constants["fitted"])}
+
+
+def downwash_models(constants: dict) -> dict:
+    """name → (model, θ) of the downwash, from `downwash`'s constants."""
+    from jaxdrones.validation.flights import downwash_bounded_z, downwash_paper_z
+
+    return {
+        "paper": (downwash_paper_z, constants["paper"]),
+        "fitted paper form": (downwash_paper_z, constants["fitted paper form"]),
+        "fitted bounded form": (downwash_bounded_z, constants["fitted bounded form"]),
+    }
+
+
 def ground_effect(train: list[dict], test: list[dict]) -> dict:
     import numpy as np
 
@@ -182,12 +199,9 @@ def ground_effect(train: list[dict], test: list[dict]) -> dict:
 
     paper = np.array([float(train[0]["params"].gnd_eff_coeff[0])])
     fitted, report = fit(ground_z, paper, train, "effect", "z")
-    models = {"paper": (ground_z, paper), "fitted paper form": (ground_z, fitted)}
-    return {
-        "constants": {"paper": paper.tolist(), "fitted": fitted.tolist(), "std": report["std"].tolist()},
-        "train": effect_table(train, models)["all"],
-        "test": effect_table(test, models),
-    }
+    constants = {"paper": paper.tolist(), "fitted": fitted.tolist(), "std": report["std"].tolist()}
+    models = ground_models(constants)
+    return {"constants": constants, "train": effect_table(train, models)["all"], "test": effect_table(test, models)}
 
 
 def downwash(train: list[dict], test: list[dict]) -> dict:
@@ -199,22 +213,15 @@ def downwash(train: list[dict], test: list[dict]) -> dict:
     paper = np.asarray(train[0]["params"].dw_coeff[0], np.float64)
     fitted_paper, report_paper = fit(downwash_paper_z, paper, train, "effect", "z")
     fitted_bounded, report_bounded = fit(downwash_bounded_z, np.asarray(BOUNDED_DOWNWASH), train, "effect", "z")
-    models = {
-        "paper": (downwash_paper_z, paper),
-        "fitted paper form": (downwash_paper_z, fitted_paper),
-        "fitted bounded form": (downwash_bounded_z, fitted_bounded),
+    constants = {
+        "paper": paper.tolist(),
+        "fitted paper form": fitted_paper.tolist(),
+        "fitted paper form std": report_paper["std"].tolist(),
+        "fitted bounded form": fitted_bounded.tolist(),
+        "fitted bounded form std": report_bounded["std"].tolist(),
     }
-    return {
-        "constants": {
-            "paper": paper.tolist(),
-            "fitted paper form": fitted_paper.tolist(),
-            "fitted paper form std": report_paper["std"].tolist(),
-            "fitted bounded form": fitted_bounded.tolist(),
-            "fitted bounded form std": report_bounded["std"].tolist(),
-        },
-        "train": effect_table(train, models)["all"],
-        "test": effect_table(test, models),
-    }
+    models = downwash_models(constants)
+    return {"constants": constants, "train": effect_table(train, models)["all"], "test": effect_table(test, models)}
 
 
 def drag(train: list[dict], test: list[dict]) -> dict:
@@ -248,19 +255,17 @@ def motor_lag(train: list[dict], test: list[dict]) -> dict:
     }
 
 
-HORIZONS = (0.1, 0.5, 1.0)
-
-
 def replays(items: list[dict], result: dict) -> dict:
     """Open-loop replays (`jaxdrones.validation.flights.replay_errors`, a start every 0.5 s) of each formation with
     no aerodynamics, the paper's (ground effect, downwash, drag) and the fitted ones (C_gnd and c_xy fitted, the
     bounded downwash): each model's median and 90th percentile over the starts and drones, per horizon."""
+    import jax.numpy as jnp
     import numpy as np
 
     import jaxdrones as jd
     from jaxdrones.physics.aerodynamics import BOUNDED_DOWNWASH
     from jaxdrones.physics.params import with_derived
-    from jaxdrones.validation.flights import RATE, replay_errors
+    from jaxdrones.validation.flights import HORIZONS, RATE, replay_errors
 
     fitted = np.asarray(result["downwash"]["constants"]["fitted bounded form"])
     if not np.allclose(fitted, BOUNDED_DOWNWASH, rtol=0.01):
@@ -273,11 +278,14 @@ def replays(items: list[dict], result: dict) -> dict:
     }
     errors: dict[str, list] = {name: [] for name in models}
     for d in items:
-        params = d["params"]
+        base = d["params"]
+        fitted_params = with_derived(
+            base.replace(
+                gnd_eff_coeff=jnp.full_like(base.gnd_eff_coeff, c_gnd), drag_coeff=base.drag_coeff.at[..., :2].set(c_xy)
+            )
+        )
         for name, effects in models.items():
-            if name == "fitted":
-                drag = params.drag_coeff.at[..., :2].set(c_xy)
-                params = with_derived(params.replace(gnd_eff_coeff=params.gnd_eff_coeff * 0 + c_gnd, drag_coeff=drag))
+            params = fitted_params if name == "fitted" else base
             config = jd.SimConfig(n_drones=len(d["form"].ids), ctrl_freq=int(RATE), sim_freq=5 * int(RATE), **effects)
             err = replay_errors(d["form"], params, config, HORIZONS)
             errors[name].append(err[:, :, d["form"].scored].transpose(1, 0, 2).reshape(len(HORIZONS), -1))
@@ -329,6 +337,8 @@ def main(argv=None) -> dict:
     print("constants:", result["downwash"]["constants"])
     for name in ("drag", "motor_lag"):
         print(f"\n{name}: {json.dumps(result[name])}")
+    from jaxdrones.validation.flights import HORIZONS
+
     print("\nopen-loop replays of the held-out flights: position error, median (90th percentile), m")
     print("| flights | model | " + " | ".join(f"{h} s" for h in HORIZONS) + " |\n|---|---|" + "---|" * len(HORIZONS))
     for flights_name, table in result["replays"].items():
@@ -366,7 +376,7 @@ def draw(ground_sets: dict, swap_sets: dict, result: dict, folder: Path) -> None
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from jaxdrones.validation.flights import REST_HEIGHT, downwash_bounded_z, downwash_paper_z, ground_z, pairs
+    from jaxdrones.validation.flights import REST_HEIGHT, ground_z, pairs
 
     folder.mkdir(parents=True, exist_ok=True)
     g = result["ground"]["constants"]
@@ -390,11 +400,8 @@ def draw(ground_sets: dict, swap_sets: dict, result: dict, folder: Path) -> None
 
     c = result["downwash"]["constants"]
     items = swap_sets["train"] + swap_sets["test"]
-    models = {
-        "paper": (downwash_paper_z, c["paper"], "r-"),
-        "fitted paper form": (downwash_paper_z, c["fitted paper form"], "g-"),
-        "fitted bounded form": (downwash_bounded_z, c["fitted bounded form"], "b-"),
-    }
+    styles = {"paper": "r-", "fitted paper form": "g-", "fitted bounded form": "b-"}
+    models = {name: (*model, styles[name]) for name, model in downwash_models(c).items()}
     dz, d2 = [], []
     for d in items:
         delta_z, dist2 = pairs(d["form"])
@@ -453,24 +460,11 @@ def draw(ground_sets: dict, swap_sets: dict, result: dict, folder: Path) -> None
 def score_more(args: argparse.Namespace, result: dict) -> dict:
     """Each of ``--score``'s folders, as a swap (drones together) when its name says so, else as single flights."""
 
-    from jaxdrones.validation.flights import downwash_bounded_z, downwash_paper_z, ground_z
-
     out = {}
     for folder in args.score:
         kind = "downwash" if "swap" in Path(folder).name else "ground"
         items = prepared(load(args.clone, [folder], kind == "downwash"), kind)
-        constants = result[kind]["constants"]
-        if kind == "ground":
-            models = {
-                "paper": (ground_z, constants["paper"]),
-                "fitted paper form": (ground_z, constants["fitted"]),
-            }
-        else:
-            models = {
-                "paper": (downwash_paper_z, constants["paper"]),
-                "fitted paper form": (downwash_paper_z, constants["fitted paper form"]),
-                "fitted bounded form": (downwash_bounded_z, constants["fitted bounded form"]),
-            }
+        models = (downwash_models if kind == "downwash" else ground_models)(result[kind]["constants"])
         out[folder] = effect_table(items, models)
         print_table(f"{folder} ({kind})", out[folder], ["none", *models])
     return out

@@ -25,10 +25,8 @@ def write_file(path: str | os.PathLike, data: str | bytes) -> None:
     sees half a file, and a failure leaves what ``path`` held."""
     path = os.fspath(path)
     tmp = f"{path}.{os.getpid()}.tmp"
-    with open(
-        tmp, "wb" if isinstance(data, bytes) else "w", **({} if isinstance(data, bytes) else {"encoding": "utf-8"})
-    ) as f:
-        f.write(data)
+    with open(tmp, "wb") as f:
+        f.write(data.encode("utf-8") if isinstance(data, str) else data)
     os.replace(tmp, path)
 
 

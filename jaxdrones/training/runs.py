@@ -111,7 +111,8 @@ def plan_runs(
             raise ValueError(f"sweep {setting_label(setting)}: {err}" if setting else str(err)) from None
     several = seed_list is not None or settings is not None
     mapped = several and trainer.maps_runs
-    all_seeds, n = seed_list or (config.seed,), len(seed_list or (config.seed,))
+    all_seeds = seed_list or (config.seed,)
+    n = len(all_seeds)
     # A program maps a group of settings with every seed (our trainers), else trains one run.
     groups = program_groups(configs, config) if mapped else []
     if per_run is not None:

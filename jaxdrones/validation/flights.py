@@ -121,7 +121,8 @@ def align(flights: Sequence[FlightLog], rate: float = RATE) -> Formation:
         return np.stack(out, axis=1)
 
     frames = np.array([FRAMES.get(int(i), PARROT) for i in ids])
-    pos = resample("pos") - np.stack([0 * frames[:, 1], 0 * frames[:, 1], frames[:, 1] - REST_HEIGHT], -1)
+    pos = resample("pos")
+    pos[..., 2] -= frames[:, 1] - REST_HEIGHT
     quat = resample("quat")
     quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
     return Formation(
@@ -163,6 +164,11 @@ def model_params(form: Formation, model: str = "cf2x") -> DroneParams:
     return with_derived(params.replace(mass=jnp.asarray(form.mass, params.mass.dtype)))
 
 
+def motor_rpm(form: Formation, params: DroneParams) -> jax.Array:
+    """f[T, D, 4] rev/min: the speed at which each motor makes its logged force with the model's kf, √(f / kf)."""
+    return jnp.sqrt(jnp.maximum(jnp.asarray(form.motor_force), 0.0) / params.kf[None, :, None])
+
+
 def ground_z(form: Formation, params: DroneParams, coeff: jax.Array) -> jax.Array:
     """f[T, D] N: the world-z force of the paper's ground effect (eq. ground, per propeller, on the logged heights,
     attitudes and motor forces) with coefficient ``coeff`` (f[1], C_gnd; the model's is ``params.gnd_eff_coeff``)."""
@@ -191,8 +197,7 @@ def drag_xy(form: Formation, params: DroneParams, coeff: jax.Array) -> jax.Array
     """f[T, D, 2] N: the horizontal world-frame force of the paper's drag (eq. drag) at the logged velocities, with
     c_xy = ``coeff`` (f[1]), the motors at the speeds that give the logged forces with the model's kf."""
     drag = jnp.broadcast_to(jnp.stack([coeff[0], coeff[0], params.drag_coeff[..., 2].mean()]), params.drag_coeff.shape)
-    rpm = jnp.sqrt(jnp.maximum(jnp.asarray(form.motor_force), 0.0) / params.kf[None, :, None])
-    return drag_force(params.replace(drag_coeff=drag), jnp.asarray(form.vel), rpm)[..., :2]
+    return drag_force(params.replace(drag_coeff=drag), jnp.asarray(form.vel), motor_rpm(form, params))[..., :2]
 
 
 def lagged_thrust_z(form: Formation, tau: jax.Array) -> jax.Array:
@@ -299,7 +304,7 @@ def replay_errors(
     if len(form.time) <= max(steps):
         raise ValueError(f"replay_errors: the log ({len(form.time)} samples) is shorter than {max(horizons)} s")
     starts = np.arange(0, len(form.time) - max(steps), max(int(round(every_s * RATE)), 1))
-    rpm = np.sqrt(np.maximum(form.motor_force, 0.0) / np.asarray(params.kf)[:, None])
+    rpm = np.asarray(motor_rpm(form, params))
     commands = np.stack([rpm[s : s + max(steps)] for s in starts], axis=1)  # [T, S, D, 4]
     state = init_state(
         config,

@@ -167,12 +167,11 @@ def read_flight_csv(path: str | os.PathLike) -> FlightLog:
     """
     path = _path(path)
     d = _read_csv(path, FLIGHT_CSV_COLUMNS, "a Neural-Swarm flight CSV")
-    acc = d[:, 7:10] - np.array([0.0, 0.0, FIRMWARE_GRAVITY])
     return _flight(
         d[:, 0] * TICK_S,
         d[:, 1:4],
         d[:, 4:7],
-        acc,
+        d[:, 7:10],
         d[:, 10:14],
         d[:, 27:30],
         d[:, 14:18],
@@ -182,10 +181,12 @@ def read_flight_csv(path: str | os.PathLike) -> FlightLog:
     )
 
 
-def _flight(time, pos, vel, acc, quat, ang_vel, motor_force, pwm, vbat, source: str) -> FlightLog:
+def _flight(time, pos, vel, logged_acc, quat, ang_vel, motor_force, pwm, vbat, source: str) -> FlightLog:
+    """The `FlightLog` of arrays in SI units; ``logged_acc`` as the firmware logs it, its z with gravity added."""
     if len(time) > 1 and not np.all(np.diff(time) > 0):
         raise ValueError(f"{source!r}: the time column does not increase")
     quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
+    acc = logged_acc - np.array([0.0, 0.0, FIRMWARE_GRAVITY])
     return FlightLog(time, pos, vel, acc, quat, ang_vel, motor_force, pwm, vbat, source)
 
 
@@ -354,7 +355,6 @@ def usd_flight(log: dict[str, dict[str, np.ndarray]], source: str = "uSD log") -
         missing = [n for n in needed if n not in found]
         raise ValueError(f"{source}: no event of the log holds Neural-Swarm's flight variables; missing {missing}")
     arrays = {k: np.stack([variables[n] for n in names], axis=-1) * scale for k, (names, scale) in _USD_FLIGHT.items()}
-    arrays["acc"] = arrays["acc"] - np.array([0.0, 0.0, FIRMWARE_GRAVITY])
     quat = quat_decompress(variables["stateEstimateZ.quat"].astype(np.uint64))
     return _flight(
         variables["tick"] * TICK_S,
