@@ -1,13 +1,13 @@
 """Rerun the benchmarks of ``benchmarks/`` and regenerate their tables (``REPORT.md``) and plots (PNG) in one folder.
 
-Each benchmark runs as its own subprocess (``python benchmarks/NAME.py ...``, a fresh JAX each time), writing its JSON
-into the output folder; this script then reads the JSON and writes ``REPORT.md`` there: per benchmark the command, its
-settings, the device, JAX version, CPU and machine load (``os.getloadavg()`` before and after it, and what the
+Each benchmark runs as its own subprocess (``python benchmarks/FOLDER/NAME.py ...``, a fresh JAX each time), writing its
+JSON into the output folder; this script then reads the JSON and writes ``REPORT.md`` there: per benchmark the command,
+its settings, the device, JAX version, CPU and machine load (``os.getloadavg()`` before and after it, and what the
 benchmark recorded itself), its tables in the README's style and its plots. A benchmark that fails (or runs past
 ``--timeout``) is reported as failed with the last lines of its stderr, and the others still run. Every benchmark's
 stdout and stderr are kept in ``logs/``; ``report_runs.json`` records each run (command, status, wall time, load), so
-that ``--render-only`` can rebuild the report from the JSON already there, and a later ``--only NAME`` run replaces
-that benchmark's section and keeps the others (each section gives its own date).
+that ``--render-only`` can rebuild the report from the JSON already there, and a later ``--only NAME`` run replaces that
+benchmark's section and keeps the others (each section gives its own date).
 
 The device is JAX's default, as in the benchmarks themselves: a GPU when one is installed (``--cpu`` forces the CPU
 with ``JAX_PLATFORMS=cpu``). A short probe process asks JAX which backend it gets, and the grids are sized for it:
@@ -48,16 +48,18 @@ and the gradients at 1000 steps × 16384 worlds). The others run only when named
   ``interrupt`` (a Ctrl-C at given seconds into ``jaxdrones train hover --overwrite``: what the run folder then
   holds), ``install`` (a fresh install, per Python; it downloads wheels).
 
-Every script of ``benchmarks/`` is one of these, or a worker of one (``_crazyflow_*.py``), or ``original.py``
-(the original gym-pybullet-drones beside them, ``table2 --original``). The runs that chose a setting of the package,
-cited by docs/experiments.md and the guides, are in ``benchmarks/experiments/``, each run on its own. The model
-against real Crazyflie data (a thrust stand, Neural-Swarm's flights: docs/validation.md) is in
-``benchmarks/validation/``, each script run on a clone of the data's repository.
+These live in ``benchmarks/speed`` (throughput, memory, install and first-run time), ``benchmarks/gradients`` and
+``benchmarks/training`` (time to solve, the suite, the runs' cost and safety), each with the workers of its scripts
+(``_crazyflow_*.py``) and, in ``speed``, ``original.py`` (the original gym-pybullet-drones beside them, ``table2
+--original``); what they share (the machine's description, the JSON report, timing) is ``benchmarks/common.py``. The
+runs that chose a setting of the package, cited by docs/experiments.md and the guides, are in
+``benchmarks/experiments/``, each run on its own. The model against real Crazyflie data (a thrust stand, Neural-Swarm's
+flights: docs/validation.md) is in ``benchmarks/validation/``, each script run on a clone of the data's repository.
 
 ``--quick`` runs the same benchmarks on small grids, a smoke run of minutes rather than a measurement, and writes to
 ``benchmarks/results/quick`` unless ``--out`` says otherwise, so that it never replaces a full report. crazyflow's
-comparison needs its own virtual environment (``benchmarks/.venv-crazyflow``, created by ``envs.py`` with pip); the
-quick run skips it when it does not exist yet.
+comparison needs its own virtual environment (``benchmarks/.venv-crazyflow``, created by ``speed/envs.py`` with pip);
+the quick run skips it when it does not exist yet.
 
 Usage::
 
@@ -85,10 +87,10 @@ import threading
 import time
 from collections.abc import Callable
 
+from common import CRAZYFLOW_VENV, RESULTS
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
-RESULTS = os.path.join(HERE, "results")
-CRAZYFLOW_VENV = os.path.join(HERE, ".venv-crazyflow")
 
 
 # -- the benchmarks ------------------------------------------------------------------------------------------------
@@ -111,6 +113,7 @@ class Benchmark:
 
     Attributes:
         name: the script's name without ``.py``.
+        folder: the folder of ``benchmarks/`` that holds it (what it measures: speed, gradients or training).
         default: part of the default run.
         args: its command-line arguments for a context, or a string saying why it cannot run.
         output: the JSON file it writes (None: its printed output is the result, kept in the run record).
@@ -118,6 +121,7 @@ class Benchmark:
     """
 
     name: str
+    folder: str
     default: bool
     args: Callable[[Context], list[str] | str]
     output: Callable[[Context], str | None]
@@ -197,18 +201,21 @@ BENCHMARKS = {
     for b in (
         Benchmark(
             "throughput",
+            "speed",
             True,
             lambda ctx: throughput_args(ctx) + ["--out", _json("throughput.json")(ctx)],
             _json("throughput.json"),
         ),
         Benchmark(
             "envs",
+            "speed",
             True,
             lambda ctx: envs_args(ctx) + ["--out", _json("envs.json")(ctx)],
             _json("envs.json"),
             NO_PREALLOCATION,
         ),
         Benchmark(
+            "gradients",
             "gradients",
             True,
             lambda ctx: gradients_args(ctx) + ["--out", _json("gradients.json")(ctx)],
@@ -217,6 +224,7 @@ BENCHMARKS = {
         ),
         Benchmark(
             "backends",
+            "speed",
             True,
             lambda ctx: (
                 (["--quick", "--drones", "1", "10"] if ctx.quick else []) + ["--out", _json("backends.json")(ctx)]
@@ -225,6 +233,7 @@ BENCHMARKS = {
         ),
         Benchmark(
             "cameras",
+            "speed",
             True,
             lambda ctx: cameras_args(ctx) + ["--out", _json("cameras.json")(ctx)],
             _json("cameras.json"),
@@ -232,6 +241,7 @@ BENCHMARKS = {
         ),
         Benchmark(
             "encoders",
+            "gradients",
             True,
             lambda ctx: (
                 (["--batch", "1024", "--repeats", "3"] if ctx.quick else []) + ["--out", _json("encoders.json")(ctx)]
@@ -240,6 +250,7 @@ BENCHMARKS = {
         ),
         Benchmark(
             "table2",
+            "speed",
             True,
             lambda ctx: (
                 (["--seconds", "1", "--repeats", "1"] if ctx.quick else []) + ["--out", _json("table2.json")(ctx)]
@@ -248,24 +259,28 @@ BENCHMARKS = {
         ),
         Benchmark(
             "train_algos",
+            "training",
             True,
             lambda ctx: train_algos_args(ctx) + ["--out", _json("train_algos_hover.json")(ctx)],
             _json("train_algos_hover.json"),
         ),
         Benchmark(
             "sysid_noise",
+            "gradients",
             True,
             lambda ctx: ["--seeds", "0"] if ctx.quick else ["--seeds", "0", "1", "2"],
             lambda ctx: None,
         ),
         Benchmark(
             "multi_agent",
+            "speed",
             False,
             lambda ctx: multi_agent_args(ctx) + ["--out", _json("multi_agent.json")(ctx)],
             _json("multi_agent.json"),
         ),
         Benchmark(
             "downwash_policies",
+            "training",
             False,
             lambda ctx: (
                 (["--steps", "200000"] if ctx.quick else []) + ["--out", os.path.join(ctx.out, "downwash_policies")]
@@ -274,6 +289,7 @@ BENCHMARKS = {
         ),
         Benchmark(
             "sb3_hover",
+            "training",
             False,
             lambda ctx: (
                 ["--action-type", "one_d_rpm", "--out", _json("sb3_hover.json")(ctx)]
@@ -285,16 +301,18 @@ BENCHMARKS = {
             ),
             _json("sb3_hover.json"),
         ),
-        Benchmark("jaxmarl_ippo", False, jaxmarl_args, _json("jaxmarl_ippo.json")),
+        Benchmark("jaxmarl_ippo", "training", False, jaxmarl_args, _json("jaxmarl_ippo.json")),
         # docs/benchmarks.md's other tables: each script prints its own, which the report shows as printed.
         Benchmark(
             "suite",
+            "training",
             False,
             lambda ctx: (["--tasks", "hover", "--seeds", "0"] if ctx.quick else []) + ["--out", _json("suite")(ctx)],
             lambda ctx: None,
         ),
         Benchmark(
             "first_run",
+            "speed",
             False,
             lambda ctx: (
                 (["--rounds", "1"] if ctx.quick else ["--rounds", "3", "--warm", "2"])
@@ -302,15 +320,17 @@ BENCHMARKS = {
             ),
             lambda ctx: None,
         ),
-        Benchmark("train_cost", False, lambda ctx: ["--no-train"] if ctx.quick else [], lambda ctx: None),
+        Benchmark("train_cost", "training", False, lambda ctx: ["--no-train"] if ctx.quick else [], lambda ctx: None),
         Benchmark(
             "gradient_profile",
+            "gradients",
             False,
             lambda ctx: ["--worlds", "64", "--horizon", "10", "--repeats", "2"] if ctx.quick else [],
             lambda ctx: None,
         ),
         Benchmark(
             "gradient_layers",
+            "gradients",
             False,
             lambda ctx: (
                 (["--worlds", "64", "--horizon", "10", "--repeats", "2"] if ctx.quick else [])
@@ -320,13 +340,17 @@ BENCHMARKS = {
         ),
         Benchmark(
             "run_memory",
+            "speed",
             False,
             lambda ctx: ["--tasks", "hover", "--extra", "8"] if ctx.quick else [],
             lambda ctx: None,
         ),
-        Benchmark("interrupt", False, lambda ctx: ["--at", "1", "3"] if ctx.quick else [], lambda ctx: None),
+        Benchmark(
+            "interrupt", "training", False, lambda ctx: ["--at", "1", "3"] if ctx.quick else [], lambda ctx: None
+        ),
         Benchmark(
             "install",
+            "speed",
             False,
             lambda ctx: ["--python", sys.executable, "--out", _json("install.json")(ctx)],
             lambda ctx: None,
@@ -406,7 +430,7 @@ def run_benchmark(bench: Benchmark, ctx: Context, env: dict, timeout: float) -> 
     if isinstance(args, str):
         print(f"== {bench.name}: skipped, {args}", flush=True)
         return record | {"status": "skipped", "reason": args, "loadavg_after": record["loadavg_before"]}
-    command = [sys.executable, os.path.join(HERE, f"{bench.name}.py"), *args]
+    command = [sys.executable, os.path.join(HERE, bench.folder, f"{bench.name}.py"), *args]
     extra = bench.gpu_env if ctx.gpu else {}
     shown = [os.path.relpath(a, ROOT) if os.path.isabs(a) and a.startswith(ROOT + os.sep) else a for a in args]
     record |= {

@@ -155,7 +155,7 @@ def test_few_blocks_left_unrun():
 
 #: A training budget of a page's example and what the suite runs instead: the example is checked to run as written,
 #: not to learn (docs/adapters.md's SB3 run: 300,000 steps, 62 s of the suite on 2 cores; the page's learning figures
-#: come from benchmarks/sb3_hover.py).
+#: come from benchmarks/training/sb3_hover.py).
 SHORTER_BUDGETS = {".learn(300_000)": ".learn(8_192)"}
 
 

@@ -296,8 +296,10 @@ def test_the_rllib_example_without_ray_says_what_to_install():
 
 
 def test_the_suite_refuses_abbreviated_options():
-    """``benchmarks/suite.py --seed 0`` is not ``--seeds 0``: argparse's prefix matching is off in every script."""
-    script = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "suite.py")
+    """``benchmarks/training/suite.py --seed 0`` is not ``--seeds 0``: argparse's prefix matching is off in every
+    script."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    script = os.path.join(root, "benchmarks", "training", "suite.py")
     result = subprocess.run([sys.executable, script, "--seed", "0"], capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "unrecognized arguments: --seed 0" in result.stderr
 

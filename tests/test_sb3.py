@@ -1,6 +1,7 @@
 """Stable-Baselines3 on the batched env (`jaxdrones.adapters.sb3.VecEnv`): SB3's VecEnv contract (same-step
 autoreset with ``terminal_observation`` and ``TimeLimit.truncated``, seeding, attributes, SB3's wrappers), PPO
-running on it, and bad input. How far PPO and sbx's PPO get on it: ``benchmarks/sb3_hover.py --vec jaxdrones``."""
+running on it, and bad input. How far PPO and sbx's PPO get on it: ``benchmarks/training/sb3_hover.py --vec
+jaxdrones``."""
 
 import pickle
 

@@ -19,25 +19,34 @@ def test_ruff(command):
 
 
 def _report_benchmarks() -> set[str]:
-    """The names of the benchmarks that ``benchmarks/report.py`` runs (its ``BENCHMARKS``), read from its source."""
+    """The scripts that ``benchmarks/report.py`` runs (its ``BENCHMARKS``) as ``FOLDER/NAME``, read from its source."""
     tree = ast.parse((ROOT / "benchmarks" / "report.py").read_text())
     return {
-        node.args[0].value
+        f"{node.args[1].value}/{node.args[0].value}"
         for node in ast.walk(tree)
         if isinstance(node, ast.Call)
         and getattr(node.func, "id", None) == "Benchmark"
-        and node.args
-        and isinstance(node.args[0], ast.Constant)
+        and len(node.args) > 1
+        and all(isinstance(a, ast.Constant) for a in node.args[:2])
     }
 
 
 def test_every_benchmark_is_run_by_the_report_or_kept_with_the_experiments():
-    """benchmarks/ holds what ``report.py`` runs (docs/benchmarks.md's tables), the workers of those (``_*.py``) and
-    the original's runner; the runs that chose a setting live in benchmarks/experiments/."""
-    top = {p.stem for p in (ROOT / "benchmarks").glob("*.py")}
-    others = {name for name in top if name.startswith("_")} | {"report", "original"}
-    assert top - others == _report_benchmarks()
-    assert sorted(p.name for p in (ROOT / "benchmarks" / "experiments").glob("*.py"))
+    """benchmarks/speed, gradients and training hold what ``report.py`` runs (docs/benchmarks.md's tables), the
+    workers of those (``_*.py``) and the original's runner; the runs that chose a setting live in
+    benchmarks/experiments/ and the scores against real data, which need a clone of their repository, in
+    benchmarks/validation/. Nothing else sits in benchmarks/ but the report and what the scripts share."""
+    benchmarks = ROOT / "benchmarks"
+    assert {p.name for p in benchmarks.glob("*.py")} == {"report.py", "common.py"}
+    measured = {
+        f"{p.parent.name}/{p.stem}"
+        for folder in ("speed", "gradients", "training")
+        for p in (benchmarks / folder).glob("*.py")
+        if not p.stem.startswith("_") and p.stem != "original"
+    }
+    assert measured == _report_benchmarks()
+    assert sorted(p.name for p in (benchmarks / "experiments").glob("*.py"))
+    assert sorted(p.name for p in (benchmarks / "validation").glob("*.py"))
 
 
 def _private_uses(source: str) -> list[str]:

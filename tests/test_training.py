@@ -565,7 +565,7 @@ def test_train_cli_multi_agent_bad_team_size(capsys):
 def test_every_task_trains_at_its_recipe_through_the_command_line(task, tmp_path, capsys):
     """``jaxdrones train TASK`` for every task at its recipe, for one update of 8 worlds: the run folder holds every
     output, the summary records the recipe's trainer, profile and env, and the saved policy flies in its env.
-    Whether the recipe solves the task is ``benchmarks/suite.py``'s to say (docs/benchmarks.md)."""
+    Whether the recipe solves the task is ``benchmarks/training/suite.py``'s to say (docs/benchmarks.md)."""
     from jaxdrones.training.evaluation import act
     from jaxdrones.training.progress import AGGREGATES
     from jaxdrones.training.recipes import recipe
@@ -1048,7 +1048,8 @@ def test_a_ctrl_c_at_any_moment_leaves_the_old_run_or_a_complete_new_one(tmp_pat
     """``jaxdrones train hover --out R --overwrite`` over a finished run ``R``, stopped by SIGINT 0.8 s and 3 s into
     the process (imports; compilation or training, from the cache the first run filled): ``R`` holds the old run or
     a complete new one, never a mix or nothing; the exit is 130 (0 where the run had finished); an interrupted run
-    with something trained is in ``R-1``; nothing half-written is left (benchmarks/interrupt.py: at the defaults)."""
+    with something trained is in ``R-1``; nothing half-written is left (benchmarks/training/interrupt.py: at the
+    defaults)."""
     env = {**os.environ, "JAXDRONES_CACHE_DIR": str(tmp_path / "cache")}
     args = [sys.executable, "-m", "jaxdrones.cli", "train", "hover", "--steps", "100000", "--no-progress"]
     first = subprocess.run([*args, "--out", str(tmp_path / "R")], env=env, capture_output=True, timeout=300)

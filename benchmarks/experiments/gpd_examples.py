@@ -21,7 +21,7 @@ evaluates and replays the policy for 10 s of wall-clock time), for both; ``OMP_N
 interpreter then needs stable-baselines3 and torch too.
 
 The original's interpreter needs pybullet, gymnasium, scipy, pillow, transforms3d and setuptools<81; see
-benchmarks/original.py. ``--out FILE`` writes the figures as JSON.
+benchmarks/speed/original.py. ``--out FILE`` writes the figures as JSON.
 """
 
 from __future__ import annotations

@@ -162,7 +162,7 @@ class TaskEnv(Env):
         """The state observation, f[D, n_obs], recomputed from its inputs in the backward pass (``jax.checkpoint``)
         rather than its intermediates stored: differentiated under a scan (APG, SHAC), the attitude's
         trigonometry stored 35 arrays per control step of the default hover env, a third of all it stored
-        (`benchmarks/gradients.py`, caller ``default_env``)."""
+        (`benchmarks/gradients/gradients.py`, caller ``default_env``)."""
         return jax.checkpoint(self._observation)(task, sim, history, integral, steps)
 
     def _observation(

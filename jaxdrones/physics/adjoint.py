@@ -12,7 +12,7 @@ cotangent terms into loops that recompute what the forward pass shares between c
 the exponential map). The hand-written pass recomputes the forward quantities once from the substep's input and
 transposes the update equation by equation, so the control step needs no rematerialisation (``jax.checkpoint``).
 The gradient's cost over the forward pass, before and after, through `jaxdrones.rollout`, a user's own
-``lax.scan`` and the hover env's ``step``: `benchmarks/gradients.py`, docs/benchmarks.md, "Gradients".
+``lax.scan`` and the hover env's ``step``: `benchmarks/gradients/gradients.py`, docs/benchmarks.md, "Gradients".
 
 tests/test_adjoint.py checks it against JAX's derived derivative to float64 rounding. Two parts keep JAX's
 derivative: the downwash (the paper's force, or the per-rotor thrust changes, which enter the lifts) is computed

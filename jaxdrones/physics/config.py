@@ -46,8 +46,8 @@ class SimConfig:
         cell_capacity: with ``downwash_radius``: drones per cell the list holds (a denser cell loses the extra ones).
         adjoint: take reverse-mode derivatives (``jax.grad``, ``jax.vjp``, ``jax.jacrev``) of the Euler integrator
             with exact kinks through the hand-written adjoint of `jaxdrones.physics.adjoint` (default True): a gradient
-            then costs 2-3 forward passes however the step is called (`benchmarks/gradients.py`). Such a step has
-            no forward-mode derivative: ``jax.jvp`` and ``jax.jacfwd`` raise JAX's "can't apply forward-mode
+            then costs 2-3 forward passes however the step is called (`benchmarks/gradients/gradients.py`). Such a step
+            has no forward-mode derivative: ``jax.jvp`` and ``jax.jacfwd`` raise JAX's "can't apply forward-mode
             autodiff (jvp) to a custom_vjp function". False gives JAX's derived derivatives in both modes (the
             control step is then rematerialised in the reverse pass). RK4 and the other kink treatments always
             use JAX's.
@@ -55,7 +55,7 @@ class SimConfig:
             program (True), as a loop (False, default), or None: unrolled on a GPU or TPU and a loop on the CPU,
             chosen when the step is traced. Unrolled, XLA fuses the element-wise work of all substeps into a few
             kernels: on a GPU the step runs about twice as fast but compiles longer, worth it for long runs, not for
-            the compilation every new setting costs; on the CPU it runs slower (`benchmarks/train_cost.py
+            the compilation every new setting costs; on the CPU it runs slower (`benchmarks/training/train_cost.py
             --per-step`, docs/benchmarks.md, "Training at a GPU's speed"). The results are the same either way (to
             float rounding: XLA may fuse the arithmetic differently).
 

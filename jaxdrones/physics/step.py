@@ -126,7 +126,7 @@ def _recomputed(fn, *args):
     intermediates stored: for the cheap element-wise work around the physics substeps. Under a differentiated
     ``lax.scan`` every stored intermediate becomes an array stacked over the steps, with its own writes and reads;
     the clip, the normalisation and the motors' output stored 14 of them per control step of the default
-    hover env (`benchmarks/gradients.py`, caller ``default_env``)."""
+    hover env (`benchmarks/gradients/gradients.py`, caller ``default_env``)."""
     return jax.checkpoint(fn)(*args)
 
 
@@ -146,10 +146,10 @@ def _core_step(core_c, remat: bool):
     hand-written adjoint of `jaxdrones.physics.adjoint`, whose reverse pass keeps only each substep's input) the step is
     rematerialised (``jax.checkpoint``) when differentiated: the backward pass of a scan over this step (a user's own,
     or an env's) recomputes each step from its input state, as `rollout` does, instead of storing every intermediate of
-    the physics (see `benchmarks/gradients.py`: on CPU that scan's gradient is otherwise several times slower). None of
-    this changes a value. The command is sliced (with its components from the product, a level drone given four equal
-    commands drifted sideways by 5e-5 m in 60 steps: XLA then rounds the terms of equal and opposite torques
-    differently, see `jaxdrones.physics.rotations.dot`; sliced, it stays exactly level, as on PyBullet).
+    the physics (see `benchmarks/gradients/gradients.py`: on CPU that scan's gradient is otherwise several times
+    slower). None of this changes a value. The command is sliced (with its components from the product, a level drone
+    given four equal commands drifted sideways by 5e-5 m in 60 steps: XLA then rounds the terms of equal and opposite
+    torques differently, see `jaxdrones.physics.rotations.dot`; sliced, it stays exactly level, as on PyBullet).
     """
 
     def core(
@@ -219,7 +219,7 @@ def rollout(step: StepFn, params: DroneParams, state: DroneState, rpms: jax.Arra
 
     Differentiated, each control step is rematerialised (``jax.checkpoint``): the backward pass recomputes a step
     from its input state rather than storing all its intermediates: a faster gradient in less memory, also with the
-    hand-written adjoint (the default config); the forward pass is unchanged (`benchmarks/gradients.py`,
+    hand-written adjoint (the default config); the forward pass is unchanged (`benchmarks/gradients/gradients.py`,
     docs/benchmarks.md, "Gradients").
 
     Args:

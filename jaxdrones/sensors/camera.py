@@ -257,9 +257,9 @@ def render(
     the nearest hit so far: one elementwise pass over the pixels that XLA fuses and vectorises across them, and whose
     derivative is that of the hit kept. Without RGB, the nearest hit is kept as one integer per pixel, the depth's bits
     with the primitive's slot in the lowest few (`_pack`): a single chain of minimums, faster on CPU than keeping depth
-    and id apart (`benchmarks/cameras.py`, docs/benchmarks.md, "Cameras"), whose depth is rounded by less than 2^(b −
-    24) of itself in float32 (2^(b − 53) in float64) for a scene of fewer than 2^b − 1 primitives (drones' included);
-    with RGB depth is exact. Derivatives are those of the exact depth either way.
+    and id apart (`benchmarks/speed/cameras.py`, docs/benchmarks.md, "Cameras"), whose depth is rounded by less than
+    2^(b − 24) of itself in float32 (2^(b − 53) in float64) for a scene of fewer than 2^b − 1 primitives (drones'
+    included); with RGB depth is exact. Derivatives are those of the exact depth either way.
 
     Args:
         spec: the `CameraSpec`.

@@ -208,7 +208,7 @@ def _nearest(shape, prims, owner, eye, ray, near, best, shading) -> dict:
     A scan over the slots, `SLOTS_PER_STEP` at a time: each step a few fused passes over the block's pixels. (All
     slots unrolled, XLA fuses the chain of nearest hits so that its cost grows faster than the number of
     primitives; one slot a step, the chain of passes runs slower per primitive than a few unrolled:
-    `benchmarks/cameras.py`.)
+    `benchmarks/speed/cameras.py`.)
     """
     n_slots = prims.seg.shape[-1]
     if not n_slots:

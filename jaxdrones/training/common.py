@@ -74,15 +74,16 @@ def mlp(
 #:   other draws.
 #:
 #: On a GPU every operation of an update is a kernel run after the previous one, and each cuts them; on the CPU the
-#: first two slow APG's updates and the third gains nothing (`benchmarks/train_cost.py`, docs/benchmarks.md,
+#: first two slow APG's updates and the third gains nothing (`benchmarks/training/train_cost.py`, docs/benchmarks.md,
 #: "Training at a GPU's speed").
 BUILD_SETTINGS = ("starts_per_window", "flat_params", "noise_per_window")
 
 #: The profiles of default settings (``jaxdrones train --defaults``): ``"cpu"``, tuned for the fewest seconds to a
 #: solved policy on a CPU (few worlds, many small updates), and ``"gpu"``, for the fewest sequential
 #: operations (many worlds, few large updates: a GPU steps thousands of worlds in the time of one, while every
-#: operation of an update runs after the previous one, each at least one kernel launch; `benchmarks/train_cost.py`).
-#: The results do not depend on the device that runs them: ``--defaults gpu --device cpu`` trains the same policy.
+#: operation of an update runs after the previous one, each at least one kernel launch;
+#: `benchmarks/training/train_cost.py`). The results do not depend on the device that runs them: ``--defaults gpu
+#: --device cpu`` trains the same policy.
 DEFAULTS = ("cpu", "gpu")
 
 
@@ -283,7 +284,7 @@ def _run_functions(config: Schedule, build: Callable, evaluate: Callable | None,
 
         return jax.lax.scan(step, carry[1], None, length=config.updates_per_eval)[1]
 
-    def evaluate_run(carry):  # named: benchmarks/train_cost.py finds the evaluation by its name
+    def evaluate_run(carry):  # named: benchmarks/training/train_cost.py finds the evaluation by its name
         network, params = result(carry[1])
         checked = {FINITE: _all_finite(params)}  # here, not in the chunk: the chunk's program stays as it was
         return checked if evaluate is None else {**checked, "eval": evaluate(network, params, carry[0][0])}

@@ -4,8 +4,8 @@
 (same parameters, ``kernel`` f[k, k, C_in, C_out] and ``bias``, same ``SAME`` padding; tests check the two agree),
 but stays fast where XLA's CPU convolution is not: inside a loop. brax's PPO runs its minibatch updates in a
 ``lax.scan``, and there the gradient of XLA's convolution was an order of magnitude slower than outside one; as
-patches and a matrix product it is as fast in and out of the loop (`benchmarks/encoders.py`, docs/benchmarks.md),
-and on a GPU the product is one GEMM.
+patches and a matrix product it is as fast in and out of the loop (`benchmarks/gradients/encoders.py`,
+docs/benchmarks.md), and on a GPU the product is one GEMM.
 
 `make_ppo_networks_vision` is brax's ``networks_vision.make_ppo_networks_vision`` (a CNN per image, its features
 flattened and joined with the normalised state vector, then an MLP; tanh-normal actions) on this encoder.

@@ -8,7 +8,7 @@ the task its config's fields and its training env's fields. `recipe` resolves a 
 it once (`Recipe.with_options`).
 
 Every setting cites the row of docs/experiments.md (or docs/training.md) whose runs chose it; ``python
-benchmarks/suite.py`` trains every task at its recipe and writes the suite's table (docs/benchmarks.md).
+benchmarks/training/suite.py`` trains every task at its recipe and writes the suite's table (docs/benchmarks.md).
 """
 
 from __future__ import annotations

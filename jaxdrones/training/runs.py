@@ -270,7 +270,7 @@ def describe(plan: RunPlan, trainer: Trainer) -> str:
 
 #: The factor over the arrays a run's program is known to hold (`run_bytes`) that its memory takes (the gradient's
 #: saved activations, the optimiser's moments, XLA's buffers): above the largest ratio measured, over hover, velocity,
-#: crossing and leader_follower at their recipes (0.8 to 2.3; `benchmarks/run_memory.py`, docs/benchmarks.md,
+#: crossing and leader_follower at their recipes (0.8 to 2.3; `benchmarks/speed/run_memory.py`, docs/benchmarks.md,
 #: "Memory of mapped runs").
 MEMORY_FACTOR = 2.5
 

@@ -13,7 +13,7 @@ Two forms with the same result:
   halves the cost of a step. A loop of many steps can draw every world's next episode once, before the loop
   (`VmapAutoReset.starts`), and hand them to each step: a world whose episode ends then takes its drawn episode by a
   select, and the step computes no reset at all (the trainers' ``starts_per_window``, on with ``--defaults gpu``:
-  `benchmarks/train_cost.py`).
+  `benchmarks/training/train_cost.py`).
 """
 
 from __future__ import annotations

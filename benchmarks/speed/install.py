@@ -7,10 +7,10 @@ source, e.g. pybullet on Python 3.12), then ``import jaxdrones`` in it.
 pip's own cache is used as the machine has it: on a machine that installed these packages before, downloads are
 faster than on a new one.
 
-    python benchmarks/install.py                                          # python3.11 and python3.12 if found
-    python benchmarks/install.py --python python3.12 --jax 0.11.2
-    python benchmarks/install.py --python python3.11 --extras pybullet --constraints
-    python benchmarks/install.py --python python3.12 --extras pybullet --source
+    python benchmarks/speed/install.py                                          # python3.11 and python3.12 if found
+    python benchmarks/speed/install.py --python python3.12 --jax 0.11.2
+    python benchmarks/speed/install.py --python python3.11 --extras pybullet --constraints
+    python benchmarks/speed/install.py --python python3.12 --extras pybullet --source
 
 Prints one line per run; ``--out`` writes them as JSON.
 """

@@ -10,9 +10,9 @@ Levenberg-Marquardt, accepted or rejected) and the time of the fit (the first fi
 
 Usage::
 
-    python benchmarks/sysid_noise.py                         # seeds 0 1 2, position and attitude noise
-    python benchmarks/sysid_noise.py --seeds 0 1 2 3 4 5 6 7 8 9 --vel 0.01 --ang-vel 0.05
-    python benchmarks/sysid_noise.py --noise-free            # no noise at all
+    python benchmarks/gradients/sysid_noise.py                         # seeds 0 1 2, position and attitude noise
+    python benchmarks/gradients/sysid_noise.py --seeds 0 1 2 3 4 5 6 7 8 9 --vel 0.01 --ang-vel 0.05
+    python benchmarks/gradients/sysid_noise.py --noise-free            # no noise at all
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ step is 500 // 30 = 16 substeps, with a warning that 500 is not a multiple of 30
 
 Usage (what `envs.py` runs)::
 
-    benchmarks/.venv-crazyflow/bin/python benchmarks/_crazyflow_worker.py --sizes 1 64 --repeats 3
+    benchmarks/.venv-crazyflow/bin/python benchmarks/speed/_crazyflow_worker.py --sizes 1 64 --repeats 3
 """
 
 from __future__ import annotations

@@ -22,10 +22,10 @@ torch's default (one thread per core) made SB3's PPO several times slower on a s
 PPO on gymnasium's Pendulum-v1 (n_steps=512, 4 envs) took 62 s with 2 torch threads and JAX initialised, 7.7 s
 with 2 threads and no JAX, 5.1 s with 1 thread and JAX, 3.2 s with 1 thread and no JAX.
 
-    python benchmarks/sb3_hover.py --action-type one_d_rpm --steps 200000      # the paper's 1-D hover
-    python benchmarks/sb3_hover.py --action-type rpm --steps 1000000 --eval-every 250000   # the default 3-D task
-    python benchmarks/sb3_hover.py --vec jaxdrones --steps 300000 --baseline-steps 16384  # batched, beside SB3's
-    python benchmarks/sb3_hover.py --vec jaxdrones --algo sbx --steps 300000 --baseline-steps 16384
+    python benchmarks/training/sb3_hover.py --action-type one_d_rpm --steps 200000      # the paper's 1-D hover
+    python benchmarks/training/sb3_hover.py --action-type rpm --steps 1000000 --eval-every 250000  # the 3-D task
+    python benchmarks/training/sb3_hover.py --vec jaxdrones --steps 300000 --baseline-steps 16384  # batched
+    python benchmarks/training/sb3_hover.py --vec jaxdrones --algo sbx --steps 300000 --baseline-steps 16384
 
 Needs the ``sb3`` extra: ``pip install torch==2.13.0 && pip install -e ".[sb3]"``.
 """
@@ -44,8 +44,10 @@ import numpy as np
 
 import jaxdrones  # registers the gymnasium ids, e.g. jaxdrones/Hover-v0
 
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS  # noqa: E402
+
 ENV_ID = "jaxdrones/Hover-v0"
-HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def evaluate(model, env_kwargs: dict, n_episodes: int, seed: int) -> dict:
@@ -123,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
         env_kwargs["obs_type"] = args.obs_type
     batched = args.vec == "jaxdrones"
     suffix = f"_{args.vec}_{args.algo}" if batched or args.algo != "sb3" else ""
-    out = args.out or os.path.join(HERE, "results", f"sb3_hover_{args.action_type}{suffix}.json")
+    out = args.out or os.path.join(RESULTS, f"sb3_hover_{args.action_type}{suffix}.json")
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
 
     baseline = None
@@ -165,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--steps must be at least one rollout ({rollout} env steps)")
 
     result = {
-        "command": "python benchmarks/sb3_hover.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "command": "python benchmarks/training/sb3_hover.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "env_id": ENV_ID,
         "env_kwargs": env_kwargs,
         "vec": "jaxdrones.adapters.sb3.VecEnv" if batched else "make_vec_env",

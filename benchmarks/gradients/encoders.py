@@ -5,12 +5,12 @@ The work: the gradient of Σ features² of the default vision encoder (`BraxPPOC
 3×3/2, 3×3/2, ReLU) over ``--minibatches`` minibatches of ``--batch`` 24×32×1 images, a parameter step after
 each, as brax's PPO runs its minibatch updates: once as a ``lax.scan`` over the minibatches and once as a Python
 loop unrolled into the program. Each of the four programs is timed in turn within each repeat
-(`backends.timed_together`); µs per sample of the median.
+(`common.timed_together`); µs per sample of the median.
 
 Usage::
 
-    python benchmarks/encoders.py                # writes benchmarks/results/encoders.json
-    python benchmarks/encoders.py --batch 1024 --repeats 5
+    python benchmarks/gradients/encoders.py                # writes benchmarks/results/encoders.json
+    python benchmarks/gradients/encoders.py --batch 1024 --repeats 5
 """
 
 from __future__ import annotations
@@ -18,11 +18,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 
-from backends import timed_together  # a sibling script
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS, timed_together
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-DEFAULT_OUT = os.path.join(HERE, "results", "encoders.json")
+DEFAULT_OUT = os.path.join(RESULTS, "encoders.json")
 
 
 def parse_args(argv=None):

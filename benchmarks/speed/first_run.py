@@ -19,16 +19,17 @@ A setting can also be another checkout of jaxdrones, run from ``PYTHONPATH`` (fr
 checkout, so that the current folder does not come first), e.g. a commit against the working tree::
 
     git worktree add /tmp/base COMMIT && cd /tmp
-    python /path/to/benchmarks/first_run.py --rounds 2 --warm 3 --setting base PYTHONPATH=/tmp/base \
+    python /path/to/benchmarks/speed/first_run.py --rounds 2 --warm 3 --setting base PYTHONPATH=/tmp/base \
         --setting now PYTHONPATH=/path/to/checkout
 
-    python benchmarks/first_run.py                                          # the command line's settings against
+    python benchmarks/speed/first_run.py                                          # the command line's settings against
                                                                             # each GPU setting turned off
-    python benchmarks/first_run.py --rounds 3 --xla-timers
-    python benchmarks/first_run.py --rounds 1 --warm 2 --timeline --setting default
-    python benchmarks/first_run.py --setting nokernel JAX_THREEFRY_GPU_KERNEL_LOWERING=0 --train-args --defaults gpu
-    python benchmarks/first_run.py --setting one --setting seeds4 TRAIN_ARGS='--seeds 4'    # 4 seeds against 1
-    python benchmarks/first_run.py --setting one --setting sweep \
+    python benchmarks/speed/first_run.py --rounds 3 --xla-timers
+    python benchmarks/speed/first_run.py --rounds 1 --warm 2 --timeline --setting default
+    python benchmarks/speed/first_run.py --setting nokernel JAX_THREEFRY_GPU_KERNEL_LOWERING=0 \
+        --train-args --defaults gpu
+    python benchmarks/speed/first_run.py --setting one --setting seeds4 TRAIN_ARGS='--seeds 4'    # 4 seeds against 1
+    python benchmarks/speed/first_run.py --setting one --setting sweep \
         TRAIN_ARGS='--sweep learning_rate=1.5e-3,3e-3,6e-3 --seeds 3'                         # 9 runs against 1
 
 Results: a table of medians on stdout and every run in ``benchmarks/results/first_run_<TASK>.json`` (``--out``).
@@ -49,7 +50,9 @@ import sys
 import tempfile
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS
+
 #: The settings compared by default: the command line's own, and each of its GPU settings turned off by the
 #: user's environment variable (`jaxdrones.cli.xla.GPU_JAX_OPTIONS`, `jaxdrones.cli.xla.GPU_ENV`).
 DEFAULT_SETTINGS = {
@@ -219,7 +222,7 @@ def main() -> int:
         for record in warm[-1:] if args.timeline else []:
             for program in record["programs"]:
                 print(f"{'':<4}last warm run: {json.dumps(program)}")
-    path = args.out or os.path.join(HERE, "results", f"first_run_{args.task}.json")
+    path = args.out or os.path.join(RESULTS, f"first_run_{args.task}.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as f:
         json.dump({"task": args.task, "train_args": args.train_args, "records": records}, f, indent=1)

@@ -7,8 +7,8 @@ is the difference over K runs. The ratio is that memory over the estimate withou
 (`jaxdrones.training.runs.MEMORY_FACTOR`, which is the largest ratio measured): under 1 the check is too strict,
 over it too lax.
 
-    python benchmarks/run_memory.py                       # hover, velocity, crossing, leader_follower; K = 32
-    python benchmarks/run_memory.py --tasks hover --extra 64
+    python benchmarks/speed/run_memory.py                       # hover, velocity, crossing, leader_follower; K = 32
+    python benchmarks/speed/run_memory.py --tasks hover --extra 64
 """
 
 from __future__ import annotations

@@ -34,10 +34,10 @@ velocity. Its model has no drag or ground effect.
 
 Usage::
 
-    python benchmarks/gradients.py                      # writes benchmarks/results/gradients.json
-    python benchmarks/gradients.py --quick              # horizons 10, 100; worlds 1, 1024
-    python benchmarks/gradients.py --horizons 100 --worlds 1024 --no-crazyflow
-    python benchmarks/gradients.py --horizons 100 --worlds 1024 --no-crazyflow --callers default_env
+    python benchmarks/gradients/gradients.py                      # writes benchmarks/results/gradients.json
+    python benchmarks/gradients/gradients.py --quick              # horizons 10, 100; worlds 1, 1024
+    python benchmarks/gradients/gradients.py --horizons 100 --worlds 1024 --no-crazyflow
+    python benchmarks/gradients/gradients.py --horizons 100 --worlds 1024 --no-crazyflow --callers default_env
 """
 
 from __future__ import annotations
@@ -52,8 +52,11 @@ import sys
 import tempfile
 import time
 
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS
+
 HERE = os.path.dirname(os.path.abspath(__file__))
-DEFAULT_OUT = os.path.join(HERE, "results", "gradients.json")
+DEFAULT_OUT = os.path.join(RESULTS, "gradients.json")
 HORIZONS = (10, 100, 1000)
 WORLDS = (1, 1024, 16384)
 QUICK_HORIZONS, QUICK_WORLDS = (10, 100), (1, 1024)
@@ -310,8 +313,8 @@ def default_env_case(jax, jd, np, horizon: int, worlds: int, repeats: int, reali
 
 
 def run_crazyflow(args) -> tuple[list[dict], dict, str | None]:
-    """Run `_crazyflow_gradients.py` in crazyflow's venv (installed by `envs.crazyflow_python` when missing)."""
-    from envs import CRAZYFLOW_VENV, crazyflow_python
+    """Run `_crazyflow_gradients.py` in crazyflow's venv (installed by `common.crazyflow_python` when missing)."""
+    from common import CRAZYFLOW_VENV, crazyflow_python
 
     python, setup = crazyflow_python(CRAZYFLOW_VENV)
     if python is None:
@@ -346,8 +349,8 @@ def run_crazyflow(args) -> tuple[list[dict], dict, str | None]:
 
 def machine_header(jax, more: str = "") -> tuple[dict, tuple]:
     """Print the run's JAX, backend, CPU, cores, ``XLA_FLAGS`` and load average (then ``more``); return the
-    machine's info (`throughput.machine_info`) and the load average at the start."""
-    from throughput import machine_info
+    machine's info (`common.machine_info`) and the load average at the start."""
+    from common import machine_info
 
     info = machine_info(jax)
     load_start = os.getloadavg()
@@ -381,7 +384,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     import jax
     import numpy as np
-    from throughput import write_report
+    from common import write_report
 
     import jaxdrones as jd
 

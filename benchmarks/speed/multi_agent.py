@@ -21,8 +21,8 @@ control step. The other effects are off. The drones fly in a grid 0.5 m apart (j
 with the cell list, the table also gives the largest difference of the downwash force from the original's (every
 pair within 10 m) over the physics benchmark's drones, relative to the weight plus the force.
 
-    python benchmarks/multi_agent.py                     # D = 2, 8, 64, 256; writes benchmarks/results/multi_agent.json
-    python benchmarks/multi_agent.py --drones 2 8 --no-mappo
+    python benchmarks/speed/multi_agent.py         # D = 2, 8, 64, 256; writes benchmarks/results/multi_agent.json
+    python benchmarks/speed/multi_agent.py --drones 2 8 --no-mappo
 """
 
 from __future__ import annotations
@@ -34,7 +34,8 @@ import platform
 import sys
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS
 
 
 def best_time(fn, *args, repeats: int) -> float:
@@ -153,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=30, help="control steps per timed call")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-mappo", action="store_true", help="skip the MAPPO update timing")
-    parser.add_argument("--out", default=os.path.join(HERE, "results", "multi_agent.json"))
+    parser.add_argument("--out", default=os.path.join(RESULTS, "multi_agent.json"))
     args = parser.parse_args(argv)
 
     import jax

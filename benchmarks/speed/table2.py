@@ -23,8 +23,8 @@ compiles). The paper's published speed-ups (i7-8850H/P2000 and MacBook i7-1068NG
 
 Usage::
 
-    python benchmarks/table2.py                                   # writes benchmarks/results/table2.json
-    python benchmarks/table2.py --original /path/to/gym-pybullet-drones --seconds 2
+    python benchmarks/speed/table2.py                                   # writes benchmarks/results/table2.json
+    python benchmarks/speed/table2.py --original /path/to/gym-pybullet-drones --seconds 2
 """
 
 from __future__ import annotations
@@ -39,17 +39,17 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
 import original
-from backends import timed
-from throughput import machine_info, write_report
+from common import RESULTS, machine_info, timed, write_report
 
 import jaxdrones as jd
 from jaxdrones import cameras
 from jaxdrones.control import PIDGains, pid_control, pid_init
 from jaxdrones.scene import PAPER_OBSTACLES
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-DEFAULT_OUT = os.path.join(HERE, "results", "table2.json")
+DEFAULT_OUT = os.path.join(RESULTS, "table2.json")
 SIM_FREQ, CTRL_FREQ, CAMERA_FREQ = 240, 48, 24
 #: (label, drones per env, envs, vision) and the paper's speed-ups (i7-8850H/P2000, MacBook i7-1068NG7).
 ROWS = (
@@ -74,7 +74,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def median_time(run, repeats: int) -> float:
-    """Median wall seconds of ``run()`` over ``repeats`` calls after a warm-up (`backends.timed`)."""
+    """Median wall seconds of ``run()`` over ``repeats`` calls after a warm-up (`common.timed`)."""
     return timed(run, repeats)[1]
 
 

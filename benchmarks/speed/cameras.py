@@ -12,8 +12,8 @@ env steps/s of ``jit(vmap(step))`` in a ``lax.scan``.
 
 Usage::
 
-    python benchmarks/cameras.py                          # writes benchmarks/results/cameras.json
-    python benchmarks/cameras.py --worlds 1 64 1024 --primitives 16 --no-pybullet
+    python benchmarks/speed/cameras.py                          # writes benchmarks/results/cameras.json
+    python benchmarks/speed/cameras.py --worlds 1 64 1024 --primitives 16 --no-pybullet
 """
 
 from __future__ import annotations
@@ -21,12 +21,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 
-from backends import timed  # a sibling script: best and median wall time of repeated calls
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS, timed
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-DEFAULT_OUT = os.path.join(HERE, "results", "cameras.json")
+DEFAULT_OUT = os.path.join(RESULTS, "cameras.json")
 
 
 def parse_args(argv=None):

@@ -9,9 +9,9 @@ Needs JaxMARL's baselines, which its pip package does not ship: a checkout of ht
 wandb stays disabled). Measured with JaxMARL 0.2.0 and distrax 0.1.9; the README's table (Multi-agent tasks) came
 from these runs, 10 M env steps each (the yaml's budget):
 
-    python benchmarks/jaxmarl_ippo.py --baselines ~/JaxMARL/baselines/IPPO --task leader_follower \\
+    python benchmarks/training/jaxmarl_ippo.py --baselines ~/JaxMARL/baselines/IPPO --task leader_follower \\
         --action-type one_d_rpm --seed 30
-    python benchmarks/jaxmarl_ippo.py --baselines ~/JaxMARL/baselines/IPPO --task multi_hover --seed 30
+    python benchmarks/training/jaxmarl_ippo.py --baselines ~/JaxMARL/baselines/IPPO --task multi_hover --seed 30
 
 It prints one JSON line (env steps, wall time, the success metric in m, the terminated share, each drone's final
 height) and writes it to ``benchmarks/results/jaxmarl_ippo_<task>_<action type>_s<seed>.json``.
@@ -34,7 +34,8 @@ import jaxdrones  # noqa: E402,F401  (first, so that the wall time counts its im
 from jaxdrones.adapters import jaxmarl as jd_marl  # noqa: E402
 from jaxdrones.training.evaluation import episode_outcomes, episode_statistics, rollout_policy  # noqa: E402
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS  # noqa: E402
 
 
 def main() -> None:
@@ -94,9 +95,9 @@ def main() -> None:
         "jaxmarl": getattr(jaxmarl, "__version__", "?"),
     }
     print(json.dumps(result))
-    os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
+    os.makedirs(RESULTS, exist_ok=True)
     name = f"jaxmarl_ippo_{args.task}_{options.get('action_type', 'rpm')}_s{args.seed}.json"
-    with open(os.path.join(HERE, "results", name), "w") as f:
+    with open(os.path.join(RESULTS, name), "w") as f:
         json.dump(result, f, indent=2)
 
 

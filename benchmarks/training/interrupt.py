@@ -6,8 +6,8 @@ says what ``R`` holds (the old run or a complete new one, by its seed; anything 
 Each trial starts from an empty compilation cache, as a first run does (``--warm``: from the cache the first run
 filled). The new run's seed differs from the old one's, so that ``R``'s summary tells them apart.
 
-    python benchmarks/interrupt.py                        # hover at its defaults; SIGINT at 1, 3, 6 and 10 s
-    python benchmarks/interrupt.py --at 2 5 --warm
+    python benchmarks/training/interrupt.py                        # hover at its defaults; SIGINT at 1, 3, 6 and 10 s
+    python benchmarks/training/interrupt.py --at 2 5 --warm
 """
 
 from __future__ import annotations

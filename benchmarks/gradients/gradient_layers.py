@@ -1,6 +1,6 @@
 """The default env's gradient by layer: what the physics, the env layer, the observation and the policy each add.
 
-The work of `benchmarks/gradients.py`'s ``default_env`` caller (``jd.make("hover")`` at its defaults: 30 Hz
+The work of `benchmarks/gradients/gradients.py`'s ``default_env`` caller (``jd.make("hover")`` at its defaults: 30 Hz
 control, 8 physics substeps per step; T control steps of W worlds; per-step offsets 0.4 N(0, 1); the env's loss
 averaged over the steps), built up one layer at a time. Each variant is a ``lax.scan`` of T steps:
 
@@ -14,14 +14,14 @@ averaged over the steps), built up one layer at a time. Each variant is a ``lax.
   gradient anyone wants (it drops the feedback through the observation): it bounds from below what any derivative
   of the observation could cost.
 
-Timed as in `benchmarks/gradients.py` (`gradients.time_calls`: rounds of one call of each, medians): the forward
-pass, the loss and its gradient w.r.t. the offsets, and for the policy variants w.r.t. the policy's parameters;
+Timed as in `benchmarks/gradients/gradients.py` (`gradients.time_calls`: rounds of one call of each, medians): the
+forward pass, the loss and its gradient w.r.t. the offsets, and for the policy variants w.r.t. the policy's parameters;
 each ratio is the median over rounds of the gradient's time over the same variant's forward time.
 
 Usage::
 
-    python benchmarks/gradient_layers.py                 # T = 100, W = 1024; writes results/gradient_layers.json
-    python benchmarks/gradient_layers.py --repeats 9
+    python benchmarks/gradients/gradient_layers.py      # T = 100, W = 1024; writes results/gradient_layers.json
+    python benchmarks/gradients/gradient_layers.py --repeats 9
 """
 
 from __future__ import annotations
@@ -32,8 +32,10 @@ import os
 import statistics
 import sys
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-DEFAULT_OUT = os.path.join(HERE, "results", "gradient_layers.json")
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS
+
+DEFAULT_OUT = os.path.join(RESULTS, "gradient_layers.json")
 VARIANTS = ("physics", "open_loop", "policy", "policy_obs_stopped")
 
 
@@ -83,8 +85,8 @@ def main(argv=None) -> int:
 
     import jax
     import numpy as np
+    from common import write_report
     from gradients import machine_header, time_calls
-    from throughput import write_report
 
     import jaxdrones as jd
 

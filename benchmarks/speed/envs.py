@@ -25,9 +25,9 @@ wall time, and the 1-minute load average, since the timings are wall-clock on a 
 
 Usage::
 
-    python benchmarks/envs.py                 # writes benchmarks/results/envs.json
-    python benchmarks/envs.py --quick         # sizes 1 and 1024, fewer steps and repeats
-    python benchmarks/envs.py --sizes 4096 --no-crazyflow
+    python benchmarks/speed/envs.py                 # writes benchmarks/results/envs.json
+    python benchmarks/speed/envs.py --quick         # sizes 1 and 1024, fewer steps and repeats
+    python benchmarks/speed/envs.py --sizes 4096 --no-crazyflow
 """
 
 from __future__ import annotations
@@ -42,17 +42,17 @@ import tempfile
 import time
 
 import numpy as np
-from throughput import configure_devices, machine_info, write_report
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import CRAZYFLOW, CRAZYFLOW_VENV, RESULTS, configure_devices, crazyflow_python, machine_info, write_report
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-DEFAULT_OUT = os.path.join(HERE, "results", "envs.json")
+DEFAULT_OUT = os.path.join(RESULTS, "envs.json")
 SIZES = (1, 64, 1024, 4096)
 #: The JAX-native env also runs at these sizes by default.
 NATIVE_EXTRA = (16384,)
 QUICK_SIZES = (1, 1024)
 CTRL_FREQ = 30
-CRAZYFLOW = "crazyflow==0.4.0"
-CRAZYFLOW_VENV = os.path.join(HERE, ".venv-crazyflow")
 CRAZYFLOW_WORKER = os.path.join(HERE, "_crazyflow_worker.py")
 #: Aim for timed runs of about this many env-steps (fewer when --quick), within [MIN_STEPS, MAX_STEPS] steps.
 TARGET_ENV_STEPS = 400_000
@@ -171,9 +171,9 @@ def bench_vector(gymnasium, n: int, args) -> dict:
     return {
         "env": "vector",
         **result,
-        "sim_freq": cfg.sim_freq,
-        "ctrl_freq": cfg.ctrl_freq,
-        "substeps": cfg.sim_freq // cfg.ctrl_freq,
+        "sim_freq": cfg.sim.sim_freq,
+        "ctrl_freq": cfg.sim.ctrl_freq,
+        "substeps": cfg.sim.sim_freq // cfg.sim.ctrl_freq,
         "obs_type": cfg.obs_type,
         "action_type": cfg.action_type,
     }
@@ -234,54 +234,6 @@ def bench_native(jax, jd, n: int, args) -> dict:
 
 
 # -- crazyflow -----------------------------------------------------------------------------------------------------
-
-
-def crazyflow_python(venv: str) -> tuple[str | None, str]:
-    """The Python of a virtual environment with crazyflow 0.4.0, created and installed when missing.
-
-    Returns:
-        (path to its python or None, what was done or why it failed).
-    """
-    python = os.path.join(venv, "bin", "python")
-    version = _crazyflow_version(python)
-    if version == CRAZYFLOW.split("==")[1]:
-        return python, f"reused {venv} (crazyflow {version})"
-    print(f"installing {CRAZYFLOW} into {venv} ...", flush=True)
-    try:
-        if not os.path.exists(python):
-            subprocess.run(
-                [sys.executable, "-m", "venv", venv], check=True, capture_output=True, text=True, timeout=300
-            )
-        pip = subprocess.run(
-            [python, "-m", "pip", "install", "--disable-pip-version-check", CRAZYFLOW],
-            check=False,
-            capture_output=True,
-            text=True,
-            timeout=1800,
-        )
-    except (OSError, subprocess.SubprocessError) as e:
-        return None, f"could not create {venv}: {e}"
-    if pip.returncode != 0:
-        tail = " | ".join((pip.stdout + pip.stderr).strip().splitlines()[-5:])
-        return None, f"pip install {CRAZYFLOW} failed (exit {pip.returncode}): {tail}"
-    version = _crazyflow_version(python)
-    if version is None:
-        return None, f"pip installed {CRAZYFLOW} into {venv} but it does not import"
-    return python, f"installed {CRAZYFLOW} into {venv}"
-
-
-def _crazyflow_version(python: str) -> str | None:
-    if not os.path.exists(python):
-        return None
-    probe = subprocess.run(
-        [python, "-c", "import importlib.metadata as m, crazyflow; print(m.version('crazyflow'))"],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    lines = probe.stdout.strip().splitlines()  # crazyflow prints import messages first
-    return lines[-1] if probe.returncode == 0 and lines else None
 
 
 def bench_crazyflow(python: str, n: int, args) -> tuple[dict | None, dict, str | None]:

@@ -4,7 +4,7 @@ The original is not a dependency of jaxdrones. To measure it, clone it and give 
 
     git clone https://github.com/utiasDSL/gym-pybullet-drones /path/to/gym-pybullet-drones
     pip install "setuptools<81" transforms3d   # the original imports pkg_resources and transforms3d
-    python benchmarks/backends.py --original /path/to/gym-pybullet-drones
+    python benchmarks/speed/backends.py --original /path/to/gym-pybullet-drones
 
 (or install it with pip, and pass ``--original installed``). Without ``--original`` its rows are left out.
 """
@@ -23,7 +23,7 @@ def add_argument(parser) -> None:
         default=None,
         metavar="DIR",
         help="a checkout of gym-pybullet-drones (or 'installed') to time the original in the same "
-        "run; see benchmarks/original.py",
+        "run; see benchmarks/speed/original.py",
     )
 
 

@@ -8,7 +8,7 @@ What is measured (all on one host process, wall clock, best and median of ``--re
   work (same config, same number of steps) two ways: called from the same Python loop, and as one jitted
   ``jd.rollout`` (``lax.scan``). The PyBullet backend is also called on JAX arrays (``loop`` ``python-jax``: from the
   state `jd.init_state` returns, with a JAX RPM array at every call, as a jitted controller gives), and, with
-  ``--original``, the original's ``CtrlAviary.step`` at hover RPM (``benchmarks/original.py``). Reported: physics
+  ``--original``, the original's ``CtrlAviary.step`` at hover RPM (``benchmarks/speed/original.py``). Reported: physics
   steps/s (Bullet steps, i.e. 1/240 s of one world), drone-steps/s and the real-time factor (physics steps/s ÷ 240).
 - ``pid_loop``: the original's speed test setup (docs/physics.md §13, §15): 240 Hz physics, 48 Hz DSL PID control
   of each drone toward a target 0.5 m above its start, the PID (`jaxdrones.control.pid_control`, jitted with params,
@@ -21,9 +21,9 @@ What is measured (all on one host process, wall clock, best and median of ``--re
 
 Usage::
 
-    python benchmarks/backends.py            # writes benchmarks/results/backends.json
-    python benchmarks/backends.py --quick    # fewer steps and repeats
-    python benchmarks/backends.py --original /path/to/gym-pybullet-drones   # the original in the same run
+    python benchmarks/speed/backends.py            # writes benchmarks/results/backends.json
+    python benchmarks/speed/backends.py --quick    # fewer steps and repeats
+    python benchmarks/speed/backends.py --original /path/to/gym-pybullet-drones   # the original in the same run
 """
 
 from __future__ import annotations
@@ -31,19 +31,19 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import statistics
 import sys
-import time
 
 import jax
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
 import original
-from throughput import machine_info, write_report
+from common import RESULTS, machine_info, timed, timed_together, write_report
 
 import jaxdrones as jd
 from jaxdrones.control import PIDGains, pid_control, pid_init
 
-DEFAULT_OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "backends.json")
+DEFAULT_OUT = os.path.join(RESULTS, "backends.json")
 DRONES = (1, 10, 80)
 SIM_FREQ = 240
 
@@ -62,31 +62,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     args.seconds = args.seconds or (1.0 if args.quick else 5.0)
     args.repeats = args.repeats or (3 if args.quick else 5)
     return args
-
-
-def timed(run, repeats: int) -> tuple[float, float]:
-    """Best and median wall time of ``run()`` over ``repeats`` calls, after one warm-up call."""
-    run()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return min(times), statistics.median(times)
-
-
-def timed_together(runs: dict, repeats: int) -> dict:
-    """Best and median wall time of each of ``runs`` (name → callable), timed in turn within each of ``repeats``
-    rounds after one warm-up call each, so that a change of the machine's load reaches every run alike."""
-    for run in runs.values():
-        run()
-    times = {name: [] for name in runs}
-    for _ in range(repeats):
-        for name, run in runs.items():
-            start = time.perf_counter()
-            run()
-            times[name].append(time.perf_counter() - start)
-    return {name: (min(t), statistics.median(t)) for name, t in times.items()}
 
 
 def hover_setup(n_drones: int, ctrl_freq: int):

@@ -11,8 +11,8 @@ metric, mean over episodes: the lower drone's dip when the other passes over it)
 reference and the share of terminated episodes. For scale, the DSL PID (``action_type="pid"``, its target the
 reference point) flies the same starts.
 
-    python benchmarks/downwash_policies.py                  # seed 0; writes benchmarks/results/downwash_policies.json
-    python benchmarks/downwash_policies.py --seeds 0 1 2 --steps 3000000
+    python benchmarks/training/downwash_policies.py     # seed 0; writes benchmarks/results/downwash_policies.json
+    python benchmarks/training/downwash_policies.py --seeds 0 1 2 --steps 3000000
 """
 
 from __future__ import annotations
@@ -24,7 +24,9 @@ import platform
 import subprocess
 import sys
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS
+
 EPISODES = 256
 
 
@@ -82,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=None, help="env steps per training (default: the trainer's)")
     parser.add_argument(
         "--out",
-        default=os.path.join(HERE, "results", "downwash_policies"),
+        default=os.path.join(RESULTS, "downwash_policies"),
         help="folder for the run folders and the JSON",
     )
     args = parser.parse_args(argv)

@@ -2,22 +2,23 @@
 
 The work: a ``lax.scan`` of T control steps over ``jaxdrones.make_step(jd.make("hover").config.sim)`` (the hover
 env's physics at its defaults: 240 Hz physics, 30 Hz control, 8 substeps per step) for W worlds of one cf2x,
-starting 5-30 cm up, RPM commands within 2 % of hover, the loss of `benchmarks/gradients.py` (its start positions
-and ``trajectory_loss``). The forward pass and the value and gradient w.r.t. the commands are timed in
+starting 5-30 cm up, RPM commands within 2 % of hover, the loss of `benchmarks/gradients/gradients.py` (its start
+positions and ``trajectory_loss``). The forward pass and the value and gradient w.r.t. the commands are timed in
 rounds (medians, and their ratio); then ``jax.profiler`` traces ``--traced`` gradient calls and the trace's
 operations (XLA's thunks: fusions, loops, copies) are summed per call, by name with the numeric suffix dropped,
 and listed by the share of the time they take. On jax >= 0.11 each inner ``while`` loop (the substeps) runs as one
 ``call``; on jax 0.10 the loops' own fusions appear (and the profiler's per-operation overhead inflates them).
-``--caller default_env`` traces the whole env step instead (`benchmarks/gradients.py`'s ``default_env`` caller:
-``jd.make("hover")``'s vmapped step, a linear tanh policy, the env's loss), differentiated w.r.t. the offsets, or
-w.r.t. the policy's parameters with ``--wrt policy`` (the ``grad(policy)`` column of `benchmarks/gradients.py`).
+``--caller default_env`` traces the whole env step instead (`benchmarks/gradients/gradients.py`'s ``default_env``
+caller: ``jd.make("hover")``'s vmapped step, a linear tanh policy, the env's loss), differentiated w.r.t. the offsets,
+or w.r.t. the policy's parameters with ``--wrt policy`` (the ``grad(policy)`` column of
+`benchmarks/gradients/gradients.py`).
 
 Usage::
 
-    python benchmarks/gradient_profile.py                    # W = 1024, T = 100
-    python benchmarks/gradient_profile.py --worlds 4096 --top 30
-    python benchmarks/gradient_profile.py --caller default_env
-    python benchmarks/gradient_profile.py --caller default_env --wrt policy
+    python benchmarks/gradients/gradient_profile.py                    # W = 1024, T = 100
+    python benchmarks/gradients/gradient_profile.py --worlds 4096 --top 30
+    python benchmarks/gradients/gradient_profile.py --caller default_env
+    python benchmarks/gradients/gradient_profile.py --caller default_env --wrt policy
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ def main(argv=None) -> int:
         choices=("physics", "default_env", "default_env_crazyflie"),
         default="physics",
         help="physics: a scan over the default env's step function (default); default_env(_crazyflie): the whole "
-        "env step with a policy, as benchmarks/gradients.py's callers of that name",
+        "env step with a policy, as benchmarks/gradients/gradients.py's callers of that name",
     )
     parser.add_argument(
         "--wrt",
@@ -64,7 +65,7 @@ def main(argv=None) -> int:
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from gradients import default_env_setup, start_positions, trajectory_loss  # benchmarks/gradients.py's work
+    from gradients import default_env_setup, start_positions, trajectory_loss  # gradients.py's work
 
     import jaxdrones as jd
 

@@ -19,27 +19,26 @@ is recorded too.
 
 Usage::
 
-    python benchmarks/throughput.py                      # full grid, writes benchmarks/results/throughput.json
-    python benchmarks/throughput.py --quick              # smaller grid, fewer repeats
-    python benchmarks/throughput.py --worlds 16384 --drones 1 --effects on
+    python benchmarks/speed/throughput.py                      # full grid, writes benchmarks/results/throughput.json
+    python benchmarks/speed/throughput.py --quick              # smaller grid, fewer repeats
+    python benchmarks/speed/throughput.py --worlds 16384 --drones 1 --effects on
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
-import platform
 import resource
-import subprocess
 import sys
 import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS, configure_devices, machine_info, write_report
 
 WORLDS = (1, 64, 1024, 16384, 131072)
 DRONES = (1, 4)
 QUICK_WORLDS = (1, 1024, 16384)
-DEFAULT_OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "throughput.json")
+DEFAULT_OUT = os.path.join(RESULTS, "throughput.json")
 #: Aim for calls of about this many drone-steps, so each timed call lasts long enough to measure.
 TARGET_DRONE_STEPS = 2_000_000
 
@@ -95,52 +94,6 @@ def parse_args(argv=None) -> argparse.Namespace:
         if min(getattr(args, name)) < 1:
             parser.error(f"--{name} must be positive")
     return args
-
-
-def configure_devices(requested: int | None) -> str:
-    """Set XLA_FLAGS for one CPU device per core (must run before jax is imported); returns what was used."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    if requested is not None:
-        flags = " ".join(f for f in flags.split() if not f.startswith("--xla_force_host_platform_device_count"))
-        flags += f" --xla_force_host_platform_device_count={requested}"
-    elif "xla_force_host_platform_device_count" not in flags:
-        flags += f" --xla_force_host_platform_device_count={len(os.sched_getaffinity(0))}"
-    os.environ["XLA_FLAGS"] = flags.strip()
-    return os.environ["XLA_FLAGS"]
-
-
-def machine_info(jax) -> dict:
-    cpu_model = platform.processor()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu_model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-            cwd=os.path.dirname(os.path.abspath(__file__)),
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = None
-    import jaxlib
-
-    return {
-        "cpu_count": os.cpu_count(),
-        "cpus_available": len(os.sched_getaffinity(0)),
-        "cpu_model": cpu_model,
-        "platform": platform.platform(),
-        "python": sys.version.split()[0],
-        "jax": jax.__version__,
-        "jaxlib": jaxlib.__version__,
-        "backend": jax.default_backend(),
-        "devices": [str(d) for d in jax.devices()],
-        "xla_flags": os.environ.get("XLA_FLAGS", ""),
-        "git_commit": commit,
-    }
 
 
 def measure(jax, jd, args, n_worlds: int, n_drones: int, effects_on: bool) -> dict:
@@ -272,23 +225,6 @@ def main(argv=None) -> int:
     }
     write_report(args.out, "jaxdrones physics core throughput", info, settings, results, loadavg_start=load_start)
     return 0
-
-
-def write_report(path: str, benchmark: str, info: dict, settings: dict, results: list, **extra) -> None:
-    """Write a benchmark's JSON report (name, date, machine, load, settings, results) to ``path``."""
-    report = {
-        "benchmark": benchmark,
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "machine": info,
-        **extra,
-        "loadavg_end": os.getloadavg(),
-        "settings": settings,
-        "results": results,
-    }
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(report, f, indent=2)
-    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

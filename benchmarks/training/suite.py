@@ -16,10 +16,10 @@ starts), the largest share of evaluation episodes that ended early (crashed or l
 solved (`jaxdrones.training.evaluation.failed_criteria`: below the threshold, and none ended early where the task's
 metric does not count them itself).
 
-    python benchmarks/suite.py --seeds 0 1 2                      # every task, cpu or gpu by the device
-    python benchmarks/suite.py --tasks takeoff crossing --seeds 0 --no-rerun
-    python benchmarks/suite.py --defaults gpu --seeds 0 1 2       # the gpu profile (on a GPU: the warm goal 60 s)
-    python benchmarks/suite.py --mapped --seeds 0 1 2 3           # each task's seeds in one run (--seeds 4)
+    python benchmarks/training/suite.py --seeds 0 1 2                      # every task, cpu or gpu by the device
+    python benchmarks/training/suite.py --tasks takeoff crossing --seeds 0 --no-rerun
+    python benchmarks/training/suite.py --defaults gpu --seeds 0 1 2       # the gpu profile (GPU: warm goal 60 s)
+    python benchmarks/training/suite.py --mapped --seeds 0 1 2 3           # each task's seeds in one run (--seeds 4)
 
 Results: the table (Markdown) on stdout and in ``OUT/suite.md``, every run's record in ``OUT/suite.json`` (default
 ``OUT``: ``benchmarks/results/suite``).
@@ -37,6 +37,9 @@ import subprocess
 import sys
 import tempfile
 import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -170,7 +173,7 @@ def main() -> int:
     parser.add_argument("--tasks", nargs="+", default=list(TRAINABLE), choices=TRAINABLE, metavar="TASK")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--defaults", choices=("cpu", "gpu"), default=None, help="the profile (default: the device's)")
-    parser.add_argument("--out", default=os.path.join(HERE, "results", "suite"))
+    parser.add_argument("--out", default=os.path.join(RESULTS, "suite"))
     parser.add_argument(
         "--no-rerun", action="store_true", help="with one seed, no second (warm) run: the first run's time only"
     )
@@ -205,7 +208,7 @@ def main() -> int:
         run_task(task, args.seeds, args.out, extra, keep, rerun=not args.no_rerun, mapped=args.mapped)
     text = (
         f"Suite at its defaults ({started}, commit {commit}, {machine()}; "
-        f"`python benchmarks/suite.py {' '.join(sys.argv[1:])}`)\n\n{table(records)}\n"
+        f"`python benchmarks/training/suite.py {' '.join(sys.argv[1:])}`)\n\n{table(records)}\n"
     )
     print("\n" + text)
     with open(os.path.join(args.out, "suite.md"), "w") as f:

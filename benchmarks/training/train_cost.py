@@ -29,10 +29,10 @@ unroll_substeps`); the CPU's count of a program is an upper bound of a GPU's ker
 
 Usage::
 
-    python benchmarks/train_cost.py                                  # apg, ppo, brax_ppo x cpu, gpu
-    python benchmarks/train_cost.py --algos apg --profiles gpu --runs 2
-    python benchmarks/train_cost.py --no-train                       # the counts only
-    python benchmarks/train_cost.py --algos ppo --profiles gpu --no-train --by-loop   # and by loop (CPU)
+    python benchmarks/training/train_cost.py                                  # apg, ppo, brax_ppo x cpu, gpu
+    python benchmarks/training/train_cost.py --algos apg --profiles gpu --runs 2
+    python benchmarks/training/train_cost.py --no-train                       # the counts only
+    python benchmarks/training/train_cost.py --algos ppo --profiles gpu --no-train --by-loop   # and by loop (CPU)
 """
 
 from __future__ import annotations

@@ -28,9 +28,9 @@ Beside the trainers' speed, the JAX-native env alone: ``VmapAutoReset(jd.make(TA
 metric is below its threshold (hover: final distance < 5 cm) with no episode terminated early; the summary gives,
 per algorithm, the smallest budget that solved it, with its cold and warm wall times.
 
-    python benchmarks/train_algos.py                                   # hover, budgets 0.5, 1, 2 and 3 M steps
-    python benchmarks/train_algos.py --budgets default                 # each trainer's own budget for the task
-    python benchmarks/train_algos.py --task velocity --budgets 1e6 3e6 --algos apg shac --stop-at-solved
+    python benchmarks/training/train_algos.py                                   # hover, budgets 0.5, 1, 2 and 3 M steps
+    python benchmarks/training/train_algos.py --budgets default                 # each trainer's own budget for the task
+    python benchmarks/training/train_algos.py --task velocity --budgets 1e6 3e6 --algos apg shac --stop-at-solved
 
 Results go to ``benchmarks/results/train_algos_<task>.json`` (``--out``). ``--train-args`` adds arguments to every
 ``jaxdrones train`` command (e.g. ``--train-args "--realism crazyflie --action-type ctbr"``).
@@ -48,7 +48,9 @@ import sys
 import tempfile
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS
+
 ALGOS = ("ppo", "brax_ppo", "apg", "shac")
 BUDGETS = (5e5, 1e6, 2e6, 3e6)
 CACHES = ("cold", "warm")
@@ -96,7 +98,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     parser.add_argument("--out", default=None, help="JSON output (default benchmarks/results/train_algos_TASK.json)")
     args = parser.parse_args(argv)
-    args.out = args.out or os.path.join(HERE, "results", f"train_algos_{args.task}.json")
+    args.out = args.out or os.path.join(RESULTS, f"train_algos_{args.task}.json")
     # Smallest first, so that the first budget that solves is the smallest; the trainer's own budget last.
     args.budgets = sorted({b for b in args.budgets if b is not None}) + [None] * (None in args.budgets)
     if args.env_repeats < 0:
@@ -234,7 +236,7 @@ def env_rates(task: str, worlds: list[int], repeats: int) -> list[dict]:
     """Env-steps/s of the JAX-native env alone (`envs.bench_native`) at each number of worlds."""
     import jaxdrones as jd  # noqa: I001  (first: it sets XLA's flags before JAX starts)
     import jax
-    from envs import MAX_STEPS, TARGET_ENV_STEPS, bench_native
+    from speed.envs import MAX_STEPS, TARGET_ENV_STEPS, bench_native
 
     if task != "hover":
         print(f"env alone: measured on hover (envs.bench_native), not {task}")
@@ -327,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
     env_alone = env_rates(args.task, worlds, args.env_repeats) if args.env_repeats > 0 and worlds else []
 
     import jax
-    from throughput import machine_info, write_report
+    from common import machine_info, write_report
 
     settings = {k: v for k, v in vars(args).items() if k != "out"} | {
         "eval_episodes": 256,
