@@ -11,8 +11,9 @@ offset over the flight (`reference` samples: above 0.25 m, nobody above within 0
   takeoff_l}``, held out: ``datacollection23_06_23_2020/randomwalk_{s,l}_{1,2}`` and
   ``datacollection20_12_20_2019/takeoff_landing_{small,large}``;
 - downwash (paper eq. down, and the bounded form of `jaxdrones.physics.aerodynamics.downwash_force`): the swaps, scored
-  while another drone is above within 15 cm horizontally (`crossing`); fitted on the 56 runs of
-  ``datacollection21_06_16_2020/swap_*``, held out: ``datacollection20_12_20_2019/swap_{sss,sls,lsl}``;
+  while another drone is above within 15 cm horizontally (`crossing`); fitted on every other swap of the repository
+  (the 99 runs of ``datacollection19_12_11_2019/swap_*``, ``21_06_16_2020/swap_*``, ``22_06_19_2020/swap_*`` and
+  ``23_06_23_2020/swap_lll``), held out: ``datacollection20_12_20_2019/swap_{sss,sls,lsl}``;
 - drag (paper eq. drag): the horizontal residual of the same flights (ground and downwash sets, each drone's samples
   with nobody above within 30 cm and higher than 10 cm);
 - motor lag: a first-order lag of the logged thrust (`lagged_thrust_z`) on the vertical residual without smoothing,
@@ -25,7 +26,8 @@ Usage::
 
     git clone https://github.com/aerorobotics/neural-swarm
     python benchmarks/validation/flights.py --clone neural-swarm --json flights.json --plots docs/images
-    python benchmarks/validation/flights.py --clone neural-swarm --score datacollection22_06_19_2020/swap_sll
+    python benchmarks/validation/flights.py --clone neural-swarm \
+        --score datacollection20_12_20_2019/random_walk_small_ground
 """
 
 from __future__ import annotations
@@ -45,8 +47,12 @@ GROUND = {
     + [f"datacollection20_12_20_2019/takeoff_landing_{x}" for x in ("small", "large")],
 }
 SWAPS = ("ss", "sl", "ll", "sss", "ssl", "sll", "lll")
+#: Downwash: fitted on every swap of the repository but the three held out.
 DOWNWASH = {
-    "train": [f"datacollection21_06_16_2020/swap_{x}" for x in SWAPS],
+    "train": [f"datacollection21_06_16_2020/swap_{x}" for x in SWAPS]
+    + [f"datacollection19_12_11_2019/swap_{x}" for x in ("small_small", "large_small", "large_large")]
+    + [f"datacollection22_06_19_2020/swap_{x}" for x in ("sl", "ssl", "sll", "lll")]
+    + ["datacollection23_06_23_2020/swap_lll"],
     "test": [f"datacollection20_12_20_2019/swap_{x}" for x in ("sss", "sls", "lsl")],
 }
 GRAMS = 1000 / 9.81

@@ -1,0 +1,56 @@
+"""The Crazyflie firmware's controllers as pure JAX functions, batched over any leading axes (e.g. ``[W, D]``).
+
+Re-implemented from bitcraze/crazyflie-firmware at 2a18fc29 (each module cites the file it follows) and checked
+against the firmware's own C through its Python bindings (tests/test_firmware.py): the default PID cascade
+(`controller_pid`, one call per 1 kHz tick) and the quadrotor power distribution (`power_distribution_legacy`,
+`power_distribution_force_torque`, `power_distribution_cap`), with the firmware's state, setpoint and control types
+(`Setpoint`, `FirmwareState`, `Control`) and `firmware_state`, the firmware's view of a `DroneState`.
+"""
+
+from jaxdrones.control.firmware.controller_pid import (
+    ATTITUDE_RATE,
+    POSITION_RATE,
+    RATE_MAIN_LOOP,
+    PidControllerGains,
+    PidControllerState,
+    controller_pid,
+    controller_pid_init,
+)
+from jaxdrones.control.firmware.pid import PidGains, PidState, pid_update
+from jaxdrones.control.firmware.power import (
+    power_distribution_cap,
+    power_distribution_force_torque,
+    power_distribution_legacy,
+)
+from jaxdrones.control.firmware.types import (
+    MODE_ABS,
+    MODE_DISABLE,
+    MODE_VELOCITY,
+    Control,
+    FirmwareState,
+    Setpoint,
+    firmware_state,
+)
+
+__all__ = [
+    "ATTITUDE_RATE",
+    "MODE_ABS",
+    "MODE_DISABLE",
+    "MODE_VELOCITY",
+    "POSITION_RATE",
+    "RATE_MAIN_LOOP",
+    "Control",
+    "FirmwareState",
+    "PidControllerGains",
+    "PidControllerState",
+    "PidGains",
+    "PidState",
+    "Setpoint",
+    "controller_pid",
+    "controller_pid_init",
+    "firmware_state",
+    "pid_update",
+    "power_distribution_cap",
+    "power_distribution_force_torque",
+    "power_distribution_legacy",
+]

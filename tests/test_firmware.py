@@ -1,0 +1,109 @@
+"""`jaxdrones.control.firmware` against the Crazyflie firmware's own C (its Python bindings, built from the firmware's
+sources by `firmware_c.bindings`; marker ``firmware``, run by ``pytest -m firmware`` and by .ci/run in every lane):
+the PID cascade tick by tick over random sequences of states and setpoints in every mode, and the power
+distribution over random controls."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from firmware_c import bindings, prime, random_ticks, run_c_pid
+
+from jaxdrones.control import firmware as fw
+
+pytestmark = pytest.mark.firmware
+
+
+@pytest.fixture(scope="module")
+def cf(request):
+    return bindings(request.config.cache.mkdir("firmware"))
+
+
+def run_jax_pid(ticks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The same ticks through `fw.controller_pid` in one ``lax.scan``."""
+    gains = fw.PidControllerGains.crazyflie()
+
+    def tick(cstate, inputs):
+        i, t = inputs
+        setpoint = fw.Setpoint(
+            mode=t["mode"],
+            attitude=t["sp_attitude"],
+            attitude_rate=t["sp_rate"],
+            quat=t["sp_quat"],
+            thrust=t["sp_thrust"],
+            position=t["sp_position"],
+            velocity=t["sp_velocity"],
+            velocity_body=t["sp_velocity_body"],
+        )
+        state = fw.FirmwareState(
+            attitude=t["attitude"], quat=t["quat"], position=t["position"], velocity=t["velocity"], gyro=t["gyro"]
+        )
+        cstate, control = fw.controller_pid(gains, cstate, setpoint, state, i)
+        return cstate, control
+
+    n = len(ticks["mode"])
+    inputs = (jnp.arange(n, dtype=jnp.int32), {k: jnp.asarray(v) for k, v in ticks.items()})
+    _, controls = jax.jit(lambda xs: jax.lax.scan(tick, fw.controller_pid_init(), xs))(inputs)
+    return {k: np.asarray(getattr(controls, k)) for k in ("roll", "pitch", "yaw", "thrust")}
+
+
+def test_the_pid_cascade_is_the_firmwares_tick_by_tick(cf):
+    """10⁵ ticks of random states and setpoints (every cflib mode, far targets held until the integrators clamp,
+    zero-thrust resets): the JAX cascade's outputs equal the C's to float32 rounding."""
+    ticks = prime(random_ticks(np.random.default_rng(0), 100_000))
+    c = run_c_pid(cf, ticks)
+    j = run_jax_pid(ticks)
+    thrust_err = np.max(np.abs(j["thrust"] - c["thrust"]) / np.maximum(np.abs(c["thrust"]), 1.0))
+    worst = {k: int(np.max(np.abs(j[k] - c[k]))) for k in ("roll", "pitch", "yaw")}
+    share = {k: float(np.mean(j[k] != c[k])) for k in ("roll", "pitch", "yaw")}
+    print(f"thrust rel err {thrust_err:.2e}; int16 outputs: largest difference {worst}, share differing {share}")
+    assert np.all(c["thrust"] >= 0) and np.any(c["thrust"] == 0) and np.any(c["thrust"] > 60000)
+    assert np.any(np.abs(c["roll"]) == 32767)
+    assert thrust_err < 1e-4
+    assert max(worst.values()) <= 1 and max(share.values()) < 5e-3  # a truncation at a float32 rounding
+
+
+def _motors(values) -> tuple[int, int, int, int]:
+    m = values.motors
+    return m.m1, m.m2, m.m3, m.m4
+
+
+def test_the_power_distribution_is_the_firmwares(cf):
+    """10⁵ random controls, legacy (int16 roll, pitch, yaw and thrust, up to the cap and beyond) and force-torque
+    (thrusts and torques up to twice the motors' range, negative forces included), each capped: the motors' PWM
+    equal the C's exactly (legacy) and within one unit (force-torque: a float32 product truncated)."""
+    rng = np.random.default_rng(1)
+    n = 100_000
+    roll, pitch, yaw = (rng.integers(-32767, 32768, n) for _ in range(3))
+    thrust = rng.uniform(0, 70000, n).astype(np.float32)
+    thrust_si = rng.uniform(-0.1, 1.0, n).astype(np.float32)
+    torque = (rng.normal(size=(n, 3)) * np.array([5e-3, 5e-3, 2e-3])).astype(np.float32)
+    c_legacy, c_ft = np.zeros((n, 4), np.int64), np.zeros((n, 4), np.int64)
+    c_legacy_capped, c_ft_capped = np.zeros((n, 4), np.int64), np.zeros((n, 4), np.int64)
+    control, uncapped, pwm = cf.control_t(), cf.motors_thrust_uncapped_t(), cf.motors_thrust_pwm_t()
+    for i in range(n):
+        control.controlMode = cf.controlModeLegacy
+        control.roll, control.pitch, control.yaw = int(roll[i]), int(pitch[i]), int(yaw[i])
+        control.thrust = float(thrust[i])
+        cf.powerDistribution(control, uncapped)
+        cf.powerDistributionCap(uncapped, pwm)
+        c_legacy[i], c_legacy_capped[i] = _motors(uncapped), _motors(pwm)
+        control.controlMode = cf.controlModeForceTorque
+        control.thrustSi = float(thrust_si[i])
+        control.torqueX, control.torqueY, control.torqueZ = (float(v) for v in torque[i])
+        cf.powerDistribution(control, uncapped)
+        cf.powerDistributionCap(uncapped, pwm)
+        c_ft[i], c_ft_capped[i] = _motors(uncapped), _motors(pwm)
+    legacy = fw.power_distribution_legacy(
+        fw.Control(roll=jnp.asarray(roll), pitch=jnp.asarray(pitch), yaw=jnp.asarray(yaw), thrust=jnp.asarray(thrust))
+    )
+    ft = fw.power_distribution_force_torque(jnp.asarray(thrust_si), jnp.asarray(torque))
+    assert np.array_equal(np.asarray(legacy), c_legacy)
+    assert np.array_equal(np.asarray(fw.power_distribution_cap(legacy)), c_legacy_capped)
+    assert np.any(c_legacy.max(axis=1) > 65535) and np.any(c_legacy < 0)
+    worst = int(np.max(np.abs(np.asarray(ft) - c_ft)))
+    capped = int(np.max(np.abs(np.asarray(fw.power_distribution_cap(ft)) - c_ft_capped)))
+    print(f"force-torque: largest difference {worst} uncapped, {capped} capped")
+    assert worst <= 1 and capped <= 1 and np.any(c_ft.max(axis=1) > 65535) and np.any(c_ft == 0)

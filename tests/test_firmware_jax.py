@@ -1,0 +1,93 @@
+"""`jaxdrones.control.firmware` without the firmware: batched over ``[W, D]`` as one drone at a time, jittable,
+and a level hover at the thrust base (the checks against the firmware's C are tests/test_firmware.py's)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from firmware_c import prime, random_ticks
+
+from jaxdrones.control import firmware as fw
+
+pytestmark = pytest.mark.unit
+
+
+def _inputs(t: dict) -> tuple[fw.Setpoint, fw.FirmwareState]:
+    setpoint = fw.Setpoint(
+        mode=t["mode"],
+        attitude=t["sp_attitude"],
+        attitude_rate=t["sp_rate"],
+        quat=t["sp_quat"],
+        thrust=t["sp_thrust"],
+        position=t["sp_position"],
+        velocity=t["sp_velocity"],
+        velocity_body=t["sp_velocity_body"],
+    )
+    state = fw.FirmwareState(
+        attitude=t["attitude"], quat=t["quat"], position=t["position"], velocity=t["velocity"], gyro=t["gyro"]
+    )
+    return setpoint, state
+
+
+def _fly(ticks: dict, batch: tuple[int, ...]) -> fw.Control:
+    gains = fw.PidControllerGains.crazyflie()
+
+    def step(cstate, inputs):
+        i, t = inputs
+        return fw.controller_pid(gains, cstate, *_inputs(t), i)
+
+    n = ticks["mode"].shape[0]
+    xs = (jnp.arange(n, dtype=jnp.int32), {k: jnp.asarray(v) for k, v in ticks.items()})
+    return jax.jit(lambda xs: jax.lax.scan(step, fw.controller_pid_init(batch), xs)[1])(xs)
+
+
+def test_a_batch_of_drones_flies_as_each_drone_alone():
+    """2 worlds × 3 drones, each its own random sequence of 300 ticks: the batched call's outputs are each drone's
+    alone, bit for bit."""
+    rng = np.random.default_rng(3)
+    sequences = [prime(random_ticks(rng, 300)) for _ in range(6)]
+    stacked = {
+        k: np.stack([s[k] for s in sequences], axis=1).reshape(301, 2, 3, *sequences[0][k].shape[1:])
+        for k in sequences[0]
+    }
+    batched = _fly(stacked, (2, 3))
+    for b, seq in enumerate(sequences):
+        alone = _fly(seq, ())
+        for name in ("roll", "pitch", "yaw", "thrust"):
+            got = np.asarray(getattr(batched, name)).reshape(301, 6)[:, b]
+            np.testing.assert_array_equal(got, np.asarray(getattr(alone, name)), err_msg=f"drone {b}, {name}")
+
+
+def test_a_level_drone_holding_its_position_gets_the_thrust_base_and_no_torque():
+    """At the setpoint, level, still: the first position tick gives thrustBase (36000) and zero roll, pitch, yaw;
+    the power distribution gives each motor 36000."""
+    setpoint = fw.Setpoint.zeros((4,))
+    setpoint = setpoint.replace(
+        mode=jnp.broadcast_to(jnp.array([1, 1, 1, 0, 0, 1, 0], jnp.int32), (4, 7)),
+        position=jnp.zeros((4, 3)).at[:, 2].set(1.0),
+    )
+    state = fw.FirmwareState(
+        attitude=jnp.zeros((4, 3)),
+        quat=jnp.zeros((4, 4)).at[:, 3].set(1.0),
+        position=jnp.zeros((4, 3)).at[:, 2].set(1.0),
+        velocity=jnp.zeros((4, 3)),
+        gyro=jnp.zeros((4, 3)),
+    )
+    _, control = fw.controller_pid(fw.PidControllerGains.crazyflie(), fw.controller_pid_init((4,)), setpoint, state, 0)
+    np.testing.assert_array_equal(np.asarray(control.thrust), 36000.0)
+    assert not np.any(np.asarray(control.roll)) and not np.any(np.asarray(control.yaw))
+    motors = fw.power_distribution_cap(fw.power_distribution_legacy(control))
+    np.testing.assert_array_equal(np.asarray(motors), 36000)
+
+
+def test_the_firmware_state_of_a_drone_state_follows_the_firmwares_frames():
+    """A drone pitched by +10° (about body y) and yawed by 30° reads attitude (0, −10, 30): the firmware's legacy
+    frame inverts the pitch; the gyro is the body rates in deg/s."""
+    import jaxdrones as jd
+
+    state = jd.init_state(jd.SimConfig(), rpy=np.deg2rad([[0.0, 10.0, 30.0]]), ang_vel=[[1.0, 0.0, 0.0]])
+    firmware = fw.firmware_state(state)
+    np.testing.assert_allclose(np.asarray(firmware.attitude), [[0.0, -10.0, 30.0]], atol=1e-4)
+    np.testing.assert_allclose(np.asarray(firmware.gyro), [[np.rad2deg(1.0), 0.0, 0.0]], rtol=1e-6)
