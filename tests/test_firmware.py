@@ -111,14 +111,14 @@ def test_the_power_distribution_is_the_firmwares(cf):
 
 def test_in_closed_loop_the_jax_cascade_flies_where_the_firmwares_does(cf):
     """Five 10 s flights from random starts (±20 cm around 1 m, tilted up to ~10°) to random waypoints changing every
-    2 s, with jaxdrones' physics at 1 kHz and first-order motors (τ = 69 ms, docs/validation.md §3): the firmware's C
+    2 s, with jaxdrones' physics at 1 kHz and first-order motors (τ = 61 ms, docs/validation.md §3): the firmware's C
     controller and power distribution (through the bindings) and the JAX ones, each in the loop with the same compiled
     physics, fly the same tracks, within 1 mm at every tick."""
     import jaxdrones as jd
 
     config = jd.SimConfig(sim_freq=1000, ctrl_freq=1000, motor_dynamics=True)
     step = jd.make_step(config)
-    params = jd.load_params("cf2x").replace(motor_tau_up=jnp.float32(0.069), motor_tau_down=jnp.float32(0.069))
+    params = jd.load_params("cf2x").replace(motor_tau_up=jnp.float32(0.061), motor_tau_down=jnp.float32(0.061))
     rng = np.random.default_rng(2)
     n, ticks = 5, 10_000
     start = jd.init_state(

@@ -436,22 +436,22 @@ def test_flights_script_on_a_clone_of_its_layout(tmp_path, monkeypatch):
     for folder in script.GROUND["train"] + script.GROUND["test"]:
         (tmp_path / script.TRAINING / folder).mkdir(parents=True)
         _write_flight(tmp_path / script.TRAINING / folder / "cf50_00", x, 80 + 0 * x + rng.integers(0, 60), rng)
-    for folder in [*script.DOWNWASH["train"], *script.DOWNWASH["test"], "datacollection22_06_19_2020/swap_sll"]:
+    for folder in [*script.DOWNWASH["train"], *script.DOWNWASH["test"], "datacollection20_12_20_2019/swap_more"]:
         (tmp_path / script.TRAINING / folder).mkdir(parents=True)
         _write_flight(tmp_path / script.TRAINING / folder / "cf50_00", x, 500 + 0 * x, rng)
         _write_flight(tmp_path / script.TRAINING / folder / "cf51_00", -x, 800 + rng.integers(0, 200) + 0 * x, rng)
     out = tmp_path / "out.json"
     argv = ["--clone", str(tmp_path), "--json", str(out), "--plots", str(tmp_path / "plots")]
-    result = script.main([*argv, "--score", "datacollection22_06_19_2020/swap_sll"])
+    result = script.main([*argv, "--score", "datacollection20_12_20_2019/swap_more"])
     import json
 
     saved = json.loads(out.read_text())
-    assert saved["flights"] == {"ground": {"train": 4, "test": 6}, "downwash": {"train": 7, "test": 3}}
+    assert saved["flights"] == {"ground": {"train": 4, "test": 6}, "downwash": {"train": 15, "test": 3}}
     assert set(saved["downwash"]["test"]["all"]) >= {"none", "paper", "fitted paper form", "fitted bounded form"}
     assert saved["downwash"]["test"]["all"]["samples"] > 0 and saved["ground"]["test"]["all"]["samples"] > 0
     assert len(saved["downwash"]["constants"]["fitted bounded form"]) == 4
     assert set(saved["replays"]["downwash"]) == {"no aerodynamics", "paper", "fitted"}
-    assert "datacollection22_06_19_2020/swap_sll" in result["scored"]
+    assert "datacollection20_12_20_2019/swap_more" in result["scored"]
     assert len(measured) == 5 and min(measured) > 0  # ground, the two downwash forms, drag, motor lag
     assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == [
         "validation_downwash.png",

@@ -43,10 +43,11 @@ JET_ONSET = 0.1
 #: (learnsyslab/crazyflow, examples/plugins/downwash.py), which notes that it must be fitted to the propeller.
 THRUST_DECAY = 0.07
 #: The bounded downwash's constants (c1, c2, c3 m, δ m; `downwash_force`'s ``bounded``), least squares on the vertical
-#: residual force of the 56 two- and three-drone swaps of Neural-Swarm's datacollection21_06_16_2020/swap_*
-#: (aerorobotics/neural-swarm at 48b1851) while a drone was above within 15 cm horizontally
-#: (`python benchmarks/validation/flights.py`, docs/validation.md §3).
-BOUNDED_DOWNWASH = (1602.527, 0.14633, 0.023251, 1.08006)
+#: residual force of the 99 two- and three-drone swaps of Neural-Swarm (aerorobotics/neural-swarm at 48b1851: every
+#: swap but the three of datacollection20_12_20_2019, held out) while a drone was above within 15 cm horizontally
+#: (`python benchmarks/validation/flights.py`, docs/validation.md §3). c3 < 0: the width β = c2 Δz + c3 reaches its
+#: floor at Δz = 7.5 cm, below which only a drone directly underneath is pushed (where no flight went).
+BOUNDED_DOWNWASH = (4110.178, 0.29964, -0.022552, 1.80706)
 #: The thrust the bounded downwash's scaling is relative to, N: a hovering cf2x's, 0.027 kg × 9.8 m/s².
 DOWNWASH_THRUST_REF = 0.027 * 9.8
 #: Floor on the squared downwash width β², m², so that β → 0 (at Δz = -c3/c2) gives the d → 0 limit, not 0/0.

@@ -1,12 +1,12 @@
 """The Crazyflie firmware's controllers as pure JAX functions, batched over any leading axes (e.g. ``[W, D]``).
 
-Re-implemented from bitcraze/crazyflie-firmware at 2a18fc29 (each module cites the file it follows) and checked
-against the firmware's own C through its Python bindings (tests/test_firmware.py): the default PID cascade
-(`controller_pid`, one call per 1 kHz tick) the quadrotor power distribution (`power_distribution_legacy`,
+Re-implemented from bitcraze/crazyflie-firmware at 2a18fc29 (each module cites the file it follows) and checked against
+the firmware's own C through its Python bindings (tests/test_firmware.py): the default PID cascade (`controller_pid`,
+one call per 1 kHz tick) the quadrotor power distribution (`power_distribution_legacy`,
 `power_distribution_force_torque`, `power_distribution_cap`) and the Crazyflie 2.1's motor map (`motor_thrust`,
-`motor_rpm`), with the firmware's state, setpoint and control types
-(`Setpoint`, `FirmwareState`, `Control`) and `firmware_state`, the firmware's view of a `DroneState`. `pid_tick` runs the cascade in the loop with the physics,
-one 1 ms tick per call.
+`motor_rpm`), with the firmware's state, setpoint and control types (`Setpoint`, `FirmwareState`, `Control`) and
+`firmware_state`, the firmware's view of a `DroneState`. `pid_tick` runs the cascade in the loop with the physics, one 1
+ms tick per call.
 """
 
 from jaxdrones.control.firmware.controller_pid import (
