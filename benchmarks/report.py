@@ -272,6 +272,16 @@ BENCHMARKS = {
             lambda ctx: None,
         ),
         Benchmark(
+            "firmware_loop",
+            "speed",
+            True,
+            lambda ctx: (
+                (["--worlds", "1024", "--ticks", "200", "--repeats", "3"] if ctx.quick else [])
+                + ["--out", _json("firmware_loop.json")(ctx)]
+            ),
+            _json("firmware_loop.json"),
+        ),
+        Benchmark(
             "multi_agent",
             "speed",
             False,
@@ -1269,8 +1279,25 @@ def render_jaxmarl_ippo(data: dict, out: str) -> str:
     )
 
 
+def render_firmware_loop(data: dict, out: str) -> str:
+    return table(
+        ["worlds", "ticks", "physics alone, drone-steps/s", "firmware loop, drone-steps/s", "loop / physics"],
+        [
+            [
+                r["worlds"],
+                r["ticks"],
+                num(r["physics_drone_steps_per_s"]),
+                num(r["loop_drone_steps_per_s"]),
+                num(r["loop_over_physics"], 2),
+            ]
+            for r in data["results"]
+        ],
+    )
+
+
 RENDERERS = {
     "throughput": render_throughput,
+    "firmware_loop": render_firmware_loop,
     "envs": render_envs,
     "gradients": render_gradients,
     "backends": render_backends,

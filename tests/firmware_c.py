@@ -12,14 +12,8 @@ targets until the integrators clamp, zero-thrust ticks); `run_c_pid` flies them 
 
 from __future__ import annotations
 
-import hashlib
-import importlib
 import os
 import pathlib
-import shutil
-import subprocess
-import sys
-import tempfile
 
 import numpy as np
 import pytest
@@ -37,32 +31,19 @@ def firmware_folder() -> pathlib.Path | None:
 
 
 def bindings(cache: pathlib.Path):
-    """The ``cffirmware`` module built from `firmware_folder` (skips the test where it cannot be)."""
+    """The ``cffirmware`` module built from `firmware_folder` (`build_bindings`), or the test skipped with the reason
+    (no firmware folder, or a build tool missing)."""
+    from jaxdrones.examples.firmware_in_the_loop import build_bindings
+
     folder = firmware_folder()
     if folder is None:
         pytest.skip("the Crazyflie firmware's sources are not here (set JAXDRONES_FIRMWARE to the folder)")
-    for tool in ("swig", "make", "gcc"):
-        if shutil.which(tool) is None:
-            pytest.skip(f"building the firmware's bindings needs {tool} (apt-get install swig build-essential)")
-    key = hashlib.sha256(str(folder.resolve()).encode() + sys.version.encode()).hexdigest()[:12]
-    built = cache / f"cffirmware-{key}"
-    if not built.exists():
-        work = pathlib.Path(tempfile.mkdtemp(prefix="cffirmware-", dir=cache))
-        source = work / "firmware"
-        shutil.copytree(folder, source, symlinks=True)
-        env = {**os.environ, "PATH": f"{pathlib.Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
-        for target in ("cf2_defconfig", "bindings_python"):
-            result = subprocess.run(["make", target], cwd=source, env=env, capture_output=True, text=True)
-            if result.returncode != 0:
-                pytest.fail(f"make {target} failed in {source}:\n{result.stdout[-2000:]}{result.stderr[-2000:]}")
-        try:
-            (source / "build").rename(built)
-        except OSError:  # another worker built it first
-            pass
-        shutil.rmtree(work, ignore_errors=True)
-    if str(built) not in sys.path:
-        sys.path.insert(0, str(built))
-    return importlib.import_module("cffirmware")
+    try:
+        return build_bindings(folder, cache)
+    except RuntimeError as err:
+        if "needs" in str(err):
+            pytest.skip(str(err))
+        raise
 
 
 #: The setpoint modes drawn, (x, y, z, roll, pitch, yaw, quat): what cflib's commands set (position, velocity with
@@ -162,59 +143,3 @@ def run_c_pid(cf, ticks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         out["roll"][i], out["pitch"][i], out["yaw"][i] = control.roll, control.pitch, control.yaw
         out["thrust"][i] = control.thrust
     return out
-
-
-def run_pid_loop(cf, step, params, drone, setpoints: dict[str, np.ndarray]):
-    """One drone flown in the loop with jaxdrones' physics, tick by tick, by the firmware's C ``controllerPid`` and
-    power distribution (``cf``, the bindings) or, with ``cf`` None, by `fw.controller_pid` and its power
-    distribution, through the same compiled physics: per tick, the firmware's state of the drone (`firmware_state`),
-    the controller's motor commands, the motor map (`motor_rpm`) and 1 ms of physics. ``setpoints`` holds per tick
-    ``mode`` i32[7] and ``sp_position`` f32[3]; tick i is stabilizer step i. Returns the positions f32[T, 3] after
-    each tick."""
-    import jax
-    import jax.numpy as jnp
-
-    from jaxdrones.control import firmware as fw
-
-    observe = jax.jit(fw.firmware_state)
-    advance = jax.jit(lambda drone, pwm: step(params, drone, fw.motor_rpm(params, pwm)))
-    gains = fw.PidControllerGains.crazyflie()
-    jax_control = jax.jit(
-        lambda c, sp, s, t: (lambda c, u: (c, fw.power_distribution_cap(fw.power_distribution_legacy(u))))(
-            *fw.controller_pid(gains, c, sp, s, t)
-        )
-    )
-    cstate, jax_setpoint = fw.controller_pid_init((1,)), fw.Setpoint.zeros((1,))
-    if cf is not None:
-        cf.controllerPidInit()
-        control, setpoint, sensors, state = cf.control_t(), cf.setpoint_t(), cf.sensorData_t(), cf.state_t()
-        uncapped, pwm = cf.motors_thrust_uncapped_t(), cf.motors_thrust_pwm_t()
-        cf.controllerPid(control, setpoint, sensors, state, 0)  # every mode off, thrust 0: the C's memory reset
-        control = cf.control_t()
-    names = ("x", "y", "z", "roll", "pitch", "yaw", "quat")
-    positions = []
-    for i in range(len(setpoints["mode"])):
-        seen = observe(drone)
-        if cf is None:
-            target = jax_setpoint.replace(
-                mode=jnp.asarray(setpoints["mode"][i][None]), position=jnp.asarray(setpoints["sp_position"][i][None])
-            )
-            cstate, motors = jax_control(cstate, target, seen, i)
-        else:
-            for axis, value in zip(names, setpoints["mode"][i], strict=True):
-                setattr(setpoint.mode, axis, int(value))
-            sp = setpoints["sp_position"][i]
-            setpoint.position.x, setpoint.position.y, setpoint.position.z = (float(v) for v in sp)
-            a, p, v, g = (np.asarray(x)[0] for x in (seen.attitude, seen.position, seen.velocity, seen.gyro))
-            state.attitude.roll, state.attitude.pitch, state.attitude.yaw = (float(x) for x in a)
-            state.position.x, state.position.y, state.position.z = (float(x) for x in p)
-            state.velocity.x, state.velocity.y, state.velocity.z = (float(x) for x in v)
-            sensors.gyro.x, sensors.gyro.y, sensors.gyro.z = (float(x) for x in g)
-            cf.controllerPid(control, setpoint, sensors, state, i)
-            cf.powerDistribution(control, uncapped)
-            cf.powerDistributionCap(uncapped, pwm)
-            m = pwm.motors
-            motors = np.array([[m.m1, m.m2, m.m3, m.m4]], np.int32)
-        drone = advance(drone, motors)
-        positions.append(np.asarray(drone.pos[0]))
-    return np.stack(positions)

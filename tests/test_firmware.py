@@ -9,9 +9,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from firmware_c import bindings, prime, random_ticks, run_c_pid, run_pid_loop
+from firmware_c import bindings, prime, random_ticks, run_c_pid
 
 from jaxdrones.control import firmware as fw
+from jaxdrones.examples.firmware_in_the_loop import fly
 
 pytestmark = pytest.mark.firmware
 
@@ -115,10 +116,9 @@ def test_in_closed_loop_the_jax_cascade_flies_where_the_firmwares_does(cf):
     controller and power distribution (through the bindings) and the JAX ones, each in the loop with the same compiled
     physics, fly the same tracks, within 1 mm at every tick."""
     import jaxdrones as jd
+    from jaxdrones.examples.firmware_in_the_loop import physics
 
-    config = jd.SimConfig(sim_freq=1000, ctrl_freq=1000, motor_dynamics=True)
-    step = jd.make_step(config)
-    params = jd.load_params("cf2x").replace(motor_tau_up=jnp.float32(0.061), motor_tau_down=jnp.float32(0.061))
+    step, params, config = physics(motor_tau=0.061)
     rng = np.random.default_rng(2)
     n, ticks = 5, 10_000
     start = jd.init_state(
@@ -131,12 +131,31 @@ def test_in_closed_loop_the_jax_cascade_flies_where_the_firmwares_does(cf):
     mode = np.broadcast_to(np.array([1, 1, 1, 0, 0, 1, 0], np.int32), (ticks, 7))
     worst, ends = [], []
     for d in range(n):
-        setpoints = {"mode": mode, "sp_position": np.repeat(waypoints[d], ticks // 5, axis=0).astype(np.float32)}
+        position = np.repeat(waypoints[d], ticks // 5, axis=0).astype(np.float32)
         drone = jax.tree.map(lambda x, d=d: x[d], start)
-        c_track = run_pid_loop(cf, step, params, drone, setpoints)
-        jax_track = run_pid_loop(None, step, params, drone, setpoints)
+        c_track = fly(cf, step, params, drone, mode, position)
+        jax_track = fly(None, step, params, drone, mode, position)
         worst.append(float(np.max(np.linalg.norm(c_track - jax_track, axis=-1))))
         ends.append(float(np.linalg.norm(c_track[-1] - waypoints[d, -1])))
     print(f"closed loop: largest position difference per flight (m) {worst}; distance to the last waypoint {ends}")
     assert max(ends) < 0.1  # the flights do reach their waypoints
     assert max(worst) < 1e-3
+
+
+def test_the_firmware_in_the_loop_example_flies_and_saves_its_figures(cf, tmp_path, request, capsys):
+    """``python -m jaxdrones.examples.firmware_in_the_loop --firmware PATH`` (2 s here): the C and the JAX controller
+    fly the square within 1 mm of each other; flight.json and flight.png in a new folder; an existing one is kept."""
+    from firmware_c import firmware_folder
+
+    from jaxdrones.examples import firmware_in_the_loop as example
+
+    cache = str(request.config.cache.mkdir("firmware"))
+    argv = ["--firmware", str(firmware_folder()), "--seconds", "2", "--cache", cache]
+    result = example.main([*argv, "--out", str(tmp_path / "fil")])
+    assert result["largest_difference_m"] < 1e-3
+    assert sorted(p.name for p in (tmp_path / "fil").iterdir()) == ["flight.json", "flight.png"]
+    with pytest.raises(SystemExit):
+        example.main([*argv, "--out", str(tmp_path / "fil")])
+    assert "exists" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="not the Crazyflie firmware's source folder"):
+        example.build_bindings(tmp_path, cache)

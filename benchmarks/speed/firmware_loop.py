@@ -1,0 +1,129 @@
+"""The firmware's PID cascade in the loop with the physics against the physics alone, in drone-steps per second.
+
+One drone-step is one firmware tick (1 ms) of one drone. Both programs run ``--ticks`` ticks of ``--worlds`` worlds
+of one cf2x in one jitted `lax.scan`, on jaxdrones' physics at 1 kHz with first-order motors (τ = 61 ms,
+docs/validation.md §3):
+
+* physics alone: `jaxdrones.make_step` at hover RPM;
+* firmware loop: `jaxdrones.control.firmware.pid_tick` (the firmware's state of each drone, `controller_pid` at its
+  rates, the power distribution and its cap, the motor map, then the same physics step), holding a position setpoint.
+
+Each program is compiled and warmed up, then the two are timed in turn within each of ``--repeats`` rounds
+(`common.timed_together`), so that a change of the machine's load reaches both; the table gives the medians and
+their ratio.
+
+    python benchmarks/speed/firmware_loop.py     # 4096 worlds; writes benchmarks/results/firmware_loop.json
+    python benchmarks/speed/firmware_loop.py --worlds 1024 16384 --repeats 9
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # benchmarks/: common.py
+from common import RESULTS, machine_info, timed_together, write_report
+
+DEFAULT_OUT = os.path.join(RESULTS, "firmware_loop.json")
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
+    parser.add_argument("--worlds", type=int, nargs="+", default=[4096], help="worlds of one drone (default 4096)")
+    parser.add_argument("--ticks", type=int, default=1000, help="firmware ticks (1 ms each) per timed call")
+    parser.add_argument("--repeats", type=int, default=7, help="timed rounds (medians; default 7)")
+    parser.add_argument("--out", default=DEFAULT_OUT)
+    args = parser.parse_args(argv)
+    if min(args.worlds) < 1 or args.ticks < 1 or args.repeats < 1:
+        parser.error("--worlds, --ticks and --repeats must be positive")
+    return args
+
+
+def programs(worlds: int, ticks: int):
+    """(physics alone, firmware loop): each a function of nothing that runs ``ticks`` ticks and blocks."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxdrones as jd
+    from jaxdrones.control import firmware as fw
+
+    config = jd.SimConfig(sim_freq=1000, ctrl_freq=1000, motor_dynamics=True)
+    params = jd.load_params("cf2x").replace(motor_tau_up=jnp.float32(0.061), motor_tau_down=jnp.float32(0.061))
+    step = jd.make_step(config)
+    hover = np.full((worlds, 1, 4), float(params.hover_rpm), np.float32)
+    start = jd.init_state(config, pos=np.random.default_rng(0).uniform(0.5, 1.5, (worlds, 1, 3)), rpm=hover)
+    setpoint = fw.Setpoint.zeros((worlds, 1)).replace(
+        mode=jnp.broadcast_to(jnp.array([1, 1, 1, 0, 0, 1, 0], jnp.int32), (worlds, 1, 7)),
+        position=jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0]), (worlds, 1, 3)),
+    )
+    gains = fw.PidControllerGains.crazyflie()
+    rpm = jnp.asarray(hover)
+
+    @jax.jit
+    def physics(drone):
+        return jax.lax.scan(lambda d, _: (step(params, d, rpm), None), drone, None, length=ticks)[0]
+
+    @jax.jit
+    def loop(state):
+        return jax.lax.scan(
+            lambda s, _: (fw.pid_tick(step, params, gains, s, setpoint)[0], None), state, None, length=ticks
+        )[0]
+
+    loop_start = fw.pid_loop_init(start, tick=0)
+    compile_s = {}
+    for name, fn, arg in (("physics", physics, start), ("firmware_loop", loop, loop_start)):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(arg))
+        compile_s[name] = time.perf_counter() - t0
+    runs = {
+        "physics": lambda: jax.block_until_ready(physics(start)),
+        "firmware_loop": lambda: jax.block_until_ready(loop(loop_start)),
+    }
+    return runs, compile_s
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    import jax
+
+    info = machine_info(jax)
+    print(f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, load {os.getloadavg()}")
+    load_start = os.getloadavg()
+    results = []
+    print("| worlds | physics alone, drone-steps/s | firmware loop, drone-steps/s | loop / physics |")
+    print("|---|---|---|---|")
+    for worlds in args.worlds:
+        runs, compile_s = programs(worlds, args.ticks)
+        times = timed_together(runs, args.repeats)
+        rate = {name: worlds * args.ticks / median for name, (_, median) in times.items()}
+        row = {
+            "worlds": worlds,
+            "ticks": args.ticks,
+            "physics_drone_steps_per_s": rate["physics"],
+            "loop_drone_steps_per_s": rate["firmware_loop"],
+            "loop_over_physics": rate["firmware_loop"] / rate["physics"],
+            "median_s": {name: t[1] for name, t in times.items()},
+            "best_s": {name: t[0] for name, t in times.items()},
+            "compile_s": compile_s,
+        }
+        results.append(row)
+        print(
+            f"| {worlds} | {rate['physics']:.3g} | {rate['firmware_loop']:.3g} | {row['loop_over_physics']:.2f} |",
+            flush=True,
+        )
+    write_report(
+        args.out,
+        "the firmware's PID in the loop against the physics",
+        info,
+        vars(args),
+        results,
+        loadavg_start=load_start,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

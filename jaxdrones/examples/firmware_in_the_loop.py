@@ -1,0 +1,228 @@
+"""The Crazyflie firmware's own C controller in the loop with jaxdrones' physics, beside its JAX re-implementation.
+
+As gym-pybullet-drones' ``CFAviary`` does for one drone, every firmware tick (1 ms) hands the firmware's
+``controllerPid`` the state of the simulated drone, runs its power distribution and cap, and steps the physics at the
+motor speeds its commands give (`jaxdrones.control.firmware.motor_rpm`). The C comes from the firmware's Python
+bindings, built from its sources by `build_bindings` (``make cf2_defconfig && make bindings_python`` in a copy: swig
+and a C compiler; bitcraze/crazyflie-firmware, GPL-3.0, which jaxdrones neither ships nor copies). The same setpoints
+flown by `jaxdrones.control.firmware.controller_pid` through the same compiled physics give the difference between
+the two (docs/firmware.md)::
+
+    python -m jaxdrones.examples.firmware_in_the_loop --firmware PATH/crazyflie-firmware --out fil
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import importlib
+import json
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+import tempfile
+from types import ModuleType
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdrones.control import firmware as fw
+from jaxdrones.physics.params import DroneParams, load_params
+from jaxdrones.physics.state import DroneState, init_state
+from jaxdrones.sim import SimConfig, StepFn, make_step
+
+#: The modes of a position setpoint (cflib's ``send_position_setpoint``): x, y, z and yaw absolute.
+POSITION_MODE = (1, 1, 1, 0, 0, 1, 0)
+#: The setpoints' field names of the bindings' ``setpoint_mode_t``, in `jaxdrones.control.firmware.MODE_AXES` order.
+_MODE_FIELDS = fw.types.MODE_AXES
+
+
+def build_bindings(firmware: str | os.PathLike, cache: str | os.PathLike) -> ModuleType:
+    """The firmware's ``cffirmware`` module, built once per firmware folder and Python into ``cache`` and imported.
+
+    Raises:
+        ValueError: ``firmware`` is not the firmware's source folder (no ``bindings/setup.py``).
+        RuntimeError: a tool is missing (swig, make, a C compiler) or the build fails (with make's output).
+    """
+    folder = pathlib.Path(firmware).resolve()
+    if not (folder / "bindings" / "setup.py").exists():
+        raise ValueError(f"{folder} is not the Crazyflie firmware's source folder (no bindings/setup.py)")
+    missing = [tool for tool in ("swig", "make", "gcc") if shutil.which(tool) is None]
+    if missing:
+        raise RuntimeError(
+            f"building the firmware's bindings needs {', '.join(missing)} (apt-get install swig gcc make)"
+        )
+    cache = pathlib.Path(cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    key = hashlib.sha256(f"{folder}{sys.version}".encode()).hexdigest()[:12]
+    built = cache / f"cffirmware-{key}"
+    if not built.exists():
+        work = pathlib.Path(tempfile.mkdtemp(prefix="cffirmware-", dir=cache))
+        try:
+            source = work / "firmware"
+            shutil.copytree(folder, source, symlinks=True)
+            env = {**os.environ, "PATH": f"{pathlib.Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+            for target in ("cf2_defconfig", "bindings_python"):
+                result = subprocess.run(["make", target], cwd=source, env=env, capture_output=True, text=True)
+                if result.returncode != 0:
+                    raise RuntimeError(f"make {target} failed:\n{result.stdout[-2000:]}{result.stderr[-2000:]}")
+            try:
+                (source / "build").rename(built)
+            except OSError:  # built meanwhile by another process
+                pass
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    if str(built) not in sys.path:
+        sys.path.insert(0, str(built))
+    return importlib.import_module("cffirmware")
+
+
+def fly(
+    cf: ModuleType | None,
+    step: StepFn,
+    params: DroneParams,
+    drone: DroneState,
+    mode: np.ndarray,
+    position: np.ndarray,
+) -> np.ndarray:
+    """One drone flown tick by tick: by the firmware's C (``cf``, the bindings) or, with ``cf`` None, by
+    `jaxdrones.control.firmware.controller_pid`, each through the same compiled physics.
+
+    Args:
+        cf: the bindings (`build_bindings`) or None.
+        step: a physics step of 1 ms (``make_step(SimConfig(sim_freq=1000, ctrl_freq=1000, ...))``).
+        params: `DroneParams` of the drone.
+        drone: `DroneState` of one drone, batch ``[1]``.
+        mode: i32[T, 7], each tick's setpoint modes (x, y, z, roll, pitch, yaw, quat).
+        position: f32[T, 3] m, each tick's position setpoint, world frame.
+
+    Returns:
+        f32[T, 3] m, the drone's position after each tick (tick i is the firmware's stabilizer step i).
+    """
+    observe = jax.jit(fw.firmware_state)
+    advance = jax.jit(lambda drone, pwm: step(params, drone, fw.motor_rpm(params, pwm)))
+    gains = fw.PidControllerGains.crazyflie()
+
+    @jax.jit
+    def jax_motors(cstate, setpoint, seen, tick):
+        cstate, control = fw.controller_pid(gains, cstate, setpoint, seen, tick)
+        return cstate, fw.power_distribution_cap(fw.power_distribution_legacy(control))
+
+    cstate, jax_setpoint = fw.controller_pid_init((1,)), fw.Setpoint.zeros((1,))
+    if cf is not None:
+        cf.controllerPidInit()
+        control, setpoint, sensors, state = cf.control_t(), cf.setpoint_t(), cf.sensorData_t(), cf.state_t()
+        uncapped, pwm = cf.motors_thrust_uncapped_t(), cf.motors_thrust_pwm_t()
+        cf.controllerPid(control, setpoint, sensors, state, 0)  # every mode off, thrust 0: the C's memory reset
+        control = cf.control_t()
+    positions = []
+    for i in range(len(mode)):
+        seen = observe(drone)
+        if cf is None:
+            target = jax_setpoint.replace(mode=jnp.asarray(mode[i][None]), position=jnp.asarray(position[i][None]))
+            cstate, motors = jax_motors(cstate, target, seen, i)
+        else:
+            for axis, value in zip(_MODE_FIELDS, mode[i], strict=True):
+                setattr(setpoint.mode, axis, int(value))
+            setpoint.position.x, setpoint.position.y, setpoint.position.z = (float(v) for v in position[i])
+            a, p, v, g = (np.asarray(x)[0] for x in (seen.attitude, seen.position, seen.velocity, seen.gyro))
+            state.attitude.roll, state.attitude.pitch, state.attitude.yaw = (float(x) for x in a)
+            state.position.x, state.position.y, state.position.z = (float(x) for x in p)
+            state.velocity.x, state.velocity.y, state.velocity.z = (float(x) for x in v)
+            sensors.gyro.x, sensors.gyro.y, sensors.gyro.z = (float(x) for x in g)
+            cf.controllerPid(control, setpoint, sensors, state, i)
+            cf.powerDistribution(control, uncapped)
+            cf.powerDistributionCap(uncapped, pwm)
+            m = pwm.motors
+            motors = np.array([[m.m1, m.m2, m.m3, m.m4]], np.int32)
+        drone = advance(drone, motors)
+        positions.append(np.asarray(drone.pos[0]))
+    return np.stack(positions)
+
+
+def physics(motor_tau: float = 0.061) -> tuple[StepFn, DroneParams, SimConfig]:
+    """A 1 ms physics step of the ``cf2x`` with first-order motors of time constant ``motor_tau`` s (61 ms:
+    docs/validation.md §3; the firmware's gains need lagging motors, docs/firmware.md)."""
+    config = SimConfig(sim_freq=1000, ctrl_freq=1000, motor_dynamics=True)
+    tau = jnp.float32(motor_tau)
+    return make_step(config), load_params("cf2x").replace(motor_tau_up=tau, motor_tau_down=tau), config
+
+
+def square(seconds: float, side: float = 0.5, height: float = 1.0) -> np.ndarray:
+    """f32[T, 3]: a position setpoint per tick, the corners of a square of ``side`` m at ``height`` m in turn, a
+    quarter of ``seconds`` each."""
+    corners = np.array([[0, 0], [side, 0], [side, side], [0, side]], np.float32)
+    ticks = int(round(seconds * fw.RATE_MAIN_LOOP))
+    index = np.minimum(np.arange(ticks) * 4 // ticks, 3)
+    return np.column_stack([corners[index], np.full(ticks, height, np.float32)]).astype(np.float32)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The command line: an ``--seconds`` flight around a 0.5 m square, by the C and by the JAX controller; prints
+    their largest difference and writes `write`'s folder; returns the figures."""
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
+    parser.add_argument("--firmware", required=True, help="the Crazyflie firmware's source folder")
+    parser.add_argument("--seconds", type=float, default=8.0, help="the flight's length, s (default 8)")
+    parser.add_argument("--out", default="firmware_in_the_loop", help="folder for flight.json and flight.png")
+    parser.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "jaxdrones-firmware"))
+    args = parser.parse_args(argv)
+    if not args.seconds > 0:
+        parser.error("--seconds must be positive")
+    if os.path.exists(args.out):
+        parser.error(f"{args.out} exists: choose another --out (nothing was written)")
+    cf = build_bindings(args.firmware, args.cache)
+    step, params, config = physics()
+    position = square(args.seconds)
+    mode = np.broadcast_to(np.array(POSITION_MODE, np.int32), (len(position), 7))
+    drone = init_state(config, pos=[[0.0, 0.0, 1.0]], rpm=np.full((1, 4), float(params.hover_rpm)))
+    c_track = fly(cf, step, params, drone, mode, position)
+    jax_track = fly(None, step, params, drone, mode, position)
+    difference = np.linalg.norm(c_track - jax_track, axis=-1)
+    result = {
+        "seconds": args.seconds,
+        "largest_difference_m": float(difference.max()),
+        "final_distance_to_setpoint_m": float(np.linalg.norm(c_track[-1] - position[-1])),
+    }
+    print(
+        f"{args.seconds:g} s of a 0.5 m square: the firmware's C and jaxdrones' JAX controller "
+        f"{result['largest_difference_m'] * 1e6:.1f} µm apart at most; the C's flight ends "
+        f"{result['final_distance_to_setpoint_m'] * 100:.1f} cm from its setpoint"
+    )
+    write(args.out, result, position, c_track, jax_track)
+    return result
+
+
+def write(out: str, result: dict, position: np.ndarray, c_track: np.ndarray, jax_track: np.ndarray) -> None:
+    """``flight.json`` (the figures) and ``flight.png`` (both tracks from above and their height) in a new folder
+    ``out``, moved into place when complete (an existing ``out`` is left as it is)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if os.path.exists(out):
+        raise SystemExit(f"{out} exists: choose another --out (nothing was written)")
+    tmp = tempfile.mkdtemp(prefix=".firmware-", dir=os.path.dirname(os.path.abspath(out)))
+    with open(os.path.join(tmp, "flight.json"), "w") as f:
+        json.dump(result, f, indent=2, allow_nan=False)
+    fig, (top, side) = plt.subplots(1, 2, figsize=(10, 4))
+    top.plot(position[:, 0], position[:, 1], "k:", label="setpoint")
+    top.plot(c_track[:, 0], c_track[:, 1], label="firmware's C")
+    top.plot(jax_track[:, 0], jax_track[:, 1], "--", label="jaxdrones' JAX")
+    top.set(xlabel="x, m", ylabel="y, m", aspect="equal", title="from above")
+    top.legend()
+    t = np.arange(1, len(c_track) + 1) / fw.RATE_MAIN_LOOP
+    side.plot(t, np.linalg.norm(c_track - jax_track, axis=-1) * 1e6)
+    side.set(xlabel="time, s", ylabel="distance between the two, µm", title="C against JAX")
+    fig.tight_layout()
+    fig.savefig(os.path.join(tmp, "flight.png"), dpi=110)
+    plt.close(fig)
+    os.rename(tmp, out)
+    print(f"saved flight.json, flight.png in {out}")
+
+
+if __name__ == "__main__":
+    main()
