@@ -31,9 +31,10 @@ On a GPU, ``envs`` and ``gradients`` run with ``XLA_PYTHON_CLIENT_PREALLOCATE=fa
 worker, a second JAX process on the same GPU, while it holds its own arrays, and JAX's default of taking 75 % of the
 GPU's memory at start would leave the worker too little.
 
-The default run is the benchmarks that finish in minutes each on a 2-core CPU (throughput, envs, gradients,
-backends, cameras, train_algos, sysid_noise; about an hour in all there, most of it train_algos' eight training runs
-and the gradients at 1000 steps × 16384 worlds). The others run only when named (``--only NAME``) or with ``--all``:
+The default run is the benchmarks that finish in minutes each on a 2-core CPU (throughput, envs, gradients, backends,
+cameras, encoders, table2, firmware_loop, train_algos, sysid_noise; about an hour in all there, most of it train_algos'
+eight training runs and the gradients at 1000 steps × 16384 worlds). The others run only when named (``--only NAME``) or
+with ``--all``:
 
 - ``multi_agent``: teams up to 256 drones (CPU; 1024 on a GPU) with MAPPO updates timed, tens of minutes on a CPU;
 - ``downwash_policies``: trains MAPPO on ``crossing`` twice (3 M env steps each by default);

@@ -45,7 +45,7 @@ def _fly(ticks: dict, batch: tuple[int, ...]) -> fw.Control:
 
 def test_a_batch_of_drones_flies_as_each_drone_alone():
     """2 worlds × 3 drones, each its own random sequence of 300 ticks: the batched call's outputs are each drone's
-    alone, bit for bit."""
+    alone, to float32 rounding (the two compile to different programs)."""
     rng = np.random.default_rng(3)
     sequences = [prime(random_ticks(rng, 300)) for _ in range(6)]
     stacked = {
@@ -57,7 +57,11 @@ def test_a_batch_of_drones_flies_as_each_drone_alone():
         alone = _fly(seq, ())
         for name in ("roll", "pitch", "yaw", "thrust"):
             got = np.asarray(getattr(batched, name)).reshape(301, 6)[:, b]
-            np.testing.assert_array_equal(got, np.asarray(getattr(alone, name)), err_msg=f"drone {b}, {name}")
+            want = np.asarray(getattr(alone, name))
+            if name == "thrust":
+                np.testing.assert_allclose(got, want, rtol=1e-6, err_msg=f"drone {b}, {name}")
+            else:
+                assert np.max(np.abs(got - want)) <= 1, f"drone {b}, {name}"  # an int16 truncated at a rounding
 
 
 def test_a_level_drone_holding_its_position_gets_the_thrust_base_and_no_torque():

@@ -5,8 +5,9 @@ of one cf2x in one jitted `lax.scan`, on jaxdrones' physics at 1 kHz with first-
 docs/validation.md §3):
 
 * physics alone: `jaxdrones.make_step` at hover RPM;
-* firmware loop: `jaxdrones.control.firmware.pid_tick` (the firmware's state of each drone, `controller_pid` at its
-  rates, the power distribution and its cap, the motor map, then the same physics step), holding a position setpoint.
+* firmware loop: `jaxdrones.control.firmware.pid_tick` (the firmware's state of each drone, `controller_pid` with
+  only the loops of the tick, the power distribution and its cap, the motor map, then the same physics step),
+  holding a position setpoint.
 
 Each program is compiled and warmed up, then the two are timed in turn within each of ``--repeats`` rounds
 (`common.timed_together`), so that a change of the machine's load reaches both; the table gives the medians and
@@ -69,7 +70,10 @@ def programs(worlds: int, ticks: int):
     @jax.jit
     def loop(state):
         return jax.lax.scan(
-            lambda s, _: (fw.pid_tick(step, params, gains, s, setpoint)[0], None), state, None, length=ticks
+            lambda s, _: (fw.pid_tick(step, params, gains, s, setpoint)[0], None),
+            state,
+            None,
+            length=ticks,
         )[0]
 
     loop_start = fw.pid_loop_init(start, tick=0)
@@ -87,6 +91,7 @@ def programs(worlds: int, ticks: int):
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    import jaxdrones  # noqa: F401, I001  (first: it sets XLA's flags before JAX starts)
     import jax
 
     info = machine_info(jax)

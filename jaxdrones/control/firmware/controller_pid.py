@@ -253,7 +253,8 @@ def controller_pid(
         setpoint: `Setpoint` ``[...]``.
         state: `FirmwareState` ``[...]`` (`jaxdrones.control.firmware.firmware_state` of a `DroneState`).
         tick: i32 (or i32[...]), the stabilizer loop's tick (1 kHz); the position loop runs on multiples of 10, the
-            attitude and rate loops on multiples of 2.
+            attitude and rate loops on multiples of 2. One tick for every drone (a scalar) runs only the loops of
+            that tick (`jax.lax.cond`; a Python int compiles only those); per-drone ticks compute every loop.
 
     The batch axes ``[...]`` are those of ``setpoint.mode`` less its last; ``cstate`` and ``state`` have them too,
     ``gains`` none (one set for every drone).
@@ -263,33 +264,109 @@ def controller_pid(
         thrust, for `jaxdrones.control.firmware.power_distribution_legacy`).
     """
     batch = setpoint.mode.shape[:-1]
-    tick = jnp.broadcast_to(jnp.asarray(tick, jnp.int32), batch)
+    tick = tick if isinstance(tick, int | np.integer) else jnp.asarray(tick, jnp.int32)
+    if isinstance(tick, int | np.integer) or tick.ndim == 0:  # one tick for every drone: each loop runs or not
+        return _controller_pid_batch(gains, cstate, setpoint, state, tick, len(batch))
     step = _controller_pid_one
     for _ in batch:
         step = jax.vmap(step, in_axes=(None, 0, 0, 0, 0))
-    return step(gains, cstate, setpoint, state, tick)
+    return step(gains, cstate, setpoint, state, jnp.broadcast_to(tick, batch))
+
+
+def _controller_pid_batch(gains, cstate, setpoint, state, tick, n_batch: int):
+    """`controller_pid` with one tick for the whole batch: each stage vmapped over the batch's ``n_batch`` axes,
+    the loops that do not run on the tick skipped (a Python int: not compiled; a traced scalar: `jax.lax.cond`)."""
+
+    def batched(stage):
+        for _ in range(n_batch):
+            stage = jax.vmap(stage, in_axes=(None, 0, 0, 0))
+        return lambda c: stage(gains, c, setpoint, state)
+
+    def when(flag, stage, c):
+        if isinstance(flag, bool | np.bool_):
+            return batched(stage)(c) if flag else c
+        return jax.lax.cond(flag, batched(stage), lambda c: c, c)
+
+    changed = jnp.any(setpoint.mode != cstate.previous_mode)  # rare: the resets run only when a drone needs one
+    cstate = jax.lax.cond(changed, batched(_mode_stage), lambda c: c, cstate)
+    attitude_tick = tick % (RATE_MAIN_LOOP // ATTITUDE_RATE) == 0
+    position_tick = tick % (RATE_MAIN_LOOP // POSITION_RATE) == 0
+    cstate = when(attitude_tick, _yaw_stage, cstate)
+    cstate = when(position_tick, _position_stage, cstate)
+    cstate = when(attitude_tick, _attitude_loops, cstate)
+    finish = _finish_stage
+    for _ in range(n_batch):
+        finish = jax.vmap(finish, in_axes=(0, 0))
+
+    def running(c):
+        control = c.control.replace(thrust=c.actuator_thrust)
+        return c.replace(control=control), control
+
+    return jax.lax.cond(jnp.any(cstate.actuator_thrust == 0), lambda c: finish(c, state), running, cstate)
 
 
 def _controller_pid_one(
-    gains: PidControllerGains, cstate: PidControllerState, setpoint: Setpoint, state: FirmwareState, tick: jax.Array
+    gains: PidControllerGains,
+    cstate: PidControllerState,
+    setpoint: Setpoint,
+    state: FirmwareState,
+    tick: jax.Array,
 ) -> tuple[PidControllerState, Control]:
-    """`controller_pid` for one drone (no leading axes)."""
-    changed = jnp.any(setpoint.mode != cstate.previous_mode, axis=-1)
-    cstate = _select(changed, _reinitialize(cstate, state), cstate)
-    cstate = cstate.replace(previous_mode=jnp.broadcast_to(setpoint.mode, cstate.previous_mode.shape))
+    """`controller_pid` for one drone (no leading axes) at its own tick: every loop computed, its result kept where
+    it runs."""
+    cstate = _mode_stage(gains, cstate, setpoint, state)
     attitude_tick = tick % (RATE_MAIN_LOOP // ATTITUDE_RATE) == 0
     position_tick = tick % (RATE_MAIN_LOOP // POSITION_RATE) == 0
+    cstate = _select(attitude_tick, _yaw_stage(gains, cstate, setpoint, state), cstate)
+    cstate = _select(position_tick, _position_stage(gains, cstate, setpoint, state), cstate)
+    cstate = _select(attitude_tick, _attitude_loops(gains, cstate, setpoint, state), cstate)
+    return _finish_stage(cstate, state)
 
-    yaw = jnp.where(attitude_tick, _yaw_setpoint(gains, cstate, setpoint, state), cstate.attitude_desired[..., 2])
-    desired = cstate.attitude_desired.at[..., 2].set(yaw)
+
+def _mode_stage(gains, cstate: PidControllerState, setpoint: Setpoint, state: FirmwareState) -> PidControllerState:
+    """ControllerPid's first step: a setpoint mode other than the last tick's resets the PIDs."""
+    changed = jnp.any(setpoint.mode != cstate.previous_mode, axis=-1)
+    cstate = _select(changed, _reinitialize(cstate, state), cstate)
+    return cstate.replace(previous_mode=jnp.broadcast_to(setpoint.mode, cstate.previous_mode.shape))
+
+
+def _yaw_stage(gains, cstate: PidControllerState, setpoint: Setpoint, state: FirmwareState) -> PidControllerState:
+    """The attitude tick's desired yaw."""
+    yaw = _yaw_setpoint(gains, cstate, setpoint, state)
+    return cstate.replace(attitude_desired=cstate.attitude_desired.at[..., 2].set(yaw))
+
+
+def _position_stage(gains, cstate: PidControllerState, setpoint: Setpoint, state: FirmwareState) -> PidControllerState:
+    """The position tick: the position and velocity loops set the thrust and the desired roll and pitch."""
     position, velocity, thrust, roll, pitch = _position_loops(gains, cstate, setpoint, state)
-    cstate = cstate.replace(
-        position=_select(position_tick, position, cstate.position),
-        velocity=_select(position_tick, velocity, cstate.velocity),
-        actuator_thrust=jnp.where(position_tick, thrust, cstate.actuator_thrust),
-        attitude_desired=jnp.where(position_tick, desired.at[..., 0].set(roll).at[..., 1].set(pitch), desired),
+    return cstate.replace(
+        position=position,
+        velocity=velocity,
+        actuator_thrust=thrust,
+        attitude_desired=cstate.attitude_desired.at[..., 0].set(roll).at[..., 1].set(pitch),
     )
 
+
+def _finish_stage(cstate: PidControllerState, state: FirmwareState) -> tuple[PidControllerState, Control]:
+    """ControllerPid's last step: the control's thrust, and at zero thrust no torque and the PIDs reset."""
+    control = cstate.control.replace(thrust=cstate.actuator_thrust)
+    off = control.thrust == 0
+    zero = Control(
+        roll=jnp.zeros_like(control.roll),
+        pitch=jnp.zeros_like(control.pitch),
+        yaw=jnp.zeros_like(control.yaw),
+        thrust=control.thrust,
+    )
+    control = _select(off, zero, control)
+    reset = _reinitialize(cstate, state)
+    reset = reset.replace(attitude_desired=reset.attitude_desired.at[..., 2].set(state.attitude[..., 2]))
+    cstate = _select(off, reset, cstate).replace(control=control)
+    return cstate, control
+
+
+def _attitude_loops(gains, cstate: PidControllerState, setpoint: Setpoint, state: FirmwareState) -> PidControllerState:
+    """The attitude tick after the position loop (controllerPid's third block): the manual thrust and attitude, the
+    attitude PID, the rate setpoints, the rate PID and the int16 outputs (yaw negated)."""
     thrust = jnp.where(setpoint.mode[..., 2] == MODE_DISABLE, setpoint.thrust, cstate.actuator_thrust)
     manual = (setpoint.mode[..., 0] == MODE_DISABLE) | (setpoint.mode[..., 1] == MODE_DISABLE)
     desired = jnp.where(
@@ -305,26 +382,11 @@ def _controller_pid_one(
     gyro = state.gyro * jnp.array([1.0, -1.0, 1.0], jnp.float32)
     rate, out = _pid.pid_update(gains.rate, cstate.rate, rate_desired, gyro)
     out = saturate_int16(out)
-    control = Control(roll=out[..., 0], pitch=out[..., 1], yaw=-out[..., 2], thrust=cstate.control.thrust)
-    cstate = cstate.replace(
-        actuator_thrust=jnp.where(attitude_tick, thrust, cstate.actuator_thrust),
-        attitude_desired=jnp.where(attitude_tick[..., None], desired, cstate.attitude_desired),
-        attitude=_select(attitude_tick, attitude, cstate.attitude),
-        rate=_select(attitude_tick, rate, cstate.rate),
-        rate_desired=jnp.where(attitude_tick[..., None], rate_desired, cstate.rate_desired),
-        control=_select(attitude_tick, control, cstate.control),
+    return cstate.replace(
+        actuator_thrust=thrust,
+        attitude_desired=desired,
+        attitude=attitude,
+        rate=rate,
+        rate_desired=rate_desired,
+        control=Control(roll=out[..., 0], pitch=out[..., 1], yaw=-out[..., 2], thrust=cstate.control.thrust),
     )
-
-    control = cstate.control.replace(thrust=cstate.actuator_thrust)
-    off = control.thrust == 0
-    zero = Control(
-        roll=jnp.zeros_like(control.roll),
-        pitch=jnp.zeros_like(control.pitch),
-        yaw=jnp.zeros_like(control.yaw),
-        thrust=control.thrust,
-    )
-    control = _select(off, zero, control)
-    reset = _reinitialize(cstate, state)
-    reset = reset.replace(attitude_desired=reset.attitude_desired.at[..., 2].set(state.attitude[..., 2]))
-    cstate = _select(off, reset, cstate).replace(control=control)
-    return cstate, control

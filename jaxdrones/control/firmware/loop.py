@@ -41,7 +41,7 @@ class PidLoopState:
     tick: jax.Array
 
 
-def pid_loop_init(drone: DroneState, tick: int = 1) -> PidLoopState:
+def pid_loop_init(drone: DroneState, tick: int = 0) -> PidLoopState:
     """The loop at ``drone`` with fresh controllers (`controller_pid_init`), starting at ``tick``."""
     return PidLoopState(drone=drone, controller=controller_pid_init(drone.pos.shape[:-1]), tick=jnp.int32(tick))
 
