@@ -159,3 +159,62 @@ def test_the_firmware_in_the_loop_example_flies_and_saves_its_figures(cf, tmp_pa
     assert "exists" in capsys.readouterr().err
     with pytest.raises(ValueError, match="not the Crazyflie firmware's source folder"):
         example.build_bindings(tmp_path, cache)
+
+
+#: The firmware's flags for the Crazyflie 2.x (its Makefile's ARCH_CFLAGS for a release build and
+#: tools/kbuild/Makefile.kbuild's KBUILD_CFLAGS), warnings as errors.
+FIRMWARE_CFLAGS = (
+    "-mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-sp-d16 -fno-math-errno -DARM_MATH_CM4 -D__FPU_PRESENT=1 "
+    "-mfp16-format=ieee -DSTM32F4XX -DSTM32F40_41xxx -DHSE_VALUE=8000000 -DUSE_STDPERIPH_DRIVER -Os -Werror "
+    "-Wall -Wmissing-braces -fno-strict-aliasing -ffunction-sections -fdata-sections -Wdouble-promotion -std=gnu11 "
+    "-DCRAZYFLIE_FW -D__firmware__"
+).split()
+#: The firmware's include folders the controller's headers reach (its Makefile's INCLUDES).
+FIRMWARE_INCLUDES = (
+    "src/config src/platform/interface src/drivers/interface src/hal/interface src/modules/interface "
+    "src/modules/interface/kalman_core src/modules/interface/controller src/modules/interface/estimator "
+    "src/utils/interface src/utils/interface/lighthouse vendor/CMSIS/CMSIS/Core/Include "
+    "vendor/CMSIS/CMSIS/DSP/Include vendor/FreeRTOS/include vendor/FreeRTOS/portable/GCC/ARM_CM4F"
+).split()
+
+
+def test_the_out_of_tree_controller_compiles_against_the_firmware(cf, tmp_path):
+    """docs/realism.md's out-of-tree controller, with `jaxdrones export`'s C file of tests/data/crazyflie_hover,
+    compiles with the firmware's headers and its Cortex-M4 release flags (warnings as errors), and fits the
+    STM32F405's flash; its size is docs/realism.md's."""
+    import pathlib
+    import re
+    import shutil
+    import subprocess
+
+    from firmware_c import ROOT, firmware_folder
+
+    from jaxdrones.training.export import export
+
+    gcc = shutil.which("arm-none-eabi-gcc")
+    if gcc is None:
+        pytest.skip("compiling for the Crazyflie needs arm-none-eabi-gcc (apt-get install gcc-arm-none-eabi)")
+    firmware = firmware_folder()
+    generated = pathlib.Path(cf.__file__).parent / "include" / "generated"  # the bindings' build: cf2_defconfig's
+    sketch = re.search(r"```c\n(/\* OOT controller.*?)```", (ROOT / "docs" / "realism.md").read_text(), re.S)
+    assert sketch is not None
+    (tmp_path / "controller.c").write_text(sketch.group(1))
+    export(ROOT / "tests" / "data" / "crazyflie_hover", out=tmp_path / "jaxdrones_policy.c")
+    includes = [f"-I{firmware / folder}" for folder in FIRMWARE_INCLUDES] + [f"-I{generated}"]
+    command = [
+        gcc,
+        "-c",
+        "controller.c",
+        "-o",
+        "controller.o",
+        *FIRMWARE_CFLAGS,
+        "-include",
+        str(generated / "autoconf.h"),
+        *includes,
+    ]
+    result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    size = subprocess.run([gcc.replace("gcc", "size"), "controller.o"], cwd=tmp_path, capture_output=True, text=True)
+    text, data, bss = (int(v) for v in size.stdout.splitlines()[1].split()[:3])
+    print(f"controller.o: text {text} B, data {data} B, bss {bss} B")
+    assert 24_464 < text < 64 * 1024 and bss < 1024  # the weights and the code; the memory and the last action
