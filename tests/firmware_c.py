@@ -143,3 +143,34 @@ def run_c_pid(cf, ticks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         out["roll"][i], out["pitch"][i], out["yaw"][i] = control.roll, control.pitch, control.yaw
         out["thrust"][i] = control.thrust
     return out
+
+
+def run_jax_pid(ticks: dict[str, np.ndarray], batch: tuple[int, ...] = ()):
+    """The same ticks through `jaxdrones.control.firmware.controller_pid` in one jitted ``lax.scan`` (each array of
+    ``ticks`` with the ``batch`` axes after its first); returns the `Control` after each tick, leading axis T."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdrones.control import firmware as fw
+
+    gains = fw.PidControllerGains.crazyflie()
+
+    def tick(cstate, inputs):
+        i, t = inputs
+        setpoint = fw.Setpoint(
+            mode=t["mode"],
+            attitude=t["sp_attitude"],
+            attitude_rate=t["sp_rate"],
+            quat=t["sp_quat"],
+            thrust=t["sp_thrust"],
+            position=t["sp_position"],
+            velocity=t["sp_velocity"],
+            velocity_body=t["sp_velocity_body"],
+        )
+        state = fw.FirmwareState(
+            attitude=t["attitude"], quat=t["quat"], position=t["position"], velocity=t["velocity"], gyro=t["gyro"]
+        )
+        return fw.controller_pid(gains, cstate, setpoint, state, i)
+
+    xs = (jnp.arange(len(ticks["mode"]), dtype=jnp.int32), {k: jnp.asarray(v) for k, v in ticks.items()})
+    return jax.jit(lambda xs: jax.lax.scan(tick, fw.controller_pid_init(batch), xs)[1])(xs)

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from firmware_c import bindings, prime, random_ticks, run_c_pid
+from firmware_c import bindings, prime, random_ticks, run_c_pid, run_jax_pid
 
 from jaxdrones.control import firmware as fw
 from jaxdrones.examples.firmware_in_the_loop import fly
@@ -22,40 +22,13 @@ def cf(request):
     return bindings(request.config.cache.mkdir("firmware"))
 
 
-def run_jax_pid(ticks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The same ticks through `fw.controller_pid` in one ``lax.scan``."""
-    gains = fw.PidControllerGains.crazyflie()
-
-    def tick(cstate, inputs):
-        i, t = inputs
-        setpoint = fw.Setpoint(
-            mode=t["mode"],
-            attitude=t["sp_attitude"],
-            attitude_rate=t["sp_rate"],
-            quat=t["sp_quat"],
-            thrust=t["sp_thrust"],
-            position=t["sp_position"],
-            velocity=t["sp_velocity"],
-            velocity_body=t["sp_velocity_body"],
-        )
-        state = fw.FirmwareState(
-            attitude=t["attitude"], quat=t["quat"], position=t["position"], velocity=t["velocity"], gyro=t["gyro"]
-        )
-        cstate, control = fw.controller_pid(gains, cstate, setpoint, state, i)
-        return cstate, control
-
-    n = len(ticks["mode"])
-    inputs = (jnp.arange(n, dtype=jnp.int32), {k: jnp.asarray(v) for k, v in ticks.items()})
-    _, controls = jax.jit(lambda xs: jax.lax.scan(tick, fw.controller_pid_init(), xs))(inputs)
-    return {k: np.asarray(getattr(controls, k)) for k in ("roll", "pitch", "yaw", "thrust")}
-
-
 def test_the_pid_cascade_is_the_firmwares_tick_by_tick(cf):
     """10⁵ ticks of random states and setpoints (every cflib mode, far targets held until the integrators clamp,
     zero-thrust resets): the JAX cascade's outputs equal the C's to float32 rounding."""
     ticks = prime(random_ticks(np.random.default_rng(0), 100_000))
     c = run_c_pid(cf, ticks)
-    j = run_jax_pid(ticks)
+    controls = run_jax_pid(ticks)
+    j = {k: np.asarray(getattr(controls, k)) for k in ("roll", "pitch", "yaw", "thrust")}
     thrust_err = np.max(np.abs(j["thrust"] - c["thrust"]) / np.maximum(np.abs(c["thrust"]), 1.0))
     worst = {k: int(np.max(np.abs(j[k] - c[k]))) for k in ("roll", "pitch", "yaw")}
     share = {k: float(np.mean(j[k] != c[k])) for k in ("roll", "pitch", "yaw")}

@@ -3,44 +3,14 @@ and a level hover at the thrust base (the checks against the firmware's C are te
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from firmware_c import prime, random_ticks
+from firmware_c import prime, random_ticks, run_jax_pid
 
 from jaxdrones.control import firmware as fw
 
 pytestmark = pytest.mark.unit
-
-
-def _inputs(t: dict) -> tuple[fw.Setpoint, fw.FirmwareState]:
-    setpoint = fw.Setpoint(
-        mode=t["mode"],
-        attitude=t["sp_attitude"],
-        attitude_rate=t["sp_rate"],
-        quat=t["sp_quat"],
-        thrust=t["sp_thrust"],
-        position=t["sp_position"],
-        velocity=t["sp_velocity"],
-        velocity_body=t["sp_velocity_body"],
-    )
-    state = fw.FirmwareState(
-        attitude=t["attitude"], quat=t["quat"], position=t["position"], velocity=t["velocity"], gyro=t["gyro"]
-    )
-    return setpoint, state
-
-
-def _fly(ticks: dict, batch: tuple[int, ...]) -> fw.Control:
-    gains = fw.PidControllerGains.crazyflie()
-
-    def step(cstate, inputs):
-        i, t = inputs
-        return fw.controller_pid(gains, cstate, *_inputs(t), i)
-
-    n = ticks["mode"].shape[0]
-    xs = (jnp.arange(n, dtype=jnp.int32), {k: jnp.asarray(v) for k, v in ticks.items()})
-    return jax.jit(lambda xs: jax.lax.scan(step, fw.controller_pid_init(batch), xs)[1])(xs)
 
 
 def test_a_batch_of_drones_flies_as_each_drone_alone():
@@ -52,9 +22,9 @@ def test_a_batch_of_drones_flies_as_each_drone_alone():
         k: np.stack([s[k] for s in sequences], axis=1).reshape(301, 2, 3, *sequences[0][k].shape[1:])
         for k in sequences[0]
     }
-    batched = _fly(stacked, (2, 3))
+    batched = run_jax_pid(stacked, (2, 3))
     for b, seq in enumerate(sequences):
-        alone = _fly(seq, ())
+        alone = run_jax_pid(seq)
         for name in ("roll", "pitch", "yaw", "thrust"):
             got = np.asarray(getattr(batched, name)).reshape(301, 6)[:, b]
             want = np.asarray(getattr(alone, name))
