@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import importlib
+import importlib.util
 import json
 import os
 import pathlib
@@ -45,12 +46,15 @@ def build_bindings(firmware: str | os.PathLike, cache: str | os.PathLike) -> Mod
 
     Raises:
         ValueError: ``firmware`` is not the firmware's source folder (no ``bindings/setup.py``).
-        RuntimeError: a tool is missing (swig, make, a C compiler) or the build fails (with make's output).
+        RuntimeError: a tool is missing (swig, make, a C compiler, setuptools for this Python) or the build fails
+            (with make's output).
     """
     folder = pathlib.Path(firmware).resolve()
     if not (folder / "bindings" / "setup.py").exists():
         raise ValueError(f"{folder} is not the Crazyflie firmware's source folder (no bindings/setup.py)")
     missing = [tool for tool in ("swig", "make", "gcc") if shutil.which(tool) is None]
+    if importlib.util.find_spec("setuptools") is None:
+        missing.append("setuptools (pip install setuptools)")
     if missing:
         raise RuntimeError(
             f"building the firmware's bindings needs {', '.join(missing)} (apt-get install swig gcc make)"
@@ -66,7 +70,8 @@ def build_bindings(firmware: str | os.PathLike, cache: str | os.PathLike) -> Mod
             shutil.copytree(folder, source, symlinks=True)
             env = {**os.environ, "PATH": f"{pathlib.Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
             for target in ("cf2_defconfig", "bindings_python"):
-                result = subprocess.run(["make", target], cwd=source, env=env, capture_output=True, text=True)
+                command = ["make", target, f"PYTHON={sys.executable}"]
+                result = subprocess.run(command, cwd=source, env=env, capture_output=True, text=True)
                 if result.returncode != 0:
                     raise RuntimeError(f"make {target} failed:\n{result.stdout[-2000:]}{result.stderr[-2000:]}")
             try:

@@ -324,7 +324,7 @@ def _controller_pid_one(
 
 
 def _mode_stage(gains, cstate: PidControllerState, setpoint: Setpoint, state: FirmwareState) -> PidControllerState:
-    """ControllerPid's first step: a setpoint mode other than the last tick's resets the PIDs."""
+    """The first step of ``controllerPid``: a setpoint mode other than the last tick's resets the PIDs."""
     changed = jnp.any(setpoint.mode != cstate.previous_mode, axis=-1)
     cstate = _select(changed, _reinitialize(cstate, state), cstate)
     return cstate.replace(previous_mode=jnp.broadcast_to(setpoint.mode, cstate.previous_mode.shape))
