@@ -18,8 +18,16 @@ pytestmark = pytest.mark.firmware
 
 
 @pytest.fixture(scope="module")
-def cf(request):
-    return bindings(request.config.cache.mkdir("firmware"))
+def cache(request, tmp_path_factory):
+    """Where the bindings are built: pytest's cache, kept between runs (a temporary folder without it)."""
+    if getattr(request.config, "cache", None) is None:
+        return tmp_path_factory.mktemp("firmware")
+    return request.config.cache.mkdir("firmware")
+
+
+@pytest.fixture(scope="module")
+def cf(cache):
+    return bindings(cache)
 
 
 def test_the_pid_cascade_is_the_firmwares_tick_by_tick(cf):
@@ -115,15 +123,14 @@ def test_in_closed_loop_the_jax_cascade_flies_where_the_firmwares_does(cf):
     assert max(worst) < 1e-3
 
 
-def test_the_firmware_in_the_loop_example_flies_and_saves_its_figures(cf, tmp_path, request, capsys):
+def test_the_firmware_in_the_loop_example_flies_and_saves_its_figures(cf, cache, tmp_path, capsys):
     """``python -m jaxdrones.examples.firmware_in_the_loop --firmware PATH`` (2 s here): the C and the JAX controller
     fly the square within 1 mm of each other; flight.json and flight.png in a new folder; an existing one is kept."""
     from firmware_c import firmware_folder
 
     from jaxdrones.examples import firmware_in_the_loop as example
 
-    cache = str(request.config.cache.mkdir("firmware"))
-    argv = ["--firmware", str(firmware_folder()), "--seconds", "2", "--cache", cache]
+    argv = ["--firmware", str(firmware_folder()), "--seconds", "2", "--cache", str(cache)]
     result = example.main([*argv, "--out", str(tmp_path / "fil")])
     assert result["largest_difference_m"] < 1e-3
     assert sorted(p.name for p in (tmp_path / "fil").iterdir()) == ["flight.json", "flight.png"]
@@ -131,7 +138,7 @@ def test_the_firmware_in_the_loop_example_flies_and_saves_its_figures(cf, tmp_pa
         example.main([*argv, "--out", str(tmp_path / "fil")])
     assert "exists" in capsys.readouterr().err
     with pytest.raises(ValueError, match="not the Crazyflie firmware's source folder"):
-        example.build_bindings(tmp_path, cache)
+        example.build_bindings(tmp_path, str(cache))
 
 
 #: The firmware's flags for the Crazyflie 2.x (its Makefile's ARCH_CFLAGS for a release build and
