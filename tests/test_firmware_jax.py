@@ -65,3 +65,19 @@ def test_the_firmware_state_of_a_drone_state_follows_the_firmwares_frames():
     firmware = fw.firmware_state(state)
     np.testing.assert_allclose(np.asarray(firmware.attitude), [[0.0, -10.0, 30.0]], atol=1e-4)
     np.testing.assert_allclose(np.asarray(firmware.gyro), [[np.rad2deg(1.0), 0.0, 0.0]], rtol=1e-6)
+
+
+def test_the_loop_refuses_a_physics_step_longer_than_a_tick():
+    """`pid_tick` with the default 240 Hz physics (30 Hz control): a ValueError naming the 1 ms step it needs."""
+    import jaxdrones as jd
+
+    config = jd.SimConfig()
+    loop = fw.pid_loop_init(jd.init_state(config))
+    with pytest.raises(ValueError, match=r"1 ms tick: SimConfig\(sim_freq=1000, ctrl_freq=1000"):
+        fw.pid_tick(
+            jd.make_step(config),
+            jd.load_params("cf2x"),
+            fw.PidControllerGains.crazyflie(),
+            loop,
+            fw.Setpoint.zeros((1,)),
+        )

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from jaxdrones.control.firmware.controller_pid import (
+    RATE_MAIN_LOOP,
     PidControllerGains,
     PidControllerState,
     controller_pid,
@@ -41,6 +42,18 @@ class PidLoopState:
     tick: jax.Array
 
 
+def check_tick_step(step: StepFn) -> None:
+    """Raise ``ValueError`` unless ``step`` (a `jaxdrones.make_step` step, whose ``config`` is its `SimConfig`)
+    advances one firmware tick, 1 ms: ``sim_freq`` and ``ctrl_freq`` 1000. A step without a ``config`` is taken as
+    the caller says."""
+    config = getattr(step, "config", None)
+    if config is not None and (config.sim_freq, config.ctrl_freq) != (RATE_MAIN_LOOP, RATE_MAIN_LOOP):
+        raise ValueError(
+            f"the firmware's loop needs a physics step of one 1 ms tick: SimConfig(sim_freq={RATE_MAIN_LOOP}, "
+            f"ctrl_freq={RATE_MAIN_LOOP}, ...), got sim_freq={config.sim_freq}, ctrl_freq={config.ctrl_freq}"
+        )
+
+
 def pid_loop_init(drone: DroneState, tick: int = 0) -> PidLoopState:
     """The loop at ``drone`` with fresh controllers (`controller_pid_init`), starting at ``tick``."""
     return PidLoopState(drone=drone, controller=controller_pid_init(drone.pos.shape[:-1]), tick=jnp.int32(tick))
@@ -60,7 +73,11 @@ def pid_tick(
 
     Returns:
         (the loop after the tick, the motors' commands i32[..., D, 4] in PWM units).
+
+    Raises:
+        ValueError: a ``step`` of a `SimConfig` whose step is not 1 ms (`check_tick_step`).
     """
+    check_tick_step(step)
     controller, control = controller_pid(gains, loop.controller, setpoint, firmware_state(loop.drone), loop.tick)
     pwm = power_distribution_cap(power_distribution_legacy(control))
     drone = step(params, loop.drone, motor_rpm(params, pwm))
