@@ -166,6 +166,7 @@ def run_jax_pid(ticks: dict[str, np.ndarray], batch: tuple[int, ...] = ()):
             position=t["sp_position"],
             velocity=t["sp_velocity"],
             velocity_body=t["sp_velocity_body"],
+            acceleration=t.get("sp_acceleration", jnp.zeros_like(t["sp_velocity"])),
         )
         state = fw.FirmwareState(
             attitude=t["attitude"], quat=t["quat"], position=t["position"], velocity=t["velocity"], gyro=t["gyro"]

@@ -198,3 +198,109 @@ def test_the_out_of_tree_controller_compiles_against_the_firmware(cf, tmp_path):
     text, data, bss = (int(v) for v in size.stdout.splitlines()[1].split()[:3])
     print(f"controller.o: text {text} B, data {data} B, bss {bss} B")
     assert 24_464 < text < 64 * 1024 and bss < 1024  # the weights and the code; the memory and the last action
+
+
+def test_the_mellinger_controller_is_the_firmwares(cf):
+    """10⁵ random (controller memory, state, gyro, setpoint) samples in the three mode branches (position, manual
+    attitude, height hold), with integrals near and past their bounds and thrust 0 on some: the JAX controller's
+    control and memory equal the C's ``controllerMellinger`` to float32 rounding."""
+    rng = np.random.default_rng(4)
+    n = 100_000
+    f32 = np.float32
+    modes = np.array([(1, 1, 1, 0, 0, 1, 0), (1, 1, 1, 0, 0, 2, 0), (0, 0, 0, 1, 1, 2, 0), (2, 2, 1, 0, 0, 2, 0),
+                      (1, 1, 1, 0, 0, 0, 1)], np.int32)  # fmt: skip
+    mode = modes[rng.integers(len(modes), size=n)]
+    q = rng.normal(size=(n, 4))
+    q[rng.random(n) < 0.7] = [0, 0, 0, 1] + rng.normal(size=(1, 4)) * 0.1  # most near level
+    q = (q / np.linalg.norm(q, axis=-1, keepdims=True)).astype(f32)
+    sq = rng.normal(size=(n, 4))
+    sample = {
+        "mode": mode,
+        "sp_position": rng.uniform(-2, 2, (n, 3)).astype(f32),
+        "sp_velocity": rng.uniform(-1, 1, (n, 3)).astype(f32),
+        "sp_acceleration": rng.uniform(-2, 2, (n, 3)).astype(f32),
+        "sp_attitude": rng.uniform(-40, 40, (n, 3)).astype(f32),
+        "sp_rate": rng.uniform(-200, 200, (n, 3)).astype(f32),
+        "sp_quat": (sq / np.linalg.norm(sq, axis=-1, keepdims=True)).astype(f32),
+        "sp_thrust": np.where(rng.random(n) < 0.1, 0.0, rng.uniform(10000, 60000, n)).astype(f32),
+        "position": rng.uniform(-2, 2, (n, 3)).astype(f32),
+        "velocity": rng.uniform(-1, 1, (n, 3)).astype(f32),
+        "attitude": rng.uniform(-180, 180, (n, 3)).astype(f32),
+        "quat": q,
+        "gyro": (rng.normal(size=(n, 3)) * 100).astype(f32),
+        "i_error": (rng.uniform(-1, 1, (n, 3)) * [2.5, 2.5, 0.5]).astype(f32),
+        "i_error_m": (rng.uniform(-1, 1, (n, 3)) * [1.2, 1.2, 1600]).astype(f32),
+        "prev_omega": rng.normal(size=(n, 2)).astype(f32),
+        "prev_setpoint_omega": rng.normal(size=(n, 2)).astype(f32),
+    }
+    ctrl, control, sp, sensors, state = cf.controllerMellinger_t(), cf.control_t(), cf.setpoint_t(), None, None
+    sensors, state = cf.sensorData_t(), cf.state_t()
+    c = {k: np.zeros((n, 3), np.float64) for k in ("i_error", "i_error_m")}
+    c |= {"prev": np.zeros((n, 4)), "control": np.zeros((n, 4))}
+    names = ("x", "y", "z", "roll", "pitch", "yaw", "quat")
+    for i in range(n):
+        cf.controllerMellingerInit(ctrl)
+        ctrl.i_error_x, ctrl.i_error_y, ctrl.i_error_z = (float(v) for v in sample["i_error"][i])
+        ctrl.i_error_m_x, ctrl.i_error_m_y, ctrl.i_error_m_z = (float(v) for v in sample["i_error_m"][i])
+        ctrl.prev_omega_roll, ctrl.prev_omega_pitch = (float(v) for v in sample["prev_omega"][i])
+        ctrl.prev_setpoint_omega_roll, ctrl.prev_setpoint_omega_pitch = (
+            float(v) for v in sample["prev_setpoint_omega"][i]
+        )
+        for axis, value in zip(names, sample["mode"][i], strict=True):
+            setattr(sp.mode, axis, int(value))
+        sp.position.x, sp.position.y, sp.position.z = (float(v) for v in sample["sp_position"][i])
+        sp.velocity.x, sp.velocity.y, sp.velocity.z = (float(v) for v in sample["sp_velocity"][i])
+        sp.acceleration.x, sp.acceleration.y, sp.acceleration.z = (float(v) for v in sample["sp_acceleration"][i])
+        sp.attitude.roll, sp.attitude.pitch, sp.attitude.yaw = (float(v) for v in sample["sp_attitude"][i])
+        sp.attitudeRate.roll, sp.attitudeRate.pitch, sp.attitudeRate.yaw = (float(v) for v in sample["sp_rate"][i])
+        quat = sp.attitudeQuaternion
+        quat.x, quat.y, quat.z, quat.w = (float(v) for v in sample["sp_quat"][i])
+        sp.thrust = float(sample["sp_thrust"][i])
+        state.position.x, state.position.y, state.position.z = (float(v) for v in sample["position"][i])
+        state.velocity.x, state.velocity.y, state.velocity.z = (float(v) for v in sample["velocity"][i])
+        state.attitude.roll, state.attitude.pitch, state.attitude.yaw = (float(v) for v in sample["attitude"][i])
+        quat = state.attitudeQuaternion
+        quat.x, quat.y, quat.z, quat.w = (float(v) for v in sample["quat"][i])
+        sensors.gyro.x, sensors.gyro.y, sensors.gyro.z = (float(v) for v in sample["gyro"][i])
+        cf.controllerMellinger(ctrl, control, sp, sensors, state, 0)
+        c["i_error"][i] = ctrl.i_error_x, ctrl.i_error_y, ctrl.i_error_z
+        c["i_error_m"][i] = ctrl.i_error_m_x, ctrl.i_error_m_y, ctrl.i_error_m_z
+        c["prev"][i] = (
+            ctrl.prev_omega_roll,
+            ctrl.prev_omega_pitch,
+            ctrl.prev_setpoint_omega_roll,
+            ctrl.prev_setpoint_omega_pitch,
+        )
+        c["control"][i] = control.roll, control.pitch, control.yaw, control.thrust
+    s = {k: jnp.asarray(v) for k, v in sample.items()}
+    setpoint = fw.Setpoint(
+        mode=s["mode"], attitude=s["sp_attitude"], attitude_rate=s["sp_rate"], quat=s["sp_quat"],
+        thrust=s["sp_thrust"], position=s["sp_position"], velocity=s["sp_velocity"],
+        velocity_body=jnp.zeros(n, bool), acceleration=s["sp_acceleration"],
+    )  # fmt: skip
+    firmware = fw.FirmwareState(
+        attitude=s["attitude"], quat=s["quat"], position=s["position"], velocity=s["velocity"], gyro=s["gyro"]
+    )
+    memory = fw.mellinger_init((n,)).replace(
+        i_error=s["i_error"], i_error_m=s["i_error_m"], prev_omega=s["prev_omega"],
+        prev_setpoint_omega=s["prev_setpoint_omega"],
+    )  # fmt: skip
+    new, out = jax.jit(fw.controller_mellinger)(fw.MellingerGains.crazyflie(), memory, setpoint, firmware, 0)
+    ints = np.stack([np.asarray(out.roll), np.asarray(out.pitch), np.asarray(out.yaw)], -1)
+    worst_int = np.max(np.abs(ints - c["control"][:, :3]))
+    share = np.mean(ints != c["control"][:, :3])
+    thrust = np.abs(np.asarray(out.thrust) - c["control"][:, 3])  # PWM units (a thrust vector's cancelling dot)
+    scale = np.maximum(np.abs(c["i_error_m"]), 1.0)
+    memory_err = max(
+        np.max(np.abs(np.asarray(new.i_error) - c["i_error"])),
+        np.max(np.abs(np.asarray(new.i_error_m) - c["i_error_m"]) / scale),
+        np.max(
+            np.abs(np.concatenate([np.asarray(new.prev_omega), np.asarray(new.prev_setpoint_omega)], -1) - c["prev"])
+        ),
+    )
+    print(
+        f"mellinger: int16 outputs within {worst_int} (differing on {share:.2%}), thrust within "
+        f"{thrust.max():.2g} PWM, memory {memory_err:.1e}"
+    )
+    assert np.any(np.abs(c["control"][:, :3]) == 32000) and np.any(c["control"][:, 3] == 0)
+    assert worst_int <= 1 and thrust.max() < 1.0 and memory_err < 1e-5 and share < 5e-3  # thrust: < 1 PWM unit

@@ -2,11 +2,11 @@
 
 Re-implemented from bitcraze/crazyflie-firmware at 2a18fc29 (each module cites the file it follows) and checked against
 the firmware's own C through its Python bindings (tests/test_firmware.py): the default PID cascade (`controller_pid`,
-one call per 1 kHz tick) the quadrotor power distribution (`power_distribution_legacy`,
-`power_distribution_force_torque`, `power_distribution_cap`) and the Crazyflie 2.1's motor map (`motor_thrust`,
-`motor_rpm`), with the firmware's state, setpoint and control types (`Setpoint`, `FirmwareState`, `Control`) and
-`firmware_state`, the firmware's view of a `DroneState`. `pid_tick` runs the cascade in the loop with the physics, one 1
-ms tick per call.
+one call per 1 kHz tick), the Mellinger controller (`controller_mellinger`), the quadrotor power distribution
+(`power_distribution_legacy`, `power_distribution_force_torque`, `power_distribution_cap`) and the Crazyflie 2.1's motor
+map (`motor_thrust`, `motor_rpm`), with the firmware's state, setpoint and control types (`Setpoint`, `FirmwareState`,
+`Control`) and `firmware_state`, the firmware's view of a `DroneState`. `pid_tick` runs the cascade in the loop with the
+physics, one 1 ms tick per call.
 """
 
 from jaxdrones.control.firmware.controller_pid import (
@@ -19,6 +19,7 @@ from jaxdrones.control.firmware.controller_pid import (
     controller_pid_init,
 )
 from jaxdrones.control.firmware.loop import PidLoopState, pid_loop_init, pid_tick
+from jaxdrones.control.firmware.mellinger import MellingerGains, MellingerState, controller_mellinger, mellinger_init
 from jaxdrones.control.firmware.motors import THRUST_MIN, motor_rpm, motor_thrust
 from jaxdrones.control.firmware.pid import PidGains, PidState, pid_update
 from jaxdrones.control.firmware.power import (
@@ -45,6 +46,8 @@ __all__ = [
     "RATE_MAIN_LOOP",
     "THRUST_MIN",
     "Control",
+    "MellingerGains",
+    "MellingerState",
     "FirmwareState",
     "PidControllerGains",
     "PidControllerState",
@@ -52,9 +55,11 @@ __all__ = [
     "PidLoopState",
     "PidState",
     "Setpoint",
+    "controller_mellinger",
     "controller_pid",
     "controller_pid_init",
     "firmware_state",
+    "mellinger_init",
     "motor_rpm",
     "motor_thrust",
     "pid_loop_init",

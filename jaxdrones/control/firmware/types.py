@@ -39,6 +39,8 @@ class Setpoint:
         position: f32[..., 3] m, world frame.
         velocity: f32[..., 3] m/s, world frame (body frame when ``velocity_body``).
         velocity_body: bool[...], the velocity is in the body (yaw) frame.
+        acceleration: f32[..., 3] m/s², world frame, a feed-forward the Mellinger controller adds (the PID ignores
+            it).
     """
 
     mode: jax.Array
@@ -49,6 +51,7 @@ class Setpoint:
     position: jax.Array
     velocity: jax.Array
     velocity_body: jax.Array
+    acceleration: jax.Array
 
     @classmethod
     def zeros(cls, shape: tuple[int, ...] = ()) -> Setpoint:
@@ -63,6 +66,7 @@ class Setpoint:
             position=f,
             velocity=f,
             velocity_body=jnp.zeros(shape, bool),
+            acceleration=f,
         )
 
 
