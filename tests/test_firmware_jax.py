@@ -81,3 +81,27 @@ def test_the_loop_refuses_a_physics_step_longer_than_a_tick():
             loop,
             fw.Setpoint.zeros((1,)),
         )
+
+
+def test_mellinger_at_its_setpoint_asks_for_the_weight_and_holds_between_its_ticks():
+    """Level and still at a position setpoint: the thrust is mass_thrust · m g (132000 · 0.029 · 9.81) and no
+    moment; on an odd tick the last control is held and the memory unchanged."""
+    setpoint = fw.Setpoint.zeros((3,)).replace(
+        mode=jnp.broadcast_to(jnp.array([1, 1, 1, 0, 0, 1, 0], jnp.int32), (3, 7)),
+        position=jnp.zeros((3, 3)).at[:, 2].set(1.0),
+    )
+    state = fw.FirmwareState(
+        attitude=jnp.zeros((3, 3)),
+        quat=jnp.zeros((3, 4)).at[:, 3].set(1.0),
+        position=jnp.zeros((3, 3)).at[:, 2].set(1.0),
+        velocity=jnp.zeros((3, 3)),
+        gyro=jnp.zeros((3, 3)),
+    )
+    gains = fw.MellingerGains.crazyflie()
+    memory, control = fw.controller_mellinger(gains, fw.mellinger_init((3,)), setpoint, state, 0)
+    np.testing.assert_allclose(np.asarray(control.thrust), 132000 * 0.029 * 9.81, rtol=1e-6)
+    assert not np.any(np.asarray(control.roll)) and not np.any(np.asarray(control.pitch))
+    moved = state.replace(position=state.position.at[:, 0].set(0.5))
+    held, again = fw.controller_mellinger(gains, memory, setpoint, moved, 1)
+    np.testing.assert_array_equal(np.asarray(again.thrust), np.asarray(control.thrust))
+    np.testing.assert_array_equal(np.asarray(held.i_error), np.asarray(memory.i_error))
