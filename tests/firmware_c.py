@@ -113,6 +113,33 @@ def prime(ticks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {k: np.concatenate([first[k], v]) for k, v in ticks.items()}
 
 
+def fill_c(setpoint, sensors, state, sample: dict[str, np.ndarray], i: int) -> None:
+    """The bindings' ``setpoint_t``, ``sensorData_t`` and ``state_t`` set to entry ``i`` of ``sample``'s arrays
+    (`random_ticks`' keys; ``sp_velocity_body`` and ``sp_acceleration`` where given)."""
+    for axis, value in zip(("x", "y", "z", "roll", "pitch", "yaw", "quat"), sample["mode"][i], strict=True):
+        setattr(setpoint.mode, axis, int(value))
+    setpoint.attitude.roll, setpoint.attitude.pitch, setpoint.attitude.yaw = map(float, sample["sp_attitude"][i])
+    setpoint.attitudeRate.roll, setpoint.attitudeRate.pitch, setpoint.attitudeRate.yaw = map(
+        float, sample["sp_rate"][i]
+    )
+    quat = setpoint.attitudeQuaternion
+    quat.x, quat.y, quat.z, quat.w = map(float, sample["sp_quat"][i])
+    setpoint.thrust = float(sample["sp_thrust"][i])
+    setpoint.position.x, setpoint.position.y, setpoint.position.z = map(float, sample["sp_position"][i])
+    setpoint.velocity.x, setpoint.velocity.y, setpoint.velocity.z = map(float, sample["sp_velocity"][i])
+    if "sp_velocity_body" in sample:
+        setpoint.velocity_body = bool(sample["sp_velocity_body"][i])
+    if "sp_acceleration" in sample:
+        acc = setpoint.acceleration
+        acc.x, acc.y, acc.z = map(float, sample["sp_acceleration"][i])
+    state.attitude.roll, state.attitude.pitch, state.attitude.yaw = map(float, sample["attitude"][i])
+    quat = state.attitudeQuaternion
+    quat.x, quat.y, quat.z, quat.w = map(float, sample["quat"][i])
+    state.position.x, state.position.y, state.position.z = map(float, sample["position"][i])
+    state.velocity.x, state.velocity.y, state.velocity.z = map(float, sample["velocity"][i])
+    sensors.gyro.x, sensors.gyro.y, sensors.gyro.z = map(float, sample["gyro"][i])
+
+
 def run_c_pid(cf, ticks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Fly ``ticks`` through the firmware's ``controllerPid``, tick i being stabilizer step i; returns the control
     after each tick: roll, pitch, yaw (int) and thrust."""
@@ -120,25 +147,8 @@ def run_c_pid(cf, ticks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     cf.controllerPidInit()  # as the firmware does at start-up: the PIDs' periods and filters (idempotent)
     control, setpoint, sensors, state = cf.control_t(), cf.setpoint_t(), cf.sensorData_t(), cf.state_t()
     out = {k: np.zeros(n, np.int64) for k in ("roll", "pitch", "yaw")} | {"thrust": np.zeros(n, np.float32)}
-    names = ("x", "y", "z", "roll", "pitch", "yaw", "quat")
     for i in range(n):
-        for axis, value in zip(names, ticks["mode"][i], strict=True):
-            setattr(setpoint.mode, axis, int(value))
-        a, r, q = ticks["sp_attitude"][i], ticks["sp_rate"][i], ticks["sp_quat"][i]
-        setpoint.attitude.roll, setpoint.attitude.pitch, setpoint.attitude.yaw = (float(v) for v in a)
-        setpoint.attitudeRate.roll, setpoint.attitudeRate.pitch, setpoint.attitudeRate.yaw = (float(v) for v in r)
-        sq = setpoint.attitudeQuaternion
-        sq.x, sq.y, sq.z, sq.w = (float(v) for v in q)
-        setpoint.thrust = float(ticks["sp_thrust"][i])
-        setpoint.position.x, setpoint.position.y, setpoint.position.z = (float(v) for v in ticks["sp_position"][i])
-        setpoint.velocity.x, setpoint.velocity.y, setpoint.velocity.z = (float(v) for v in ticks["sp_velocity"][i])
-        setpoint.velocity_body = bool(ticks["sp_velocity_body"][i])
-        state.attitude.roll, state.attitude.pitch, state.attitude.yaw = (float(v) for v in ticks["attitude"][i])
-        sq = state.attitudeQuaternion
-        sq.x, sq.y, sq.z, sq.w = (float(v) for v in ticks["quat"][i])
-        state.position.x, state.position.y, state.position.z = (float(v) for v in ticks["position"][i])
-        state.velocity.x, state.velocity.y, state.velocity.z = (float(v) for v in ticks["velocity"][i])
-        sensors.gyro.x, sensors.gyro.y, sensors.gyro.z = (float(v) for v in ticks["gyro"][i])
+        fill_c(setpoint, sensors, state, ticks, i)
         cf.controllerPid(control, setpoint, sensors, state, i)
         out["roll"][i], out["pitch"][i], out["yaw"][i] = control.roll, control.pitch, control.yaw
         out["thrust"][i] = control.thrust

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from firmware_c import bindings, prime, random_ticks, run_c_pid, run_jax_pid
+from firmware_c import bindings, fill_c, prime, random_ticks, run_c_pid, run_jax_pid
 
 from jaxdrones.control import firmware as fw
 from jaxdrones.examples.firmware_in_the_loop import fly
@@ -233,11 +233,10 @@ def test_the_mellinger_controller_is_the_firmwares(cf):
         "prev_omega": rng.normal(size=(n, 2)).astype(f32),
         "prev_setpoint_omega": rng.normal(size=(n, 2)).astype(f32),
     }
-    ctrl, control, sp, sensors, state = cf.controllerMellinger_t(), cf.control_t(), cf.setpoint_t(), None, None
+    ctrl, control, sp = cf.controllerMellinger_t(), cf.control_t(), cf.setpoint_t()
     sensors, state = cf.sensorData_t(), cf.state_t()
     c = {k: np.zeros((n, 3), np.float64) for k in ("i_error", "i_error_m")}
     c |= {"prev": np.zeros((n, 4)), "control": np.zeros((n, 4))}
-    names = ("x", "y", "z", "roll", "pitch", "yaw", "quat")
     for i in range(n):
         cf.controllerMellingerInit(ctrl)
         ctrl.i_error_x, ctrl.i_error_y, ctrl.i_error_z = (float(v) for v in sample["i_error"][i])
@@ -246,22 +245,7 @@ def test_the_mellinger_controller_is_the_firmwares(cf):
         ctrl.prev_setpoint_omega_roll, ctrl.prev_setpoint_omega_pitch = (
             float(v) for v in sample["prev_setpoint_omega"][i]
         )
-        for axis, value in zip(names, sample["mode"][i], strict=True):
-            setattr(sp.mode, axis, int(value))
-        sp.position.x, sp.position.y, sp.position.z = (float(v) for v in sample["sp_position"][i])
-        sp.velocity.x, sp.velocity.y, sp.velocity.z = (float(v) for v in sample["sp_velocity"][i])
-        sp.acceleration.x, sp.acceleration.y, sp.acceleration.z = (float(v) for v in sample["sp_acceleration"][i])
-        sp.attitude.roll, sp.attitude.pitch, sp.attitude.yaw = (float(v) for v in sample["sp_attitude"][i])
-        sp.attitudeRate.roll, sp.attitudeRate.pitch, sp.attitudeRate.yaw = (float(v) for v in sample["sp_rate"][i])
-        quat = sp.attitudeQuaternion
-        quat.x, quat.y, quat.z, quat.w = (float(v) for v in sample["sp_quat"][i])
-        sp.thrust = float(sample["sp_thrust"][i])
-        state.position.x, state.position.y, state.position.z = (float(v) for v in sample["position"][i])
-        state.velocity.x, state.velocity.y, state.velocity.z = (float(v) for v in sample["velocity"][i])
-        state.attitude.roll, state.attitude.pitch, state.attitude.yaw = (float(v) for v in sample["attitude"][i])
-        quat = state.attitudeQuaternion
-        quat.x, quat.y, quat.z, quat.w = (float(v) for v in sample["quat"][i])
-        sensors.gyro.x, sensors.gyro.y, sensors.gyro.z = (float(v) for v in sample["gyro"][i])
+        fill_c(sp, sensors, state, sample, i)
         cf.controllerMellinger(ctrl, control, sp, sensors, state, 0)
         c["i_error"][i] = ctrl.i_error_x, ctrl.i_error_y, ctrl.i_error_z
         c["i_error_m"][i] = ctrl.i_error_m_x, ctrl.i_error_m_y, ctrl.i_error_m_z

@@ -13,6 +13,17 @@ from jaxdrones.control import firmware as fw
 pytestmark = pytest.mark.unit
 
 
+def _level_at_1m(n: int) -> fw.FirmwareState:
+    """``n`` drones level and still, 1 m up above the origin."""
+    return fw.FirmwareState(
+        attitude=jnp.zeros((n, 3)),
+        quat=jnp.zeros((n, 4)).at[:, 3].set(1.0),
+        position=jnp.zeros((n, 3)).at[:, 2].set(1.0),
+        velocity=jnp.zeros((n, 3)),
+        gyro=jnp.zeros((n, 3)),
+    )
+
+
 def test_a_batch_of_drones_flies_as_each_drone_alone():
     """2 worlds × 3 drones, each its own random sequence of 300 ticks: the batched call's outputs are each drone's
     alone, to float32 rounding (the two compile to different programs)."""
@@ -42,13 +53,7 @@ def test_a_level_drone_holding_its_position_gets_the_thrust_base_and_no_torque()
         mode=jnp.broadcast_to(jnp.array([1, 1, 1, 0, 0, 1, 0], jnp.int32), (4, 7)),
         position=jnp.zeros((4, 3)).at[:, 2].set(1.0),
     )
-    state = fw.FirmwareState(
-        attitude=jnp.zeros((4, 3)),
-        quat=jnp.zeros((4, 4)).at[:, 3].set(1.0),
-        position=jnp.zeros((4, 3)).at[:, 2].set(1.0),
-        velocity=jnp.zeros((4, 3)),
-        gyro=jnp.zeros((4, 3)),
-    )
+    state = _level_at_1m(4)
     _, control = fw.controller_pid(fw.PidControllerGains.crazyflie(), fw.controller_pid_init((4,)), setpoint, state, 0)
     np.testing.assert_array_equal(np.asarray(control.thrust), 36000.0)
     assert not np.any(np.asarray(control.roll)) and not np.any(np.asarray(control.yaw))
@@ -90,13 +95,7 @@ def test_mellinger_at_its_setpoint_asks_for_the_weight_and_holds_between_its_tic
         mode=jnp.broadcast_to(jnp.array([1, 1, 1, 0, 0, 1, 0], jnp.int32), (3, 7)),
         position=jnp.zeros((3, 3)).at[:, 2].set(1.0),
     )
-    state = fw.FirmwareState(
-        attitude=jnp.zeros((3, 3)),
-        quat=jnp.zeros((3, 4)).at[:, 3].set(1.0),
-        position=jnp.zeros((3, 3)).at[:, 2].set(1.0),
-        velocity=jnp.zeros((3, 3)),
-        gyro=jnp.zeros((3, 3)),
-    )
+    state = _level_at_1m(3)
     gains = fw.MellingerGains.crazyflie()
     memory, control = fw.controller_mellinger(gains, fw.mellinger_init((3,)), setpoint, state, 0)
     np.testing.assert_allclose(np.asarray(control.thrust), 132000 * 0.029 * 9.81, rtol=1e-6)

@@ -50,10 +50,9 @@ def programs(worlds: int, ticks: int):
 
     import jaxdrones as jd
     from jaxdrones.control import firmware as fw
+    from jaxdrones.examples.firmware_in_the_loop import physics
 
-    config = jd.SimConfig(sim_freq=1000, ctrl_freq=1000, motor_dynamics=True)
-    params = jd.load_params("cf2x").replace(motor_tau_up=jnp.float32(0.061), motor_tau_down=jnp.float32(0.061))
-    step = jd.make_step(config)
+    step, params, config = physics()  # 1 ms steps, motors of τ = 61 ms
     hover = np.full((worlds, 1, 4), float(params.hover_rpm), np.float32)
     start = jd.init_state(config, pos=np.random.default_rng(0).uniform(0.5, 1.5, (worlds, 1, 3)), rpm=hover)
     setpoint = fw.Setpoint.zeros((worlds, 1)).replace(

@@ -17,28 +17,11 @@ import dataclasses
 
 import numpy as np
 
+from jaxdrones.control.firmware.motors import FIRMWARE_THRUST, UINT16_MAX
 from jaxdrones.validation.readers import ThrustStand
 
-#: The firmware's motor-voltage → thrust cubics, N per motor: (c0, c1, c2, c3) with f = c0 + c1 v + c2 v² + c3 v³,
-#: and the yaw torque per newton of thrust (``THRUST2TORQUE``, m), by propeller (bitcraze/crazyflie-firmware
-#: ``platform_defaults_cf2.h``, CONFIG_CRAZYFLIE_LEGACY_PROPELLERS, CONFIG_CRAZYFLIE_21_PLUS,
-#: CONFIG_CRAZYFLIE_THRUST_UPGRADE_KIT). The Crazyflie 2.1 of 2021 flew the legacy propellers.
-FIRMWARE_THRUST = {
-    "legacy": (
-        (-0.014830744918356092, 0.04724465241828281, -0.01847364358025878, 0.005960923942142),
-        0.007350862856566459,
-    ),
-    "cf21_plus": (
-        (-0.02476537915958403, 0.06523793527519485, -0.026792504967750107, 0.006776789303971145),
-        0.0069928948992470565,
-    ),
-    "thrust_upgrade": (
-        (0.006728127583707208, 0.01011557616217668, 0.010263198062061085, 0.0028358638322392503),
-        0.0051648627905205285,
-    ),
-}
 #: PWM full scale (the firmware's 16-bit ratio).
-PWM_MAX = 65535.0
+PWM_MAX = float(UINT16_MAX)
 
 
 def motor_voltage(pwm: np.ndarray, vbat: np.ndarray) -> np.ndarray:

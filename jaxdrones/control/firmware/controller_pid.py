@@ -23,8 +23,17 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxdrones.control.firmware import math3d as m3
 from jaxdrones.control.firmware import pid as _pid
-from jaxdrones.control.firmware.types import MODE_ABS, MODE_DISABLE, MODE_VELOCITY, Control, FirmwareState, Setpoint
+from jaxdrones.control.firmware.types import (
+    MODE_ABS,
+    MODE_DISABLE,
+    MODE_VELOCITY,
+    Control,
+    FirmwareState,
+    Setpoint,
+    select,
+)
 
 #: The stabilizer loop's rate and the controller's loops' (stabilizer_types.h), Hz.
 RATE_MAIN_LOOP, ATTITUDE_RATE, POSITION_RATE = 1000, 500, 100
@@ -160,16 +169,6 @@ def saturate_int16(value: jax.Array) -> jax.Array:
     return jnp.clip(jnp.trunc(jnp.clip(value, -32767.0, 32767.0)), -32767, 32767).astype(jnp.int32)
 
 
-def _select(cond: jax.Array, new, old):
-    """``new`` where ``cond`` (f[...], broadcast over each leaf's trailing axes), else ``old``."""
-
-    def pick(a, b):
-        c = cond.reshape(cond.shape + (1,) * (a.ndim - cond.ndim))
-        return jnp.where(c, a, b)
-
-    return jax.tree.map(pick, new, old)
-
-
 def _reinitialize(cstate: PidControllerState, state: FirmwareState) -> PidControllerState:
     """``controllerPidReinitialize``: the position PIDs reset to the position (the velocity ones to 0) with their
     filters, the attitude PIDs to the attitude (the rate ones to 0), the desired roll and pitch to the attitude."""
@@ -195,10 +194,7 @@ def _yaw_setpoint(gains, cstate, setpoint: Setpoint, state: FirmwareState) -> ja
         jnp.where(delta < -gains.yaw_max_delta, state_yaw - gains.yaw_max_delta, rate_yaw),
     )
     rate_yaw = jnp.where(gains.yaw_max_delta != 0, bounded, rate_yaw)
-    q = setpoint.quat
-    quat_yaw = jnp.arctan2(
-        2.0 * (q[..., 3] * q[..., 2] + q[..., 0] * q[..., 1]), 1 - 2 * (q[..., 1] * q[..., 1] + q[..., 2] * q[..., 2])
-    ) * (_F(180.0) / _PI)
+    quat_yaw = m3.quat_yaw(setpoint.quat)
     mode_yaw, mode_quat = setpoint.mode[..., 5], setpoint.mode[..., 6]
     yaw = jnp.where(
         mode_yaw == MODE_VELOCITY,
@@ -317,16 +313,16 @@ def _controller_pid_one(
     cstate = _mode_stage(gains, cstate, setpoint, state)
     attitude_tick = tick % (RATE_MAIN_LOOP // ATTITUDE_RATE) == 0
     position_tick = tick % (RATE_MAIN_LOOP // POSITION_RATE) == 0
-    cstate = _select(attitude_tick, _yaw_stage(gains, cstate, setpoint, state), cstate)
-    cstate = _select(position_tick, _position_stage(gains, cstate, setpoint, state), cstate)
-    cstate = _select(attitude_tick, _attitude_loops(gains, cstate, setpoint, state), cstate)
+    cstate = select(attitude_tick, _yaw_stage(gains, cstate, setpoint, state), cstate)
+    cstate = select(position_tick, _position_stage(gains, cstate, setpoint, state), cstate)
+    cstate = select(attitude_tick, _attitude_loops(gains, cstate, setpoint, state), cstate)
     return _finish_stage(cstate, state)
 
 
 def _mode_stage(gains, cstate: PidControllerState, setpoint: Setpoint, state: FirmwareState) -> PidControllerState:
     """The first step of ``controllerPid``: a setpoint mode other than the last tick's resets the PIDs."""
     changed = jnp.any(setpoint.mode != cstate.previous_mode, axis=-1)
-    cstate = _select(changed, _reinitialize(cstate, state), cstate)
+    cstate = select(changed, _reinitialize(cstate, state), cstate)
     return cstate.replace(previous_mode=jnp.broadcast_to(setpoint.mode, cstate.previous_mode.shape))
 
 
@@ -357,10 +353,10 @@ def _finish_stage(cstate: PidControllerState, state: FirmwareState) -> tuple[Pid
         yaw=jnp.zeros_like(control.yaw),
         thrust=control.thrust,
     )
-    control = _select(off, zero, control)
+    control = select(off, zero, control)
     reset = _reinitialize(cstate, state)
     reset = reset.replace(attitude_desired=reset.attitude_desired.at[..., 2].set(state.attitude[..., 2]))
-    cstate = _select(off, reset, cstate).replace(control=control)
+    cstate = select(off, reset, cstate).replace(control=control)
     return cstate, control
 
 

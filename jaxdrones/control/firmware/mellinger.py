@@ -16,8 +16,17 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from jaxdrones.control.firmware import math3d as m3
 from jaxdrones.control.firmware.controller_pid import ATTITUDE_DT, ATTITUDE_RATE, RATE_MAIN_LOOP
-from jaxdrones.control.firmware.types import MODE_ABS, MODE_DISABLE, MODE_VELOCITY, Control, FirmwareState, Setpoint
+from jaxdrones.control.firmware.types import (
+    MODE_ABS,
+    MODE_DISABLE,
+    MODE_VELOCITY,
+    Control,
+    FirmwareState,
+    Setpoint,
+    select,
+)
 
 _F = np.float32
 _PI = _F(math.pi)
@@ -91,46 +100,6 @@ def mellinger_init(shape: tuple[int, ...] = ()) -> MellingerState:
     )
 
 
-def _radians(degrees):
-    return (_PI / _F(180.0)) * degrees
-
-
-def _clamp(value, low, high):
-    """math3d.h ``clamp``: below ``low`` gives ``low``, above ``high`` gives ``high`` (NaN stays)."""
-    return jnp.where(value < low, low, jnp.where(value > high, high, value))
-
-
-def _cross(a, b):
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def _normalize(v):
-    """math3d.h ``vnormalize``: ``v`` times 1 / ``sqrtf(vdot(v, v))``."""
-    inverse = 1.0 / jnp.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-    return tuple(inverse * c for c in v)
-
-
-def _rotmat_columns(x, y, z, w):
-    """math3d.h ``quat2rotmat``'s three columns."""
-    m00, m01, m02 = 1 - 2 * y * y - 2 * z * z, 2 * x * y - 2 * z * w, 2 * x * z + 2 * y * w
-    m10, m11, m12 = 2 * x * y + 2 * z * w, 1 - 2 * x * x - 2 * z * z, 2 * y * z - 2 * x * w
-    m20, m21, m22 = 2 * x * z - 2 * y * w, 2 * y * z + 2 * x * w, 1 - 2 * x * x - 2 * y * y
-    return (m00, m10, m20), (m01, m11, m21), (m02, m12, m22)
-
-
-def _rpy2quat(r, p, y):
-    """math3d.h ``rpy2quat``: (x, y, z, w)."""
-    cr, sr = jnp.cos(r / 2.0), jnp.sin(r / 2.0)
-    cp, sp = jnp.cos(p / 2.0), jnp.sin(p / 2.0)
-    cy, sy = jnp.cos(y / 2.0), jnp.sin(y / 2.0)
-    return (
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-        cr * cp * cy + sr * sp * sy,
-    )
-
-
 def controller_mellinger(
     gains: MellingerGains, mstate: MellingerState, setpoint: Setpoint, state: FirmwareState, tick: jax.Array | int
 ) -> tuple[MellingerState, Control]:
@@ -149,8 +118,7 @@ def controller_mellinger(
     """
     new_state, control = _mellinger(gains, mstate, setpoint, state)
     runs = jnp.asarray(tick) % (RATE_MAIN_LOOP // ATTITUDE_RATE) == 0
-    pick = lambda a, b: jnp.where(jnp.reshape(runs, runs.shape + (1,) * (a.ndim - runs.ndim)), a, b)  # noqa: E731
-    new_state = jax.tree.map(pick, new_state, mstate)
+    new_state = select(runs, new_state, mstate)
     return new_state, new_state.control
 
 
@@ -162,14 +130,10 @@ def _mellinger(gains: MellingerGains, mstate: MellingerState, setpoint: Setpoint
     r_error = [sp_pos[..., k] - state.position[..., k] for k in range(3)]
     v_error = [sp_vel[..., k] - state.velocity[..., k] for k in range(3)]
     ranges = (g.i_range_xy, g.i_range_xy, g.i_range_z)
-    i_error = [_clamp(mstate.i_error[..., k] + r_error[k] * dt, -ranges[k], ranges[k]) for k in range(3)]
+    i_error = [m3.clamp(mstate.i_error[..., k] + r_error[k] * dt, -ranges[k], ranges[k]) for k in range(3)]
 
     mode = setpoint.mode
-    q_sp = setpoint.quat
-    quat_yaw = (_F(180.0) / _PI) * jnp.arctan2(
-        2.0 * (q_sp[..., 3] * q_sp[..., 2] + q_sp[..., 0] * q_sp[..., 1]),
-        1 - 2 * (q_sp[..., 1] * q_sp[..., 1] + q_sp[..., 2] * q_sp[..., 2]),
-    )
+    quat_yaw = m3.quat_yaw(setpoint.quat)
     desired_yaw = jnp.where(
         mode[..., 5] == MODE_VELOCITY,
         state.attitude[..., 2] + setpoint.attitude_rate[..., 2] * dt,
@@ -179,7 +143,7 @@ def _mellinger(gains: MellingerGains, mstate: MellingerState, setpoint: Setpoint
     )
 
     x, y, z, w = (state.quat[..., k] for k in range(4))
-    z_axis = _rotmat_columns(x, y, z, w)[2]
+    z_axis = m3.rotmat_columns(x, y, z, w)[2]
     zero = jnp.zeros_like(x)
 
     # position mode
@@ -191,20 +155,19 @@ def _mellinger(gains: MellingerGains, mstate: MellingerState, setpoint: Setpoint
     )
 
     def axes_from(target, yaw_deg):
-        z_des = _normalize(target)
-        yaw = _radians(yaw_deg)
+        z_des = m3.normalize(target)
+        yaw = m3.radians(yaw_deg)
         x_c = (jnp.cos(yaw), jnp.sin(yaw), zero)
-        y_des = _normalize(_cross(z_des, x_c))
-        return _cross(y_des, z_des), y_des, z_des
-
-    def dot(a, b):
-        return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+        y_des = m3.normalize(m3.cross(z_des, x_c))
+        return m3.cross(y_des, z_des), y_des, z_des
 
     pos_axes = axes_from(thrust_vec, desired_yaw)
-    pos_thrust = dot(thrust_vec, z_axis)
+    pos_thrust = m3.dot(thrust_vec, z_axis)
     # manual attitude mode
-    cmd = _rpy2quat(_radians(setpoint.attitude[..., 0]), -_radians(setpoint.attitude[..., 1]), _radians(desired_yaw))
-    manual_axes = _rotmat_columns(*cmd)
+    cmd = m3.rpy2quat(
+        m3.radians(setpoint.attitude[..., 0]), -m3.radians(setpoint.attitude[..., 1]), m3.radians(desired_yaw)
+    )
+    manual_axes = m3.rotmat_columns(*cmd)
     # any other mode: hold the height at the state's yaw
     hold_vec = (
         zero,
@@ -212,7 +175,7 @@ def _mellinger(gains: MellingerGains, mstate: MellingerState, setpoint: Setpoint
         g.mass * _F(GRAVITY_MAGNITUDE) + g.kp_z * r_error[2] + g.kd_z * v_error[2] + g.ki_z * i_error[2],
     )
     hold_axes = axes_from(hold_vec, state.attitude[..., 2])
-    hold_thrust = dot(hold_vec, z_axis)
+    hold_thrust = m3.dot(hold_vec, z_axis)
 
     position_mode = mode[..., 0] == MODE_ABS
     manual_mode = (mode[..., 4] == MODE_ABS) & (mode[..., 3] == MODE_ABS) & (mode[..., 2] == MODE_DISABLE)
@@ -229,23 +192,23 @@ def _mellinger(gains: MellingerGains, mstate: MellingerState, setpoint: Setpoint
     e_r = _rotation_error(x, y, z, w, x_des, y_des, z_des)
     e_r = (e_r[0], -e_r[1], e_r[2])
 
-    rate = (_radians(state.gyro[..., 0]), -_radians(state.gyro[..., 1]), _radians(state.gyro[..., 2]))
+    rate = (m3.radians(state.gyro[..., 0]), -m3.radians(state.gyro[..., 1]), m3.radians(state.gyro[..., 2]))
     sp_rate = setpoint.attitude_rate
     e_w = (
-        _radians(sp_rate[..., 0]) - rate[0],
-        -_radians(sp_rate[..., 1]) - rate[1],
-        _radians(sp_rate[..., 2]) - rate[2],
+        m3.radians(sp_rate[..., 0]) - rate[0],
+        -m3.radians(sp_rate[..., 1]) - rate[1],
+        m3.radians(sp_rate[..., 2]) - rate[2],
     )
     prev, prev_sp = mstate.prev_omega, mstate.prev_setpoint_omega
     started = prev[..., 0] == prev[..., 0]
     err_d_roll = jnp.where(
-        started, ((_radians(sp_rate[..., 0]) - prev_sp[..., 0]) - (rate[0] - prev[..., 0])) / dt, 0.0
+        started, ((m3.radians(sp_rate[..., 0]) - prev_sp[..., 0]) - (rate[0] - prev[..., 0])) / dt, 0.0
     )
     err_d_pitch = jnp.where(
-        started, (-(_radians(sp_rate[..., 1]) - prev_sp[..., 1]) - (rate[1] - prev[..., 1])) / dt, 0.0
+        started, (-(m3.radians(sp_rate[..., 1]) - prev_sp[..., 1]) - (rate[1] - prev[..., 1])) / dt, 0.0
     )
     m_ranges = (g.i_range_m_xy, g.i_range_m_xy, g.i_range_m_z)
-    i_error_m = [_clamp(mstate.i_error_m[..., k] + (-e_r[k]) * dt, -m_ranges[k], m_ranges[k]) for k in range(3)]
+    i_error_m = [m3.clamp(mstate.i_error_m[..., k] + (-e_r[k]) * dt, -m_ranges[k], m_ranges[k]) for k in range(3)]
     moment = (
         -g.kR_xy * e_r[0] + g.kw_xy * e_w[0] + g.ki_m_xy * i_error_m[0] + g.kd_omega_rp * err_d_roll,
         -g.kR_xy * e_r[1] + g.kw_xy * e_w[1] + g.ki_m_xy * i_error_m[1] + g.kd_omega_rp * err_d_pitch,
@@ -253,14 +216,14 @@ def _mellinger(gains: MellingerGains, mstate: MellingerState, setpoint: Setpoint
     )
     thrust = jnp.where(mode[..., 2] == MODE_DISABLE, setpoint.thrust, g.mass_thrust * current_thrust)
     on = thrust > 0
-    to_int = lambda v: jnp.where(on, jnp.trunc(_clamp(v, -32000.0, 32000.0)), 0.0).astype(jnp.int32)  # noqa: E731
+    to_int = lambda v: jnp.where(on, jnp.trunc(m3.clamp(v, -32000.0, 32000.0)), 0.0).astype(jnp.int32)  # noqa: E731
     control = Control(roll=to_int(moment[0]), pitch=to_int(moment[1]), yaw=to_int(-moment[2]), thrust=thrust)
     keep = lambda v: jnp.where(on, v, 0.0)  # noqa: E731  (zero thrust: the integrals reset)
     new_state = MellingerState(
         i_error=jnp.stack([keep(v) for v in i_error], -1),
         i_error_m=jnp.stack([keep(v) for v in i_error_m], -1),
         prev_omega=jnp.stack([rate[0], rate[1]], -1),
-        prev_setpoint_omega=jnp.stack([_radians(sp_rate[..., 0]), _radians(sp_rate[..., 1])], -1),
+        prev_setpoint_omega=jnp.stack([m3.radians(sp_rate[..., 0]), m3.radians(sp_rate[..., 1])], -1),
         control=control,
     )
     return new_state, control

@@ -14,11 +14,32 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxdrones.control.firmware.power import THRUST_MAX, UINT16_MAX
 from jaxdrones.physics.params import DroneParams, align_params
 
-#: platform_defaults_cf2.h (2.1+ propellers): the least thrust a running motor gives, N.
+#: The motors' commands' full scale (a 16-bit ratio).
+UINT16_MAX = 65535
+#: platform_defaults_cf2.h, ``CONFIG_CRAZYFLIE_21_PLUS`` (the default): the most thrust per motor, N, and the least a
+#: running motor gives.
+THRUST_MAX = 0.12
 THRUST_MIN = 0.012817578393224994
+#: The firmware's motor-voltage → thrust cubics, N per motor: (c0, c1, c2, c3) with f = c0 + c1 v + c2 v² + c3 v³,
+#: and the yaw torque per newton of thrust (``THRUST2TORQUE``, m), by propeller (bitcraze/crazyflie-firmware
+#: ``platform_defaults_cf2.h``, CONFIG_CRAZYFLIE_LEGACY_PROPELLERS, CONFIG_CRAZYFLIE_21_PLUS,
+#: CONFIG_CRAZYFLIE_THRUST_UPGRADE_KIT). The Crazyflie 2.1 of 2021 flew the legacy propellers.
+FIRMWARE_THRUST = {
+    "legacy": (
+        (-0.014830744918356092, 0.04724465241828281, -0.01847364358025878, 0.005960923942142),
+        0.007350862856566459,
+    ),
+    "cf21_plus": (
+        (-0.02476537915958403, 0.06523793527519485, -0.026792504967750107, 0.006776789303971145),
+        0.0069928948992470565,
+    ),
+    "thrust_upgrade": (
+        (0.006728127583707208, 0.01011557616217668, 0.010263198062061085, 0.0028358638322392503),
+        0.0051648627905205285,
+    ),
+}
 
 
 def motor_thrust(pwm: jax.Array) -> jax.Array:

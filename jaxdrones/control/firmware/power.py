@@ -11,15 +11,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrones.control.firmware.motors import FIRMWARE_THRUST, THRUST_MAX, UINT16_MAX
 from jaxdrones.control.firmware.types import Control
 
 _F = np.float32
-#: platform_defaults_cf2.h, ``CONFIG_CRAZYFLIE_21_PLUS`` (the default): arm length m, the most thrust per motor N,
-#: and the yaw torque per newton of thrust m.
+#: platform_defaults_cf2.h, ``CONFIG_CRAZYFLIE_21_PLUS`` (the default): arm length m and the yaw torque per newton
+#: of thrust m.
 ARM_LENGTH = 0.046
-THRUST_MAX = 0.12
-THRUST2TORQUE = 0.0069928948992470565
-UINT16_MAX = 65535
+THRUST2TORQUE = FIRMWARE_THRUST["cf21_plus"][1]
 
 
 def _trunc_i32(x: jax.Array) -> jax.Array:

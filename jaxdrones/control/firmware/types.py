@@ -12,6 +12,8 @@ The frames are the firmware's and jaxdrones' alike: world x, y, z up; body x for
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -23,6 +25,7 @@ MODE_DISABLE, MODE_ABS, MODE_VELOCITY = 0, 1, 2
 #: The fields of ``setpoint_mode_t``, in its order: the last axis of `Setpoint.mode`.
 MODE_AXES = ("x", "y", "z", "roll", "pitch", "yaw", "quat")
 RAD_TO_DEG = 57.29577951308232
+_Tree = TypeVar("_Tree")
 
 
 @struct.dataclass
@@ -109,6 +112,17 @@ class Control:
     def zeros(cls, shape: tuple[int, ...] = ()) -> Control:
         i = jnp.zeros(shape, jnp.int32)
         return cls(roll=i, pitch=i, yaw=i, thrust=jnp.zeros(shape, jnp.float32))
+
+
+def select(cond: jax.Array, new: _Tree, old: _Tree) -> _Tree:
+    """The pytree ``new`` where ``cond`` (bool[...], the batch's axes, broadcast over each leaf's trailing axes),
+    else ``old``."""
+
+    def pick(a, b):
+        c = jnp.reshape(cond, jnp.shape(cond) + (1,) * (a.ndim - jnp.ndim(cond)))
+        return jnp.where(c, a, b)
+
+    return jax.tree.map(pick, new, old)
 
 
 def firmware_state(state: DroneState) -> FirmwareState:
