@@ -1282,14 +1282,24 @@ def render_jaxmarl_ippo(data: dict, out: str) -> str:
 
 def render_firmware_loop(data: dict, out: str) -> str:
     return table(
-        ["worlds", "ticks", "physics alone, drone-steps/s", "firmware loop, drone-steps/s", "loop / physics"],
+        [
+            "worlds",
+            "ticks",
+            "physics alone, drone-steps/s",
+            "tick by tick (`pid_tick`)",
+            "/ physics",
+            "scheduled (`pid_ticks`)",
+            "/ physics",
+        ],
         [
             [
                 r["worlds"],
                 r["ticks"],
                 num(r["physics_drone_steps_per_s"]),
-                num(r["loop_drone_steps_per_s"]),
-                num(r["loop_over_physics"], 2),
+                num(r["tick_by_tick_drone_steps_per_s"]),
+                num(r["tick_by_tick_over_physics"], 2),
+                num(r["scheduled_drone_steps_per_s"]),
+                num(r["scheduled_over_physics"], 2),
             ]
             for r in data["results"]
         ],

@@ -5,9 +5,11 @@ of one cf2x in one jitted `lax.scan`, on jaxdrones' physics at 1 kHz with first-
 docs/validation.md §3):
 
 * physics alone: `jaxdrones.make_step` at hover RPM;
-* firmware loop: `jaxdrones.control.firmware.pid_tick` (the firmware's state of each drone, `controller_pid` with
+* tick by tick: `jaxdrones.control.firmware.pid_tick` (the firmware's state of each drone, `controller_pid` with
   only the loops of the tick, the power distribution and its cap, the motor map, then the same physics step),
-  holding a position setpoint.
+  holding a position setpoint;
+* scheduled: `jaxdrones.control.firmware.pid_ticks`, the same ticks in one call, the loops' schedule written into
+  the program (what the envs' firmware actions run), the same setpoint.
 
 Each program is compiled and warmed up, then the two are timed in turn within each of ``--repeats`` rounds
 (`common.timed_together`), so that a change of the machine's load reaches both; the table gives the medians and
@@ -43,7 +45,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def programs(worlds: int, ticks: int):
-    """(physics alone, firmware loop): each a function of nothing that runs ``ticks`` ticks and blocks."""
+    """(physics alone, tick by tick, scheduled): each a function of nothing that runs ``ticks`` ticks and blocks."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -75,15 +77,21 @@ def programs(worlds: int, ticks: int):
             length=ticks,
         )[0]
 
+    @jax.jit
+    def scheduled(state):
+        return fw.pid_ticks(step, params, gains, state, setpoint, ticks)[0]
+
     loop_start = fw.pid_loop_init(start, tick=0)
     compile_s = {}
-    for name, fn, arg in (("physics", physics, start), ("firmware_loop", loop, loop_start)):
+    programs = (("physics", physics, start), ("tick_by_tick", loop, loop_start), ("scheduled", scheduled, loop_start))
+    for name, fn, arg in programs:
         t0 = time.perf_counter()
         jax.block_until_ready(fn(arg))
         compile_s[name] = time.perf_counter() - t0
     runs = {
         "physics": lambda: jax.block_until_ready(physics(start)),
-        "firmware_loop": lambda: jax.block_until_ready(loop(loop_start)),
+        "tick_by_tick": lambda: jax.block_until_ready(loop(loop_start)),
+        "scheduled": lambda: jax.block_until_ready(scheduled(loop_start)),
     }
     return runs, compile_s
 
@@ -97,8 +105,8 @@ def main(argv=None) -> int:
     print(f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, load {os.getloadavg()}")
     load_start = os.getloadavg()
     results = []
-    print("| worlds | physics alone, drone-steps/s | firmware loop, drone-steps/s | loop / physics |")
-    print("|---|---|---|---|")
+    print("| worlds | physics alone, drone-steps/s | tick by tick | / physics | scheduled | / physics |")
+    print("|---|---|---|---|---|---|")
     for worlds in args.worlds:
         runs, compile_s = programs(worlds, args.ticks)
         times = timed_together(runs, args.repeats)
@@ -107,15 +115,18 @@ def main(argv=None) -> int:
             "worlds": worlds,
             "ticks": args.ticks,
             "physics_drone_steps_per_s": rate["physics"],
-            "loop_drone_steps_per_s": rate["firmware_loop"],
-            "loop_over_physics": rate["firmware_loop"] / rate["physics"],
+            "tick_by_tick_drone_steps_per_s": rate["tick_by_tick"],
+            "tick_by_tick_over_physics": rate["tick_by_tick"] / rate["physics"],
+            "scheduled_drone_steps_per_s": rate["scheduled"],
+            "scheduled_over_physics": rate["scheduled"] / rate["physics"],
             "median_s": {name: t[1] for name, t in times.items()},
             "best_s": {name: t[0] for name, t in times.items()},
             "compile_s": compile_s,
         }
         results.append(row)
         print(
-            f"| {worlds} | {rate['physics']:.3g} | {rate['firmware_loop']:.3g} | {row['loop_over_physics']:.2f} |",
+            f"| {worlds} | {rate['physics']:.3g} | {rate['tick_by_tick']:.3g} | {row['tick_by_tick_over_physics']:.2f} "
+            f"| {rate['scheduled']:.3g} | {row['scheduled_over_physics']:.2f} |",
             flush=True,
         )
     write_report(

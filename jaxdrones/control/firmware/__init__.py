@@ -6,7 +6,7 @@ one call per 1 kHz tick), the Mellinger controller (`controller_mellinger`), the
 (`power_distribution_legacy`, `power_distribution_force_torque`, `power_distribution_cap`) and the Crazyflie 2.1's motor
 map (`motor_thrust`, `motor_rpm`), with the firmware's state, setpoint and control types (`Setpoint`, `FirmwareState`,
 `Control`) and `firmware_state`, the firmware's view of a `DroneState`. `pid_tick` runs the cascade in the loop with the
-physics, one 1 ms tick per call.
+physics, one 1 ms tick per call; `pid_ticks` many ticks per call, its loops' schedule written into the program.
 """
 
 from jaxdrones.control.firmware.controller_pid import (
@@ -18,7 +18,7 @@ from jaxdrones.control.firmware.controller_pid import (
     controller_pid,
     controller_pid_init,
 )
-from jaxdrones.control.firmware.loop import PidLoopState, pid_loop_init, pid_tick
+from jaxdrones.control.firmware.loop import PidLoopState, pid_loop_init, pid_schedule, pid_tick, pid_ticks
 from jaxdrones.control.firmware.mellinger import MellingerGains, MellingerState, controller_mellinger, mellinger_init
 from jaxdrones.control.firmware.motors import THRUST_MIN, motor_rpm, motor_thrust
 from jaxdrones.control.firmware.pid import PidGains, PidState, pid_update
@@ -63,7 +63,9 @@ __all__ = [
     "motor_rpm",
     "motor_thrust",
     "pid_loop_init",
+    "pid_schedule",
     "pid_tick",
+    "pid_ticks",
     "pid_update",
     "power_distribution_cap",
     "power_distribution_force_torque",

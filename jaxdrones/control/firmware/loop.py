@@ -4,24 +4,35 @@ Each tick does what the firmware's stabilizer loop does between two of its ticks
 (`firmware_state`: a perfect estimator), its control goes through the power distribution and the cap to the motors'
 commands, the motor map turns them into speeds (`motor_rpm`), and the physics advances 1 ms at those speeds. The
 physics step must advance 1 ms per call: ``jaxdrones.make_step(SimConfig(sim_freq=1000, ctrl_freq=1000))``.
+
+`pid_tick` runs one tick; `pid_ticks` runs many with one setpoint, the firmware's schedule of loops written into the
+program (which loop runs on which tick, for a loop that starts on a multiple of 10 ticks) rather than decided tick by
+tick: the same results at about 1.6 times the speed (docs/benchmarks.md, "The firmware's PID in the loop").
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from jaxdrones.control.firmware.controller_pid import (
+    ATTITUDE_RATE,
+    POSITION_RATE,
     RATE_MAIN_LOOP,
     PidControllerGains,
     PidControllerState,
+    _attitude_loops,
+    _mode_stage,
+    _position_stage,
+    _yaw_stage,
     controller_pid,
     controller_pid_init,
 )
 from jaxdrones.control.firmware.motors import motor_rpm
 from jaxdrones.control.firmware.power import power_distribution_cap, power_distribution_legacy
-from jaxdrones.control.firmware.types import Setpoint, firmware_state
+from jaxdrones.control.firmware.types import MODE_DISABLE, Control, Setpoint, firmware_state
 from jaxdrones.physics.params import DroneParams
 from jaxdrones.physics.state import DroneState
 from jaxdrones.physics.step import StepFn
@@ -79,6 +90,157 @@ def pid_tick(
     """
     check_tick_step(step)
     controller, control = controller_pid(gains, loop.controller, setpoint, firmware_state(loop.drone), loop.tick)
-    pwm = power_distribution_cap(power_distribution_legacy(control))
+    pwm = _motors(control)
     drone = step(params, loop.drone, motor_rpm(params, pwm))
     return PidLoopState(drone=drone, controller=controller, tick=loop.tick + 1), pwm
+
+
+def _motors(control: Control) -> jax.Array:
+    """The motors' commands i32[..., 4] of a `Control`: the legacy power distribution and its cap."""
+    return power_distribution_cap(power_distribution_legacy(control))
+
+
+#: Ticks between two runs of the position loop, and of the attitude and rate loops.
+POSITION_PERIOD = RATE_MAIN_LOOP // POSITION_RATE
+ATTITUDE_PERIOD = RATE_MAIN_LOOP // ATTITUDE_RATE
+
+
+def pid_ticks(
+    step: StepFn,
+    params: DroneParams,
+    gains: PidControllerGains,
+    loop: PidLoopState,
+    setpoint: Setpoint,
+    ticks: int,
+    disturbance: jax.Array | None = None,
+) -> tuple[PidLoopState, jax.Array]:
+    """``ticks`` firmware ticks of the PID cascade driving the physics with one setpoint: the loop after ``ticks``
+    calls of `pid_tick`.
+
+    Where the loop starts on a multiple of `POSITION_PERIOD` ticks, ``ticks`` is one too, no setpoint leaves z
+    uncontrolled (modeDisable: its manual thrust may be 0) and ``gains.thrust_min`` is positive, the controller's
+    thrust cannot be 0 after the first tick and the schedule of its loops is known when the program is traced:
+    `pid_schedule` runs them without deciding anything per tick. Elsewhere (a `jax.lax.cond`, once per call) it is
+    a scan of `pid_tick`. Both give `pid_tick`'s results (to float32 rounding: XLA may fuse the arithmetic
+    differently). Under `jax.vmap` over worlds with a per-world ``loop.tick``, the ``cond`` computes both: call
+    `pid_schedule` where the start is known to be on the schedule (as `jaxdrones.envs` does).
+
+    Args:
+        step: a physics step of 1 ms (`check_tick_step`), called as ``step(params, drone, rpm, disturbance)``.
+        params: `DroneParams` of the drones.
+        gains: `PidControllerGains`.
+        loop: `PidLoopState` ``[..., D]``.
+        setpoint: `Setpoint` ``[..., D]``, held for every tick.
+        ticks: how many ticks, ≥ 1 (a Python int).
+        disturbance: f[..., D, 3] N, a world-frame force on each drone for every tick (None: none).
+
+    Returns:
+        (the loop after the ticks, the motors' commands of the last tick i32[..., D, 4] in PWM units).
+
+    Raises:
+        ValueError: ``ticks`` not a positive int, or a ``step`` not of 1 ms.
+    """
+    check_tick_step(step)
+    if isinstance(ticks, bool) or not isinstance(ticks, int | np.integer) or ticks < 1:
+        raise ValueError(f"pid_ticks: ticks must be a positive int, got {ticks!r}")
+    ticks = int(ticks)
+
+    def one(carry, _):
+        loop, _ = carry
+        controller, control = controller_pid(gains, loop.controller, setpoint, firmware_state(loop.drone), loop.tick)
+        pwm = _motors(control)
+        drone = step(params, loop.drone, motor_rpm(params, pwm), disturbance)
+        return (PidLoopState(drone=drone, controller=controller, tick=loop.tick + 1), pwm), None
+
+    def general(loop):
+        pwm = jnp.zeros(loop.drone.rpm.shape, jnp.int32)
+        return jax.lax.scan(one, (loop, pwm), None, length=ticks)[0]
+
+    if ticks % POSITION_PERIOD:
+        return general(loop)
+
+    def scheduled(loop):
+        drone, controller, pwm = pid_schedule(
+            step, params, gains, loop.drone, loop.controller, setpoint, ticks, disturbance
+        )
+        return PidLoopState(drone=drone, controller=controller, tick=loop.tick + ticks), pwm
+
+    on_schedule = (
+        (loop.tick % POSITION_PERIOD == 0)
+        & jnp.all(setpoint.mode[..., 2] != MODE_DISABLE)
+        & jnp.all(gains.thrust_min > 0)
+    )
+    return jax.lax.cond(on_schedule, scheduled, general, loop)
+
+
+def pid_schedule(
+    step: StepFn,
+    params: DroneParams,
+    gains: PidControllerGains,
+    drone: DroneState,
+    controller: PidControllerState,
+    setpoint: Setpoint,
+    ticks: int,
+    disturbance: jax.Array | None = None,
+) -> tuple[DroneState, PidControllerState, jax.Array]:
+    """`pid_ticks` from a tick that is a multiple of `POSITION_PERIOD`, with the loops of each tick chosen when the
+    program is traced: per `POSITION_PERIOD` ticks, the position loop once, then five times the attitude and rate
+    loops followed by two physics steps at the motors' commands they set (the firmware's odd ticks change nothing
+    but the physics). The caller vouches for what `pid_ticks` checks: the start on the schedule, ``ticks`` a
+    multiple of `POSITION_PERIOD`, z controlled (not modeDisable) and ``gains.thrust_min`` > 0 (else the
+    controller's thrust may be 0, where the firmware resets its PIDs: this path does not).
+
+    Args and raises: see `pid_ticks` (``drone`` and ``controller`` the loop's); ``ticks`` must be a positive
+    multiple of `POSITION_PERIOD`.
+
+    Returns:
+        (the drones after the ticks, the controller's state, the motors' commands of the last tick i32[..., D, 4]).
+    """
+    if isinstance(ticks, bool) or not isinstance(ticks, int | np.integer) or ticks < 1 or ticks % POSITION_PERIOD:
+        raise ValueError(f"pid_schedule: ticks must be a positive multiple of {POSITION_PERIOD}, got {ticks!r}")
+    stages = _stages(setpoint.mode.ndim - 1)
+    # The setpoint is held: only the first tick can see a change of mode (controllerPid's reset).
+    controller = stages["mode"](gains, controller, setpoint, firmware_state(drone))
+
+    def attitude_tick(carry, position: bool):
+        drone, controller = carry
+        state = firmware_state(drone)
+        controller = stages["yaw"](gains, controller, setpoint, state)
+        if position:
+            controller = stages["position"](gains, controller, setpoint, state)
+        controller = stages["attitude"](gains, controller, setpoint, state)
+        control = controller.control.replace(thrust=controller.actuator_thrust)
+        controller = controller.replace(control=control)
+        pwm = _motors(control)
+        rpm = motor_rpm(params, pwm)
+        for _ in range(ATTITUDE_PERIOD):  # the attitude tick and the ticks that hold its control
+            drone = step(params, drone, rpm, disturbance)
+        return (drone, controller), pwm
+
+    def block(carry, _):
+        for k in range(_ATTITUDE_TICKS):
+            carry, pwm = attitude_tick(carry, k == 0)
+        return carry, pwm
+
+    (drone, controller), pwm = jax.lax.scan(block, (drone, controller), None, length=ticks // POSITION_PERIOD)
+    return drone, controller, pwm[-1]
+
+
+#: Attitude ticks per position tick.
+_ATTITUDE_TICKS = POSITION_PERIOD // ATTITUDE_PERIOD
+
+
+def _stages(n_batch: int) -> dict:
+    """controller_pid's stages, each vmapped over ``n_batch`` leading axes (gains shared)."""
+    names = {
+        "mode": _mode_stage,
+        "yaw": _yaw_stage,
+        "position": _position_stage,
+        "attitude": _attitude_loops,
+    }
+    out = {}
+    for name, stage in names.items():
+        for _ in range(n_batch):
+            stage = jax.vmap(stage, in_axes=(None, 0, 0, 0))
+        out[name] = stage
+    return out
