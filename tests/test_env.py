@@ -14,7 +14,7 @@ import pytest
 import jaxdrones as jd
 from jaxdrones.adapters.brax import BraxEnv, wrap_for_brax_training
 from jaxdrones.envs import ACTION_TYPES, MULTI_AGENT, OBS_TYPES, SINGLE_AGENT, registered
-from jaxdrones.envs.actions import ACTION_SIZES
+from jaxdrones.envs.actions import ACTION_SIZES, FIRMWARE_ACTIONS
 from jaxdrones.envs.observations import kinematic_obs
 from jaxdrones.params import with_derived
 from jaxdrones.rotations import quat_from_euler, quat_to_euler, quat_to_rotmat
@@ -36,6 +36,10 @@ def contract_cases():
         cases[(task, "tun" if task == "tune" else "rpm", default_obs)] = False
     for task in ("hover", "leader_follower"):
         for i, action in enumerate(ACTION_TYPES):
+            if action in FIRMWARE_ACTIONS:  # they need the physics at 1 kHz and lagging motors: firmware_hover's
+                if task == "hover":
+                    cases.setdefault(("firmware_hover", action, OBS_TYPES[i % len(OBS_TYPES)]), i % 2 == 1)
+                continue
             cases.setdefault((task, action, OBS_TYPES[i % len(OBS_TYPES)]), i % 2 == 1)
     return [pytest.param(*k, buf, id="-".join(k), marks=pytest.mark.slow) for k, buf in cases.items()]
 
@@ -53,7 +57,7 @@ def test_contract(task, action_type, obs_type, buffer):
         obs_type=obs_type,
         action_buffer=buffer,
         episode_len_s=2.0,
-        ctrl_freq=30,
+        ctrl_freq=50 if task == "firmware_hover" else 30,  # the firmware's 1 kHz: 20 ticks a step
         **cameras,
     )
     auto = AutoReset(env)
@@ -612,7 +616,8 @@ def test_non_float_action_rejected(hover):
 
 def test_registry_lists_every_task():
     assert set(SINGLE_AGENT) | set(MULTI_AGENT) <= set(registered())  # and any registered by the README's example
-    assert {"hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune", "avoid"} == set(SINGLE_AGENT)
+    single = {"hover", "firmware_hover", "takeoff", "velocity", "waypoints", "fly_thru_gate", "tune", "avoid"}
+    assert single == set(SINGLE_AGENT)
     assert {"multi_hover", "leader_follower", "flock", "meetup", "crossing"} == set(MULTI_AGENT)
     assert set(ACTION_SIZES) == set(ACTION_TYPES)
     for name in registered():

@@ -22,10 +22,24 @@ name               size  mapping (source)
                          (the paper's TUN)
 ``ctbr``           4     collective thrust T = m g (a_0 + 1) and body rates ω* = `CTBR_MAX_RATE` · a_1:4 (rad/s)
                          through a body-rate controller (`jaxdrones.control.mixer.body_rate_control`)
+``firmware_pos``   4     the Crazyflie firmware's position setpoint (cflib ``send_position_setpoint``): position
+                         `FIRMWARE_POSITION_RANGE` · a_0:3 (m, world), yaw 180 · a_3 (deg), flown by the firmware's
+                         PID cascade at 1 kHz
+``firmware_vel``   4     the firmware's velocity setpoint (cflib ``send_velocity_world_setpoint``): velocity
+                         `FIRMWARE_MAX_SPEED` · a_0:3 (m/s, world), yaw rate `FIRMWARE_MAX_YAW_RATE` · a_3 (deg/s),
+                         flown by the firmware's PID cascade at 1 kHz
 =================  ====  ==========================================================================================
 
 Unlike the original, actions are clipped to their box before mapping (the env does this), and the PID-based
 types use the airframe's own mixer (the original's RL envs always build the cf2x controller).
+
+The firmware's setpoints (``firmware_pos``, ``firmware_vel``; `ActionType.firmware`) are not mapped to one RPM
+command per control step: the setpoint is held over the step while the firmware's PID cascade
+(`jaxdrones.control.firmware.controller_pid`, its loops at 100 and 500 Hz), its power distribution and its motor map
+drive the physics at every 1 ms tick (`fly`, `jaxdrones.control.firmware.pid_schedule`), as on a Crazyflie that
+``cflib`` sends setpoints to. They need the physics at 1 kHz, a control step of a multiple of 10 ticks and first-order
+motors (the firmware's gains do not hold instant motors: docs/firmware.md); `jaxdrones.envs.config.TaskConfig`
+checks this.
 """
 
 from __future__ import annotations
@@ -56,6 +70,16 @@ ONE_D_THRUST_SCALE = 0.05
 CTBR_MAX_RATE = 2.0 * np.pi
 #: How a ``pid`` action sets the PID's target: ``"absolute"`` (main) or ``"relative"`` (the paper).
 PID_TARGETS = ("absolute", "relative")
+#: ``firmware_pos``: the position setpoint at |a| = 1, m.
+FIRMWARE_POSITION_RANGE = 2.0
+#: ``firmware_vel``: the velocity setpoint at |a| = 1, m/s: the firmware's bound on the velocity its own position
+#: loop asks for (platform_defaults.h ``PID_POS_VEL_X_MAX``, ``PID_POS_VEL_Z_MAX``, 1 m/s).
+FIRMWARE_MAX_SPEED = 1.0
+#: ``firmware_vel``: the yaw-rate setpoint at |a| = 1, deg/s.
+FIRMWARE_MAX_YAW_RATE = 90.0
+#: The firmware's physics rate and the ticks per control step a firmware action's step must be a multiple of (its
+#: position loop's period, `jaxdrones.control.firmware.loop.POSITION_PERIOD`).
+FIRMWARE_SIM_FREQ = 1000
 
 
 class Reference(NamedTuple):
@@ -102,9 +126,77 @@ class ActionType:
         """Whether the mapping runs the DSL PID (whose state is the carry)."""
         return _TABLE[self.name].uses_pid
 
+    @property
+    def firmware(self) -> bool:
+        """Whether the action is a setpoint of the Crazyflie firmware, flown tick by tick by its PID cascade (`fly`)
+        rather than mapped to one RPM command per step (`to_rpm`)."""
+        return _TABLE[self.name].setpoint is not None
+
     def init(self, params: DroneParams, sim: DroneState) -> Any:
-        """The carry at reset: a zeroed `PIDState` f[..., D, 3] for the PID-based types, else ``()``."""
+        """The carry at reset: a zeroed `PIDState` f[..., D, 3] for the PID-based types, else ``()``; for the
+        firmware's setpoints its `jaxdrones.control.firmware.PidControllerState` [..., D] as its motors' idling
+        leaves it (every memory zero, the desired yaw the drone's: controllerPid's reset at zero thrust), so that a
+        drone does not turn to yaw 0 at its first setpoint."""
+        if self.firmware:
+            from jaxdrones.control.firmware import controller_pid_init, firmware_state
+
+            carry = controller_pid_init(sim.pos.shape[:-1])
+            yaw = firmware_state(sim).attitude[..., 2]
+            return carry.replace(attitude_desired=carry.attitude_desired.at[..., 2].set(yaw))
         return pid_init(sim) if self.uses_pid else ()
+
+    def setpoint(self, action: jax.Array) -> Any:
+        """The firmware's `jaxdrones.control.firmware.Setpoint` [..., D] of a firmware action f[..., D, 4] (see the
+        module's table).
+
+        Raises:
+            ValueError: an action type that is not a firmware setpoint.
+        """
+        entry = _TABLE[self.name]
+        if entry.setpoint is None:
+            raise ValueError(
+                f"action_type {self.name!r} is not a firmware setpoint: expected one of {FIRMWARE_ACTIONS}"
+            )
+        return entry.setpoint(action.astype(jnp.float32))
+
+    def fly(
+        self,
+        step: Callable,
+        params: DroneParams,
+        sim: DroneState,
+        carry: Any,
+        action: jax.Array,
+        ticks: int,
+        disturbance: jax.Array | None = None,
+    ) -> tuple[DroneState, Any]:
+        """Fly a firmware action (already clipped to the box) for one control step: its setpoint held for ``ticks``
+        ticks of the firmware's PID cascade, power distribution and motor map, each driving ``step`` for 1 ms
+        (`jaxdrones.control.firmware.pid_schedule`; the firmware's gains, `PidControllerGains.crazyflie`).
+
+        Args:
+            step: a physics step of one 1 ms substep (``SimConfig(sim_freq=1000, ctrl_freq=1000)``).
+            params: per-drone DroneParams.
+            sim: the drones' state before the step.
+            carry: the controller's state (`init` or the previous call).
+            action: f[..., D, 4].
+            ticks: firmware ticks per control step, a positive multiple of 10 (``sim_freq // ctrl_freq``).
+            disturbance: f[..., D, 3] N, a world-frame force for every tick, or None.
+
+        Returns:
+            (the drones after the step, the controller's state).
+
+        Raises:
+            ValueError: an action type that is not a firmware setpoint, ``ticks`` not a positive multiple of 10, or
+                a ``step`` not of 1 ms.
+        """
+        from jaxdrones.control.firmware import PidControllerGains, check_tick_step, pid_schedule
+
+        check_tick_step(step)
+        setpoint = self.setpoint(action)
+        sim, carry, _ = pid_schedule(
+            step, params, PidControllerGains.crazyflie(), sim, carry, setpoint, ticks, disturbance
+        )
+        return sim, carry
 
     def to_rpm(
         self, params: DroneParams, sim: DroneState, carry: Any, action: jax.Array, ref: Reference, ctrl_dt: float
@@ -121,7 +213,12 @@ class ActionType:
 
         Returns:
             (rpm f[..., D, 4] in RPM, new carry).
+
+        Raises:
+            ValueError: a firmware setpoint (`firmware`), which is flown tick by tick: `fly`.
         """
+        if self.firmware:
+            raise ValueError(f"action_type {self.name!r} is a firmware setpoint, flown tick by tick: use fly()")
         return _TABLE[self.name].to_rpm(self, params, sim, carry, action, ref, ctrl_dt)
 
 
@@ -196,10 +293,34 @@ def _ctbr(kind, params, sim, carry, action, ref, ctrl_dt):
     return body_rate_control(params, sim.ang_vel, CTBR_MAX_RATE * action[..., 1:], thrust), carry
 
 
+def _firmware_setpoint(modes: tuple[int, ...], **fields: jax.Array) -> Any:
+    from jaxdrones.control.firmware import Setpoint
+
+    lead = next(iter(fields.values())).shape[:-1]
+    setpoint = Setpoint.zeros(lead)
+    return setpoint.replace(mode=jnp.broadcast_to(jnp.asarray(modes, jnp.int32), (*lead, 7)), **fields)
+
+
+def _firmware_pos(action: jax.Array) -> Any:
+    """Cflib ``send_position_setpoint`` (crtp_commander_generic.c ``positionDecoder``): x, y, z, yaw absolute."""
+    yaw = jnp.zeros_like(action[..., :3]).at[..., 2].set(jnp.float32(180.0) * action[..., 3])
+    position = jnp.float32(FIRMWARE_POSITION_RANGE) * action[..., :3]
+    return _firmware_setpoint((1, 1, 1, 0, 0, 1, 0), position=position, attitude=yaw)
+
+
+def _firmware_vel(action: jax.Array) -> Any:
+    """Cflib ``send_velocity_world_setpoint`` (crtp_commander_generic.c ``velocityDecoder``): x, y, z velocity,
+    yaw rate."""
+    rate = jnp.zeros_like(action[..., :3]).at[..., 2].set(jnp.float32(FIRMWARE_MAX_YAW_RATE) * action[..., 3])
+    velocity = jnp.float32(FIRMWARE_MAX_SPEED) * action[..., :3]
+    return _firmware_setpoint((2, 2, 2, 0, 0, 2, 0), velocity=velocity, attitude_rate=rate)
+
+
 class _Entry(NamedTuple):
     size: int  # action entries per drone
     uses_pid: bool  # the mapping runs the DSL PID, whose state is the carry
-    to_rpm: Callable  # (ActionType, params, sim, carry, action, ref, ctrl_dt) -> (rpm, carry)
+    to_rpm: Callable | None  # (ActionType, params, sim, carry, action, ref, ctrl_dt) -> (rpm, carry); None: fly
+    setpoint: Callable | None = None  # a firmware setpoint: action -> Setpoint, flown by ActionType.fly
 
 
 #: Every action type (see the module docstring): its size, whether it runs the PID, its mapping.
@@ -213,11 +334,15 @@ _TABLE = {
     "one_d_thrust": _Entry(1, False, _one_d_thrust),
     "tun": _Entry(6, True, _tun),
     "ctbr": _Entry(4, False, _ctbr),
+    "firmware_pos": _Entry(4, False, None, _firmware_pos),
+    "firmware_vel": _Entry(4, False, None, _firmware_vel),
 }
 #: Action entries per drone of every action type.
 ACTION_SIZES = {name: entry.size for name, entry in _TABLE.items()}
 #: The registered action type names.
 ACTION_TYPES = tuple(ACTION_SIZES)
+#: The action types that are the Crazyflie firmware's setpoints (`ActionType.firmware`).
+FIRMWARE_ACTIONS = tuple(name for name, entry in _TABLE.items() if entry.setpoint is not None)
 
 
 def make_action(name: str, pid_target: str = "absolute", pid_scale: float = PID_RELATIVE_SCALE) -> ActionType:

@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike
 
 from jaxdrones._validate import check_bool, check_choice, check_int, check_real, check_reals, is_integer, is_real
 from jaxdrones.backends import BACKENDS, RENDERERS, require_pybullet
-from jaxdrones.envs.actions import ACTION_TYPES, PID_MAX_STEP, PID_TARGETS
+from jaxdrones.envs.actions import ACTION_TYPES, FIRMWARE_ACTIONS, FIRMWARE_SIM_FREQ, PID_MAX_STEP, PID_TARGETS
 from jaxdrones.envs.observations import OBS_TYPES
 from jaxdrones.envs.realism import resolve as resolve_realism
 from jaxdrones.physics.params import MODELS, DroneParams, with_derived
@@ -264,7 +264,9 @@ class TaskConfig:
             (through which it acts). Stored as a `Realism` (or None).
 
     Raises:
-        ValueError: on any invalid value, naming the field and the valid range.
+        ValueError: on any invalid value, naming the field and the valid range; a firmware setpoint action
+            (``firmware_pos``, ``firmware_vel``) without the physics at 1 kHz, a control step of a multiple of 10 ms
+            or motor time constants, or on ``backend="pybullet"``.
         ModuleNotFoundError: ``backend="pybullet"`` without pybullet installed, naming the extra that installs it.
     """
 
@@ -331,7 +333,31 @@ class TaskConfig:
                 f"episode_len_s·ctrl_freq must give at least one control step, got "
                 f"{self.episode_len_s!r} s at {sim.ctrl_freq!r} Hz"
             )
+        self._check_firmware()  # before the backend's: it names what a firmware action needs, pybullet installed or not
         self._check_backend()
+
+    def _check_firmware(self) -> None:
+        """A firmware setpoint action (`jaxdrones.envs.actions.FIRMWARE_ACTIONS`) needs the physics at the firmware's
+        1 kHz, a whole number of its position loop's 10 ticks per control step, first-order motors and the JAX
+        backend."""
+        if self.action_type not in FIRMWARE_ACTIONS:
+            return
+        sim, name = self.sim, self.action_type
+        ticks = sim.sim_freq // sim.ctrl_freq
+        if sim.sim_freq != FIRMWARE_SIM_FREQ or ticks % 10:
+            raise ValueError(
+                f"action_type {name!r} is flown by the firmware's controller at its {FIRMWARE_SIM_FREQ} Hz: it needs "
+                f"sim={{'sim_freq': {FIRMWARE_SIM_FREQ}, 'ctrl_freq': F}} with F one of 100, 50, 25, 20, 10 Hz (a "
+                f"multiple of 10 ticks per control step), got sim_freq={sim.sim_freq}, ctrl_freq={sim.ctrl_freq}"
+            )
+        if not sim.motor_dynamics:
+            raise ValueError(
+                f"action_type {name!r}: the firmware's gains need motors that lag (docs/firmware.md); give their time "
+                f"constants, e.g. randomize={{'motor_tau_up': (0.061, 0.061), 'motor_tau_down': (0.061, 0.061)}} "
+                f"(the fitted 61 ms, docs/validation.md §3) or a realism preset with motor lag"
+            )
+        if self.backend != "jax":
+            raise ValueError(f"action_type {name!r} runs on backend='jax' only, got backend={self.backend!r}")
 
     def _set(self, name: str, value) -> None:
         object.__setattr__(self, name, value)

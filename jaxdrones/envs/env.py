@@ -6,6 +6,8 @@ Every env holds ``D ≥ 1`` drones with stacked arrays: obs ``f[D, n_obs]``, act
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -87,6 +89,8 @@ class TaskEnv(Env):
         )
         options = {"obstacles": config.obstacles, "renderer": config.renderer} if config.backend == "pybullet" else {}
         self._step = make_step(self.config.sim, backend=config.backend, **options)
+        if self.action_type.firmware:  # the firmware's controller drives the physics at every 1 ms tick
+            self._tick_step = make_step(dataclasses.replace(config.sim, ctrl_freq=config.sim.sim_freq), **options)
         self._default_task = None
         self.realism = None
         if config.realism is not None:
@@ -337,8 +341,14 @@ class TaskEnv(Env):
         if self.realism is not None:  # the delayed action, and the wind and disturbance of this step
             applied, realism = self.realism.delay_action(realism, action)
             disturbance, realism = self.realism.disturbance(realism, state.sim)
-        rpm, ctrl = self.action_type.to_rpm(state.params, state.sim, state.ctrl, applied, ref, self.config.sim.ctrl_dt)
-        sim = self._step(state.params, state.sim, rpm, disturbance)
+        if self.action_type.firmware:
+            ticks = cfg.sim.sim_freq // cfg.sim.ctrl_freq
+            sim, ctrl = self.action_type.fly(
+                self._tick_step, state.params, state.sim, state.ctrl, applied, ticks, disturbance
+            )
+        else:
+            rpm, ctrl = self.action_type.to_rpm(state.params, state.sim, state.ctrl, applied, ref, cfg.sim.ctrl_dt)
+            sim = self._step(state.params, state.sim, rpm, disturbance)
         steps = state.steps + 1
         history = state.history
         if self.obs_type.buffer_len:

@@ -16,7 +16,7 @@ from jaxdrones.envs.task import Task
 from jaxdrones.envs.tasks.avoid import AVOID
 from jaxdrones.envs.tasks.gate import FLY_THRU_GATE
 from jaxdrones.envs.tasks.multi import MULTI_AGENT_TASKS
-from jaxdrones.envs.tasks.single import Hover, Takeoff, Tune, Velocity, Waypoints
+from jaxdrones.envs.tasks.single import FirmwareHover, Hover, Takeoff, Tune, Velocity, Waypoints
 from jaxdrones.sim import SimConfig
 
 #: The `Realism` fields that `make` and `make_config` take as keywords.
@@ -28,7 +28,7 @@ SIM_OPTIONS = frozenset(f.name for f in dataclasses.fields(SimConfig)) - {"n_dro
 GROUPED_OPTIONS = {"sim": {name: name for name in sorted(SIM_OPTIONS)}, "starts": START_OPTIONS}
 
 #: The built-in single-agent tasks but ``avoid`` (`jaxdrones.envs.tasks.single`, `jaxdrones.envs.tasks.gate`).
-SINGLE_AGENT_TASKS = (Hover(), Takeoff(), Velocity(), Waypoints(), FLY_THRU_GATE, Tune())
+SINGLE_AGENT_TASKS = (Hover(), Takeoff(), Velocity(), Waypoints(), FLY_THRU_GATE, Tune(), FirmwareHover())
 _REGISTRY: dict[str, Task] = {task.name: task for task in SINGLE_AGENT_TASKS + (AVOID,) + MULTI_AGENT_TASKS}
 #: What `register` calls with each new task's name (`subscribe`).
 _SUBSCRIBERS: list[Callable[[str], object]] = []

@@ -148,9 +148,9 @@ def fly(
     return np.stack(positions)
 
 
-def physics(motor_tau: float = 0.061) -> tuple[StepFn, DroneParams, SimConfig]:
-    """A 1 ms physics step of the ``cf2x`` with first-order motors of time constant ``motor_tau`` s (61 ms:
-    docs/validation.md §3; the firmware's gains need lagging motors, docs/firmware.md)."""
+def physics(motor_tau: float = fw.CRAZYFLIE_MOTOR_TAU) -> tuple[StepFn, DroneParams, SimConfig]:
+    """A 1 ms physics step of the ``cf2x`` with first-order motors of time constant ``motor_tau`` s (61 ms,
+    `CRAZYFLIE_MOTOR_TAU`: docs/validation.md §3; the firmware's gains need lagging motors, docs/firmware.md)."""
     config = SimConfig(sim_freq=1000, ctrl_freq=1000, motor_dynamics=True)
     tau = jnp.float32(motor_tau)
     return make_step(config), load_params("cf2x").replace(motor_tau_up=tau, motor_tau_down=tau), config

@@ -219,6 +219,10 @@ RECIPES: dict[str, TaskRecipe] = {
             ),
         },
     ),
+    # The firmware's controller is not differentiable (its int16 outputs): brax's PPO.
+    "firmware_hover": TaskRecipe(
+        cpu=Setting(BRAX_PPO, {BRAX_PPO: BRAX_HOVER}), gpu=Setting(BRAX_PPO, {BRAX_PPO: BRAX_GPU})
+    ),
     "takeoff": TaskRecipe(**_smooth()),
     "velocity": TaskRecipe(
         **_smooth(cpu=APG_LONG),

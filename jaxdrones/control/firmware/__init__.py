@@ -18,9 +18,16 @@ from jaxdrones.control.firmware.controller_pid import (
     controller_pid,
     controller_pid_init,
 )
-from jaxdrones.control.firmware.loop import PidLoopState, pid_loop_init, pid_schedule, pid_tick, pid_ticks
+from jaxdrones.control.firmware.loop import (
+    PidLoopState,
+    check_tick_step,
+    pid_loop_init,
+    pid_schedule,
+    pid_tick,
+    pid_ticks,
+)
 from jaxdrones.control.firmware.mellinger import MellingerGains, MellingerState, controller_mellinger, mellinger_init
-from jaxdrones.control.firmware.motors import THRUST_MIN, motor_rpm, motor_thrust
+from jaxdrones.control.firmware.motors import CRAZYFLIE_MOTOR_TAU, THRUST_MIN, motor_rpm, motor_thrust
 from jaxdrones.control.firmware.pid import PidGains, PidState, pid_update
 from jaxdrones.control.firmware.power import (
     power_distribution_cap,
@@ -39,6 +46,7 @@ from jaxdrones.control.firmware.types import (
 
 __all__ = [
     "ATTITUDE_RATE",
+    "CRAZYFLIE_MOTOR_TAU",
     "MODE_ABS",
     "MODE_DISABLE",
     "MODE_VELOCITY",
@@ -55,6 +63,7 @@ __all__ = [
     "PidLoopState",
     "PidState",
     "Setpoint",
+    "check_tick_step",
     "controller_mellinger",
     "controller_pid",
     "controller_pid_init",

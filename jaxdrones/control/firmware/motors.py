@@ -16,6 +16,9 @@ import jax.numpy as jnp
 
 from jaxdrones.physics.params import DroneParams, align_params
 
+#: The Crazyflie 2.x's motor lag, s: a first-order lag of the logged thrust fitted on Neural-Swarm's flights
+#: (docs/validation.md §3, "Drag and motor lag"). The firmware's gains need motors that lag (docs/firmware.md).
+CRAZYFLIE_MOTOR_TAU = 0.061
 #: The motors' commands' full scale (a 16-bit ratio).
 UINT16_MAX = 65535
 #: platform_defaults_cf2.h, ``CONFIG_CRAZYFLIE_21_PLUS`` (the default): the most thrust per motor, N, and the least a

@@ -1,5 +1,5 @@
-"""Single-agent tasks (D = 1): hover, takeoff, velocity, waypoints, tune (docs/physics.md §11); fly_thru_gate is in
-`jaxdrones.envs.tasks.gate`.
+"""Single-agent tasks (D = 1): hover, firmware_hover, takeoff, velocity, waypoints, tune (docs/physics.md §11);
+fly_thru_gate is in `jaxdrones.envs.tasks.gate`.
 
 Each documents its reward (``reward="shaped"``, the default, tuned for fast RL; ``reward="paper"``, the
 original's), its termination and its source. All terminate when the drone leaves the arena
@@ -11,16 +11,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxdrones.control.firmware.motors import CRAZYFLIE_MOTOR_TAU
 from jaxdrones.envs import rewards
 from jaxdrones.envs.actions import ACTION_SIZES, Reference
-from jaxdrones.envs.config import TaskConfig
+from jaxdrones.envs.config import DomainRandomization, TaskConfig
 from jaxdrones.envs.observations import POS_BOUND, VEL_BOUND
 from jaxdrones.envs.task import Task, TaskParams
+from jaxdrones.physics.config import SimConfig
 from jaxdrones.physics.state import DEFAULT_START_Z, DroneState
 
 #: Shaped hover-type rewards: r = max(0, closeness − SPEED_WEIGHT ‖v‖² − ANG_SPEED_WEIGHT ‖ω‖²) (see
@@ -123,6 +126,32 @@ class Hover(Task):
         self, config: HoverConfig, task: TaskParams, sim: DroneState, action: jax.Array, steps: jax.Array
     ) -> dict[str, jax.Array]:
         return _tracking_terms(config, task.target, sim)
+
+
+@dataclasses.dataclass(frozen=True)
+class FirmwareHoverConfig(HoverConfig):
+    """Settings of `FirmwareHover`: those of `HoverConfig` with the firmware's velocity setpoints as the action, the
+    physics at the firmware's 1 kHz, a setpoint every 20 ms (50 Hz, as ``cflib`` scripts send them) and the
+    Crazyflie's motor lag (61 ms, `jaxdrones.control.firmware.CRAZYFLIE_MOTOR_TAU`)."""
+
+    action_type: str = "firmware_vel"
+    sim: Any = SimConfig(sim_freq=1000, ctrl_freq=50)
+    randomize: Any = DomainRandomization(
+        motor_tau_up=(CRAZYFLIE_MOTOR_TAU, CRAZYFLIE_MOTOR_TAU),
+        motor_tau_down=(CRAZYFLIE_MOTOR_TAU, CRAZYFLIE_MOTOR_TAU),
+    )
+
+
+class FirmwareHover(Hover):
+    """`Hover` through the Crazyflie firmware: the policy sends what ``cflib``'s ``send_velocity_world_setpoint``
+    sends a real Crazyflie (a world velocity up to 1 m/s and a yaw rate, ``action_type="firmware_vel"``), and the
+    firmware's own PID cascade, power distribution and motor map fly it at 1 kHz (`jaxdrones.control.firmware`,
+    checked against the firmware's C: docs/firmware.md). ``action_type="firmware_pos"`` sends position setpoints
+    instead. Starts, reward, termination and success metric: `Hover`'s.
+    """
+
+    name = "firmware_hover"
+    config_cls = FirmwareHoverConfig
 
 
 # ---------------------------------------------------------------------------------------------------------------
