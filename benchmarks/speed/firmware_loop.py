@@ -1,19 +1,21 @@
 """The firmware's PID cascade in the loop with the physics against the physics alone, in drone-steps per second.
 
-One drone-step is one firmware tick (1 ms) of one drone. Both programs run ``--ticks`` ticks of ``--worlds`` worlds
+One drone-step is one firmware tick (1 ms) of one drone. Every program runs ``--ticks`` ticks of ``--worlds`` worlds
 of one cf2x in one jitted `lax.scan`, on jaxdrones' physics at 1 kHz with first-order motors (τ = 61 ms,
 docs/validation.md §3):
 
-* physics alone: `jaxdrones.make_step` at hover RPM;
+* physics alone, one tick a call: `jaxdrones.make_step` of ``SimConfig(sim_freq=1000, ctrl_freq=1000)`` at hover RPM;
+* physics alone, ten ticks a call: ``SimConfig(sim_freq=1000, ctrl_freq=100)``, whose substeps are unrolled on a GPU
+  (`SimConfig.unroll_substeps`): on a GPU the faster, as a scan's iterations cost launches there;
 * tick by tick: `jaxdrones.control.firmware.pid_tick` (the firmware's state of each drone, `controller_pid` with
   only the loops of the tick, the power distribution and its cap, the motor map, then the same physics step),
   holding a position setpoint;
 * scheduled: `jaxdrones.control.firmware.pid_ticks`, the same ticks in one call, the loops' schedule written into
   the program (what the envs' firmware actions run), the same setpoint.
 
-Each program is compiled and warmed up, then the two are timed in turn within each of ``--repeats`` rounds
-(`common.timed_together`), so that a change of the machine's load reaches both; the table gives the medians and
-their ratio.
+Each program is compiled and warmed up, then they are timed in turn within each of ``--repeats`` rounds
+(`common.timed_together`), so that a change of the machine's load reaches all; the table gives the medians, and each
+firmware loop's rate over the faster physics program's.
 
     python benchmarks/speed/firmware_loop.py     # 4096 worlds; writes benchmarks/results/firmware_loop.json
     python benchmarks/speed/firmware_loop.py --worlds 1024 16384 --repeats 9
@@ -22,6 +24,7 @@ their ratio.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -41,11 +44,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if min(args.worlds) < 1 or args.ticks < 1 or args.repeats < 1:
         parser.error("--worlds, --ticks and --repeats must be positive")
+    if args.ticks % 10:
+        parser.error("--ticks must be a multiple of 10 (the position loop's period; the ten-tick physics)")
     return args
 
 
 def programs(worlds: int, ticks: int):
-    """(physics alone, tick by tick, scheduled): each a function of nothing that runs ``ticks`` ticks and blocks."""
+    """({name: a function of nothing that runs ``ticks`` ticks and blocks}, {name: its compile time, s}) of the four
+    programs; ``ticks`` a multiple of 10."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -64,9 +70,15 @@ def programs(worlds: int, ticks: int):
     gains = fw.PidControllerGains.crazyflie()
     rpm = jnp.asarray(hover)
 
+    step10 = jd.make_step(dataclasses.replace(config, ctrl_freq=100))
+
     @jax.jit
     def physics(drone):
         return jax.lax.scan(lambda d, _: (step(params, d, rpm), None), drone, None, length=ticks)[0]
+
+    @jax.jit
+    def physics10(drone):
+        return jax.lax.scan(lambda d, _: (step10(params, d, rpm), None), drone, None, length=ticks // 10)[0]
 
     @jax.jit
     def loop(state):
@@ -83,16 +95,17 @@ def programs(worlds: int, ticks: int):
 
     loop_start = fw.pid_loop_init(start, tick=0)
     compile_s = {}
-    programs = (("physics", physics, start), ("tick_by_tick", loop, loop_start), ("scheduled", scheduled, loop_start))
-    for name, fn, arg in programs:
+    programs = {
+        "physics": (physics, start),
+        "physics_10": (physics10, start),
+        "tick_by_tick": (loop, loop_start),
+        "scheduled": (scheduled, loop_start),
+    }
+    for name, (fn, arg) in programs.items():
         t0 = time.perf_counter()
         jax.block_until_ready(fn(arg))
         compile_s[name] = time.perf_counter() - t0
-    runs = {
-        "physics": lambda: jax.block_until_ready(physics(start)),
-        "tick_by_tick": lambda: jax.block_until_ready(loop(loop_start)),
-        "scheduled": lambda: jax.block_until_ready(scheduled(loop_start)),
-    }
+    runs = {name: (lambda fn=fn, arg=arg: jax.block_until_ready(fn(arg))) for name, (fn, arg) in programs.items()}
     return runs, compile_s
 
 
@@ -105,27 +118,30 @@ def main(argv=None) -> int:
     print(f"jax {info['jax']} on {info['backend']}, {info['cpu_model']}, load {os.getloadavg()}")
     load_start = os.getloadavg()
     results = []
-    print("| worlds | physics alone, drone-steps/s | tick by tick | / physics | scheduled | / physics |")
-    print("|---|---|---|---|---|---|")
+    print("| worlds | physics, 1 tick a call | 10 ticks a call | tick by tick | / physics | scheduled | / physics |")
+    print("|---|---|---|---|---|---|---|")
     for worlds in args.worlds:
         runs, compile_s = programs(worlds, args.ticks)
         times = timed_together(runs, args.repeats)
         rate = {name: worlds * args.ticks / median for name, (_, median) in times.items()}
+        fastest = max(rate["physics"], rate["physics_10"])
         row = {
             "worlds": worlds,
             "ticks": args.ticks,
             "physics_drone_steps_per_s": rate["physics"],
+            "physics_10_drone_steps_per_s": rate["physics_10"],
             "tick_by_tick_drone_steps_per_s": rate["tick_by_tick"],
-            "tick_by_tick_over_physics": rate["tick_by_tick"] / rate["physics"],
+            "tick_by_tick_over_physics": rate["tick_by_tick"] / fastest,
             "scheduled_drone_steps_per_s": rate["scheduled"],
-            "scheduled_over_physics": rate["scheduled"] / rate["physics"],
+            "scheduled_over_physics": rate["scheduled"] / fastest,
             "median_s": {name: t[1] for name, t in times.items()},
             "best_s": {name: t[0] for name, t in times.items()},
             "compile_s": compile_s,
         }
         results.append(row)
         print(
-            f"| {worlds} | {rate['physics']:.3g} | {rate['tick_by_tick']:.3g} | {row['tick_by_tick_over_physics']:.2f} "
+            f"| {worlds} | {rate['physics']:.3g} | {rate['physics_10']:.3g} | {rate['tick_by_tick']:.3g} "
+            f"| {row['tick_by_tick_over_physics']:.2f} "
             f"| {rate['scheduled']:.3g} | {row['scheduled_over_physics']:.2f} |",
             flush=True,
         )
