@@ -12,7 +12,7 @@ import pytest
 from firmware_c import bindings, fill_c, prime, random_ticks, run_c_pid, run_jax_pid
 
 from jaxdrones.control import firmware as fw
-from jaxdrones.examples.firmware_in_the_loop import fly
+from jaxdrones.examples.firmware_in_the_loop import CONTROLLERS, fly
 
 pytestmark = pytest.mark.firmware
 
@@ -91,11 +91,12 @@ def test_the_power_distribution_is_the_firmwares(cf):
     assert worst <= 1 and capped <= 1 and np.any(c_ft.max(axis=1) > 65535) and np.any(c_ft == 0)
 
 
-def test_in_closed_loop_the_jax_cascade_flies_where_the_firmwares_does(cf):
+@pytest.mark.parametrize("controller", CONTROLLERS)
+def test_in_closed_loop_the_jax_controller_flies_where_the_firmwares_does(cf, controller):
     """Five 10 s flights from random starts (±20 cm around 1 m, tilted up to ~10°) to random waypoints changing every
     2 s, with jaxdrones' physics at 1 kHz and first-order motors (τ = 61 ms, docs/validation.md §3): the firmware's C
-    controller and power distribution (through the bindings) and the JAX ones, each in the loop with the same compiled
-    physics, fly the same tracks, within 1 mm at every tick."""
+    controller (PID, Mellinger, Brescianini) and power distribution (through the bindings) and the JAX ones, each in
+    the loop with the same compiled physics, fly the same tracks, within 1 mm at every tick."""
     import jaxdrones as jd
     from jaxdrones.examples.firmware_in_the_loop import physics
 
@@ -114,11 +115,13 @@ def test_in_closed_loop_the_jax_cascade_flies_where_the_firmwares_does(cf):
     for d in range(n):
         position = np.repeat(waypoints[d], ticks // 5, axis=0).astype(np.float32)
         drone = jax.tree.map(lambda x, d=d: x[d], start)
-        c_track = fly(cf, step, params, drone, mode, position)
-        jax_track = fly(None, step, params, drone, mode, position)
+        c_track = fly(cf, step, params, drone, mode, position, controller)
+        jax_track = fly(None, step, params, drone, mode, position, controller)
         worst.append(float(np.max(np.linalg.norm(c_track - jax_track, axis=-1))))
         ends.append(float(np.linalg.norm(c_track[-1] - waypoints[d, -1])))
-    print(f"closed loop: largest position difference per flight (m) {worst}; distance to the last waypoint {ends}")
+    print(
+        f"{controller} in closed loop: largest position difference per flight (m) {worst}; to the last waypoint {ends}"
+    )
     assert max(ends) < 0.1  # the flights do reach their waypoints
     assert max(worst) < 1e-3
 
@@ -288,3 +291,48 @@ def test_the_mellinger_controller_is_the_firmwares(cf):
     )
     assert np.any(np.abs(c["control"][:, :3]) == 32000) and np.any(c["control"][:, 3] == 0)
     assert worst_int <= 1 and thrust.max() < 1.0 and memory_err < 1e-5 and share < 5e-3  # thrust: < 1 PWM unit
+
+
+def test_the_brescianini_controller_is_the_firmwares(cf):
+    """10⁵ ticks in sequence (the C keeps its memory in function statics): random states (most near level, some
+    upside down), gyros, setpoints in cflib's modes with far targets (the collective acceleration past its bound,
+    the fairness cut) and large rates (the heuristic): the JAX controller's thrust and torques equal the C's
+    ``controllerBrescianini`` to float32 rounding, at every tick (its 100 Hz update and its 1 kHz rate loop)."""
+    rng = np.random.default_rng(7)
+    n = 100_000
+    ticks = random_ticks(rng, n)
+    near = rng.random(n) < 0.7  # most near level, the rest anywhere
+    q = np.where(near[:, None], [0, 0, 0, 1] + rng.normal(size=(n, 4)) * 0.15, ticks["quat"])
+    ticks["quat"] = (q / np.linalg.norm(q, axis=-1, keepdims=True)).astype(np.float32)
+    ticks["gyro"] = (rng.normal(size=(n, 3)) * np.where(rng.random((n, 1)) < 0.2, 1200.0, 100.0)).astype(np.float32)
+    ticks["sp_acceleration"] = rng.uniform(-3, 3, (n, 3)).astype(np.float32)
+    cf.controllerBrescianiniInit()
+    control, setpoint, sensors, state = cf.control_t(), cf.setpoint_t(), cf.sensorData_t(), cf.state_t()
+    c = np.zeros((n, 4))
+    for i in range(n):
+        fill_c(setpoint, sensors, state, ticks, i)
+        cf.controllerBrescianini(control, setpoint, sensors, state, i)
+        c[i] = control.thrustSi, control.torqueX, control.torqueY, control.torqueZ
+    gains = fw.BrescianiniGains.crazyflie()
+
+    def tick(memory, inputs):
+        i, t = inputs
+        setpoint = fw.Setpoint(
+            mode=t["mode"], attitude=t["sp_attitude"], attitude_rate=t["sp_rate"], quat=t["sp_quat"],
+            thrust=t["sp_thrust"], position=t["sp_position"], velocity=t["sp_velocity"],
+            velocity_body=t["sp_velocity_body"], acceleration=t["sp_acceleration"],
+        )  # fmt: skip
+        state = fw.FirmwareState(
+            attitude=t["attitude"], quat=t["quat"], position=t["position"], velocity=t["velocity"], gyro=t["gyro"]
+        )
+        memory, out = fw.controller_brescianini(gains, memory, setpoint, state, i)
+        return memory, jnp.concatenate([out.thrust[None], out.torque])
+
+    xs = (jnp.arange(n, dtype=jnp.int32), {k: jnp.asarray(v) for k, v in ticks.items()})
+    j = np.asarray(jax.jit(lambda xs: jax.lax.scan(tick, fw.brescianini_init(), xs)[1])(xs))
+    thrust_err = np.max(np.abs(j[:, 0] - c[:, 0]))  # N (the output's range: 0.029-0.52)
+    torque_err = np.max(np.abs(j[:, 1:] - c[:, 1:]) / np.maximum(np.abs(c[:, 1:]), 1e-4))
+    print(f"brescianini: thrust within {thrust_err:.1e} N, torques within {torque_err:.1e} (relative, floor 1e-4 N·m)")
+    assert np.any(c[:, 0] == 0) and np.any(np.isclose(c[:, 0], 18 * 0.029)) and np.any(np.isclose(c[:, 0], 0.029))
+    assert np.max(np.abs(c[:, 1:])) > 1e-2  # torques up to the rate bounds' (30 rad/s over 15 ms, times J)
+    assert thrust_err < 1e-5 and torque_err < 1e-3

@@ -162,3 +162,22 @@ def test_many_ticks_need_a_positive_count():
     loop = fw.pid_loop_init(jd.init_state(config))
     with pytest.raises(ValueError, match="ticks must be a positive int, got 0"):
         fw.pid_ticks(step, params, fw.PidControllerGains.crazyflie(), loop, fw.Setpoint.zeros((1,)), 0)
+
+
+def test_brescianini_at_its_setpoint_asks_for_the_weight_and_no_torque():
+    """Level, still, at its position setpoint: the update gives the collective acceleration g, so a thrust of
+    CF_MASS · 9.81 N, and no torque; z modeDisable turns the output off. With ``mixing_factor`` 0 (the reduced
+    attitude control) a yaw error asks for no yaw rate; at 1 (the default, full) it does."""
+    gains = fw.BrescianiniGains.crazyflie()
+    setpoint = fw.Setpoint.zeros((2,)).replace(
+        mode=jnp.asarray([[1, 1, 1, 0, 0, 1, 0], [1, 1, 0, 0, 0, 1, 0]], jnp.int32),
+        position=jnp.zeros((2, 3)).at[:, 2].set(1.0),
+    )
+    state = _level_at_1m(2)
+    memory, control = fw.controller_brescianini(gains, fw.brescianini_init((2,)), setpoint, state, 0)
+    np.testing.assert_allclose(np.asarray(control.thrust), [0.029 * 9.81, 0.0], rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(control.torque), 0.0)
+    turned = setpoint.replace(attitude=jnp.zeros((2, 3)).at[:, 2].set(45.0))
+    full, _ = fw.controller_brescianini(gains, memory, turned, state, 10)
+    reduced, _ = fw.controller_brescianini(gains.replace(mixing_factor=jnp.float32(0.0)), memory, turned, state, 10)
+    assert float(full.omega[0, 2]) > 0.5 and abs(float(reduced.omega[0, 2])) < 1e-6

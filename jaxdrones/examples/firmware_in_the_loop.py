@@ -85,6 +85,10 @@ def build_bindings(firmware: str | os.PathLike, cache: str | os.PathLike) -> Mod
     return importlib.import_module("cffirmware")
 
 
+#: The controllers `fly` flies: the firmware's default PID cascade, Mellinger and Brescianini.
+CONTROLLERS = ("pid", "mellinger", "brescianini")
+
+
 def fly(
     cf: ModuleType | None,
     step: StepFn,
@@ -92,9 +96,10 @@ def fly(
     drone: DroneState,
     mode: np.ndarray,
     position: np.ndarray,
+    controller: str = "pid",
 ) -> np.ndarray:
     """One drone flown tick by tick: by the firmware's C (``cf``, the bindings) or, with ``cf`` None, by
-    `jaxdrones.control.firmware.controller_pid`, each through the same compiled physics.
+    `jaxdrones.control.firmware`'s JAX controller, each through the same compiled physics.
 
     Args:
         cf: the bindings (`build_bindings`) or None.
@@ -103,42 +108,46 @@ def fly(
         drone: `DroneState` of one drone, batch ``[1]``.
         mode: i32[T, 7], each tick's setpoint modes (x, y, z, roll, pitch, yaw, quat).
         position: f32[T, 3] m, each tick's position setpoint, world frame.
+        controller: one of `CONTROLLERS`: ``controllerPid`` (`controller_pid`), ``controllerMellinger``
+            (`controller_mellinger`) or ``controllerBrescianini`` (`controller_brescianini`), each with the power
+            distribution its control mode takes (legacy; force-torque for Brescianini) and the cap.
 
     Returns:
         f32[T, 3] m, the drone's position after each tick (tick i is the firmware's stabilizer step i).
+
+    Raises:
+        ValueError: an unknown ``controller``.
     """
+    if controller not in CONTROLLERS:
+        raise ValueError(f"unknown controller {controller!r}: expected one of {CONTROLLERS}")
     observe = jax.jit(fw.firmware_state)
     advance = jax.jit(lambda drone, pwm: step(params, drone, fw.motor_rpm(params, pwm)))
-    gains = fw.PidControllerGains.crazyflie()
-
-    @jax.jit
-    def jax_motors(cstate, setpoint, seen, tick):
-        cstate, control = fw.controller_pid(gains, cstate, setpoint, seen, tick)
-        return cstate, fw.power_distribution_cap(fw.power_distribution_legacy(control))
-
-    cstate, jax_setpoint = fw.controller_pid_init((1,)), fw.Setpoint.zeros((1,))
+    jax_motors, memory = _jax_controller(controller)
+    jax_setpoint = fw.Setpoint.zeros((1,))
     if cf is not None:
-        cf.controllerPidInit()
-        control, setpoint, sensors, state = cf.control_t(), cf.setpoint_t(), cf.sensorData_t(), cf.state_t()
+        c_tick = _c_controller(cf, controller)
+        setpoint, sensors, state = cf.setpoint_t(), cf.sensorData_t(), cf.state_t()
         uncapped, pwm = cf.motors_thrust_uncapped_t(), cf.motors_thrust_pwm_t()
-        cf.controllerPid(control, setpoint, sensors, state, 0)  # every mode off, thrust 0: the C's memory reset
-        control = cf.control_t()
     positions = []
     for i in range(len(mode)):
         seen = observe(drone)
         if cf is None:
             target = jax_setpoint.replace(mode=jnp.asarray(mode[i][None]), position=jnp.asarray(position[i][None]))
-            cstate, motors = jax_motors(cstate, target, seen, i)
+            memory, motors = jax_motors(memory, target, seen, i)
         else:
             for axis, value in zip(_MODE_FIELDS, mode[i], strict=True):
                 setattr(setpoint.mode, axis, int(value))
             setpoint.position.x, setpoint.position.y, setpoint.position.z = (float(v) for v in position[i])
-            a, p, v, g = (np.asarray(x)[0] for x in (seen.attitude, seen.position, seen.velocity, seen.gyro))
+            a, q, p, v, g = (
+                np.asarray(x)[0] for x in (seen.attitude, seen.quat, seen.position, seen.velocity, seen.gyro)
+            )
             state.attitude.roll, state.attitude.pitch, state.attitude.yaw = (float(x) for x in a)
+            quat = state.attitudeQuaternion
+            quat.x, quat.y, quat.z, quat.w = (float(x) for x in q)
             state.position.x, state.position.y, state.position.z = (float(x) for x in p)
             state.velocity.x, state.velocity.y, state.velocity.z = (float(x) for x in v)
             sensors.gyro.x, sensors.gyro.y, sensors.gyro.z = (float(x) for x in g)
-            cf.controllerPid(control, setpoint, sensors, state, i)
+            control = c_tick(setpoint, sensors, state, i)
             cf.powerDistribution(control, uncapped)
             cf.powerDistributionCap(uncapped, pwm)
             m = pwm.motors
@@ -146,6 +155,47 @@ def fly(
         drone = advance(drone, motors)
         positions.append(np.asarray(drone.pos[0]))
     return np.stack(positions)
+
+
+def _jax_controller(controller: str):
+    """(a jitted (memory, setpoint, state, tick) → (memory, motors' PWM i32[1, 4]), the fresh memory of one drone)."""
+    if controller == "brescianini":
+        gains = fw.BrescianiniGains.crazyflie()
+
+        def motors(memory, setpoint, seen, tick):
+            memory, control = fw.controller_brescianini(gains, memory, setpoint, seen, tick)
+            return memory, fw.power_distribution_cap(fw.power_distribution_force_torque(control.thrust, control.torque))
+
+        return jax.jit(motors), fw.brescianini_init((1,))
+    if controller == "mellinger":
+        gains, run, memory = fw.MellingerGains.crazyflie(), fw.controller_mellinger, fw.mellinger_init((1,))
+    else:
+        gains, run, memory = fw.PidControllerGains.crazyflie(), fw.controller_pid, fw.controller_pid_init((1,))
+
+    def legacy(memory, setpoint, seen, tick):
+        memory, control = run(gains, memory, setpoint, seen, tick)
+        return memory, fw.power_distribution_cap(fw.power_distribution_legacy(control))
+
+    return jax.jit(legacy), memory
+
+
+def _c_controller(cf: ModuleType, controller: str):
+    """The firmware's C controller as (setpoint, sensors, state, tick) → its ``control_t``, its memory fresh (as
+    `_jax_controller`'s)."""
+    control = cf.control_t()
+    if controller == "mellinger":
+        memory = cf.controllerMellinger_t()
+        cf.controllerMellingerInit(memory)
+        return lambda sp, sensors, state, i: (cf.controllerMellinger(memory, control, sp, sensors, state, i), control)[
+            1
+        ]
+    if controller == "brescianini":  # its memory is statics, all set by its first update (tick 0)
+        cf.controllerBrescianiniInit()
+        return lambda sp, sensors, state, i: (cf.controllerBrescianini(control, sp, sensors, state, i), control)[1]
+    cf.controllerPidInit()
+    off = cf.setpoint_t()  # every mode off, thrust 0: the C's memory reset, where controller_pid_init starts
+    cf.controllerPid(control, off, cf.sensorData_t(), cf.state_t(), 0)
+    return lambda sp, sensors, state, i: (cf.controllerPid(control, sp, sensors, state, i), control)[1]
 
 
 def physics(motor_tau: float = fw.CRAZYFLIE_MOTOR_TAU) -> tuple[StepFn, DroneParams, SimConfig]:

@@ -2,13 +2,21 @@
 
 Re-implemented from bitcraze/crazyflie-firmware at 2a18fc29 (each module cites the file it follows) and checked against
 the firmware's own C through its Python bindings (tests/test_firmware.py): the default PID cascade (`controller_pid`,
-one call per 1 kHz tick), the Mellinger controller (`controller_mellinger`), the quadrotor power distribution
+one call per 1 kHz tick), the Mellinger controller (`controller_mellinger`), the Brescianini controller
+(`controller_brescianini`), the quadrotor power distribution
 (`power_distribution_legacy`, `power_distribution_force_torque`, `power_distribution_cap`) and the Crazyflie 2.1's motor
 map (`motor_thrust`, `motor_rpm`), with the firmware's state, setpoint and control types (`Setpoint`, `FirmwareState`,
 `Control`) and `firmware_state`, the firmware's view of a `DroneState`. `pid_tick` runs the cascade in the loop with the
 physics, one 1 ms tick per call; `pid_ticks` many ticks per call, its loops' schedule written into the program.
 """
 
+from jaxdrones.control.firmware.brescianini import (
+    BrescianiniGains,
+    BrescianiniState,
+    ForceTorque,
+    brescianini_init,
+    controller_brescianini,
+)
 from jaxdrones.control.firmware.controller_pid import (
     ATTITUDE_RATE,
     POSITION_RATE,
@@ -45,6 +53,11 @@ from jaxdrones.control.firmware.types import (
 )
 
 __all__ = [
+    "BrescianiniGains",
+    "BrescianiniState",
+    "ForceTorque",
+    "brescianini_init",
+    "controller_brescianini",
     "ATTITUDE_RATE",
     "CRAZYFLIE_MOTOR_TAU",
     "MODE_ABS",
