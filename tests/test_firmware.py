@@ -5,6 +5,8 @@ distribution over random controls."""
 
 from __future__ import annotations
 
+import pathlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,6 +17,8 @@ from jaxdrones.control import firmware as fw
 from jaxdrones.examples.firmware_in_the_loop import CONTROLLERS, fly
 
 pytestmark = pytest.mark.firmware
+#: Saved runs of jaxdrones train.
+DATA = pathlib.Path(__file__).parent / "data"
 
 
 @pytest.fixture(scope="module")
@@ -142,6 +146,25 @@ def test_the_firmware_in_the_loop_example_flies_and_saves_its_figures(cf, cache,
     assert "exists" in capsys.readouterr().err
     with pytest.raises(ValueError, match="not the Crazyflie firmware's source folder"):
         example.build_bindings(tmp_path, str(cache))
+
+
+def test_the_exported_policy_flies_with_the_firmwares_c_as_in_jax(cf, cache, tmp_path, capsys):
+    """A policy of ``jaxdrones train firmware_hover`` (tests/data/firmware_hover: seed 0 of its recipe), flown by
+    ``--policy``: its exported C (compiled by the host's cc) sending velocity setpoints to the firmware's C PID,
+    power distribution and cap at every tick, against the JAX policy in its JAX env, from three starts: the two
+    flights within 0.1 mm over the 5 s episode, both ending at the target (the task's 5 cm)."""
+    from firmware_c import firmware_folder
+
+    from jaxdrones.examples import firmware_in_the_loop as example
+
+    run = str(DATA / "firmware_hover")
+    argv = ["--firmware", str(firmware_folder()), "--cache", str(cache), "--policy", run]
+    results = [example.main([*argv, "--seed", str(seed), "--out", str(tmp_path / f"p{seed}")]) for seed in range(3)]
+    print("policy in the loop:", [(r["largest_difference_m"], r["final_distance_to_target_m"]) for r in results])
+    assert all(r["largest_difference_m"] < 1e-4 and r["final_distance_to_target_m"] < 0.05 for r in results)
+    assert sorted(p.name for p in (tmp_path / "p0").iterdir()) == ["flight.json", "flight.png"]
+    with pytest.raises(ValueError, match="not a firmware setpoint"):
+        example.fly_policy(cf, str(DATA / "crazyflie_hover"), jax.random.key(0), cache)
 
 
 #: The firmware's flags for the Crazyflie 2.x (its Makefile's ARCH_CFLAGS for a release build and

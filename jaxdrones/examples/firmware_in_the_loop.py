@@ -6,14 +6,17 @@ motor speeds its commands give (`jaxdrones.control.firmware.motor_rpm`). The C c
 bindings, built from its sources by `build_bindings` (``make cf2_defconfig && make bindings_python`` in a copy: swig
 and a C compiler; bitcraze/crazyflie-firmware, GPL-3.0, which jaxdrones neither ships nor copies). The same setpoints
 flown by `jaxdrones.control.firmware.controller_pid` through the same compiled physics give the difference between
-the two (docs/firmware.md)::
+the two (docs/firmware.md); ``--controller`` flies Mellinger's or Brescianini's instead, and ``--policy RUN`` a run of
+``jaxdrones train firmware_hover``: its exported C policy sending setpoints to the firmware's C (`fly_policy`)::
 
     python -m jaxdrones.examples.firmware_in_the_loop --firmware PATH/crazyflie-firmware --out fil
+    python -m jaxdrones.examples.firmware_in_the_loop --firmware PATH/crazyflie-firmware --policy RUN --out fil_policy
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import importlib
 import importlib.util
@@ -179,9 +182,9 @@ def _jax_controller(controller: str):
     return jax.jit(legacy), memory
 
 
-def _c_controller(cf: ModuleType, controller: str):
+def _c_controller(cf: ModuleType, controller: str, state=None):
     """The firmware's C controller as (setpoint, sensors, state, tick) → its ``control_t``, its memory fresh (as
-    `_jax_controller`'s)."""
+    `_jax_controller`'s); the PID's reset at zero thrust sees ``state`` (a ``state_t``; None: zeros)."""
     control = cf.control_t()
     if controller == "mellinger":
         memory = cf.controllerMellinger_t()
@@ -194,8 +197,141 @@ def _c_controller(cf: ModuleType, controller: str):
         return lambda sp, sensors, state, i: (cf.controllerBrescianini(control, sp, sensors, state, i), control)[1]
     cf.controllerPidInit()
     off = cf.setpoint_t()  # every mode off, thrust 0: the C's memory reset, where controller_pid_init starts
-    cf.controllerPid(control, off, cf.sensorData_t(), cf.state_t(), 0)
+    cf.controllerPid(control, off, cf.sensorData_t(), cf.state_t() if state is None else state, 0)
     return lambda sp, sensors, state, i: (cf.controllerPid(control, sp, sensors, state, i), control)[1]
+
+
+def fly_policy(
+    cf: ModuleType, run: str | os.PathLike, key: jax.Array, cache: str | os.PathLike
+) -> tuple[np.ndarray, np.ndarray]:
+    """A policy of the firmware's setpoints (a run of ``jaxdrones train firmware_hover``) flown twice from the same
+    start: its exported C (`jaxdrones.training.export.c_source`, compiled by the host's C compiler) sending setpoints
+    to the firmware's C ``controllerPid`` (the bindings) at every tick, and its JAX policy in its JAX env.
+
+    The C flight computes the observation as the env does (`jaxdrones.envs.observations.ObsType.observe`), calls the
+    C policy once per control step, and holds its setpoint (`ActionType.setpoint`) for the step's ticks of the C
+    controller, power distribution and cap, each driving 1 ms of the env's physics with the env's params.
+
+    Args:
+        cf: the bindings (`build_bindings`).
+        run: the run folder (or its policy.pkl); its env's action must be a firmware setpoint, its observation the
+            drone's own (no task entries, action buffer or error integral).
+        key: the env's reset key (the start).
+        cache: a folder for the compiled policy.
+
+    Returns:
+        (the C flight's positions f32[T, 3] m after each control step, the JAX flight's), T the episode's steps.
+
+    Raises:
+        ValueError: a run whose env does not take the firmware's setpoints or whose observation has more than the
+            drone's own; RuntimeError: no C compiler, or the policy does not compile.
+    """
+    import ctypes
+
+    from jaxdrones.training.checkpoint import load_policy
+    from jaxdrones.training.evaluation import rollout_policy
+    from jaxdrones.training.export import c_source, load_payload
+
+    env, policy = load_policy(run)
+    if not env.action_type.firmware:
+        raise ValueError(f"fly_policy: the run's action_type is {env.action_type.name!r}, not a firmware setpoint")
+    if env.task.obs_size or env.integral_size or env.obs_type.buffer_len or env.config.vision:
+        raise ValueError("fly_policy: policies that observe only their drone (no task entries, buffer or integral)")
+    source, _ = c_source(load_payload(run))
+    library = _compile_policy(source, pathlib.Path(cache))
+    c_policy = library.jaxdrones_policy
+    c_policy.argtypes = [ctypes.POINTER(ctypes.c_float), ctypes.POINTER(ctypes.c_float)]
+    c_policy.restype = None
+
+    start = jax.jit(env.reset)(key)
+    states = jax.jit(lambda s: rollout_policy(env, policy, key, s))(start)
+    jax_track = np.asarray(states.sim.pos[1:, 0], np.float32)
+
+    config = env.config.sim
+    ticks = config.sim_freq // config.ctrl_freq
+    step = make_step(dataclasses.replace(config, ctrl_freq=config.sim_freq))
+    advance = jax.jit(lambda drone, pwm: step(start.params, drone, fw.motor_rpm(start.params, pwm)))
+    observe = jax.jit(lambda drone: env.obs_type.observe(drone, jnp.zeros((1, 0, env.action_size), env.dtype)))
+    seen_of = jax.jit(fw.firmware_state)
+    drone = start.sim
+    setpoint, sensors, state = cf.setpoint_t(), cf.sensorData_t(), cf.state_t()
+    uncapped, pwm = cf.motors_thrust_uncapped_t(), cf.motors_thrust_pwm_t()
+    _fill_state(state, sensors, seen_of(drone))
+    c_tick = _c_controller(cf, "pid", state)  # its memory as the env's reset leaves it: the desired yaw the drone's
+    obs, action = np.zeros(env.observation_size, np.float32), np.zeros(env.action_size, np.float32)
+    positions = []
+    for t in range(env.episode_length):
+        obs[:] = np.asarray(observe(drone))[0]
+        c_policy(
+            obs.ctypes.data_as(ctypes.POINTER(ctypes.c_float)), action.ctypes.data_as(ctypes.POINTER(ctypes.c_float))
+        )
+        target = jax.tree.map(lambda x: np.asarray(x)[0], env.action_type.setpoint(jnp.asarray(action[None])))
+        _fill_setpoint(setpoint, target)
+        for k in range(ticks):
+            _fill_state(state, sensors, seen_of(drone))
+            control = c_tick(setpoint, sensors, state, t * ticks + k)
+            cf.powerDistribution(control, uncapped)
+            cf.powerDistributionCap(uncapped, pwm)
+            m = pwm.motors
+            drone = advance(drone, np.array([[m.m1, m.m2, m.m3, m.m4]], np.int32))
+        positions.append(np.asarray(drone.pos[0], np.float32))
+    return np.stack(positions), jax_track
+
+
+def _compile_policy(source: str, cache: pathlib.Path):
+    """The exported C policy compiled by the host's ``cc`` as a shared library (kept in ``cache`` by its source's
+    hash), loaded with ctypes."""
+    import ctypes
+
+    compiler = shutil.which(os.environ.get("CC", "cc"))
+    if compiler is None:
+        raise RuntimeError("compiling the exported policy needs a C compiler (apt-get install gcc)")
+    cache.mkdir(parents=True, exist_ok=True)
+    digest = hashlib.sha256(source.encode()).hexdigest()[:12]
+    library = cache / f"policy-{digest}.so"
+    if not library.exists():
+        work = pathlib.Path(tempfile.mkdtemp(prefix="policy-", dir=cache))
+        try:
+            (work / "policy.c").write_text(source)
+            command = [
+                compiler,
+                "-O2",
+                "-shared",
+                "-fPIC",
+                "-o",
+                str(work / "policy.so"),
+                str(work / "policy.c"),
+                "-lm",
+            ]
+            result = subprocess.run(command, capture_output=True, text=True)
+            if result.returncode != 0:
+                raise RuntimeError(f"the exported policy does not compile:\n{result.stderr[-2000:]}")
+            os.replace(work / "policy.so", library)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    return ctypes.CDLL(str(library))
+
+
+def _fill_state(state, sensors, seen: fw.FirmwareState) -> None:
+    """The bindings' ``state_t`` and ``sensorData_t`` of one drone's `FirmwareState` (batch ``[1]``)."""
+    a, q, p, v, g = (np.asarray(x)[0] for x in (seen.attitude, seen.quat, seen.position, seen.velocity, seen.gyro))
+    state.attitude.roll, state.attitude.pitch, state.attitude.yaw = (float(x) for x in a)
+    quat = state.attitudeQuaternion
+    quat.x, quat.y, quat.z, quat.w = (float(x) for x in q)
+    state.position.x, state.position.y, state.position.z = (float(x) for x in p)
+    state.velocity.x, state.velocity.y, state.velocity.z = (float(x) for x in v)
+    sensors.gyro.x, sensors.gyro.y, sensors.gyro.z = (float(x) for x in g)
+
+
+def _fill_setpoint(setpoint, target: fw.Setpoint) -> None:
+    """The bindings' ``setpoint_t`` of one drone's `Setpoint` (NumPy leaves, no batch axes)."""
+    for axis, value in zip(_MODE_FIELDS, target.mode, strict=True):
+        setattr(setpoint.mode, axis, int(value))
+    setpoint.position.x, setpoint.position.y, setpoint.position.z = (float(v) for v in target.position)
+    setpoint.velocity.x, setpoint.velocity.y, setpoint.velocity.z = (float(v) for v in target.velocity)
+    setpoint.attitude.roll, setpoint.attitude.pitch, setpoint.attitude.yaw = (float(v) for v in target.attitude)
+    rate = setpoint.attitudeRate
+    rate.roll, rate.pitch, rate.yaw = (float(v) for v in target.attitude_rate)
 
 
 def physics(motor_tau: float = fw.CRAZYFLIE_MOTOR_TAU) -> tuple[StepFn, DroneParams, SimConfig]:
@@ -216,11 +352,17 @@ def square(seconds: float, side: float = 0.5, height: float = 1.0) -> np.ndarray
 
 
 def main(argv: list[str] | None = None) -> dict:
-    """The command line: an ``--seconds`` flight around a 0.5 m square, by the C and by the JAX controller; prints
+    """The command line: an ``--seconds`` flight around a 0.5 m square by the C and by the JAX ``--controller``, or
+    with ``--policy RUN`` that run's exported policy and the firmware's C PID against its JAX policy and env; prints
     their largest difference and writes `write`'s folder; returns the figures."""
     parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--firmware", required=True, help="the Crazyflie firmware's source folder")
-    parser.add_argument("--seconds", type=float, default=8.0, help="the flight's length, s (default 8)")
+    parser.add_argument("--controller", choices=CONTROLLERS, default="pid", help="the firmware's controller")
+    parser.add_argument("--seconds", type=float, default=8.0, help="the square's flight, s (default 8)")
+    parser.add_argument(
+        "--policy", help="a run of `jaxdrones train firmware_hover` (or its policy.pkl): fly its exported C instead"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="--policy: the episode's start (the env's reset key)")
     parser.add_argument("--out", default="firmware_in_the_loop", help="folder for flight.json and flight.png")
     parser.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "jaxdrones-firmware"))
     args = parser.parse_args(argv)
@@ -229,30 +371,56 @@ def main(argv: list[str] | None = None) -> dict:
     if os.path.exists(args.out):
         parser.error(f"{args.out} exists: choose another --out (nothing was written)")
     cf = build_bindings(args.firmware, args.cache)
+    if args.policy is not None:
+        return _main_policy(cf, args)
     step, params, config = physics()
     position = square(args.seconds)
     mode = np.broadcast_to(np.array(POSITION_MODE, np.int32), (len(position), 7))
     drone = init_state(config, pos=[[0.0, 0.0, 1.0]], rpm=np.full((1, 4), float(params.hover_rpm)))
-    c_track = fly(cf, step, params, drone, mode, position)
-    jax_track = fly(None, step, params, drone, mode, position)
+    c_track = fly(cf, step, params, drone, mode, position, args.controller)
+    jax_track = fly(None, step, params, drone, mode, position, args.controller)
     difference = np.linalg.norm(c_track - jax_track, axis=-1)
     result = {
+        "controller": args.controller,
         "seconds": args.seconds,
         "largest_difference_m": float(difference.max()),
         "final_distance_to_setpoint_m": float(np.linalg.norm(c_track[-1] - position[-1])),
     }
     print(
-        f"{args.seconds:g} s of a 0.5 m square: the firmware's C and jaxdrones' JAX controller "
+        f"{args.seconds:g} s of a 0.5 m square: the firmware's C and jaxdrones' JAX {args.controller} controller "
         f"{result['largest_difference_m'] * 1e6:.1f} µm apart at most; the C's flight ends "
         f"{result['final_distance_to_setpoint_m'] * 100:.1f} cm from its setpoint"
     )
-    write(args.out, result, position, c_track, jax_track)
+    write(args.out, result, position, c_track, jax_track, 1.0 / fw.RATE_MAIN_LOOP)
     return result
 
 
-def write(out: str, result: dict, position: np.ndarray, c_track: np.ndarray, jax_track: np.ndarray) -> None:
-    """``flight.json`` (the figures) and ``flight.png`` (both tracks from above and their height) in a new folder
-    ``out``, moved into place when complete (an existing ``out`` is left as it is)."""
+def _main_policy(cf: ModuleType, args: argparse.Namespace) -> dict:
+    """``--policy``: `fly_policy` from the start of ``--seed``; prints and writes the figures."""
+    from jaxdrones.training.checkpoint import load_policy
+
+    env, _ = load_policy(args.policy)
+    c_track, jax_track = fly_policy(cf, args.policy, jax.random.key(args.seed), args.cache)
+    target = np.broadcast_to(np.asarray(env.default_task_params().target[0], np.float32), c_track.shape)
+    result = {
+        "policy": os.path.abspath(args.policy),
+        "seed": args.seed,
+        "seconds": len(c_track) / env.config.sim.ctrl_freq,
+        "largest_difference_m": float(np.linalg.norm(c_track - jax_track, axis=-1).max()),
+        "final_distance_to_target_m": float(np.linalg.norm(c_track[-1] - target[-1])),
+    }
+    print(
+        f"{result['seconds']:g} s of {env.task.name}: the exported C policy with the firmware's C controller and the "
+        f"JAX policy in its env {result['largest_difference_m'] * 1e6:.1f} µm apart at most; the C's flight ends "
+        f"{result['final_distance_to_target_m'] * 100:.2f} cm from the target"
+    )
+    write(args.out, result, target, c_track, jax_track, 1.0 / env.config.sim.ctrl_freq)
+    return result
+
+
+def write(out: str, result: dict, position: np.ndarray, c_track: np.ndarray, jax_track: np.ndarray, dt: float) -> None:
+    """``flight.json`` (the figures) and ``flight.png`` (both tracks from above and their distance; ``dt`` s between
+    samples) in a new folder ``out``, moved into place when complete (an existing ``out`` is left as it is)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -269,7 +437,7 @@ def write(out: str, result: dict, position: np.ndarray, c_track: np.ndarray, jax
     top.plot(jax_track[:, 0], jax_track[:, 1], "--", label="jaxdrones' JAX")
     top.set(xlabel="x, m", ylabel="y, m", aspect="equal", title="from above")
     top.legend()
-    t = np.arange(1, len(c_track) + 1) / fw.RATE_MAIN_LOOP
+    t = np.arange(1, len(c_track) + 1) * dt
     side.plot(t, np.linalg.norm(c_track - jax_track, axis=-1) * 1e6)
     side.set(xlabel="time, s", ylabel="distance between the two, µm", title="C against JAX")
     fig.tight_layout()

@@ -219,10 +219,9 @@ RECIPES: dict[str, TaskRecipe] = {
             ),
         },
     ),
-    # The firmware's controller is not differentiable (its int16 outputs): brax's PPO.
-    "firmware_hover": TaskRecipe(
-        cpu=Setting(BRAX_PPO, {BRAX_PPO: BRAX_HOVER}), gpu=Setting(BRAX_PPO, {BRAX_PPO: BRAX_GPU})
-    ),
+    # The firmware's controller is not differentiable (its int16 outputs): our PPO at its own settings, whose
+    # policies `jaxdrones export` writes as C (docs/experiments.md, "The suite at its defaults": firmware_hover).
+    "firmware_hover": TaskRecipe(**_both(Setting(PPO))),
     "takeoff": TaskRecipe(**_smooth()),
     "velocity": TaskRecipe(
         **_smooth(cpu=APG_LONG),
