@@ -77,8 +77,8 @@ FIRMWARE_POSITION_RANGE = 2.0
 FIRMWARE_MAX_SPEED = 1.0
 #: ``firmware_vel``: the yaw-rate setpoint at |a| = 1, deg/s.
 FIRMWARE_MAX_YAW_RATE = 90.0
-#: The firmware's physics rate and the ticks per control step a firmware action's step must be a multiple of (its
-#: position loop's period, `jaxdrones.control.firmware.loop.POSITION_PERIOD`).
+#: The physics rate a firmware action needs, Hz: the firmware's tick (its control step must hold a multiple of its
+#: position loop's period, `jaxdrones.control.firmware.loop.POSITION_PERIOD` ticks).
 FIRMWARE_SIM_FREQ = 1000
 
 

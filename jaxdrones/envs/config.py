@@ -19,6 +19,7 @@ from numpy.typing import ArrayLike
 
 from jaxdrones._validate import check_bool, check_choice, check_int, check_real, check_reals, is_integer, is_real
 from jaxdrones.backends import BACKENDS, RENDERERS, require_pybullet
+from jaxdrones.control.firmware.loop import POSITION_PERIOD
 from jaxdrones.envs.actions import ACTION_TYPES, FIRMWARE_ACTIONS, FIRMWARE_SIM_FREQ, PID_MAX_STEP, PID_TARGETS
 from jaxdrones.envs.observations import OBS_TYPES
 from jaxdrones.envs.realism import resolve as resolve_realism
@@ -344,7 +345,7 @@ class TaskConfig:
             return
         sim, name = self.sim, self.action_type
         ticks = sim.sim_freq // sim.ctrl_freq
-        if sim.sim_freq != FIRMWARE_SIM_FREQ or ticks % 10:
+        if sim.sim_freq != FIRMWARE_SIM_FREQ or ticks % POSITION_PERIOD:
             raise ValueError(
                 f"action_type {name!r} is flown by the firmware's controller at its {FIRMWARE_SIM_FREQ} Hz: it needs "
                 f"sim={{'sim_freq': {FIRMWARE_SIM_FREQ}, 'ctrl_freq': F}} with F one of 100, 50, 25, 20, 10 Hz (a "
