@@ -28,13 +28,17 @@ name               size  mapping (source)
 ``firmware_vel``   4     the firmware's velocity setpoint (cflib ``send_velocity_world_setpoint``): velocity
                          `FIRMWARE_MAX_SPEED` · a_0:3 (m/s, world), yaw rate `FIRMWARE_MAX_YAW_RATE` · a_3 (deg/s),
                          flown by the firmware's PID cascade at 1 kHz
+``firmware_ctbr``  4     collective thrust and body rates through the firmware's own rate loop (cflib
+                         ``send_setpoint`` with roll and pitch in rate mode): thrust `FIRMWARE_MIN_THRUST` +
+                         (`FIRMWARE_MAX_THRUST` − `FIRMWARE_MIN_THRUST`) (a_0 + 1) / 2 (PWM), body rates ω* =
+                         `CTBR_MAX_RATE` · a_1:4 (rad/s)
 =================  ====  ==========================================================================================
 
 Unlike the original, actions are clipped to their box before mapping (the env does this), and the PID-based
 types use the airframe's own mixer (the original's RL envs always build the cf2x controller).
 
-The firmware's setpoints (``firmware_pos``, ``firmware_vel``; `ActionType.firmware`) are not mapped to one RPM
-command per control step: the setpoint is held over the step while the firmware's PID cascade
+The firmware's setpoints (``firmware_pos``, ``firmware_vel``, ``firmware_ctbr``; `ActionType.firmware`) are not mapped
+to one RPM command per control step: the setpoint is held over the step while the firmware's PID cascade
 (`jaxdrones.control.firmware.controller_pid`, its loops at 100 and 500 Hz), its power distribution and its motor map
 drive the physics at every 1 ms tick (`fly`, `jaxdrones.control.firmware.pid_schedule`), as on a Crazyflie that
 ``cflib`` sends setpoints to. They need the physics at 1 kHz, a control step of a multiple of 10 ticks and first-order
@@ -77,6 +81,9 @@ FIRMWARE_POSITION_RANGE = 2.0
 FIRMWARE_MAX_SPEED = 1.0
 #: ``firmware_vel``: the yaw-rate setpoint at |a| = 1, deg/s.
 FIRMWARE_MAX_YAW_RATE = 90.0
+#: ``firmware_ctbr``: the thrust setpoint's range, PWM (crtp_commander_rpyt.c ``MIN_THRUST``, ``MAX_THRUST``: below the
+#: least the firmware sets 0, which stops the motors and resets the controller).
+FIRMWARE_MIN_THRUST, FIRMWARE_MAX_THRUST = 1000.0, 60000.0
 #: The physics rate a firmware action needs, Hz: the firmware's tick (its control step must hold a multiple of its
 #: position loop's period, `jaxdrones.control.firmware.loop.POSITION_PERIOD` ticks).
 FIRMWARE_SIM_FREQ = 1000
@@ -293,10 +300,11 @@ def _ctbr(kind, params, sim, carry, action, ref, ctrl_dt):
     return body_rate_control(params, sim.ang_vel, CTBR_MAX_RATE * action[..., 1:], thrust), carry
 
 
-def _firmware_setpoint(modes: tuple[int, ...], **fields: jax.Array) -> Any:
+def _firmware_setpoint(action: jax.Array, modes: tuple[int, ...], **fields: jax.Array) -> Any:
+    """The `Setpoint` [..., D] of an action f[..., D, n] with ``modes`` and ``fields``, zero elsewhere."""
     from jaxdrones.control.firmware import Setpoint
 
-    lead = next(iter(fields.values())).shape[:-1]
+    lead = action.shape[:-1]
     setpoint = Setpoint.zeros(lead)
     return setpoint.replace(mode=jnp.broadcast_to(jnp.asarray(modes, jnp.int32), (*lead, 7)), **fields)
 
@@ -305,7 +313,7 @@ def _firmware_pos(action: jax.Array) -> Any:
     """Cflib ``send_position_setpoint`` (crtp_commander_generic.c ``positionDecoder``): x, y, z, yaw absolute."""
     yaw = jnp.zeros_like(action[..., :3]).at[..., 2].set(jnp.float32(180.0) * action[..., 3])
     position = jnp.float32(FIRMWARE_POSITION_RANGE) * action[..., :3]
-    return _firmware_setpoint((1, 1, 1, 0, 0, 1, 0), position=position, attitude=yaw)
+    return _firmware_setpoint(action, (1, 1, 1, 0, 0, 1, 0), position=position, attitude=yaw)
 
 
 def _firmware_vel(action: jax.Array) -> Any:
@@ -313,7 +321,19 @@ def _firmware_vel(action: jax.Array) -> Any:
     yaw rate."""
     rate = jnp.zeros_like(action[..., :3]).at[..., 2].set(jnp.float32(FIRMWARE_MAX_YAW_RATE) * action[..., 3])
     velocity = jnp.float32(FIRMWARE_MAX_SPEED) * action[..., :3]
-    return _firmware_setpoint((2, 2, 2, 0, 0, 2, 0), velocity=velocity, attitude_rate=rate)
+    return _firmware_setpoint(action, (2, 2, 2, 0, 0, 2, 0), velocity=velocity, attitude_rate=rate)
+
+
+def _firmware_ctbr(action: jax.Array) -> Any:
+    """Cflib ``send_setpoint`` with ``flightmode.stabModeRoll`` and ``stabModePitch`` in rate mode
+    (crtp_commander_rpyt.c): the thrust manual (z modeDisable), roll, pitch and yaw rates (modeVelocity). The body
+    rates ω* (rad/s) become the setpoint's deg/s, the pitch's negated (the firmware's legacy frame, whose rate loop
+    compares it with −gyro.y)."""
+    span = FIRMWARE_MAX_THRUST - FIRMWARE_MIN_THRUST
+    thrust = jnp.float32(FIRMWARE_MIN_THRUST) + jnp.float32(span / 2) * (action[..., 0] + 1.0)
+    deg = jnp.float32(CTBR_MAX_RATE * 180.0 / np.pi)
+    rates = deg * jnp.stack([action[..., 1], -action[..., 2], action[..., 3]], axis=-1)
+    return _firmware_setpoint(action, (0, 0, 0, 2, 2, 2, 0), thrust=thrust, attitude_rate=rates)
 
 
 class _Entry(NamedTuple):
@@ -336,6 +356,7 @@ _TABLE = {
     "ctbr": _Entry(4, False, _ctbr),
     "firmware_pos": _Entry(4, False, None, _firmware_pos),
     "firmware_vel": _Entry(4, False, None, _firmware_vel),
+    "firmware_ctbr": _Entry(4, False, None, _firmware_ctbr),
 }
 #: Action entries per drone of every action type.
 ACTION_SIZES = {name: entry.size for name, entry in _TABLE.items()}

@@ -118,9 +118,10 @@ def pid_ticks(
     """``ticks`` firmware ticks of the PID cascade driving the physics with one setpoint: the loop after ``ticks``
     calls of `pid_tick`.
 
-    Where the loop starts on a multiple of `POSITION_PERIOD` ticks, ``ticks`` is one too, no setpoint leaves z
-    uncontrolled (modeDisable: its manual thrust may be 0) and ``gains.thrust_min`` is positive, the controller's
-    thrust cannot be 0 after the first tick and the schedule of its loops is known when the program is traced:
+    Where the loop starts on a multiple of `POSITION_PERIOD` ticks, ``ticks`` is one too, and every drone's thrust is
+    sure to stay above 0 (z controlled with a positive ``gains.thrust_min``, or z modeDisable with a positive manual
+    thrust), the firmware's reset at zero thrust cannot happen and the schedule of its loops is known when the
+    program is traced:
     `pid_schedule` runs them without deciding anything per tick. Elsewhere (a `jax.lax.cond`, once per call) it is
     a scan of `pid_tick`. Both give `pid_tick`'s results (to float32 rounding: XLA may fuse the arithmetic
     differently). Under `jax.vmap` over worlds with a per-world ``loop.tick``, the ``cond`` computes both: call
@@ -166,11 +167,9 @@ def pid_ticks(
         )
         return PidLoopState(drone=drone, controller=controller, tick=loop.tick + ticks), pwm
 
-    on_schedule = (
-        (loop.tick % POSITION_PERIOD == 0)
-        & jnp.all(setpoint.mode[..., 2] != MODE_DISABLE)
-        & jnp.all(gains.thrust_min > 0)
-    )
+    manual = setpoint.mode[..., 2] == MODE_DISABLE
+    thrust_above_0 = jnp.where(manual, setpoint.thrust > 0, gains.thrust_min > 0)
+    on_schedule = (loop.tick % POSITION_PERIOD == 0) & jnp.all(thrust_above_0)
     return jax.lax.cond(on_schedule, scheduled, general, loop)
 
 
@@ -188,8 +187,8 @@ def pid_schedule(
     program is traced: per `POSITION_PERIOD` ticks, the position loop once, then five times the attitude and rate
     loops followed by two physics steps at the motors' commands they set (the firmware's odd ticks change nothing
     but the physics). The caller vouches for what `pid_ticks` checks: the start on the schedule, ``ticks`` a
-    multiple of `POSITION_PERIOD`, z controlled (not modeDisable) and ``gains.thrust_min`` > 0 (else the
-    controller's thrust may be 0, where the firmware resets its PIDs: this path does not).
+    multiple of `POSITION_PERIOD`, and a thrust that stays above 0 (z controlled with ``gains.thrust_min`` > 0, or
+    a positive manual thrust; at zero thrust the firmware resets its PIDs, and this path does not).
 
     Args and raises: see `pid_ticks` (``drone`` and ``controller`` the loop's); ``ticks`` must be a positive
     multiple of `POSITION_PERIOD`.
