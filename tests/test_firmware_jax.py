@@ -108,10 +108,10 @@ def test_mellinger_at_its_setpoint_asks_for_the_weight_and_holds_between_its_tic
 
 def test_many_ticks_at_once_fly_as_one_tick_at_a_time():
     """`pid_ticks` (its schedule written into the program where the start is a multiple of 10 ticks, a scan of
-    `pid_tick` elsewhere) against 40 calls of `pid_tick`: 6 worlds from random starts, a position
-    setpoint for 20 ticks, then a velocity setpoint (a change of mode: the PIDs' reset) for 20 more, from tick 0
-    and from tick 3. Positions within 1e-5 m, the int16 outputs within 1 (float32 rounding: XLA fuses the two
-    programs differently)."""
+    `pid_tick` elsewhere) against 60 calls of `pid_tick`: 6 worlds from random starts, a position setpoint for 20
+    ticks, then a velocity setpoint (a change of mode: the PIDs' reset) for 20 more, then body rates with a manual
+    thrust for 20 more, from tick 0 and from tick 3. Positions within 1e-5 m, the int16 outputs within 1 (float32
+    rounding: XLA fuses the two programs differently)."""
     import jax
 
     from jaxdrones.examples.firmware_in_the_loop import physics
@@ -136,15 +136,20 @@ def test_many_ticks_at_once_fly_as_one_tick_at_a_time():
         velocity=jnp.asarray(rng.uniform(-0.5, 0.5, (6, 1, 3)), jnp.float32),
         attitude_rate=jnp.zeros((6, 1, 3)).at[..., 2].set(30.0),
     )
+    rates = fw.Setpoint.zeros((6, 1)).replace(  # z modeDisable, a manual thrust above 0: still on the schedule
+        mode=jnp.broadcast_to(jnp.array([0, 0, 0, 2, 2, 2, 0], jnp.int32), (6, 1, 7)),
+        thrust=jnp.full((6, 1), 37000.0),
+        attitude_rate=jnp.asarray(rng.uniform(-30, 30, (6, 1, 3)), jnp.float32),
+    )
     one = jax.jit(lambda loop, sp: fw.pid_tick(step, params, gains, loop, sp))
     many = jax.jit(lambda loop, sp: fw.pid_ticks(step, params, gains, loop, sp, 20))
     for tick in (0, 3):
         a = b = fw.pid_loop_init(start, tick=tick)
-        for setpoint in (hold, move):
+        for setpoint in (hold, move, rates):
             for _ in range(20):
                 a, pwm_a = one(a, setpoint)
             b, pwm_b = many(b, setpoint)
-        assert int(b.tick) == tick + 40
+        assert int(b.tick) == tick + 60
         np.testing.assert_allclose(np.asarray(b.drone.pos), np.asarray(a.drone.pos), atol=1e-5, err_msg=f"{tick=}")
         assert np.max(np.abs(np.asarray(pwm_a) - np.asarray(pwm_b))) <= 4, f"{tick=}"  # ±1 on each of 4 terms
         control_a, control_b = a.controller.control, b.controller.control
