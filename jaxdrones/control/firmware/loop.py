@@ -13,6 +13,8 @@ firmware's PID in the loop").
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -36,7 +38,7 @@ from jaxdrones.control.firmware.power import power_distribution_cap, power_distr
 from jaxdrones.control.firmware.types import MODE_DISABLE, Control, Setpoint, firmware_state
 from jaxdrones.physics.params import DroneParams
 from jaxdrones.physics.state import DroneState
-from jaxdrones.physics.step import StepFn
+from jaxdrones.physics.step import JaxStep, StepFn
 
 
 @struct.dataclass
@@ -185,10 +187,11 @@ def pid_schedule(
 ) -> tuple[DroneState, PidControllerState, jax.Array]:
     """`pid_ticks` from a tick that is a multiple of `POSITION_PERIOD`, with the loops of each tick chosen when the
     program is traced: per `POSITION_PERIOD` ticks, the position loop once, then five times the attitude and rate
-    loops followed by two physics steps at the motors' commands they set (the firmware's odd ticks change nothing
-    but the physics). The caller vouches for what `pid_ticks` checks: the start on the schedule, ``ticks`` a
-    multiple of `POSITION_PERIOD`, and a thrust that stays above 0 (z controlled with ``gains.thrust_min`` > 0, or
-    a positive manual thrust; at zero thrust the firmware resets its PIDs, and this path does not).
+    loops followed by two ticks of physics at the motors' commands they set (the firmware's odd ticks change nothing
+    but the physics; the JAX core's two substeps in one call). The caller vouches for what `pid_ticks` checks: the
+    start on the schedule, ``ticks`` a multiple of `POSITION_PERIOD`, and a thrust that stays above 0 (z controlled
+    with ``gains.thrust_min`` > 0, or a positive manual thrust; at zero thrust the firmware resets its PIDs, and this
+    path does not).
 
     Args and raises: see `pid_ticks` (``drone`` and ``controller`` the loop's); ``ticks`` must be a positive
     multiple of `POSITION_PERIOD`.
@@ -199,6 +202,7 @@ def pid_schedule(
     if isinstance(ticks, bool) or not isinstance(ticks, int | np.integer) or ticks < 1 or ticks % POSITION_PERIOD:
         raise ValueError(f"pid_schedule: ticks must be a positive multiple of {POSITION_PERIOD}, got {ticks!r}")
     stages = _stages(setpoint.mode.ndim - 1)
+    hold, calls = _held_step(step)
     # The setpoint is held: only the first tick can see a change of mode (controllerPid's reset).
     controller = stages["mode"](gains, controller, setpoint, firmware_state(drone))
 
@@ -213,8 +217,8 @@ def pid_schedule(
         controller = controller.replace(control=control)
         pwm = _motors(control)
         rpm = motor_rpm(params, pwm)
-        for _ in range(ATTITUDE_PERIOD):  # the attitude tick and the ticks that hold its control
-            drone = step(params, drone, rpm, disturbance)
+        for _ in range(calls):  # the attitude tick and the ticks that hold its control
+            drone = hold(params, drone, rpm, disturbance)
         return (drone, controller), pwm
 
     def block(carry, _):
@@ -224,6 +228,16 @@ def pid_schedule(
 
     (drone, controller), pwm = jax.lax.scan(block, (drone, controller), None, length=ticks // POSITION_PERIOD)
     return drone, controller, pwm[-1]
+
+
+def _held_step(step: StepFn) -> tuple[StepFn, int]:
+    """(a physics step, calls of it) that advance `ATTITUDE_PERIOD` ticks at one command: the JAX core's step of that
+    many substeps for a JAX core's 1 ms step (one call: 1.2 times the loop's speed on 2 CPU cores, docs/benchmarks.md,
+    "The firmware's PID in the loop"), else ``step`` that many times."""
+    config = getattr(step, "config", None)
+    if isinstance(step, JaxStep) and config.ctrl_freq == config.sim_freq:
+        return JaxStep(dataclasses.replace(config, ctrl_freq=config.sim_freq // ATTITUDE_PERIOD)), 1
+    return step, ATTITUDE_PERIOD
 
 
 #: Attitude ticks per position tick.
