@@ -7,7 +7,7 @@ physics step must advance 1 ms per call: ``jaxdrones.make_step(SimConfig(sim_fre
 
 `pid_tick` runs one tick; `pid_ticks` runs many with one setpoint, the firmware's schedule of loops written into the
 program (which loop runs on which tick, for a loop that starts on a multiple of 10 ticks) rather than decided tick by
-tick: the same results at 1.7 times the speed on 2 CPU cores and 13 times on a GPU (docs/benchmarks.md, "The
+tick: the same results at about twice the speed on 2 CPU cores and 13 times on a GPU (docs/benchmarks.md, "The
 firmware's PID in the loop").
 """
 
