@@ -141,15 +141,7 @@ def fly(
             for axis, value in zip(_MODE_FIELDS, mode[i], strict=True):
                 setattr(setpoint.mode, axis, int(value))
             setpoint.position.x, setpoint.position.y, setpoint.position.z = (float(v) for v in position[i])
-            a, q, p, v, g = (
-                np.asarray(x)[0] for x in (seen.attitude, seen.quat, seen.position, seen.velocity, seen.gyro)
-            )
-            state.attitude.roll, state.attitude.pitch, state.attitude.yaw = (float(x) for x in a)
-            quat = state.attitudeQuaternion
-            quat.x, quat.y, quat.z, quat.w = (float(x) for x in q)
-            state.position.x, state.position.y, state.position.z = (float(x) for x in p)
-            state.velocity.x, state.velocity.y, state.velocity.z = (float(x) for x in v)
-            sensors.gyro.x, sensors.gyro.y, sensors.gyro.z = (float(x) for x in g)
+            _fill_state(state, sensors, seen)
             control = c_tick(setpoint, sensors, state, i)
             cf.powerDistribution(control, uncapped)
             cf.powerDistributionCap(uncapped, pwm)
