@@ -188,7 +188,6 @@ def test_the_out_of_tree_controller_compiles_against_the_firmware(cf, tmp_path):
     """docs/realism.md's out-of-tree controller, with `jaxdrones export`'s C file of tests/data/crazyflie_hover,
     compiles with the firmware's headers and its Cortex-M4 release flags (warnings as errors), and fits the
     STM32F405's flash; its size is docs/realism.md's."""
-    import pathlib
     import re
     import shutil
     import subprocess
