@@ -197,3 +197,17 @@ def test_notebook_stored_with_outputs(path):
     notebook = nbformat.read(path, as_version=4)
     outputs = [cell for cell in notebook.cells if cell.cell_type == "code" and cell.get("outputs")]
     assert outputs, f"{path.name} is stored without outputs: run it and save it with them"
+
+
+def test_the_virtual_environments_the_docs_make_are_ignored_by_git():
+    """Every folder that a ``python -m venv FOLDER`` of the README, the docs or .ci/run creates is one git ignores,
+    so that a user who follows them commits none of it."""
+    if not (ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+    texts = [ROOT / "README.md", ROOT / ".ci" / "run", *sorted(DOCS.glob("*.md"))]
+    folders = {m for path in texts for m in re.findall(r"python3? -m venv (\.?[\w./-]+)", path.read_text())}
+    assert ".venv-rllib" in folders  # docs/adapters.md's RLlib workflow
+    for folder in sorted(folders):
+        probe = f"{folder.rstrip('/')}/bin/python"
+        result = subprocess.run(["git", "check-ignore", "-q", probe], cwd=ROOT, capture_output=True)
+        assert result.returncode == 0, f"{folder} (a virtual environment the docs create) is not ignored by git"
