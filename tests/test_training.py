@@ -1076,3 +1076,31 @@ def test_a_ctrl_c_at_any_moment_leaves_the_old_run_or_a_complete_new_one(tmp_pat
         if left == ["R", "R-1"]:
             assert json.loads((tmp_path / "R-1" / "summary.json").read_text())["interrupted"] and status == 130
             shutil.rmtree(tmp_path / "R-1")
+
+
+def test_the_progress_display_says_it_compiles_until_the_first_evaluation(capsys):
+    """Before the first evaluation the bar says that the programs are being compiled (or loaded) and redraws its
+    elapsed time every second; the first evaluation replaces that with the training's figures and stops the redraws;
+    a disabled bar starts no redraws."""
+    import time
+
+    from jaxdrones.envs import get_task
+    from jaxdrones.training.progress import PREPARING, ProgressLog
+
+    log = ProgressLog(1000, get_task("hover"))
+    drawn = ""
+    for _ in range(100):  # redrawn with the elapsed seconds: wait (up to 10 s on a loaded machine) for 2 s of them
+        time.sleep(0.1)
+        drawn += capsys.readouterr().err
+        if "[00:02<?]" in drawn:
+            break
+    assert log.bar.postfix.endswith(PREPARING)
+    assert drawn.count("compiling the programs") >= 3 and "[00:02<?]" in drawn
+    log(100, {"success_value": 0.5, "terminated_rate": 0.0, "episode_reward": 1.0})
+    assert "final distance 0.5 m (solved < 0.05)" in log.bar.postfix
+    log._ticker.join(timeout=2.0)
+    assert not log._ticker.is_alive()
+    log.close()
+    quiet = ProgressLog(1000, get_task("hover"), enabled=False)
+    assert not hasattr(quiet, "_ticker")
+    quiet.close()

@@ -6,17 +6,22 @@ returns, nothing of any trainer's internals."""
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 #: How a summary names `Task.success_at`.
 AGGREGATES = {"final": "final", "mean": "mean over episode", "max": "max over episode"}
+#: What the display says until the first evaluation: the programs are compiled (or, from JAX's compilation cache,
+#: loaded) before the first training step.
+PREPARING = "compiling the programs (or loading them from the compilation cache)"
 
 
 class ProgressLog:
     """Rows ``{env_steps, time_s, success_value, terminated_rate, episode_reward}`` and a progress bar.
 
     The bar's total is the run's env steps; its steps/s counts from the first evaluation (after compilation), so it
-    is the training speed.
+    is the training speed. Until that first evaluation the bar says so (`PREPARING`) and its elapsed time counts,
+    redrawn every second.
 
     Args:
         total_steps: env steps of the run.
@@ -39,6 +44,16 @@ class ProgressLog:
             disable=not enabled,
             bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}] {postfix}",
         )
+        self._prepared = threading.Event()
+        if enabled:
+            self.bar.set_postfix_str(PREPARING)
+            self._ticker = threading.Thread(target=self._tick, daemon=True)
+            self._ticker.start()
+
+    def _tick(self) -> None:
+        """Redraw the bar every second until the first evaluation, so that its elapsed time counts the compilation."""
+        while not self._prepared.wait(1.0):
+            self.bar.refresh()
 
     @property
     def label(self) -> str:
@@ -48,6 +63,7 @@ class ProgressLog:
 
     def __call__(self, step: int, stats: dict) -> None:
         """Record an evaluation: ``stats`` as `episode_statistics` returns them, at ``step`` env steps."""
+        self._prepared.set()
         now = time.perf_counter()
         row = {
             "env_steps": int(step),
@@ -71,6 +87,7 @@ class ProgressLog:
         self.bar.update(step - self.bar.n)
 
     def close(self) -> None:
+        self._prepared.set()
         self.bar.close()
 
     def save(self, path: str) -> None:
