@@ -8,6 +8,7 @@ import json
 import math
 import os
 import pickle
+import re
 import shutil
 import signal
 import subprocess
@@ -837,8 +838,11 @@ def test_train_cli_seeds_write_each_run_and_their_aggregate(tmp_path, capsys):
     assert main([*args, "--seeds", "3", "--seed", "4", "--out", str(run), "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "seed 6:" in out and "interquartile mean" in out and "95% CI" in out
+    assert re.search(r"seed 6: (not )?solved, distance \(final\) [\d.e-]+ m\n", out)  # with the metric's unit
+    assert re.search(r"median [\d.e-]+ m, interquartile mean [\d.e-]+ m \(95% CI [\d.e-]+ to [\d.e-]+ m\)", out)
     assert sorted(p.name for p in run.iterdir()) == [
         MARKER,
+        "flight.png",
         "learning_curve.png",
         "progress.json",
         "seed_4",
@@ -851,6 +855,8 @@ def test_train_cli_seeds_write_each_run_and_their_aggregate(tmp_path, capsys):
     values = [r["success_value"] for r in summary["runs"]]
     assert summary["aggregate"] == aggregate(values, [r["success"] for r in summary["runs"]])
     assert summary["aggregate"]["median"] == pytest.approx(np.median(values))
+    assert values[[4, 5, 6].index(summary["median_seed"])] == np.median(values)  # flight.png's seed
+    assert f"flight.png (seed {summary['median_seed']}, the median)" in out
     low, high = summary["aggregate"]["iqm_ci95"]
     assert min(values) <= low <= summary["aggregate"]["iqm"] <= high <= max(values)
     for seed, value in zip([4, 5, 6], values, strict=True):

@@ -451,25 +451,26 @@ def run_cli(args: argparse.Namespace) -> int:
 
 def _report_seeds(summary: dict) -> int:
     """Print a run of several seeds or settings: each run's result and each setting's aggregate."""
-    metric, threshold = summary["success_metric"], summary["success_threshold"]
+    metric, threshold, unit = summary["success_metric"], summary["success_threshold"], summary["success_unit"]
     for label, part in [(f"{setting_label(s['setting'])}: ", s) for s in summary.get("settings", [])] or [
         ("", summary)
     ]:
         for run in part["runs"]:
             verdict = "solved" if run["success"] else "not solved"
-            print(f"{label}seed {run['seed']}: {verdict}, {metric} {run['success_value']:.4g}")
+            print(f"{label}seed {run['seed']}: {verdict}, {metric} {run['success_value']:.4g} {unit}")
         agg = part["aggregate"]
         low, high = agg["iqm_ci95"] or (None, None)
-        interval = "" if low is None else f" (95% CI {low:.4g} to {high:.4g})"
+        interval = "" if low is None else f" (95% CI {low:.4g} to {high:.4g} {unit})"
         print(
-            f"{label}{agg['solved_share']:.0%} of {agg['n_seeds']} seeds solved (threshold {threshold:g}); "
-            f"median {agg['median']:.4g}, interquartile mean {agg['iqm']:.4g}{interval}"
+            f"{label}{agg['solved_share']:.0%} of {agg['n_seeds']} seeds solved (threshold {threshold:g} {unit}); "
+            f"median {agg['median']:.4g} {unit}, interquartile mean {agg['iqm']:.4g} {unit}{interval}"
         )
     folders = "NAME=V/seed_<k>/" if "settings" in summary else "seed_<k>/"
+    flight = f", flight.png (seed {summary['median_seed']}, the median)" if "median_seed" in summary else ""
     print(
         f"{summary['wall_time_s']:.1f} s wall time, {summary['programs']} compiled program"
         f"{'s' * (summary['programs'] > 1)}; saved {folders} (each run's policy.pkl and summary.json), "
-        f"learning_curve.png, summary.json in {summary['out_dir']}"
+        f"learning_curve.png (the seeds' median, their range shaded){flight}, summary.json in {summary['out_dir']}"
     )
     return 0
 

@@ -217,7 +217,8 @@ def plot_learning_curves(
             values = np.array([[row[key] for row in h[:n]] for h in runs], dtype=float)
             for run in values:
                 ax.plot(steps, run, color=shade, alpha=0.3, linewidth=0.8)
-            ax.fill_between(steps, values.min(0), values.max(0), color=shade, alpha=0.15, linewidth=0)
+            band = f"{name + ': ' if name else ''}lowest to highest of the seeds"
+            ax.fill_between(steps, values.min(0), values.max(0), color=shade, alpha=0.15, linewidth=0, label=band)
             legend = f"{name + ': ' if name else ''}median of {len(values)} seeds"
             ax.plot(steps, np.median(values, 0), color=shade, marker="o", label=legend)
     _curve_axes(*axes, metric_label, threshold)

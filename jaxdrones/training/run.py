@@ -275,8 +275,9 @@ class _Training:
                             write_json(os.path.join(self.folder.path, folder, "summary.json"), saved)
                     self.save_runs(tuple(k for k in self.results if k not in self.saved))
                     status = {"interrupted": stop is not None, "error": None if error is None else str(error)}
+                    evaluations = {k: self.last[k].get("eval") for k in self.saved}
                     summary = write_runs(self.folder.path, self.plan, self.saved, self.logs, self.env, status,
-                                         self.t_start, self.phases, self.source, self.dest)  # fmt: skip
+                                         self.t_start, self.phases, self.source, self.dest, evaluations)  # fmt: skip
                 summary["out_dir"] = self.folder.commit(complete)
         except KeyboardInterrupt as late:
             held = late

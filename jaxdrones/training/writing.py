@@ -101,11 +101,14 @@ def write_runs(
     phases: dict,
     source: dict | None,
     out_dir: str,
+    evaluations: dict[int, dict | None] | None = None,
 ) -> dict:
     """Write the summary of several runs (`jaxdrones.training.run.train_task`'s ``seeds`` and ``sweep``) into
-    ``folder``: ``summary.json`` (each setting's runs and aggregate), ``progress.json`` and
-    ``learning_curve.png``, from ``summaries`` (the runs saved, by index of ``plan.runs``; `write_run`) and
-    ``status`` (``interrupted``, ``error``), with ``out_dir`` where the folder goes; returns the summary."""
+    ``folder``: ``summary.json`` (each setting's runs and aggregate), ``progress.json``, ``learning_curve.png`` and,
+    for seeds without a sweep, ``flight.png``, the evaluation flight of the median seed (``evaluations``: each run's
+    last evaluation, by index of ``plan.runs``), from ``summaries`` (the runs saved, by index of ``plan.runs``;
+    `write_run`) and ``status`` (``interrupted``, ``error``), with ``out_dir`` where the folder goes; returns the
+    summary."""
     from jaxdrones.io.plotting import plot_learning_curves
 
     sweep = plan.sweep is not None
@@ -154,8 +157,24 @@ def write_runs(
         threshold=env.task.success_threshold,
         title=f"{summary['algo'].upper()} on {summary['task']}, seeds {', '.join(map(str, plan.seeds))}",
     )
+    median = None if sweep else median_run(order, summaries)
+    if median is not None and (evaluations or {}).get(median) is not None:
+        summary["median_seed"] = plan.runs[median].seed
+        title = f"{summary['task']}: evaluation flight of seed {summary['median_seed']}, the median of {len(order)}"
+        _plot_flight(env, evaluations[median], folder, title)
     write_json(os.path.join(folder, "summary.json"), summary)
     return summary
+
+
+def median_run(order: list[int], summaries: dict[int, dict]) -> int | None:
+    """The run (an index of ``order``'s) whose ``success_value`` is the median of the runs' (the lower of the two
+    middle ones for an even count; a non-finite value ranks last), or None without runs."""
+    if not order:
+        return None
+    ranked = sorted(
+        order, key=lambda k: (not math.isfinite(summaries[k]["success_value"]), summaries[k]["success_value"], k)
+    )
+    return ranked[(len(ranked) - 1) // 2]
 
 
 def _write_viewer(env: Env, evaluation: dict | None, out: str) -> None:
@@ -175,9 +194,7 @@ def _write_viewer(env: Env, evaluation: dict | None, out: str) -> None:
 def _plot(env: Env, run: Recipe, log: ProgressLog, evaluation: dict | None, out: str) -> None:
     """``learning_curve.png`` (the judged metric against env steps, with its threshold) and, when an evaluation ran,
     ``flight.png`` (its first episode)."""
-    import numpy as np
-
-    from jaxdrones.io.plotting import plot_learning_curve, plot_task_flight
+    from jaxdrones.io.plotting import plot_learning_curve
 
     title = f"{run.algo.upper()} on {run.task} ({env.config.model}, {env.config.action_type})"
     if log.history:
@@ -190,14 +207,17 @@ def _plot(env: Env, run: Recipe, log: ProgressLog, evaluation: dict | None, out:
             title=title,
         )
     if evaluation is not None:
-        flight = evaluation["flight"]
-        times = np.arange(env.episode_length + 1) / env.config.sim.ctrl_freq
-        plot_task_flight(
-            times,
-            flight["pos"],
-            flight["ref"],
-            flight["vel"],
-            flight["rpm"],
-            os.path.join(out, "flight.png"),
-            title=f"{run.task}: evaluation flight",
-        )
+        _plot_flight(env, evaluation, out, f"{run.task}: evaluation flight")
+
+
+def _plot_flight(env: Env, evaluation: dict, out: str, title: str) -> None:
+    """``flight.png`` in ``out``: the first episode of ``evaluation``."""
+    import numpy as np
+
+    from jaxdrones.io.plotting import plot_task_flight
+
+    flight = evaluation["flight"]
+    times = np.arange(env.episode_length + 1) / env.config.sim.ctrl_freq
+    plot_task_flight(
+        times, flight["pos"], flight["ref"], flight["vel"], flight["rpm"], os.path.join(out, "flight.png"), title=title
+    )
