@@ -174,7 +174,7 @@ class ActionType:
         carry: Any,
         action: jax.Array,
         ticks: int,
-        disturbance: jax.Array | None = None,
+        disturbance: Any = None,
     ) -> tuple[DroneState, Any]:
         """Fly a firmware action (already clipped to the box) for one control step: its setpoint held for ``ticks``
         ticks of the firmware's PID cascade, power distribution and motor map, each driving ``step`` for 1 ms
@@ -187,7 +187,7 @@ class ActionType:
             carry: the controller's state (`init` or the previous call).
             action: f[..., D, 4].
             ticks: firmware ticks per control step, a positive multiple of 10 (``sim_freq // ctrl_freq``).
-            disturbance: f[..., D, 3] N, a world-frame force for every tick, or None.
+            disturbance: a `jaxdrones.physics.state.Disturbance` held over every tick, or None.
 
         Returns:
             (the drones after the step, the controller's state).

@@ -25,7 +25,7 @@ from flax import struct
 
 from jaxdrones.control.firmware import math3d as m3
 from jaxdrones.control.firmware import pid as _pid
-from jaxdrones.control.firmware.types import MODE_DISABLE, FirmwareState, Setpoint, select
+from jaxdrones.control.firmware.types import MODE_DISABLE, FirmwareState, Setpoint, every, select
 
 _F = np.float32
 #: controller_brescianini.c's update rate (``RATE_100_HZ``): ticks of the 1 kHz loop between two updates.
@@ -134,9 +134,7 @@ def controller_brescianini(
         (the new `BrescianiniState`, the `ForceTorque` control).
     """
     omega = [m3.radians(state.gyro[..., k]) for k in range(3)]
-    updated = _update(gains, setpoint, state, omega)
-    runs = jnp.asarray(tick) % UPDATE_PERIOD == 0
-    memory = select(runs, updated, memory)
+    memory = every(UPDATE_PERIOD, tick, lambda: _update(gains, setpoint, state, omega), memory)
     taus = (gains.tau_rp_rate, gains.tau_rp_rate, gains.tau_yaw_rate)
     error = [(memory.omega[..., k] - omega[k]) / taus[k] for k in range(3)]
     inertia = gains.inertia
@@ -150,26 +148,6 @@ def controller_brescianini(
     return memory, control
 
 
-def _qqmul(q: tuple, p: tuple) -> tuple:
-    """math3d.h ``qqmul`` of (x, y, z, w) tuples."""
-    return (
-        q[3] * p[0] + q[2] * p[1] - q[1] * p[2] + q[0] * p[3],
-        -q[2] * p[0] + q[3] * p[1] + q[0] * p[2] + q[1] * p[3],
-        q[1] * p[0] - q[0] * p[1] + q[3] * p[2] + q[2] * p[3],
-        -q[0] * p[0] - q[1] * p[1] - q[2] * p[2] + q[3] * p[3],
-    )
-
-
-def _qnormalize(q: tuple) -> tuple:
-    """math3d.h ``qnormalize``: s = 1 / sqrtf(q·q), then each component times s."""
-    s = 1.0 / jnp.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    return tuple(s * c for c in q)
-
-
-def _pick(cond: jax.Array, a: tuple, b: tuple) -> tuple:
-    return tuple(jnp.where(cond, x, y) for x, y in zip(a, b, strict=True))
-
-
 def _half_angle_axis(alpha: jax.Array, axis: tuple) -> tuple:
     """(sin(α/2) axis, cos(α/2)) as (x, y, z, w)."""
     s, c = jnp.sin(alpha / 2.0), jnp.cos(alpha / 2.0)
@@ -181,7 +159,7 @@ def _axis(alpha: jax.Array, a: tuple, b: tuple) -> tuple:
     axis = m3.normalize(m3.cross(a, b))
     large = jnp.abs(alpha) > ARCMINUTE
     one, zero = jnp.ones_like(alpha), jnp.zeros_like(alpha)
-    return _pick(large, axis, (one, one, zero))
+    return select(large, axis, (one, one, zero))
 
 
 def _update(gains: BrescianiniGains, setpoint: Setpoint, state: FirmwareState, omega: list) -> BrescianiniState:
@@ -236,25 +214,25 @@ def _update(gains: BrescianiniGains, setpoint: Setpoint, state: FirmwareState, o
     # Reduced attitude control: the rotation from the thrust axis to the desired one.
     alpha = jnp.arccos(_pid.constrain(m3.dot(z_cur, z_des), -1.0, 1.0))
     reduced = _half_angle_axis(alpha, _axis(alpha, z_cur, z_des))
-    reduced = _pick(jnp.cos(alpha / 2.0) < 0, tuple(-v for v in reduced), reduced)
-    reduced = _qnormalize(reduced)
+    reduced = select(jnp.cos(alpha / 2.0) < 0, tuple(-v for v in reduced), reduced)
+    reduced = m3.qnormalize(reduced)
 
     # Full attitude control: tilt from the vertical to the desired axis, then the yaw setpoint.
     alpha = jnp.arccos(_pid.constrain(m3.dot(z_inertial, z_des), -1.0, 1.0))
     tilt = _half_angle_axis(alpha, _axis(alpha, z_inertial, z_des))
     half_yaw = m3.radians(setpoint.attitude[..., 2]) / 2.0
-    desired = _qqmul(tilt, (zeros, zeros, jnp.sin(half_yaw), jnp.cos(half_yaw)))
-    full = _qqmul((-qx, -qy, -qz, qw), desired)
-    full = _pick(full[3] < 0, tuple(-v for v in full), full)
-    full = _qnormalize(full)
+    desired = m3.qqmul(tilt, (zeros, zeros, jnp.sin(half_yaw), jnp.cos(half_yaw)))
+    full = m3.qqmul((-qx, -qy, -qz, qw), desired)
+    full = select(full[3] < 0, tuple(-v for v in full), full)
+    full = m3.qnormalize(full)
 
     # Mixing: the rotation from the reduced to the full error, mixing_factor of it.
-    between = _qnormalize(_qqmul((-reduced[0], -reduced[1], -reduced[2], reduced[3]), full))
+    between = m3.qnormalize(m3.qqmul((-reduced[0], -reduced[1], -reduced[2], reduced[3]), full))
     angle = 2.0 * jnp.arccos(_pid.constrain(between[3], -1.0, 1.0))
     sign = jnp.where(between[2] < 0, _F(-1.0), _F(1.0))
     half = angle * g.mixing_factor / 2.0
-    mixed = _qnormalize(_qqmul(reduced, (zeros, zeros, jnp.sin(half) * sign, jnp.cos(half))))
-    error = _pick(g.mixing_factor <= 0, reduced, _pick(g.mixing_factor >= 1, full, mixed))
+    mixed = m3.qnormalize(m3.qqmul(reduced, (zeros, zeros, jnp.sin(half) * sign, jnp.cos(half))))
+    error = select(g.mixing_factor <= 0, reduced, select(g.mixing_factor >= 1, full, mixed))
 
     rates = [
         _F(2.0) / g.tau_rp * error[0],

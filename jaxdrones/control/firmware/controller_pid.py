@@ -32,11 +32,15 @@ from jaxdrones.control.firmware.types import (
     Control,
     FirmwareState,
     Setpoint,
+    every,
     select,
 )
 
 #: The stabilizer loop's rate and the controller's loops' (stabilizer_types.h), Hz.
 RATE_MAIN_LOOP, ATTITUDE_RATE, POSITION_RATE = 1000, 500, 100
+#: Ticks between two runs of the position loop, and of the attitude and rate loops (``RATE_DO_EXECUTE``).
+POSITION_PERIOD = RATE_MAIN_LOOP // POSITION_RATE
+ATTITUDE_PERIOD = RATE_MAIN_LOOP // ATTITUDE_RATE
 ATTITUDE_DT = float(np.float32(1.0) / np.float32(ATTITUDE_RATE))
 POSITION_DT = float(np.float32(1.0) / np.float32(POSITION_RATE))
 _F = np.float32
@@ -269,30 +273,28 @@ def controller_pid(
     return step(gains, cstate, setpoint, state, jnp.broadcast_to(tick, batch))
 
 
+def batch_stage(stage, n_batch: int, in_axes: tuple = (None, 0, 0, 0)):
+    """``stage`` (a stage of the cascade, written for one drone) vmapped over ``n_batch`` leading axes; by default
+    its arguments are (gains, shared; the controller's state, the setpoint, the firmware's state)."""
+    for _ in range(n_batch):
+        stage = jax.vmap(stage, in_axes=in_axes)
+    return stage
+
+
 def _controller_pid_batch(gains, cstate, setpoint, state, tick, n_batch: int):
     """`controller_pid` with one tick for the whole batch: each stage vmapped over the batch's ``n_batch`` axes,
     the loops that do not run on the tick skipped (a Python int: not compiled; a traced scalar: `jax.lax.cond`)."""
 
     def batched(stage):
-        for _ in range(n_batch):
-            stage = jax.vmap(stage, in_axes=(None, 0, 0, 0))
+        stage = batch_stage(stage, n_batch)
         return lambda c: stage(gains, c, setpoint, state)
-
-    def when(flag, stage, c):
-        if isinstance(flag, bool | np.bool_):
-            return batched(stage)(c) if flag else c
-        return jax.lax.cond(flag, batched(stage), lambda c: c, c)
 
     changed = jnp.any(setpoint.mode != cstate.previous_mode)  # rare: the resets run only when a drone needs one
     cstate = jax.lax.cond(changed, batched(_mode_stage), lambda c: c, cstate)
-    attitude_tick = tick % (RATE_MAIN_LOOP // ATTITUDE_RATE) == 0
-    position_tick = tick % (RATE_MAIN_LOOP // POSITION_RATE) == 0
-    cstate = when(attitude_tick, _yaw_stage, cstate)
-    cstate = when(position_tick, _position_stage, cstate)
-    cstate = when(attitude_tick, _attitude_loops, cstate)
-    finish = _finish_stage
-    for _ in range(n_batch):
-        finish = jax.vmap(finish, in_axes=(0, 0))
+    cstate = every(ATTITUDE_PERIOD, tick, lambda: batched(_yaw_stage)(cstate), cstate)
+    cstate = every(POSITION_PERIOD, tick, lambda: batched(_position_stage)(cstate), cstate)
+    cstate = every(ATTITUDE_PERIOD, tick, lambda: batched(_attitude_loops)(cstate), cstate)
+    finish = batch_stage(_finish_stage, n_batch, in_axes=(0, 0))
 
     def running(c):
         control = c.control.replace(thrust=c.actuator_thrust)
@@ -311,8 +313,8 @@ def _controller_pid_one(
     """`controller_pid` for one drone (no leading axes) at its own tick: every loop computed, its result kept where
     it runs."""
     cstate = _mode_stage(gains, cstate, setpoint, state)
-    attitude_tick = tick % (RATE_MAIN_LOOP // ATTITUDE_RATE) == 0
-    position_tick = tick % (RATE_MAIN_LOOP // POSITION_RATE) == 0
+    attitude_tick = tick % ATTITUDE_PERIOD == 0
+    position_tick = tick % POSITION_PERIOD == 0
     cstate = select(attitude_tick, _yaw_stage(gains, cstate, setpoint, state), cstate)
     cstate = select(position_tick, _position_stage(gains, cstate, setpoint, state), cstate)
     cstate = select(attitude_tick, _attitude_loops(gains, cstate, setpoint, state), cstate)

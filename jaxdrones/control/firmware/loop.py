@@ -21,8 +21,8 @@ import numpy as np
 from flax import struct
 
 from jaxdrones.control.firmware.controller_pid import (
-    ATTITUDE_RATE,
-    POSITION_RATE,
+    ATTITUDE_PERIOD,
+    POSITION_PERIOD,
     RATE_MAIN_LOOP,
     PidControllerGains,
     PidControllerState,
@@ -30,6 +30,7 @@ from jaxdrones.control.firmware.controller_pid import (
     _mode_stage,
     _position_stage,
     _yaw_stage,
+    batch_stage,
     controller_pid,
     controller_pid_init,
 )
@@ -37,7 +38,7 @@ from jaxdrones.control.firmware.motors import motor_rpm
 from jaxdrones.control.firmware.power import power_distribution_cap, power_distribution_legacy
 from jaxdrones.control.firmware.types import MODE_DISABLE, Control, Setpoint, firmware_state
 from jaxdrones.physics.params import DroneParams
-from jaxdrones.physics.state import DroneState
+from jaxdrones.physics.state import Disturbance, DroneState
 from jaxdrones.physics.step import JaxStep, StepFn
 
 
@@ -74,7 +75,12 @@ def pid_loop_init(drone: DroneState, tick: int = 0) -> PidLoopState:
 
 
 def pid_tick(
-    step: StepFn, params: DroneParams, gains: PidControllerGains, loop: PidLoopState, setpoint: Setpoint
+    step: StepFn,
+    params: DroneParams,
+    gains: PidControllerGains,
+    loop: PidLoopState,
+    setpoint: Setpoint,
+    disturbance: Disturbance | None = None,
 ) -> tuple[PidLoopState, jax.Array]:
     """One firmware tick of the PID cascade driving the physics.
 
@@ -84,6 +90,7 @@ def pid_tick(
         gains: `PidControllerGains` (`PidControllerGains.crazyflie`).
         loop: `PidLoopState` ``[..., D]``.
         setpoint: `Setpoint` ``[..., D]``.
+        disturbance: a `jaxdrones.physics.state.Disturbance` held over the tick (None: none).
 
     Returns:
         (the loop after the tick, the motors' commands i32[..., D, 4] in PWM units).
@@ -94,18 +101,13 @@ def pid_tick(
     check_tick_step(step)
     controller, control = controller_pid(gains, loop.controller, setpoint, firmware_state(loop.drone), loop.tick)
     pwm = _motors(control)
-    drone = step(params, loop.drone, motor_rpm(params, pwm))
+    drone = step(params, loop.drone, motor_rpm(params, pwm), disturbance)
     return PidLoopState(drone=drone, controller=controller, tick=loop.tick + 1), pwm
 
 
 def _motors(control: Control) -> jax.Array:
     """The motors' commands i32[..., 4] of a `Control`: the legacy power distribution and its cap."""
     return power_distribution_cap(power_distribution_legacy(control))
-
-
-#: Ticks between two runs of the position loop, and of the attitude and rate loops.
-POSITION_PERIOD = RATE_MAIN_LOOP // POSITION_RATE
-ATTITUDE_PERIOD = RATE_MAIN_LOOP // ATTITUDE_RATE
 
 
 def pid_ticks(
@@ -115,7 +117,7 @@ def pid_ticks(
     loop: PidLoopState,
     setpoint: Setpoint,
     ticks: int,
-    disturbance: jax.Array | None = None,
+    disturbance: Disturbance | None = None,
 ) -> tuple[PidLoopState, jax.Array]:
     """``ticks`` firmware ticks of the PID cascade driving the physics with one setpoint: the loop after ``ticks``
     calls of `pid_tick`.
@@ -136,7 +138,7 @@ def pid_ticks(
         loop: `PidLoopState` ``[..., D]``.
         setpoint: `Setpoint` ``[..., D]``, held for every tick.
         ticks: how many ticks, ≥ 1 (a Python int).
-        disturbance: f[..., D, 3] N, a world-frame force on each drone for every tick (None: none).
+        disturbance: a `jaxdrones.physics.state.Disturbance` held over every tick (None: none).
 
     Returns:
         (the loop after the ticks, the motors' commands of the last tick i32[..., D, 4] in PWM units).
@@ -149,15 +151,12 @@ def pid_ticks(
         raise ValueError(f"pid_ticks: ticks must be a positive int, got {ticks!r}")
     ticks = int(ticks)
 
-    def one(carry, _):
-        loop, _ = carry
-        controller, control = controller_pid(gains, loop.controller, setpoint, firmware_state(loop.drone), loop.tick)
-        pwm = _motors(control)
-        drone = step(params, loop.drone, motor_rpm(params, pwm), disturbance)
-        return (PidLoopState(drone=drone, controller=controller, tick=loop.tick + 1), pwm), None
-
     def general(loop):
         pwm = jnp.zeros(loop.drone.rpm.shape, jnp.int32)
+
+        def one(carry, _):
+            return pid_tick(step, params, gains, carry[0], setpoint, disturbance), None
+
         return jax.lax.scan(one, (loop, pwm), None, length=ticks)[0]
 
     if ticks % POSITION_PERIOD:
@@ -183,7 +182,7 @@ def pid_schedule(
     controller: PidControllerState,
     setpoint: Setpoint,
     ticks: int,
-    disturbance: jax.Array | None = None,
+    disturbance: Disturbance | None = None,
 ) -> tuple[DroneState, PidControllerState, jax.Array]:
     """`pid_ticks` from a tick that is a multiple of `POSITION_PERIOD`, with the loops of each tick chosen when the
     program is traced: per `POSITION_PERIOD` ticks, the position loop once, then five times the attitude and rate
@@ -201,7 +200,16 @@ def pid_schedule(
     """
     if isinstance(ticks, bool) or not isinstance(ticks, int | np.integer) or ticks < 1 or ticks % POSITION_PERIOD:
         raise ValueError(f"pid_schedule: ticks must be a positive multiple of {POSITION_PERIOD}, got {ticks!r}")
-    stages = _stages(setpoint.mode.ndim - 1)
+    n_batch = setpoint.mode.ndim - 1
+    stages = {
+        name: batch_stage(stage, n_batch)
+        for name, stage in (
+            ("mode", _mode_stage),
+            ("yaw", _yaw_stage),
+            ("position", _position_stage),
+            ("attitude", _attitude_loops),
+        )
+    }
     hold, calls = _held_step(step)
     # The setpoint is held: only the first tick can see a change of mode (controllerPid's reset).
     controller = stages["mode"](gains, controller, setpoint, firmware_state(drone))
@@ -242,19 +250,3 @@ def _held_step(step: StepFn) -> tuple[StepFn, int]:
 
 #: Attitude ticks per position tick.
 _ATTITUDE_TICKS = POSITION_PERIOD // ATTITUDE_PERIOD
-
-
-def _stages(n_batch: int) -> dict:
-    """controller_pid's stages, each vmapped over ``n_batch`` leading axes (gains shared)."""
-    names = {
-        "mode": _mode_stage,
-        "yaw": _yaw_stage,
-        "position": _position_stage,
-        "attitude": _attitude_loops,
-    }
-    out = {}
-    for name, stage in names.items():
-        for _ in range(n_batch):
-            stage = jax.vmap(stage, in_axes=(None, 0, 0, 0))
-        out[name] = stage
-    return out

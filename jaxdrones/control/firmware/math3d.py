@@ -44,6 +44,22 @@ def normalize(v: tuple) -> tuple:
     return tuple(inverse * c for c in v)
 
 
+def qqmul(q: tuple, p: tuple) -> tuple:
+    """``qqmul``: the product of two (x, y, z, w) quaternions, ``qvrot(qqmul(q, p), v) == qvrot(q, qvrot(p, v))``."""
+    return (
+        q[3] * p[0] + q[2] * p[1] - q[1] * p[2] + q[0] * p[3],
+        -q[2] * p[0] + q[3] * p[1] + q[0] * p[2] + q[1] * p[3],
+        q[1] * p[0] - q[0] * p[1] + q[3] * p[2] + q[2] * p[3],
+        -q[0] * p[0] - q[1] * p[1] - q[2] * p[2] + q[3] * p[3],
+    )
+
+
+def qnormalize(q: tuple) -> tuple:
+    """``qnormalize``: s = 1 / ``sqrtf(qdot(q, q))``, then each component times s."""
+    s = 1.0 / jnp.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return tuple(s * c for c in q)
+
+
 def rotmat_columns(x: jax.Array, y: jax.Array, z: jax.Array, w: jax.Array) -> tuple:
     """``quat2rotmat``'s three columns, each (x, y, z)."""
     m00, m01, m02 = 1 - 2 * y * y - 2 * z * z, 2 * x * y - 2 * z * w, 2 * x * z + 2 * y * w

@@ -17,7 +17,7 @@ import numpy as np
 from flax import struct
 
 from jaxdrones.control.firmware import math3d as m3
-from jaxdrones.control.firmware.controller_pid import ATTITUDE_DT, ATTITUDE_RATE, RATE_MAIN_LOOP
+from jaxdrones.control.firmware.controller_pid import ATTITUDE_DT, ATTITUDE_PERIOD
 from jaxdrones.control.firmware.types import (
     MODE_ABS,
     MODE_DISABLE,
@@ -25,7 +25,7 @@ from jaxdrones.control.firmware.types import (
     Control,
     FirmwareState,
     Setpoint,
-    select,
+    every,
 )
 
 _F = np.float32
@@ -116,9 +116,7 @@ def controller_mellinger(
     Returns:
         (the new `MellingerState`, the `Control` in the legacy mode).
     """
-    new_state, control = _mellinger(gains, mstate, setpoint, state)
-    runs = jnp.asarray(tick) % (RATE_MAIN_LOOP // ATTITUDE_RATE) == 0
-    new_state = select(runs, new_state, mstate)
+    new_state = every(ATTITUDE_PERIOD, tick, lambda: _mellinger(gains, mstate, setpoint, state)[0], mstate)
     return new_state, new_state.control
 
 

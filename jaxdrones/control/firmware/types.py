@@ -12,10 +12,12 @@ The frames are the firmware's and jaxdrones' alike: world x, y, z up; body x for
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TypeVar
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from jaxdrones.physics.state import DroneState
@@ -123,6 +125,19 @@ def select(cond: jax.Array, new: _Tree, old: _Tree) -> _Tree:
         return jnp.where(c, a, b)
 
     return jax.tree.map(pick, new, old)
+
+
+def every(period: int, tick: jax.Array | int, update: Callable[[], _Tree], held: _Tree) -> _Tree:
+    """``update()`` on the ticks that are multiples of ``period`` (a loop of the firmware's that runs at its rate,
+    ``RATE_DO_EXECUTE``), else ``held``. Only what runs is computed where it can be: a Python int ``tick`` decides
+    when the program is traced, one traced tick for the whole batch through `jax.lax.cond`; per-drone ticks
+    (i32[...]) compute ``update()`` and `select`."""
+    if isinstance(tick, int | np.integer):
+        return update() if tick % period == 0 else held
+    tick = jnp.asarray(tick)
+    if tick.ndim == 0:
+        return jax.lax.cond(tick % period == 0, update, lambda: held)
+    return select(tick % period == 0, update(), held)
 
 
 def firmware_state(state: DroneState) -> FirmwareState:
