@@ -17,6 +17,7 @@ outputs are the C's to float32 rounding (tests/test_firmware.py checks them agai
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -273,7 +274,7 @@ def controller_pid(
     return step(gains, cstate, setpoint, state, jnp.broadcast_to(tick, batch))
 
 
-def batch_stage(stage, n_batch: int, in_axes: tuple = (None, 0, 0, 0)):
+def batch_stage(stage: Callable, n_batch: int, in_axes: tuple = (None, 0, 0, 0)) -> Callable:
     """``stage`` (a stage of the cascade, written for one drone) vmapped over ``n_batch`` leading axes; by default
     its arguments are (gains, shared; the controller's state, the setpoint, the firmware's state)."""
     for _ in range(n_batch):
