@@ -1,8 +1,7 @@
 """Run the notebooks from top to bottom in this interpreter and save each with its outputs, in place.
 
-    python notebooks/execute.py                          # every notebook, with its default training budget
+    python notebooks/execute.py                          # every notebook (each trains to a solved result)
     python notebooks/execute.py 03_gradients.ipynb       # the notebooks named (file names or paths)
-    JAXDRONES_NB_STEPS=20000 python notebooks/execute.py 03_gradients.ipynb   # a smaller training budget
 
 The docs site (mkdocs.yml: ``execute: false``) and GitHub show the notebooks as saved, so after changing one, run it
 here and commit it with its outputs. The kernel runs this interpreter (a kernelspec in a temporary ``JUPYTER_PATH``;
@@ -20,6 +19,7 @@ import contextlib
 import json
 import os
 import pathlib
+import re
 import sys
 import tempfile
 import time
@@ -31,6 +31,8 @@ HERE = pathlib.Path(__file__).resolve().parent
 NOTEBOOKS = sorted(HERE.glob("*.ipynb"))
 KERNEL_NAME = "jaxdrones-notebooks-python"
 TIMEOUT_S = 3600  # per cell: the default training budgets take minutes on a CPU
+#: A verdict on a result: `jaxdrones.training.evaluation.result_line`'s, or a notebook's own outside a task.
+VERDICT = re.compile(r"\b(not solved|solved): ")
 
 
 @contextlib.contextmanager
@@ -61,8 +63,7 @@ def execute(
     nb: nbformat.NotebookNode, kernel_name: str, workdir: str | os.PathLike, timeout_s: int = TIMEOUT_S
 ) -> nbformat.NotebookNode:
     """Run ``nb`` (in place) from top to bottom with the kernel ``kernel_name``, in the folder ``workdir``, keeping
-    its kernelspec metadata and recording no timestamps. The kernel inherits this process's environment (e.g.
-    ``JAXDRONES_NB_STEPS``).
+    its kernelspec metadata and recording no timestamps. The kernel inherits this process's environment.
 
     Raises:
         nbclient.exceptions.CellExecutionError: a cell raised (the error names the cell).
@@ -78,6 +79,24 @@ def execute(
     if kernelspec is not None:
         nb.metadata["kernelspec"] = kernelspec
     return nb
+
+
+def output_text(nb: nbformat.NotebookNode) -> str:
+    """The text of every stream and plain-text output of ``nb``, in order."""
+    parts = []
+    for cell in nb.cells:
+        for out in cell.get("outputs", []):
+            if out.output_type == "stream":
+                parts.append(out.text)
+            elif "data" in out and "text/plain" in out.data:
+                parts.append(out.data["text/plain"])
+    return "\n".join(parts)
+
+
+def verdicts(text: str) -> list[tuple[str, str]]:
+    """``(verdict, line)`` for every line of ``text`` (`output_text`) with a verdict (``"solved"`` or ``"not
+    solved"``)."""
+    return [(m.group(1), line) for line in text.splitlines() for m in VERDICT.finditer(line)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -99,6 +118,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{path.name}: ran in {time.perf_counter() - start:.0f} s, saved ({path.stat().st_size:,} bytes)",
                 flush=True,
             )
+            for _, line in verdicts(output_text(nb)):
+                print(f"  {line}", flush=True)
     return 0
 
 

@@ -145,6 +145,33 @@ def test_readme_links_resolve():
     assert not missing, f"README links to missing files: {missing}"
 
 
+def heading_slugs(page: pathlib.Path) -> set[str]:
+    """The anchors of a Markdown page's headings, as the docs site makes them (Python-Markdown's ``toc`` slugify)."""
+    import unicodedata
+
+    slugs = set()
+    for heading in re.findall(r"^#+ (.+)$", page.read_text(), flags=re.M):
+        text = unicodedata.normalize("NFKD", heading).encode("ascii", "ignore").decode()
+        slugs.add(re.sub(r"[-\s]+", "-", re.sub(r"[^\w\s-]", "", text).strip().lower()))
+    return slugs
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
+def test_notebook_links_resolve(path):
+    """A notebook's relative links point at files that exist, and at headings of theirs that exist (GitHub and the
+    docs site show the notebooks as stored)."""
+    import nbformat
+
+    notebook = nbformat.read(path, as_version=4)
+    text = "\n".join(cell.source for cell in notebook.cells if cell.cell_type == "markdown")
+    dead = []
+    for target, anchor in re.findall(r"\]\(([^)#:]+)(?:#([^)]*))?\)", text):
+        page = (path.parent / target).resolve()
+        if not page.is_file() or (anchor and anchor not in heading_slugs(page)):
+            dead.append(f"{target}#{anchor}" if anchor else target)
+    assert not dead, f"{path.name} links to missing files or headings: {dead}"
+
+
 def test_docs_have_examples():
     assert len(blocks("python")) >= 10
 

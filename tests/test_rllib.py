@@ -4,6 +4,7 @@ environment (marker ``ray``; the rllib lane of .ci/run); where ray is missing th
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -26,8 +27,17 @@ def test_one_iteration_of_the_papers_workflow_trains_and_evaluates(tmp_path):
     assert "os.fork() was called" not in done.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["env_steps"] >= 500 and summary["iterations"] == 1
-    final = summary["evaluations"][-1]
-    assert final["n_episodes"] == 256 and final["success_metric"] == "max_altitude_error" and final["success_value"] > 0
+    assert summary["eval"]["n_episodes"] == 256 and summary["success_value"] > 0
+    assert summary["success_metric"] == "max_altitude_error (final)" and summary["success_threshold"] == 0.05
+    # What `jaxdrones train` writes: the evaluations, their learning curve, the trained policy (RLlib's checkpoint).
+    rows = json.loads((out / "progress.json").read_text())
+    assert [row["env_steps"] for row in rows] == [summary["env_steps"]]
+    assert (out / "learning_curve.png").stat().st_size > 10_000
+    assert (out / "checkpoint").is_dir() and any((out / "checkpoint").iterdir())
+    # The verdict line, and plain numbers (no ``np.float64(...)``) in the iteration's line.
+    verdict = r"^(not )?solved: .*max_altitude_error \(final\) [\d.e+-]+ m \(threshold 0\.05 m\) over 256 random starts"
+    assert re.search(verdict, done.stdout, re.M), done.stdout[-2000:]
+    assert "iteration 1: " in done.stdout and "np.float" not in done.stdout
 
 
 def test_the_critic_sees_both_drones_and_the_actor_its_own():

@@ -740,6 +740,28 @@ def test_failed_criteria_name_what_kept_a_run_from_success():
     assert len(both) == 2 and "0.07 m is not below the threshold 0.05" in both[0] and "1 of 64" in both[1]
 
 
+def test_result_line_gives_the_verdict_with_the_threshold():
+    """The line ``jaxdrones train`` and the notebooks print: solved, or the criteria missed, then the metric with its
+    unit against the threshold, for any stats with the metric, the terminated share and the episode count."""
+    import jaxdrones as jd
+    from jaxdrones.training.evaluation import judged, result_line
+
+    task = jd.make("hover").task
+    solved = judged(task, {"success_value": 0.02, "terminated_rate": 0.0, "n_episodes": 256})
+    assert solved["success"] and solved["success_metric"] == "distance (final)"
+    assert result_line({**solved, "env_steps": 604_160, "wall_time_s": 17.61}) == (
+        "solved: distance (final) 0.02 m (threshold 0.05 m) over 256 random starts (0.0% terminated), 604,160 env "
+        "steps, 17.6 s wall time"
+    )
+    missed = judged(task, {"success_value": 0.07, "terminated_rate": 1 / 64, "n_episodes": 64})
+    assert not missed["success"]
+    assert result_line(missed) == (
+        "not solved: distance (final) 0.07 m is not below the threshold 0.05; 1 of 64 episodes ended early (crashed "
+        "or left the arena; a solved run has none). distance (final) 0.07 m (threshold 0.05 m) over 64 random starts "
+        "(1.6% terminated)"
+    )
+
+
 def test_train_cli_realism_defaults(planned):
     """Under sim-to-real options ``jaxdrones train hover`` trains as tuned for them: our PPO with its budget,
     ``ctbr`` actions, the error integral and ground contact as a crash; what the command line sets wins; the saved
@@ -1103,7 +1125,7 @@ def test_the_progress_display_says_it_compiles_until_the_first_evaluation(capsys
     assert log.bar.postfix.endswith(PREPARING)
     assert drawn.count("compiling the programs") >= 3 and "[00:02<?]" in drawn
     log(100, {"success_value": 0.5, "terminated_rate": 0.0, "episode_reward": 1.0})
-    assert "final distance 0.5 m (solved < 0.05)" in log.bar.postfix
+    assert "final distance 0.5 m (solved < 0.05 m)" in log.bar.postfix
     log._ticker.join(timeout=2.0)
     assert not log._ticker.is_alive()
     log.close()

@@ -434,16 +434,9 @@ def run_cli(args: argparse.Namespace) -> int:
         return 0
     if "seeds" in summary:  # several seeds or settings
         return _report_seeds(summary)
-    stats = summary["eval"]
-    result = (
-        f"{summary['success_metric']} {summary['success_value']:.4g} {summary['success_unit']} (threshold "
-        f"{summary['success_threshold']:g}) over {stats['n_episodes']} random starts ({stats['terminated_rate']:.1%} "
-        f"terminated), {summary['env_steps']:,} env steps, {summary['wall_time_s']:.1f} s wall time"
-    )
-    if summary["success"]:
-        print(f"solved: {result}")
-    else:
-        print(f"not solved: {'; '.join(summary['failed_criteria'])}. {result}")
+    from jaxdrones.training.evaluation import result_line
+
+    print(result_line(summary))
     viewer = ", flight.html" if os.path.exists(os.path.join(summary["out_dir"], "flight.html")) else ""
     print(f"saved policy.pkl, learning_curve.png, flight.png{viewer}, summary.json in {summary['out_dir']}")
     return 0

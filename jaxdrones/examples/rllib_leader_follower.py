@@ -26,6 +26,7 @@ Ray starts its processes before JAX runs anything in this one (`main`): a proces
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import time
 from collections.abc import Callable
@@ -219,23 +220,25 @@ def policy_of(algo: Any, env: Any) -> Callable:
 def evaluate(algo: Any, obs_type: str | None = None, reward: str | None = None, n_episodes: int = 256) -> dict:
     """The trained policies judged as ``jaxdrones train`` judges its own: ``n_episodes`` random starts of the task
     (`jaxdrones.training.evaluation.evaluate`), the task's success metric against its threshold, with none
-    terminated early."""
+    terminated early. Returns `jaxdrones.training.evaluation.judged`'s dict (the statistics under ``"eval"``)."""
     import jax
 
     from jaxdrones.training.evaluation import evaluate as evaluate_policy
-    from jaxdrones.training.evaluation import failed_criteria
+    from jaxdrones.training.evaluation import judged
 
     env = make_env(obs_type, reward)
-    stats = evaluate_policy(env, policy_of(algo, env), jax.random.key(1), n_episodes)
-    failed = failed_criteria(env.task, stats)
+    return judged(env.task, evaluate_policy(env, policy_of(algo, env), jax.random.key(1), n_episodes))
+
+
+def _row(steps: int, seconds: float, verdict: dict) -> dict:
+    """An evaluation as a row of ``progress.json`` (`jaxdrones.training.progress.ProgressLog`'s keys)."""
+    stats = verdict["eval"]
     return {
-        "success_metric": env.task.success_metric,
-        "success_value": stats["success_value"],
-        "success_threshold": env.task.success_threshold,
-        "success": not failed,
-        "failed_criteria": failed,
+        "env_steps": steps,
+        "time_s": seconds,
+        "success_value": verdict["success_value"],
         "terminated_rate": stats["terminated_rate"],
-        "n_episodes": n_episodes,
+        "episode_reward": stats["episode_reward"],
     }
 
 
@@ -246,28 +249,45 @@ def train(
     reward: str | None = None,
     num_env_runners: int = 1,
     train_batch_size: int = 4000,
-    eval_every: int = 0,
+    eval_every: int = 10,
+    checkpoint: str | None = None,
     log: Callable[[str], None] = print,
 ) -> dict:
     """Train the two drones with RLlib's PPO and the centralised critic until ``timesteps`` env steps (rounded up to
-    whole iterations of ``train_batch_size``), evaluating every ``eval_every`` iterations (0: at the end only).
-    Ray must be started (`main` starts it). Returns the summary: env steps, wall time, the evaluations."""
+    whole iterations of ``train_batch_size``), evaluating every ``eval_every`` iterations (0: at the end only) and
+    at the end. Ray must be started (`main` starts it).
+
+    Args:
+        checkpoint: a new folder to save the trained algorithm in (RLlib's ``Algorithm.save_to_path``: restore it
+            with ``ray.rllib.algorithms.algorithm.Algorithm.from_checkpoint``), or None.
+
+    Returns:
+        The summary: the settings, ``env_steps``, ``iterations``, ``train_time_s``, ``progress`` (a row per
+        evaluation: ``env_steps``, ``time_s``, ``success_value``, ``terminated_rate``, ``episode_reward``) and the
+        last evaluation's verdict (`jaxdrones.training.evaluation.judged`: ``success``, ``success_value``, ...).
+    """
     config = algorithm_config(obs_type, reward, seed, num_env_runners, train_batch_size)
     start = time.perf_counter()
     algo = config.build_algo()
-    steps, iteration, evaluations = 0, 0, []
+    steps, iteration, progress = 0, 0, []
     try:
         while steps < timesteps:
             result = algo.train()
             iteration += 1
             steps = int(result["env_runners"]["num_env_steps_sampled_lifetime"])
             returns = result["env_runners"].get("agent_episode_returns_mean", {})
-            log(f"iteration {iteration}: {steps:,} env steps, {time.perf_counter() - start:.0f} s, returns {returns}")
+            returns = ", ".join(f"{agent} {float(value):.2f}" for agent, value in sorted(returns.items()))
+            log(f"iteration {iteration}: {steps:,} env steps, {time.perf_counter() - start:.0f} s, returns: {returns}")
             if eval_every and iteration % eval_every == 0 and steps < timesteps:
-                evaluations.append({"env_steps": steps, **evaluate(algo, obs_type, reward)})
-                log(f"  evaluation: {evaluations[-1]['success_metric']} {evaluations[-1]['success_value']:.4g}")
+                verdict = evaluate(algo, obs_type, reward)
+                progress.append(_row(steps, time.perf_counter() - start, verdict))
+                value, unit = verdict["success_value"], verdict["success_unit"]
+                log(f"  evaluation: {verdict['success_metric']} {value:.4g} {unit}")
         train_s = time.perf_counter() - start
-        final = {"env_steps": steps, **evaluate(algo, obs_type, reward)}
+        final = evaluate(algo, obs_type, reward)
+        progress.append(_row(steps, time.perf_counter() - start, final))
+        if checkpoint is not None:
+            algo.save_to_path(os.path.abspath(checkpoint))
     finally:
         algo.stop()
     return {
@@ -282,9 +302,25 @@ def train(
         "train_batch_size": train_batch_size,
         "num_env_runners": num_env_runners,
         "train_time_s": train_s,
-        "evaluations": [*evaluations, final],
-        **{k: final[k] for k in ("success_value", "success", "failed_criteria", "success_threshold")},
+        "progress": progress,
+        **final,
     }
+
+
+def write_run(folder: str, summary: dict) -> None:
+    """What ``jaxdrones train`` writes beside the policy: ``summary.json`` (strict JSON, plain numbers),
+    ``progress.json`` (the evaluations) and ``learning_curve.png`` (the task's metric against its threshold)."""
+    from jaxdrones.io.plotting import plot_learning_curve
+
+    write_json(os.path.join(folder, "summary.json"), summary)
+    write_json(os.path.join(folder, "progress.json"), summary["progress"], indent=1)
+    plot_learning_curve(
+        summary["progress"],
+        os.path.join(folder, "learning_curve.png"),
+        metric_label=f"evaluation {summary['success_metric']} ({summary['success_unit']})",
+        threshold=summary["success_threshold"],
+        title=f"RLlib PPO, centralised critic, on {TASK} ({N_DRONES} drones, {ACTION_TYPE})",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -296,9 +332,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reward", default=None, help="paper: the paper's rewards (default: the task's shaped ones)")
     parser.add_argument("--num-env-runners", type=int, default=1, help="Ray's sampling processes (default 1)")
     parser.add_argument("--train-batch-size", type=int, default=4000, help="env steps per PPO iteration")
-    parser.add_argument("--eval-every", type=int, default=0, help="evaluate every N iterations (default: at the end)")
     parser.add_argument(
-        "--out", default=None, help="write summary.json to this new folder (a numbered sibling where it exists)"
+        "--eval-every",
+        type=int,
+        default=10,
+        help="evaluate every N iterations, and at the end (default 10; 0: at the end)",
+    )
+    parser.add_argument(
+        "--out",
+        default=None,
+        help="write the run (summary.json, progress.json, learning_curve.png, checkpoint/) to this new folder (a "
+        "numbered sibling where it exists)",
     )
     args = parser.parse_args(argv)
     try:
@@ -306,30 +350,31 @@ def main(argv: list[str] | None = None) -> int:
     except ModuleNotFoundError:
         parser.error(f"needs ray[rllib], the rllib extra: {INSTALL}")
 
+    from jaxdrones.training.evaluation import result_line
+
     start = time.perf_counter()
     ray.init(include_dashboard=False, log_to_driver=False)  # before JAX runs anything in this process
     try:
-        summary = train(
-            args.timesteps,
-            args.seed,
-            args.obs_type,
-            args.reward,
-            args.num_env_runners,
-            args.train_batch_size,
-            args.eval_every,
-        )
+        with contextlib.ExitStack() as stack:
+            folder = stack.enter_context(output_folder(args.out)) if args.out else None
+            summary = train(
+                args.timesteps,
+                args.seed,
+                args.obs_type,
+                args.reward,
+                args.num_env_runners,
+                args.train_batch_size,
+                args.eval_every,
+                checkpoint=os.path.join(folder.path, "checkpoint") if folder else None,
+            )
+            summary["wall_time_s"] = time.perf_counter() - start
+            if folder:
+                write_run(folder.path, summary)
     finally:
         ray.shutdown()
-    summary["wall_time_s"] = time.perf_counter() - start
-    verdict = "solved" if summary["success"] else "not solved: " + "; ".join(summary["failed_criteria"])
-    print(
-        f"{verdict}: {summary['evaluations'][-1]['success_metric']} {summary['success_value']:.4g} m (threshold "
-        f"{summary['success_threshold']:g}) after {summary['env_steps']:,} env steps, {summary['wall_time_s']:.0f} s"
-    )
-    if args.out:
-        with output_folder(args.out) as folder:
-            write_json(os.path.join(folder.path, "summary.json"), summary)
-        print(f"saved summary.json in {folder.final}")
+    print(result_line(summary))
+    if folder:
+        print(f"saved summary.json, progress.json, learning_curve.png, checkpoint/ in {folder.final}")
     return 0 if summary["success"] else 1
 
 

@@ -226,6 +226,51 @@ def plot_learning_curves(
     return _save(fig, path, title)
 
 
+def plot_learning_curve_comparison(
+    histories: Mapping[str, Sequence[Mapping]],
+    path: str | os.PathLike,
+    *,
+    title: str | None = None,
+    metric_label: str = "final distance (m)",
+    threshold: float | None = None,
+) -> str:
+    """Plot the success metric (``success_value``) of several runs, e.g. one per trainer, on one set of axes
+    against env steps (left) and against wall time (right).
+
+    Args:
+        histories: ``{label: rows}``, the rows as `plot_learning_curve` takes them with ``time_s`` too (seconds
+            from the run's start to the evaluation, compilation included: `jaxdrones.training.progress.
+            ProgressLog` records it, and ``progress.json`` of a run folder holds it).
+        path, title, metric_label, threshold: as `plot_learning_curve`.
+
+    Returns:
+        ``path`` as a string.
+
+    Raises:
+        ValueError: no histories, or a row without ``env_steps``, ``time_s`` or ``success_value``.
+    """
+    if not histories:
+        raise ValueError("plot_learning_curve_comparison: histories is empty; give {label: rows}")
+    for label, rows in histories.items():
+        if not rows or not all({"env_steps", "time_s", "success_value"} <= set(row) for row in rows):
+            raise ValueError(
+                f"plot_learning_curve_comparison: the rows of {label!r} must each have env_steps, time_s and "
+                "success_value (as progress.json of a run folder)"
+            )
+    fig, (ax_steps, ax_time) = _figure(1, 2, figsize=(10, 3.8))
+    for k, (label, rows) in enumerate(histories.items()):
+        values = [row["success_value"] for row in rows]
+        ax_steps.plot([row["env_steps"] for row in rows], values, marker="o", color=f"C{k % 10}", label=label)
+        ax_time.plot([row["time_s"] for row in rows], values, marker="o", color=f"C{k % 10}", label=label)
+    _curve_axes(ax_steps, ax_steps, metric_label, threshold)
+    _curve_axes(ax_time, ax_time, metric_label, threshold)
+    ax_time.set_xlabel("wall time from the run's start, compilation included (s)")
+    ax_time.xaxis.set_major_formatter("{x:g}")
+    ax_time.set_xlim(left=0)  # the time before the first evaluation: mostly compiling the programs
+    ax_steps.legend(loc="upper right")
+    return _save(fig, path, title)
+
+
 def plot_task_flight(
     times: ArrayLike,
     pos: ArrayLike,

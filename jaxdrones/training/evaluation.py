@@ -180,3 +180,51 @@ def failed_criteria(task: Task, stats: dict) -> list[str]:
         ended = f"{round(rate * n)} of {n}" if math.isfinite(rate) else "some"
         failed.append(f"{ended} episodes ended early (crashed or left the arena; a solved run has none)")
     return failed
+
+
+def judged(task: Task, stats: dict) -> dict:
+    """The verdict on an evaluation, as ``summary.json`` records it: ``success_metric`` (with how it is read, e.g.
+    ``"distance (final)"``), ``success_unit``, ``success_value``, ``success_threshold``, ``success`` (bool),
+    ``failed_criteria`` (`failed_criteria`'s sentences) and ``eval`` (``stats``).
+
+    Args:
+        task: the `jaxdrones.envs.task.Task` judged (``env.task``).
+        stats: `episode_statistics`' dict (or any with ``success_value``, ``terminated_rate`` and ``n_episodes``,
+            e.g. from episodes run outside jaxdrones' trainers).
+    """
+    from jaxdrones.training.progress import AGGREGATES
+
+    failed = failed_criteria(task, stats)
+    return {
+        "success_metric": f"{task.success_metric} ({AGGREGATES[task.success_at]})",
+        "success_unit": task.success_unit,
+        "success_value": stats.get("success_value", math.nan),
+        "success_threshold": task.success_threshold,
+        "success": not failed,
+        "failed_criteria": failed,
+        "eval": dict(stats),
+    }
+
+
+def result_line(summary: dict) -> str:
+    """One line on a run: ``"solved: distance (final) 0.02218 m (threshold 0.05 m) over 256 random starts (0.0 %
+    terminated), 604,160 env steps, 17.6 s wall time"``, or ``"not solved: <the failed criteria>. ..."``: what
+    ``jaxdrones train`` prints, and the notebooks.
+
+    Args:
+        summary: `judged`'s keys (``train_task``'s summary has them), with ``env_steps`` and ``wall_time_s`` where
+            known.
+    """
+    stats, unit = summary["eval"], summary["success_unit"]
+    threshold, n = summary["success_threshold"], stats.get("n_episodes", "?")
+    result = (
+        f"{summary['success_metric']} {summary['success_value']:.4g} {unit} (threshold {threshold:g} {unit}) over "
+        f"{n} random starts ({stats.get('terminated_rate', math.nan):.1%} terminated)"
+    )
+    if summary.get("env_steps") is not None:
+        result += f", {summary['env_steps']:,} env steps"
+    if summary.get("wall_time_s") is not None:
+        result += f", {summary['wall_time_s']:.1f} s wall time"
+    if summary["success"]:
+        return f"solved: {result}"
+    return f"not solved: {'; '.join(summary['failed_criteria'])}. {result}"

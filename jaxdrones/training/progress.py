@@ -31,7 +31,10 @@ class ProgressLog:
     """
 
     def __init__(self, total_steps: int, task, enabled: bool = True):
-        from tqdm.auto import tqdm
+        if enabled:
+            from tqdm.auto import tqdm  # a notebook's widget where ipywidgets is installed, else text
+        else:  # tqdm.auto's import warns in a notebook without ipywidgets: not for a bar never shown
+            from tqdm import tqdm
 
         self.t0 = time.perf_counter()
         self.task = task
@@ -42,7 +45,7 @@ class ProgressLog:
             unit="step",
             unit_scale=True,
             disable=not enabled,
-            bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}] {postfix}",
+            bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}]{postfix}",  # tqdm puts ", " before it
         )
         self._prepared = threading.Event()
         if enabled:
@@ -81,7 +84,7 @@ class ProgressLog:
         self.bar.set_postfix_str(
             f"{rate}{AGGREGATES[task.success_at]} {task.success_metric} "
             f"{row['success_value']:.3g} {task.success_unit} (solved < "
-            f"{task.success_threshold:g})  terminated {row['terminated_rate']:.0%}"
+            f"{task.success_threshold:g} {task.success_unit})  terminated {row['terminated_rate']:.0%}"
         )
         self.bar.total = max(self.bar.total, step)
         self.bar.update(step - self.bar.n)

@@ -42,8 +42,7 @@ def write_run(
     the summary's ``out_dir``) and return its summary (`jaxdrones.training.run.train_task`'s; ``source``: its
     ``provenance``; without ``plots``, no learning curve, flight plot or viewer page)."""
     from jaxdrones.training import checkpoint
-    from jaxdrones.training.evaluation import episode_statistics, failed_criteria
-    from jaxdrones.training.progress import AGGREGATES
+    from jaxdrones.training.evaluation import episode_statistics, judged
 
     os.makedirs(folder, exist_ok=True)
     t_phase = time.perf_counter()
@@ -58,9 +57,12 @@ def write_run(
         t_phase = time.perf_counter()
         _write_viewer(env, last.get("eval"), folder)
         phases["viewer"] = time.perf_counter() - t_phase
-    failed = failed_criteria(env.task, stats)
+    verdict = judged(env.task, stats)
     if diverged is not None:
-        failed.insert(0, f"the loss or the parameters went non-finite at update {diverged} (the last finite kept)")
+        verdict["failed_criteria"].insert(
+            0, f"the loss or the parameters went non-finite at update {diverged} (the last finite kept)"
+        )
+        verdict["success"] = False
     summary = {
         "task": run.task,
         "algo": run.algo,
@@ -70,13 +72,7 @@ def write_run(
         "interrupted": interrupted,
         "diverged": diverged,
         "env_steps": int(log.history[-1]["env_steps"] if log.history else 0),
-        "success_metric": f"{env.task.success_metric} ({AGGREGATES[env.task.success_at]})",
-        "success_unit": env.task.success_unit,
-        "success_value": stats.get("success_value", math.nan),
-        "success_threshold": env.task.success_threshold,
-        "success": not failed,
-        "failed_criteria": failed,
-        "eval": stats,
+        **verdict,
         "out_dir": final,
         "env": json.loads(json.dumps(dataclasses.asdict(env.config), default=str)),
         "train_env_overrides": dict(run.train_env),
