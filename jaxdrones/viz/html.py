@@ -4,11 +4,9 @@ serializer and static client; the ``viewer`` extra)."""
 from __future__ import annotations
 
 import dataclasses
-import io
 import math
 import os
 import socket
-from contextlib import redirect_stdout
 
 import numpy as np
 
@@ -209,14 +207,18 @@ def _free_port() -> int:
 def _record(viser, flight: Flight, offsets, eye, target, trail_s, max_fps, drone_scale, palette, dark_mode) -> str:
     """Build the scene in a viser server bound to localhost (no client ever connects), record the frames with its
     scene serializer and return the static client with the recording embedded."""
-    quiet = io.StringIO()  # viser prints a banner on start and a line on stop
-    with redirect_stdout(quiet):
+    import rich  # viser's: it prints its banner on start and a line on stop through rich's console
+
+    console, was_quiet = rich.get_console(), rich.get_console().quiet
+    console.quiet = True  # silent in a terminal and in a notebook's cell; the stop's line comes from the server's
+    try:  # thread, which `stop` joins
         server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
-    try:
-        return _build(server, flight, offsets, eye, target, trail_s, max_fps, drone_scale, palette, dark_mode)
-    finally:
-        with redirect_stdout(quiet):
+        try:
+            return _build(server, flight, offsets, eye, target, trail_s, max_fps, drone_scale, palette, dark_mode)
+        finally:
             server.stop()
+    finally:
+        console.quiet = was_quiet
 
 
 def _build(server, flight: Flight, offsets, eye, target, trail_s, max_fps, drone_scale, palette, dark_mode) -> str:
