@@ -21,7 +21,7 @@ RUNNER = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(RUNNER)
 
 NOTEBOOKS = sorted(NOTEBOOKS_DIR.glob("*.ipynb"))
-TIMEOUT_S = 1800  # per cell: 05_vision's training takes about 7 minutes on 2 idle cores
+TIMEOUT_S = 1800  # per cell: 05_vision's training takes about 8 minutes on 2 idle cores
 
 #: Per notebook: regular expressions that its outputs must match, and the number of figures it must show.
 EXPECTED_OUTPUT = {
