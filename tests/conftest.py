@@ -14,6 +14,7 @@ from jaxdrones.cli import xla
 # ``jaxdrones`` command line does (`jaxdrones.cli.xla.configure`), and on the CPU one step further, at LLVM's
 # optimisation level 0 instead of 1 (the command line's programs run thousands of steps, the suite's a few).
 # ``JAXDRONES_XLA_FLAGS=0`` runs the suite with XLA's defaults.
+USERS_XLA_FLAGS = os.environ.get("XLA_FLAGS")  # as the user set them, before the suite adds its own
 xla.configure(cpu=xla.cpu_flags(optimization_level=0))
 # Every broadcast between arrays of different ranks is written out (``x[None]``, `jnp.broadcast_to`,
 # `jaxdrones.physics.params.align_params`): JAX raises on an implicit one, here and in the suite's subprocesses.
@@ -90,6 +91,17 @@ def x64():
         yield
     finally:
         jax.config.update("jax_enable_x64", previous)
+
+
+@pytest.fixture
+def users_xla_flags(monkeypatch):
+    """XLA's flags as the user set them, without the suite's (LLVM at level 0 compiles faster and runs slower, and
+    rounds otherwise): for the processes that run a user's whole program, such as a notebook's kernel, which sets the
+    command line's flags itself and trains for minutes."""
+    if USERS_XLA_FLAGS is None:
+        monkeypatch.delenv("XLA_FLAGS", raising=False)
+    else:
+        monkeypatch.setenv("XLA_FLAGS", USERS_XLA_FLAGS)
 
 
 @pytest.fixture
