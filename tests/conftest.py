@@ -14,7 +14,10 @@ from jaxdrones.cli import xla
 # ``jaxdrones`` command line does (`jaxdrones.cli.xla.configure`), and on the CPU one step further, at LLVM's
 # optimisation level 0 instead of 1 (the command line's programs run thousands of steps, the suite's a few).
 # ``JAXDRONES_XLA_FLAGS=0`` runs the suite with XLA's defaults.
-USERS_XLA_FLAGS = os.environ.get("XLA_FLAGS")  # as the user set them, before the suite adds its own
+# XLA_FLAGS as the user set them, before the suite adds its own: kept in the environment by the first process, so
+# that pytest-xdist's workers (which inherit its XLA_FLAGS) know them too.
+os.environ.setdefault("JAXDRONES_SUITE_USERS_XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
+USERS_XLA_FLAGS = os.environ["JAXDRONES_SUITE_USERS_XLA_FLAGS"] or None
 xla.configure(cpu=xla.cpu_flags(optimization_level=0))
 # Every broadcast between arrays of different ranks is written out (``x[None]``, `jnp.broadcast_to`,
 # `jaxdrones.physics.params.align_params`): JAX raises on an implicit one, here and in the suite's subprocesses.
