@@ -230,18 +230,6 @@ def evaluate(algo: Any, obs_type: str | None = None, reward: str | None = None, 
     return judged(env.task, evaluate_policy(env, policy_of(algo, env), jax.random.key(1), n_episodes))
 
 
-def _row(steps: int, seconds: float, verdict: dict) -> dict:
-    """An evaluation as a row of ``progress.json`` (`jaxdrones.training.progress.ProgressLog`'s keys)."""
-    stats = verdict["eval"]
-    return {
-        "env_steps": steps,
-        "time_s": seconds,
-        "success_value": verdict["success_value"],
-        "terminated_rate": stats["terminated_rate"],
-        "episode_reward": stats["episode_reward"],
-    }
-
-
 def train(
     timesteps: int = 400_000,
     seed: int = 0,
@@ -266,10 +254,13 @@ def train(
         evaluation: ``env_steps``, ``time_s``, ``success_value``, ``terminated_rate``, ``episode_reward``) and the
         last evaluation's verdict (`jaxdrones.training.evaluation.judged`: ``success``, ``success_value``, ...).
     """
+    from jaxdrones.training.progress import ProgressLog
+
     config = algorithm_config(obs_type, reward, seed, num_env_runners, train_batch_size)
     start = time.perf_counter()
+    log_rows = ProgressLog(timesteps, make_env(obs_type, reward).task, enabled=False)  # progress.json's rows
     algo = config.build_algo()
-    steps, iteration, progress = 0, 0, []
+    steps, iteration = 0, 0
     try:
         while steps < timesteps:
             result = algo.train()
@@ -280,12 +271,12 @@ def train(
             log(f"iteration {iteration}: {steps:,} env steps, {time.perf_counter() - start:.0f} s, returns: {returns}")
             if eval_every and iteration % eval_every == 0 and steps < timesteps:
                 verdict = evaluate(algo, obs_type, reward)
-                progress.append(_row(steps, time.perf_counter() - start, verdict))
+                log_rows(steps, verdict["eval"])
                 value, unit = verdict["success_value"], verdict["success_unit"]
                 log(f"  evaluation: {verdict['success_metric']} {value:.4g} {unit}")
         train_s = time.perf_counter() - start
         final = evaluate(algo, obs_type, reward)
-        progress.append(_row(steps, time.perf_counter() - start, final))
+        log_rows(steps, final["eval"])
         if checkpoint is not None:
             algo.save_to_path(os.path.abspath(checkpoint))
     finally:
@@ -302,7 +293,7 @@ def train(
         "train_batch_size": train_batch_size,
         "num_env_runners": num_env_runners,
         "train_time_s": train_s,
-        "progress": progress,
+        "progress": log_rows.history,
         **final,
     }
 
